@@ -1,0 +1,90 @@
+"""The device interface every backend implements.
+
+Units: position m, velocity m/s, force N, time s. Vectors are (3,) in the
+device's frame, which the profile maps to the world frame.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class DeviceError(RuntimeError):
+    """A device failed: read or write error, unplug, bad report, rejected command."""
+
+
+class BackendUnavailableError(DeviceError):
+    """A backend that is unknown, or whose optional dependency is not installed."""
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    """Identity and limits: model, serial, rated force (N), workspace radius (m)."""
+
+    model: str
+    serial: str
+    max_force_n: float
+    workspace_radius_m: float
+    n_dof: int = 3
+
+
+@dataclass
+class DeviceState:
+    """Preallocated state a device fills on every read (no allocation per tick)."""
+
+    position: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    buttons: int = 0
+    timestamp: float = 0.0
+
+
+class Device(abc.ABC):
+    """One haptic device: open, read state, write force, enable forces, close.
+
+    Forces are accepted only while enabled; a disabled device renders zero.
+    """
+
+    info: DeviceInfo
+
+    @abc.abstractmethod
+    def open(self) -> None: ...
+
+    @abc.abstractmethod
+    def close(self) -> None: ...
+
+    @abc.abstractmethod
+    def read_state(self, state: DeviceState) -> None:
+        """Fill ``state`` with the latest position, velocity, buttons and device time."""
+
+    @abc.abstractmethod
+    def write_force(self, force: np.ndarray) -> None:
+        """Command ``force`` (3,) N. Raises DeviceError on non-finite or over-limit input."""
+
+    @abc.abstractmethod
+    def enable_forces(self, enabled: bool) -> None: ...
+
+    @property
+    def finished(self) -> bool:
+        """True when a device that plays a trajectory has reached its end."""
+        return False
+
+    def __enter__(self) -> Device:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def check_force(force: np.ndarray, limit_n: float, who: str) -> None:
+    """Device-side guard: refuse non-finite or over-limit forces, as firmware would."""
+    f = np.asarray(force, dtype=float)
+    if f.shape != (3,) or not np.all(np.isfinite(f)):
+        raise DeviceError(f"{who}: refused force {force!r}: expected 3 finite values in N")
+    mag = math.hypot(f[0], f[1], f[2])
+    if mag > limit_n * (1.0 + 1e-9):
+        raise DeviceError(f"{who}: refused force of {mag:.6g} N above its limit {limit_n:g} N")

@@ -1,0 +1,148 @@
+"""The ``hapticd`` command line: run a profile, check a profile."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+from hapticd_drivers import BackendUnavailableError
+
+from hapticd import __version__
+from hapticd.profile import ProfileError, load_profile
+from hapticd.runner import build_session, load_trajectories
+
+EXIT_OK = 0
+EXIT_ERROR = 1
+EXIT_BAD_INPUT = 2
+EXIT_FAULT = 3
+
+
+def _fmt(v: float | None, unit: str = "") -> str:
+    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:g}{unit}"
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    """Human-readable run summary."""
+    pe, tc = s["period_error_us"], s["tick_compute_us"]
+    lines = [
+        f"hapticd run: {s['ticks']} ticks ({s['duration_s']:g} s), ended: {s['end_reason']}",
+        f"  rate            target {s['rate_hz']['target']:g} Hz, achieved "
+        f"{_fmt(s['rate_hz']['achieved'])} Hz" + ("" if s["paced"] else " (unpaced)"),
+    ]
+    if s["paced"]:
+        lines.append(
+            f"  period error    p50 {_fmt(pe['p50'])} us, p99 {_fmt(pe['p99'])} us, "
+            f"max {_fmt(pe['max'])} us; overruns {s['overruns']}"
+        )
+    lines += [
+        f"  tick compute    p50 {_fmt(tc['p50'])} us, p99 {_fmt(tc['p99'])} us, "
+        f"max {_fmt(tc['max'])} us",
+        f"  allocator       {s['allocator']}",
+        f"  max force       {s['max_rendered_force_n']:.4f} N "
+        f"(clamped on {s['clamped_ticks']} ticks)",
+    ]
+    for name, f in s["fingers"].items():
+        lines.append(
+            f"    {name:<12} max {f['max_force_n']:.4f} N, in contact {f['contact_ticks']} ticks"
+        )
+    if s["fault"]:
+        lines.append(f"  FAULT (latched) at tick {s['fault']['tick']}: {s['fault']['cause']}")
+    return "\n".join(lines)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    try:
+        profile = load_profile(args.profile)
+        session = build_session(
+            profile,
+            paced=not args.unpaced,
+            duration_s=args.duration,
+            record_path=args.record,
+        )
+    except (ProfileError, BackendUnavailableError) as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+
+    def on_signal(signum: int, _frame: object) -> None:
+        session.loop.request_stop(f"signal {signal.Signals(signum).name}")
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        summary = session.run()
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    summary["profile"] = str(args.profile)
+    if args.record:
+        summary["recording"] = str(args.record)
+    if args.summary_json:
+        Path(args.summary_json).write_text(json.dumps(summary, indent=2) + "\n")
+    if not args.quiet:
+        print(format_summary(summary))
+    return EXIT_FAULT if summary["fault"] else EXIT_OK
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    try:
+        profile = load_profile(args.profile)
+        load_trajectories(profile)
+    except ProfileError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    fingers = ", ".join(
+        f"{f.name} ({f.device.backend}, {len(f.actuated_directions)} actuated)"
+        for f in profile.fingers
+    )
+    print(
+        f"{args.profile}: OK: profile {profile.name!r}, {profile.loop.rate_hz:g} Hz, "
+        f"allocator {profile.rendering.allocator}, fingers: {fingers}"
+    )
+    return EXIT_OK
+
+
+def _positive(text: str) -> float:
+    v = float(text)
+    if not (v > 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text}")
+    return v
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="hapticd", description="Real-time haptic rendering daemon.")
+    ap.add_argument("--version", action="version", version=f"hapticd {__version__}")
+    sub = ap.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="run the servo loop on a profile's devices")
+    run.add_argument("profile", type=Path, help="YAML profile")
+    run.add_argument("--duration", type=_positive, metavar="S", help="stop after S seconds")
+    run.add_argument(
+        "--unpaced",
+        action="store_true",
+        help="run as fast as possible on a simulated clock (same forces as paced)",
+    )
+    run.add_argument(
+        "--record", type=Path, metavar="PATH", help="record every tick to PATH (.hrec)"
+    )
+    run.add_argument("--summary-json", type=Path, metavar="PATH", help="write the summary as JSON")
+    run.add_argument("-q", "--quiet", action="store_true", help="do not print the summary")
+    run.set_defaults(func=cmd_run)
+    chk = sub.add_parser("check", help="validate a profile and the files it names")
+    chk.add_argument("profile", type=Path)
+    chk.set_defaults(func=cmd_check)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,200 @@
+"""God-object (proxy) contact of a spherical fingertip against a convex polytope.
+
+The proxy is the sphere centre the finger *should* have: it follows the device
+position but never enters the object inflated by the sphere radius. Each update
+moves the proxy from its previous position toward the device position, stopping
+at the first face the path enters and then sliding on up to three active
+constraint planes (face, edge, corner), after Zilles & Salisbury (1995). A fast
+finger therefore cannot pop through a thin part of the object.
+
+Units: m. Planes are half-spaces n . x <= d with unit outward normals n.
+Pure functions on numpy arrays; the only state is the proxy position, passed in.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+# Segment parameters closer than this count as touching, not entering: keeps a
+# proxy that slides along a face (or grazes an edge) from being captured.
+_T_EPS = 1e-12
+_MAX_CONSTRAINTS = 3
+
+
+@dataclass(frozen=True)
+class Polytope:
+    """Convex polytope as half-spaces: normals (m, 3) unit, offsets (m,) in m."""
+
+    normals: np.ndarray
+    offsets: np.ndarray
+    center: np.ndarray
+
+    def __post_init__(self) -> None:
+        # Plain-float copies: the proxy update runs per finger per tick, and numpy's
+        # per-call overhead on 3-vectors would dominate it.
+        object.__setattr__(self, "normals_list", [tuple(n) for n in self.normals.tolist()])
+        object.__setattr__(self, "offsets_list", self.offsets.tolist())
+
+    def inflated(self, radius: float) -> Polytope:
+        """The polytope grown by ``radius`` (m) along every face normal."""
+        return Polytope(self.normals, self.offsets + radius, self.center)
+
+    def signed_distance(self, x: np.ndarray) -> float:
+        """max_i (n_i . x - d_i): > 0 outside, < 0 inside (exact inside, a lower bound outside)."""
+        return float(np.max(self.normals @ np.asarray(x, dtype=float) - self.offsets))
+
+
+def box_polytope(center: np.ndarray, rotation: np.ndarray, size: np.ndarray) -> Polytope:
+    """Box with edge lengths ``size`` (3,) m at ``center``, axes the columns of ``rotation``."""
+    c = np.asarray(center, dtype=float).reshape(3)
+    R = np.asarray(rotation, dtype=float).reshape(3, 3)
+    h = 0.5 * np.asarray(size, dtype=float).reshape(3)
+    normals = np.vstack([R.T, -R.T])  # +x, +y, +z, -x, -y, -z faces in world frame
+    offsets = np.concatenate([R.T @ c + h, -(R.T @ c) + h])
+    return Polytope(normals, offsets, c)
+
+
+@dataclass
+class ProxyResult:
+    """Outcome of one proxy update.
+
+    proxy (3,) m: new proxy (sphere centre); in_contact: at least one active
+    constraint; normal (3,): unit outward contact normal (zeros when free);
+    n_active: number of active constraint planes (0-3).
+    """
+
+    proxy: np.ndarray
+    in_contact: bool
+    normal: np.ndarray
+    n_active: int
+
+
+Vec = tuple[float, float, float]
+
+
+def _dot(a: Vec, b: Vec) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _first_entry(
+    normals: list[Vec], offsets: list[float], p: Vec, d: Vec
+) -> tuple[float, int] | None:
+    """First t in [0, 1) where p + t d enters the open interior, and the plane entered."""
+    t_enter = -math.inf
+    t_exit = math.inf
+    plane = -1
+    for i, n in enumerate(normals):
+        denom = n[0] * d[0] + n[1] * d[1] + n[2] * d[2]
+        num = offsets[i] - (n[0] * p[0] + n[1] * p[1] + n[2] * p[2])
+        if denom == 0.0:
+            if num <= 0.0:
+                return None  # parallel to and outside (or on) this plane: never inside
+            continue
+        t = num / denom
+        if denom < 0.0:
+            if t > t_enter:
+                t_enter, plane = t, i
+        elif t < t_exit:
+            t_exit = t
+    if plane < 0 or t_enter >= 1.0 or t_exit <= t_enter + _T_EPS or t_exit <= 0.0:
+        return None
+    return max(t_enter, 0.0), plane
+
+
+def _project_on_planes(
+    g: Vec, normals: list[Vec], offsets: list[float], active: list[int]
+) -> tuple[Vec, list[float]]:
+    """Closest point to ``g`` on the intersection of the active planes, and the multipliers.
+
+    Returns (x, mu) with x - g = sum_i mu_i n_i; mu_i >= 0 means plane i pushes
+    outward (a true contact), mu_i < 0 means it would pull and must be released.
+    """
+    if len(active) == 1:
+        n = normals[active[0]]
+        mu = offsets[active[0]] - _dot(n, g)
+        return (g[0] + mu * n[0], g[1] + mu * n[1], g[2] + mu * n[2]), [mu]
+    N = np.array([normals[i] for i in active])
+    r = np.array([offsets[i] for i in active]) - N @ np.array(g)
+    # Minimum-norm solution of N N^T mu = r; lstsq tolerates near-parallel planes.
+    mu, *_ = np.linalg.lstsq(N @ N.T, r, rcond=1e-12)
+    x = np.array(g) + N.T @ mu
+    return (float(x[0]), float(x[1]), float(x[2])), mu.tolist()
+
+
+def _signed_distance(normals: list[Vec], offsets: list[float], x: Vec) -> tuple[float, int]:
+    best, arg = -math.inf, 0
+    for i, n in enumerate(normals):
+        v = n[0] * x[0] + n[1] * x[1] + n[2] * x[2] - offsets[i]
+        if v > best:
+            best, arg = v, i
+    return best, arg
+
+
+_MAX_ITER = 8
+_FREE_TOL = 1e-12
+
+
+def update_proxy(poly: Polytope, proxy_prev: np.ndarray, device: np.ndarray) -> ProxyResult:
+    """Move the proxy from ``proxy_prev`` toward ``device`` without entering ``poly``.
+
+    ``poly`` must already be inflated by the fingertip radius. If ``proxy_prev``
+    is inside (first tick, or a moved object), it is first pushed out through
+    the nearest face. Every move either stops where the path enters the
+    interior or ends at a target it reaches without entering, so the proxy is
+    never inside.
+    """
+    normals, offsets = poly.normals_list, poly.offsets_list
+    g: Vec = (float(device[0]), float(device[1]), float(device[2]))
+    p: Vec = (float(proxy_prev[0]), float(proxy_prev[1]), float(proxy_prev[2]))
+    dist, i = _signed_distance(normals, offsets, p)
+    if dist < 0.0:  # inside: out through the nearest face
+        n = normals[i]
+        p = (p[0] - dist * n[0], p[1] - dist * n[1], p[2] - dist * n[2])
+    active: list[int] = []
+    for _ in range(_MAX_ITER):
+        if active:
+            target, mu = _project_on_planes(g, normals, offsets, active)
+        else:
+            target, mu = g, []
+        d = (target[0] - p[0], target[1] - p[1], target[2] - p[2])
+        hit = _first_entry(normals, offsets, p, d)
+        if hit is not None:
+            t, plane = hit
+            p = (p[0] + t * d[0], p[1] + t * d[1], p[2] + t * d[2])
+            if plane in active or len(active) == _MAX_CONSTRAINTS:
+                break  # numerically stuck in a corner: stay at the contact point
+            active.append(plane)
+            continue
+        p = target
+        if not active:
+            break
+        if _signed_distance(normals, offsets, p)[0] > _FREE_TOL:
+            active = []  # slid off an edge into free space: head for the device again
+            continue
+        keep = [i for i, m in zip(active, mu, strict=True) if m >= 0.0]
+        if len(keep) == len(active):
+            break
+        active = keep
+    # A plane the device is outside of cannot push the finger.
+    active = [i for i in active if _dot(normals[i], g) < offsets[i]]
+    proxy = np.array(p)
+    if not active:
+        return ProxyResult(proxy, False, np.zeros(3), 0)
+    diff = (p[0] - g[0], p[1] - g[1], p[2] - g[2])
+    depth = math.sqrt(_dot(diff, diff))
+    if depth > 1e-15:
+        normal = np.array(diff) / depth
+    else:
+        s = poly.normals[active].sum(axis=0)
+        normal = s / np.linalg.norm(s)
+    return ProxyResult(proxy, True, normal, len(active))
+
+
+def spring_force(
+    stiffness: float, damping: float, proxy: np.ndarray, device: np.ndarray, velocity: np.ndarray
+) -> np.ndarray:
+    """Force on the finger (3,) N: k (proxy - device) - b v, with k in N/m and b in N s/m."""
+    return stiffness * (proxy - device) - damping * velocity

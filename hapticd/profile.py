@@ -1,0 +1,262 @@
+"""Profiles: YAML files to a frozen, typed configuration that rejects unknown keys.
+
+Every quantity is SI and its unit is in the key name (``_m``, ``_n``,
+``_n_per_m``, ``_hz``, ``_s``). ``load_profile`` raises ``ProfileError`` naming
+the file, the dotted key path and what was expected. See docs/profiles.md.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+from pathlib import Path
+from typing import Annotated, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+PROFILE_VERSION = 1
+UNIT_TOL = 1e-3
+
+Vec3 = tuple[float, float, float]
+
+
+class ProfileError(ValueError):
+    """A profile that cannot be used; the message names file, key path and expectation."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ReplayDeviceConfig(_Strict):
+    """A device that plays recorded positions (see docs/recording.md)."""
+
+    backend: Literal["replay"]
+    trajectory: str = Field(
+        description="recording path (relative to the profile) or 'builtin:NAME' for a bundled one"
+    )
+    finger: str | None = Field(
+        default=None, description="finger of the recording to play; defaults to this finger's name"
+    )
+    max_force_n: float = Field(default=12.0, gt=0, description="the device's rated force, N")
+    hold_s: float = Field(
+        default=0.0, ge=0, description="keep running this long after the trajectory ends, s"
+    )
+
+
+DeviceConfig = Annotated[ReplayDeviceConfig, Field(discriminator="backend")]
+
+
+def _unit(v: Vec3, what: str) -> Vec3:
+    n = math.sqrt(sum(c * c for c in v))
+    if not math.isfinite(n) or abs(n - 1.0) > UNIT_TOL:
+        raise ValueError(
+            f"{what} must be a unit vector (norm 1 within {UNIT_TOL}), got norm {n:.6g}"
+        )
+    return (v[0] / n, v[1] / n, v[2] / n)
+
+
+class FingerConfig(_Strict):
+    """One fingertip: its thimble sphere, its device and its actuated force directions."""
+
+    name: str = Field(min_length=1)
+    radius_m: float = Field(default=0.008, gt=0, le=0.05, description="fingertip sphere radius, m")
+    device: DeviceConfig
+    actuated_directions: tuple[Vec3, ...] = Field(
+        min_length=0,
+        max_length=3,
+        description="unit force directions the device renders for this finger (0-3)",
+    )
+
+    @field_validator("actuated_directions")
+    @classmethod
+    def _units(cls, v: tuple[Vec3, ...]) -> tuple[Vec3, ...]:
+        return tuple(_unit(d, f"direction {i}") for i, d in enumerate(v))
+
+
+class BoxConfig(_Strict):
+    """A box object: edge lengths, pose and contact stiffness."""
+
+    shape: Literal["box"] = "box"
+    size_m: Vec3 = Field(description="edge lengths along the box's x, y, z axes, m")
+    position_m: Vec3 = (0.0, 0.0, 0.0)
+    orientation_rpy_rad: Vec3 = Field(
+        default=(0.0, 0.0, 0.0), description="roll, pitch, yaw (x, y, z fixed axes), rad"
+    )
+    fixed: bool = True
+    stiffness_n_per_m: float = Field(gt=0, le=1e5)
+    damping_n_s_per_m: float = Field(default=0.0, ge=0, le=1e3)
+
+    @field_validator("size_m")
+    @classmethod
+    def _positive(cls, v: Vec3) -> Vec3:
+        if any(not (0 < s <= 1.0) for s in v):
+            raise ValueError(f"every edge length must be in (0, 1] m, got {list(v)}")
+        return v
+
+    @model_validator(mode="after")
+    def _only_fixed(self) -> BoxConfig:
+        if not self.fixed:
+            raise ValueError("free (dynamic) objects are not supported yet: set fixed: true")
+        return self
+
+
+class SceneConfig(_Strict):
+    object: BoxConfig
+
+
+class LoopConfig(_Strict):
+    rate_hz: float = Field(default=1000.0, ge=100.0, le=8000.0, description="servo rate, Hz")
+
+
+class RenderingConfig(_Strict):
+    allocator: Literal["pinv", "if", "ef"] = "if"
+    actuation_frame: Literal["world", "grasp"] = Field(
+        default="world",
+        description="frame of actuated_directions: world, or the grasp frame "
+        "(x from the first finger to the second, z up)",
+    )
+
+
+class SafetyConfig(_Strict):
+    max_force_n: float = Field(
+        gt=0, le=50.0, description="force limit per finger, N (the device's own limit also applies)"
+    )
+
+
+class Profile(_Strict):
+    """A complete hapticd profile (see docs/profiles.md)."""
+
+    version: Literal[1] = 1
+    name: str = Field(min_length=1)
+    description: str = ""
+    loop: LoopConfig = LoopConfig()
+    fingers: tuple[FingerConfig, ...] = Field(min_length=1, max_length=5)
+    rendering: RenderingConfig = RenderingConfig()
+    scene: SceneConfig
+    safety: SafetyConfig
+
+    source: Path | None = Field(default=None, exclude=True, description="file it was loaded from")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Profile:
+        names = [f.name for f in self.fingers]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise ValueError(f"finger names must be unique, repeated: {sorted(dup)}")
+        if self.rendering.actuation_frame == "grasp" and len(self.fingers) < 2:
+            raise ValueError("actuation_frame 'grasp' needs at least two fingers")
+        return self
+
+    @property
+    def finger_names(self) -> tuple[str, ...]:
+        return tuple(f.name for f in self.fingers)
+
+    def resolve_path(self, path: str) -> Path:
+        """A path from the profile, relative to the profile's folder."""
+        p = Path(path)
+        if p.is_absolute() or self.source is None:
+            return p
+        return self.source.parent / p
+
+
+def _format_loc(loc: tuple[int | str, ...], data: object) -> str:
+    """Dotted key path; list indices become the item's name where it has one."""
+    parts: list[str] = []
+    node = data
+    for item in loc:
+        if isinstance(item, int):
+            name = node[item].get("name") if isinstance(node, list) and item < len(node) else None
+            parts.append(f"[{item}]" if name is None else f"[{item}:{name}]")
+            node = node[item] if isinstance(node, list) and item < len(node) else None
+        else:
+            if item in ("replay",) and isinstance(node, dict) and node.get("backend") == item:
+                continue  # pydantic's discriminator tag, not a key the user wrote
+            parts.append(("." if parts else "") + str(item))
+            node = node.get(item) if isinstance(node, dict) else None
+    return "".join(parts) or "(top level)"
+
+
+def _all_keys() -> set[str]:
+    keys: set[str] = set()
+    todo: list[type[BaseModel]] = [Profile]
+    while todo:
+        model = todo.pop()
+        for name, field in model.model_fields.items():
+            keys.add(name)
+            for sub in _models_in(field.annotation):
+                if sub not in todo:
+                    todo.append(sub)
+    return keys
+
+
+def _models_in(annotation: object) -> list[type[BaseModel]]:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    out: list[type[BaseModel]] = []
+    for arg in getattr(annotation, "__args__", ()) or ():
+        out.extend(_models_in(arg))
+    return out
+
+
+def _explain(err: dict) -> str:
+    kind = err["type"]
+    if kind == "extra_forbidden":
+        key = str(err["loc"][-1])
+        close = difflib.get_close_matches(key, sorted(_all_keys()), n=1, cutoff=0.75)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        return f"unknown key{hint} (the keys are listed in docs/profiles.md)"
+    if kind == "missing":
+        return "required key is missing"
+    msg = str(err["msg"])
+    return msg.removeprefix("Value error, ")
+
+
+def parse_profile(data: object, source: str | Path = "<profile>") -> Profile:
+    """Validate an already-parsed YAML document into a Profile."""
+    if not isinstance(data, dict):
+        raise ProfileError(f"{source}: expected a mapping of keys at the top level")
+    try:
+        prof = Profile.model_validate(data)
+    except ValidationError as exc:
+        errors = exc.errors()
+        locs = [tuple(e["loc"]) for e in errors]
+        # A list whose items failed also reports "too short"; that one only confuses.
+        errors = [
+            e
+            for e in errors
+            if not (
+                e["type"] == "too_short"
+                and any(
+                    len(o) > len(e["loc"]) and o[: len(e["loc"])] == tuple(e["loc"]) for o in locs
+                )
+            )
+        ]
+        lines = [f"{source}: {len(errors)} error(s) in profile"]
+        for err in errors:
+            where = _format_loc(tuple(err["loc"]), data)
+            got = err.get("input")
+            shown = ""
+            if err["type"] != "missing" and not isinstance(got, dict | list):
+                shown = f" (got {got!r})"
+            lines.append(f"  {where}: {_explain(err)}{shown}")
+        raise ProfileError("\n".join(lines)) from None
+    return prof.model_copy(update={"source": Path(source)}) if source else prof
+
+
+def load_profile(path: str | Path) -> Profile:
+    """Read and validate the YAML profile at ``path``."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ProfileError(f"{p}: cannot read profile: {exc.strerror or exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ProfileError(f"{p}: not valid YAML{where}: {problem}") from None
+    return parse_profile(data, p.resolve())

@@ -1,0 +1,155 @@
+"""Assemble a servo loop from a profile: devices, scene, renderer, safety, recorder."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from hapticd_drivers import Device, DeviceError, open_device
+
+from hapticd import recording
+from hapticd.actuation import Actuation
+from hapticd.profile import FingerConfig, Profile, ProfileError
+from hapticd.recording import Recorder, RecordingError
+from hapticd.render import Renderer
+from hapticd.safety import SafetyChain
+from hapticd.scene import SceneObject
+from hapticd.servo import ServoLoop, summarize
+
+BUILTIN = "builtin:"
+
+
+def builtin_trajectory(name: str) -> Path:
+    """Path of a bundled trajectory, e.g. 'grasp-stiffness'."""
+    base = resources.files("hapticd") / "data" / "trajectories"
+    path = Path(str(base / f"{name}{recording.SUFFIX}"))
+    if not path.is_file():
+        known = sorted(
+            p.name.removesuffix(recording.SUFFIX) for p in Path(str(base)).glob("*.hrec")
+        )
+        raise FileNotFoundError(f"no bundled trajectory {name!r}; bundled: {', '.join(known)}")
+    return path
+
+
+def trajectory_path(profile: Profile, ref: str) -> Path:
+    if ref.startswith(BUILTIN):
+        return builtin_trajectory(ref.removeprefix(BUILTIN))
+    return profile.resolve_path(ref)
+
+
+def _where(profile: Profile, i: int, finger: FingerConfig, key: str) -> str:
+    return f"{profile.source or '<profile>'}: fingers[{i}:{finger.name}].device.{key}"
+
+
+def load_trajectories(profile: Profile) -> list[tuple[Any, Any]]:
+    """(times, positions) per finger for replay devices; ProfileError names the bad key."""
+    cache: dict[Path, recording.Recording] = {}
+    out = []
+    for i, finger in enumerate(profile.fingers):
+        dev = finger.device
+        try:
+            path = trajectory_path(profile, dev.trajectory)
+            rec = cache.get(path) or recording.read(path)
+        except (FileNotFoundError, RecordingError) as exc:
+            raise ProfileError(f"{_where(profile, i, finger, 'trajectory')}: {exc}") from None
+        cache[path] = rec
+        want = dev.finger or finger.name
+        missing = [k for k in ("t", "device_pos") if k not in rec]
+        if missing:
+            raise ProfileError(
+                f"{_where(profile, i, finger, 'trajectory')}: {path} lacks field(s) {missing}"
+            )
+        if want not in rec.fingers:
+            raise ProfileError(
+                f"{_where(profile, i, finger, 'finger')}: recording {path} has fingers "
+                f"{rec.fingers}, not {want!r}"
+            )
+        j = rec.fingers.index(want)
+        out.append((rec["t"], rec["device_pos"][:, j, :]))
+    return out
+
+
+@dataclass
+class Session:
+    """Everything one run needs, built from a profile."""
+
+    profile: Profile
+    devices: list[Device]
+    renderer: Renderer
+    safety: SafetyChain
+    loop: ServoLoop
+    recorder: Recorder | None
+
+    def run(self) -> dict[str, Any]:
+        try:
+            self.loop.run()
+        finally:
+            if self.recorder is not None:
+                self.recorder.close()
+        return summarize(self.loop, self.renderer.allocator, self.profile.finger_names)
+
+
+def build_session(
+    profile: Profile,
+    *,
+    paced: bool = True,
+    duration_s: float | None = None,
+    record_path: str | Path | None = None,
+) -> Session:
+    """Create devices, renderer, safety chain, recorder and loop for ``profile``."""
+    trajectories = load_trajectories(profile)
+    clock_box: list[ServoLoop] = []
+    devices: list[Device] = []
+    for finger, (t, x) in zip(profile.fingers, trajectories, strict=True):
+        dev_cfg = finger.device
+        try:
+            devices.append(
+                open_device(
+                    dev_cfg.backend,
+                    times=t,
+                    positions=x,
+                    clock=lambda: clock_box[0].now(),
+                    max_force_n=dev_cfg.max_force_n,
+                    serial=f"replay-{finger.name}",
+                    hold_s=dev_cfg.hold_s,
+                )
+            )
+        except DeviceError as exc:
+            raise ProfileError(f"{profile.source}: fingers[{finger.name}].device: {exc}") from None
+    obj = SceneObject.from_config(profile.scene.object)
+    actuation = Actuation(
+        [list(f.actuated_directions) for f in profile.fingers], profile.rendering.actuation_frame
+    )
+    renderer = Renderer(
+        obj, [f.radius_m for f in profile.fingers], actuation, profile.rendering.allocator
+    )
+    limits = [min(d.info.max_force_n, profile.safety.max_force_n) for d in devices]
+    safety = SafetyChain(limits)
+    recorder = None
+    if record_path is not None:
+        recorder = Recorder(
+            record_path,
+            recording.loop_fields(len(devices), actuation.n_actuators),
+            profile.finger_names,
+            {
+                "profile": profile.name,
+                "profile_path": str(profile.source),
+                "rate_hz": profile.loop.rate_hz,
+                "allocator": profile.rendering.allocator,
+                "paced": paced,
+                "force_limits_n": limits,
+            },
+        )
+    loop = ServoLoop(
+        devices,
+        renderer,
+        safety,
+        profile.loop.rate_hz,
+        paced=paced,
+        duration_s=duration_s,
+        recorder=recorder,
+    )
+    clock_box.append(loop)
+    return Session(profile, devices, renderer, safety, loop, recorder)

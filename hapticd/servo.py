@@ -1,0 +1,293 @@
+"""The fixed-rate servo loop: read devices, render, make safe, write forces, record.
+
+Ticks run on a grid of absolute deadlines on the monotonic clock (no drift),
+waiting by sleeping to just before the deadline and spinning the rest. Each
+tick k has the nominal time t = k / rate_hz (s); devices that play a
+trajectory take their time from ``ServoLoop.now``, so a paced run and an
+unpaced run (no waiting: as fast as possible on the nominal clock) compute the
+same forces. Garbage collection is frozen and disabled while the loop runs.
+
+Every way out of the loop (end of trajectory, duration, stop request, an
+exception or device error) writes zero force to every device, disables
+forces and closes the devices.
+"""
+
+from __future__ import annotations
+
+import gc
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from hapticd_drivers import Device, DeviceState
+
+from hapticd.recording import Recorder
+from hapticd.render import Renderer
+from hapticd.safety import SafetyChain
+from hapticd.stats import LogHistogram
+
+OVERRUN_FACTOR = 1.1
+# Sleep until this long before a deadline, then spin: measured in docs/notes.
+SPIN_MARGIN_S = 200e-6
+# If the loop falls this many periods behind, it re-anchors instead of bursting.
+REANCHOR_PERIODS = 10
+
+
+@dataclass
+class LoopStats:
+    """Timing and force statistics gathered while the loop runs."""
+
+    period_error: LogHistogram = field(default_factory=LogHistogram)
+    compute: LogHistogram = field(default_factory=LogHistogram)
+    ticks: int = 0
+    overruns: int = 0
+    reanchors: int = 0
+    first_start: float = 0.0
+    last_start: float = 0.0
+    max_force: list[float] = field(default_factory=list)
+    contact_ticks: list[int] = field(default_factory=list)
+
+
+def _wait_until(deadline: float, margin: float) -> None:
+    remaining = deadline - time.monotonic()
+    if remaining > margin:
+        time.sleep(remaining - margin)
+    while time.monotonic() < deadline:
+        pass
+
+
+class ServoLoop:
+    """Runs the rendering pipeline on ``devices`` at ``rate_hz``."""
+
+    def __init__(
+        self,
+        devices: Sequence[Device],
+        renderer: Renderer,
+        safety: SafetyChain,
+        rate_hz: float,
+        *,
+        paced: bool = True,
+        duration_s: float | None = None,
+        recorder: Recorder | None = None,
+        object_pos: Callable[[], np.ndarray] | None = None,
+    ) -> None:
+        if not (rate_hz > 0 and math.isfinite(rate_hz)):
+            raise ValueError(f"rate_hz must be positive, got {rate_hz}")
+        self.devices = list(devices)
+        self.renderer = renderer
+        self.safety = safety
+        self.rate_hz = float(rate_hz)
+        self.period = 1.0 / self.rate_hz
+        self.paced = paced
+        self.duration_s = duration_s
+        self.recorder = recorder
+        self._object_pos = object_pos or (lambda: renderer.obj.center)
+        F = len(self.devices)
+        self._states = [DeviceState() for _ in range(F)]
+        self.device_pos = np.zeros((F, 3))
+        self.device_vel = np.zeros((F, 3))
+        self._t = 0.0
+        self._stop_reason: str | None = None
+        self.end_reason = ""
+        self.stats = LoopStats(max_force=[0.0] * F, contact_ticks=[0] * F)
+
+    def now(self) -> float:
+        """Nominal time of the current tick, s (the clock of trajectory devices)."""
+        return self._t
+
+    def request_stop(self, reason: str = "stop requested") -> None:
+        """Ask the loop to stop after the current tick (safe from a signal handler)."""
+        if self._stop_reason is None:
+            self._stop_reason = reason
+
+    def _tick(self, k: int, t: float) -> None:
+        pos, vel = self.device_pos, self.device_vel
+        for i, dev in enumerate(self.devices):
+            st = self._states[i]
+            dev.read_state(st)
+            pos[i] = st.position
+            vel[i] = st.velocity
+        self.renderer.step(pos, vel)
+        out = self.safety.apply(self.renderer.rendered_force, k, t)
+        for i, dev in enumerate(self.devices):
+            dev.write_force(out[i])
+
+    def _record(self, t: float, t_wall: float, compute: float, forces: np.ndarray) -> None:
+        r = self.renderer
+        assert self.recorder is not None
+        self.recorder.append(
+            (
+                t,
+                t_wall,
+                compute,
+                self.device_pos,
+                self.device_vel,
+                r.proxy_pos,
+                r.in_contact,
+                r.contact_force,
+                r.rendered_force,
+                forces,
+                r.lam_a,
+                self._object_pos(),
+                self.safety.latched,
+            )
+        )
+
+    def _zero_all(self) -> list[str]:
+        """Command zero force and disable every device; return the errors met."""
+        errors: list[str] = []
+        zero = np.zeros(3)
+        for dev in self.devices:
+            for action in (lambda d=dev: d.write_force(zero), lambda d=dev: d.enable_forces(False)):
+                try:
+                    action()
+                except Exception as exc:
+                    errors.append(f"{dev.info.serial}: {exc}")
+        return errors
+
+    def _finished(self, k: int) -> str | None:
+        if self._stop_reason is not None:
+            return self._stop_reason
+        if self.duration_s is not None and (k + 1) * self.period >= self.duration_s - 1e-12:
+            return "duration reached"
+        if self.devices and all(d.finished for d in self.devices):
+            return "trajectory ended"
+        return None
+
+    def run(self) -> LoopStats:
+        """Open and enable the devices, run until a stop condition, then zero and close."""
+        opened: list[Device] = []
+        try:
+            for dev in self.devices:
+                dev.open()
+                opened.append(dev)
+            for dev in self.devices:
+                dev.enable_forces(True)
+        except Exception as exc:
+            self.safety.trip(0, 0.0, f"device setup failed: {exc}")
+            self.end_reason = "fault"
+            self._zero_all()
+            for dev in opened:
+                dev.close()
+            return self.stats
+        gc.collect()
+        gc.freeze()
+        gc_was_enabled = gc.isenabled()
+        gc.disable()
+        try:
+            self._loop()
+        finally:
+            errors = self._zero_all()
+            for dev in self.devices:
+                try:
+                    dev.close()
+                except Exception as exc:
+                    errors.append(f"{dev.info.serial}: close: {exc}")
+            if errors and self.safety.fault is None:
+                self.safety.trip(self.stats.ticks, self._t, "shutdown: " + "; ".join(errors))
+            if gc_was_enabled:
+                gc.enable()
+            gc.unfreeze()
+        return self.stats
+
+    def _loop(self) -> None:
+        T = self.period
+        st = self.stats
+        margin = min(SPIN_MARGIN_S, 0.5 * T)
+        paced = self.paced
+        rec = self.recorder
+        safety = self.safety
+        F = len(self.devices)
+        renderer = self.renderer
+        t0 = time.monotonic() + (2e-3 if paced else 0.0)
+        prev = 0.0
+        k = 0
+        while True:
+            t = k * T
+            self._t = t
+            deadline = t0 + t
+            if paced:
+                _wait_until(deadline, margin)
+            start = time.monotonic()
+            if k == 0:
+                st.first_start = start
+            else:
+                period = start - prev
+                st.period_error.add(abs(period - T))
+                if period > OVERRUN_FACTOR * T:
+                    st.overruns += 1
+            prev = start
+            try:
+                self._tick(k, t)
+            except Exception as exc:
+                safety.trip(k, t, f"{type(exc).__name__}: {exc}")
+                self.end_reason = "fault"
+                st.ticks = k + 1
+                st.last_start = start
+                return
+            out = safety.output
+            for i in range(F):
+                f = out[i]
+                mag = math.hypot(f[0], f[1], f[2])
+                if mag > st.max_force[i]:
+                    st.max_force[i] = mag
+                if renderer.in_contact[i]:
+                    st.contact_ticks[i] += 1
+            compute = time.monotonic() - start
+            st.compute.add(compute)
+            if rec is not None:
+                self._record(t, start - t0, compute, out)
+            st.ticks = k + 1
+            st.last_start = start
+            reason = self._finished(k)
+            if reason is not None:
+                self.end_reason = reason
+                return
+            k += 1
+            if paced and time.monotonic() - (t0 + k * T) > REANCHOR_PERIODS * T:
+                t0 = time.monotonic() - k * T
+                st.reanchors += 1
+
+
+def summarize(loop: ServoLoop, allocator: str, finger_names: Sequence[str]) -> dict[str, Any]:
+    """The run summary (see docs/recording.md): timing in us, forces in N."""
+    st = loop.stats
+    span = st.last_start - st.first_start
+    achieved = (st.ticks - 1) / span if st.ticks > 1 and span > 0 else float("nan")
+
+    def us(h: LogHistogram, q: float | None) -> float | None:
+        if h.count == 0:
+            return None
+        v = h.max if q is None else h.percentile(q)
+        return round(v * 1e6, 3)
+
+    pe = st.period_error if loop.paced else LogHistogram()
+    fault = loop.safety.fault
+    return {
+        "ticks": st.ticks,
+        "duration_s": round(st.ticks * loop.period, 6),
+        "paced": loop.paced,
+        "rate_hz": {"target": loop.rate_hz, "achieved": round(achieved, 3)},
+        "period_error_us": {"p50": us(pe, 50), "p99": us(pe, 99), "max": us(pe, None)},
+        "overruns": st.overruns if loop.paced else 0,
+        "reanchors": st.reanchors,
+        "tick_compute_us": {
+            "p50": us(st.compute, 50),
+            "p99": us(st.compute, 99),
+            "max": us(st.compute, None),
+        },
+        "allocator": allocator,
+        "max_rendered_force_n": round(max(st.max_force, default=0.0), 6),
+        "fingers": {
+            name: {"max_force_n": round(st.max_force[i], 6), "contact_ticks": st.contact_ticks[i]}
+            for i, name in enumerate(finger_names)
+        },
+        "clamped_ticks": loop.safety.clamped_ticks,
+        "end_reason": loop.end_reason,
+        "fault": None
+        if fault is None
+        else {"tick": fault.tick, "t": fault.t, "cause": fault.cause},
+    }

@@ -1,0 +1,88 @@
+#!/usr/bin/env python3
+"""Generate the bundled replay trajectories from the motion model (hapticd.trajectory).
+
+Writes hapticd/data/trajectories/*.hrec. Deterministic: running it again gives
+identical files (a test checks this). Usage: python scripts/make_trajectories.py [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from hapticd import recording
+from hapticd.trajectory import Hold, MinJerk, Squeeze, two_finger
+
+DATA = Path(__file__).resolve().parent.parent / "hapticd" / "data" / "trajectories"
+RATE_HZ = 500.0  # below the loop rate on purpose: the replay device interpolates
+
+
+def grasp_stiffness() -> tuple[np.ndarray, np.ndarray, dict]:
+    """Seed experiment 1: approach a fixed 50 mm cube, pinch, explore 3 s, release.
+
+    Thumb on -x, index on +x; fingertip radius 8 mm, so contact starts at
+    |x| = 33 mm. The pinch presses 15 mm in (0.9 N at 60 N/m), then squeezes
+    +/-4 mm at 1.2 Hz for 3 s (the seed's 3 s exploration). The index finger is
+    2 mm higher and 1 mm off the thumb's line, as real fingers are.
+    """
+    contact = 0.025 + 0.008
+    depth = 0.015
+    plans = []
+    starts = []
+    for sign, dy, dz in ((-1.0, 0.0, 0.0), (1.0, -0.001, 0.002)):
+        far = (sign * 0.070, dy, dz)
+        near = (sign * (contact + 0.003), dy, dz)
+        pinch = (sign * (contact - depth), dy, dz)
+        starts.append(np.array(far))
+        plans.append(
+            [
+                Hold(0.5),
+                MinJerk(1.2, near),
+                MinJerk(0.8, pinch),
+                Squeeze(3.0, (-sign, 0.0, 0.0), 0.004, 1.2),
+                MinJerk(0.8, near),
+                MinJerk(1.0, far),
+                Hold(0.5),
+            ]
+        )
+    t, x = two_finger(starts, plans, RATE_HZ)
+    meta = {
+        "description": grasp_stiffness.__doc__.split("\n")[0],
+        "model": "minimum-jerk segments; see docs/trajectories.md",
+        "rate_hz": RATE_HZ,
+        "phases_s": {
+            "approach": [0.5, 1.7],
+            "pinch": [1.7, 2.5],
+            "hold": [2.5, 5.5],
+            "release": [5.5, 6.3],
+            "retreat": [6.3, 7.3],
+        },
+    }
+    return t, x, meta
+
+
+TRAJECTORIES = {"grasp-stiffness": grasp_stiffness}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", type=Path, default=DATA, help="output folder")
+    args = ap.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    for name, make in TRAJECTORIES.items():
+        t, x, meta = make()
+        path = args.out / f"{name}{recording.SUFFIX}"
+        recording.write(
+            path,
+            {"t": t, "device_pos": x},
+            recording.trajectory_fields(x.shape[1]),
+            ["thumb", "index"],
+            meta,
+        )
+        print(f"wrote {path} ({len(t)} samples, {t[-1]:.2f} s)")
+
+
+if __name__ == "__main__":
+    main()

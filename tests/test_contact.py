@@ -1,0 +1,140 @@
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from hapticd.contact import box_polytope, spring_force, update_proxy
+from hapticd.scene import rpy_matrix
+
+R = 0.008
+HALF = 0.025
+BOX = box_polytope(np.zeros(3), np.eye(3), np.array([2 * HALF] * 3)).inflated(R)
+SURF = HALF + R
+
+
+def run_path(poly, points):
+    p = points[0]
+    out = []
+    for x in points:
+        res = update_proxy(poly, p, x)
+        p = res.proxy
+        out.append(res)
+    return out
+
+
+@pytest.mark.parametrize("axis", range(3))
+@pytest.mark.parametrize("sign", [-1.0, 1.0])
+def test_face_penetration_gives_k_d_along_normal(axis, sign):
+    k, d = 60.0, 0.004
+    n = np.zeros(3)
+    n[axis] = sign
+    start = n * (SURF + 0.01)
+    inside = n * (SURF - d) + np.roll([0.0, 0.003, -0.002], axis)
+    res = run_path(BOX, np.linspace(start, inside, 50))[-1]
+    assert res.in_contact and res.n_active == 1
+    np.testing.assert_allclose(res.normal, n, atol=1e-12)
+    f = spring_force(k, 0.0, res.proxy, inside, np.zeros(3))
+    np.testing.assert_allclose(f, k * d * n, atol=1e-12)
+
+
+def test_proxy_stays_on_entry_face_through_the_middle():
+    # Pressing past the centre must not pop the proxy to the far face.
+    path = np.linspace([-0.06, 0.0, 0.0], [0.02, 0.0, 0.0], 200)
+    for res in run_path(BOX, path)[70:]:
+        assert res.proxy[0] == pytest.approx(-SURF)
+
+
+def test_fast_finger_cannot_pop_through():
+    res = update_proxy(BOX, np.array([-0.1, 0.0, 0.0]), np.array([0.1, 0.0, 0.0]))
+    np.testing.assert_allclose(res.proxy, [-SURF, 0.0, 0.0], atol=1e-15)
+    assert res.in_contact
+
+
+def test_edge_and_corner_entry_keeps_the_entry_face():
+    # On a sharp (inflated) box a device inside always projects onto the face it
+    # entered: the proxy stays on that face, the force along its normal.
+    for target in ([1, 1, 0], [1, 1, 1]):
+        t = np.array(target, dtype=float)
+        start = t * (SURF + 0.01) + np.array([0.0005, 0, 0])  # just off the diagonal: enters +x
+        inside = t * (SURF - 0.003)
+        res = run_path(BOX, np.linspace(start, inside, 40))[-1]
+        assert res.n_active == 1
+        np.testing.assert_allclose(res.normal, [1, 0, 0], atol=1e-12)
+        np.testing.assert_allclose(res.proxy - inside, [0.003, 0, 0], atol=1e-12)
+
+
+def test_two_plane_projection_is_the_edge_line():
+    from hapticd.contact import _project_on_planes
+
+    poly = BOX
+    # Planes 0 (+x) and 1 (+y): the closest point on their intersection line.
+    x, mu = _project_on_planes((0.0, 0.0, 0.01), poly.normals_list, poly.offsets_list, [0, 1])
+    np.testing.assert_allclose(x, [SURF, SURF, 0.01], atol=1e-15)
+    np.testing.assert_allclose(mu, [SURF, SURF], atol=1e-15)
+    x, mu = _project_on_planes((0.0, 0.0, 0.0), poly.normals_list, poly.offsets_list, [0, 1, 2])
+    np.testing.assert_allclose(x, [SURF] * 3, atol=1e-15)
+
+
+def test_proxy_wraps_around_a_corner_when_the_device_is_outside():
+    res = update_proxy(BOX, np.array([0.05, 0.0, 0.0]), np.array([0.0, 0.05, 0.0]))
+    assert not res.in_contact
+    np.testing.assert_allclose(res.proxy, [0.0, 0.05, 0.0])
+
+
+def test_contact_releases_when_finger_leaves():
+    path = np.concatenate(
+        [
+            np.linspace([-0.06, 0, 0], [-0.02, 0, 0], 50),
+            np.linspace([-0.02, 0, 0], [-0.06, 0, 0], 50),
+        ]
+    )
+    results = run_path(BOX, path)
+    assert results[49].in_contact
+    assert not results[-1].in_contact
+    np.testing.assert_allclose(results[-1].proxy, path[-1])
+
+
+def test_start_inside_is_pushed_out_through_nearest_face():
+    res = update_proxy(BOX, np.array([0.0, 0.0, 0.03]), np.array([0.0, 0.0, 0.03]))
+    np.testing.assert_allclose(res.proxy, [0.0, 0.0, SURF])
+    assert res.in_contact
+
+
+def test_sliding_along_a_face_keeps_one_constraint():
+    path = np.linspace([-SURF + 0.003, -0.02, 0.0], [-SURF + 0.003, 0.02, 0.004], 60)
+    p = np.array([-SURF - 0.01, -0.02, 0.0])
+    p = update_proxy(BOX, p, path[0]).proxy
+    for x in path:
+        res = update_proxy(BOX, p, x)
+        p = res.proxy
+        assert res.n_active == 1
+        np.testing.assert_allclose(p, [-SURF, x[1], x[2]], atol=1e-15)
+
+
+def _inside_depth(poly, x):
+    return float(np.max(poly.normals @ x - poly.offsets))
+
+
+rot = arrays(float, (3,), elements=st.floats(-np.pi, np.pi))
+walk = arrays(float, (150, 3), elements=st.floats(-0.03, 0.03))
+
+
+@given(rot, walk)
+def test_proxy_never_inside_over_random_fast_trajectories(rpy, steps):
+    poly = box_polytope(
+        np.array([0.01, -0.005, 0.0]), rpy_matrix(tuple(rpy)), np.array([0.05, 0.03, 0.04])
+    ).inflated(R)
+    x = np.array([0.1, 0.1, 0.1])
+    p = x.copy()
+    for step in steps:
+        x = np.clip(x + step, -0.12, 0.12)  # steps up to 3 cm per tick: very fast fingers
+        res = update_proxy(poly, p, x)
+        p = res.proxy
+        assert _inside_depth(poly, p) >= -1e-12
+        if not res.in_contact:
+            np.testing.assert_allclose(p, x)
+        else:
+            assert np.linalg.norm(res.normal) == pytest.approx(1.0)
+            # The spring never pulls the finger into the object.
+            assert res.normal @ (p - x) >= -1e-12

@@ -1,0 +1,132 @@
+import json
+
+import numpy as np
+import pytest
+
+from hapticd import recording
+from hapticd.recording import MAGIC, Field, Recorder, RecordingError, loop_fields, read
+
+
+def _fields():
+    return [
+        Field("t", "<f8", (), "s"),
+        Field("device_pos", "<f8", (2, 3), "m"),
+        Field("in_contact", "u1", (2,)),
+    ]
+
+
+def test_round_trip_named_arrays(tmp_path):
+    t = np.arange(5) * 1e-3
+    pos = np.random.default_rng(1).normal(size=(5, 2, 3))
+    contact = np.array([[0, 1]] * 5, dtype=np.uint8)
+    path = tmp_path / "a.hrec"
+    recording.write(
+        path,
+        {"t": t, "device_pos": pos, "in_contact": contact},
+        _fields(),
+        ["thumb", "index"],
+        {"k": 1},
+    )
+    rec = read(path)
+    assert rec.fingers == ["thumb", "index"]
+    assert rec.meta == {"k": 1}
+    assert list(rec) == ["t", "device_pos", "in_contact"]
+    assert rec.units()["device_pos"] == "m"
+    np.testing.assert_array_equal(rec["t"], t)
+    np.testing.assert_array_equal(rec["device_pos"], pos)
+    assert rec["device_pos"].shape == (5, 2, 3)
+    assert rec.ticks == 5
+    with pytest.raises(KeyError):
+        rec["nope"]
+
+
+def test_torn_tail_is_dropped_not_an_error(tmp_path):
+    path = tmp_path / "a.hrec"
+    recording.write(
+        path,
+        {"t": np.arange(10.0), "device_pos": np.zeros((10, 2, 3)), "in_contact": np.zeros((10, 2))},
+        _fields(),
+        ["a", "b"],
+    )
+    blob = path.read_bytes()
+    path.write_bytes(blob[:-7])  # crash in the middle of the last record
+    rec = read(path)
+    assert rec.ticks == 9
+    assert rec.torn_bytes > 0
+    np.testing.assert_array_equal(rec["t"], np.arange(9.0))
+
+
+@pytest.mark.parametrize(
+    ("blob", "match"),
+    [
+        (b"garbage", "bad magic"),
+        (MAGIC + (10**6).to_bytes(4, "little") + b"{}", "header length"),
+        (MAGIC + (4).to_bytes(4, "little") + b"{not", "not valid JSON"),
+        (MAGIC + (2).to_bytes(4, "little") + b"[]", "must be a JSON object"),
+    ],
+)
+def test_malformed_files_give_clear_errors(tmp_path, blob, match):
+    path = tmp_path / "bad.hrec"
+    path.write_bytes(blob)
+    with pytest.raises(RecordingError, match=match) as exc:
+        read(path)
+    assert str(path) in str(exc.value)
+
+
+def _with_header(tmp_path, header: dict):
+    h = json.dumps(header).encode()
+    path = tmp_path / "h.hrec"
+    path.write_bytes(MAGIC + len(h).to_bytes(4, "little") + h)
+    return path
+
+
+def test_bad_header_fields_and_version(tmp_path):
+    with pytest.raises(RecordingError, match="version 7 is not supported"):
+        read(_with_header(tmp_path, {"version": 7, "fields": []}))
+    with pytest.raises(RecordingError, match="'fields' must be a non-empty list"):
+        read(_with_header(tmp_path, {"version": 1, "fields": []}))
+    with pytest.raises(RecordingError, match="field 0 is malformed"):
+        read(_with_header(tmp_path, {"version": 1, "fields": [{"name": "t", "dtype": "nonsense"}]}))
+    with pytest.raises(RecordingError, match="cannot read"):
+        read(tmp_path / "missing.hrec")
+
+
+def test_recorder_writes_every_row_from_the_loop_thread(tmp_path):
+    fields = loop_fields(2, 2)
+    path = tmp_path / "loop.hrec"
+    rec = Recorder(path, fields, ["thumb", "index"], chunk_rows=16, n_chunks=2)
+    n = 1000
+    for i in range(n):
+        v = float(i)
+        rec.append(
+            (
+                v,
+                v,
+                1e-6,
+                np.full((2, 3), v),
+                np.zeros((2, 3)),
+                np.zeros((2, 3)),
+                [1, 0],
+                np.zeros((2, 3)),
+                np.zeros((2, 3)),
+                np.zeros((2, 3)),
+                [v, -v],
+                np.zeros(3),
+                False,
+            )
+        )
+    rec.close()
+    out = read(path)
+    assert out.ticks == n
+    np.testing.assert_array_equal(out["t"], np.arange(n))
+    np.testing.assert_array_equal(out["device_pos"][:, 1, 2], np.arange(n))
+    np.testing.assert_array_equal(out["lam_a"][:, 1], -np.arange(n))
+
+
+def test_recorder_reports_a_write_failure_at_close(tmp_path):
+    rec = Recorder(tmp_path / "x.hrec", _fields(), ["a", "b"], chunk_rows=4)
+    rec._writer._f.close()  # the disk goes away under the writer
+    for i in range(8):
+        rec.append((float(i), np.zeros((2, 3)), [0, 0]))
+    with pytest.raises(RecordingError, match="writing failed"):
+        rec.close()

@@ -1,0 +1,166 @@
+import gc
+import threading
+
+import numpy as np
+import pytest
+from hapticd_drivers import Device, DeviceError, DeviceInfo
+
+import hapticd.render
+from hapticd import recording
+from hapticd.profile import load_profile
+from hapticd.runner import build_session
+from tests.conftest import GRASP_PROFILE
+
+
+def session(**kw):
+    return build_session(load_profile(GRASP_PROFILE), paced=False, **kw)
+
+
+def test_unpaced_run_ends_with_trajectory_and_zero_force():
+    s = session()
+    summary = s.run()
+    assert summary["end_reason"] == "trajectory ended"
+    assert summary["ticks"] == 7801
+    for dev in s.devices:
+        np.testing.assert_array_equal(dev.last_force, 0)
+        assert not dev.enabled
+
+
+def test_duration_and_stop_request():
+    s = session(duration_s=0.25)
+    assert s.run()["ticks"] == 250
+    s = session()
+    s.loop.request_stop("test")
+    out = s.run()
+    assert out["ticks"] == 1 and out["end_reason"] == "test"
+
+
+def test_exception_in_a_stage_latches_fault_and_zeroes(monkeypatch):
+    s = session()
+    real = hapticd.render.allocate
+    calls = {"n": 0}
+
+    def boom(*a):
+        calls["n"] += 1
+        if calls["n"] == 100:
+            raise RuntimeError("allocator exploded")
+        return real(*a)
+
+    monkeypatch.setattr(hapticd.render, "allocate", boom)
+    out = s.run()
+    assert out["end_reason"] == "fault"
+    assert "RuntimeError: allocator exploded" in out["fault"]["cause"]
+    for dev in s.devices:
+        assert dev.forces.shape[0] > 0
+        np.testing.assert_array_equal(dev.last_force, 0)
+        assert not dev.enabled
+
+
+def test_nan_force_latches_and_every_later_force_is_zero(monkeypatch):
+    s = session(duration_s=3.0)
+    real = hapticd.render.allocate
+    calls = {"n": 0}
+
+    def nan_once(*a):
+        calls["n"] += 1
+        out = real(*a)
+        return out * np.nan if calls["n"] == 50 else out
+
+    monkeypatch.setattr(hapticd.render, "allocate", nan_once)
+    out = s.run()
+    assert out["fault"] is not None and "non-finite" in out["fault"]["cause"]
+    tick = out["fault"]["tick"]
+    for dev in s.devices:
+        f = dev.forces
+        assert np.all(np.isfinite(f))
+        assert np.all(f[tick:] == 0)
+        assert np.any(f[:tick] != 0)
+
+
+class FlakyDevice(Device):
+    """Reads a fixed point; fails on the Nth read or write."""
+
+    def __init__(self, fail_read=None, fail_write=None):
+        self.info = DeviceInfo("flaky", "f1", 5.0, 0.1)
+        self.fail_read, self.fail_write = fail_read, fail_write
+        self.reads = self.writes = 0
+        self.written = []
+        self.enabled = False
+        self.closed = False
+
+    def open(self):
+        pass
+
+    def close(self):
+        self.closed = True
+
+    def read_state(self, state):
+        self.reads += 1
+        if self.reads == self.fail_read:
+            raise DeviceError("unplugged")
+        state.position[:] = [-0.02, 0, 0]
+
+    def write_force(self, force):
+        self.writes += 1
+        if self.writes == self.fail_write:
+            raise DeviceError("write timeout")
+        self.written.append(np.array(force))
+
+    def enable_forces(self, enabled):
+        self.enabled = enabled
+
+
+@pytest.mark.parametrize(
+    ("kw", "cause"), [({"fail_read": 20}, "unplugged"), ({"fail_write": 20}, "write timeout")]
+)
+def test_device_errors_end_in_zero_force_and_latched_fault(kw, cause):
+    s = session()
+    flaky = FlakyDevice(**kw)
+    s.loop.devices[0] = flaky
+    out = s.run()
+    assert out["end_reason"] == "fault" and cause in out["fault"]["cause"]
+    np.testing.assert_array_equal(flaky.written[-1], 0)
+    assert not flaky.enabled and flaky.closed
+    np.testing.assert_array_equal(s.devices[1].last_force, 0)
+
+
+def test_ticks_create_no_reference_cycles():
+    s = session(duration_s=1.0)
+    gc.collect()
+    s.run()
+    assert gc.collect() < 50  # 1000 ticks: a cycle per tick would leave >= 1000
+
+
+def test_recording_matches_what_the_devices_received(tmp_path):
+    path = tmp_path / "run.hrec"
+    s = session(record_path=path)
+    s.run()
+    rec = recording.read(path)
+    assert rec.ticks == 7801
+    for i, dev in enumerate(s.devices):
+        # The device got one force per tick, then the final zero on shutdown.
+        np.testing.assert_array_equal(dev.forces[:-1], rec["device_force"][:, i, :])
+    np.testing.assert_allclose(np.diff(rec["t"]), 1e-3, atol=1e-12)
+
+
+def test_paced_and_unpaced_runs_render_identical_forces(tmp_path):
+    paced = build_session(load_profile(GRASP_PROFILE), paced=True, duration_s=2.2)
+    unpaced = build_session(load_profile(GRASP_PROFILE), paced=False, duration_s=2.2)
+    sp, su = paced.run(), unpaced.run()
+    assert sp["ticks"] == su["ticks"] == 2200
+    for a, b in zip(paced.devices, unpaced.devices, strict=True):
+        np.testing.assert_array_equal(a.forces, b.forces)
+        assert np.abs(a.forces).max() > 0.1  # the window includes the pinch
+    assert abs(sp["rate_hz"]["achieved"] - 1000) < 50
+
+
+def test_stop_from_another_thread_while_paced():
+    s = build_session(load_profile(GRASP_PROFILE), paced=True)
+    timer = threading.Timer(0.3, s.loop.request_stop, args=("operator",))
+    timer.start()
+    out = s.run()
+    timer.join()
+    assert out["end_reason"] == "operator"
+    assert 100 < out["ticks"] < 2000
+    for dev in s.devices:
+        np.testing.assert_array_equal(dev.last_force, 0)
