@@ -137,18 +137,12 @@ _MAX_ITER = 8
 _FREE_TOL = 1e-12
 
 
-def update_proxy(poly: Polytope, proxy_prev: np.ndarray, device: np.ndarray) -> ProxyResult:
-    """Move the proxy from ``proxy_prev`` toward ``device`` without entering ``poly``.
-
-    ``poly`` must already be inflated by the fingertip radius. If ``proxy_prev``
-    is inside (first tick, or a moved object), it is first pushed out through
-    the nearest face. Every move either stops where the path enters the
-    interior or ends at a target it reaches without entering, so the proxy is
-    never inside.
-    """
-    normals, offsets = poly.normals_list, poly.offsets_list
-    g: Vec = (float(device[0]), float(device[1]), float(device[2]))
-    p: Vec = (float(proxy_prev[0]), float(proxy_prev[1]), float(proxy_prev[2]))
+def proxy_step(
+    normals: list[Vec], offsets: list[float], proxy_prev: Vec, device: Vec
+) -> tuple[Vec, int, Vec]:
+    """Core of ``update_proxy`` on plain floats: (proxy, n_active, unit normal or zeros)."""
+    g = device
+    p = proxy_prev
     dist, i = _signed_distance(normals, offsets, p)
     if dist < 0.0:  # inside: out through the nearest face
         n = normals[i]
@@ -180,17 +174,30 @@ def update_proxy(poly: Polytope, proxy_prev: np.ndarray, device: np.ndarray) -> 
         active = keep
     # A plane the device is outside of cannot push the finger.
     active = [i for i in active if _dot(normals[i], g) < offsets[i]]
-    proxy = np.array(p)
     if not active:
-        return ProxyResult(proxy, False, np.zeros(3), 0)
+        return p, 0, (0.0, 0.0, 0.0)
     diff = (p[0] - g[0], p[1] - g[1], p[2] - g[2])
     depth = math.sqrt(_dot(diff, diff))
     if depth > 1e-15:
-        normal = np.array(diff) / depth
-    else:
-        s = poly.normals[active].sum(axis=0)
-        normal = s / np.linalg.norm(s)
-    return ProxyResult(proxy, True, normal, len(active))
+        return p, len(active), (diff[0] / depth, diff[1] / depth, diff[2] / depth)
+    s = [sum(normals[i][k] for i in active) for k in range(3)]
+    ns = math.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
+    return p, len(active), (s[0] / ns, s[1] / ns, s[2] / ns)
+
+
+def update_proxy(poly: Polytope, proxy_prev: np.ndarray, device: np.ndarray) -> ProxyResult:
+    """Move the proxy from ``proxy_prev`` toward ``device`` without entering ``poly``.
+
+    ``poly`` must already be inflated by the fingertip radius. If ``proxy_prev``
+    is inside (first tick, or a moved object), it is first pushed out through
+    the nearest face. Every move either stops where the path enters the
+    interior or ends at a target it reaches without entering, so the proxy is
+    never inside.
+    """
+    g: Vec = (float(device[0]), float(device[1]), float(device[2]))
+    p: Vec = (float(proxy_prev[0]), float(proxy_prev[1]), float(proxy_prev[2]))
+    p, n_active, normal = proxy_step(poly.normals_list, poly.offsets_list, p, g)
+    return ProxyResult(np.array(p), n_active > 0, np.array(normal), n_active)
 
 
 def spring_force(

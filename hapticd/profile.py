@@ -110,8 +110,38 @@ class LoopConfig(_Strict):
     rate_hz: float = Field(default=1000.0, ge=100.0, le=8000.0, description="servo rate, Hz")
 
 
+class RobustnessConfig(_Strict):
+    """Singularity-robust allocation (docs/allocation.md)."""
+
+    eps: float = Field(
+        default=0.2, gt=0, lt=1, description="singular-value threshold below which gains are damped"
+    )
+    min_separation_m: float = Field(
+        default=0.005,
+        gt=0,
+        lt=1,
+        description="contacts closer than this blend internal subspaces, m",
+    )
+
+
+class AdaptiveConfig(_Strict):
+    """The task-adaptive allocator's switch from internal to external forces."""
+
+    ratio_low: float = Field(default=0.2, ge=0, lt=1, description="external ratio where it starts")
+    ratio_high: float = Field(default=0.6, gt=0, le=1, description="external ratio where it ends")
+    time_constant_s: float = Field(default=0.1, ge=0, le=10, description="lag of the switch, s")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> AdaptiveConfig:
+        if not self.ratio_low < self.ratio_high:
+            raise ValueError("ratio_low must be below ratio_high")
+        return self
+
+
 class RenderingConfig(_Strict):
-    allocator: Literal["pinv", "if", "ef"] = "if"
+    allocator: Literal["pinv", "if", "ef", "adaptive", "pinv_exact", "if_exact", "ef_exact"] = "if"
+    robustness: RobustnessConfig = RobustnessConfig()
+    adaptive: AdaptiveConfig = AdaptiveConfig()
     actuation_frame: Literal["world", "grasp"] = Field(
         default="world",
         description="frame of actuated_directions: world, or the grasp frame "

@@ -66,6 +66,11 @@ def loop_fields(n_fingers: int, n_actuators: int) -> list[Field]:
         Field("rendered_force", "<f8", (F, 3), "N"),
         Field("device_force", "<f8", (F, 3), "N"),
         Field("lam_a", "<f8", (n_actuators,), "N"),
+        Field("residual_internal", "<f8", (), "N"),
+        Field("residual_external", "<f8", (), "N"),
+        Field("residual_total", "<f8", (), "N"),
+        Field("amplification", "<f8", (), ""),
+        Field("alpha", "<f8", (), ""),
         Field("object_pos", "<f8", (3,), "m"),
         Field("fault", "u1", (), ""),
     ]

@@ -1,25 +1,54 @@
 """One rendering step: device positions -> proxies -> contact forces -> allocation.
 
 ``Renderer.step`` runs once per servo tick. Outputs live in preallocated
-arrays on the renderer (shapes with F fingers, r actuators):
+arrays on the renderer (F fingers, r actuators):
 
 - proxy_pos (F, 3) m, in_contact (F,) bool, contact_point (F, 3) m;
 - contact_force (F, 3) N: the full force lam_i = k (proxy - device) - b v on
   each finger (the negative of the seed's force on the object; every allocator
   is linear, so this only flips the sign of lam_a);
 - lam_a (r,) N and rendered_force (F, 3) N = finger i's rows of M_a lam_a,
-  zero for a finger out of contact.
+  zero for a finger out of contact;
+- accuracy (4,): internal, external, total residual and amplification of this
+  tick's allocation (see hapticd.allocation.Accuracy); alpha: the adaptive
+  allocator's external weight.
+
+The common case, two fingers in contact with one actuated direction each, runs
+on plain floats through the allocators' closed forms; anything else takes the
+general numpy path. Both give the same numbers (a test checks).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from hapticd.actuation import Actuation
-from hapticd.allocation import allocate
-from hapticd.contact import update_proxy
+from hapticd.allocation import (
+    DEFAULT_ROBUSTNESS,
+    EXACT_METHODS,
+    AdaptiveState,
+    AllocationError,
+    Robustness,
+    accuracy,
+    allocate,
+    external_ratio,
+    soft_internal_projector,
+    two_contact_accuracy,
+    two_contact_ef,
+    two_contact_if,
+    two_contact_pinv,
+)
+from hapticd.contact import proxy_step
 from hapticd.grasp import grasp_matrix
 from hapticd.scene import SceneObject
+
+V3 = tuple[float, float, float]
+
+
+def _finite(*vecs: V3) -> bool:
+    return all(math.isfinite(c) for v in vecs for c in v)
 
 
 class Renderer:
@@ -31,14 +60,21 @@ class Renderer:
         radii: list[float],
         actuation: Actuation,
         allocator: str,
+        *,
+        robust: Robustness = DEFAULT_ROBUSTNESS,
+        adaptive: AdaptiveState | None = None,
+        dt: float = 1e-3,
     ) -> None:
         if len(radii) != actuation.n_fingers:
             raise ValueError("one radius per finger is needed")
         self.obj = obj
         self.radii = [float(r) for r in radii]
-        self.polys = [obj.polytope.inflated(r) for r in self.radii]
+        self._planes = [obj.polytope.inflated(r) for r in self.radii]
         self.actuation = actuation
         self.allocator = allocator
+        self.robust = robust
+        self.adaptive = adaptive if adaptive is not None else AdaptiveState()
+        self.dt = dt
         F, r = actuation.n_fingers, actuation.n_actuators
         self.n_fingers = F
         self.proxy_pos = np.zeros((F, 3))
@@ -47,51 +83,129 @@ class Renderer:
         self.contact_force = np.zeros((F, 3))
         self.rendered_force = np.zeros((F, 3))
         self.lam_a = np.zeros(r)
-        self._normals = np.zeros((F, 3))
-        self._started = False
+        self.accuracy = np.zeros(4)
+        self.alpha = 0.0
+        self._proxy: list[V3] | None = None
+        self._zero3 = [(0.0, 0.0, 0.0)] * F
 
     def reset(self, device_pos: np.ndarray) -> None:
         """Start every proxy at its device (pushed out of the object if inside)."""
-        self.proxy_pos[:] = device_pos
-        self._started = True
+        self._proxy = [tuple(map(float, p)) for p in device_pos]
 
     def step(self, device_pos: np.ndarray, device_vel: np.ndarray) -> None:
         """Update proxies and forces for device positions (F, 3) m and velocities (F, 3) m/s."""
-        if not self._started:
-            self.reset(device_pos)
+        pos: list[V3] = [tuple(p) for p in device_pos.tolist()]
+        if self._proxy is None:
+            self._proxy = list(pos)
         k, b = self.obj.stiffness, self.obj.damping
+        proxies = self._proxy
+        forces = list(self._zero3)
+        points = list(pos)
         contacts: list[int] = []
         for i in range(self.n_fingers):
-            res = update_proxy(self.polys[i], self.proxy_pos[i], device_pos[i])
-            self.proxy_pos[i] = res.proxy
-            self.in_contact[i] = res.in_contact
-            if res.in_contact:
-                n = res.normal
-                f = k * (res.proxy - device_pos[i])
+            poly = self._planes[i]
+            g = pos[i]
+            p, n_active, n = proxy_step(poly.normals_list, poly.offsets_list, proxies[i], g)
+            proxies[i] = p
+            if n_active:
+                f = (k * (p[0] - g[0]), k * (p[1] - g[1]), k * (p[2] - g[2]))
                 if b:
-                    f -= b * device_vel[i]
+                    v = device_vel[i]
+                    f = (f[0] - b * v[0], f[1] - b * v[1], f[2] - b * v[2])
                     # Damping may slow the finger but never pull it into the object.
-                    fn = float(f @ n)
+                    fn = f[0] * n[0] + f[1] * n[1] + f[2] * n[2]
                     if fn < 0.0:
-                        f -= fn * n
-                self.contact_force[i] = f
-                self._normals[i] = n
-                self.contact_point[i] = res.proxy - self.radii[i] * n
+                        f = (f[0] - fn * n[0], f[1] - fn * n[1], f[2] - fn * n[2])
+                forces[i] = f
+                r = self.radii[i]
+                points[i] = (p[0] - r * n[0], p[1] - r * n[1], p[2] - r * n[2])
                 contacts.append(i)
             else:
-                self.contact_force[i] = 0.0
-                self._normals[i] = 0.0
-                self.contact_point[i] = res.proxy
+                points[i] = p
+        self.proxy_pos[:] = proxies
+        self.contact_force[:] = forces
+        self.contact_point[:] = points
+        self.in_contact[:] = False
+        self.in_contact[contacts] = True
+        self._allocate(pos, points, forces, contacts)
+
+    def _allocate(
+        self, pos: list[V3], points: list[V3], forces: list[V3], contacts: list[int]
+    ) -> None:
         self.rendered_force[:] = 0.0
         self.lam_a[:] = 0.0
+        self.accuracy[:] = 0.0
+        method = self.allocator
+        act = self.actuation
         if not contacts:
+            if method == "adaptive":
+                self.alpha = self.adaptive.update(0.0, self.dt)
             return
-        M = self.actuation.matrix(device_pos)
-        M_sub, cols = self.actuation.select(M, contacts)
-        if M_sub.shape[1] == 0:
+        world = act.world_directions(pos)
+        o = self.obj.center
+        ox, oy, oz = float(o[0]), float(o[1]), float(o[2])
+        if (
+            len(contacts) == 2
+            and method not in EXACT_METHODS
+            and act.counts[contacts[0]] == 1
+            and act.counts[contacts[1]] == 1
+        ):
+            i, j = contacts
+            c1, c2 = points[i], points[j]
+            r1 = (c1[0] - ox, c1[1] - oy, c1[2] - oz)
+            r2 = (c2[0] - ox, c2[1] - oy, c2[2] - oz)
+            d1, d2 = world[i][0], world[j][0]
+            l1, l2 = forces[i], forces[j]
+            if not _finite(r1, r2, d1, d2, l1, l2):
+                raise AllocationError("non-finite contact geometry or force; refusing to allocate")
+            x0, x1 = self._two(r1, r2, d1, d2, l1, l2)
+            ci, cj = act.columns[i][0], act.columns[j][0]
+            self.lam_a[ci] = x0
+            self.lam_a[cj] = x1
+            self.rendered_force[i] = (x0 * d1[0], x0 * d1[1], x0 * d1[2])
+            self.rendered_force[j] = (x1 * d2[0], x1 * d2[1], x1 * d2[2])
+            a = two_contact_accuracy(r1, r2, d1, d2, l1, l2, x0, x1)
+            self.accuracy[:] = (a.internal, a.external, a.total, a.amplification)
             return
-        G = grasp_matrix(self.contact_point[contacts], self.obj.center)
-        lam = self.contact_force[contacts].reshape(-1)
-        lam_a = allocate(self.allocator, G, M_sub, lam)
+        M, cols = act.submatrix(world, contacts)
+        if not cols:
+            return
+        G = grasp_matrix(np.array([points[i] for i in contacts]), o)
+        lam = np.array([c for i in contacts for c in forces[i]])
+        if method == "adaptive":
+            self.alpha = self.adaptive.update(self._ratio_general(G, lam), self.dt)
+        lam_a = allocate(method, G, M, lam, robust=self.robust, alpha=self.alpha)
         self.lam_a[cols] = lam_a
-        self.rendered_force[contacts] = (M_sub @ lam_a).reshape(-1, 3)
+        self.rendered_force[contacts] = (M @ lam_a).reshape(-1, 3)
+        a = accuracy(G, M, lam, lam_a)
+        self.accuracy[:] = (a.internal, a.external, a.total, a.amplification)
+
+    def _two(self, r1: V3, r2: V3, d1: V3, d2: V3, l1: V3, l2: V3) -> tuple[float, float]:
+        eps, sep = self.robust.eps, self.robust.min_separation_m
+        method = self.allocator
+        if method == "pinv":
+            return two_contact_pinv(d1, d2, l1, l2, eps)
+        if method == "ef":
+            return two_contact_ef(r1, r2, d1, d2, l1, l2, eps)
+        x_if = two_contact_if(r1, r2, d1, d2, l1, l2, eps, sep)
+        if method == "if":
+            return x_if
+        # adaptive: external ratio from the net force and the squeeze along the grasp line.
+        net = (l1[0] + l2[0], l1[1] + l2[1], l1[2] + l2[2])
+        e = (r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2])
+        ne = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+        q = (l1[0] - l2[0], l1[1] - l2[1], l1[2] - l2[2])
+        squeeze = abs(e[0] * q[0] + e[1] * q[1] + e[2] * q[2]) / (2.0 * ne) if ne > 0 else 0.0
+        rho = external_ratio(math.sqrt(net[0] ** 2 + net[1] ** 2 + net[2] ** 2), squeeze)
+        alpha = self.alpha = self.adaptive.update(rho, self.dt)
+        if alpha == 0.0:
+            return x_if
+        y0, y1 = two_contact_ef(r1, r2, d1, d2, l1, l2, eps)
+        return (1.0 - alpha) * x_if[0] + alpha * y0, (1.0 - alpha) * x_if[1] + alpha * y1
+
+    def _ratio_general(self, G: np.ndarray, lam: np.ndarray) -> float:
+        net = float(np.linalg.norm(G[0:3] @ lam))
+        squeeze = float(np.linalg.norm(soft_internal_projector(G, self.robust) @ lam)) / math.sqrt(
+            2
+        )
+        return external_ratio(net, squeeze)

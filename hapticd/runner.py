@@ -11,6 +11,7 @@ from hapticd_drivers import Device, DeviceError, open_device
 
 from hapticd import recording
 from hapticd.actuation import Actuation
+from hapticd.allocation import AdaptiveState, Robustness
 from hapticd.profile import FingerConfig, Profile, ProfileError
 from hapticd.recording import Recorder, RecordingError
 from hapticd.render import Renderer
@@ -122,8 +123,17 @@ def build_session(
     actuation = Actuation(
         [list(f.actuated_directions) for f in profile.fingers], profile.rendering.actuation_frame
     )
+    rc = profile.rendering
     renderer = Renderer(
-        obj, [f.radius_m for f in profile.fingers], actuation, profile.rendering.allocator
+        obj,
+        [f.radius_m for f in profile.fingers],
+        actuation,
+        rc.allocator,
+        robust=Robustness(rc.robustness.eps, rc.robustness.min_separation_m),
+        adaptive=AdaptiveState(
+            rc.adaptive.ratio_low, rc.adaptive.ratio_high, rc.adaptive.time_constant_s
+        ),
+        dt=1.0 / profile.loop.rate_hz,
     )
     limits = [min(d.info.max_force_n, profile.safety.max_force_n) for d in devices]
     safety = SafetyChain(limits)

@@ -131,6 +131,11 @@ class ServoLoop:
                 r.rendered_force,
                 forces,
                 r.lam_a,
+                r.accuracy[0],
+                r.accuracy[1],
+                r.accuracy[2],
+                r.accuracy[3],
+                r.alpha,
                 self._object_pos(),
                 self.safety.latched,
             )

@@ -56,7 +56,7 @@ def test_misspelled_key_is_named_with_a_suggestion(grasp_data, write_profile):
         (
             lambda d: d["rendering"].__setitem__("allocator", "magic"),
             "rendering.allocator",
-            "'pinv', 'if' or 'ef'",
+            "'adaptive', 'pinv_exact'",
         ),
         (
             lambda d: d["scene"]["object"].__setitem__("size_m", [0.05, -1, 0.05]),

@@ -97,30 +97,22 @@ def test_recorder_writes_every_row_from_the_loop_thread(tmp_path):
     rec = Recorder(path, fields, ["thumb", "index"], chunk_rows=16, n_chunks=2)
     n = 1000
     for i in range(n):
-        v = float(i)
-        rec.append(
-            (
-                v,
-                v,
-                1e-6,
-                np.full((2, 3), v),
-                np.zeros((2, 3)),
-                np.zeros((2, 3)),
-                [1, 0],
-                np.zeros((2, 3)),
-                np.zeros((2, 3)),
-                np.zeros((2, 3)),
-                [v, -v],
-                np.zeros(3),
-                False,
+        row = []
+        for f in fields:
+            value = (
+                np.full(f.shape, float(i)) if f.shape else float(i % 2 if f.dtype == "u1" else i)
             )
-        )
+            if f.name == "lam_a":
+                value = np.array([i, -i], dtype=float)
+            row.append(value)
+        rec.append(row)
     rec.close()
     out = read(path)
     assert out.ticks == n
     np.testing.assert_array_equal(out["t"], np.arange(n))
     np.testing.assert_array_equal(out["device_pos"][:, 1, 2], np.arange(n))
     np.testing.assert_array_equal(out["lam_a"][:, 1], -np.arange(n))
+    np.testing.assert_array_equal(out["fault"], np.arange(n) % 2)
 
 
 def test_recorder_reports_a_write_failure_at_close(tmp_path):

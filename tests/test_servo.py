@@ -37,7 +37,7 @@ def test_duration_and_stop_request():
 
 def test_exception_in_a_stage_latches_fault_and_zeroes(monkeypatch):
     s = session()
-    real = hapticd.render.allocate
+    real = hapticd.render.two_contact_if
     calls = {"n": 0}
 
     def boom(*a):
@@ -46,7 +46,7 @@ def test_exception_in_a_stage_latches_fault_and_zeroes(monkeypatch):
             raise RuntimeError("allocator exploded")
         return real(*a)
 
-    monkeypatch.setattr(hapticd.render, "allocate", boom)
+    monkeypatch.setattr(hapticd.render, "two_contact_if", boom)
     out = s.run()
     assert out["end_reason"] == "fault"
     assert "RuntimeError: allocator exploded" in out["fault"]["cause"]
@@ -58,15 +58,15 @@ def test_exception_in_a_stage_latches_fault_and_zeroes(monkeypatch):
 
 def test_nan_force_latches_and_every_later_force_is_zero(monkeypatch):
     s = session(duration_s=3.0)
-    real = hapticd.render.allocate
+    real = hapticd.render.two_contact_if
     calls = {"n": 0}
 
     def nan_once(*a):
         calls["n"] += 1
         out = real(*a)
-        return out * np.nan if calls["n"] == 50 else out
+        return (np.nan, out[1]) if calls["n"] == 50 else out
 
-    monkeypatch.setattr(hapticd.render, "allocate", nan_once)
+    monkeypatch.setattr(hapticd.render, "two_contact_if", nan_once)
     out = s.run()
     assert out["fault"] is not None and "non-finite" in out["fault"]["cause"]
     tick = out["fault"]["tick"]
