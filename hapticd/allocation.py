@@ -48,6 +48,7 @@ EXACT_METHODS: tuple[str, ...] = ("pinv_exact", "if_exact", "ef_exact")
 
 DEFAULT_EPS = 0.2
 DEFAULT_MIN_SEPARATION_M = 0.005
+DEFAULT_CONTACT_ONSET_N = 0.05
 _TINY = 1e-300
 
 
@@ -63,13 +64,17 @@ class Robustness:
     moments are in N m per N); below it pseudoinverse gains are damped.
     min_separation_m: contacts closer than this (m) blend the internal subspace
     toward every opposing pair of forces.
+    contact_onset_n: a contact whose force is below this (N) joins the grasp
+    gradually (the renderer blends the allocations with and without it).
     """
 
     eps: float = DEFAULT_EPS
     min_separation_m: float = DEFAULT_MIN_SEPARATION_M
+    contact_onset_n: float = DEFAULT_CONTACT_ONSET_N
 
     def __post_init__(self) -> None:
-        if not (0 < self.eps < 1) or not (0 < self.min_separation_m < 1):
+        ok = 0 < self.eps < 1 and 0 < self.min_separation_m < 1 and 0 <= self.contact_onset_n < 10
+        if not ok:
             raise ValueError(f"invalid robustness parameters {self}")
 
     @property

@@ -122,6 +122,9 @@ class RobustnessConfig(_Strict):
         lt=1,
         description="contacts closer than this blend internal subspaces, m",
     )
+    contact_onset_n: float = Field(
+        default=0.05, ge=0, lt=10, description="a contact weaker than this joins gradually, N"
+    )
 
 
 class AdaptiveConfig(_Strict):

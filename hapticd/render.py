@@ -34,6 +34,7 @@ from hapticd.allocation import (
     accuracy,
     allocate,
     external_ratio,
+    smoothstep,
     soft_internal_projector,
     two_contact_accuracy,
     two_contact_ef,
@@ -45,6 +46,10 @@ from hapticd.grasp import grasp_matrix
 from hapticd.scene import SceneObject
 
 V3 = tuple[float, float, float]
+
+
+def _norm(v: V3) -> float:
+    return math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
 
 
 def _finite(*vecs: V3) -> bool:
@@ -135,50 +140,70 @@ class Renderer:
         self.rendered_force[:] = 0.0
         self.lam_a[:] = 0.0
         self.accuracy[:] = 0.0
-        method = self.allocator
         act = self.actuation
+        if self.allocator == "adaptive":
+            self.alpha = self.adaptive.update(
+                self._external_ratio(points, forces, contacts), self.dt
+            )
         if not contacts:
-            if method == "adaptive":
-                self.alpha = self.adaptive.update(0.0, self.dt)
             return
         world = act.world_directions(pos)
+        lam_a = self._solve(contacts, world, points, forces)
+        onset = self.robust.contact_onset_n
+        if len(contacts) >= 2 and onset > 0.0:
+            # A contact that is just being made or broken joins the grasp gradually: without
+            # this, the grasp matrix (and IF's squeeze) would jump when it appears or leaves.
+            weakest = min(contacts, key=lambda i: _norm(forces[i]))
+            beta = smoothstep(_norm(forces[weakest]) / onset)
+            if beta < 1.0:
+                rest = [i for i in contacts if i != weakest]
+                lam_a = beta * lam_a + (1.0 - beta) * self._solve(rest, world, points, forces)
+        if not np.all(np.isfinite(lam_a)):
+            raise AllocationError(f"allocator {self.allocator!r} produced a non-finite force")
+        self.lam_a[:] = lam_a
+        for i in contacts:
+            f = [0.0, 0.0, 0.0]
+            for col, d in zip(act.columns[i], world[i], strict=True):
+                x = lam_a[col]
+                f[0] += x * d[0]
+                f[1] += x * d[1]
+                f[2] += x * d[2]
+            self.rendered_force[i] = f
+        self._measure(contacts, world, points, forces, lam_a)
+
+    def _offsets(self, points: list[V3], contacts: list[int]) -> list[V3]:
         o = self.obj.center
         ox, oy, oz = float(o[0]), float(o[1]), float(o[2])
-        if (
-            len(contacts) == 2
-            and method not in EXACT_METHODS
-            and act.counts[contacts[0]] == 1
-            and act.counts[contacts[1]] == 1
-        ):
+        return [(points[i][0] - ox, points[i][1] - oy, points[i][2] - oz) for i in contacts]
+
+    def _is_two_simple(self, contacts: list[int]) -> bool:
+        counts = self.actuation.counts
+        return len(contacts) == 2 and counts[contacts[0]] == 1 and counts[contacts[1]] == 1
+
+    def _solve(
+        self, contacts: list[int], world: list[list[V3]], points: list[V3], forces: list[V3]
+    ) -> np.ndarray:
+        """lam_a over all r actuators (zero for fingers not in ``contacts``)."""
+        act = self.actuation
+        out = np.zeros(act.n_actuators)
+        method = self.allocator
+        if self._is_two_simple(contacts) and method not in EXACT_METHODS:
             i, j = contacts
-            c1, c2 = points[i], points[j]
-            r1 = (c1[0] - ox, c1[1] - oy, c1[2] - oz)
-            r2 = (c2[0] - ox, c2[1] - oy, c2[2] - oz)
+            r1, r2 = self._offsets(points, contacts)
             d1, d2 = world[i][0], world[j][0]
             l1, l2 = forces[i], forces[j]
             if not _finite(r1, r2, d1, d2, l1, l2):
                 raise AllocationError("non-finite contact geometry or force; refusing to allocate")
             x0, x1 = self._two(r1, r2, d1, d2, l1, l2)
-            ci, cj = act.columns[i][0], act.columns[j][0]
-            self.lam_a[ci] = x0
-            self.lam_a[cj] = x1
-            self.rendered_force[i] = (x0 * d1[0], x0 * d1[1], x0 * d1[2])
-            self.rendered_force[j] = (x1 * d2[0], x1 * d2[1], x1 * d2[2])
-            a = two_contact_accuracy(r1, r2, d1, d2, l1, l2, x0, x1)
-            self.accuracy[:] = (a.internal, a.external, a.total, a.amplification)
-            return
+            out[act.columns[i][0]] = x0
+            out[act.columns[j][0]] = x1
+            return out
         M, cols = act.submatrix(world, contacts)
-        if not cols:
-            return
-        G = grasp_matrix(np.array([points[i] for i in contacts]), o)
-        lam = np.array([c for i in contacts for c in forces[i]])
-        if method == "adaptive":
-            self.alpha = self.adaptive.update(self._ratio_general(G, lam), self.dt)
-        lam_a = allocate(method, G, M, lam, robust=self.robust, alpha=self.alpha)
-        self.lam_a[cols] = lam_a
-        self.rendered_force[contacts] = (M @ lam_a).reshape(-1, 3)
-        a = accuracy(G, M, lam, lam_a)
-        self.accuracy[:] = (a.internal, a.external, a.total, a.amplification)
+        if cols:
+            G = grasp_matrix(np.array([points[i] for i in contacts]), self.obj.center)
+            lam = np.array([c for i in contacts for c in forces[i]])
+            out[cols] = allocate(method, G, M, lam, robust=self.robust, alpha=self.alpha)
+        return out
 
     def _two(self, r1: V3, r2: V3, d1: V3, d2: V3, l1: V3, l2: V3) -> tuple[float, float]:
         eps, sep = self.robust.eps, self.robust.min_separation_m
@@ -188,24 +213,50 @@ class Renderer:
         if method == "ef":
             return two_contact_ef(r1, r2, d1, d2, l1, l2, eps)
         x_if = two_contact_if(r1, r2, d1, d2, l1, l2, eps, sep)
-        if method == "if":
-            return x_if
-        # adaptive: external ratio from the net force and the squeeze along the grasp line.
-        net = (l1[0] + l2[0], l1[1] + l2[1], l1[2] + l2[2])
-        e = (r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2])
-        ne = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
-        q = (l1[0] - l2[0], l1[1] - l2[1], l1[2] - l2[2])
-        squeeze = abs(e[0] * q[0] + e[1] * q[1] + e[2] * q[2]) / (2.0 * ne) if ne > 0 else 0.0
-        rho = external_ratio(math.sqrt(net[0] ** 2 + net[1] ** 2 + net[2] ** 2), squeeze)
-        alpha = self.alpha = self.adaptive.update(rho, self.dt)
+        alpha = self.alpha if method == "adaptive" else 0.0
         if alpha == 0.0:
             return x_if
         y0, y1 = two_contact_ef(r1, r2, d1, d2, l1, l2, eps)
         return (1.0 - alpha) * x_if[0] + alpha * y0, (1.0 - alpha) * x_if[1] + alpha * y1
 
-    def _ratio_general(self, G: np.ndarray, lam: np.ndarray) -> float:
-        net = float(np.linalg.norm(G[0:3] @ lam))
-        squeeze = float(np.linalg.norm(soft_internal_projector(G, self.robust) @ lam)) / math.sqrt(
-            2
-        )
-        return external_ratio(net, squeeze)
+    def _measure(
+        self,
+        contacts: list[int],
+        world: list[list[V3]],
+        points: list[V3],
+        forces: list[V3],
+        lam_a: np.ndarray,
+    ) -> None:
+        act = self.actuation
+        if self._is_two_simple(contacts):
+            i, j = contacts
+            r1, r2 = self._offsets(points, contacts)
+            x0, x1 = float(lam_a[act.columns[i][0]]), float(lam_a[act.columns[j][0]])
+            a = two_contact_accuracy(r1, r2, world[i][0], world[j][0], forces[i], forces[j], x0, x1)
+        else:
+            M, cols = act.submatrix(world, contacts)
+            G = grasp_matrix(np.array([points[i] for i in contacts]), self.obj.center)
+            lam = np.array([c for i in contacts for c in forces[i]])
+            a = accuracy(G, M, lam, lam_a[cols])
+        self.accuracy[:] = (a.internal, a.external, a.total, a.amplification)
+
+    def _external_ratio(self, points: list[V3], forces: list[V3], contacts: list[int]) -> float:
+        """The adaptive allocator's task state: |net force| / (|net force| + squeeze)."""
+        if not contacts:
+            return 0.0
+        net = [sum(forces[i][k] for i in contacts) for k in range(3)]
+        if len(contacts) == 1:
+            squeeze = 0.0
+        elif len(contacts) == 2:
+            c1, c2 = points[contacts[0]], points[contacts[1]]
+            l1, l2 = forces[contacts[0]], forces[contacts[1]]
+            e = (c2[0] - c1[0], c2[1] - c1[1], c2[2] - c1[2])
+            ne = _norm(e)
+            q = (l1[0] - l2[0], l1[1] - l2[1], l1[2] - l2[2])
+            squeeze = abs(e[0] * q[0] + e[1] * q[1] + e[2] * q[2]) / (2.0 * ne) if ne > 0 else 0.0
+        else:
+            G = grasp_matrix(np.array([points[i] for i in contacts]), self.obj.center)
+            lam = np.array([c for i in contacts for c in forces[i]])
+            P = soft_internal_projector(G, self.robust)
+            squeeze = float(np.linalg.norm(P @ lam)) / math.sqrt(2.0)
+        return external_ratio(_norm((net[0], net[1], net[2])), squeeze)

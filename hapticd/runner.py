@@ -129,7 +129,9 @@ def build_session(
         [f.radius_m for f in profile.fingers],
         actuation,
         rc.allocator,
-        robust=Robustness(rc.robustness.eps, rc.robustness.min_separation_m),
+        robust=Robustness(
+            rc.robustness.eps, rc.robustness.min_separation_m, rc.robustness.contact_onset_n
+        ),
         adaptive=AdaptiveState(
             rc.adaptive.ratio_low, rc.adaptive.ratio_high, rc.adaptive.time_constant_s
         ),

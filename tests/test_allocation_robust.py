@@ -1,0 +1,411 @@
+"""Robust allocators: exact where well-conditioned; finite, bounded and continuous everywhere."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import assume, given
+from hypothesis import strategies as st
+
+from hapticd.actuation import Actuation
+from hapticd.allocation import (
+    DEFAULT_ROBUSTNESS,
+    AdaptiveState,
+    Robustness,
+    accuracy,
+    allocate,
+    filtered_gain,
+    filtered_pinv,
+    soft_internal_projector,
+    two_contact_accuracy,
+    two_contact_structure,
+)
+from hapticd.contact import box_polytope
+from hapticd.grasp import grasp_matrix, internal_projector
+from hapticd.render import Renderer
+from hapticd.scene import SceneObject
+
+EPS = DEFAULT_ROBUSTNESS.eps
+ROBUST = ("pinv", "if", "ef")
+
+
+def block_m(dirs_per_finger):
+    """M_a from per-finger lists of directions (normalised)."""
+    r = sum(len(d) for d in dirs_per_finger)
+    M = np.zeros((3 * len(dirs_per_finger), r))
+    j = 0
+    for i, ds in enumerate(dirs_per_finger):
+        for d in ds:
+            d = np.asarray(d, dtype=float)
+            M[3 * i : 3 * i + 3, j] = d / np.linalg.norm(d)
+            j += 1
+    return M
+
+
+def unit(v):
+    v = np.asarray(v, dtype=float)
+    return v / np.linalg.norm(v)
+
+
+@st.composite
+def grasps(draw, min_p=1, max_p=4, degenerate=False):
+    """(G, M_a, lam): p contacts, 1-3 directions each; degenerate cases on request."""
+    seed = draw(st.integers(0, 2**32 - 1))
+    rng = np.random.default_rng(seed)
+    p = draw(st.integers(min_p, max_p))
+    pts = rng.uniform(-0.06, 0.06, (p, 3))
+    center = rng.uniform(-0.03, 0.03, 3)
+    dirs = [[unit(rng.normal(size=3)) for _ in range(rng.integers(1, 4))] for _ in range(p)]
+    scale = 10.0 ** draw(st.integers(-9, 3))
+    lam = rng.normal(size=3 * p) * scale
+    if degenerate:
+        kind = draw(
+            st.sampled_from(
+                [
+                    "coincident",
+                    "collinear",
+                    "at_center",
+                    "parallel_dirs",
+                    "normal_dirs",
+                    "vertical",
+                    "zero",
+                    "tilt",
+                ]
+            )
+        )
+        if kind == "coincident" and p >= 2:
+            pts[1] = pts[0] + rng.normal(size=3) * 10.0 ** draw(st.integers(-16, -3))
+        elif kind == "collinear" and p >= 3:
+            e = unit(rng.normal(size=3))
+            pts = pts[0] + np.outer(rng.uniform(-0.05, 0.05, p), e)
+        elif kind == "at_center":
+            center = pts[0].copy()
+        elif kind == "parallel_dirs":
+            d = dirs[0][0]
+            dirs[0] = [d, unit(d + rng.normal(size=3) * 10.0 ** draw(st.integers(-15, -2)))]
+        elif kind in ("normal_dirs", "vertical", "tilt") and p >= 2:
+            e = unit(pts[1] - pts[0])
+            up = np.array([0, 0, 1.0])
+            base = [e, -e] if kind == "normal_dirs" else [up, up]
+            tilt = 10.0 ** draw(st.integers(-15, -1)) if kind == "tilt" else 0.0
+            dirs[0] = [unit(base[0] + tilt * e)]
+            dirs[1] = [unit(base[1] - tilt * e)]
+        elif kind == "zero":
+            lam = np.zeros_like(lam)
+    return grasp_matrix(pts, center), block_m(dirs), lam
+
+
+def singular_values(A):
+    return np.linalg.svd(A, compute_uv=False) if A.size else np.zeros(0)
+
+
+def well_conditioned(method, G, M):
+    """Every singular value involved is structurally zero or clearly above eps."""
+
+    def ok(A):
+        s = singular_values(A)
+        return bool(np.all((s < 1e-10) | (s > 1.5 * EPS)))
+
+    p = G.shape[1] // 3
+    pts = np.array([[G[5, 3 * i + 1], G[3, 3 * i + 2], G[4, 3 * i]] for i in range(p)])
+    if p >= 2:
+        dmin = min(np.linalg.norm(pts[i] - pts[j]) for i in range(p) for j in range(i))
+        if dmin < 2 * DEFAULT_ROBUSTNESS.min_separation_m:
+            return False
+    if not ok(M):
+        return False
+    if method == "ef":
+        return ok(G @ M)
+    if method == "if":
+        P_int = internal_projector(G)
+        B = P_int @ M
+        if not ok(B):
+            return False
+        P = np.eye(M.shape[1]) - np.linalg.pinv(B) @ B
+        return ok(M @ P)
+    return True
+
+
+# -- equal to the seed where well-conditioned ------------------------------------------------
+
+
+@pytest.mark.parametrize("method", ROBUST)
+@given(grasps())
+def test_equals_seed_formula_where_well_conditioned(method, g):
+    G, M, lam = g
+    assume(well_conditioned(method, G, M))
+    robust = allocate(method, G, M, lam)
+    exact = allocate(method + "_exact", G, M, lam)
+    scale = max(np.abs(exact).max(), np.abs(lam).max(), 1e-300)
+    np.testing.assert_allclose(robust, exact, rtol=0, atol=1e-9 * scale)
+
+
+@pytest.mark.parametrize("method", [*ROBUST, "adaptive"])
+@given(st.data())
+def test_two_contact_closed_form_equals_general_path(method, data):
+    G, M, lam = data.draw(grasps(min_p=2, max_p=2, degenerate=data.draw(st.booleans())))
+    M = block_m([[M[0:3, 0]], [M[3:6, -1]]])  # one direction per finger: the closed form applies
+    assert two_contact_structure(G, M) is not None
+    alpha = data.draw(st.floats(0, 1))
+    fast = allocate(method, G, M, lam, alpha=alpha)
+    general = allocate(method, G, M, lam, alpha=alpha, fast=False)
+    np.testing.assert_allclose(fast, general, rtol=0, atol=1e-9 * max(np.abs(lam).max(), 1e-300))
+
+
+# -- finite and bounded everywhere -----------------------------------------------------------
+
+
+def bound(method, G, M):
+    """Documented bound on |M_a lam_a| / |lam| (docs/allocation.md)."""
+    sm = singular_values(M).max()
+    if method == "pinv":
+        return 1.0
+    if method == "if":
+        return 1.0 + 2.0 * sm / EPS
+    return sm * singular_values(G).max() / EPS
+
+
+@pytest.mark.parametrize("method", ROBUST)
+@given(grasps(degenerate=True))
+def test_finite_and_bounded_in_degenerate_grasps(method, g):
+    G, M, lam = g
+    lam_a = allocate(method, G, M, lam)
+    assert np.all(np.isfinite(lam_a))
+    rendered = np.linalg.norm(M @ lam_a)
+    assert rendered <= bound(method, G, M) * np.linalg.norm(lam) * (1 + 1e-9) + 1e-300
+
+
+@pytest.mark.parametrize("method", ROBUST)
+@given(grasps(degenerate=True), st.floats(1e-9, 1e3))
+def test_linear_in_lam_from_nanonewtons_to_kilonewtons(method, g, s):
+    G, M, lam = g
+    a = allocate(method, G, M, lam)
+    b = allocate(method, G, M, s * lam)
+    np.testing.assert_allclose(b, s * a, rtol=1e-9, atol=1e-300)
+
+
+def test_the_exact_formula_blows_up_where_the_robust_one_does_not():
+    G = grasp_matrix(np.array([[-0.025, 0, 0], [0.025, 0, 0]]), np.zeros(3))
+    lam = np.array([1.0, 0, 0, -1.0, 0, 0])
+    for tilt in (1e-2, 1e-6):
+        th = np.pi / 2 - tilt
+        M = block_m([[[np.cos(th), 0, np.sin(th)]], [[-np.cos(th), 0, np.sin(th)]]])
+        assert np.abs(allocate("if_exact", G, M, lam)).max() > 0.9 / tilt  # the trap: f / sin(eps)
+        assert np.abs(allocate("if", G, M, lam)).max() < 1.0 / EPS
+
+
+def test_no_contact_single_contact_and_zero_force():
+    assert allocate("if", np.zeros((6, 0)), np.zeros((0, 0)), np.zeros(0)).shape == (0,)
+    G1 = grasp_matrix(np.array([[0.02, 0, 0]]), np.zeros(3))
+    M1 = block_m([[[1, 0, 0], [0, 1, 0]]])
+    lam = np.array([2.0, -1.0, 5.0])
+    np.testing.assert_allclose(allocate("if", G1, M1, lam), [2.0, -1.0])  # = pinv
+    for method in ROBUST:
+        np.testing.assert_array_equal(allocate(method, G1, M1, np.zeros(3)), 0)
+
+
+# -- continuous through every kind of rank change -------------------------------------------
+
+
+def max_jump(fn, ts):
+    vals = np.array([fn(t) for t in ts])
+    return float(np.abs(np.diff(vals, axis=0)).max()), vals
+
+
+SWEEPS = {
+    # B = N_G^T M_a loses rank: both actuators turn vertical (IF's trap).
+    "B loses rank (IF)": (
+        "if",
+        lambda t: (
+            grasp_matrix(np.array([[-0.025, 0, 0], [0.025, 0, 0]]), np.zeros(3)),
+            block_m([[[np.sin(t), 0, np.cos(t)]], [[-np.sin(t), 0, np.cos(t)]]]),
+            np.array([1.0, 0, 0.2, -1.0, 0, 0.2]),
+        ),
+    ),
+    # G M_a loses rank: actuators along the grasp line cancel in every external wrench.
+    "G M_a loses rank (EF)": (
+        "ef",
+        lambda t: (
+            grasp_matrix(np.array([[-0.025, 0, 0], [0.025, 0, 0]]), np.zeros(3)),
+            block_m([[[1, 0, t]], [[-1, 0, t]]]),
+            np.array([1.0, 0, 0.4, -1.0, 0, 0.4]),
+        ),
+    ),
+    # M_a loses rank: a finger's two directions become parallel.
+    "M_a loses rank (pinv)": (
+        "pinv",
+        lambda t: (
+            grasp_matrix(np.array([[-0.025, 0, 0], [0.025, 0, 0]]), np.zeros(3)),
+            block_m([[[1, 0, 0], [1, t, 0]], [[-1, 0, 0.2]]]),
+            np.array([1.0, 0.5, 0.1, -1.0, 0, 0.1]),
+        ),
+    ),
+    # Two contacts pass through each other: N(G) changes dimension (IF).
+    "coincident contacts (IF)": (
+        "if",
+        lambda t: (
+            grasp_matrix(np.array([[0.0, 0, 0], [t, 0.3 * t, 0]]), np.array([0, 0, -0.02])),
+            block_m([[[1, 0, 0.5]], [[-1, 0.2, 0.5]]]),
+            np.array([1.0, 0.3, 0.1, -1.0, 0, 0.1]),
+        ),
+    ),
+    # Coincident contacts for EF too (G loses rank, G M_a does not: no singularity for EF).
+    "coincident contacts (EF)": (
+        "ef",
+        lambda t: (
+            grasp_matrix(np.array([[0.0, 0, 0], [t, 0.3 * t, 0]]), np.array([0, 0, -0.02])),
+            block_m([[[1, 0, 0.5]], [[-1, 0.2, 0.5]]]),
+            np.array([1.0, 0.3, 0.1, -1.0, 0, 0.1]),
+        ),
+    ),
+}
+
+
+@pytest.mark.parametrize("name", list(SWEEPS))
+def test_sweep_through_rank_change_is_continuous_and_bounded(name):
+    method, make = SWEEPS[name]
+    coarse = np.linspace(-0.05, 0.05, 2001)  # passes through t = 0, the singular point
+    fine = np.linspace(-0.005, 0.005, 2001)  # ten times finer around it
+
+    def fn(m):
+        return lambda t: allocate(m, *make(t))
+
+    jump_coarse, vals = max_jump(fn(method), coarse)
+    jump_fine, _ = max_jump(fn(method), fine)
+    assert np.all(np.isfinite(vals))
+    assert np.abs(vals).max() < 10.0
+    # A continuous map's largest step shrinks with the grid; a jump would not.
+    assert jump_fine < 0.2 * jump_coarse + 1e-12
+    assert jump_coarse < 0.05
+    # The seed's formula is not continuous there: the sweep really crosses the singularity.
+    if name != "coincident contacts (EF)":
+        exact_coarse, _ = max_jump(fn(method + "_exact"), coarse)
+        exact_fine, _ = max_jump(fn(method + "_exact"), fine)
+        assert exact_fine > 0.2 * exact_coarse or exact_coarse > 1.0
+
+
+def test_filtered_gain_is_continuous_and_bounded():
+    s = np.linspace(0, 1, 100001)
+    g = filtered_gain(s, EPS)
+    assert g.max() == pytest.approx(1 / EPS)
+    assert np.abs(np.diff(g)).max() < 1e-3
+    np.testing.assert_allclose(filtered_gain(np.array([0.5, 2.0]), EPS), [2.0, 0.5])
+    A = np.array([[1.0, 0.0], [0.0, 1e-12]])
+    np.testing.assert_allclose(filtered_pinv(A, EPS), [[1.0, 0], [0, 1e-12 / EPS**2]])
+
+
+def test_soft_internal_projector_is_exact_apart_and_full_when_coincident():
+    G = grasp_matrix(np.array([[-0.02, 0, 0], [0.02, 0, 0]]), np.array([0.0, 0.01, 0]))
+    np.testing.assert_allclose(soft_internal_projector(G), internal_projector(G), atol=1e-12)
+    G0 = grasp_matrix(np.array([[0.01, 0, 0], [0.01, 0, 0]]), np.zeros(3))
+    anti = 0.5 * np.block([[np.eye(3), -np.eye(3)], [-np.eye(3), np.eye(3)]])
+    np.testing.assert_allclose(soft_internal_projector(G0), anti, atol=1e-12)
+
+
+# -- accuracy measures ------------------------------------------------------------------------
+
+
+@given(grasps(min_p=2, max_p=2))
+def test_accuracy_closed_form_matches_general(g):
+    G, M, lam = g
+    M = block_m([[M[0:3, 0]], [M[3:6, -1]]])
+    lam_a = allocate("if", G, M, lam)
+    a = accuracy(G, M, lam, lam_a)
+    r1, r2, d1, d2 = two_contact_structure(G, M)
+    b = two_contact_accuracy(r1, r2, d1, d2, tuple(lam[:3]), tuple(lam[3:]), *lam_a)
+    np.testing.assert_allclose(
+        [b.internal, b.external, b.total, b.amplification],
+        [a.internal, a.external, a.total, a.amplification],
+        rtol=1e-9,
+        atol=1e-12 * np.abs(lam).max(),
+    )
+
+
+def test_accuracy_tells_if_from_ef_on_the_seed_case():
+    G = grasp_matrix(np.array([[-0.05, 0, 0], [0.05, 0, 0]]), np.zeros(3))
+    M = block_m([[[0.866, 0, 0.5]], [[-0.866, 0, 0.5]]])
+    lam = np.array([2, 0, 0.44, -2, 0, 0.44])  # squeeze and weight
+    a_if = accuracy(G, M, lam, allocate("if", G, M, lam))
+    a_ef = accuracy(G, M, lam, allocate("ef", G, M, lam))
+    assert a_if.internal < 1e-12 < a_if.external
+    assert a_ef.external < a_if.external
+    assert a_ef.internal > a_if.internal
+
+
+# -- the renderer: contacts that come and go, and the adaptive switch -----------------------
+
+
+def renderer(allocator, **kw):
+    obj = SceneObject(box_polytope(np.zeros(3), np.eye(3), np.full(3, 0.05)), 200.0, 0.0)
+    act = Actuation([[(0.866, 0, 0.5)], [(-0.866, 0, 0.5)]], "world")
+    return Renderer(obj, [0.008, 0.008], act, allocator, **kw)
+
+
+@pytest.mark.parametrize("allocator", ["if", "ef", "pinv", "adaptive"])
+def test_a_finger_lifting_off_changes_no_force_abruptly(allocator):
+    # The adaptive switch moves at its own documented rate (dt / time constant); a slow
+    # switch isolates what contact geometry does.
+    r = renderer(allocator, adaptive=AdaptiveState(time_constant_s=10.0))
+    path = np.linspace(0.031, 0.036, 5001)  # index finger leaves the +x face at 0.033
+    prev = None
+    worst = 0.0
+    for x in path:
+        r.step(np.array([[-0.02, 0.0, 0.0], [x, 0.0, 0.0]]), np.zeros((2, 3)))
+        f = r.rendered_force.copy()
+        if prev is not None:
+            worst = max(worst, float(np.abs(f - prev).max()))
+        prev = f
+    # 5 um steps at 200 N/m move a force by 1 mN; an abrupt change would be ~1 N.
+    assert worst < 0.01
+
+
+def test_onset_blend_matters_for_if():
+    with_blend = renderer("if")
+    without = renderer("if", robust=Robustness(contact_onset_n=0.0))
+    jumps = []
+    for r in (with_blend, without):
+        forces = []
+        for x in (0.032999, 0.033001):
+            r.step(np.array([[-0.02, 0.0, 0.0], [x, 0.0, 0.0]]), np.zeros((2, 3)))
+            forces.append(r.rendered_force[0].copy())
+        jumps.append(np.abs(forces[1] - forces[0]).max())
+    assert jumps[0] < 1e-3 < 0.1 < jumps[1]
+
+
+def test_adaptive_switches_continuously_from_squeeze_to_push():
+    dt, tau = 1e-3, 0.05
+    r = renderer("adaptive", adaptive=AdaptiveState(0.2, 0.6, tau), dt=dt)
+    r_if, r_ef = renderer("if"), renderer("ef")
+    alphas, forces = [], []
+    for k in range(3000):
+        # The thumb presses from 5 to 25 mm deep while the index stays at 5 mm: the net
+        # (external) force grows from zero to more than the squeeze.
+        ramp = min(1.0, max(0.0, (k - 1000) / 1000))
+        pos = np.array([[-0.028 + 0.020 * ramp, 0.0, 0.0], [0.028, 0.0, 0.0]])
+        for rr in (r, r_if, r_ef):
+            rr.step(pos, np.zeros((2, 3)))
+        alphas.append(r.alpha)
+        forces.append(r.rendered_force.copy())
+        if k == 900:  # pure squeeze: adaptive is IF
+            np.testing.assert_allclose(r.rendered_force, r_if.rendered_force, atol=1e-12)
+    alphas = np.array(alphas)
+    assert alphas[900] == 0.0
+    assert alphas[-1] > 0.95  # it did switch to external forces
+    np.testing.assert_allclose(
+        r.rendered_force,
+        (1 - r.alpha) * r_if.rendered_force + r.alpha * r_ef.rendered_force,
+        atol=1e-12,
+    )
+    assert np.abs(np.diff(alphas)).max() <= dt / tau + 1e-12
+    # No jolt: a hard switch would jump by |IF - EF|, here far above the bound.
+    assert np.abs(r_if.rendered_force - r_ef.rendered_force).max() > 1.0
+    assert np.abs(np.diff(np.array(forces), axis=0)).max() < 0.02
+
+
+def test_adaptive_state_targets():
+    s = AdaptiveState(0.2, 0.6, 0.0)
+    assert s.update(0.1, 1e-3) == 0.0
+    assert s.update(0.9, 1e-3) == 1.0
+    assert s.update(0.4, 1e-3) == pytest.approx(0.5)
+    assert s.update(0.9, 1e-3, supported=True) == 0.0
+    assert math.isclose(AdaptiveState(time_constant_s=0.1).update(1.0, 0.01), 0.1)
