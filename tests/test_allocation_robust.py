@@ -20,6 +20,8 @@ from hapticd.allocation import (
     two_contact_accuracy,
     two_contact_structure,
 )
+from hapticd.allocation_cases import SWEEPS
+from hapticd.allocation_cases import block_actuation as block_m
 from hapticd.contact import box_polytope
 from hapticd.grasp import grasp_matrix, internal_projector
 from hapticd.render import Renderer
@@ -27,19 +29,6 @@ from hapticd.scene import SceneObject
 
 EPS = DEFAULT_ROBUSTNESS.eps
 ROBUST = ("pinv", "if", "ef")
-
-
-def block_m(dirs_per_finger):
-    """M_a from per-finger lists of directions (normalised)."""
-    r = sum(len(d) for d in dirs_per_finger)
-    M = np.zeros((3 * len(dirs_per_finger), r))
-    j = 0
-    for i, ds in enumerate(dirs_per_finger):
-        for d in ds:
-            d = np.asarray(d, dtype=float)
-            M[3 * i : 3 * i + 3, j] = d / np.linalg.norm(d)
-            j += 1
-    return M
 
 
 def unit(v):
@@ -212,58 +201,12 @@ def max_jump(fn, ts):
     return float(np.abs(np.diff(vals, axis=0)).max()), vals
 
 
-SWEEPS = {
-    # B = N_G^T M_a loses rank: both actuators turn vertical (IF's trap).
-    "B loses rank (IF)": (
-        "if",
-        lambda t: (
-            grasp_matrix(np.array([[-0.025, 0, 0], [0.025, 0, 0]]), np.zeros(3)),
-            block_m([[[np.sin(t), 0, np.cos(t)]], [[-np.sin(t), 0, np.cos(t)]]]),
-            np.array([1.0, 0, 0.2, -1.0, 0, 0.2]),
-        ),
-    ),
-    # G M_a loses rank: actuators along the grasp line cancel in every external wrench.
-    "G M_a loses rank (EF)": (
-        "ef",
-        lambda t: (
-            grasp_matrix(np.array([[-0.025, 0, 0], [0.025, 0, 0]]), np.zeros(3)),
-            block_m([[[1, 0, t]], [[-1, 0, t]]]),
-            np.array([1.0, 0, 0.4, -1.0, 0, 0.4]),
-        ),
-    ),
-    # M_a loses rank: a finger's two directions become parallel.
-    "M_a loses rank (pinv)": (
-        "pinv",
-        lambda t: (
-            grasp_matrix(np.array([[-0.025, 0, 0], [0.025, 0, 0]]), np.zeros(3)),
-            block_m([[[1, 0, 0], [1, t, 0]], [[-1, 0, 0.2]]]),
-            np.array([1.0, 0.5, 0.1, -1.0, 0, 0.1]),
-        ),
-    ),
-    # Two contacts pass through each other: N(G) changes dimension (IF).
-    "coincident contacts (IF)": (
-        "if",
-        lambda t: (
-            grasp_matrix(np.array([[0.0, 0, 0], [t, 0.3 * t, 0]]), np.array([0, 0, -0.02])),
-            block_m([[[1, 0, 0.5]], [[-1, 0.2, 0.5]]]),
-            np.array([1.0, 0.3, 0.1, -1.0, 0, 0.1]),
-        ),
-    ),
-    # Coincident contacts for EF too (G loses rank, G M_a does not: no singularity for EF).
-    "coincident contacts (EF)": (
-        "ef",
-        lambda t: (
-            grasp_matrix(np.array([[0.0, 0, 0], [t, 0.3 * t, 0]]), np.array([0, 0, -0.02])),
-            block_m([[[1, 0, 0.5]], [[-1, 0.2, 0.5]]]),
-            np.array([1.0, 0.3, 0.1, -1.0, 0, 0.1]),
-        ),
-    ),
-}
+SWEEP_CASES = [(name, method) for name, (_, singular) in SWEEPS.items() for method in ROBUST]
 
 
-@pytest.mark.parametrize("name", list(SWEEPS))
-def test_sweep_through_rank_change_is_continuous_and_bounded(name):
-    method, make = SWEEPS[name]
+@pytest.mark.parametrize(("name", "method"), SWEEP_CASES)
+def test_sweep_through_rank_change_is_continuous_and_bounded(name, method):
+    make, singular_for = SWEEPS[name]
     coarse = np.linspace(-0.05, 0.05, 2001)  # passes through t = 0, the singular point
     fine = np.linspace(-0.005, 0.005, 2001)  # ten times finer around it
 
@@ -277,8 +220,8 @@ def test_sweep_through_rank_change_is_continuous_and_bounded(name):
     # A continuous map's largest step shrinks with the grid; a jump would not.
     assert jump_fine < 0.2 * jump_coarse + 1e-12
     assert jump_coarse < 0.05
-    # The seed's formula is not continuous there: the sweep really crosses the singularity.
-    if name != "coincident contacts (EF)":
+    if method == singular_for:
+        # The seed's formula is not continuous there: the sweep really crosses the singularity.
         exact_coarse, _ = max_jump(fn(method + "_exact"), coarse)
         exact_fine, _ = max_jump(fn(method + "_exact"), fine)
         assert exact_fine > 0.2 * exact_coarse or exact_coarse > 1.0
