@@ -4,7 +4,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from hapticd.allocation import AllocationError, allocate
+from hapticd.allocation import METHODS, AllocationError, allocate
 from hapticd.grasp import grasp_matrix, internal_projector
 
 A, MASS, g = 0.05, 0.09, 9.81
@@ -20,18 +20,22 @@ def blockdiag(d1, d2):
     return M
 
 
-def test_actuators_along_normals_seed_case():
+@pytest.mark.parametrize("suffix", ["", "_exact"])
+def test_actuators_along_normals_seed_case(suffix):
     M = blockdiag([1, 0, 0], [-1, 0, 0])
-    np.testing.assert_allclose(allocate("pinv", G2, M, LAM), [2, 2], atol=1e-12)
-    np.testing.assert_allclose(allocate("if", G2, M, LAM), [2, 2], atol=1e-12)
+    np.testing.assert_allclose(allocate("pinv" + suffix, G2, M, LAM), [2, 2], atol=1e-12)
+    np.testing.assert_allclose(allocate("if" + suffix, G2, M, LAM), [2, 2], atol=1e-12)
     # G M_a has rank 1 and carries no external force: EF renders nothing.
-    np.testing.assert_allclose(allocate("ef", G2, M, LAM), [0, 0], atol=1e-12)
+    np.testing.assert_allclose(allocate("ef" + suffix, G2, M, LAM), [0, 0], atol=1e-12)
 
 
-def test_actuators_both_vertical_seed_case():
+@pytest.mark.parametrize("suffix", ["", "_exact"])
+def test_actuators_both_vertical_seed_case(suffix):
     M = blockdiag([0, 0, 1], [0, 0, 1])
     for method in ("pinv", "if", "ef"):
-        np.testing.assert_allclose(allocate(method, G2, M, LAM), [0.44145, 0.44145], atol=1e-12)
+        np.testing.assert_allclose(
+            allocate(method + suffix, G2, M, LAM), [0.44145, 0.44145], atol=1e-12
+        )
 
 
 @pytest.mark.parametrize("theta_deg", [10, 30, 45, 60])
@@ -102,7 +106,7 @@ def test_non_finite_input_raises(bad):
     M = blockdiag([1, 0, 0], [-1, 0, 0])
     lam = LAM.copy()
     lam[2] = bad
-    for method in ("pinv", "if", "ef"):
+    for method in METHODS:
         with pytest.raises(AllocationError, match="NaN or inf"):
             allocate(method, G2, M, lam)
     G = G2.copy()

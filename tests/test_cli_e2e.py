@@ -250,3 +250,30 @@ def test_python_dash_m_entry_point():
         timeout=30,
     )
     assert proc.returncode == 0 and "hapticd 0.1.0" in proc.stdout
+
+
+@pytest.mark.parametrize("allocator", ["if", "pinv", "adaptive"])
+def test_recorded_accuracy_shows_what_each_allocator_keeps(
+    grasp_data, write_profile, tmp_path, allocator
+):
+    grasp_data["rendering"]["allocator"] = allocator
+    path = tmp_path / f"{allocator}.hrec"
+    assert (
+        main(["run", str(write_profile(grasp_data)), "--unpaced", "-q", "--record", str(path)]) == 0
+    )
+    rec = recording.read(path)
+    check_grasp_recording(rec)
+    pinch = (rec["t"] > 2.6) & (rec["t"] < 5.4)
+    internal = rec["residual_internal"][pinch]
+    if allocator == "pinv":
+        # The squeeze is rendered at cos^2(30 deg): a quarter is lost.
+        assert np.all(internal > 0.1)
+    else:
+        # IF renders the squeeze exactly; adaptive stays on IF while squeezing a fixed cube.
+        assert np.all(internal < 1e-9)
+    assert np.all(rec["residual_total"][pinch] > 0)  # underactuated: never exact overall
+    assert np.all(rec["amplification"][pinch] > 0.5)
+    if allocator == "adaptive":
+        assert rec["alpha"].max() < 0.05
+    else:
+        assert np.all(rec["alpha"] == 0)
