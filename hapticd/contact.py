@@ -37,6 +37,7 @@ class Polytope:
         # per-call overhead on 3-vectors would dominate it.
         object.__setattr__(self, "normals_list", [tuple(n) for n in self.normals.tolist()])
         object.__setattr__(self, "offsets_list", self.offsets.tolist())
+        object.__setattr__(self, "obstacle_set", None)
 
     def inflated(self, radius: float) -> Polytope:
         """The polytope grown by ``radius`` (m) along every face normal."""
@@ -137,52 +138,132 @@ _MAX_ITER = 8
 _FREE_TOL = 1e-12
 
 
-def proxy_step(
-    normals: list[Vec], offsets: list[float], proxy_prev: Vec, device: Vec
-) -> tuple[Vec, int, Vec]:
-    """Core of ``update_proxy`` on plain floats: (proxy, n_active, unit normal or zeros)."""
+Obstacle = tuple[list[Vec], list[float]]  # (unit normals, offsets) of one convex obstacle
+
+
+@dataclass
+class MultiResult:
+    """Proxy against several convex obstacles: position, active (obstacle, plane) pairs and,
+    per pair, the multiplier mu with proxy - device = sum mu n (m)."""
+
+    proxy: Vec
+    active: list[tuple[int, int]]
+    mu: list[float]
+
+
+def _push_out_of(obstacles: list[Obstacle], p: Vec) -> Vec:
+    for _ in range(len(obstacles) + 1):
+        moved = False
+        for normals, offsets in obstacles:
+            dist, i = _signed_distance(normals, offsets, p)
+            if dist < 0.0:
+                n = normals[i]
+                p = (p[0] - dist * n[0], p[1] - dist * n[1], p[2] - dist * n[2])
+                moved = True
+        if not moved:
+            break
+    return p
+
+
+def _first_entry_any(obstacles: list[Obstacle], p: Vec, d: Vec) -> tuple[float, int, int] | None:
+    best: tuple[float, int, int] | None = None
+    for j, (normals, offsets) in enumerate(obstacles):
+        hit = _first_entry(normals, offsets, p, d)
+        if hit is not None and (best is None or hit[0] < best[0]):
+            best = (hit[0], j, hit[1])
+    return best
+
+
+def _multipliers(
+    obstacles: list[Obstacle], active: list[tuple[int, int]], p: Vec, g: Vec
+) -> list[float]:
+    if len(active) == 1:
+        j, i = active[0]
+        n = obstacles[j][0][i]
+        return [(p[0] - g[0]) * n[0] + (p[1] - g[1]) * n[1] + (p[2] - g[2]) * n[2]]
+    N = np.array([obstacles[j][0][i] for j, i in active])
+    mu, *_ = np.linalg.lstsq(N.T, np.array(p) - np.array(g), rcond=1e-12)
+    return mu.tolist()
+
+
+class ObstacleSet:
+    """Obstacles prepared for ``proxy_step_multi``: their planes flattened once."""
+
+    def __init__(self, obstacles: list[Obstacle]) -> None:
+        self.obstacles = obstacles
+        self.planes = [
+            (j, i) for j, (normals, _) in enumerate(obstacles) for i in range(len(normals))
+        ]
+        self.normals = [obstacles[j][0][i] for j, i in self.planes]
+        self.offsets = [obstacles[j][1][i] for j, i in self.planes]
+        self.index = {pi: k for k, pi in enumerate(self.planes)}
+
+
+def proxy_step_multi(
+    obstacles: list[Obstacle] | ObstacleSet, proxy_prev: Vec, device: Vec
+) -> MultiResult:
+    """God-object step against the union of convex ``obstacles`` (each inflated by the radius).
+
+    The proxy moves from ``proxy_prev`` toward ``device``, stops where the path
+    enters any obstacle, then slides on at most three active planes (which may
+    belong to different obstacles: a finger in the crease between the object and
+    the ground has two), releasing planes that would pull and obstacles it has
+    slid off.
+    """
+    prepared = obstacles if isinstance(obstacles, ObstacleSet) else ObstacleSet(obstacles)
+    obstacles = prepared.obstacles
+    all_normals, all_offsets, index = prepared.normals, prepared.offsets, prepared.index
     g = device
-    p = proxy_prev
-    dist, i = _signed_distance(normals, offsets, p)
-    if dist < 0.0:  # inside: out through the nearest face
-        n = normals[i]
-        p = (p[0] - dist * n[0], p[1] - dist * n[1], p[2] - dist * n[2])
-    active: list[int] = []
+    p = _push_out_of(obstacles, proxy_prev)
+    active: list[tuple[int, int]] = []
     for _ in range(_MAX_ITER):
         if active:
-            target, mu = _project_on_planes(g, normals, offsets, active)
+            target, mu = _project_on_planes(g, all_normals, all_offsets, [index[a] for a in active])
         else:
             target, mu = g, []
         d = (target[0] - p[0], target[1] - p[1], target[2] - p[2])
-        hit = _first_entry(normals, offsets, p, d)
+        hit = _first_entry_any(obstacles, p, d)
         if hit is not None:
-            t, plane = hit
+            t, j, i = hit
             p = (p[0] + t * d[0], p[1] + t * d[1], p[2] + t * d[2])
-            if plane in active or len(active) == _MAX_CONSTRAINTS:
+            if (j, i) in active or len(active) == _MAX_CONSTRAINTS:
                 break  # numerically stuck in a corner: stay at the contact point
-            active.append(plane)
+            active.append((j, i))
             continue
         p = target
         if not active:
             break
-        if _signed_distance(normals, offsets, p)[0] > _FREE_TOL:
-            active = []  # slid off an edge into free space: head for the device again
-            continue
-        keep = [i for i, m in zip(active, mu, strict=True) if m >= 0.0]
+        # Slid off an obstacle into free space: its planes no longer hold the proxy.
+        touching = {j for j, _ in active if _signed_distance(*obstacles[j], p)[0] <= _FREE_TOL}
+        keep = [a for a, m in zip(active, mu, strict=True) if a[0] in touching and m >= 0.0]
         if len(keep) == len(active):
             break
         active = keep
     # A plane the device is outside of cannot push the finger.
-    active = [i for i in active if _dot(normals[i], g) < offsets[i]]
-    if not active:
-        return p, 0, (0.0, 0.0, 0.0)
+    active = [(j, i) for j, i in active if _dot(obstacles[j][0][i], g) < obstacles[j][1][i]]
+    mu = _multipliers(obstacles, active, p, g) if active else []
+    return MultiResult(p, active, mu)
+
+
+def _normal(normals: list[Vec], res: MultiResult, g: Vec) -> Vec:
+    p = res.proxy
+    if not res.active:
+        return (0.0, 0.0, 0.0)
     diff = (p[0] - g[0], p[1] - g[1], p[2] - g[2])
     depth = math.sqrt(_dot(diff, diff))
     if depth > 1e-15:
-        return p, len(active), (diff[0] / depth, diff[1] / depth, diff[2] / depth)
-    s = [sum(normals[i][k] for i in active) for k in range(3)]
+        return (diff[0] / depth, diff[1] / depth, diff[2] / depth)
+    s = [sum(normals[i][k] for _, i in res.active) for k in range(3)]
     ns = math.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
-    return p, len(active), (s[0] / ns, s[1] / ns, s[2] / ns)
+    return (s[0] / ns, s[1] / ns, s[2] / ns)
+
+
+def proxy_step(
+    normals: list[Vec], offsets: list[float], proxy_prev: Vec, device: Vec
+) -> tuple[Vec, int, Vec]:
+    """Single-obstacle ``proxy_step_multi``: (proxy, n_active, unit normal or zeros)."""
+    res = proxy_step_multi(ObstacleSet([(normals, offsets)]), proxy_prev, device)
+    return res.proxy, len(res.active), _normal(normals, res, device)
 
 
 def update_proxy(poly: Polytope, proxy_prev: np.ndarray, device: np.ndarray) -> ProxyResult:
@@ -196,7 +277,14 @@ def update_proxy(poly: Polytope, proxy_prev: np.ndarray, device: np.ndarray) -> 
     """
     g: Vec = (float(device[0]), float(device[1]), float(device[2]))
     p: Vec = (float(proxy_prev[0]), float(proxy_prev[1]), float(proxy_prev[2]))
-    p, n_active, normal = proxy_step(poly.normals_list, poly.offsets_list, p, g)
+    if poly.obstacle_set is None:
+        object.__setattr__(
+            poly, "obstacle_set", ObstacleSet([(poly.normals_list, poly.offsets_list)])
+        )
+    res = proxy_step_multi(poly.obstacle_set, p, g)
+    p = res.proxy
+    n_active = len(res.active)
+    normal = _normal(poly.normals_list, res, g)
     return ProxyResult(np.array(p), n_active > 0, np.array(normal), n_active)
 
 

@@ -75,35 +75,101 @@ class FingerConfig(_Strict):
         return tuple(_unit(d, f"direction {i}") for i, d in enumerate(v))
 
 
-class BoxConfig(_Strict):
-    """A box object: edge lengths, pose and contact stiffness."""
+class FrictionConfig(_Strict):
+    """Coulomb friction coefficients (dimensionless); 0 and 0 turn friction off."""
 
-    shape: Literal["box"] = "box"
-    size_m: Vec3 = Field(description="edge lengths along the box's x, y, z axes, m")
+    static: float = Field(default=0.0, ge=0, le=5)
+    dynamic: float = Field(default=0.0, ge=0, le=5)
+
+    @model_validator(mode="after")
+    def _order(self) -> FrictionConfig:
+        if self.dynamic > self.static:
+            raise ValueError("dynamic friction must not exceed static friction")
+        return self
+
+    @property
+    def enabled(self) -> bool:
+        return self.static > 0.0
+
+
+class ObjectConfig(_Strict):
+    """The grasped object: a box or a convex mesh, fixed or free, and its contact material."""
+
+    shape: Literal["box", "mesh"] = "box"
+    size_m: Vec3 | None = Field(default=None, description="box edge lengths along x, y, z, m")
+    mesh: str | None = Field(
+        default=None,
+        description="STL/OBJ/PLY file (relative to the profile); its convex hull is used",
+    )
+    mesh_scale: float = Field(default=1.0, gt=0, description="factor from mesh units to m")
     position_m: Vec3 = (0.0, 0.0, 0.0)
     orientation_rpy_rad: Vec3 = Field(
         default=(0.0, 0.0, 0.0), description="roll, pitch, yaw (x, y, z fixed axes), rad"
     )
     fixed: bool = True
+    mass_kg: float | None = Field(default=None, gt=0, le=10, description="needed when free, kg")
     stiffness_n_per_m: float = Field(gt=0, le=1e5)
     damping_n_s_per_m: float = Field(default=0.0, ge=0, le=1e3)
+    friction: FrictionConfig = FrictionConfig()
 
     @field_validator("size_m")
     @classmethod
-    def _positive(cls, v: Vec3) -> Vec3:
-        if any(not (0 < s <= 1.0) for s in v):
+    def _positive(cls, v: Vec3 | None) -> Vec3 | None:
+        if v is not None and any(not (0 < s <= 1.0) for s in v):
             raise ValueError(f"every edge length must be in (0, 1] m, got {list(v)}")
         return v
 
     @model_validator(mode="after")
-    def _only_fixed(self) -> BoxConfig:
-        if not self.fixed:
-            raise ValueError("free (dynamic) objects are not supported yet: set fixed: true")
+    def _complete(self) -> ObjectConfig:
+        if self.shape == "box" and self.size_m is None:
+            raise ValueError("a box needs size_m")
+        if self.shape == "mesh" and self.mesh is None:
+            raise ValueError("a mesh object needs mesh: PATH")
+        if not self.fixed and self.mass_kg is None:
+            raise ValueError("a free object needs mass_kg")
         return self
 
 
+class SurfaceConfig(_Strict):
+    """Material of the ground or the walls."""
+
+    stiffness_n_per_m: float = Field(default=2000.0, gt=0, le=1e5)
+    damping_n_s_per_m: float = Field(default=5.0, ge=0, le=1e3)
+    friction: FrictionConfig = FrictionConfig(static=0.6, dynamic=0.5)
+
+
+class GroundConfig(SurfaceConfig):
+    """A horizontal ground plane: nothing goes below height_m."""
+
+    height_m: float = Field(ge=-1, le=1, description="height of the ground plane (world z), m")
+
+
+class WallsConfig(SurfaceConfig):
+    """Workspace walls: vertical planes bounding |x| and |y| around the origin."""
+
+    half_width_m: tuple[float, float] = Field(
+        description="wall distance from the origin in x, y, m"
+    )
+
+    @field_validator("half_width_m")
+    @classmethod
+    def _positive(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if any(not (0 < s <= 1.0) for s in v):
+            raise ValueError(f"half widths must be in (0, 1] m, got {list(v)}")
+        return v
+
+
 class SceneConfig(_Strict):
-    object: BoxConfig
+    object: ObjectConfig
+    gravity_m_s2: Vec3 | None = Field(
+        default=None, description="gravity acceleration, m/s^2 (e.g. [0, 0, -9.81]); none: off"
+    )
+    ground: GroundConfig | None = None
+    walls: WallsConfig | None = None
+    substeps: int = Field(default=1, ge=1, le=64, description="dynamics integration steps per tick")
+
+
+BoxConfig = ObjectConfig  # the name used before meshes and free objects
 
 
 class LoopConfig(_Strict):

@@ -71,7 +71,9 @@ def loop_fields(n_fingers: int, n_actuators: int) -> list[Field]:
         Field("residual_total", "<f8", (), "N"),
         Field("amplification", "<f8", (), ""),
         Field("alpha", "<f8", (), ""),
+        Field("env_force", "<f8", (F, 3), "N"),
         Field("object_pos", "<f8", (3,), "m"),
+        Field("object_rot", "<f8", (3, 3), ""),
         Field("fault", "u1", (), ""),
     ]
 

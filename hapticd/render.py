@@ -41,11 +41,29 @@ from hapticd.allocation import (
     two_contact_if,
     two_contact_pinv,
 )
-from hapticd.contact import proxy_step
+from hapticd.contact import MultiResult, ObstacleSet, proxy_step_multi
+from hapticd.dynamics import step_body
+from hapticd.friction import friction_proxy
 from hapticd.grasp import grasp_matrix
-from hapticd.scene import SceneObject
+from hapticd.scene import Material, Scene, SceneObject
 
 V3 = tuple[float, float, float]
+
+
+_PARAMS = {"stiffness_n_per_m", "damping_n_s_per_m", "friction", "mass_kg", "fixed", "allocator"}
+
+
+def _unit(v: V3, fallback: V3) -> V3:
+    n = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    return (v[0] / n, v[1] / n, v[2] / n) if n > 1e-15 else fallback
+
+
+def _projector(directions: list[V3]) -> np.ndarray:
+    """Orthogonal projector (3, 3) onto the span of a finger's actuated directions."""
+    if not directions:
+        return np.zeros((3, 3))
+    D = np.array(directions).T
+    return D @ np.linalg.pinv(D)
 
 
 def _norm(v: V3) -> float:
@@ -57,11 +75,13 @@ def _finite(*vecs: V3) -> bool:
 
 
 class Renderer:
-    """Proxy contact of F spherical fingertips on one object, then force allocation."""
+    """One tick of the scene for F spherical fingertips: contact, friction, forces, allocation,
+    dynamics. Stages the scene does not need (friction without a friction coefficient,
+    dynamics for a fixed object) are not in the plan and never run."""
 
     def __init__(
         self,
-        obj: SceneObject,
+        scene: Scene | SceneObject,
         radii: list[float],
         actuation: Actuation,
         allocator: str,
@@ -72,9 +92,9 @@ class Renderer:
     ) -> None:
         if len(radii) != actuation.n_fingers:
             raise ValueError("one radius per finger is needed")
-        self.obj = obj
+        self.scene = scene if isinstance(scene, Scene) else Scene(scene, [], None)
+        self.obj = self.scene.object
         self.radii = [float(r) for r in radii]
-        self._planes = [obj.polytope.inflated(r) for r in self.radii]
         self.actuation = actuation
         self.allocator = allocator
         self.robust = robust
@@ -86,53 +106,223 @@ class Renderer:
         self.in_contact = np.zeros(F, dtype=bool)
         self.contact_point = np.zeros((F, 3))
         self.contact_force = np.zeros((F, 3))
+        self.env_force = np.zeros((F, 3))
         self.rendered_force = np.zeros((F, 3))
         self.lam_a = np.zeros(r)
         self.accuracy = np.zeros(4)
         self.alpha = 0.0
         self._proxy: list[V3] | None = None
+        self._anchor: list[V3 | None] = [None] * F  # friction anchors, object body frame
         self._zero3 = [(0.0, 0.0, 0.0)] * F
+        self._pending: dict[str, object] = {}
+        self.plan()
+
+    # -- planning -----------------------------------------------------------------------
+
+    def plan(self) -> None:
+        """Choose the stages this scene needs and prepare the obstacles."""
+        sc = self.scene
+        self.friction_on = self.obj.material.has_friction
+        self.dynamics_on = not self.obj.fixed
+        self.gravity = sc.gravity if self.dynamics_on else None
+        self.body_surfaces = sc.surfaces if self.dynamics_on and sc.surfaces else None
+        self._surface_obstacles = [
+            [s.polytope.inflated(r) for s in sc.surfaces] for r in self.radii
+        ]
+        self._rebuild_obstacles()
+
+    @property
+    def stages(self) -> list[str]:
+        """Names of the stages in the current plan, in tick order."""
+        out = ["contact"]
+        if self.friction_on:
+            out.append("friction")
+        out += ["forces", "allocation"]
+        if self.dynamics_on:
+            out.append("dynamics")
+            if self.gravity is not None:
+                out.append("gravity")
+            if self.body_surfaces:
+                out.append("surfaces")
+        return out
+
+    def _rebuild_obstacles(self) -> None:
+        self._sets = []
+        for i, r in enumerate(self.radii):
+            obj_poly = self.obj.polytope.inflated(r)
+            obstacles = [(obj_poly.normals_list, obj_poly.offsets_list)]
+            obstacles += [(p.normals_list, p.offsets_list) for p in self._surface_obstacles[i]]
+            self._sets.append(ObstacleSet(obstacles))
+
+    def update(self, **params: object) -> None:
+        """Change scene or rendering parameters; applied at the start of the next tick.
+
+        Keys: stiffness_n_per_m, damping_n_s_per_m, friction (static, dynamic), mass_kg,
+        fixed, allocator.
+        """
+        unknown = set(params) - _PARAMS
+        if unknown:
+            raise ValueError(f"unknown parameter(s) {sorted(unknown)}; known: {sorted(_PARAMS)}")
+        self._pending.update(params)
+
+    def _apply_pending(self) -> None:
+        p, self._pending = self._pending, {}
+        m = self.obj.material
+        mat = {
+            "stiffness": m.stiffness,
+            "damping": m.damping,
+            "mu_static": m.mu_static,
+            "mu_dynamic": m.mu_dynamic,
+        }
+        if "stiffness_n_per_m" in p:
+            mat["stiffness"] = float(p["stiffness_n_per_m"])
+        if "damping_n_s_per_m" in p:
+            mat["damping"] = float(p["damping_n_s_per_m"])
+        if "friction" in p:
+            mat["mu_static"], mat["mu_dynamic"] = (float(v) for v in p["friction"])
+        self.obj.material = Material(**mat)
+        if "mass_kg" in p:
+            self.obj.mass = float(p["mass_kg"])
+        if "fixed" in p:
+            self.obj.fixed = bool(p["fixed"])
+        if "allocator" in p:
+            self.allocator = str(p["allocator"])
+        self.plan()
 
     def reset(self, device_pos: np.ndarray) -> None:
         """Start every proxy at its device (pushed out of the object if inside)."""
         self._proxy = [tuple(map(float, p)) for p in device_pos]
 
+    # -- the tick ---------------------------------------------------------------------
+
     def step(self, device_pos: np.ndarray, device_vel: np.ndarray) -> None:
-        """Update proxies and forces for device positions (F, 3) m and velocities (F, 3) m/s."""
+        """One tick for device positions (F, 3) m and velocities (F, 3) m/s."""
+        if self._pending:
+            self._apply_pending()
         pos: list[V3] = [tuple(p) for p in device_pos.tolist()]
         if self._proxy is None:
             self._proxy = list(pos)
-        k, b = self.obj.stiffness, self.obj.damping
+        obj = self.obj
+        mat = obj.material
+        k, b = mat.stiffness, mat.damping
         proxies = self._proxy
         forces = list(self._zero3)
+        env = list(self._zero3)
+        shown = list(pos)
         points = list(pos)
         contacts: list[int] = []
+        R, x0 = obj.rotation, obj.position
         for i in range(self.n_fingers):
-            poly = self._planes[i]
             g = pos[i]
-            p, n_active, n = proxy_step(poly.normals_list, poly.offsets_list, proxies[i], g)
+            oset = self._sets[i]
+            res = proxy_step_multi(oset, proxies[i], g)
+            p = res.proxy
             proxies[i] = p
-            if n_active:
-                f = (k * (p[0] - g[0]), k * (p[1] - g[1]), k * (p[2] - g[2]))
-                if b:
-                    v = device_vel[i]
-                    f = (f[0] - b * v[0], f[1] - b * v[1], f[2] - b * v[2])
-                    # Damping may slow the finger but never pull it into the object.
-                    fn = f[0] * n[0] + f[1] * n[1] + f[2] * n[2]
-                    if fn < 0.0:
-                        f = (f[0] - fn * n[0], f[1] - fn * n[1], f[2] - fn * n[2])
-                forces[i] = f
-                r = self.radii[i]
-                points[i] = (p[0] - r * n[0], p[1] - r * n[1], p[2] - r * n[2])
-                contacts.append(i)
-            else:
+            shown[i] = p
+            obj_planes = [(pl, m) for (j, pl), m in zip(res.active, res.mu, strict=True) if j == 0]
+            if len(obj_planes) < len(res.active):
+                env[i] = self._env_force(oset, res, g, device_vel[i])
+            if not obj_planes:
+                self._anchor[i] = None
                 points[i] = p
-        self.proxy_pos[:] = proxies
+                continue
+            # The proxy's displacement due to the object's planes alone.
+            onorm = oset.obstacles[0][0]
+            po = [g[0], g[1], g[2]]
+            for pl, m in obj_planes:
+                n = onorm[pl]
+                po[0] += m * n[0]
+                po[1] += m * n[1]
+                po[2] += m * n[2]
+            pf: V3 = (po[0], po[1], po[2])
+            if len(obj_planes) == 1:
+                n = onorm[obj_planes[0][0]]
+            else:
+                n = _unit((pf[0] - g[0], pf[1] - g[1], pf[2] - g[2]), onorm[obj_planes[0][0]])
+            if self.friction_on:
+                pf = self._friction(i, pf, g, n, R, x0)
+            f = (k * (pf[0] - g[0]), k * (pf[1] - g[1]), k * (pf[2] - g[2]))
+            if b:
+                v = self._relative_velocity(device_vel[i], pf)
+                f = (f[0] - b * v[0], f[1] - b * v[1], f[2] - b * v[2])
+                # Damping may slow the finger but never pull it into the object.
+                fn = f[0] * n[0] + f[1] * n[1] + f[2] * n[2]
+                if fn < 0.0:
+                    f = (f[0] - fn * n[0], f[1] - fn * n[1], f[2] - fn * n[2])
+            forces[i] = f
+            shown[i] = (p[0] + pf[0] - po[0], p[1] + pf[1] - po[1], p[2] + pf[2] - po[2])
+            r = self.radii[i]
+            points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
+            contacts.append(i)
+        self.proxy_pos[:] = shown
         self.contact_force[:] = forces
+        self.env_force[:] = env
         self.contact_point[:] = points
         self.in_contact[:] = False
         self.in_contact[contacts] = True
         self._allocate(pos, points, forces, contacts)
+        if any(e != (0.0, 0.0, 0.0) for e in env):
+            # Ground and walls are rendered through each finger's own actuated directions.
+            world = self.actuation.world_directions(pos)
+            for i in range(self.n_fingers):
+                if env[i] != (0.0, 0.0, 0.0):
+                    self.rendered_force[i] += _projector(world[i]) @ np.array(env[i])
+        if self.dynamics_on:
+            self._dynamics(points, forces, contacts)
+
+    def _friction(self, i: int, pf: V3, g: V3, n: V3, R: np.ndarray, x0: np.ndarray) -> V3:
+        anchor = self._anchor[i]
+        aw = None
+        if anchor is not None:
+            a = R @ np.array(anchor) + x0
+            aw = (float(a[0]), float(a[1]), float(a[2]))
+        m = self.obj.material
+        pf, _ = friction_proxy(pf, g, n, aw, m.mu_static, m.mu_dynamic)
+        local = R.T @ (np.array(pf) - x0)
+        self._anchor[i] = (float(local[0]), float(local[1]), float(local[2]))
+        return pf
+
+    def _relative_velocity(self, v_dev: np.ndarray, point: V3) -> V3:
+        obj = self.obj
+        if obj.fixed:
+            return (float(v_dev[0]), float(v_dev[1]), float(v_dev[2]))
+        v = v_dev - (obj.velocity + np.cross(obj.omega, np.array(point) - obj.position))
+        return (float(v[0]), float(v[1]), float(v[2]))
+
+    def _env_force(self, oset: ObstacleSet, res: MultiResult, g: V3, v_dev: np.ndarray) -> V3:
+        """Force on a finger from the ground and walls it touches, N."""
+        f = [0.0, 0.0, 0.0]
+        for (j, pl), m in zip(res.active, res.mu, strict=True):
+            if j == 0:
+                continue
+            n = oset.obstacles[j][0][pl]
+            mat = self.scene.surfaces[j - 1].material
+            vn = float(v_dev[0] * n[0] + v_dev[1] * n[1] + v_dev[2] * n[2])
+            mag = max(mat.stiffness * m - mat.damping * vn, 0.0)
+            f[0] += mag * n[0]
+            f[1] += mag * n[1]
+            f[2] += mag * n[2]
+        return (f[0], f[1], f[2])
+
+    def _dynamics(self, points: list[V3], forces: list[V3], contacts: list[int]) -> None:
+        obj = self.obj
+        F = np.zeros(3)
+        T = np.zeros(3)
+        for i in contacts:
+            # The object feels the reaction of the full (virtual) contact force.
+            f = -np.array(forces[i])
+            F += f
+            T += np.cross(np.array(points[i]) - obj.position, f)
+        step_body(
+            obj,
+            F,
+            T,
+            self.dt,
+            gravity=self.gravity,
+            surfaces=self.body_surfaces,
+            substeps=self.scene.substeps,
+        )
+        self._rebuild_obstacles()
 
     def _allocate(
         self, pos: list[V3], points: list[V3], forces: list[V3], contacts: list[int]

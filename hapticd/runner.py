@@ -16,7 +16,7 @@ from hapticd.profile import FingerConfig, Profile, ProfileError
 from hapticd.recording import Recorder, RecordingError
 from hapticd.render import Renderer
 from hapticd.safety import SafetyChain
-from hapticd.scene import SceneObject
+from hapticd.scene import Scene
 from hapticd.servo import ServoLoop, summarize
 
 BUILTIN = "builtin:"
@@ -119,13 +119,13 @@ def build_session(
             )
         except DeviceError as exc:
             raise ProfileError(f"{profile.source}: fingers[{finger.name}].device: {exc}") from None
-    obj = SceneObject.from_config(profile.scene.object)
+    scene = Scene.from_config(profile.scene, profile)
     actuation = Actuation(
         [list(f.actuated_directions) for f in profile.fingers], profile.rendering.actuation_frame
     )
     rc = profile.rendering
     renderer = Renderer(
-        obj,
+        scene,
         [f.radius_m for f in profile.fingers],
         actuation,
         rc.allocator,

@@ -1,13 +1,20 @@
-"""The virtual scene: the grasped object's geometry, pose and contact parameters."""
+"""The virtual scene: the grasped object, the ground and walls, gravity.
+
+The object is a convex polytope in its body frame (origin at its centre of
+mass), placed by a pose; a free object also has mass (kg), inertia (kg m^2,
+body frame) and velocities. Ground and walls are half-spaces. Each has a
+material: stiffness (N/m), damping (N s/m), static and dynamic friction.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from hapticd.contact import Polytope, box_polytope
-from hapticd.profile import BoxConfig
+from hapticd.contact import Polytope
+from hapticd.profile import ObjectConfig, Profile, ProfileError, SceneConfig, SurfaceConfig
 
 
 def rpy_matrix(rpy: tuple[float, float, float]) -> np.ndarray:
@@ -21,20 +28,187 @@ def rpy_matrix(rpy: tuple[float, float, float]) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class SceneObject:
-    """A fixed object: convex geometry (m), stiffness (N/m), damping (N s/m)."""
+class Material:
+    """Contact material: stiffness k (N/m), damping b (N s/m), friction mu_s >= mu_d."""
 
-    polytope: Polytope
     stiffness: float
-    damping: float
+    damping: float = 0.0
+    mu_static: float = 0.0
+    mu_dynamic: float = 0.0
+
+    @property
+    def has_friction(self) -> bool:
+        return self.mu_static > 0.0
+
+
+@dataclass(frozen=True)
+class ConvexShape:
+    """A convex polytope in its body frame: unit normals (m, 3), offsets (m,), vertices (v, 3), m."""
+
+    normals: np.ndarray
+    offsets: np.ndarray
+    vertices: np.ndarray
+    volume: float
+    inertia_unit_mass: np.ndarray  # (3, 3) kg m^2 per kg, about the centre of mass
+
+    @classmethod
+    def box(cls, size: np.ndarray) -> ConvexShape:
+        a, b, c = (float(s) for s in size)
+        h = 0.5 * np.array([a, b, c])
+        normals = np.vstack([np.eye(3), -np.eye(3)])
+        offsets = np.concatenate([h, h])
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+        inertia = np.diag([b * b + c * c, a * a + c * c, a * a + b * b]) / 12.0
+        return cls(normals, offsets, signs * h, a * b * c, inertia)
+
+    @classmethod
+    def from_mesh(cls, path: Path, scale: float = 1.0) -> ConvexShape:
+        """The convex hull of a mesh file (any format trimesh reads), centred on its centroid."""
+        import trimesh
+
+        mesh = trimesh.load(path, force="mesh")
+        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+            raise ValueError(f"{path}: no triangle mesh found")
+        hull = mesh.convex_hull
+        hull.apply_scale(scale)
+        if hull.volume <= 0:
+            raise ValueError(f"{path}: the convex hull has no volume")
+        com = hull.center_mass
+        verts = hull.vertices - com
+        normals = hull.face_normals
+        offsets = np.einsum("ij,ij->i", normals, verts[hull.faces[:, 0]])
+        # Coplanar triangles share a plane: keep one copy.
+        key = np.round(np.column_stack([normals, offsets]), 9)
+        _, keep = np.unique(key, axis=0, return_index=True)
+        keep.sort()
+        inertia = hull.moment_inertia / hull.volume  # trimesh assumes density 1
+        return cls(normals[keep], offsets[keep], verts, float(hull.volume), inertia)
+
+
+@dataclass
+class SceneObject:
+    """The grasped object: shape, material and pose; velocities and mass when free."""
+
+    shape: ConvexShape
+    material: Material
+    position: np.ndarray
+    rotation: np.ndarray
+    fixed: bool = True
+    mass: float = 0.0
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    polytope: Polytope = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.position = np.asarray(self.position, dtype=float).copy()
+        self.rotation = np.asarray(self.rotation, dtype=float).copy()
+        self.update_world()
+
+    def update_world(self) -> None:
+        """Recompute the world-frame polytope after the pose changed."""
+        normals = self.shape.normals @ self.rotation.T
+        offsets = self.shape.offsets + normals @ self.position
+        self.polytope = Polytope(normals, offsets, self.position.copy())
 
     @property
     def center(self) -> np.ndarray:
-        return self.polytope.center
+        """Centre of mass, the grasp reference point (m)."""
+        return self.position
+
+    @property
+    def stiffness(self) -> float:
+        return self.material.stiffness
+
+    @property
+    def damping(self) -> float:
+        return self.material.damping
+
+    @property
+    def inertia_body(self) -> np.ndarray:
+        return self.mass * self.shape.inertia_unit_mass
+
+    def vertices_world(self) -> np.ndarray:
+        return self.shape.vertices @ self.rotation.T + self.position
 
     @classmethod
-    def from_config(cls, cfg: BoxConfig) -> SceneObject:
-        poly = box_polytope(
-            np.array(cfg.position_m), rpy_matrix(cfg.orientation_rpy_rad), np.array(cfg.size_m)
+    def from_config(cls, cfg: ObjectConfig, base: Path | None = None) -> SceneObject:
+        if cfg.shape == "box":
+            assert cfg.size_m is not None
+            shape = ConvexShape.box(np.array(cfg.size_m))
+        else:
+            assert cfg.mesh is not None
+            path = Path(cfg.mesh)
+            if not path.is_absolute() and base is not None:
+                path = base / path
+            try:
+                shape = ConvexShape.from_mesh(path, cfg.mesh_scale)
+            except (OSError, ValueError) as exc:
+                raise ProfileError(f"scene.object.mesh: cannot use {path}: {exc}") from None
+        mat = Material(
+            cfg.stiffness_n_per_m,
+            cfg.damping_n_s_per_m,
+            cfg.friction.static,
+            cfg.friction.dynamic,
         )
-        return cls(poly, cfg.stiffness_n_per_m, cfg.damping_n_s_per_m)
+        return cls(
+            shape,
+            mat,
+            np.array(cfg.position_m),
+            rpy_matrix(cfg.orientation_rpy_rad),
+            fixed=cfg.fixed,
+            mass=cfg.mass_kg or 0.0,
+        )
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A half-space obstacle (ground or wall): solid where normal . x <= offset."""
+
+    name: str
+    normal: tuple[float, float, float]
+    offset: float
+    material: Material
+
+    @property
+    def polytope(self) -> Polytope:
+        return Polytope(np.array([self.normal]), np.array([self.offset]), np.zeros(3))
+
+
+def _material(cfg: SurfaceConfig) -> Material:
+    return Material(
+        cfg.stiffness_n_per_m, cfg.damping_n_s_per_m, cfg.friction.static, cfg.friction.dynamic
+    )
+
+
+@dataclass
+class Scene:
+    """Everything the fingers and the object can touch, and gravity (m/s^2) if enabled."""
+
+    object: SceneObject
+    surfaces: list[Surface]
+    gravity: np.ndarray | None
+    substeps: int = 1
+
+    @classmethod
+    def from_config(cls, cfg: SceneConfig, profile: Profile | None = None) -> Scene:
+        base = profile.source.parent if profile is not None and profile.source else None
+        obj = SceneObject.from_config(cfg.object, base)
+        surfaces: list[Surface] = []
+        if cfg.ground is not None:
+            surfaces.append(
+                Surface("ground", (0.0, 0.0, 1.0), cfg.ground.height_m, _material(cfg.ground))
+            )
+        if cfg.walls is not None:
+            wx, wy = cfg.walls.half_width_m
+            m = _material(cfg.walls)
+            # Solid beyond each wall; the normal points back into the workspace.
+            surfaces += [
+                Surface("wall +x", (-1.0, 0.0, 0.0), -wx, m),
+                Surface("wall -x", (1.0, 0.0, 0.0), -wx, m),
+                Surface("wall +y", (0.0, -1.0, 0.0), -wy, m),
+                Surface("wall -y", (0.0, 1.0, 0.0), -wy, m),
+            ]
+        gravity = None if cfg.gravity_m_s2 is None else np.array(cfg.gravity_m_s2, dtype=float)
+        if gravity is not None and not np.any(gravity):
+            gravity = None
+        return cls(obj, surfaces, gravity, cfg.substeps)

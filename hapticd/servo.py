@@ -136,7 +136,9 @@ class ServoLoop:
                 r.accuracy[2],
                 r.accuracy[3],
                 r.alpha,
+                r.env_force,
                 self._object_pos(),
+                r.obj.rotation,
                 self.safety.latched,
             )
         )

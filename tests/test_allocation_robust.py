@@ -22,10 +22,9 @@ from hapticd.allocation import (
 )
 from hapticd.allocation_cases import SWEEPS
 from hapticd.allocation_cases import block_actuation as block_m
-from hapticd.contact import box_polytope
 from hapticd.grasp import grasp_matrix, internal_projector
 from hapticd.render import Renderer
-from hapticd.scene import SceneObject
+from hapticd.scene import ConvexShape, Material, SceneObject
 
 EPS = DEFAULT_ROBUSTNESS.eps
 ROBUST = ("pinv", "if", "ef")
@@ -279,7 +278,7 @@ def test_accuracy_tells_if_from_ef_on_the_seed_case():
 
 
 def renderer(allocator, **kw):
-    obj = SceneObject(box_polytope(np.zeros(3), np.eye(3), np.full(3, 0.05)), 200.0, 0.0)
+    obj = SceneObject(ConvexShape.box(np.full(3, 0.05)), Material(200.0), np.zeros(3), np.eye(3))
     act = Actuation([[(0.866, 0, 0.5)], [(-0.866, 0, 0.5)]], "world")
     return Renderer(obj, [0.008, 0.008], act, allocator, **kw)
 
