@@ -80,6 +80,13 @@ class FrictionConfig(_Strict):
 
     static: float = Field(default=0.0, ge=0, le=5)
     dynamic: float = Field(default=0.0, ge=0, le=5)
+    torsion_m: float = Field(
+        default=0.0,
+        ge=0,
+        le=0.05,
+        description="soft-finger torsional friction: largest moment about the contact normal "
+        "per newton of normal force, m (about contact patch radius x friction)",
+    )
 
     @model_validator(mode="after")
     def _order(self) -> FrictionConfig:

@@ -42,7 +42,7 @@ from hapticd.allocation import (
     two_contact_pinv,
 )
 from hapticd.contact import MultiResult, ObstacleSet, proxy_step_multi
-from hapticd.dynamics import step_body
+from hapticd.dynamics import SMALL_SHAPE, SurfaceSet, step_body, step_body_small
 from hapticd.friction import friction_proxy
 from hapticd.grasp import grasp_matrix
 from hapticd.scene import Material, Scene, SceneObject
@@ -113,6 +113,7 @@ class Renderer:
         self.alpha = 0.0
         self._proxy: list[V3] | None = None
         self._anchor: list[V3 | None] = [None] * F  # friction anchors, object body frame
+        self._normals: list[V3] = [(0.0, 0.0, 0.0)] * F  # contact normals of this tick
         self._zero3 = [(0.0, 0.0, 0.0)] * F
         self._pending: dict[str, object] = {}
         self.plan()
@@ -125,7 +126,7 @@ class Renderer:
         self.friction_on = self.obj.material.has_friction
         self.dynamics_on = not self.obj.fixed
         self.gravity = sc.gravity if self.dynamics_on else None
-        self.body_surfaces = sc.surfaces if self.dynamics_on and sc.surfaces else None
+        self.body_surfaces = SurfaceSet(sc.surfaces) if self.dynamics_on and sc.surfaces else None
         self._surface_obstacles = [
             [s.polytope.inflated(r) for s in sc.surfaces] for r in self.radii
         ]
@@ -253,6 +254,7 @@ class Renderer:
             shown[i] = (p[0] + pf[0] - po[0], p[1] + pf[1] - po[1], p[2] + pf[2] - po[2])
             r = self.radii[i]
             points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
+            self._normals[i] = n
             contacts.append(i)
         self.proxy_pos[:] = shown
         self.contact_force[:] = forces
@@ -286,7 +288,14 @@ class Renderer:
         obj = self.obj
         if obj.fixed:
             return (float(v_dev[0]), float(v_dev[1]), float(v_dev[2]))
-        v = v_dev - (obj.velocity + np.cross(obj.omega, np.array(point) - obj.position))
+        rel = np.array(point) - obj.position
+        w = obj.omega
+        spin = (
+            w[1] * rel[2] - w[2] * rel[1],
+            w[2] * rel[0] - w[0] * rel[2],
+            w[0] * rel[1] - w[1] * rel[0],
+        )
+        v = v_dev - obj.velocity - spin
         return (float(v[0]), float(v[1]), float(v[2]))
 
     def _env_force(self, oset: ObstacleSet, res: MultiResult, g: V3, v_dev: np.ndarray) -> V3:
@@ -308,19 +317,34 @@ class Renderer:
         obj = self.obj
         F = np.zeros(3)
         T = np.zeros(3)
+        x, y, z = (float(c) for c in obj.position)
         for i in contacts:
             # The object feels the reaction of the full (virtual) contact force.
-            f = -np.array(forces[i])
-            F += f
-            T += np.cross(np.array(points[i]) - obj.position, f)
-        step_body(
+            f = forces[i]
+            c = points[i]
+            rx, ry, rz = c[0] - x, c[1] - y, c[2] - z
+            F -= f
+            T -= (ry * f[2] - rz * f[1], rz * f[0] - rx * f[2], rx * f[1] - ry * f[0])
+        torsion = None
+        mu_t = obj.material.torsion
+        if mu_t > 0.0 and contacts:
+            # Soft-finger contacts resist the object's spin about each contact normal.
+            torsion = []
+            for i in contacts:
+                n, f = self._normals[i], forces[i]
+                fn = abs(f[0] * n[0] + f[1] * n[1] + f[2] * n[2])
+                if fn > 0.0:
+                    torsion.append((n, mu_t * fn))
+        small = len(obj.shape.vertices) <= SMALL_SHAPE
+        (step_body_small if small else step_body)(
             obj,
-            F,
-            T,
+            (float(F[0]), float(F[1]), float(F[2])) if small else F,
+            (float(T[0]), float(T[1]), float(T[2])) if small else T,
             self.dt,
             gravity=self.gravity,
             surfaces=self.body_surfaces,
             substeps=self.scene.substeps,
+            torsion=torsion,
         )
         self._rebuild_obstacles()
 

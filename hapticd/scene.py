@@ -35,6 +35,7 @@ class Material:
     damping: float = 0.0
     mu_static: float = 0.0
     mu_dynamic: float = 0.0
+    torsion: float = 0.0  # m: torsional friction moment per newton of normal force
 
     @property
     def has_friction(self) -> bool:
@@ -43,7 +44,7 @@ class Material:
 
 @dataclass(frozen=True)
 class ConvexShape:
-    """A convex polytope in its body frame: unit normals (m, 3), offsets (m,), vertices (v, 3), m."""
+    """Convex polytope in its body frame: unit normals (m, 3), offsets (m,), vertices (v, 3) m."""
 
     normals: np.ndarray
     offsets: np.ndarray
@@ -149,6 +150,7 @@ class SceneObject:
             cfg.damping_n_s_per_m,
             cfg.friction.static,
             cfg.friction.dynamic,
+            cfg.friction.torsion_m,
         )
         return cls(
             shape,

@@ -63,7 +63,58 @@ def grasp_stiffness() -> tuple[np.ndarray, np.ndarray, dict]:
     return t, x, meta
 
 
-TRAJECTORIES = {"grasp-stiffness": grasp_stiffness}
+def lift_weight() -> tuple[np.ndarray, np.ndarray, dict]:
+    """Seed experiment 2: pinch a free 50 mm cube resting on the ground, lift, hold 3 s, put down.
+
+    Cube centre at the origin, its bottom on the ground at z = -25 mm. The
+    fingers pinch 10 mm in (2 N each at 200 N/m), lift 40 mm, hold for the
+    seed's 3 s exploration with a small vertical bounce (+/-3 mm at 1 Hz, to
+    feel the weight), set the cube down, release and retreat.
+    """
+    contact = 0.025 + 0.008
+    depth = 0.010
+    lift = 0.040
+    plans = []
+    starts = []
+    for sign, dy in ((-1.0, 0.0), (1.0, -0.001)):
+        far = (sign * 0.070, dy, 0.0)
+        near = (sign * (contact + 0.003), dy, 0.0)
+        pinch = (sign * (contact - depth), dy, 0.0)
+        up = (sign * (contact - depth), dy, lift)
+        starts.append(np.array(far))
+        plans.append(
+            [
+                Hold(0.5),
+                MinJerk(1.2, near),
+                MinJerk(0.8, pinch),
+                MinJerk(1.0, up),
+                Squeeze(3.0, (0.0, 0.0, 1.0), 0.003, 1.0),
+                MinJerk(1.0, pinch),
+                Hold(0.3),
+                MinJerk(0.8, near),
+                MinJerk(1.0, far),
+                Hold(0.5),
+            ]
+        )
+    t, x = two_finger(starts, plans, RATE_HZ)
+    meta = {
+        "description": lift_weight.__doc__.split("\n")[0],
+        "model": "minimum-jerk segments; see docs/trajectories.md",
+        "rate_hz": RATE_HZ,
+        "phases_s": {
+            "approach": [0.5, 1.7],
+            "pinch": [1.7, 2.5],
+            "lift": [2.5, 3.5],
+            "hold": [3.5, 6.5],
+            "put_down": [6.5, 7.5],
+            "release": [7.8, 8.6],
+            "retreat": [8.6, 9.6],
+        },
+    }
+    return t, x, meta
+
+
+TRAJECTORIES = {"grasp-stiffness": grasp_stiffness, "lift-weight": lift_weight}
 
 
 def main() -> None:
