@@ -15,6 +15,7 @@ from hapticd_drivers import BackendUnavailableError
 from hapticd import __version__
 from hapticd.profile import ProfileError, load_profile
 from hapticd.runner import build_session, load_trajectories
+from hapticd.scene import Scene
 
 EXIT_OK = 0
 EXIT_ERROR = 1
@@ -94,6 +95,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     try:
         profile = load_profile(args.profile)
         load_trajectories(profile)
+        Scene.from_config(profile.scene, profile)
     except ProfileError as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -194,7 +194,11 @@ class Scene:
     @classmethod
     def from_config(cls, cfg: SceneConfig, profile: Profile | None = None) -> Scene:
         base = profile.source.parent if profile is not None and profile.source else None
-        obj = SceneObject.from_config(cfg.object, base)
+        try:
+            obj = SceneObject.from_config(cfg.object, base)
+        except ProfileError as exc:
+            where = profile.source if profile is not None and profile.source else "<profile>"
+            raise ProfileError(f"{where}: {exc}") from None
         surfaces: list[Surface] = []
         if cfg.ground is not None:
             surfaces.append(
