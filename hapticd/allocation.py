@@ -269,6 +269,35 @@ def two_contact_ef(
     return _apply(_finv2(*K, eps * eps), y0, y1)
 
 
+def one_contact(method: str, r: V3, d: V3, lam: V3, eps: float, alpha: float = 0.0) -> float:
+    """Robust allocation for one contact with one direction (closed form of the general path).
+
+    With one contact N(G) = {0}, so IF is pinv; EF matches the contact's wrench.
+    """
+    eps2 = eps * eps
+    k = _dot(d, d)
+    x_pinv = _dot(d, lam) / (k if k >= eps2 else eps2)
+    if method in ("pinv", "if") or (method == "adaptive" and alpha == 0.0):
+        return x_pinv
+    m = _cross(r, d)
+    K = k + _dot(m, m)
+    x_ef = (_dot(d, lam) + _dot(m, _cross(r, lam))) / (K if eps2 <= K else eps2)
+    if method == "ef":
+        return x_ef
+    return (1.0 - alpha) * x_pinv + alpha * x_ef
+
+
+def one_contact_accuracy(r: V3, d: V3, lam: V3, x: float) -> Accuracy:
+    """``accuracy`` for one contact with one direction: no internal forces exist."""
+    q = (lam[0] - x * d[0], lam[1] - x * d[1], lam[2] - x * d[2])
+    t = _cross(r, q)
+    n_lam = math.sqrt(_dot(lam, lam))
+    total = math.sqrt(_dot(q, q))
+    external = math.sqrt(_dot(q, q) + _dot(t, t))
+    amp = abs(x) * math.sqrt(_dot(d, d)) / n_lam if n_lam > 0 else 0.0
+    return Accuracy(0.0, external, total, amp)
+
+
 def _grasp_line(r1: V3, r2: V3, min_sep: float) -> tuple[V3, float]:
     """Unit grasp line e (first to second contact) and the blend w toward all opposing pairs."""
     dx, dy, dz = r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2]

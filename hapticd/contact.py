@@ -151,11 +151,24 @@ class MultiResult:
     mu: list[float]
 
 
-def _push_out_of(obstacles: list[Obstacle], p: Vec) -> Vec:
+def _distance(prepared: ObstacleSet, j: int, p: Vec) -> float:
+    arr = prepared.arrays[j]
+    if arr is not None:
+        return float(np.max(arr[0] @ np.asarray(p) - arr[1]))
+    return _signed_distance(*prepared.obstacles[j], p)[0]
+
+
+def _push_out_of(obstacles: list[Obstacle], p: Vec, prepared: ObstacleSet | None = None) -> Vec:
     for _ in range(len(obstacles) + 1):
         moved = False
-        for normals, offsets in obstacles:
-            dist, i = _signed_distance(normals, offsets, p)
+        for j, (normals, offsets) in enumerate(obstacles):
+            arr = prepared.arrays[j] if prepared is not None else None
+            if arr is not None:
+                dists = arr[0] @ np.asarray(p) - arr[1]
+                i = int(np.argmax(dists))
+                dist = float(dists[i])
+            else:
+                dist, i = _signed_distance(normals, offsets, p)
             if dist < 0.0:
                 n = normals[i]
                 p = (p[0] - dist * n[0], p[1] - dist * n[1], p[2] - dist * n[2])
@@ -165,10 +178,44 @@ def _push_out_of(obstacles: list[Obstacle], p: Vec) -> Vec:
     return p
 
 
-def _first_entry_any(obstacles: list[Obstacle], p: Vec, d: Vec) -> tuple[float, int, int] | None:
+# Obstacles with more planes than this take the vectorised tests (numpy beats a Python loop).
+_VECTOR_PLANES = 200
+
+
+def _first_entry_np(N: np.ndarray, off: np.ndarray, p: Vec, d: Vec) -> tuple[float, int] | None:
+    """``_first_entry`` vectorised over the planes of one large obstacle."""
+    denom = N @ np.asarray(d)
+    num = off - N @ np.asarray(p)
+    par = denom == 0.0
+    if np.any(par & (num <= 0.0)):
+        return None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = num / denom
+    entering = denom < 0.0
+    if not entering.any():
+        return None
+    te = np.where(entering, t, -np.inf)
+    plane = int(np.argmax(te))
+    t_enter = float(te[plane])
+    leaving = denom > 0.0
+    t_exit = float(t[leaving].min()) if leaving.any() else math.inf
+    if t_enter >= 1.0 or t_exit <= t_enter + _T_EPS or t_exit <= 0.0:
+        return None
+    return max(t_enter, 0.0), plane
+
+
+def _first_entry_any(
+    obstacles: list[Obstacle],
+    p: Vec,
+    d: Vec,
+    arrays: list[tuple[np.ndarray, np.ndarray] | None] | None = None,
+) -> tuple[float, int, int] | None:
     best: tuple[float, int, int] | None = None
     for j, (normals, offsets) in enumerate(obstacles):
-        hit = _first_entry(normals, offsets, p, d)
+        arr = arrays[j] if arrays is not None else None
+        hit = (
+            _first_entry_np(*arr, p, d) if arr is not None else _first_entry(normals, offsets, p, d)
+        )
         if hit is not None and (best is None or hit[0] < best[0]):
             best = (hit[0], j, hit[1])
     return best
@@ -197,6 +244,9 @@ class ObstacleSet:
         self.normals = [obstacles[j][0][i] for j, i in self.planes]
         self.offsets = [obstacles[j][1][i] for j, i in self.planes]
         self.index = {pi: k for k, pi in enumerate(self.planes)}
+        self.arrays = [
+            (np.array(n), np.array(o)) if len(n) > _VECTOR_PLANES else None for n, o in obstacles
+        ]
 
 
 def proxy_step_multi(
@@ -214,7 +264,7 @@ def proxy_step_multi(
     obstacles = prepared.obstacles
     all_normals, all_offsets, index = prepared.normals, prepared.offsets, prepared.index
     g = device
-    p = _push_out_of(obstacles, proxy_prev)
+    p = _push_out_of(obstacles, proxy_prev, prepared)
     active: list[tuple[int, int]] = []
     for _ in range(_MAX_ITER):
         if active:
@@ -222,7 +272,7 @@ def proxy_step_multi(
         else:
             target, mu = g, []
         d = (target[0] - p[0], target[1] - p[1], target[2] - p[2])
-        hit = _first_entry_any(obstacles, p, d)
+        hit = _first_entry_any(obstacles, p, d, prepared.arrays)
         if hit is not None:
             t, j, i = hit
             p = (p[0] + t * d[0], p[1] + t * d[1], p[2] + t * d[2])

@@ -34,6 +34,8 @@ from hapticd.allocation import (
     accuracy,
     allocate,
     external_ratio,
+    one_contact,
+    one_contact_accuracy,
     smoothstep,
     soft_internal_projector,
     two_contact_accuracy,
@@ -401,6 +403,14 @@ class Renderer:
         act = self.actuation
         out = np.zeros(act.n_actuators)
         method = self.allocator
+        if len(contacts) == 1 and act.counts[contacts[0]] == 1 and method not in EXACT_METHODS:
+            (i,) = contacts
+            (r1,) = self._offsets(points, contacts)
+            d1, l1 = world[i][0], forces[i]
+            if not _finite(r1, d1, l1):
+                raise AllocationError("non-finite contact geometry or force; refusing to allocate")
+            out[act.columns[i][0]] = one_contact(method, r1, d1, l1, self.robust.eps, self.alpha)
+            return out
         if self._is_two_simple(contacts) and method not in EXACT_METHODS:
             i, j = contacts
             r1, r2 = self._offsets(points, contacts)
@@ -442,7 +452,12 @@ class Renderer:
         lam_a: np.ndarray,
     ) -> None:
         act = self.actuation
-        if self._is_two_simple(contacts):
+        if len(contacts) == 1 and act.counts[contacts[0]] == 1:
+            (i,) = contacts
+            (r1,) = self._offsets(points, contacts)
+            x = float(lam_a[act.columns[i][0]])
+            a = one_contact_accuracy(r1, world[i][0], forces[i], x)
+        elif self._is_two_simple(contacts):
             i, j = contacts
             r1, r2 = self._offsets(points, contacts)
             x0, x1 = float(lam_a[act.columns[i][0]]), float(lam_a[act.columns[j][0]])

@@ -5,7 +5,7 @@ import copy
 import numpy as np
 import pytest
 import yaml
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
@@ -359,3 +359,22 @@ def test_missing_mesh_file_is_a_profile_error(tmp_path):
         ProfileError, match=r"p\.yaml: scene\.object\.mesh: cannot use .*nowhere\.stl"
     ):
         Scene.from_config(prof.scene, prof)
+
+
+@settings(max_examples=60)
+@given(arrays(float, (150, 3), elements=st.floats(-0.02, 0.02)))
+def test_proxy_never_inside_a_fine_mesh_with_the_vectorised_tests(steps):
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=3, radius=0.033)  # 1280 planes: numpy path
+    N = m.face_normals
+    off = np.einsum("ij,ij->i", N, m.vertices[m.faces[:, 0]])
+    obs = ObstacleSet([([tuple(n) for n in N.tolist()], off.tolist()), ground])
+    assert obs.arrays[0] is not None and obs.arrays[1] is None
+    x = np.array([0.05, 0.0, 0.0])
+    p = tuple(x)
+    for s in steps:
+        x = np.clip(x + s, -0.06, 0.06)
+        p = proxy_step_multi(obs, p, tuple(x)).proxy
+        assert float(np.max(N @ np.array(p) - off)) >= -1e-12
+        assert p[2] >= -0.017 - 1e-12
