@@ -189,7 +189,7 @@ def _first_entry_np(N: np.ndarray, off: np.ndarray, p: Vec, d: Vec) -> tuple[flo
     par = denom == 0.0
     if np.any(par & (num <= 0.0)):
         return None
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         t = num / denom
     entering = denom < 0.0
     if not entering.any():
