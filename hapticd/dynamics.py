@@ -98,18 +98,30 @@ def step_body(
     surfaces: SurfaceSet | None = None,
     substeps: int = 1,
     torsion: list[tuple[np.ndarray, float]] | None = None,
+    springs: list[tuple[np.ndarray, np.ndarray, float]] | None = None,
 ) -> None:
     """Advance a free object by dt under ``force`` (N) and ``torque`` (N m, about the COM).
 
     ``torsion``: soft-finger contacts as (unit normal, largest moment N m); each
     resists the object's spin about its normal up to that moment.
+    ``springs``: finger contacts as (contact point m, force on the object N,
+    stiffness N/m) at the tick's start. Within the tick each acts as a spring
+    fixed to the object: its force changes by -k times the point's motion, so
+    substeps see the fingers as the stiff springs they are, not as held forces.
     """
     h = dt / substeps
     inv_mass = 1.0 / obj.mass
     I_body = obj.inertia_body
+    R0, x0 = obj.rotation.copy(), obj.position.copy()
+    anchored = [(c, R0.T @ (c - x0), f, k) for c, f, k in springs] if springs else []
     for _ in range(substeps):
         F = force.copy()
         T = torque.copy()
+        for c0, body, f0, k in anchored:
+            rel = obj.rotation @ body
+            f = f0 - k * (obj.position + rel - c0)
+            F += f
+            T += cross(rel, f)
         if gravity is not None:
             F += obj.mass * gravity
         if surfaces is not None:
@@ -218,6 +230,7 @@ def step_body_small(
     surfaces: SurfaceSet | None = None,
     substeps: int = 1,
     torsion: list[tuple[np.ndarray, float]] | None = None,
+    springs: list[tuple[np.ndarray, np.ndarray, float]] | None = None,
 ) -> None:
     """``step_body`` on plain floats, for shapes with few vertices. Same model, same results."""
     h = dt / substeps
@@ -238,9 +251,25 @@ def step_body_small(
         ]
     gx, gy, gz = (0.0, 0.0, 0.0) if gravity is None else tuple(map(float, gravity))
     tors = [(tuple(map(float, n)), float(c)) for n, c in torsion] if torsion else []
+    Rt0 = _transpose(R)
+    anchored = []
+    for c, f, k in springs or []:
+        c0 = (float(c[0]), float(c[1]), float(c[2]))
+        body = _mat_vec(Rt0, (c0[0] - x[0], c0[1] - x[1], c0[2] - x[2]))
+        anchored.append((c0, body, (float(f[0]), float(f[1]), float(f[2])), float(k)))
     for _ in range(substeps):
         Fx, Fy, Fz = force[0] + m * gx, force[1] + m * gy, force[2] + m * gz
         Tx, Ty, Tz = torque
+        for c0, body, f0, k in anchored:
+            rel = _mat_vec(R, body)
+            f = (
+                f0[0] - k * (x[0] + rel[0] - c0[0]),
+                f0[1] - k * (x[1] + rel[1] - c0[1]),
+                f0[2] - k * (x[2] + rel[2] - c0[2]),
+            )
+            t = _cross3(rel, f)
+            Fx, Fy, Fz = Fx + f[0], Fy + f[1], Fz + f[2]
+            Tx, Ty, Tz = Tx + t[0], Ty + t[1], Tz + t[2]
         if surf:
             fs, ts = surface_wrench_small(surf, local, R, x, v, w, m, h)
             Fx, Fy, Fz = Fx + fs[0], Fy + fs[1], Fz + fs[2]
@@ -316,3 +345,19 @@ def surface_wrench_small(
             t = _cross3(r, f)
             Tx, Ty, Tz = Tx + t[0], Ty + t[1], Tz + t[2]
     return (Fx, Fy, Fz), (Tx, Ty, Tz)
+
+
+def auto_substeps(
+    obj: SceneObject, surfaces: list[Surface], finger_stiffness: float, n_fingers: int, dt: float
+) -> int:
+    """Substeps that keep omega h and (damping / mass) h below 0.5 for a free object.
+
+    Counts every finger and the surface vertices that can touch at once (a face:
+    four for a box) as springs and dampers in parallel: a conservative bound.
+    """
+    touching = min(4, len(obj.shape.vertices))
+    k = n_fingers * finger_stiffness + sum(touching * s.material.stiffness for s in surfaces[:1])
+    b = n_fingers * obj.material.damping + sum(touching * s.material.damping for s in surfaces[:1])
+    omega = math.sqrt(k / obj.mass)
+    rate = max(omega, b / obj.mass)
+    return max(1, min(64, math.ceil(rate * dt / 0.5)))

@@ -173,7 +173,18 @@ class SceneConfig(_Strict):
     )
     ground: GroundConfig | None = None
     walls: WallsConfig | None = None
-    substeps: int = Field(default=1, ge=1, le=64, description="dynamics integration steps per tick")
+    substeps: int | Literal["auto"] = Field(
+        default="auto",
+        description="dynamics integration steps per tick (1-64), or auto: enough for the "
+        "object's mass, the contact stiffness and damping",
+    )
+
+    @field_validator("substeps")
+    @classmethod
+    def _substeps(cls, v: int | str) -> int | str:
+        if v != "auto" and not (1 <= int(v) <= 64):
+            raise ValueError(f"substeps must be 1-64 or auto, got {v}")
+        return v
 
 
 BoxConfig = ObjectConfig  # the name used before meshes and free objects

@@ -44,7 +44,13 @@ from hapticd.allocation import (
     two_contact_pinv,
 )
 from hapticd.contact import MultiResult, ObstacleSet, proxy_step_multi
-from hapticd.dynamics import SMALL_SHAPE, SurfaceSet, step_body, step_body_small
+from hapticd.dynamics import (
+    SMALL_SHAPE,
+    SurfaceSet,
+    auto_substeps,
+    step_body,
+    step_body_small,
+)
 from hapticd.friction import friction_proxy
 from hapticd.grasp import grasp_matrix
 from hapticd.scene import Material, Scene, SceneObject
@@ -129,6 +135,11 @@ class Renderer:
         self.dynamics_on = not self.obj.fixed
         self.gravity = sc.gravity if self.dynamics_on else None
         self.body_surfaces = SurfaceSet(sc.surfaces) if self.dynamics_on and sc.surfaces else None
+        self.substeps = sc.substeps
+        if self.dynamics_on and sc.substeps == 0:  # auto
+            self.substeps = auto_substeps(
+                self.obj, sc.surfaces, self.obj.material.stiffness, self.n_fingers, self.dt
+            )
         self._surface_obstacles = [
             [s.polytope.inflated(r) for s in sc.surfaces] for r in self.radii
         ]
@@ -319,14 +330,10 @@ class Renderer:
         obj = self.obj
         F = np.zeros(3)
         T = np.zeros(3)
-        x, y, z = (float(c) for c in obj.position)
-        for i in contacts:
-            # The object feels the reaction of the full (virtual) contact force.
-            f = forces[i]
-            c = points[i]
-            rx, ry, rz = c[0] - x, c[1] - y, c[2] - z
-            F -= f
-            T -= (ry * f[2] - rz * f[1], rz * f[0] - rx * f[2], rx * f[1] - ry * f[0])
+        k = obj.material.stiffness
+        # The object feels the reaction of the full (virtual) contact force, as springs
+        # that move with it during the tick's substeps.
+        springs = [(points[i], (-forces[i][0], -forces[i][1], -forces[i][2]), k) for i in contacts]
         torsion = None
         mu_t = obj.material.torsion
         if mu_t > 0.0 and contacts:
@@ -345,8 +352,9 @@ class Renderer:
             self.dt,
             gravity=self.gravity,
             surfaces=self.body_surfaces,
-            substeps=self.scene.substeps,
+            substeps=self.substeps,
             torsion=torsion,
+            springs=springs,
         )
         self._rebuild_obstacles()
 

@@ -189,7 +189,7 @@ class Scene:
     object: SceneObject
     surfaces: list[Surface]
     gravity: np.ndarray | None
-    substeps: int = 1
+    substeps: int = 1  # 0: chosen by the renderer's plan (auto)
 
     @classmethod
     def from_config(cls, cfg: SceneConfig, profile: Profile | None = None) -> Scene:
@@ -217,4 +217,4 @@ class Scene:
         gravity = None if cfg.gravity_m_s2 is None else np.array(cfg.gravity_m_s2, dtype=float)
         if gravity is not None and not np.any(gravity):
             gravity = None
-        return cls(obj, surfaces, gravity, cfg.substeps)
+        return cls(obj, surfaces, gravity, 0 if cfg.substeps == "auto" else int(cfg.substeps))
