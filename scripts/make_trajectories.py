@@ -16,7 +16,28 @@ from hapticd import recording
 from hapticd.trajectory import Hold, MinJerk, Squeeze, two_finger
 
 DATA = Path(__file__).resolve().parent.parent / "hapticd" / "data" / "trajectories"
-RATE_HZ = 500.0  # below the loop rate on purpose: the replay device interpolates
+RATE_HZ = 500.0
+Vec = tuple[float, float, float]  # below the loop rate on purpose: the replay device interpolates
+
+
+CONTACT_X = 0.025 + 0.008  # cube half size + fingertip radius: where contact starts, m
+
+
+def key_points(sign: float, dy: float, dz: float, depth: float) -> tuple[Vec, Vec, Vec]:
+    """A finger's far, near (3 mm before contact) and pinch (``depth`` in) points, m."""
+    far = (sign * 0.070, dy, dz)
+    near = (sign * (CONTACT_X + 0.003), dy, dz)
+    pinch = (sign * (CONTACT_X - depth), dy, dz)
+    return far, near, pinch
+
+
+def metadata(doc: str | None, phases: dict[str, list[float]]) -> dict:
+    return {
+        "description": (doc or "").split("\n")[0],
+        "model": "minimum-jerk segments; see docs/trajectories.md",
+        "rate_hz": RATE_HZ,
+        "phases_s": phases,
+    }
 
 
 def grasp_stiffness() -> tuple[np.ndarray, np.ndarray, dict]:
@@ -27,14 +48,10 @@ def grasp_stiffness() -> tuple[np.ndarray, np.ndarray, dict]:
     +/-4 mm at 1.2 Hz for 3 s (the seed's 3 s exploration). The index finger is
     2 mm higher and 1 mm off the thumb's line, as real fingers are.
     """
-    contact = 0.025 + 0.008
-    depth = 0.015
     plans = []
     starts = []
     for sign, dy, dz in ((-1.0, 0.0, 0.0), (1.0, -0.001, 0.002)):
-        far = (sign * 0.070, dy, dz)
-        near = (sign * (contact + 0.003), dy, dz)
-        pinch = (sign * (contact - depth), dy, dz)
+        far, near, pinch = key_points(sign, dy, dz, 0.015)
         starts.append(np.array(far))
         plans.append(
             [
@@ -48,19 +65,14 @@ def grasp_stiffness() -> tuple[np.ndarray, np.ndarray, dict]:
             ]
         )
     t, x = two_finger(starts, plans, RATE_HZ)
-    meta = {
-        "description": grasp_stiffness.__doc__.split("\n")[0],
-        "model": "minimum-jerk segments; see docs/trajectories.md",
-        "rate_hz": RATE_HZ,
-        "phases_s": {
-            "approach": [0.5, 1.7],
-            "pinch": [1.7, 2.5],
-            "hold": [2.5, 5.5],
-            "release": [5.5, 6.3],
-            "retreat": [6.3, 7.3],
-        },
+    phases = {
+        "approach": [0.5, 1.7],
+        "pinch": [1.7, 2.5],
+        "hold": [2.5, 5.5],
+        "release": [5.5, 6.3],
+        "retreat": [6.3, 7.3],
     }
-    return t, x, meta
+    return t, x, metadata(grasp_stiffness.__doc__, phases)
 
 
 def lift_weight() -> tuple[np.ndarray, np.ndarray, dict]:
@@ -71,16 +83,12 @@ def lift_weight() -> tuple[np.ndarray, np.ndarray, dict]:
     seed's 3 s exploration with a small vertical bounce (+/-3 mm at 1 Hz, to
     feel the weight), set the cube down, release and retreat.
     """
-    contact = 0.025 + 0.008
-    depth = 0.010
     lift = 0.040
     plans = []
     starts = []
     for sign, dy in ((-1.0, 0.0), (1.0, -0.001)):
-        far = (sign * 0.070, dy, 0.0)
-        near = (sign * (contact + 0.003), dy, 0.0)
-        pinch = (sign * (contact - depth), dy, 0.0)
-        up = (sign * (contact - depth), dy, lift)
+        far, near, pinch = key_points(sign, dy, 0.0, 0.010)
+        up = (pinch[0], dy, lift)
         starts.append(np.array(far))
         plans.append(
             [
@@ -97,21 +105,16 @@ def lift_weight() -> tuple[np.ndarray, np.ndarray, dict]:
             ]
         )
     t, x = two_finger(starts, plans, RATE_HZ)
-    meta = {
-        "description": lift_weight.__doc__.split("\n")[0],
-        "model": "minimum-jerk segments; see docs/trajectories.md",
-        "rate_hz": RATE_HZ,
-        "phases_s": {
-            "approach": [0.5, 1.7],
-            "pinch": [1.7, 2.5],
-            "lift": [2.5, 3.5],
-            "hold": [3.5, 6.5],
-            "put_down": [6.5, 7.5],
-            "release": [7.8, 8.6],
-            "retreat": [8.6, 9.6],
-        },
+    phases = {
+        "approach": [0.5, 1.7],
+        "pinch": [1.7, 2.5],
+        "lift": [2.5, 3.5],
+        "hold": [3.5, 6.5],
+        "put_down": [6.5, 7.5],
+        "release": [7.8, 8.6],
+        "retreat": [8.6, 9.6],
     }
-    return t, x, meta
+    return t, x, metadata(lift_weight.__doc__, phases)
 
 
 TRAJECTORIES = {"grasp-stiffness": grasp_stiffness, "lift-weight": lift_weight}
