@@ -10,6 +10,7 @@ from hapticd_drivers.base import BackendUnavailableError, Device
 # name -> (module, class, pip extra that provides its optional dependency)
 BACKENDS: dict[str, tuple[str, str, str | None]] = {
     "replay": ("hapticd_drivers.replay", "ReplayDevice", None),
+    "sim": ("hapticd_drivers.sim", "SimulatedFinger", None),
 }
 
 

@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 from hapticd_drivers.base import Device, DeviceError, DeviceInfo, DeviceState, check_force
+from hapticd_drivers.path import Path
 
 
 class ReplayDevice(Device):
@@ -29,23 +30,10 @@ class ReplayDevice(Device):
         hold_s: float = 0.0,
         workspace_radius_m: float = 0.075,
     ) -> None:
-        t = np.asarray(times, dtype=float).reshape(-1)
-        x = np.asarray(positions, dtype=float)
-        if x.shape != (t.size, 3):
-            raise DeviceError(
-                f"replay {serial}: positions {x.shape} do not match times ({t.size},)"
-            )
-        if t.size < 2 or not np.all(np.isfinite(t)) or not np.all(np.isfinite(x)):
-            raise DeviceError(f"replay {serial}: need at least 2 finite samples")
-        if not np.all(np.diff(t) > 0):
-            raise DeviceError(f"replay {serial}: sample times must strictly increase")
+        self.path = Path(times, positions, f"replay {serial}")
         self.info = DeviceInfo("replay", serial, float(max_force_n), workspace_radius_m)
-        self._t = (t - t[0]).tolist()
-        self._x = x.tolist()
-        self._slope = (np.diff(x, axis=0) / np.diff(t)[:, None]).tolist()
         self._clock = clock
         self._t0 = 0.0
-        self._k = 0
         self._hold_s = float(hold_s)
         self._open = False
         self._enabled = False
@@ -57,11 +45,10 @@ class ReplayDevice(Device):
     @property
     def duration(self) -> float:
         """Length of the trajectory, s."""
-        return self._t[-1]
+        return self.path.duration
 
     def open(self) -> None:
         self._t0 = time.monotonic() if self._clock is None else 0.0
-        self._k = 0
         self._open = True
 
     def close(self) -> None:
@@ -71,40 +58,21 @@ class ReplayDevice(Device):
     def _time(self) -> float:
         return self._clock() if self._clock is not None else time.monotonic() - self._t0
 
-    def read_state(self, state: DeviceState) -> None:
+    def _require_open(self, what: str) -> None:
         if not self._open:
-            raise DeviceError(f"replay {self.info.serial}: read from a closed device")
+            raise DeviceError(f"{self.info.model} {self.info.serial}: {what} a closed device")
+
+    def read_state(self, state: DeviceState) -> None:
+        self._require_open("read from")
         now = self._time()
         self._now = now
-        t = self._t
-        k = self._k
-        last = len(t) - 1
-        if now < t[k]:
-            k = 0  # time went back (a new run on the same device): search from the start
-        while k < last - 1 and now >= t[k + 1]:
-            k += 1
-        self._k = k
-        x0, s = self._x[k], self._slope[k]
-        if now >= t[last]:
-            x1 = self._x[last]
-            state.position[:] = x1
-            state.velocity[:] = 0.0
-        elif now < t[0]:
-            state.position[:] = x0
-            state.velocity[:] = 0.0
-        else:
-            dt = now - t[k]
-            state.position[0] = x0[0] + s[0] * dt
-            state.position[1] = x0[1] + s[1] * dt
-            state.position[2] = x0[2] + s[2] * dt
-            state.velocity[:] = s
+        pos, vel = self.path.at(now)
+        state.position[:] = pos
+        state.velocity[:] = vel
         state.timestamp = now
         state.buttons = 0
 
-    def write_force(self, force: np.ndarray) -> None:
-        if not self._open:
-            raise DeviceError(f"replay {self.info.serial}: write to a closed device")
-        check_force(force, self.info.max_force_n, f"replay {self.info.serial}")
+    def _keep(self, force: np.ndarray) -> None:
         n = self._n_forces
         if n == len(self._force_times):
             self._forces = np.concatenate([self._forces, np.zeros_like(self._forces)])
@@ -115,6 +83,11 @@ class ReplayDevice(Device):
         self._force_times[n] = self._now
         self._n_forces = n + 1
 
+    def write_force(self, force: np.ndarray) -> None:
+        self._require_open("write to")
+        check_force(force, self.info.max_force_n, f"{self.info.model} {self.info.serial}")
+        self._keep(force)
+
     def enable_forces(self, enabled: bool) -> None:
         self._enabled = bool(enabled)
 
@@ -124,7 +97,7 @@ class ReplayDevice(Device):
 
     @property
     def finished(self) -> bool:
-        return self._now >= self._t[-1] + self._hold_s
+        return self._now >= self.path.duration + self._hold_s
 
     @property
     def forces(self) -> np.ndarray:

@@ -45,7 +45,24 @@ class ReplayDeviceConfig(_Strict):
     )
 
 
-DeviceConfig = Annotated[ReplayDeviceConfig, Field(discriminator="backend")]
+class SimDeviceConfig(_Strict):
+    """A simulated finger that follows a recorded path and feels the rendered force."""
+
+    backend: Literal["sim"]
+    trajectory: str = Field(description="path for the hand: recording path or 'builtin:NAME'")
+    finger: str | None = Field(default=None, description="finger of the recording to follow")
+    max_force_n: float = Field(default=12.0, gt=0, description="the device's rated force, N")
+    hold_s: float = Field(default=0.0, ge=0, description="keep running after the path ends, s")
+    mass_kg: float = Field(default=0.05, gt=0, le=5, description="fingertip and device mass, kg")
+    hand_stiffness_n_per_m: float = Field(
+        default=300.0, ge=0, le=1e4, description="grip of the hand on the path, N/m"
+    )
+    hand_damping_n_s_per_m: float = Field(
+        default=3.0, ge=0, le=100, description="damping of finger and device, N s/m"
+    )
+
+
+DeviceConfig = Annotated[ReplayDeviceConfig | SimDeviceConfig, Field(discriminator="backend")]
 
 
 def _unit(v: Vec3, what: str) -> Vec3:
@@ -288,7 +305,7 @@ def _format_loc(loc: tuple[int | str, ...], data: object) -> str:
             parts.append(f"[{item}]" if name is None else f"[{item}:{name}]")
             node = node[item] if isinstance(node, list) and item < len(node) else None
         else:
-            if item in ("replay",) and isinstance(node, dict) and node.get("backend") == item:
+            if item in ("replay", "sim") and isinstance(node, dict) and node.get("backend") == item:
                 continue  # pydantic's discriminator tag, not a key the user wrote
             parts.append(("." if parts else "") + str(item))
             node = node.get(item) if isinstance(node, dict) else None
@@ -321,7 +338,10 @@ def _explain(err: dict) -> str:
     kind = err["type"]
     if kind == "extra_forbidden":
         key = str(err["loc"][-1])
-        close = difflib.get_close_matches(key, sorted(_all_keys()), n=1, cutoff=0.75)
+        keys = sorted(_all_keys())
+        # Keys carry their unit ("mass_kg"): a key written without it is the likeliest slip.
+        close = [k for k in keys if k.startswith(key + "_")][:1]
+        close = close or difflib.get_close_matches(key, keys, n=1, cutoff=0.75)
         hint = f"; did you mean {close[0]!r}?" if close else ""
         return f"unknown key{hint} (the keys are listed in docs/profiles.md)"
     if kind == "missing":

@@ -105,6 +105,7 @@ def build_session(
     devices: list[Device] = []
     for finger, (t, x) in zip(profile.fingers, trajectories, strict=True):
         dev_cfg = finger.device
+        params = dev_cfg.model_dump(exclude={"backend", "trajectory", "finger"})
         try:
             devices.append(
                 open_device(
@@ -112,9 +113,8 @@ def build_session(
                     times=t,
                     positions=x,
                     clock=lambda: clock_box[0].now(),
-                    max_force_n=dev_cfg.max_force_n,
-                    serial=f"replay-{finger.name}",
-                    hold_s=dev_cfg.hold_s,
+                    serial=f"{dev_cfg.backend}-{finger.name}",
+                    **params,
                 )
             )
         except DeviceError as exc:

@@ -1,0 +1,48 @@
+"""A recorded fingertip path, interpolated linearly at any time (cursor-based, O(1) per step)."""
+
+from __future__ import annotations
+
+import numpy as np
+from hapticd_drivers.base import DeviceError
+
+Vec = tuple[float, float, float]
+
+
+class Path:
+    """Positions (N, 3) m at strictly increasing times (N,) s, shifted to start at t = 0."""
+
+    def __init__(self, times: np.ndarray, positions: np.ndarray, who: str) -> None:
+        t = np.asarray(times, dtype=float).reshape(-1)
+        x = np.asarray(positions, dtype=float)
+        if x.shape != (t.size, 3):
+            raise DeviceError(f"{who}: positions {x.shape} do not match times ({t.size},)")
+        if t.size < 2 or not np.all(np.isfinite(t)) or not np.all(np.isfinite(x)):
+            raise DeviceError(f"{who}: need at least 2 finite samples")
+        if not np.all(np.diff(t) > 0):
+            raise DeviceError(f"{who}: sample times must strictly increase")
+        self._t = (t - t[0]).tolist()
+        self._x = [tuple(p) for p in x.tolist()]
+        self._slope = [tuple(s) for s in (np.diff(x, axis=0) / np.diff(t)[:, None]).tolist()]
+        self._k = 0
+
+    @property
+    def duration(self) -> float:
+        return self._t[-1]
+
+    def at(self, now: float) -> tuple[Vec, Vec]:
+        """(position m, velocity m/s) at time ``now`` (s); held at the ends, zero velocity there."""
+        t, last = self._t, len(self._t) - 1
+        k = self._k
+        if now < t[k]:
+            k = 0  # time went back (a new run): search from the start
+        while k < last - 1 and now >= t[k + 1]:
+            k += 1
+        self._k = k
+        if now >= t[last]:
+            return self._x[last], (0.0, 0.0, 0.0)
+        x0 = self._x[k]
+        if now < t[0]:
+            return x0, (0.0, 0.0, 0.0)
+        s = self._slope[k]
+        dt = now - t[k]
+        return (x0[0] + s[0] * dt, x0[1] + s[1] * dt, x0[2] + s[2] * dt), s

@@ -1,0 +1,100 @@
+"""A simulated finger: closes the haptic loop without hardware.
+
+The fingertip (mass m, kg) is held by the hand, modelled as a spring-damper
+(k_h N/m, b_h N s/m) pulling it along a recorded path; the device's rendered
+force acts on it too:
+
+    m x'' = k_h (path(t) - x) - b_h x' + F_rendered
+
+integrated in fine steps (at most ``max_step_s``) between reads, with the
+force held as a device's amplifier holds it. Unlike replay, the finger *feels*
+the rendering: a stiff virtual wall pushes it back, and a wall that is not
+passive (Colgate & Schenkel: b_h > K T / 2) makes it chatter. Time comes from
+``clock``, the servo loop's nominal tick time.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+from hapticd_drivers.base import DeviceError, DeviceInfo, DeviceState, check_force
+from hapticd_drivers.replay import ReplayDevice
+
+
+class SimulatedFinger(ReplayDevice):
+    """A fingertip of mass ``mass_kg`` pulled along a path by the hand, feeling the device."""
+
+    def __init__(
+        self,
+        times: np.ndarray,
+        positions: np.ndarray,
+        clock: Callable[[], float] | None = None,
+        max_force_n: float = 12.0,
+        serial: str = "sim",
+        hold_s: float = 0.0,
+        workspace_radius_m: float = 0.075,
+        mass_kg: float = 0.05,
+        hand_stiffness_n_per_m: float = 300.0,
+        hand_damping_n_s_per_m: float = 3.0,
+        max_step_s: float = 1e-4,
+    ) -> None:
+        super().__init__(times, positions, clock, max_force_n, serial, hold_s, workspace_radius_m)
+        if not (mass_kg > 0 and hand_stiffness_n_per_m >= 0 and hand_damping_n_s_per_m >= 0):
+            raise DeviceError(
+                f"sim {serial}: mass must be positive, hand stiffness and damping >= 0"
+            )
+        self.info = DeviceInfo("sim", serial, float(max_force_n), workspace_radius_m)
+        self.mass = float(mass_kg)
+        self.k_hand = float(hand_stiffness_n_per_m)
+        self.b_hand = float(hand_damping_n_s_per_m)
+        self.max_step = float(max_step_s)
+        start, _ = self.path.at(0.0)
+        self.x = list(start)
+        self.v = [0.0, 0.0, 0.0]
+        self._applied = (0.0, 0.0, 0.0)
+        self._t_sim = 0.0
+
+    def open(self) -> None:
+        super().open()
+        start, _ = self.path.at(0.0)
+        self.x, self.v, self._t_sim = list(start), [0.0, 0.0, 0.0], 0.0
+        self._applied = (0.0, 0.0, 0.0)
+
+    def _advance(self, until: float) -> None:
+        span = until - self._t_sim
+        if span <= 0.0:
+            return
+        n = max(1, math.ceil(span / self.max_step))
+        h = span / n
+        m, kh, bh = self.mass, self.k_hand, self.b_hand
+        x, v, f = self.x, self.v, self._applied
+        t = self._t_sim
+        for _ in range(n):
+            t += h
+            goal, _ = self.path.at(t)
+            for i in range(3):
+                a = (kh * (goal[i] - x[i]) - bh * v[i] + f[i]) / m
+                v[i] += h * a
+                x[i] += h * v[i]
+        self._t_sim = until
+
+    def read_state(self, state: DeviceState) -> None:
+        self._require_open("read from")
+        now = self._time()
+        self._now = now
+        self._advance(now)
+        state.position[:] = self.x
+        state.velocity[:] = self.v
+        state.timestamp = now
+        state.buttons = 0
+        if not all(math.isfinite(c) for c in self.x):
+            raise DeviceError(f"sim {self.info.serial}: the simulated finger diverged")
+
+    def write_force(self, force: np.ndarray) -> None:
+        self._require_open("write to")
+        check_force(force, self.info.max_force_n, f"sim {self.info.serial}")
+        self._keep(force)
+        f = force if self._enabled else (0.0, 0.0, 0.0)
+        self._applied = (float(f[0]), float(f[1]), float(f[2]))
