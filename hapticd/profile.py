@@ -257,6 +257,17 @@ class SafetyConfig(_Strict):
     max_force_n: float = Field(
         gt=0, le=50.0, description="force limit per finger, N (the device's own limit also applies)"
     )
+    ramp_s: float = Field(default=0.5, ge=0, le=10, description="force ramp after enabling, s")
+    max_force_rate_n_per_s: float | None = Field(
+        default=5000.0, gt=0, description="largest change of a finger's force, N/s; none: off"
+    )
+    workspace_center_m: Vec3 = (0.0, 0.0, 0.0)
+    workspace_radius_m: float | None = Field(
+        default=None, gt=0, le=2, description="fingers beyond this sphere latch a fault, m"
+    )
+    watchdog_s: float | None = Field(
+        default=0.1, gt=0, le=10, description="longest wall time between ticks, s; none: off"
+    )
 
 
 class Profile(_Strict):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -15,7 +16,7 @@ from hapticd.allocation import AdaptiveState, Robustness
 from hapticd.profile import FingerConfig, Profile, ProfileError
 from hapticd.recording import Recorder, RecordingError
 from hapticd.render import Renderer
-from hapticd.safety import SafetyChain
+from hapticd.safety import SafetyChain, SafetyParams
 from hapticd.scene import Scene
 from hapticd.servo import ServoLoop, summarize
 
@@ -138,7 +139,18 @@ def build_session(
         dt=1.0 / profile.loop.rate_hz,
     )
     limits = [min(d.info.max_force_n, profile.safety.max_force_n) for d in devices]
-    safety = SafetyChain(limits)
+    sc = profile.safety
+    safety = SafetyChain(
+        limits,
+        SafetyParams(
+            ramp_s=sc.ramp_s,
+            max_rate_n_per_s=sc.max_force_rate_n_per_s or math.inf,
+            workspace_center_m=sc.workspace_center_m,
+            workspace_radius_m=sc.workspace_radius_m or math.inf,
+            watchdog_s=sc.watchdog_s or math.inf,
+        ),
+        dt=1.0 / profile.loop.rate_hz,
+    )
     recorder = None
     if record_path is not None:
         recorder = Recorder(

@@ -23,49 +23,138 @@ class Fault:
     cause: str
 
 
-class SafetyChain:
-    """NaN/inf guard, magnitude clamp and fault latch for F fingers."""
+@dataclass(frozen=True)
+class SafetyParams:
+    """Limits beyond the force clamp (defaults: off).
 
-    def __init__(self, limits_n: list[float]) -> None:
+    ramp_s: after enabling, forces scale from 0 to 1 over this time (s, nominal clock).
+    max_rate_n_per_s: largest change of a finger's force per second (N/s); a drop to
+      exactly zero is never delayed.
+    workspace_center_m, workspace_radius_m: a finger beyond this sphere latches a fault.
+    watchdog_s: more wall time than this between two ticks latches a fault (a stalled loop).
+    """
+
+    ramp_s: float = 0.0
+    max_rate_n_per_s: float = math.inf
+    workspace_center_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    workspace_radius_m: float = math.inf
+    watchdog_s: float = math.inf
+
+
+class SafetyChain:
+    """The last stage before a device, for F fingers, in this order: fault latch, NaN/inf
+    guard, watchdog, workspace, magnitude clamp (direction kept), rate limit, enable ramp.
+
+    Every stage only scales a force down or moves it between two forces within the
+    limit, so the output never exceeds the limit and is never NaN.
+    """
+
+    def __init__(
+        self, limits_n: list[float], params: SafetyParams | None = None, dt: float = 1e-3
+    ) -> None:
         if not limits_n or any(not (math.isfinite(v) and v > 0) for v in limits_n):
             raise ValueError(f"force limits must be positive and finite, got {limits_n}")
         self.limits = [float(v) for v in limits_n]
+        self.params = params or SafetyParams()
+        self.dt = float(dt)
         self.fault: Fault | None = None
         self.clamped_ticks = 0
+        self.rate_limited_ticks = 0
         self.output = np.zeros((len(limits_n), 3))
+        self._prev = np.zeros((len(limits_n), 3))
+        self._t_enabled = 0.0
+        self._last_wall: float | None = None
 
     @property
     def latched(self) -> bool:
         return self.fault is not None
+
+    def start(self, t: float) -> None:
+        """Forces were (re-)enabled at nominal time ``t`` (s): begin the ramp."""
+        self._t_enabled = float(t)
+        self._prev[:] = 0.0
+        self._last_wall = None
 
     def trip(self, tick: int, t: float, cause: str) -> None:
         """Latch a fault (the first cause is kept) and zero the output."""
         if self.fault is None:
             self.fault = Fault(tick, t, cause)
         self.output[:] = 0.0
+        self._prev[:] = 0.0
 
-    def reset(self) -> None:
+    def reset(self, t: float = 0.0) -> None:
+        """Clear a latched fault; forces ramp up again from ``t``."""
         self.fault = None
         self.output[:] = 0.0
+        self.start(t)
 
-    def apply(self, forces: np.ndarray, tick: int, t: float) -> np.ndarray:
-        """Safe forces (F, 3) N for ``forces`` (F, 3) N; returns an internal buffer."""
+    def apply(
+        self,
+        forces: np.ndarray,
+        tick: int,
+        t: float,
+        positions: np.ndarray | None = None,
+        t_wall: float | None = None,
+    ) -> np.ndarray:
+        """Safe forces (F, 3) N for ``forces`` (F, 3) N; returns an internal buffer.
+
+        ``positions`` (F, 3) m feed the workspace check, ``t_wall`` (s, monotonic)
+        the watchdog; ``t`` is the nominal tick time for the ramp.
+        """
         out = self.output
         if self.fault is not None:
             out[:] = 0.0
             return out
+        prm = self.params
         if not np.all(np.isfinite(forces)):
             bad = [i for i in range(len(self.limits)) if not np.all(np.isfinite(forces[i]))]
             self.trip(tick, t, f"non-finite force for finger(s) {bad}")
             return out
+        if t_wall is not None:
+            last, self._last_wall = self._last_wall, t_wall
+            if last is not None and t_wall - last > prm.watchdog_s:
+                gap = (t_wall - last) * 1e3
+                self.trip(
+                    tick,
+                    t,
+                    f"watchdog: {gap:.1f} ms between ticks (limit {prm.watchdog_s * 1e3:g} ms)",
+                )
+                return out
+        if positions is not None and math.isfinite(prm.workspace_radius_m):
+            c = prm.workspace_center_m
+            for i, p in enumerate(positions):
+                r = math.sqrt((p[0] - c[0]) ** 2 + (p[1] - c[1]) ** 2 + (p[2] - c[2]) ** 2)
+                if not r <= prm.workspace_radius_m:
+                    self.trip(
+                        tick,
+                        t,
+                        f"finger {i} left the workspace: {r:.4f} m from its centre "
+                        f"(limit {prm.workspace_radius_m:g} m)",
+                    )
+                    return out
         out[:] = forces
-        clamped = False
+        clamped = limited = False
+        step = prm.max_rate_n_per_s * self.dt
+        ramp = 1.0
+        if prm.ramp_s > 0.0:
+            ramp = min(1.0, max(0.0, (t - self._t_enabled) / prm.ramp_s))
         for i, limit in enumerate(self.limits):
             f = out[i]
             mag = math.hypot(f[0], f[1], f[2])
             if mag > limit:
                 f *= limit / mag
                 clamped = True
-        if clamped:
-            self.clamped_ticks += 1
+            if ramp < 1.0:
+                f *= ramp
+            if step < math.inf and (f[0] or f[1] or f[2]):
+                prev = self._prev[i]
+                d0, d1, d2 = f[0] - prev[0], f[1] - prev[1], f[2] - prev[2]
+                change = math.hypot(d0, d1, d2)
+                if change > step:
+                    k = step / change
+                    f[0], f[1], f[2] = prev[0] + k * d0, prev[1] + k * d1, prev[2] + k * d2
+                    limited = True
+        self._prev[:] = out
+        self.clamped_ticks += clamped
+        self.rate_limited_ticks += limited
         return out

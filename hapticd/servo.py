@@ -111,7 +111,7 @@ class ServoLoop:
             pos[i] = st.position
             vel[i] = st.velocity
         self.renderer.step(pos, vel)
-        out = self.safety.apply(self.renderer.rendered_force, k, t)
+        out = self.safety.apply(self.renderer.rendered_force, k, t, pos, time.monotonic())
         for i, dev in enumerate(self.devices):
             dev.write_force(out[i])
 
@@ -173,6 +173,7 @@ class ServoLoop:
                 opened.append(dev)
             for dev in self.devices:
                 dev.enable_forces(True)
+            self.safety.start(0.0)
         except Exception as exc:
             self.safety.trip(0, 0.0, f"device setup failed: {exc}")
             self.end_reason = "fault"
@@ -293,6 +294,7 @@ def summarize(loop: ServoLoop, allocator: str, finger_names: Sequence[str]) -> d
             for i, name in enumerate(finger_names)
         },
         "clamped_ticks": loop.safety.clamped_ticks,
+        "rate_limited_ticks": loop.safety.rate_limited_ticks,
         "end_reason": loop.end_reason,
         "fault": None
         if fault is None

@@ -53,3 +53,93 @@ def test_bad_limits_rejected():
         SafetyChain([1.0, 0.0])
     with pytest.raises(ValueError):
         SafetyChain([np.inf])
+
+
+# -- ramp, rate limit, workspace, watchdog --------------------------------------------------
+
+from hapticd.safety import SafetyParams  # noqa: E402
+
+finite = st.floats(-50, 50)
+
+
+@given(
+    st.lists(arrays(float, (2, 3), elements=finite), min_size=2, max_size=80),
+    st.floats(0.0, 0.05),
+    st.floats(100.0, 5000.0),
+)
+def test_ramp_and_rate_limit_hold_on_any_finite_stream(stream, ramp_s, rate):
+    dt = 1e-3
+    limits = [4.0, 6.0]
+    chain = SafetyChain(limits, SafetyParams(ramp_s=ramp_s, max_rate_n_per_s=rate), dt=dt)
+    chain.start(0.0)
+    prev = np.zeros((2, 3))
+    for k, forces in enumerate(stream):
+        t = k * dt
+        out = chain.apply(forces, k, t).copy()
+        scale = 1.0 if ramp_s == 0 else min(1.0, t / ramp_s)
+        for i, lim in enumerate(limits):
+            n = math.hypot(*out[i])
+            assert n <= lim * scale * (1 + 1e-12) + 1e-15  # the ramp, within the limit
+            if np.any(out[i] != 0):
+                assert math.hypot(*(out[i] - prev[i])) <= rate * dt * (1 + 1e-9)
+            else:
+                assert np.all(forces[i] == 0) or scale == 0 or n == 0
+        prev = out
+
+
+def test_a_drop_to_zero_is_never_delayed():
+    chain = SafetyChain([5.0], SafetyParams(max_rate_n_per_s=100.0), dt=1e-3)
+    chain.start(0.0)
+    for k in range(200):
+        chain.apply(np.array([[3.0, 0, 0]]), k, k * 1e-3)
+    assert chain.output[0, 0] == pytest.approx(3.0)  # reached at 0.1 N per tick
+    np.testing.assert_array_equal(chain.apply(np.zeros((1, 3)), 200, 0.2), 0)
+
+
+def test_watchdog_latches_a_stalled_loop():
+    chain = SafetyChain([5.0], SafetyParams(watchdog_s=0.05))
+    chain.apply(np.ones((1, 3)), 0, 0.0, t_wall=10.0)
+    chain.apply(np.ones((1, 3)), 1, 0.001, t_wall=10.001)
+    assert not chain.latched
+    out = chain.apply(np.ones((1, 3)), 2, 0.002, t_wall=10.2)
+    assert chain.latched and "watchdog: 199" in chain.fault.cause
+    assert np.all(out == 0)
+
+
+def test_leaving_the_workspace_latches():
+    chain = SafetyChain(
+        [5.0, 5.0], SafetyParams(workspace_center_m=(0, 0, 0.01), workspace_radius_m=0.075)
+    )
+    inside = np.array([[0.05, 0, 0.01], [-0.05, 0, 0.01]])
+    chain.apply(np.ones((2, 3)), 0, 0.0, positions=inside)
+    assert not chain.latched
+    chain.apply(np.ones((2, 3)), 1, 0.001, positions=inside + np.array([[0.03, 0, 0], [0, 0, 0]]))
+    assert chain.latched and "finger 0 left the workspace" in chain.fault.cause
+    chain.apply(np.ones((2, 3)), 2, 0.002, positions=np.full((2, 3), np.nan))
+    assert np.all(chain.output == 0)
+
+
+def test_a_stalled_servo_loop_ends_in_zero_force(monkeypatch):
+    from hapticd.profile import load_profile
+    from hapticd.runner import build_session
+    from tests.conftest import GRASP_PROFILE
+
+    s = build_session(load_profile(GRASP_PROFILE), paced=False)
+    real = s.renderer.step
+    calls = {"n": 0}
+
+    def stalling(*a):
+        calls["n"] += 1
+        if calls["n"] == 3000:  # in the pinch
+            import time
+
+            time.sleep(0.15)  # longer than the 0.1 s watchdog
+        return real(*a)
+
+    monkeypatch.setattr(s.renderer, "step", stalling)
+    out = s.run()
+    assert out["fault"] is not None and "watchdog" in out["fault"]["cause"]
+    assert out["fault"]["tick"] == 2999
+    for dev in s.devices:
+        assert np.all(dev.forces[2999:] == 0)
+        assert np.any(dev.forces[:2999] != 0)
