@@ -48,6 +48,7 @@ class DeltaDescription:
     max_current: float
     max_force: float
     workspace_radius: float
+    reports: dict[str, Any] | None = None
 
     @property
     def counts_per_radian(self) -> float:
@@ -97,6 +98,7 @@ def load_description(name_or_path: str | Path) -> DeltaDescription:
             max_current=float(_get(data, "motors.max_current_a", w)),
             max_force=float(_get(data, "limits.max_force_n", w)),
             workspace_radius=float(_get(data, "limits.workspace_radius_m", w)),
+            reports=data.get("reports"),
         )
     except (TypeError, ValueError, IndexError) as exc:
         raise KinematicsError(f"{w}: malformed value: {exc}") from None
