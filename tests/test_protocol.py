@@ -60,7 +60,7 @@ def test_feature_reports_round_trip():
 def test_every_single_bit_corruption_is_detected(bit):
     raw = bytearray(PROTO["input"].encode({"sequence": 7, "encoder": (1, -2, 3)}))
     raw[bit // 8] ^= 1 << (bit % 8)
-    with pytest.raises(ReportError, match="CRC mismatch|id "):
+    with pytest.raises(ReportError, match=r"CRC mismatch|id "):
         PROTO["input"].decode(bytes(raw))
 
 
@@ -71,7 +71,7 @@ def test_wrong_length_id_and_out_of_range_values():
         codec.decode(raw[:-1])
     with pytest.raises(ReportError, match="id 1, expected 2"):
         codec.decode(bytes([1]) + raw[1:])
-    with pytest.raises(ReportError, match="current .* out of range"):
+    with pytest.raises(ReportError, match=r"current .* out of range"):
         codec.encode({"current": (40.0, 0.0, 0.0)})  # 40 A does not fit 16 bits of mA
     with pytest.raises(ReportError, match="needs 3 values"):
         codec.encode({"current": (0.1, 0.2)})
