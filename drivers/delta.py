@@ -49,6 +49,7 @@ class DeltaDescription:
     max_force: float
     workspace_radius: float
     reports: dict[str, Any] | None = None
+    usb: dict[str, Any] | None = None
 
     @property
     def counts_per_radian(self) -> float:
@@ -99,6 +100,7 @@ def load_description(name_or_path: str | Path) -> DeltaDescription:
             max_force=float(_get(data, "limits.max_force_n", w)),
             workspace_radius=float(_get(data, "limits.workspace_radius_m", w)),
             reports=data.get("reports"),
+            usb=data.get("usb"),
         )
     except (TypeError, ValueError, IndexError) as exc:
         raise KinematicsError(f"{w}: malformed value: {exc}") from None

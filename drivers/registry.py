@@ -11,6 +11,7 @@ from hapticd_drivers.base import BackendUnavailableError, Device
 BACKENDS: dict[str, tuple[str, str, str | None]] = {
     "replay": ("hapticd_drivers.replay", "ReplayDevice", None),
     "sim": ("hapticd_drivers.sim", "SimulatedFinger", None),
+    "hid": ("hapticd_drivers.hid_backend", "HidDelta", "hid"),
 }
 
 

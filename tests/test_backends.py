@@ -1,0 +1,170 @@
+"""One conformance suite for every backend, and the hid backend's faults through the emulator."""
+
+import numpy as np
+import pytest
+from hapticd_drivers import DeviceError, DeviceState, open_device
+from hapticd_drivers.delta import load_description
+from hapticd_drivers.emulator import DeltaEmulator, FakeHidModule
+from hapticd_drivers.path import Path
+
+DESC = load_description("delta-omega-class")
+TIMES = np.array([0.0, 0.5, 1.0])
+POS = np.array([[0.0, 0.0, 0.0], [0.02, 0.01, -0.01], [0.03, -0.01, 0.02]])
+
+
+class Clock:
+    t = 0.0
+
+    def __call__(self):
+        return self.t
+
+
+def make(backend, clock, **kw):
+    if backend == "hid":
+        emu = DeltaEmulator(DESC, Path(TIMES, POS, "emu"), clock, serial="EMU-1")
+        dev = open_device("hid", hid_module=FakeHidModule([emu]), serial_number="EMU-1", **kw)
+        dev.emulator = emu
+        return dev
+    return open_device(backend, times=TIMES, positions=POS, clock=clock, **kw)
+
+
+BACKENDS = ["replay", "sim", "hid"]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_conformance_read_write_enable_close(backend):
+    clock = Clock()
+    dev = make(backend, clock)
+    st = DeviceState()
+    with pytest.raises(DeviceError):
+        dev.read_state(st)  # not open yet
+    dev.open()
+    try:
+        assert dev.info.max_force_n > 0 and dev.info.workspace_radius_m > 0
+        dev.enable_forces(True)
+        for k in range(300):
+            clock.t = k * 1e-3
+            dev.read_state(st)
+            assert np.all(np.isfinite(st.position)) and np.all(np.isfinite(st.velocity))
+            dev.write_force(np.array([0.5, -0.2, 0.1]))
+        want, _ = Path(TIMES, POS, "p").at(clock.t)
+        tol = 0.01 if backend == "sim" else 2e-5  # sim lags on its hand spring; hid quantises
+        np.testing.assert_allclose(st.position, want, atol=tol)
+        with pytest.raises(DeviceError, match="finite"):
+            dev.write_force(np.array([np.nan, 0, 0]))
+        with pytest.raises(DeviceError, match="above its limit"):
+            dev.write_force(np.array([dev.info.max_force_n * 1.01, 0, 0]))
+    finally:
+        dev.close()
+    with pytest.raises(DeviceError):
+        dev.write_force(np.zeros(3))
+
+
+def hid_dev(**kw):
+    clock = Clock()
+    dev = make("hid", clock, **kw)
+    dev.open()
+    dev.enable_forces(True)
+    return dev, dev.emulator, clock
+
+
+def run(dev, clock, ticks, force=(1.0, -2.0, 3.0), start=0):
+    st = DeviceState()
+    for k in range(start, start + ticks):
+        clock.t = k * 1e-3
+        dev.read_state(st)
+        dev.write_force(np.array(force))
+    return st
+
+
+def test_hid_renders_the_requested_force_within_quantisation():
+    dev, emu, clock = hid_dev()
+    run(dev, clock, 200)
+    np.testing.assert_allclose(emu.end_effector_force(), [1.0, -2.0, 3.0], atol=5e-3)
+
+
+def test_hid_saturation_keeps_the_force_direction():
+    dev, _, clock = hid_dev()
+    run(dev, clock, 5)
+    f = np.array([12.0, 0.0, 0.0])  # at the limit, in a direction the motors cannot all reach
+    current = dev.currents_for(f)
+    assert np.abs(current).max() <= DESC.max_current + 1e-12
+    produced = np.linalg.solve(
+        dev.delta.jacobian(dev._theta).T, current * DESC.torque_constant * DESC.gear_ratio
+    )
+    np.testing.assert_allclose(produced / np.linalg.norm(produced), [1, 0, 0], atol=1e-9)
+
+
+def test_one_lost_report_is_tolerated_three_are_a_timeout():
+    dev, emu, clock = hid_dev()
+    run(dev, clock, 10)
+    emu.drop_next = 1
+    run(dev, clock, 10, start=10)
+    assert dev.lost_reports == 1
+    emu.drop_next = 3
+    with pytest.raises(DeviceError, match=r"no input report for 3 reads \(timeout\)"):
+        run(dev, clock, 1, start=20)
+
+
+def test_corrupt_report_is_an_error():
+    dev, emu, clock = hid_dev()
+    run(dev, clock, 10)
+    emu.corrupt_next = 1
+    with pytest.raises(DeviceError, match=r"corrupt input report.*CRC"):
+        run(dev, clock, 1, start=10)
+
+
+def test_repeated_report_is_out_of_sequence():
+    dev, emu, clock = hid_dev()
+    run(dev, clock, 10)
+    emu.repeat_next = 1
+    with pytest.raises(DeviceError, match="out of sequence"):
+        run(dev, clock, 1, start=10)
+
+
+def test_unplug_is_an_error_and_the_device_exerts_no_force():
+    dev, emu, clock = hid_dev()
+    run(dev, clock, 10)
+    emu.unplug()
+    with pytest.raises(DeviceError, match="unplugged"):
+        run(dev, clock, 1, start=10)
+    np.testing.assert_array_equal(emu.currents, 0)
+
+
+def test_device_watchdog_zeroes_forces_when_the_host_stops_writing():
+    dev, emu, clock = hid_dev(device_watchdog_s=0.02)
+    run(dev, clock, 10)
+    assert emu.watchdog_s == pytest.approx(0.02)
+    assert np.abs(emu.currents).max() > 0
+    clock.t = 0.05  # 40 ms without an output report
+    with pytest.raises(DeviceError, match="watchdog cut the forces"):
+        dev.read_state(DeviceState())
+    np.testing.assert_array_equal(emu.currents, 0)
+
+
+def test_corrupt_output_reports_are_rejected_by_the_device():
+    dev, emu, clock = hid_dev()
+    run(dev, clock, 10)
+    before = emu.currents.copy()
+    bad = bytearray(
+        dev.protocol["output"].encode({"flags": 1, "sequence": 99, "current": (2.0, 2.0, 2.0)})
+    )
+    bad[5] ^= 0xFF
+    emu.output_report(bytes(bad))
+    assert emu.rejected_outputs == 1
+    np.testing.assert_array_equal(emu.currents, before)
+
+
+def test_no_device_found_says_why():
+    dev = open_device("hid", hid_module=FakeHidModule([]), serial_number="NOPE")
+    with pytest.raises(DeviceError, match=r"no device 1209:0001 \(NOPE\) found; 0 present"):
+        dev.open()
+
+
+def test_hid_backend_without_hidapi_names_the_extra(monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "hid", None)  # as if cython-hidapi were not installed
+    dev = open_device("hid")
+    with pytest.raises(DeviceError, match=r"pip install 'hapticd\[hid\]'"):
+        dev.open()
