@@ -64,6 +64,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             paced=not args.unpaced,
             duration_s=args.duration,
             record_path=args.record,
+            device=args.device,
+            emulate=args.emulate,
         )
     except (ProfileError, BackendUnavailableError) as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
@@ -131,6 +133,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--record", type=Path, metavar="PATH", help="record every tick to PATH (.hrec)"
+    )
+    run.add_argument(
+        "--device",
+        choices=["replay", "sim", "hid"],
+        help="use this backend for every finger instead of the profile's",
+    )
+    run.add_argument(
+        "--emulate",
+        action="store_true",
+        help="put the device emulator under the hid backend, moved along the profile's trajectory",
     )
     run.add_argument("--summary-json", type=Path, metavar="PATH", help="write the summary as JSON")
     run.add_argument("-q", "--quiet", action="store_true", help="do not print the summary")

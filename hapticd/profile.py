@@ -62,7 +62,30 @@ class SimDeviceConfig(_Strict):
     )
 
 
-DeviceConfig = Annotated[ReplayDeviceConfig | SimDeviceConfig, Field(discriminator="backend")]
+class HidDeviceConfig(_Strict):
+    """An Omega-class delta device speaking hapticd's report protocol over HID."""
+
+    backend: Literal["hid"]
+    description: str = Field(
+        default="delta-omega-class", description="device description: bundled name or YAML path"
+    )
+    serial_number: str | None = Field(default=None, description="pick the device by serial")
+    index: int = Field(default=0, ge=0, description="pick the n-th matching device")
+    device_watchdog_s: float = Field(
+        default=0.05,
+        gt=0,
+        le=8,
+        description="the device cuts forces after this long without a command, s",
+    )
+    trajectory: str | None = Field(
+        default=None, description="path for the emulator (--emulate) to move the device along"
+    )
+    finger: str | None = None
+
+
+DeviceConfig = Annotated[
+    ReplayDeviceConfig | SimDeviceConfig | HidDeviceConfig, Field(discriminator="backend")
+]
 
 
 def _unit(v: Vec3, what: str) -> Vec3:
@@ -316,7 +339,11 @@ def _format_loc(loc: tuple[int | str, ...], data: object) -> str:
             parts.append(f"[{item}]" if name is None else f"[{item}:{name}]")
             node = node[item] if isinstance(node, list) and item < len(node) else None
         else:
-            if item in ("replay", "sim") and isinstance(node, dict) and node.get("backend") == item:
+            if (
+                item in ("replay", "sim", "hid")
+                and isinstance(node, dict)
+                and node.get("backend") == item
+            ):
                 continue  # pydantic's discriminator tag, not a key the user wrote
             parts.append(("." if parts else "") + str(item))
             node = node.get(item) if isinstance(node, dict) else None

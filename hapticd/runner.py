@@ -9,11 +9,14 @@ from pathlib import Path
 from typing import Any
 
 from hapticd_drivers import Device, DeviceError, open_device
+from hapticd_drivers.delta import load_description
+from hapticd_drivers.emulator import DeltaEmulator, FakeHidModule
+from hapticd_drivers.path import Path as DevicePath
 
 from hapticd import recording
 from hapticd.actuation import Actuation
 from hapticd.allocation import AdaptiveState, Robustness
-from hapticd.profile import FingerConfig, Profile, ProfileError
+from hapticd.profile import FingerConfig, HidDeviceConfig, Profile, ProfileError
 from hapticd.recording import Recorder, RecordingError
 from hapticd.render import Renderer
 from hapticd.safety import SafetyChain, SafetyParams
@@ -45,12 +48,18 @@ def _where(profile: Profile, i: int, finger: FingerConfig, key: str) -> str:
     return f"{profile.source or '<profile>'}: fingers[{i}:{finger.name}].device.{key}"
 
 
-def load_trajectories(profile: Profile) -> list[tuple[Any, Any]]:
-    """(times, positions) per finger for replay devices; ProfileError names the bad key."""
+def load_trajectories(profile: Profile) -> list[tuple[Any, Any] | None]:
+    """(times, positions) per finger whose device names a trajectory, else None.
+
+    ProfileError names the bad key.
+    """
     cache: dict[Path, recording.Recording] = {}
-    out = []
+    out: list[tuple[Any, Any] | None] = []
     for i, finger in enumerate(profile.fingers):
         dev = finger.device
+        if dev.trajectory is None:
+            out.append(None)
+            continue
         try:
             path = trajectory_path(profile, dev.trajectory)
             rec = cache.get(path) or recording.read(path)
@@ -99,27 +108,74 @@ def build_session(
     paced: bool = True,
     duration_s: float | None = None,
     record_path: str | Path | None = None,
+    device: str | None = None,
+    emulate: bool = False,
 ) -> Session:
-    """Create devices, renderer, safety chain, recorder and loop for ``profile``."""
+    """Create devices, renderer, safety chain, recorder and loop for ``profile``.
+
+    ``device`` overrides every finger's backend; ``emulate`` puts the device
+    emulator under the hid backend, moved along each finger's trajectory.
+    """
     trajectories = load_trajectories(profile)
     clock_box: list[ServoLoop] = []
     devices: list[Device] = []
-    for finger, (t, x) in zip(profile.fingers, trajectories, strict=True):
-        dev_cfg = finger.device
-        params = dev_cfg.model_dump(exclude={"backend", "trajectory", "finger"})
+    fake_hid = FakeHidModule([]) if emulate else None
+    where = f"{profile.source or '<profile>'}"
+    for i, (finger, traj) in enumerate(zip(profile.fingers, trajectories, strict=True)):
+        cfg = finger.device
+        backend = device or cfg.backend
+        if emulate and backend != "hid":
+            raise ProfileError(f"--emulate works with the hid backend, not {backend!r}")
         try:
-            devices.append(
-                open_device(
-                    dev_cfg.backend,
-                    times=t,
-                    positions=x,
-                    clock=lambda: clock_box[0].now(),
-                    serial=f"{dev_cfg.backend}-{finger.name}",
-                    **params,
+            if backend in ("replay", "sim"):
+                if traj is None:
+                    raise ProfileError(
+                        f"{where}: fingers[{i}:{finger.name}].device needs a trajectory"
+                    )
+                params = {}
+                if cfg.backend == backend:
+                    params = cfg.model_dump(exclude={"backend", "trajectory", "finger"})
+                devices.append(
+                    open_device(
+                        backend,
+                        times=traj[0],
+                        positions=traj[1],
+                        clock=lambda: clock_box[0].now(),
+                        serial=f"{backend}-{finger.name}",
+                        **params,
+                    )
                 )
+                continue
+            hid_cfg = (
+                cfg if isinstance(cfg, HidDeviceConfig) else HidDeviceConfig(backend="hid", index=i)
             )
+            kwargs: dict[str, Any] = {
+                "description": hid_cfg.description,
+                "serial_number": hid_cfg.serial_number,
+                "index": hid_cfg.index,
+                "device_watchdog_s": hid_cfg.device_watchdog_s,
+            }
+            if fake_hid is not None:
+                if traj is None:
+                    raise ProfileError(
+                        f"{where}: fingers[{i}:{finger.name}].device: --emulate needs a trajectory"
+                    )
+                serial = f"EMU-{finger.name}"
+                fake_hid.emulators.append(
+                    DeltaEmulator(
+                        load_description(hid_cfg.description),
+                        DevicePath(traj[0], traj[1], f"emulator {finger.name}"),
+                        lambda: clock_box[0].now(),
+                        serial=serial,
+                    )
+                )
+                kwargs.update(serial_number=serial, index=0, hid_module=fake_hid)
+            devices.append(open_device(backend, **kwargs))
         except DeviceError as exc:
-            raise ProfileError(f"{profile.source}: fingers[{finger.name}].device: {exc}") from None
+            raise ProfileError(f"{where}: fingers[{i}:{finger.name}].device: {exc}") from None
+    if emulate and duration_s is None:
+        # Emulated devices do not end; stop where the trajectories do.
+        duration_s = max(float(t[0][-1] - t[0][0]) for t in trajectories if t is not None)
     scene = Scene.from_config(profile.scene, profile)
     actuation = Actuation(
         [list(f.actuated_directions) for f in profile.fingers], profile.rendering.actuation_frame

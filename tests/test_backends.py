@@ -168,3 +168,45 @@ def test_hid_backend_without_hidapi_names_the_extra(monkeypatch):
     dev = open_device("hid")
     with pytest.raises(DeviceError, match=r"pip install 'hapticd\[hid\]'"):
         dev.open()
+
+
+def test_hapticd_run_on_emulated_hid_devices_renders_what_replay_renders(tmp_path, capsys):
+    from hapticd import recording
+    from hapticd.cli import main
+    from tests.conftest import GRASP_PROFILE
+
+    hid_rec, replay_rec = tmp_path / "hid.hrec", tmp_path / "replay.hrec"
+    assert (
+        main(
+            [
+                "run",
+                str(GRASP_PROFILE),
+                "--device",
+                "hid",
+                "--emulate",
+                "--unpaced",
+                "-q",
+                "--record",
+                str(hid_rec),
+            ]
+        )
+        == 0
+    )
+    assert main(["run", str(GRASP_PROFILE), "--unpaced", "-q", "--record", str(replay_rec)]) == 0
+    a, b = recording.read(hid_rec), recording.read(replay_rec)
+    n = min(a.ticks, b.ticks)
+    assert n >= 7800
+    # Positions through quantised encoders and the kinematics: within a few micrometres.
+    assert np.abs(a["device_pos"][:n] - b["device_pos"][:n]).max() < 2e-5
+    diff = np.abs(a["device_force"][:n] - b["device_force"][:n]).max(axis=(1, 2))
+    assert np.percentile(diff, 99) < 2e-3  # the same forces, within quantisation
+    assert diff.max() < 0.02  # at contact onset a quantum shifts the blend by a tick
+    assert np.abs(a["device_force"]).max() > 1.0  # and they did render the pinch
+
+
+def test_emulate_needs_the_hid_backend(capsys):
+    from hapticd.cli import main
+    from tests.conftest import GRASP_PROFILE
+
+    assert main(["run", str(GRASP_PROFILE), "--emulate", "--unpaced"]) == 2
+    assert "--emulate works with the hid backend, not 'replay'" in capsys.readouterr().err
