@@ -12,6 +12,7 @@ BACKENDS: dict[str, tuple[str, str, str | None]] = {
     "replay": ("hapticd_drivers.replay", "ReplayDevice", None),
     "sim": ("hapticd_drivers.sim", "SimulatedFinger", None),
     "hid": ("hapticd_drivers.hid_backend", "HidDelta", "hid"),
+    "usb": ("hapticd_drivers.usb_backend", "UsbDelta", "usb"),
 }
 
 

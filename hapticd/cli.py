@@ -136,13 +136,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--device",
-        choices=["replay", "sim", "hid"],
+        choices=["replay", "sim", "hid", "usb"],
         help="use this backend for every finger instead of the profile's",
     )
     run.add_argument(
         "--emulate",
         action="store_true",
-        help="put the device emulator under the hid backend, moved along the profile's trajectory",
+        help="put the device emulator under the hid or usb backend, moved along the trajectory",
     )
     run.add_argument("--summary-json", type=Path, metavar="PATH", help="write the summary as JSON")
     run.add_argument("-q", "--quiet", action="store_true", help="do not print the summary")

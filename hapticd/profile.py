@@ -62,10 +62,10 @@ class SimDeviceConfig(_Strict):
     )
 
 
-class HidDeviceConfig(_Strict):
-    """An Omega-class delta device speaking hapticd's report protocol over HID."""
+class ProtocolDeviceConfig(_Strict):
+    """An Omega-class delta device speaking hapticd's report protocol (hid or usb)."""
 
-    backend: Literal["hid"]
+    backend: Literal["hid", "usb"]
     description: str = Field(
         default="delta-omega-class", description="device description: bundled name or YAML path"
     )
@@ -83,8 +83,10 @@ class HidDeviceConfig(_Strict):
     finger: str | None = None
 
 
+HidDeviceConfig = ProtocolDeviceConfig
+
 DeviceConfig = Annotated[
-    ReplayDeviceConfig | SimDeviceConfig | HidDeviceConfig, Field(discriminator="backend")
+    ReplayDeviceConfig | SimDeviceConfig | ProtocolDeviceConfig, Field(discriminator="backend")
 ]
 
 

@@ -16,7 +16,12 @@ from hapticd_drivers.path import Path as DevicePath
 from hapticd import recording
 from hapticd.actuation import Actuation
 from hapticd.allocation import AdaptiveState, Robustness
-from hapticd.profile import FingerConfig, HidDeviceConfig, Profile, ProfileError
+from hapticd.profile import (
+    FingerConfig,
+    HidDeviceConfig,
+    Profile,
+    ProfileError,
+)
 from hapticd.recording import Recorder, RecordingError
 from hapticd.render import Renderer
 from hapticd.safety import SafetyChain, SafetyParams
@@ -82,6 +87,17 @@ def load_trajectories(profile: Profile) -> list[tuple[Any, Any] | None]:
     return out
 
 
+def _emulated_seam(backend: str, emulators: list[DeltaEmulator]) -> dict[str, Any]:
+    """The library seam a backend runs on when its devices are emulated."""
+    if backend == "hid":
+        return {"hid_module": FakeHidModule(emulators)}
+    try:
+        from hapticd_drivers.usb_emulator import EmulatedUsbBackend
+    except ImportError as exc:
+        raise DeviceError("emulating usb devices needs pyusb: pip install 'hapticd[usb]'") from exc
+    return {"usb_backend": EmulatedUsbBackend(emulators)}
+
+
 @dataclass
 class Session:
     """Everything one run needs, built from a profile."""
@@ -119,13 +135,13 @@ def build_session(
     trajectories = load_trajectories(profile)
     clock_box: list[ServoLoop] = []
     devices: list[Device] = []
-    fake_hid = FakeHidModule([]) if emulate else None
+    emulators: list[DeltaEmulator] = []
     where = f"{profile.source or '<profile>'}"
     for i, (finger, traj) in enumerate(zip(profile.fingers, trajectories, strict=True)):
         cfg = finger.device
         backend = device or cfg.backend
-        if emulate and backend != "hid":
-            raise ProfileError(f"--emulate works with the hid backend, not {backend!r}")
+        if emulate and backend not in ("hid", "usb"):
+            raise ProfileError(f"--emulate works with the hid and usb backends, not {backend!r}")
         try:
             if backend in ("replay", "sim"):
                 if traj is None:
@@ -155,13 +171,13 @@ def build_session(
                 "index": hid_cfg.index,
                 "device_watchdog_s": hid_cfg.device_watchdog_s,
             }
-            if fake_hid is not None:
+            if emulate:
                 if traj is None:
                     raise ProfileError(
                         f"{where}: fingers[{i}:{finger.name}].device: --emulate needs a trajectory"
                     )
                 serial = f"EMU-{finger.name}"
-                fake_hid.emulators.append(
+                emulators.append(
                     DeltaEmulator(
                         load_description(hid_cfg.description),
                         DevicePath(traj[0], traj[1], f"emulator {finger.name}"),
@@ -169,7 +185,7 @@ def build_session(
                         serial=serial,
                     )
                 )
-                kwargs.update(serial_number=serial, index=0, hid_module=fake_hid)
+                kwargs.update(serial_number=serial, index=0, **_emulated_seam(backend, emulators))
             devices.append(open_device(backend, **kwargs))
         except DeviceError as exc:
             raise ProfileError(f"{where}: fingers[{i}:{finger.name}].device: {exc}") from None

@@ -20,15 +20,22 @@ class Clock:
 
 
 def make(backend, clock, **kw):
-    if backend == "hid":
+    if backend in ("hid", "usb"):
         emu = DeltaEmulator(DESC, Path(TIMES, POS, "emu"), clock, serial="EMU-1")
-        dev = open_device("hid", hid_module=FakeHidModule([emu]), serial_number="EMU-1", **kw)
+        if backend == "hid":
+            seam = {"hid_module": FakeHidModule([emu])}
+        else:
+            from hapticd_drivers.usb_emulator import EmulatedUsbBackend
+
+            seam = {"usb_backend": EmulatedUsbBackend([emu])}
+        dev = open_device(backend, serial_number="EMU-1", **seam, **kw)
         dev.emulator = emu
         return dev
     return open_device(backend, times=TIMES, positions=POS, clock=clock, **kw)
 
 
-BACKENDS = ["replay", "sim", "hid"]
+BACKENDS = ["replay", "sim", "hid", "usb"]
+PROTOCOL = ["hid", "usb"]
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -48,7 +55,7 @@ def test_conformance_read_write_enable_close(backend):
             assert np.all(np.isfinite(st.position)) and np.all(np.isfinite(st.velocity))
             dev.write_force(np.array([0.5, -0.2, 0.1]))
         want, _ = Path(TIMES, POS, "p").at(clock.t)
-        tol = 0.01 if backend == "sim" else 2e-5  # sim lags on its hand spring; hid quantises
+        tol = 0.01 if backend == "sim" else 2e-5  # sim lags on its hand spring; encoders quantise
         np.testing.assert_allclose(st.position, want, atol=tol)
         with pytest.raises(DeviceError, match="finite"):
             dev.write_force(np.array([np.nan, 0, 0]))
@@ -60,9 +67,9 @@ def test_conformance_read_write_enable_close(backend):
         dev.write_force(np.zeros(3))
 
 
-def hid_dev(**kw):
+def proto_dev(backend="hid", **kw):
     clock = Clock()
-    dev = make("hid", clock, **kw)
+    dev = make(backend, clock, **kw)
     dev.open()
     dev.enable_forces(True)
     return dev, dev.emulator, clock
@@ -77,14 +84,16 @@ def run(dev, clock, ticks, force=(1.0, -2.0, 3.0), start=0):
     return st
 
 
-def test_hid_renders_the_requested_force_within_quantisation():
-    dev, emu, clock = hid_dev()
+@pytest.mark.parametrize("backend", PROTOCOL)
+def test_renders_the_requested_force_within_quantisation(backend):
+    dev, emu, clock = proto_dev(backend)
     run(dev, clock, 200)
     np.testing.assert_allclose(emu.end_effector_force(), [1.0, -2.0, 3.0], atol=5e-3)
 
 
-def test_hid_saturation_keeps_the_force_direction():
-    dev, _, clock = hid_dev()
+@pytest.mark.parametrize("backend", PROTOCOL)
+def test_saturation_keeps_the_force_direction(backend):
+    dev, _, clock = proto_dev(backend)
     run(dev, clock, 5)
     f = np.array([12.0, 0.0, 0.0])  # at the limit, in a direction the motors cannot all reach
     current = dev.currents_for(f)
@@ -95,8 +104,9 @@ def test_hid_saturation_keeps_the_force_direction():
     np.testing.assert_allclose(produced / np.linalg.norm(produced), [1, 0, 0], atol=1e-9)
 
 
-def test_one_lost_report_is_tolerated_three_are_a_timeout():
-    dev, emu, clock = hid_dev()
+@pytest.mark.parametrize("backend", PROTOCOL)
+def test_one_lost_report_is_tolerated_three_are_a_timeout(backend):
+    dev, emu, clock = proto_dev(backend)
     run(dev, clock, 10)
     emu.drop_next = 1
     run(dev, clock, 10, start=10)
@@ -106,24 +116,27 @@ def test_one_lost_report_is_tolerated_three_are_a_timeout():
         run(dev, clock, 1, start=20)
 
 
-def test_corrupt_report_is_an_error():
-    dev, emu, clock = hid_dev()
+@pytest.mark.parametrize("backend", PROTOCOL)
+def test_corrupt_report_is_an_error(backend):
+    dev, emu, clock = proto_dev(backend)
     run(dev, clock, 10)
     emu.corrupt_next = 1
     with pytest.raises(DeviceError, match=r"corrupt input report.*CRC"):
         run(dev, clock, 1, start=10)
 
 
-def test_repeated_report_is_out_of_sequence():
-    dev, emu, clock = hid_dev()
+@pytest.mark.parametrize("backend", PROTOCOL)
+def test_repeated_report_is_out_of_sequence(backend):
+    dev, emu, clock = proto_dev(backend)
     run(dev, clock, 10)
     emu.repeat_next = 1
     with pytest.raises(DeviceError, match="out of sequence"):
         run(dev, clock, 1, start=10)
 
 
-def test_unplug_is_an_error_and_the_device_exerts_no_force():
-    dev, emu, clock = hid_dev()
+@pytest.mark.parametrize("backend", PROTOCOL)
+def test_unplug_is_an_error_and_the_device_exerts_no_force(backend):
+    dev, emu, clock = proto_dev(backend)
     run(dev, clock, 10)
     emu.unplug()
     with pytest.raises(DeviceError, match="unplugged"):
@@ -131,8 +144,9 @@ def test_unplug_is_an_error_and_the_device_exerts_no_force():
     np.testing.assert_array_equal(emu.currents, 0)
 
 
-def test_device_watchdog_zeroes_forces_when_the_host_stops_writing():
-    dev, emu, clock = hid_dev(device_watchdog_s=0.02)
+@pytest.mark.parametrize("backend", PROTOCOL)
+def test_device_watchdog_zeroes_forces_when_the_host_stops_writing(backend):
+    dev, emu, clock = proto_dev(backend, device_watchdog_s=0.02)
     run(dev, clock, 10)
     assert emu.watchdog_s == pytest.approx(0.02)
     assert np.abs(emu.currents).max() > 0
@@ -142,8 +156,9 @@ def test_device_watchdog_zeroes_forces_when_the_host_stops_writing():
     np.testing.assert_array_equal(emu.currents, 0)
 
 
-def test_corrupt_output_reports_are_rejected_by_the_device():
-    dev, emu, clock = hid_dev()
+@pytest.mark.parametrize("backend", PROTOCOL)
+def test_corrupt_output_reports_are_rejected_by_the_device(backend):
+    dev, emu, clock = proto_dev(backend)
     run(dev, clock, 10)
     before = emu.currents.copy()
     bad = bytearray(
@@ -209,4 +224,21 @@ def test_emulate_needs_the_hid_backend(capsys):
     from tests.conftest import GRASP_PROFILE
 
     assert main(["run", str(GRASP_PROFILE), "--emulate", "--unpaced"]) == 2
-    assert "--emulate works with the hid backend, not 'replay'" in capsys.readouterr().err
+    assert "--emulate works with the hid and usb backends, not 'replay'" in capsys.readouterr().err
+
+
+def test_no_usb_device_found_says_why():
+    from hapticd_drivers.usb_emulator import EmulatedUsbBackend
+
+    dev = open_device("usb", usb_backend=EmulatedUsbBackend([]), index=1)
+    with pytest.raises(DeviceError, match=r"no device 1209:0001 \(index 1\) found; 0 present"):
+        dev.open()
+
+
+def test_usb_backend_without_pyusb_names_the_extra(monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "usb.core", None)
+    dev = open_device("usb")
+    with pytest.raises(DeviceError, match=r"pip install 'hapticd\[usb\]'"):
+        dev.open()
