@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -108,6 +108,7 @@ class Session:
     safety: SafetyChain
     loop: ServoLoop
     recorder: Recorder | None
+    emulators: list[DeltaEmulator] = field(default_factory=list)
 
     def run(self) -> dict[str, Any]:
         try:
@@ -248,4 +249,4 @@ def build_session(
         recorder=recorder,
     )
     clock_box.append(loop)
-    return Session(profile, devices, renderer, safety, loop, recorder)
+    return Session(profile, devices, renderer, safety, loop, recorder, emulators)

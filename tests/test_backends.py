@@ -242,3 +242,39 @@ def test_usb_backend_without_pyusb_names_the_extra(monkeypatch):
     dev = open_device("usb")
     with pytest.raises(DeviceError, match=r"pip install 'hapticd\[usb\]'"):
         dev.open()
+
+
+FAULTS = {
+    "lost reports": (lambda emu: setattr(emu, "drop_next", 5), "timeout"),
+    "corrupt report": (lambda emu: setattr(emu, "corrupt_next", 1), "corrupt input report"),
+    "out-of-sequence report": (lambda emu: setattr(emu, "repeat_next", 1), "out of sequence"),
+    "unplug": (lambda emu: emu.unplug(), "unplugged"),
+}
+
+
+@pytest.mark.parametrize("backend", PROTOCOL)
+@pytest.mark.parametrize("fault", list(FAULTS))
+def test_a_fault_in_a_running_loop_ends_in_zero_force_and_a_latched_fault(backend, fault):
+    from hapticd.profile import load_profile
+    from hapticd.runner import build_session
+    from tests.conftest import GRASP_PROFILE
+
+    s = build_session(load_profile(GRASP_PROFILE), paced=False, device=backend, emulate=True)
+    inject, cause = FAULTS[fault]
+    real = s.renderer.step
+    ticks = {"n": 0}
+
+    def step(*a):
+        ticks["n"] += 1
+        if ticks["n"] == 3000:  # mid-pinch, both devices pushing
+            assert np.abs(s.emulators[0].currents).max() > 0
+            inject(s.emulators[0])
+        return real(*a)
+
+    s.renderer.step = step
+    out = s.run()
+    assert out["end_reason"] == "fault"
+    assert cause in out["fault"]["cause"]
+    for emu in s.emulators:  # neither device exerts any force afterwards
+        np.testing.assert_array_equal(emu.currents, 0)
+        assert not emu.forces_enabled
