@@ -13,6 +13,7 @@ BACKENDS: dict[str, tuple[str, str, str | None]] = {
     "sim": ("hapticd_drivers.sim", "SimulatedFinger", None),
     "hid": ("hapticd_drivers.hid_backend", "HidDelta", "hid"),
     "usb": ("hapticd_drivers.usb_backend", "UsbDelta", "usb"),
+    "dhd": ("hapticd_drivers.dhd_backend", "DhdDevice", None),
 }
 
 
