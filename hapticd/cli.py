@@ -112,6 +112,30 @@ def cmd_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_devices(args: argparse.Namespace) -> int:
+    from hapticd_drivers.udev import discover
+
+    report = discover()
+    if args.json:
+        print(json.dumps(report, indent=2))
+        return EXIT_OK
+    for entry in report:
+        if "problem" in entry:
+            print(f"{entry['backend']:<4} cannot look: {entry['problem']}")
+        elif entry["found"]:
+            print(f"{entry['backend']:<4} {entry['model']}: {', '.join(map(str, entry['found']))}")
+        else:
+            print(f"{entry['backend']:<4} {entry['model']}: none found (plugged in? udev rules?)")
+    return EXIT_OK
+
+
+def cmd_udev_rules(args: argparse.Namespace) -> int:
+    from hapticd_drivers.udev import rules
+
+    sys.stdout.write(rules())
+    return EXIT_OK
+
+
 def _positive(text: str) -> float:
     v = float(text)
     if not (v > 0 and math.isfinite(v)):
@@ -150,6 +174,11 @@ def build_parser() -> argparse.ArgumentParser:
     chk = sub.add_parser("check", help="validate a profile and the files it names")
     chk.add_argument("profile", type=Path)
     chk.set_defaults(func=cmd_check)
+    dev = sub.add_parser("devices", help="list the haptic devices found, or why none can be")
+    dev.add_argument("--json", action="store_true", help="machine-readable output")
+    dev.set_defaults(func=cmd_devices)
+    udev = sub.add_parser("udev-rules", help="print udev rules that let users open the devices")
+    udev.set_defaults(func=cmd_udev_rules)
     return ap
 
 
