@@ -293,6 +293,11 @@ class SafetyConfig(_Strict):
     watchdog_s: float | None = Field(
         default=0.1, gt=0, le=10, description="longest wall time between ticks, s; none: off"
     )
+    reconnect: bool = Field(
+        default=False,
+        description="on a device error keep running (forces off) and reopen the device when "
+        "it returns; false: end the run",
+    )
 
 
 class Profile(_Strict):

@@ -247,6 +247,7 @@ def build_session(
         paced=paced,
         duration_s=duration_s,
         recorder=recorder,
+        reconnect=profile.safety.reconnect,
     )
     clock_box.append(loop)
     return Session(profile, devices, renderer, safety, loop, recorder, emulators)

@@ -14,6 +14,7 @@ forces and closes the devices.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import math
 import time
@@ -22,7 +23,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from hapticd_drivers import Device, DeviceState
+from hapticd_drivers import Device, DeviceError, DeviceState
 
 from hapticd.recording import Recorder
 from hapticd.render import Renderer
@@ -34,6 +35,8 @@ OVERRUN_FACTOR = 1.1
 SPIN_MARGIN_S = 200e-6
 # If the loop falls this many periods behind, it re-anchors instead of bursting.
 REANCHOR_PERIODS = 10
+# How often a lost device is looked for again (reconnect mode), s of loop time.
+RECONNECT_PERIOD_S = 0.5
 
 
 @dataclass
@@ -73,6 +76,7 @@ class ServoLoop:
         duration_s: float | None = None,
         recorder: Recorder | None = None,
         object_pos: Callable[[], np.ndarray] | None = None,
+        reconnect: bool = False,
     ) -> None:
         if not (rate_hz > 0 and math.isfinite(rate_hz)):
             raise ValueError(f"rate_hz must be positive, got {rate_hz}")
@@ -93,6 +97,12 @@ class ServoLoop:
         self._stop_reason: str | None = None
         self.end_reason = ""
         self.stats = LoopStats(max_force=[0.0] * F, contact_ticks=[0] * F)
+        # Reconnect mode: a device error latches a fault but the loop goes on, looking for
+        # the device again; forces stay off until the fault is reset.
+        self.reconnect = reconnect
+        self._lost: list[float | None] = [None] * F
+        self._n_lost = 0
+        self.events: list[tuple[float, str]] = []
 
     def now(self) -> float:
         """Nominal time of the current tick, s (the clock of trajectory devices)."""
@@ -105,15 +115,57 @@ class ServoLoop:
 
     def _tick(self, k: int, t: float) -> None:
         pos, vel = self.device_pos, self.device_vel
+        lost = self._lost
         for i, dev in enumerate(self.devices):
+            if lost[i] is not None:
+                continue  # disconnected: keep its last position, at rest
             st = self._states[i]
-            dev.read_state(st)
+            try:
+                dev.read_state(st)
+            except DeviceError as exc:
+                self._lose(i, k, t, exc)
+                continue
             pos[i] = st.position
             vel[i] = st.velocity
         self.renderer.step(pos, vel)
         out = self.safety.apply(self.renderer.rendered_force, k, t, pos, time.monotonic())
         for i, dev in enumerate(self.devices):
-            dev.write_force(out[i])
+            if lost[i] is None:
+                try:
+                    dev.write_force(out[i])
+                except DeviceError as exc:
+                    self._lose(i, k, t, exc)
+        if self._n_lost:
+            self._try_reconnect(t)
+
+    def _lose(self, i: int, k: int, t: float, exc: DeviceError) -> None:
+        """A device failed: latch the fault and zero every force; without reconnect, stop."""
+        if not self.reconnect:
+            raise exc
+        self.safety.trip(k, t, f"{type(exc).__name__}: {exc}")
+        self._zero_all()
+        dev = self.devices[i]
+        with contextlib.suppress(Exception):
+            dev.close()
+        self._lost[i] = t
+        self._n_lost += 1
+        self.device_vel[i] = 0.0
+        self.events.append((t, f"device {dev.info.serial} lost: {exc}"))
+
+    def _try_reconnect(self, t: float) -> None:
+        for i, since in enumerate(self._lost):
+            if since is None or t - since < RECONNECT_PERIOD_S:
+                continue
+            dev = self.devices[i]
+            try:
+                dev.open()
+                dev.enable_forces(False)  # forces stay off until someone re-enables them
+            except Exception:
+                self._lost[i] = t  # still gone: try again later
+                continue
+            self._lost[i] = None
+            self._n_lost -= 1
+            self.events.append((t, f"device {dev.info.serial} reconnected; forces stay off"))
 
     def _record(self, t: float, t_wall: float, compute: float, forces: np.ndarray) -> None:
         r = self.renderer
@@ -296,6 +348,7 @@ def summarize(loop: ServoLoop, allocator: str, finger_names: Sequence[str]) -> d
         "clamped_ticks": loop.safety.clamped_ticks,
         "rate_limited_ticks": loop.safety.rate_limited_ticks,
         "end_reason": loop.end_reason,
+        "events": [{"t": round(t, 6), "event": e} for t, e in loop.events],
         "fault": None
         if fault is None
         else {"tick": fault.tick, "t": fault.t, "cause": fault.cause},

@@ -278,3 +278,39 @@ def test_a_fault_in_a_running_loop_ends_in_zero_force_and_a_latched_fault(backen
     for emu in s.emulators:  # neither device exerts any force afterwards
         np.testing.assert_array_equal(emu.currents, 0)
         assert not emu.forces_enabled
+
+
+@pytest.mark.parametrize("backend", PROTOCOL)
+def test_an_unplugged_device_is_reopened_with_forces_off(grasp_data, write_profile, backend):
+    from hapticd.profile import load_profile
+    from hapticd.runner import build_session
+
+    grasp_data["safety"]["reconnect"] = True
+    s = build_session(
+        load_profile(write_profile(grasp_data)), paced=False, device=backend, emulate=True
+    )
+    real = s.renderer.step
+    ticks = {"n": 0}
+
+    def step(*a):
+        ticks["n"] += 1
+        if ticks["n"] == 3000:
+            s.emulators[0].unplug()
+        if ticks["n"] == 3800:
+            s.emulators[0].replug()
+        return real(*a)
+
+    s.renderer.step = step
+    out = s.run()
+    assert out["end_reason"] == "duration reached"  # the run went on
+    assert "unplugged" in out["fault"]["cause"]  # with the fault latched
+    events = [e["event"] for e in out["events"]]
+    assert any("lost" in e for e in events) and any(
+        "reconnected; forces stay off" in e for e in events
+    )
+    lost_at = next(e["t"] for e in out["events"] if "lost" in e["event"])
+    back_at = next(e["t"] for e in out["events"] if "reconnected" in e["event"])
+    assert 3.79 <= back_at <= 3.8 + 0.5 + 0.002 and lost_at < back_at
+    for emu in s.emulators:  # reopened, and never pushed again
+        np.testing.assert_array_equal(emu.currents, 0)
+        assert not emu.forces_enabled
