@@ -14,6 +14,7 @@ above the seam is exactly what runs on hardware.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from hapticd_drivers.delta import Delta, DeltaDescription
@@ -35,6 +36,7 @@ class DeltaEmulator:
         clock: Callable[[], float],
         serial: str = "EMU-0001",
         firmware: int = 0x0100,
+        hand: Any = None,
     ) -> None:
         if desc.reports is None:
             raise ReportError(f"{desc.model}: the description has no report layouts")
@@ -43,6 +45,9 @@ class DeltaEmulator:
         self.protocol = Protocol(desc.reports, desc.model)
         self.path = path
         self.clock = clock
+        # With a hand (hapticd_drivers.sim.Hand) the end-effector is a fingertip that feels
+        # the motors' force; without one it follows the path rigidly.
+        self.hand = hand
         self.serial = serial
         self.firmware = firmware
         self.watchdog_s = 0.05
@@ -55,26 +60,39 @@ class DeltaEmulator:
         self._last_output_t: float | None = None
         self._last_report: bytes | None = None
         self.rejected_outputs = 0
+        self._force = np.zeros(3)
         # Fault injection: counts of upcoming input reports to drop, corrupt or repeat.
         self.drop_next = 0
         self.corrupt_next = 0
         self.repeat_next = 0
+        self.delay_next = 0
 
     # -- the mechanism --------------------------------------------------------------------
 
+    def position(self) -> np.ndarray:
+        """End-effector position now, m (device frame)."""
+        if self.hand is None:
+            pos, _ = self.path.at(self.clock())
+            return np.array(pos)
+        self.hand.advance(self.clock(), tuple(self._force))
+        return np.array(self.hand.x)
+
     def theta(self) -> np.ndarray:
-        pos, _ = self.path.at(self.clock())
-        return self.delta.inverse(np.array(pos))
+        return self.delta.inverse(self.position())
+
+    def _motor_force(self, theta: np.ndarray) -> np.ndarray:
+        tau = self.currents * self.desc.torque_constant * self.desc.gear_ratio
+        return np.linalg.solve(self.delta.jacobian(theta).T, tau)
 
     def end_effector_force(self) -> np.ndarray:
         """Force (3,) N the motors exert on the end-effector now: tau = J^T f."""
-        tau = self.currents * self.desc.torque_constant * self.desc.gear_ratio
-        return np.linalg.solve(self.delta.jacobian(self.theta()).T, tau)
+        return self._motor_force(self.theta())
 
     def _check_watchdog(self) -> None:
         now = self.clock()
         if self._last_output_t is not None and now - self._last_output_t > self.watchdog_s:
             self.currents[:] = 0.0
+            self._force = np.zeros(3)
             self.watchdog_tripped = True
 
     # -- reports ----------------------------------------------------------------------------
@@ -94,6 +112,9 @@ class DeltaEmulator:
         if self.repeat_next and self._last_report is not None:
             self.repeat_next -= 1
             return self._last_report
+        if self.delay_next:
+            self.delay_next -= 1
+            return None  # late: this read times out, the report comes with the next one
         counts = self.delta.counts_from_angles(self.theta())
         status = (1 if self.forces_enabled else 0) | (2 if self.watchdog_tripped else 0)
         raw = self.protocol["input"].encode(
@@ -128,6 +149,8 @@ class DeltaEmulator:
         current = np.array(values["current"], dtype=float)
         limit = self.desc.max_current
         self.currents = np.clip(current, -limit, limit) if self.forces_enabled else np.zeros(3)
+        if self.hand is not None:
+            self._force = self._motor_force(self.theta())
         self._last_output_t = self.clock()
         self.watchdog_tripped = False
 
@@ -158,6 +181,7 @@ class DeltaEmulator:
     def unplug(self) -> None:
         self.plugged = False
         self.currents[:] = 0.0  # no power, no force
+        self._force = np.zeros(3)
         self.forces_enabled = False
 
     def replug(self) -> None:

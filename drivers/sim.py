@@ -17,10 +17,41 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from hapticd_drivers.base import DeviceError, DeviceInfo, DeviceState, check_force
 from hapticd_drivers.replay import ReplayDevice
+
+
+class Hand:
+    """A fingertip (mass, kg) pulled along ``path`` by a spring-damper (N/m, N s/m); external
+    forces (N) act on it too. Integrated in steps of at most ``max_step`` s."""
+
+    def __init__(self, path: Any, mass: float, k: float, b: float, max_step: float = 1e-4) -> None:
+        self.path, self.mass, self.k, self.b, self.max_step = path, mass, k, b, max_step
+        self.reset()
+
+    def reset(self) -> None:
+        start, _ = self.path.at(0.0)
+        self.x, self.v, self.t = list(start), [0.0, 0.0, 0.0], 0.0
+
+    def advance(self, until: float, force: tuple[float, float, float]) -> None:
+        span = until - self.t
+        if span <= 0.0:
+            return
+        n = max(1, math.ceil(span / self.max_step))
+        h = span / n
+        m, kh, bh = self.mass, self.k, self.b
+        x, v, t = self.x, self.v, self.t
+        for _ in range(n):
+            t += h
+            goal, _ = self.path.at(t)
+            for i in range(3):
+                a = (kh * (goal[i] - x[i]) - bh * v[i] + force[i]) / m
+                v[i] += h * a
+                x[i] += h * v[i]
+        self.t = until
 
 
 class SimulatedFinger(ReplayDevice):
@@ -46,50 +77,34 @@ class SimulatedFinger(ReplayDevice):
                 f"sim {serial}: mass must be positive, hand stiffness and damping >= 0"
             )
         self.info = DeviceInfo("sim", serial, float(max_force_n), workspace_radius_m)
-        self.mass = float(mass_kg)
-        self.k_hand = float(hand_stiffness_n_per_m)
-        self.b_hand = float(hand_damping_n_s_per_m)
-        self.max_step = float(max_step_s)
-        start, _ = self.path.at(0.0)
-        self.x = list(start)
-        self.v = [0.0, 0.0, 0.0]
+        self.hand = Hand(
+            self.path,
+            float(mass_kg),
+            float(hand_stiffness_n_per_m),
+            float(hand_damping_n_s_per_m),
+            float(max_step_s),
+        )
         self._applied = (0.0, 0.0, 0.0)
-        self._t_sim = 0.0
+
+    @property
+    def x(self) -> list[float]:
+        return self.hand.x
 
     def open(self) -> None:
         super().open()
-        start, _ = self.path.at(0.0)
-        self.x, self.v, self._t_sim = list(start), [0.0, 0.0, 0.0], 0.0
+        self.hand.reset()
         self._applied = (0.0, 0.0, 0.0)
-
-    def _advance(self, until: float) -> None:
-        span = until - self._t_sim
-        if span <= 0.0:
-            return
-        n = max(1, math.ceil(span / self.max_step))
-        h = span / n
-        m, kh, bh = self.mass, self.k_hand, self.b_hand
-        x, v, f = self.x, self.v, self._applied
-        t = self._t_sim
-        for _ in range(n):
-            t += h
-            goal, _ = self.path.at(t)
-            for i in range(3):
-                a = (kh * (goal[i] - x[i]) - bh * v[i] + f[i]) / m
-                v[i] += h * a
-                x[i] += h * v[i]
-        self._t_sim = until
 
     def read_state(self, state: DeviceState) -> None:
         self._require_open("read from")
         now = self._time()
         self._now = now
-        self._advance(now)
-        state.position[:] = self.x
-        state.velocity[:] = self.v
+        self.hand.advance(now, self._applied)
+        state.position[:] = self.hand.x
+        state.velocity[:] = self.hand.v
         state.timestamp = now
         state.buttons = 0
-        if not all(math.isfinite(c) for c in self.x):
+        if not all(math.isfinite(c) for c in self.hand.x):
             raise DeviceError(f"sim {self.info.serial}: the simulated finger diverged")
 
     def write_force(self, force: np.ndarray) -> None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import logging
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -29,6 +30,8 @@ from hapticd.recording import Recorder
 from hapticd.render import Renderer
 from hapticd.safety import SafetyChain
 from hapticd.stats import LogHistogram
+
+log = logging.getLogger("hapticd.servo")
 
 OVERRUN_FACTOR = 1.1
 # Sleep until this long before a deadline, then spin: measured in docs/notes.
@@ -150,7 +153,7 @@ class ServoLoop:
         self._lost[i] = t
         self._n_lost += 1
         self.device_vel[i] = 0.0
-        self.events.append((t, f"device {dev.info.serial} lost: {exc}"))
+        self._event(t, f"device {dev.info.serial} lost: {exc}")
 
     def _try_reconnect(self, t: float) -> None:
         for i, since in enumerate(self._lost):
@@ -165,7 +168,12 @@ class ServoLoop:
                 continue
             self._lost[i] = None
             self._n_lost -= 1
-            self.events.append((t, f"device {dev.info.serial} reconnected; forces stay off"))
+            self._event(t, f"device {dev.info.serial} reconnected; forces stay off")
+
+    def _event(self, t: float, what: str) -> None:
+        # Rare, and after the forces are already zero: logging here cannot hurt a tick.
+        self.events.append((t, what))
+        log.warning("t = %.3f s: %s", t, what)
 
     def _record(self, t: float, t_wall: float, compute: float, forces: np.ndarray) -> None:
         r = self.renderer
@@ -206,6 +214,13 @@ class ServoLoop:
                 except Exception as exc:
                     errors.append(f"{dev.info.serial}: {exc}")
         return errors
+
+    def _log_fault(self) -> None:
+        f = self.safety.fault
+        if f is not None:
+            log.error(
+                "fault latched at tick %d (t = %.3f s), forces zeroed: %s", f.tick, f.t, f.cause
+            )
 
     def _finished(self, k: int) -> str | None:
         if self._stop_reason is not None:
@@ -280,6 +295,7 @@ class ServoLoop:
                 if period > OVERRUN_FACTOR * T:
                     st.overruns += 1
             prev = start
+            latched = safety.fault is not None
             try:
                 self._tick(k, t)
             except Exception as exc:
@@ -287,7 +303,10 @@ class ServoLoop:
                 self.end_reason = "fault"
                 st.ticks = k + 1
                 st.last_start = start
+                self._log_fault()
                 return
+            if not latched and safety.fault is not None:
+                self._log_fault()
             out = safety.output
             for i in range(F):
                 f = out[i]

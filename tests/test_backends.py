@@ -314,3 +314,42 @@ def test_an_unplugged_device_is_reopened_with_forces_off(grasp_data, write_profi
     for emu in s.emulators:  # reopened, and never pushed again
         np.testing.assert_array_equal(emu.currents, 0)
         assert not emu.forces_enabled
+
+
+@pytest.mark.parametrize("backend", PROTOCOL)
+def test_a_late_report_is_tolerated_three_late_are_a_timeout(backend):
+    dev, emu, clock = proto_dev(backend)
+    run(dev, clock, 10)
+    emu.delay_next = 1
+    run(dev, clock, 10, start=10)  # in sequence once it arrives: no error
+    assert dev.lost_reports == 1
+    emu.delay_next = 3
+    with pytest.raises(DeviceError, match="timeout"):
+        run(dev, clock, 1, start=20)
+
+
+@pytest.mark.parametrize("backend", PROTOCOL)
+def test_emulator_moved_by_a_hand_feels_the_rendered_force(backend):
+    from hapticd_drivers.sim import Hand
+
+    clock = Clock()
+    path = Path(np.array([0.0, 1.0]), np.zeros((2, 3)), "still hand")
+    hand = Hand(path, mass=0.05, k=300.0, b=3.0)
+    emu = DeltaEmulator(DESC, path, clock, serial="EMU-1", hand=hand)
+    if backend == "hid":
+        seam = {"hid_module": FakeHidModule([emu])}
+    else:
+        from hapticd_drivers.usb_emulator import EmulatedUsbBackend
+
+        seam = {"usb_backend": EmulatedUsbBackend([emu])}
+    dev = open_device(backend, serial_number="EMU-1", **seam)
+    dev.open()
+    dev.enable_forces(True)
+    st = DeviceState()
+    for k in range(1000):
+        clock.t = k * 1e-3
+        dev.read_state(st)
+        dev.write_force(np.array([0.6, 0.0, -0.3]))
+    # The device pushes the fingertip off the hand's path until the hand spring balances it.
+    np.testing.assert_allclose(st.position, np.array([0.6, 0.0, -0.3]) / 300.0, atol=3e-5)
+    dev.close()

@@ -56,7 +56,7 @@ def test_exception_in_a_stage_latches_fault_and_zeroes(monkeypatch):
         assert not dev.enabled
 
 
-def test_nan_force_latches_and_every_later_force_is_zero(monkeypatch):
+def test_nan_force_latches_and_every_later_force_is_zero(monkeypatch, caplog):
     s = session(duration_s=3.0)
     real = hapticd.render.two_contact_if
     calls = {"n": 0}
@@ -70,6 +70,10 @@ def test_nan_force_latches_and_every_later_force_is_zero(monkeypatch):
     out = s.run()
     assert out["fault"] is not None and "non-finite" in out["fault"]["cause"]
     tick = out["fault"]["tick"]
+    assert (
+        f"fault latched at tick {tick}" in caplog.text
+        and "forces zeroed: non-finite" in caplog.text
+    )
     for dev in s.devices:
         f = dev.forces
         assert np.all(np.isfinite(f))
