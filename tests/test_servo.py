@@ -70,10 +70,7 @@ def test_nan_force_latches_and_every_later_force_is_zero(monkeypatch, caplog):
     out = s.run()
     assert out["fault"] is not None and "non-finite" in out["fault"]["cause"]
     tick = out["fault"]["tick"]
-    assert (
-        f"fault latched at tick {tick}" in caplog.text
-        and "forces zeroed: non-finite" in caplog.text
-    )
+    assert f"fault latched at tick {tick}" in caplog.text and "non-finite" in caplog.text
     for dev in s.devices:
         f = dev.forces
         assert np.all(np.isfinite(f))
