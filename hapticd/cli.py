@@ -78,12 +78,24 @@ def cmd_run(args: argparse.Namespace) -> int:
     def on_signal(signum: int, _frame: object) -> None:
         session.loop.request_stop(f"signal {signal.Signals(signum).name}")
 
+    server = None
+    if args.socket is not None:
+        from hapticd.control import ControlServer
+
+        server = ControlServer(session.loop, args.socket)
+        try:
+            server.start()
+        except OSError as exc:
+            print(f"hapticd: cannot serve the control socket {args.socket}: {exc}", file=sys.stderr)
+            return EXIT_ERROR
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         summary = session.run()
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+        if server is not None:
+            server.close()
     summary["profile"] = str(args.profile)
     if args.record:
         summary["recording"] = str(args.record)
@@ -110,6 +122,33 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"{args.profile}: OK: profile {profile.name!r}, {profile.loop.rate_hz:g} Hz, "
         f"allocator {profile.rendering.allocator}, fingers: {fingers}"
     )
+    return EXIT_OK
+
+
+def cmd_client(args: argparse.Namespace) -> int:
+    from hapticd.control import ControlClient
+    from hapticd.protocol import ProtocolError
+
+    try:
+        with ControlClient(args.socket) as client:
+            if args.command == "set":
+                value: Any = args.value
+                if args.param == "friction":
+                    value = [float(v) for v in args.value.split(",")]
+                elif args.param != "allocator":
+                    value = float(args.value)
+                result = client.set(args.param, value)
+            elif args.command == "get":
+                result = {args.param: client.get(args.param)}
+            else:
+                result = client.call(args.command)
+    except (OSError, ValueError) as exc:
+        if isinstance(exc, ProtocolError):
+            print(f"hapticd: {exc.code}: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        print(f"hapticd: cannot talk to {args.socket}: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    print(json.dumps(result, indent=2 if getattr(args, "json", False) else None))
     return EXIT_OK
 
 
@@ -160,6 +199,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--record", type=Path, metavar="PATH", help="record every tick to PATH (.hrec)"
     )
     run.add_argument(
+        "--socket", type=Path, metavar="PATH", help="serve the control protocol on this Unix socket"
+    )
+    run.add_argument(
         "--device",
         choices=["replay", "sim", "hid", "usb"],
         help="use this backend for every finger instead of the profile's",
@@ -175,6 +217,25 @@ def build_parser() -> argparse.ArgumentParser:
     chk = sub.add_parser("check", help="validate a profile and the files it names")
     chk.add_argument("profile", type=Path)
     chk.set_defaults(func=cmd_check)
+    for name, help_text in (
+        ("status", "show a running hapticd's state"),
+        ("enable", "re-enable forces (clears a latched fault; forces ramp up)"),
+        ("disable", "turn forces off"),
+        ("stop", "stop a running hapticd (forces to zero, devices closed)"),
+        ("get", "read a scene or rendering parameter"),
+        ("set", "change a parameter at the next tick, e.g. set stiffness_n_per_m 60"),
+    ):
+        p = sub.add_parser(name, help=help_text)
+        p.add_argument("--socket", type=Path, required=True, metavar="PATH")
+        if name in ("get", "set"):
+            p.add_argument(
+                "param", help="stiffness_n_per_m, damping_n_s_per_m, friction, mass_kg, allocator"
+            )
+        if name == "set":
+            p.add_argument("value", help="a number; friction as STATIC,DYNAMIC; an allocator name")
+        if name == "status":
+            p.add_argument("--json", action="store_true")
+        p.set_defaults(func=cmd_client)
     dev = sub.add_parser("devices", help="list the haptic devices found, or why none can be")
     dev.add_argument("--json", action="store_true", help="machine-readable output")
     dev.set_defaults(func=cmd_devices)

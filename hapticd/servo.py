@@ -14,10 +14,12 @@ forces and closes the devices.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import gc
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -65,6 +67,15 @@ def _wait_until(deadline: float, margin: float) -> None:
         pass
 
 
+class Applied(threading.Event):
+    """Set when the loop has applied a submitted change: at ``tick``, or failed with ``error``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.tick = -1
+        self.error: str | None = None
+
+
 class ServoLoop:
     """Runs the rendering pipeline on ``devices`` at ``rate_hz``."""
 
@@ -106,6 +117,71 @@ class ServoLoop:
         self._lost: list[float | None] = [None] * F
         self._n_lost = 0
         self.events: list[tuple[float, str]] = []
+        # Changes from the control thread, applied at tick boundaries (deque: thread-safe ends).
+        self._inbox: collections.deque[tuple[dict[str, Any], Applied]] = collections.deque()
+
+    def submit(self, action: dict[str, Any]) -> Applied:
+        """Queue a change (from another thread); the loop applies it at its next tick start."""
+        done = Applied()
+        self._inbox.append((action, done))
+        return done
+
+    def _apply_inbox(self, k: int, t: float) -> None:
+        while self._inbox:
+            action, done = self._inbox.popleft()
+            try:
+                cmd = action["cmd"]
+                if cmd == "set":
+                    self.renderer.update(**{action["param"]: action["value"]})
+                elif cmd == "enable":
+                    self.safety.reset(t)
+                    for dev in self.devices:
+                        dev.enable_forces(True)
+                elif cmd == "disable":
+                    for dev in self.devices:
+                        dev.enable_forces(False)
+                what = " ".join(
+                    str(x) for x in (cmd, action.get("param"), action.get("value")) if x
+                )
+                self._event(t, f"control: {what}")
+            except Exception as exc:
+                done.error = f"{type(exc).__name__}: {exc}"
+            done.tick = k
+            done.set()
+
+    def get_param(self, name: str) -> Any:
+        r = self.renderer
+        m = r.obj.material
+        return {
+            "stiffness_n_per_m": m.stiffness,
+            "damping_n_s_per_m": m.damping,
+            "friction": [m.mu_static, m.mu_dynamic],
+            "mass_kg": r.obj.mass,
+            "allocator": r.allocator,
+        }[name]
+
+    def status(self) -> dict[str, Any]:
+        """A snapshot for the control API (read from another thread: plain values only)."""
+        st = self.stats
+        fault = self.safety.fault
+        return {
+            "tick": st.ticks,
+            "t": self._t,
+            "rate_hz": self.rate_hz,
+            "paced": self.paced,
+            "overruns": st.overruns,
+            "period_error_us": {
+                "p50": st.period_error.percentile(50) * 1e6 if st.period_error.count else None,
+                "p99": st.period_error.percentile(99) * 1e6 if st.period_error.count else None,
+                "max": st.period_error.max * 1e6,
+            },
+            "fault": None
+            if fault is None
+            else {"tick": fault.tick, "t": fault.t, "cause": fault.cause},
+            "devices": [d.info.serial for d in self.devices],
+            "allocator": self.renderer.allocator,
+            "stages": self.renderer.stages,
+        }
 
     def now(self) -> float:
         """Nominal time of the current tick, s (the clock of trajectory devices)."""
@@ -117,6 +193,8 @@ class ServoLoop:
             self._stop_reason = reason
 
     def _tick(self, k: int, t: float) -> None:
+        if self._inbox:
+            self._apply_inbox(k, t)
         pos, vel = self.device_pos, self.device_vel
         lost = self._lost
         for i, dev in enumerate(self.devices):
