@@ -234,6 +234,11 @@ BoxConfig = ObjectConfig  # the name used before meshes and free objects
 
 class LoopConfig(_Strict):
     rate_hz: float = Field(default=1000.0, ge=100.0, le=8000.0, description="servo rate, Hz")
+    max_consecutive_overruns: int = Field(
+        default=200,
+        ge=0,
+        description="this many periods in a row longer than 1.1x nominal latch a fault; 0: off",
+    )
 
 
 class RobustnessConfig(_Strict):

@@ -248,6 +248,7 @@ def build_session(
         duration_s=duration_s,
         recorder=recorder,
         reconnect=profile.safety.reconnect,
+        max_consecutive_overruns=profile.loop.max_consecutive_overruns,
     )
     clock_box.append(loop)
     return Session(profile, devices, renderer, safety, loop, recorder, emulators)

@@ -91,6 +91,7 @@ class ServoLoop:
         recorder: Recorder | None = None,
         object_pos: Callable[[], np.ndarray] | None = None,
         reconnect: bool = False,
+        max_consecutive_overruns: int = 0,
     ) -> None:
         if not (rate_hz > 0 and math.isfinite(rate_hz)):
             raise ValueError(f"rate_hz must be positive, got {rate_hz}")
@@ -114,6 +115,8 @@ class ServoLoop:
         # Reconnect mode: a device error latches a fault but the loop goes on, looking for
         # the device again; forces stay off until the fault is reset.
         self.reconnect = reconnect
+        # Sustained lateness (a loop that cannot keep its rate) latches a fault; 0: off.
+        self.max_consecutive_overruns = max_consecutive_overruns if paced else 0
         self._lost: list[float | None] = [None] * F
         self._n_lost = 0
         self.events: list[tuple[float, str]] = []
@@ -358,6 +361,7 @@ class ServoLoop:
         t0 = time.monotonic() + (2e-3 if paced else 0.0)
         prev = 0.0
         k = 0
+        late = 0
         while True:
             t = k * T
             self._t = t
@@ -372,6 +376,13 @@ class ServoLoop:
                 st.period_error.add(abs(period - T))
                 if period > OVERRUN_FACTOR * T:
                     st.overruns += 1
+                    late += 1
+                    if late == self.max_consecutive_overruns:
+                        cause = f"overrun: {late} consecutive ticks longer than {OVERRUN_FACTOR:g}x"
+                        safety.trip(k, t, cause + " the period")
+                        self._log_fault()
+                else:
+                    late = 0
             prev = start
             latched = safety.fault is not None
             try:

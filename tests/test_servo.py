@@ -165,3 +165,29 @@ def test_stop_from_another_thread_while_paced():
     assert 100 < out["ticks"] < 2000
     for dev in s.devices:
         np.testing.assert_array_equal(dev.last_force, 0)
+
+
+def test_sustained_overruns_latch_a_fault(grasp_data, write_profile):
+    import time as _time
+
+    grasp_data["loop"]["max_consecutive_overruns"] = 20
+    s = build_session(load_profile(write_profile(grasp_data)), paced=True)
+    real = s.renderer.step
+    calls = {"n": 0}
+
+    def slow(*a):
+        calls["n"] += 1
+        if calls["n"] > 300:
+            _time.sleep(0.0015)  # every tick now takes longer than the 1 ms period
+        return real(*a)
+
+    s.renderer.step = slow
+    timer = threading.Timer(3.0, s.loop.request_stop, args=("safety net",))
+    timer.start()
+    out = s.run()
+    timer.cancel()
+    timer.join()
+    assert out["fault"] is not None and "overrun: 20 consecutive ticks" in out["fault"]["cause"]
+    assert 300 < out["fault"]["tick"] < 400
+    for dev in s.devices:
+        np.testing.assert_array_equal(dev.forces[out["fault"]["tick"] + 1 :], 0)
