@@ -10,6 +10,7 @@ next tick, then the reply names that tick. The socket is created with mode 0600.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import selectors
 import socket
@@ -22,6 +23,7 @@ from hapticd import protocol as proto
 from hapticd.servo import ServoLoop
 
 APPLY_TIMEOUT_S = 2.0
+log = logging.getLogger("hapticd.control")
 
 
 class ControlServer:
@@ -143,6 +145,11 @@ class ControlServer:
             raise proto.ProtocolError("timeout", "the loop did not reach a tick boundary in time")
         if done.error is not None:
             raise proto.ProtocolError("rejected", done.error)
+        log.info(
+            "control: %s applied at tick %d",
+            " ".join(str(v) for v in action.values() if v is not None),
+            done.tick,
+        )
         return {"applied_at_tick": done.tick, **({"param": req["param"]} if cmd == "set" else {})}
 
 

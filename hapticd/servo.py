@@ -144,9 +144,10 @@ class ServoLoop:
                     for dev in self.devices:
                         dev.enable_forces(False)
                 what = " ".join(
-                    str(x) for x in (cmd, action.get("param"), action.get("value")) if x
+                    str(x) for x in (cmd, action.get("param"), action.get("value")) if x is not None
                 )
-                self._event(t, f"control: {what}")
+                # Recorded only: forces are live here, so the control thread does the logging.
+                self._event(t, f"control: {what}", log_now=False)
             except Exception as exc:
                 done.error = f"{type(exc).__name__}: {exc}"
             done.tick = k
@@ -251,10 +252,11 @@ class ServoLoop:
             self._n_lost -= 1
             self._event(t, f"device {dev.info.serial} reconnected; forces stay off")
 
-    def _event(self, t: float, what: str) -> None:
-        # Rare, and after the forces are already zero: logging here cannot hurt a tick.
+    def _event(self, t: float, what: str, log_now: bool = True) -> None:
         self.events.append((t, what))
-        log.warning("t = %.3f s: %s", t, what)
+        if log_now:
+            # Device losses and reconnections: rare, and the forces are already zero.
+            log.warning("t = %.3f s: %s", t, what)
 
     def _record(self, t: float, t_wall: float, compute: float, forces: np.ndarray) -> None:
         r = self.renderer

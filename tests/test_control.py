@@ -83,7 +83,8 @@ def test_socket_is_private_and_greets_with_versions(live):
         assert st["rate_hz"] == 1000 and st["fault"] is None and st["stages"][0] == "contact"
 
 
-def test_a_change_lands_at_a_tick_boundary_and_in_the_recording(live):
+def test_a_change_lands_at_a_tick_boundary_and_in_the_recording(live, caplog):
+    caplog.set_level("INFO")
     session, sock, rec, _ = live
     with ControlClient(sock) as c:
         wait_for_tick(c, 2700)  # in the pinch
@@ -92,7 +93,14 @@ def test_a_change_lands_at_a_tick_boundary_and_in_the_recording(live):
             c.set("stiffness_n_per_m", 1e9)
         assert c.get("stiffness_n_per_m") == before  # a rejected request changed nothing
         applied = c.set("stiffness_n_per_m", 2 * before)["applied_at_tick"]
+        c.set("damping_n_s_per_m", 0)
         c.stop()
+    # The loop records the change; the control thread, not the loop, logs it.
+    events = [e for _, e in session.loop.events]
+    assert f"control: set stiffness_n_per_m {2 * before}" in events
+    assert "control: set damping_n_s_per_m 0.0" in events
+    logged = [r for r in caplog.records if r.name == "hapticd.control"]
+    assert logged and all(r.threadName == "hapticd-control" for r in logged)
     session.loop.request_stop("done")
     time.sleep(0.2)
     r = recording.read(rec)
