@@ -1,4 +1,5 @@
-"""The ``hapticd`` command line: run a profile, check a profile."""
+"""The ``hapticd`` command line: run a profile (the daemon), check a profile, and the
+client commands that talk to a running daemon over its control socket."""
 
 from __future__ import annotations
 
@@ -14,9 +15,16 @@ from typing import Any
 from hapticd_drivers import BackendUnavailableError
 
 from hapticd import __version__
+from hapticd.allocation import METHODS
+from hapticd.control import ControlClient, ControlServer, default_socket_path
 from hapticd.profile import ProfileError, load_profile
+from hapticd.protocol import ProtocolError
+from hapticd.recording import RecordingError, csv_columns, export_csv
+from hapticd.recording import read as read_recording
 from hapticd.runner import build_session, load_trajectories
 from hapticd.scene import Scene
+from hapticd.sdnotify import ServiceNotifier
+from hapticd.servo import ServoLoop, summarize
 
 EXIT_OK = 0
 EXIT_ERROR = 1
@@ -68,42 +76,71 @@ def cmd_run(args: argparse.Namespace) -> int:
             device=args.device,
             emulate=args.emulate,
         )
-    except (ProfileError, BackendUnavailableError) as exc:
+    except (ProfileError, BackendUnavailableError, RecordingError) as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except OSError as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_ERROR
+    if args.no_realtime:
+        session.loop.realtime_settings = None
+    loop = session.loop
+    notifier = ServiceNotifier(lambda: loop.stats.ticks, lambda: _service_status(loop))
+    socket_path = None if args.no_socket else (args.socket or default_socket_path())
+    server = ControlServer(session, socket_path, periodic=[notifier.poll])
+    try:
+        server.start()
+    except OSError as exc:
+        if session.loop.recorder is not None:
+            session.loop.recorder.close()
+        print(f"hapticd: cannot serve the control socket {socket_path}: {exc}", file=sys.stderr)
+        return EXIT_ERROR
 
-    def on_signal(signum: int, _frame: object) -> None:
-        session.loop.request_stop(f"signal {signal.Signals(signum).name}")
+    def on_stop(signum: int, _frame: object) -> None:
+        # First signal: forces ramp to zero, then the run ends; a second one ends it now.
+        loop.request_stop(f"signal {signal.Signals(signum).name}")
 
-    server = None
-    if args.socket is not None:
-        from hapticd.control import ControlServer
+    def on_hup(_signum: int, _frame: object) -> None:
+        server.request_reload()  # the control thread does the work, not the servo thread
 
-        server = ControlServer(session.loop, args.socket)
-        try:
-            server.start()
-        except OSError as exc:
-            print(f"hapticd: cannot serve the control socket {args.socket}: {exc}", file=sys.stderr)
-            return EXIT_ERROR
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    handlers = {signal.SIGINT: on_stop, signal.SIGTERM: on_stop, signal.SIGHUP: on_hup}
+    old = {s: signal.signal(s, h) for s, h in handlers.items()}
+    if socket_path is not None and not args.quiet:
+        print(f"hapticd: control socket {socket_path}", file=sys.stderr)
     try:
         summary = session.run()
+    except RecordingError as exc:
+        # The loop ended safely; only the file is in doubt, and the message says how.
+        print(f"hapticd: {exc}", file=sys.stderr)
+        summary = summarize(loop, loop.renderer.allocator, session.profile.finger_names)
+        summary["recording_error"] = str(exc)
     finally:
+        notifier.stopping()
+        server.close()
         for s, h in old.items():
             signal.signal(s, h)
-        if server is not None:
-            server.close()
     summary["profile"] = str(args.profile)
-    if args.record:
-        summary["recording"] = str(args.record)
+    summary["reloads"] = server.reloads
+    if loop.rt_report is not None:
+        summary["realtime"] = loop.rt_report.to_json()
     if args.summary_json:
         Path(args.summary_json).write_text(json.dumps(summary, indent=2) + "\n")
     if not args.quiet:
         print(format_summary(summary))
-    return EXIT_FAULT if summary["fault"] else EXIT_OK
+    if summary["fault"]:
+        return EXIT_FAULT
+    return EXIT_ERROR if "recording_error" in summary else EXIT_OK
+
+
+def _service_status(loop: ServoLoop) -> str:
+    st = loop.status()
+    p99 = st["period_error_us"]["p99"]
+    fault = st["fault"]
+    return (
+        f"{st['rate_hz']:g} Hz, tick {st['tick']}, p99 period error "
+        f"{'n/a' if p99 is None else f'{p99:.1f} us'}, overruns {st['overruns']}, "
+        f"{'FAULT: ' + fault['cause'] if fault else 'no fault'}"
+    )
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -125,30 +162,162 @@ def cmd_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def cmd_client(args: argparse.Namespace) -> int:
-    from hapticd.control import ControlClient
-    from hapticd.protocol import ProtocolError
+PARAM_ALIASES = {
+    "stiffness": "stiffness_n_per_m",
+    "damping": "damping_n_s_per_m",
+    "mass": "mass_kg",
+    "force_limit": "force_limit_n",
+    "actuation": "actuated_directions",
+}
 
+
+def _param(name: str) -> str:
+    return PARAM_ALIASES.get(name, name)
+
+
+def _value(param: str, text: str) -> Any:
+    if param == "friction":
+        return [float(v) for v in text.split(",")]
+    if param == "allocator":
+        return text
+    if param == "actuated_directions":
+        return json.loads(text)
+    return float(text)
+
+
+def format_status(st: dict[str, Any]) -> str:
+    pe = st["period_error_us"]
+    sc = st["scene"]
+    rec = st["recording"]
+    fault = st["fault"]
+    rt = st.get("realtime")
+
+    def us(v: float | None) -> str:
+        return "n/a" if v is None else f"{v:.1f} us"
+
+    lines = [
+        f"profile       {st.get('profile', '?')}   tick {st['tick']} (t = {st['t']:.3f} s)",
+        f"rate          {st['rate_hz']:g} Hz; period error p50 {us(pe['p50'])}, "
+        f"p99 {us(pe['p99'])}, max {us(pe['max'])}; overruns {st['overruns']}",
+        f"fault         {'none' if fault is None else fault['cause']}",
+        "devices       "
+        + ", ".join(
+            f"{d['serial']} ({'connected' if d['connected'] else 'LOST'}, "
+            f"limit {d['force_limit_n']:g} N)"
+            for d in st["devices"]
+        ),
+        f"allocator     {st['allocator']}   stages: {' '.join(st['stages'])}",
+        f"scene         {sc['shape']}, {'fixed' if sc['fixed'] else 'free'}, "
+        f"stiffness {sc['stiffness_n_per_m']:g} N/m, mass {sc['mass_kg']:g} kg, "
+        f"friction {sc['friction'][0]:g}/{sc['friction'][1]:g}",
+        "recording     "
+        + (
+            "off"
+            if rec is None
+            else f"{rec['path']}: {rec['ticks']} ticks, {rec['written']} written, "
+            f"{rec['dropped']} dropped" + (f", ERROR {rec['error']}" if rec["error"] else "")
+        ),
+        "real time     "
+        + (
+            "off"
+            if rt is None
+            else (f"SCHED_FIFO {rt['fifo_priority']}" if rt["fifo_priority"] else "normal policy")
+            + (", memory locked" if rt["memory_locked"] else "")
+            + (f", cpu {rt['cpu']}" if rt["cpu"] is not None else "")
+        ),
+    ]
+    return "\n".join(lines)
+
+
+def cmd_client(args: argparse.Namespace) -> int:
+    if args.command == "record" and args.action == "start" and args.path is None:
+        print("hapticd: record start needs a PATH", file=sys.stderr)
+        return EXIT_BAD_INPUT
     try:
         with ControlClient(args.socket) as client:
-            if args.command == "set":
-                value: Any = args.value
-                if args.param == "friction":
-                    value = [float(v) for v in args.value.split(",")]
-                elif args.param != "allocator":
-                    value = float(args.value)
-                result = client.set(args.param, value)
-            elif args.command == "get":
-                result = {args.param: client.get(args.param)}
+            cmd = args.command
+            if cmd == "set":
+                param = _param(args.param)
+                result = client.set(param, _value(param, args.value))
+            elif cmd == "allocator":
+                result = client.set("allocator", args.name)
+            elif cmd == "get":
+                param = _param(args.param)
+                result = {param: client.get(param)}
+            elif cmd == "record":
+                if args.action == "start":
+                    result = client.record_start(args.path, overwrite=args.overwrite)
+                else:
+                    result = client.record_stop()
+            elif cmd == "reload":
+                result = client.reload(args.profile)
+            elif cmd == "stop":
+                result = client.stop()
+            elif cmd == "status":
+                result = client.status()
+                if not args.json:
+                    print(format_status(result))
+                    return EXIT_OK
             else:
-                result = client.call(args.command)
+                result = client.call(cmd)
+    except ProtocolError as exc:
+        print(f"hapticd: {exc.code}: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     except (OSError, ValueError) as exc:
-        if isinstance(exc, ProtocolError):
-            print(f"hapticd: {exc.code}: {exc}", file=sys.stderr)
-            return EXIT_BAD_INPUT
-        print(f"hapticd: cannot talk to {args.socket}: {exc}", file=sys.stderr)
+        where = args.socket or default_socket_path()
+        print(f"hapticd: cannot talk to {where}: {exc}", file=sys.stderr)
         return EXIT_ERROR
     print(json.dumps(result, indent=2 if getattr(args, "json", False) else None))
+    return EXIT_OK
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    """Live numbers from a running daemon, one line per frame, until Ctrl-C or --count."""
+    shown = 0
+    try:
+        with ControlClient(args.socket) as client:
+            client.subscribe(args.rate)
+            names = client.status()["devices"]
+            while args.count is None or shown < args.count:
+                fr = client.next_telemetry()
+                parts = [f"t {fr['t']:8.3f} s"]
+                for i, d in enumerate(names):
+                    f = fr["force"][i]
+                    mag = math.sqrt(sum(v * v for v in f))
+                    parts.append(
+                        f"{d['serial']}: |F| {mag:6.3f} N{' *' if fr['in_contact'][i] else '  '}"
+                    )
+                parts.append(f"obj z {fr['object_pos'][2] * 1e3:7.2f} mm")
+                parts.append(f"{fr['allocator']}  overruns {fr['overruns']}")
+                if fr["fault"]:
+                    parts.append("FAULT")
+                print("  ".join(parts), flush=True)
+                shown += 1
+    except KeyboardInterrupt:
+        return EXIT_OK
+    except ProtocolError as exc:
+        print(f"hapticd: {exc.code}: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except (OSError, ValueError) as exc:
+        where = args.socket or default_socket_path()
+        print(f"hapticd: cannot talk to {where}: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    return EXIT_OK
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    try:
+        rec = read_recording(args.recording)
+        out = args.csv or args.recording.with_suffix(".csv")
+        rows = export_csv(rec, out)
+    except RecordingError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        print(f"hapticd: cannot write the export: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    torn = f" (a torn last record of {rec.torn_bytes} bytes was dropped)" if rec.torn_bytes else ""
+    print(f"{out}: {rows} ticks, {len(csv_columns(rec))} columns{torn}")
     return EXIT_OK
 
 
@@ -199,7 +368,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--record", type=Path, metavar="PATH", help="record every tick to PATH (.hrec)"
     )
     run.add_argument(
-        "--socket", type=Path, metavar="PATH", help="serve the control protocol on this Unix socket"
+        "--socket",
+        type=Path,
+        metavar="PATH",
+        help="serve the control protocol on this Unix socket (default: $HAPTICD_SOCKET, "
+        "$RUNTIME_DIRECTORY/control.sock, $XDG_RUNTIME_DIR/hapticd/control.sock)",
     )
     run.add_argument(
         "--device",
@@ -217,25 +390,61 @@ def build_parser() -> argparse.ArgumentParser:
     chk = sub.add_parser("check", help="validate a profile and the files it names")
     chk.add_argument("profile", type=Path)
     chk.set_defaults(func=cmd_check)
-    for name, help_text in (
+    run.add_argument(
+        "--no-socket", action="store_true", help="serve no control socket (SIGHUP still reloads)"
+    )
+    run.add_argument(
+        "--no-realtime",
+        action="store_true",
+        help="do not try SCHED_FIFO, mlockall or timer slack (the profile's loop.realtime)",
+    )
+    sock_help = "the daemon's control socket (default: $HAPTICD_SOCKET or the runtime directory)"
+    clients = (
         ("status", "show a running hapticd's state"),
         ("enable", "re-enable forces (clears a latched fault; forces ramp up)"),
         ("disable", "turn forces off"),
-        ("stop", "stop a running hapticd (forces to zero, devices closed)"),
+        ("stop", "stop a running hapticd (forces ramp to zero, recording flushed)"),
         ("get", "read a scene or rendering parameter"),
-        ("set", "change a parameter at the next tick, e.g. set stiffness_n_per_m 60"),
-    ):
+        ("set", "change a parameter at the next tick, e.g. set stiffness 60"),
+        ("allocator", "switch the allocator at the next tick, e.g. allocator if"),
+        ("record", "record start PATH / record stop"),
+        ("reload", "reload the profile (or switch to PROFILE): scene, rendering, safety"),
+        ("watch", "live numbers: forces, contact, object, faults"),
+    )
+    for name, help_text in clients:
         p = sub.add_parser(name, help=help_text)
-        p.add_argument("--socket", type=Path, required=True, metavar="PATH")
+        p.add_argument("--socket", type=Path, metavar="PATH", help=sock_help)
+        p.set_defaults(func=cmd_client)
         if name in ("get", "set"):
             p.add_argument(
-                "param", help="stiffness_n_per_m, damping_n_s_per_m, friction, mass_kg, allocator"
+                "param",
+                help="stiffness (stiffness_n_per_m), damping, mass, friction, allocator, "
+                "force_limit (force_limit_n), actuation (actuated_directions)",
             )
         if name == "set":
-            p.add_argument("value", help="a number; friction as STATIC,DYNAMIC; an allocator name")
+            p.add_argument(
+                "value",
+                help="a number in SI units; friction as STATIC,DYNAMIC; an allocator name; "
+                "actuation as JSON, e.g. '[[[0,0,1]],[[0,0,1]]]'",
+            )
+        if name == "allocator":
+            p.add_argument("name", choices=list(METHODS))
+        if name == "record":
+            p.add_argument("action", choices=["start", "stop"])
+            p.add_argument("path", nargs="?", type=Path, help="the .hrec file (start)")
+            p.add_argument("--overwrite", action="store_true", help="replace an existing file")
+        if name == "reload":
+            p.add_argument("profile", nargs="?", type=Path, help="another profile to switch to")
         if name == "status":
-            p.add_argument("--json", action="store_true")
-        p.set_defaults(func=cmd_client)
+            p.add_argument("--json", action="store_true", help="machine-readable output")
+        if name == "watch":
+            p.add_argument("--rate", type=_positive, default=10.0, help="lines per second")
+            p.add_argument("--count", type=int, help="stop after this many lines")
+            p.set_defaults(func=cmd_watch)
+    exp = sub.add_parser("export", help="export a recording to CSV")
+    exp.add_argument("recording", type=Path)
+    exp.add_argument("--csv", type=Path, metavar="OUT", help="default: the recording's name .csv")
+    exp.set_defaults(func=cmd_export)
     dev = sub.add_parser("devices", help="list the haptic devices found, or why none can be")
     dev.add_argument("--json", action="store_true", help="machine-readable output")
     dev.set_defaults(func=cmd_devices)

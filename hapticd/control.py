@@ -1,178 +1,387 @@
 """The control server and client: live changes to a running servo loop over a Unix socket.
 
 The server runs in one thread that mostly waits in system calls (select,
-recv), so it barely takes the GIL from the loop (see ../shared notes: a Unix
-socket request thread left a FIFO loop's p99 under 10 us). Changes are not made
-by this thread: it queues them, and the loop applies them at the start of its
-next tick, then the reply names that tick. The socket is created with mode 0600.
+recv, send), so it barely takes the GIL from the loop (measured in
+docs/daemon.md). It makes no change itself: it hands each change to the loop,
+which applies it at the start of its next tick, and the reply names that tick.
+Sockets are non-blocking with a bounded output buffer per client, so a client
+that stops reading is dropped instead of stalling everyone. The same thread
+streams telemetry to subscribers, performs reloads asked for by SIGHUP (a
+signal handler only writes one byte to a pipe) and sends the service manager
+its notifications. The socket is created with mode 0600; no TCP listener.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import selectors
 import socket
 import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hapticd import __version__
 from hapticd import protocol as proto
-from hapticd.servo import ServoLoop
+from hapticd.profile import ProfileError
+from hapticd.recording import RecordingError
 
-APPLY_TIMEOUT_S = 2.0
+if TYPE_CHECKING:
+    from hapticd.runner import Session
+
 log = logging.getLogger("hapticd.control")
+
+MAX_OUTPUT_BYTES = 1 << 20  # a client this far behind is dropped
+TELEMETRY_BACKLOG_BYTES = 64 * 1024  # above this a telemetry frame is skipped, not queued
+PERIODIC_S = 0.1
+
+
+def default_socket_path() -> Path:
+    """Where the control socket lives unless told: $HAPTICD_SOCKET, the service's runtime
+    directory ($RUNTIME_DIRECTORY, set by systemd's RuntimeDirectory=), $XDG_RUNTIME_DIR,
+    or /tmp/hapticd-UID."""
+    env = os.environ
+    if env.get("HAPTICD_SOCKET"):
+        return Path(env["HAPTICD_SOCKET"])
+    if env.get("RUNTIME_DIRECTORY"):
+        return Path(env["RUNTIME_DIRECTORY"].split(":")[0]) / "control.sock"
+    if env.get("XDG_RUNTIME_DIR"):
+        return Path(env["XDG_RUNTIME_DIR"]) / "hapticd" / "control.sock"
+    return Path(f"/tmp/hapticd-{os.getuid()}") / "control.sock"
+
+
+class SocketInUseError(OSError):
+    """Another live hapticd already serves this socket."""
+
+
+@dataclass
+class _Conn:
+    sock: socket.socket
+    inbuf: bytearray = field(default_factory=bytearray)
+    outbuf: bytearray = field(default_factory=bytearray)
+    rate_hz: float = 0.0  # telemetry subscription; 0: none
+    next_due: float = 0.0
+    skipped: int = 0
 
 
 class ControlServer:
-    """Serves the control protocol for ``loop`` on the Unix socket at ``path``."""
+    """Serves the control protocol for ``session`` on the Unix socket at ``path``.
 
-    def __init__(self, loop: ServoLoop, path: str | Path) -> None:
-        self.loop = loop
-        self.path = Path(path)
+    ``path`` None serves no socket but still handles SIGHUP reloads and service
+    notifications. ``periodic`` callables run in the server thread about every 0.1 s.
+    """
+
+    def __init__(
+        self,
+        session: Session,
+        path: str | Path | None,
+        *,
+        periodic: list[Callable[[], None]] | None = None,
+    ) -> None:
+        self.session = session
+        self.loop = session.loop
+        self.path = Path(path) if path is not None else None
+        self.periodic = list(periodic or [])
         self._sel = selectors.DefaultSelector()
         self._stop = threading.Event()
-        self._buffers: dict[socket.socket, bytearray] = {}
+        self._conns: dict[socket.socket, _Conn] = {}
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
+        self.reloads: list[str] = []  # outcome of each SIGHUP reload, for status and tests
+
+    # -- lifecycle ---------------------------------------------------------------------
 
     def start(self) -> None:
-        if self.path.exists():
-            self.path.unlink()  # a stale socket from a crash
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        old = os.umask(0o177)  # created 0600: only this user may connect
-        try:
-            sock.bind(str(self.path))
-        finally:
-            os.umask(old)
-        sock.listen(8)
-        sock.setblocking(False)
-        self._sock = sock
-        self._sel.register(sock, selectors.EVENT_READ, None)
+        """Bind the socket (SocketInUseError if a live daemon has it) and start serving."""
+        if self.path is not None:
+            self._sock = self._bind(self.path)
+            self._sel.register(self._sock, selectors.EVENT_READ, None)
+        self._sel.register(self._wake_r, selectors.EVENT_READ, None)
         self._thread = threading.Thread(target=self._serve, name="hapticd-control", daemon=True)
         self._thread.start()
 
+    @staticmethod
+    def _bind(path: Path) -> socket.socket:
+        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        if path.exists() or path.is_symlink():
+            probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            try:
+                probe.connect(str(path))
+            except OSError:
+                path.unlink()  # stale: left by a daemon that crashed
+            else:
+                raise SocketInUseError(f"another hapticd is serving {path}")
+            finally:
+                probe.close()
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        old = os.umask(0o177)  # created 0600: only this user may connect
+        try:
+            sock.bind(str(path))
+        except OSError:
+            sock.close()
+            raise
+        finally:
+            os.umask(old)
+        sock.listen(16)
+        sock.setblocking(False)
+        return sock
+
     def close(self) -> None:
         self._stop.set()
+        self._wake(b"Q")
         if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        for conn in list(self._buffers):
+            self._thread.join(timeout=5.0)
+        for conn in list(self._conns):
             self._drop(conn)
         if self._sock is not None:
             self._sel.unregister(self._sock)
             self._sock.close()
             self._sock = None
+            if self.path is not None:
+                with contextlib.suppress(FileNotFoundError):
+                    self.path.unlink()
         self._sel.close()
-        with contextlib.suppress(FileNotFoundError):
-            self.path.unlink()
+        for fd in (self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)
 
-    def _drop(self, conn: socket.socket) -> None:
-        with contextlib.suppress(KeyError, ValueError):
-            self._sel.unregister(conn)
-        self._buffers.pop(conn, None)
-        conn.close()
+    def _wake(self, what: bytes) -> None:
+        with contextlib.suppress(OSError):  # full pipe: a wake-up is already pending
+            os.write(self._wake_w, what)
+
+    def request_reload(self) -> None:
+        """Reload the profile from its file in the server thread (safe in a signal handler)."""
+        self._wake(b"R")
+
+    # -- the server thread -------------------------------------------------------------
 
     def _serve(self) -> None:
+        next_periodic = time.monotonic()
         while not self._stop.is_set():
-            for key, _ in self._sel.select(timeout=0.1):
-                if key.fileobj is self._sock:
+            now = time.monotonic()
+            due = [next_periodic] + [c.next_due for c in self._conns.values() if c.rate_hz]
+            timeout = max(0.0, min(due) - now)
+            for key, events in self._sel.select(timeout=timeout):
+                obj = key.fileobj
+                if obj is self._sock:
                     self._accept()
-                else:
-                    self._read(key.fileobj)  # type: ignore[arg-type]
+                elif obj == self._wake_r:
+                    self._woken()
+                elif isinstance(obj, socket.socket) and obj in self._conns:
+                    if events & selectors.EVENT_WRITE:
+                        self._flush(self._conns[obj])
+                    if events & selectors.EVENT_READ and obj in self._conns:
+                        self._read(self._conns[obj])
+            now = time.monotonic()
+            self._stream(now)
+            if now >= next_periodic:
+                next_periodic = now + PERIODIC_S
+                for fn in self.periodic:
+                    try:
+                        fn()
+                    except Exception as exc:  # a notification must not end the server
+                        log.warning("periodic task failed: %s", exc)
+
+    def _woken(self) -> None:
+        try:
+            data = os.read(self._wake_r, 64)
+        except BlockingIOError:
+            return
+        if b"R" in data:
+            self._reload_from_signal()
+
+    def _reload_from_signal(self) -> None:
+        try:
+            result = self.session.reload()
+        except (ProfileError, ValueError, TimeoutError, OSError) as exc:
+            msg = f"reload rejected, the running profile stays: {exc}"
+            log.error("%s", msg)
+        else:
+            msg = f"reloaded {result['path']} at tick {result['applied_at_tick']}"
+            log.info("%s", msg)
+        self.reloads.append(msg)
 
     def _accept(self) -> None:
         assert self._sock is not None
         try:
-            conn, _ = self._sock.accept()
-        except BlockingIOError:
+            sock, _ = self._sock.accept()
+        except OSError:
             return
-        conn.setblocking(True)
-        conn.settimeout(1.0)
-        self._buffers[conn] = bytearray()
-        self._sel.register(conn, selectors.EVENT_READ, None)
+        sock.setblocking(False)
+        conn = _Conn(sock)
+        self._conns[sock] = conn
+        self._sel.register(sock, selectors.EVENT_READ, None)
         self._send(conn, proto.greeting(__version__))
 
-    def _send(self, conn: socket.socket, data: bytes) -> None:
-        try:
-            conn.sendall(data)
-        except OSError:
-            self._drop(conn)  # the client went away: harmless
+    def _drop(self, sock: socket.socket) -> None:
+        with contextlib.suppress(KeyError, ValueError):
+            self._sel.unregister(sock)
+        self._conns.pop(sock, None)
+        sock.close()
 
-    def _read(self, conn: socket.socket) -> None:
+    def _send(self, conn: _Conn, data: bytes) -> None:
+        conn.outbuf += data
+        if len(conn.outbuf) > MAX_OUTPUT_BYTES:
+            log.warning("dropping a control client that stopped reading")
+            self._drop(conn.sock)
+            return
+        self._flush(conn)
+
+    def _flush(self, conn: _Conn) -> None:
         try:
-            data = conn.recv(65536)
+            n = conn.sock.send(conn.outbuf) if conn.outbuf else 0
+        except BlockingIOError:
+            n = 0
+        except OSError:
+            self._drop(conn.sock)  # the client went away: harmless
+            return
+        del conn.outbuf[:n]
+        want = selectors.EVENT_READ | (selectors.EVENT_WRITE if conn.outbuf else 0)
+        with contextlib.suppress(KeyError, ValueError):
+            if self._sel.get_key(conn.sock).events != want:
+                self._sel.modify(conn.sock, want, None)
+
+    def _read(self, conn: _Conn) -> None:
+        try:
+            data = conn.sock.recv(65536)
+        except BlockingIOError:
+            return
         except OSError:
             data = b""
         if not data:
-            self._drop(conn)
+            self._drop(conn.sock)
             return
-        buf = self._buffers[conn]
-        buf += data
-        while b"\n" in buf:
-            line, _, rest = bytes(buf).partition(b"\n")
-            buf[:] = rest
-            self._send(conn, self._handle(line))
-        if len(buf) > proto.MAX_LINE_BYTES:
-            buf.clear()
+        conn.inbuf += data
+        while conn.sock in self._conns and b"\n" in conn.inbuf:
+            line, _, rest = bytes(conn.inbuf).partition(b"\n")
+            conn.inbuf[:] = rest
+            self._send(conn, self._handle(conn, line))
+        if len(conn.inbuf) > proto.MAX_LINE_BYTES:
+            conn.inbuf.clear()
             self._send(conn, proto.error(None, "too_large", "request line too long; discarded"))
 
-    def _handle(self, line: bytes) -> bytes:
+    def _stream(self, now: float) -> None:
+        sample: dict[str, Any] | None = None
+        for conn in list(self._conns.values()):
+            if not conn.rate_hz or now < conn.next_due:
+                continue
+            period = 1.0 / conn.rate_hz
+            conn.next_due = max(conn.next_due + period, now)  # no bursts to catch up
+            if len(conn.outbuf) > TELEMETRY_BACKLOG_BYTES:
+                conn.skipped += 1
+                continue
+            if sample is None:
+                sample = self.loop.telemetry()
+            self._send(conn, proto.telemetry(sample))
+
+    # -- requests ----------------------------------------------------------------------
+
+    def _handle(self, conn: _Conn, line: bytes) -> bytes:
         req_id = None
         try:
             req = proto.parse_request(line)
             req_id = req.get("id")
-            return proto.ok(req_id, self._execute(req))
+            return proto.ok(req_id, self._execute(conn, req))
         except proto.ProtocolError as exc:
             return proto.error(req_id, exc.code, str(exc))
+        except ProfileError as exc:
+            return proto.error(req_id, "bad_profile", str(exc))
+        except RecordingError as exc:
+            return proto.error(req_id, "recording", str(exc))
+        except TimeoutError as exc:
+            return proto.error(req_id, "timeout", str(exc))
+        except ValueError as exc:
+            return proto.error(req_id, "rejected", str(exc))
         except Exception as exc:  # a request must never take the daemon down
+            log.exception("control request failed")
             return proto.error(req_id, "internal", f"{type(exc).__name__}: {exc}")
 
-    def _execute(self, req: dict[str, Any]) -> Any:
+    def _execute(self, conn: _Conn, req: dict[str, Any]) -> Any:
         cmd = req["cmd"]
-        loop = self.loop
+        loop, session = self.loop, self.session
         if cmd == "status":
-            return loop.status()
+            return {**loop.status(), "profile": session.profile.name, "reloads": self.reloads}
         if cmd == "get":
             return {req["param"]: loop.get_param(req["param"])}
-        if cmd == "stop":
-            loop.request_stop("control: stop")
-            return {"stopping": True}
-        action: dict[str, Any] = {"cmd": cmd, "param": req.get("param"), "value": req.get("value")}
-        done = loop.submit(action)
-        if not done.wait(APPLY_TIMEOUT_S):
-            raise proto.ProtocolError("timeout", "the loop did not reach a tick boundary in time")
-        if done.error is not None:
-            raise proto.ProtocolError("rejected", done.error)
-        log.info(
-            "control: %s applied at tick %d",
-            " ".join(str(v) for v in action.values() if v is not None),
-            done.tick,
-        )
-        return {"applied_at_tick": done.tick, **({"param": req["param"]} if cmd == "set" else {})}
+        if cmd in ("stop", "shutdown"):
+            loop.request_stop(f"control: {cmd}")
+            return {"stopping": True, "ramp_s": loop.stop_ramp_s}
+        if cmd == "subscribe":
+            conn.rate_hz = req["rate_hz"]
+            conn.next_due = time.monotonic()
+            return {"subscribed": True, "rate_hz": conn.rate_hz}
+        if cmd == "unsubscribe":
+            conn.rate_hz = 0.0
+            return {"subscribed": False, "skipped_frames": conn.skipped}
+        if cmd == "record_start":
+            result = session.record_start(req["path"], overwrite=req.get("overwrite", False))
+        elif cmd == "record_stop":
+            result = session.record_stop()
+        elif cmd == "reload":
+            result = session.reload(req.get("profile"))
+        else:
+            action = {"cmd": cmd, "param": req.get("param"), "value": req.get("value")}
+            done = session.apply(action)
+            result = {"applied_at_tick": done.tick}
+            if cmd == "set":
+                result["param"] = req["param"]
+        what = " ".join(str(req[k]) for k in ("cmd", "param", "value", "path") if k in req)
+        log.info("control: %s applied at tick %d", what, result["applied_at_tick"])
+        return result
 
 
 class ControlClient:
-    """A client for experiment scripts: ``ControlClient(path).set("stiffness_n_per_m", 60)``."""
+    """A client for experiment scripts::
 
-    def __init__(self, path: str | Path, timeout_s: float = 5.0) -> None:
+    with ControlClient() as hd:          # the default socket path
+        hd.set("stiffness_n_per_m", 60)
+        hd.record_start("/data/s01/trial-07.hrec")
+    """
+
+    def __init__(self, path: str | Path | None = None, timeout_s: float = 5.0) -> None:
+        self.path = Path(path) if path is not None else default_socket_path()
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         self.sock.settimeout(timeout_s)
-        self.sock.connect(str(path))
+        try:
+            self.sock.connect(str(self.path))
+        except OSError:
+            self.sock.close()
+            raise
         self._file = self.sock.makefile("rb")
-        import json
-
-        self._json = json
         self.greeting = json.loads(self._file.readline())
+        if self.greeting.get("protocol") != proto.PROTOCOL_VERSION:
+            self.close()
+            raise proto.ProtocolError(
+                "version",
+                f"{self.path} speaks protocol {self.greeting.get('protocol')!r}, "
+                f"this client {proto.PROTOCOL_VERSION}",
+            )
         self._next = 0
+        self.telemetry: list[dict[str, Any]] = []  # frames that arrived while awaiting a reply
+
+    def _line(self) -> dict[str, Any]:
+        line = self._file.readline()
+        if not line:
+            raise ConnectionError(f"{self.path}: the daemon closed the connection")
+        return json.loads(line)
 
     def request(self, cmd: str, **args: Any) -> dict[str, Any]:
         self._next += 1
-        msg = {"id": self._next, "cmd": cmd, **args}
-        self.sock.sendall(proto.encode(msg))
-        reply = self._json.loads(self._file.readline())
-        return reply
+        self.sock.sendall(proto.encode({"id": self._next, "cmd": cmd, **args}))
+        while True:
+            msg = self._line()
+            if "telemetry" in msg:
+                self.telemetry.append(msg["telemetry"])
+                continue
+            return msg
 
     def call(self, cmd: str, **args: Any) -> Any:
         reply = self.request(cmd, **args)
@@ -192,8 +401,30 @@ class ControlClient:
     def get(self, param: str) -> Any:
         return self.call("get", param=param)[param]
 
+    def record_start(self, path: str | Path, overwrite: bool = False) -> dict[str, Any]:
+        return self.call("record_start", path=str(Path(path).absolute()), overwrite=overwrite)
+
+    def record_stop(self) -> dict[str, Any]:
+        return self.call("record_stop")
+
+    def reload(self, profile: str | Path | None = None) -> dict[str, Any]:
+        args = {} if profile is None else {"profile": str(Path(profile).absolute())}
+        return self.call("reload", **args)
+
+    def subscribe(self, rate_hz: float = 30.0) -> dict[str, Any]:
+        return self.call("subscribe", rate_hz=rate_hz)
+
+    def next_telemetry(self) -> dict[str, Any]:
+        """The next telemetry frame (after ``subscribe``)."""
+        if self.telemetry:
+            return self.telemetry.pop(0)
+        while True:
+            msg = self._line()
+            if "telemetry" in msg:
+                return msg["telemetry"]
+
     def stop(self) -> dict[str, Any]:
-        return self.call("stop")
+        return self.call("shutdown")
 
     def close(self) -> None:
         self._file.close()

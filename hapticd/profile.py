@@ -232,6 +232,20 @@ class SceneConfig(_Strict):
 BoxConfig = ObjectConfig  # the name used before meshes and free objects
 
 
+class RealtimeConfig(_Strict):
+    """Real-time settings for the servo thread (docs/daemon.md); each falls back with a
+    message when not permitted, unless ``required``."""
+
+    enabled: bool = Field(default=True, description="try SCHED_FIFO, mlockall and timer slack")
+    priority: int = Field(default=80, ge=1, le=99, description="SCHED_FIFO priority")
+    cpu: int | None = Field(default=None, ge=0, description="pin the servo thread to this CPU")
+    lock_memory: bool = Field(default=True, description="mlockall: no page faults in the loop")
+    timer_slack_ns: int = Field(default=1, ge=1, le=50_000_000, description="timer slack, ns")
+    required: bool = Field(
+        default=False, description="refuse to run when a setting cannot be applied"
+    )
+
+
 class LoopConfig(_Strict):
     rate_hz: float = Field(default=1000.0, ge=100.0, le=8000.0, description="servo rate, Hz")
     max_consecutive_overruns: int = Field(
@@ -239,6 +253,7 @@ class LoopConfig(_Strict):
         ge=0,
         description="this many periods in a row longer than 1.1x nominal latch a fault; 0: off",
     )
+    realtime: RealtimeConfig = RealtimeConfig()
 
 
 class RobustnessConfig(_Strict):
@@ -288,6 +303,9 @@ class SafetyConfig(_Strict):
         gt=0, le=50.0, description="force limit per finger, N (the device's own limit also applies)"
     )
     ramp_s: float = Field(default=0.5, ge=0, le=10, description="force ramp after enabling, s")
+    stop_ramp_s: float = Field(
+        default=0.05, ge=0, le=2, description="forces ramp to zero over this time on a stop, s"
+    )
     max_force_rate_n_per_s: float | None = Field(
         default=5000.0, gt=0, description="largest change of a finger's force, N/s; none: off"
     )

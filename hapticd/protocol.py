@@ -43,6 +43,8 @@ class Param:
                     "bad_value", f"allocator must be one of {list(METHODS)}, got {value!r}"
                 )
             return value
+        if self.name == "actuated_directions":
+            return _directions(value)
         if self.name == "friction":
             if not (isinstance(value, list | tuple) and len(value) == 2):
                 raise ProtocolError("bad_value", "friction must be [static, dynamic]")
@@ -66,14 +68,50 @@ def _number(value: Any, name: str) -> float:
     return float(value)
 
 
+def _directions(value: Any) -> list[list[tuple[float, float, float]]]:
+    """Per-finger lists of unit 3-vectors (normalised here; zero or non-finite rejected)."""
+    msg = "actuated_directions must be a list per finger of [x, y, z] directions"
+    if not isinstance(value, list) or not all(isinstance(ds, list) for ds in value):
+        raise ProtocolError("bad_value", msg)
+    out = []
+    for i, ds in enumerate(value):
+        finger = []
+        for j, d in enumerate(ds):
+            if not (isinstance(d, list) and len(d) == 3):
+                raise ProtocolError("bad_value", f"{msg}; finger {i} direction {j} is {d!r}")
+            x, y, z = (_number(v, f"actuated_directions[{i}][{j}]") for v in d)
+            n = math.sqrt(x * x + y * y + z * z)
+            if n < 1e-9:
+                raise ProtocolError("bad_value", f"actuated_directions[{i}][{j}] is zero")
+            finger.append((x / n, y / n, z / n))
+        out.append(finger)
+    return out
+
+
 PARAMS: dict[str, Param] = {
     "stiffness_n_per_m": Param("stiffness_n_per_m", 1e-3, 1e5),
     "damping_n_s_per_m": Param("damping_n_s_per_m", 0.0, 1e3),
     "mass_kg": Param("mass_kg", 1e-3, 10.0),
     "friction": Param("friction"),
     "allocator": Param("allocator"),
+    "force_limit_n": Param("force_limit_n", 0.01, 50.0),
+    "actuated_directions": Param("actuated_directions"),
 }
-COMMANDS = ("status", "get", "set", "enable", "disable", "stop")
+COMMANDS = (
+    "status",
+    "get",
+    "set",
+    "enable",
+    "disable",
+    "record_start",
+    "record_stop",
+    "reload",
+    "subscribe",
+    "unsubscribe",
+    "shutdown",
+    "stop",
+)
+TELEMETRY_RATE_HZ = (0.1, 1000.0)
 
 
 def greeting(version: str) -> bytes:
@@ -107,7 +145,30 @@ def parse_request(line: bytes) -> dict[str, Any]:
             if "value" not in req:
                 raise ProtocolError("malformed", "set needs a value")
             req["value"] = PARAMS[name].check(req["value"])
+    elif cmd == "record_start":
+        path = req.get("path")
+        if not (isinstance(path, str) and path.startswith("/")):
+            raise ProtocolError("bad_value", f"record_start needs an absolute 'path', got {path!r}")
+        if not isinstance(req.get("overwrite", False), bool):
+            raise ProtocolError("bad_value", "'overwrite' must be true or false")
+    elif cmd == "reload":
+        path = req.get("profile")
+        if path is not None and not (isinstance(path, str) and path.startswith("/")):
+            raise ProtocolError(
+                "bad_value", f"reload's 'profile' must be an absolute path, got {path!r}"
+            )
+    elif cmd == "subscribe":
+        rate = _number(req.get("rate_hz", 30.0), "rate_hz")
+        lo, hi = TELEMETRY_RATE_HZ
+        if not lo <= rate <= hi:
+            raise ProtocolError("out_of_range", f"rate_hz must be in [{lo}, {hi}], got {rate}")
+        req["rate_hz"] = rate
     return req
+
+
+def telemetry(sample: dict[str, Any]) -> bytes:
+    """A telemetry line (no id: it answers no request)."""
+    return encode({"telemetry": sample})
 
 
 def ok(req_id: Any, result: Any) -> bytes:

@@ -11,16 +11,23 @@ with the tick axis first (e.g. ``device_pos`` is (ticks, fingers, 3), m).
 
 from __future__ import annotations
 
+import contextlib
 import json
-import queue
+import mmap
+import os
 import struct
-import threading
+import subprocess
+import sys
+import tempfile
+import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
+
+from hapticd import ring
 
 MAGIC = b"HAPTREC\x00"
 FORMAT_VERSION = 1
@@ -75,6 +82,10 @@ def loop_fields(n_fingers: int, n_actuators: int) -> list[Field]:
         Field("object_pos", "<f8", (3,), "m"),
         Field("object_rot", "<f8", (3, 3), ""),
         Field("fault", "u1", (), ""),
+        Field("control_seq", "<u4", (), ""),
+        Field("stiffness_n_per_m", "<f8", (), "N/m"),
+        Field("mass_kg", "<f8", (), "kg"),
+        Field("allocator", "u1", (), ""),
     ]
 
 
@@ -244,12 +255,18 @@ def write(
         w.write(rows)
 
 
-class Recorder:
-    """Records ticks from the servo loop without doing I/O on the loop's thread.
+def _ring_dir() -> Path:
+    shm = Path("/dev/shm")
+    return shm if shm.is_dir() and os.access(shm, os.W_OK) else Path(tempfile.gettempdir())
 
-    The loop fills rows of a preallocated chunk; a full chunk is handed to a
-    writer thread (whose file writes release the GIL) and the loop continues in
-    the next free chunk. ``close`` writes what is left and waits for the writer.
+
+class Recorder:
+    """Records servo ticks with no file I/O on the loop's thread (see hapticd.ring).
+
+    The header is written here; a writer process appends the records that the
+    loop puts into a shared-memory ring. In a paced run a full ring drops the
+    tick (counted in ``dropped``) rather than make the loop wait; unpaced
+    (``block_when_full``) the loop waits for the writer instead.
     """
 
     def __init__(
@@ -258,66 +275,187 @@ class Recorder:
         fields: Sequence[Field],
         fingers: Sequence[str],
         meta: dict[str, Any] | None = None,
-        chunk_rows: int = 256,
-        n_chunks: int = 8,
+        *,
+        capacity: int = 4096,
+        block_when_full: bool = False,
+        overwrite: bool = True,
     ) -> None:
-        self._writer = RecordingWriter(path, fields, fingers, meta)
-        self.dtype = self._writer.dtype
-        self._names = [f.name for f in fields]
-        self._free: queue.SimpleQueue[np.ndarray] = queue.SimpleQueue()
-        for _ in range(n_chunks):
-            self._free.put(np.zeros(chunk_rows, dtype=self.dtype))
-        self._full: queue.SimpleQueue[tuple[np.ndarray, int] | None] = queue.SimpleQueue()
-        self._chunk_rows = chunk_rows
-        self._take_chunk()
-        self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="hapticd-recorder", daemon=True)
-        self._thread.start()
-
-    def _take_chunk(self) -> None:
+        self.path = Path(path)
+        if not overwrite and self.path.exists():
+            raise RecordingError(f"{self.path}: exists; not overwriting it")
         try:
-            self._chunk = self._free.get_nowait()
-        except queue.Empty:
-            # Writer is behind: grow rather than block the loop.
-            self._chunk = np.zeros(self._chunk_rows, dtype=self.dtype)
-        self._cols = [self._chunk[name] for name in self._names]
-        self._i = 0
+            RecordingWriter(self.path, fields, fingers, meta).close()
+        except OSError as exc:
+            raise RecordingError(f"{self.path}: cannot create: {exc.strerror or exc}") from None
+        self.dtype = make_dtype(fields)
+        self.capacity = int(capacity)
+        self.block_when_full = block_when_full
+        self.dropped = 0
+        self._n = 0
+        self._closed = False
+        size = ring.HEADER_BYTES + self.capacity * self.dtype.itemsize
+        fd, ring_path = tempfile.mkstemp(prefix=f"hapticd-ring-{os.getpid()}-", dir=_ring_dir())
+        self._ring_path = ring_path
+        try:
+            os.ftruncate(fd, size)
+            self._mm = mmap.mmap(fd, size)
+        finally:
+            os.close(fd)
+        self._mm[:8] = ring.MAGIC
+        words = np.ndarray((8,), "<u8", buffer=self._mm, offset=0)
+        words[ring.W_ITEMSIZE // 8] = self.dtype.itemsize
+        words[ring.W_CAPACITY // 8] = self.capacity
+        self._words = words
+        self._rows = np.ndarray(
+            (self.capacity,), self.dtype, buffer=self._mm, offset=ring.HEADER_BYTES
+        )
+        self._cols = [self._rows[f.name] for f in fields]
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "hapticd.ring", ring_path, str(self.path), str(os.getpid())],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+        )
 
-    def append(self, values: Sequence[Any]) -> None:
-        """Record one tick; ``values`` in field order."""
-        i = self._i
-        for col, v in zip(self._cols, values, strict=True):
-            col[i] = v
-        self._i = i + 1
-        if self._i == self._chunk_rows:
-            self._full.put((self._chunk, self._i))
-            self._take_chunk()
-
-    def _run(self) -> None:
-        while True:
-            item = self._full.get()
-            if item is None:
-                return
-            chunk, n = item
-            try:
-                if self.error is None:
-                    self._writer.write(chunk[:n])
-            except BaseException as exc:  # keep the loop alive; report at close
-                self.error = exc
-            self._free.put(chunk)
-
-    def close(self) -> None:
-        """Write the last partial chunk, stop the writer thread and close the file."""
-        if self._thread.is_alive():
-            if self._i:
-                self._full.put((self._chunk, self._i))
-                self._i = 0
-            self._full.put(None)
-            self._thread.join()
-        self._writer.close()
-        if self.error is not None:
-            raise RecordingError(f"{self._writer.path}: writing failed: {self.error}")
+    def wait_running(self, timeout_s: float = 5.0) -> None:
+        """Wait until the writer process has opened the file; RecordingError if it failed."""
+        deadline = time.monotonic() + timeout_s
+        while self.state == ring.STATE_STARTING:
+            if self._proc.poll() is not None or time.monotonic() > deadline:
+                break
+            time.sleep(0.005)
+        if self.state != ring.STATE_RUNNING:
+            err = self.error or "the writer process did not start"
+            self._shutdown()
+            raise RecordingError(f"{self.path}: {err}")
 
     @property
-    def path(self) -> Path:
-        return self._writer.path
+    def state(self) -> int:
+        return int(self._words[ring.W_STATE // 8])
+
+    @property
+    def error(self) -> str | None:
+        """The writer's error message, if it failed."""
+        if self.state != ring.STATE_FAILED:
+            return None
+        raw = bytes(self._mm[ring.ERROR_AT : ring.ERROR_AT + ring.ERROR_BYTES])
+        return raw.rstrip(b"\x00").decode("utf-8", "replace")
+
+    @property
+    def ticks(self) -> int:
+        """Records handed to the ring so far."""
+        return self._n
+
+    @property
+    def drained(self) -> int:
+        """Records the writer has written to the file."""
+        return int(self._words[ring.W_DRAINED // 8])
+
+    def append(self, values: Sequence[Any]) -> None:
+        """Record one tick; ``values`` in field order (called by the servo loop)."""
+        n = self._n
+        words = self._words
+        full = n - int(words[4]) >= self.capacity  # W_DRAINED
+        if full and not (self.block_when_full and self._wait_for_room(n)):
+            self.dropped += 1
+            words[6] = self.dropped  # W_DROPPED
+            return
+        i = n % self.capacity
+        for col, v in zip(self._cols, values, strict=True):
+            col[i] = v
+        self._n = n + 1
+        words[3] = n + 1  # W_WRITTEN: published after the record is complete
+
+    def _wait_for_room(self, n: int) -> bool:
+        while n - int(self._words[4]) >= self.capacity:
+            if self._proc.poll() is not None or self.state == ring.STATE_FAILED:
+                return False
+            time.sleep(ring.POLL_S / 4)
+        return True
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "path": str(self.path),
+            "ticks": self._n,
+            "written": self.drained,
+            "dropped": self.dropped,
+            "error": self.error,
+        }
+
+    def close(self, timeout_s: float = 10.0) -> dict[str, Any]:
+        """Let the writer drain everything and exit; RecordingError if anything was lost."""
+        if self._closed:
+            return self.status()
+        self._words[ring.W_CLOSED // 8] = 1
+        try:
+            self._proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait()
+        st = self.status()
+        self._shutdown()
+        if st["error"] is not None:
+            raise RecordingError(f"{self.path}: {st['error']}")
+        if st["written"] != st["ticks"]:
+            raise RecordingError(
+                f"{self.path}: the writer stopped after {st['written']} of {st['ticks']} ticks"
+            )
+        return st
+
+    def _shutdown(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if self._proc.poll() is None:
+            self._proc.kill()
+        self._proc.wait()
+        self._cols = []
+        del self._rows, self._words
+        self._mm.close()
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self._ring_path)
+
+
+PER_FINGER = frozenset(
+    {
+        "device_pos",
+        "device_vel",
+        "proxy_pos",
+        "in_contact",
+        "contact_force",
+        "rendered_force",
+        "device_force",
+        "env_force",
+    }
+)
+
+
+def csv_columns(rec: Recording) -> list[str]:
+    """Column names of a CSV export: one per scalar, e.g. ``device_pos.thumb.x`` (units in
+    docs/recording.md); finger axes use the finger names, 3-vectors x/y/z."""
+    cols: list[str] = []
+    F = len(rec.fingers)
+    for f in rec.fields:
+        names = [f.name]
+        for axis_i, n in enumerate(f.shape):
+            if axis_i == 0 and n == F and f.name in PER_FINGER:
+                labels = list(rec.fingers)
+            elif n == 3:
+                labels = ["x", "y", "z"]
+            else:
+                labels = [str(j) for j in range(n)]
+            names = [f"{a}.{b}" for a in names for b in labels]
+        cols += names
+    return cols
+
+
+def export_csv(rec: Recording, out: str | Path) -> int:
+    """Write ``rec`` as CSV (a header row, then one row per tick); returns the rows written."""
+    cols = csv_columns(rec)
+    flat = np.concatenate(
+        [np.asarray(rec[f.name], dtype=float).reshape(rec.ticks, -1) for f in rec.fields], axis=1
+    )
+    assert flat.shape[1] == len(cols)
+    with open(out, "w", encoding="utf-8") as fh:
+        fh.write(",".join(cols) + "\n")
+        np.savetxt(fh, flat, delimiter=",", fmt="%.17g")
+    return rec.ticks

@@ -58,7 +58,15 @@ from hapticd.scene import Material, Scene, SceneObject
 V3 = tuple[float, float, float]
 
 
-_PARAMS = {"stiffness_n_per_m", "damping_n_s_per_m", "friction", "mass_kg", "fixed", "allocator"}
+_PARAMS = {
+    "stiffness_n_per_m",
+    "damping_n_s_per_m",
+    "friction",
+    "mass_kg",
+    "fixed",
+    "allocator",
+    "actuated_directions",
+}
 
 
 def _unit(v: V3, fallback: V3) -> V3:
@@ -172,11 +180,21 @@ class Renderer:
         """Change scene or rendering parameters; applied at the start of the next tick.
 
         Keys: stiffness_n_per_m, damping_n_s_per_m, friction (static, dynamic), mass_kg,
-        fixed, allocator.
+        fixed, allocator, actuated_directions (per finger, unit vectors in the actuation
+        frame; the number per finger cannot change: it fixes the recording's layout).
+        ValueError, with nothing changed, for an unknown key or a bad actuation.
         """
         unknown = set(params) - _PARAMS
         if unknown:
             raise ValueError(f"unknown parameter(s) {sorted(unknown)}; known: {sorted(_PARAMS)}")
+        if "actuated_directions" in params:
+            new = Actuation(params["actuated_directions"], self.actuation.frame)  # type: ignore[arg-type]
+            if new.counts != self.actuation.counts:
+                raise ValueError(
+                    f"actuated directions per finger must stay {self.actuation.counts}, "
+                    f"got {new.counts} (change the count in the profile and reload)"
+                )
+            params = {**params, "actuated_directions": new}
         self._pending.update(params)
 
     def _apply_pending(self) -> None:
@@ -201,6 +219,8 @@ class Renderer:
             self.obj.fixed = bool(p["fixed"])
         if "allocator" in p:
             self.allocator = str(p["allocator"])
+        if "actuated_directions" in p:
+            self.actuation = p["actuated_directions"]  # type: ignore[assignment]
         self.plan()
 
     def reset(self, device_pos: np.ndarray) -> None:

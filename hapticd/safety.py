@@ -63,6 +63,8 @@ class SafetyChain:
         self.output = np.zeros((len(limits_n), 3))
         self._prev = np.zeros((len(limits_n), 3))
         self._t_enabled = 0.0
+        self._t_down = math.inf
+        self._down_s = 0.0
         self._last_wall: float | None = None
 
     @property
@@ -72,8 +74,26 @@ class SafetyChain:
     def start(self, t: float) -> None:
         """Forces were (re-)enabled at nominal time ``t`` (s): begin the ramp."""
         self._t_enabled = float(t)
+        self._t_down = math.inf
         self._prev[:] = 0.0
         self._last_wall = None
+
+    def set_limits(self, limits_n: list[float]) -> None:
+        """New per-finger force limits, N (positive, finite); the next tick obeys them."""
+        if len(limits_n) != len(self.limits) or any(
+            not (math.isfinite(v) and v > 0) for v in limits_n
+        ):
+            raise ValueError(f"force limits must be {len(self.limits)} positive numbers")
+        self.limits = [float(v) for v in limits_n]
+
+    def ramp_down(self, t: float, duration_s: float) -> None:
+        """Scale forces by a factor falling from 1 at ``t`` (s) to 0 after ``duration_s``."""
+        self._t_down = float(t)
+        self._down_s = max(float(duration_s), 0.0)
+
+    def ramped_down(self, t: float) -> bool:
+        """True once a ramp-down begun before ``t`` has reached zero."""
+        return t >= self._t_down + self._down_s
 
     def trip(self, tick: int, t: float, cause: str) -> None:
         """Latch a fault (the first cause is kept) and zero the output."""
@@ -138,6 +158,9 @@ class SafetyChain:
         ramp = 1.0
         if prm.ramp_s > 0.0:
             ramp = min(1.0, max(0.0, (t - self._t_enabled) / prm.ramp_s))
+        if t >= self._t_down:
+            left = 1.0 - (t - self._t_down) / self._down_s if self._down_s > 0 else 0.0
+            ramp = min(ramp, max(0.0, left))
         for i, limit in enumerate(self.limits):
             f = out[i]
             mag = math.hypot(f[0], f[1], f[2])

@@ -28,6 +28,8 @@ from typing import Any
 import numpy as np
 from hapticd_drivers import Device, DeviceError, DeviceState
 
+from hapticd import realtime
+from hapticd.allocation import METHODS
 from hapticd.recording import Recorder
 from hapticd.render import Renderer
 from hapticd.safety import SafetyChain
@@ -74,6 +76,7 @@ class Applied(threading.Event):
         super().__init__()
         self.tick = -1
         self.error: str | None = None
+        self.result: Any = None
 
 
 class ServoLoop:
@@ -92,6 +95,8 @@ class ServoLoop:
         object_pos: Callable[[], np.ndarray] | None = None,
         reconnect: bool = False,
         max_consecutive_overruns: int = 0,
+        stop_ramp_s: float = 0.0,
+        realtime_settings: realtime.RealtimeSettings | None = None,
     ) -> None:
         if not (rate_hz > 0 and math.isfinite(rate_hz)):
             raise ValueError(f"rate_hz must be positive, got {rate_hz}")
@@ -103,13 +108,22 @@ class ServoLoop:
         self.paced = paced
         self.duration_s = duration_s
         self.recorder = recorder
-        self._object_pos = object_pos or (lambda: renderer.obj.center)
+        # Read through self: a profile reload swaps the renderer.
+        self._object_pos = object_pos or (lambda: self.renderer.obj.center)
         F = len(self.devices)
         self._states = [DeviceState() for _ in range(F)]
         self.device_pos = np.zeros((F, 3))
         self.device_vel = np.zeros((F, 3))
         self._t = 0.0
         self._stop_reason: str | None = None
+        self._stop_now = False
+        self._stopping_at: float | None = None
+        self.stop_ramp_s = float(stop_ramp_s)
+        self.realtime_settings = realtime_settings
+        self.rt_report: realtime.RealtimeReport | None = None
+        # Counts applied control changes; recorded every tick, so a change is findable.
+        self.control_seq = 0
+        self.recording_problems: list[str] = []
         self.end_reason = ""
         self.stats = LoopStats(max_force=[0.0] * F, contact_ticks=[0] * F)
         # Reconnect mode: a device error latches a fault but the loop goes on, looking for
@@ -133,25 +147,64 @@ class ServoLoop:
         while self._inbox:
             action, done = self._inbox.popleft()
             try:
-                cmd = action["cmd"]
-                if cmd == "set":
-                    self.renderer.update(**{action["param"]: action["value"]})
-                elif cmd == "enable":
-                    self.safety.reset(t)
-                    for dev in self.devices:
-                        dev.enable_forces(True)
-                elif cmd == "disable":
-                    for dev in self.devices:
-                        dev.enable_forces(False)
+                done.result = self._apply(action, t)
+                self.control_seq += 1
                 what = " ".join(
-                    str(x) for x in (cmd, action.get("param"), action.get("value")) if x is not None
+                    str(action[x]) for x in ("cmd", "param", "value") if action.get(x) is not None
                 )
                 # Recorded only: forces are live here, so the control thread does the logging.
                 self._event(t, f"control: {what}", log_now=False)
+            except ValueError as exc:
+                done.error = str(exc)
             except Exception as exc:
                 done.error = f"{type(exc).__name__}: {exc}"
             done.tick = k
             done.set()
+
+    def _apply(self, action: dict[str, Any], t: float) -> Any:
+        """Make one control change; raise (changing nothing) if it cannot be made."""
+        cmd = action["cmd"]
+        if cmd == "set":
+            param, value = action["param"], action["value"]
+            if param == "force_limit_n":
+                self.safety.set_limits(
+                    [min(d.info.max_force_n, float(value)) for d in self.devices]
+                )
+            else:
+                self.renderer.update(**{param: value})
+        elif cmd == "enable":
+            self.safety.reset(t)
+            for dev in self.devices:
+                dev.enable_forces(True)
+        elif cmd == "disable":
+            for dev in self.devices:
+                dev.enable_forces(False)
+        elif cmd == "record_start":
+            if self.recorder is not None:
+                raise ValueError(f"already recording to {self.recorder.path}; stop it first")
+            self.recorder = action["recorder"]
+        elif cmd == "record_stop":
+            if self.recorder is None:
+                raise ValueError("not recording")
+            old, self.recorder = self.recorder, None
+            return old
+        elif cmd == "reload":
+            renderer, safety = action["renderer"], action["safety"]
+            if self.recorder is not None and renderer.lam_a.shape != self.renderer.lam_a.shape:
+                raise ValueError(
+                    "the new profile changes the number of actuated directions, which would "
+                    f"change the layout of the recording {self.recorder.path}; stop recording first"
+                )
+            old = self.safety
+            if old.fault is not None:
+                safety.fault = old.fault  # a reload never clears a fault: enable does
+            safety.clamped_ticks += old.clamped_ticks
+            safety.rate_limited_ticks += old.rate_limited_ticks
+            safety.start(t)  # forces ramp up again in the new scene; proxies start anew
+            self.renderer, self.safety = renderer, safety
+        else:
+            raise ValueError(f"the loop cannot apply {cmd!r}")
+        return None
 
     def get_param(self, name: str) -> Any:
         r = self.renderer
@@ -162,7 +215,39 @@ class ServoLoop:
             "friction": [m.mu_static, m.mu_dynamic],
             "mass_kg": r.obj.mass,
             "allocator": r.allocator,
+            "force_limit_n": list(self.safety.limits),
+            "actuated_directions": [[list(d) for d in ds] for ds in r.actuation.local],
         }[name]
+
+    def scene_status(self) -> dict[str, Any]:
+        r = self.renderer
+        m = r.obj.material
+        return {
+            "shape": type(r.obj.shape).__name__,
+            "fixed": r.obj.fixed,
+            "mass_kg": r.obj.mass,
+            "stiffness_n_per_m": m.stiffness,
+            "damping_n_s_per_m": m.damping,
+            "friction": [m.mu_static, m.mu_dynamic],
+            "position_m": [float(v) for v in r.obj.center],
+        }
+
+    def telemetry(self) -> dict[str, Any]:
+        """A sample of the live state for watchers (read from another thread: it may mix
+        two adjacent ticks; the recording is the exact record). Forces in N, positions m."""
+        r = self.renderer
+        return {
+            "tick": self.stats.ticks,
+            "t": self._t,
+            "fault": self.safety.fault is not None,
+            "device_pos": self.device_pos.tolist(),
+            "proxy_pos": r.proxy_pos.tolist(),
+            "in_contact": r.in_contact.tolist(),
+            "force": self.safety.output.tolist(),
+            "object_pos": [float(v) for v in r.obj.center],
+            "allocator": r.allocator,
+            "overruns": self.stats.overruns,
+        }
 
     def status(self) -> dict[str, Any]:
         """A snapshot for the control API (read from another thread: plain values only)."""
@@ -182,19 +267,38 @@ class ServoLoop:
             "fault": None
             if fault is None
             else {"tick": fault.tick, "t": fault.t, "cause": fault.cause},
-            "devices": [d.info.serial for d in self.devices],
+            "devices": [
+                {
+                    "serial": d.info.serial,
+                    "connected": self._lost[i] is None,
+                    "force_limit_n": self.safety.limits[i],
+                }
+                for i, d in enumerate(self.devices)
+            ],
             "allocator": self.renderer.allocator,
             "stages": self.renderer.stages,
+            "scene": self.scene_status(),
+            "control_seq": self.control_seq,
+            "recording": None if self.recorder is None else self.recorder.status(),
+            "realtime": None if self.rt_report is None else self.rt_report.to_json(),
+            "stopping": self._stop_reason,
         }
 
     def now(self) -> float:
         """Nominal time of the current tick, s (the clock of trajectory devices)."""
         return self._t
 
-    def request_stop(self, reason: str = "stop requested") -> None:
-        """Ask the loop to stop after the current tick (safe from a signal handler)."""
+    def request_stop(self, reason: str = "stop requested", *, ramp: bool = True) -> None:
+        """Ask the loop to stop (safe from a signal handler and from other threads).
+
+        With ``ramp`` forces first fall to zero over ``stop_ramp_s``; a second request, or
+        ``ramp=False``, stops after the current tick.
+        """
         if self._stop_reason is None:
             self._stop_reason = reason
+            self._stop_now = not ramp
+        else:
+            self._stop_now = True
 
     def _tick(self, k: int, t: float) -> None:
         if self._inbox:
@@ -258,10 +362,9 @@ class ServoLoop:
             # Device losses and reconnections: rare, and the forces are already zero.
             log.warning("t = %.3f s: %s", t, what)
 
-    def _record(self, t: float, t_wall: float, compute: float, forces: np.ndarray) -> None:
+    def _record(self, rec: Recorder, t: float, t_wall: float, compute: float) -> None:
         r = self.renderer
-        assert self.recorder is not None
-        self.recorder.append(
+        rec.append(
             (
                 t,
                 t_wall,
@@ -272,7 +375,7 @@ class ServoLoop:
                 r.in_contact,
                 r.contact_force,
                 r.rendered_force,
-                forces,
+                self.safety.output,
                 r.lam_a,
                 r.accuracy[0],
                 r.accuracy[1],
@@ -283,6 +386,10 @@ class ServoLoop:
                 self._object_pos(),
                 r.obj.rotation,
                 self.safety.latched,
+                self.control_seq,
+                r.obj.material.stiffness,
+                r.obj.mass,
+                METHODS.index(r.allocator),
             )
         )
 
@@ -307,7 +414,14 @@ class ServoLoop:
 
     def _finished(self, k: int) -> str | None:
         if self._stop_reason is not None:
-            return self._stop_reason
+            if self._stop_now or self.safety.fault is not None or self.stop_ramp_s <= 0:
+                return self._stop_reason
+            t = k * self.period
+            if self._stopping_at is None:
+                # Ramp forces to zero before the devices are disabled (no jolt on stop).
+                self._stopping_at = t
+                self.safety.ramp_down(t + self.period, self.stop_ramp_s)
+            return self._stop_reason if self.safety.ramped_down(t) else None
         if self.duration_s is not None and (k + 1) * self.period >= self.duration_s - 1e-12:
             return "duration reached"
         if self.devices and all(d.finished for d in self.devices):
@@ -331,6 +445,19 @@ class ServoLoop:
             for dev in opened:
                 dev.close()
             return self.stats
+        if self.realtime_settings is not None:
+            try:
+                self.rt_report = realtime.apply(self.realtime_settings)
+            except realtime.RealtimeError as exc:
+                self.safety.trip(0, 0.0, str(exc))
+                self.end_reason = "fault"
+                self._log_fault()
+                self._zero_all()
+                for dev in self.devices:
+                    dev.close()
+                return self.stats
+            for problem in self.rt_report.problems:
+                log.warning("real time: %s", problem)
         gc.collect()
         gc.freeze()
         gc_was_enabled = gc.isenabled()
@@ -338,6 +465,8 @@ class ServoLoop:
         try:
             self._loop()
         finally:
+            if self.rt_report is not None:
+                realtime.restore(self.rt_report)  # shutdown work runs at normal priority
             errors = self._zero_all()
             for dev in self.devices:
                 try:
@@ -356,10 +485,7 @@ class ServoLoop:
         st = self.stats
         margin = min(SPIN_MARGIN_S, 0.5 * T)
         paced = self.paced
-        rec = self.recorder
-        safety = self.safety
         F = len(self.devices)
-        renderer = self.renderer
         t0 = time.monotonic() + (2e-3 if paced else 0.0)
         prev = 0.0
         k = 0
@@ -381,21 +507,23 @@ class ServoLoop:
                     late += 1
                     if late == self.max_consecutive_overruns:
                         cause = f"overrun: {late} consecutive ticks longer than {OVERRUN_FACTOR:g}x"
-                        safety.trip(k, t, cause + " the period")
+                        self.safety.trip(k, t, cause + " the period")
                         self._log_fault()
                 else:
                     late = 0
             prev = start
-            latched = safety.fault is not None
+            latched = self.safety.fault is not None
             try:
                 self._tick(k, t)
             except Exception as exc:
-                safety.trip(k, t, f"{type(exc).__name__}: {exc}")
+                self.safety.trip(k, t, f"{type(exc).__name__}: {exc}")
                 self.end_reason = "fault"
                 st.ticks = k + 1
                 st.last_start = start
                 self._log_fault()
                 return
+            # Read after the tick: a control change at its start may have swapped these.
+            safety, renderer = self.safety, self.renderer
             if not latched and safety.fault is not None:
                 self._log_fault()
             out = safety.output
@@ -408,8 +536,9 @@ class ServoLoop:
                     st.contact_ticks[i] += 1
             compute = time.monotonic() - start
             st.compute.add(compute)
+            rec = self.recorder
             if rec is not None:
-                self._record(t, start - t0, compute, out)
+                self._record(rec, t, start - t0, compute)
             st.ticks = k + 1
             st.last_start = start
             reason = self._finished(k)

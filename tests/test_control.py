@@ -55,7 +55,7 @@ def live(tmp_path):
     session = build_session(
         load_profile(GRASP_PROFILE), paced=True, duration_s=4.0, record_path=rec
     )
-    server = ControlServer(session.loop, sock)
+    server = ControlServer(session, sock)
     server.start()
     out = {}
     runner = threading.Thread(target=lambda: out.update(summary=session.run()), name="test-loop")
@@ -136,10 +136,10 @@ def test_stop_ends_the_run_with_zero_force(live):
     session, sock, _, out = live
     with ControlClient(sock) as c:
         wait_for_tick(c, 200)
-        assert c.stop() == {"stopping": True}
+        assert c.stop() == {"stopping": True, "ramp_s": 0.05}
     deadline = time.monotonic() + 5
     while "summary" not in out and time.monotonic() < deadline:
         time.sleep(0.02)
-    assert out["summary"]["end_reason"] == "control: stop"
+    assert out["summary"]["end_reason"] == "control: shutdown"
     for dev in session.devices:
         np.testing.assert_array_equal(dev.last_force, 0)

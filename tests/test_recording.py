@@ -1,9 +1,12 @@
 import json
+import os
+import signal
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from hapticd import recording
+from hapticd import recording, ring
 from hapticd.recording import MAGIC, Field, Recorder, RecordingError, loop_fields, read
 
 
@@ -91,34 +94,84 @@ def test_bad_header_fields_and_version(tmp_path):
         read(tmp_path / "missing.hrec")
 
 
-def test_recorder_writes_every_row_from_the_loop_thread(tmp_path):
+def _loop_row(fields, i):
+    row = []
+    for f in fields:
+        value = np.full(f.shape, float(i)) if f.shape else float(i % 2 if f.dtype == "u1" else i)
+        if f.name == "lam_a":
+            value = np.array([i, -i], dtype=float)
+        row.append(value)
+    return row
+
+
+def test_recorder_writes_every_row_through_the_ring_and_wraps(tmp_path):
     fields = loop_fields(2, 2)
     path = tmp_path / "loop.hrec"
-    rec = Recorder(path, fields, ["thumb", "index"], chunk_rows=16, n_chunks=2)
+    # A ring far smaller than the run: it wraps many times; unpaced, the loop waits for room.
+    rec = Recorder(path, fields, ["thumb", "index"], capacity=64, block_when_full=True)
     n = 1000
     for i in range(n):
-        row = []
-        for f in fields:
-            value = (
-                np.full(f.shape, float(i)) if f.shape else float(i % 2 if f.dtype == "u1" else i)
-            )
-            if f.name == "lam_a":
-                value = np.array([i, -i], dtype=float)
-            row.append(value)
-        rec.append(row)
-    rec.close()
+        rec.append(_loop_row(fields, i))
+    status = rec.close()
+    assert status["ticks"] == status["written"] == n and status["dropped"] == 0
     out = read(path)
     assert out.ticks == n
     np.testing.assert_array_equal(out["t"], np.arange(n))
     np.testing.assert_array_equal(out["device_pos"][:, 1, 2], np.arange(n))
     np.testing.assert_array_equal(out["lam_a"][:, 1], -np.arange(n))
     np.testing.assert_array_equal(out["fault"], np.arange(n) % 2)
+    assert not list(Path(rec._ring_path).parent.glob(Path(rec._ring_path).name))
 
 
-def test_recorder_reports_a_write_failure_at_close(tmp_path):
-    rec = Recorder(tmp_path / "x.hrec", _fields(), ["a", "b"], chunk_rows=4)
-    rec._writer._f.close()  # the disk goes away under the writer
-    for i in range(8):
+def test_a_paced_recorder_drops_ticks_rather_than_wait_or_overwrite(tmp_path):
+    fields = loop_fields(2, 2)
+    rec = Recorder(tmp_path / "x.hrec", fields, ["a", "b"], capacity=32)
+    rec.wait_running()
+    os.kill(rec._proc.pid, signal.SIGSTOP)  # the writer stalls (e.g. a slow disk)
+    try:
+        for i in range(40):
+            rec.append(_loop_row(fields, i))
+        assert rec.dropped == 8
+    finally:
+        os.kill(rec._proc.pid, signal.SIGCONT)
+    status = rec.close()
+    assert status["dropped"] == 8 and status["written"] == 32
+    # The unread records were never overwritten by the dropped ones.
+    np.testing.assert_array_equal(read(tmp_path / "x.hrec")["t"], np.arange(32))
+
+
+def test_recorder_reports_a_writer_that_died(tmp_path):
+    fields = _fields()
+    rec = Recorder(tmp_path / "x.hrec", fields, ["a", "b"], capacity=16)
+    rec.wait_running()
+    os.kill(rec._proc.pid, signal.SIGKILL)
+    rec._proc.wait()
+    for i in range(20):
         rec.append((float(i), np.zeros((2, 3)), [0, 0]))
-    with pytest.raises(RecordingError, match="writing failed"):
+    with pytest.raises(RecordingError, match="writer stopped after 0 of 16 ticks"):
         rec.close()
+
+
+def test_the_ring_writer_reports_a_write_failure(tmp_path):
+    fields = _fields()
+    rec = Recorder(tmp_path / "x.hrec", fields, ["a", "b"], capacity=16)
+    rec.wait_running()
+    os.kill(rec._proc.pid, signal.SIGSTOP)
+    for i in range(5):
+        rec.append((float(i), np.zeros((2, 3)), [0, 0]))
+    rec._words[ring.W_CLOSED // 8] = 1
+    # The writer's own code, in this process, on a disk that is full.
+    ring.drain(rec._ring_path, "/dev/full", os.getppid())
+    assert "writing /dev/full failed" in rec.error
+    os.kill(rec._proc.pid, signal.SIGKILL)
+    with pytest.raises(RecordingError, match="No space left"):
+        rec.close()
+
+
+def test_recorder_refuses_to_overwrite_when_asked(tmp_path):
+    (tmp_path / "x.hrec").write_bytes(b"precious")
+    with pytest.raises(RecordingError, match="exists; not overwriting"):
+        Recorder(tmp_path / "x.hrec", _fields(), ["a", "b"], overwrite=False)
+    assert (tmp_path / "x.hrec").read_bytes() == b"precious"
+    with pytest.raises(RecordingError, match="cannot create"):
+        Recorder(tmp_path / "missing" / "x.hrec", _fields(), ["a", "b"])

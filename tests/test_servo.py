@@ -30,9 +30,46 @@ def test_duration_and_stop_request():
     s = session(duration_s=0.25)
     assert s.run()["ticks"] == 250
     s = session()
-    s.loop.request_stop("test")
+    s.loop.request_stop("test", ramp=False)
     out = s.run()
     assert out["ticks"] == 1 and out["end_reason"] == "test"
+
+
+def test_a_stop_ramps_forces_to_zero_before_the_devices_are_disabled(monkeypatch):
+    s = session()
+    loop = s.loop
+    real_step = s.renderer.step
+    stop_at = 3000  # fingers press the cube here
+
+    def step(pos, vel):
+        real_step(pos, vel)
+        if loop.stats.ticks == stop_at:
+            loop.request_stop("signal SIGTERM")  # what the signal handler does
+
+    monkeypatch.setattr(s.renderer, "step", step)
+    out = s.run()
+    ramp_ticks = round(s.profile.safety.stop_ramp_s * s.profile.loop.rate_hz)
+    assert out["end_reason"] == "signal SIGTERM"
+    assert out["ticks"] == stop_at + 1 + ramp_ticks + 1
+    for dev in s.devices:
+        mags = np.linalg.norm(dev.forces, axis=1)
+        before = mags[stop_at]
+        assert before > 0.5  # in contact: there is something to ramp down
+        ramp = mags[stop_at + 1 : stop_at + 1 + ramp_ticks + 1]
+        # Falls like the envelope 1 - j / ramp_ticks (the contact force itself barely moves).
+        envelope = 1.0 - np.arange(len(ramp)) / ramp_ticks
+        np.testing.assert_allclose(ramp, envelope * mags[stop_at + 1], atol=0.05)
+        assert ramp[-1] == 0.0 and np.all(np.diff(ramp) <= 1e-3)
+        np.testing.assert_array_equal(dev.last_force, 0)
+        assert not dev.enabled
+
+
+def test_a_second_stop_request_stops_at_once():
+    s = session()
+    s.loop.request_stop("first")
+    s.loop.request_stop("second")
+    out = s.run()
+    assert out["ticks"] == 1 and out["end_reason"] == "first"
 
 
 def test_exception_in_a_stage_latches_fault_and_zeroes(monkeypatch):
