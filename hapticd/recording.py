@@ -379,6 +379,7 @@ class Recorder:
             "written": self.drained,
             "dropped": self.dropped,
             "error": self.error,
+            "writer_pid": self._proc.pid,
         }
 
     def close(self, timeout_s: float = 10.0) -> dict[str, Any]:

@@ -1,7 +1,8 @@
-"""Shared fixtures; every test must leave no thread behind."""
+"""Shared fixtures; every test must leave no thread, child process, socket or ring behind."""
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from pathlib import Path
@@ -25,17 +26,59 @@ settings.register_profile("thorough", max_examples=5000, deadline=None)
 settings.load_profile("ci")
 
 
+def _children() -> set[int]:
+    """Live (or unreaped) child processes of this test process."""
+    me = os.getpid()
+    out = set()
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = Path(entry.path, "stat").read_text()
+        except OSError:
+            continue
+        # Field 4 is the parent pid; the name in field 2 may hold spaces, so split after ')'.
+        if int(stat.rpartition(")")[2].split()[1]) == me:
+            out.add(int(entry.name))
+    return out
+
+
+def _sockets() -> set[str]:
+    out = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:"):
+            out.add(f"{fd}:{target}")
+    return out
+
+
+def _rings() -> set[str]:
+    return {p.name for p in Path("/dev/shm").glob(f"hapticd-ring-{os.getpid()}-*")}
+
+
 @pytest.fixture(autouse=True)
-def no_leaked_threads():
-    before = set(threading.enumerate())
+def no_leaks():
+    """Fail a test that leaves threads, child processes, sockets or recording rings behind."""
+    before = set(threading.enumerate()), _children(), _sockets(), _rings()
     yield
-    deadline = time.monotonic() + 2.0
-    while time.monotonic() < deadline:
-        leaked = [t for t in threading.enumerate() if t not in before and t.is_alive()]
+    deadline = time.monotonic() + 3.0
+    while True:
+        now = set(threading.enumerate()), _children(), _sockets(), _rings()
+        leaked = {
+            "threads": [t.name for t in now[0] - before[0] if t.is_alive()],
+            "child processes": sorted(now[1] - before[1]),
+            "sockets": sorted(now[2] - before[2]),
+            "recording rings": sorted(now[3] - before[3]),
+        }
+        leaked = {k: v for k, v in leaked.items() if v}
         if not leaked:
             return
-        time.sleep(0.01)
-    pytest.fail(f"test leaked threads: {[t.name for t in leaked]}")
+        if time.monotonic() > deadline:
+            pytest.fail(f"test leaked {leaked}")
+        time.sleep(0.02)
 
 
 @pytest.fixture
