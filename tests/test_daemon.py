@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from hapticd import recording
 from hapticd.allocation import METHODS
@@ -38,7 +37,7 @@ def start_daemon(tmp_path: Path, *args: str, profile: Path = GRASP_PROFILE, **po
             client = ControlClient(sock)
             return proc, sock, client
         if proc.poll() is not None or time.monotonic() > deadline:
-            out, err = proc.communicate(timeout=10)
+            _out, err = proc.communicate(timeout=10)
             pytest.fail(f"daemon did not come up (rc {proc.returncode}): {err}")
         time.sleep(0.05)
 
@@ -77,7 +76,7 @@ def test_live_changes_over_the_socket_land_at_tick_boundaries_in_the_recording(t
     """The issue's acceptance test: background daemon, stiffness and allocator changed
     over the socket while it records, SIGTERM, changes found at their ticks."""
     rec_path = tmp_path / "trial.hrec"
-    proc, sock, c = start_daemon(tmp_path, "--no-realtime")
+    proc, _sock, c = start_daemon(tmp_path, "--no-realtime")
     with c:
         wait_for(c, lambda s: s["tick"] > 2500, "the grasp")
         started = c.record_start(rec_path)
@@ -128,7 +127,7 @@ def test_sighup_reloads_and_an_invalid_profile_leaves_the_old_one_running(
     tmp_path, grasp_data, write_profile
 ):
     path = write_profile(grasp_data)
-    proc, sock, c = start_daemon(tmp_path, "--no-realtime", profile=path)
+    proc, _sock, c = start_daemon(tmp_path, "--no-realtime", profile=path)
     with c:
         wait_for(c, lambda s: s["tick"] > 100, "the loop")
         grasp_data["scene"]["object"]["stiffness_n_per_m"] = 120.0
@@ -156,14 +155,14 @@ def test_sighup_reloads_and_an_invalid_profile_leaves_the_old_one_running(
             c.reload(other)
         assert exc.value.code == "bad_profile"
         c.stop()
-    rc, out, err = finish(proc)
+    rc, _out, err = finish(proc)
     assert rc == 0, err
     assert "reload rejected" in err
 
 
 def test_kill_9_of_the_daemon_loses_no_recorded_tick(tmp_path):
     rec_path = tmp_path / "crash.hrec"
-    proc, sock, c = start_daemon(tmp_path, "--no-realtime", "--record", str(rec_path))
+    proc, _sock, c = start_daemon(tmp_path, "--no-realtime", "--record", str(rec_path))
     with c:
         st = wait_for(c, lambda s: s["tick"] > 1500, "ticks")
         writer = st["recording"]["writer_pid"]
@@ -181,7 +180,7 @@ def test_kill_9_of_the_daemon_loses_no_recorded_tick(tmp_path):
 
 def test_kill_9_of_daemon_and_writer_keeps_all_but_the_last_100_ms(tmp_path):
     rec_path = tmp_path / "crash.hrec"
-    proc, sock, c = start_daemon(
+    proc, _sock, c = start_daemon(
         tmp_path, "--no-realtime", "--record", str(rec_path), start_new_session=True
     )
     with c:
@@ -216,11 +215,11 @@ def test_a_recording_replays_on_the_replay_device(tmp_path, grasp_data, write_pr
 
 
 def test_realtime_is_applied_or_its_absence_explained(tmp_path):
-    proc, sock, c = start_daemon(tmp_path, "--duration", "30")
+    proc, _sock, c = start_daemon(tmp_path, "--duration", "30")
     with c:
         rt = wait_for(c, lambda s: s["realtime"] is not None, "real time")["realtime"]
         c.stop()
-    rc, out, err = finish(proc)
+    rc, _out, err = finish(proc)
     assert rc == 0, err
     if os.geteuid() == 0:
         assert rt["fifo_priority"] == 80 and rt["memory_locked"], rt
