@@ -92,9 +92,7 @@ class ControlServer:
         self._conns: dict[socket.socket, _Conn] = {}
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
-        self._wake_r, self._wake_w = os.pipe()
-        os.set_blocking(self._wake_r, False)
-        os.set_blocking(self._wake_w, False)
+        self._wake_r = self._wake_w = -1
         self.reloads: list[str] = []  # outcome of each SIGHUP reload, for status and tests
 
     # -- lifecycle ---------------------------------------------------------------------
@@ -104,6 +102,9 @@ class ControlServer:
         if self.path is not None:
             self._sock = self._bind(self.path)
             self._sel.register(self._sock, selectors.EVENT_READ, None)
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
         self._sel.register(self._wake_r, selectors.EVENT_READ, None)
         self._thread = threading.Thread(target=self._serve, name="hapticd-control", daemon=True)
         self._thread.start()
@@ -150,10 +151,13 @@ class ControlServer:
                     self.path.unlink()
         self._sel.close()
         for fd in (self._wake_r, self._wake_w):
-            with contextlib.suppress(OSError):
+            if fd >= 0:
                 os.close(fd)
+        self._wake_r = self._wake_w = -1
 
     def _wake(self, what: bytes) -> None:
+        if self._wake_w < 0:
+            return
         with contextlib.suppress(OSError):  # full pipe: a wake-up is already pending
             os.write(self._wake_w, what)
 

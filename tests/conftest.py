@@ -11,6 +11,10 @@ import pytest
 import yaml
 from hypothesis import HealthCheck, settings
 
+from hapticd.control import ControlServer
+from hapticd.profile import load_profile
+from hapticd.runner import build_session
+
 ROOT = Path(__file__).resolve().parent.parent
 GRASP_PROFILE = ROOT / "configs" / "grasp-stiffness.yaml"
 
@@ -96,3 +100,30 @@ def write_profile(tmp_path):
         return path
 
     return _write
+
+
+@pytest.fixture
+def live(tmp_path):
+    """A paced grasp run serving its control socket in a thread: session, socket, recording, out."""
+    sock = tmp_path / "hapticd.sock"
+    rec = tmp_path / "live.hrec"
+    session = build_session(
+        load_profile(GRASP_PROFILE), paced=True, duration_s=4.0, record_path=rec
+    )
+    server = ControlServer(session, sock)
+    server.start()
+    out = {}
+    runner = threading.Thread(target=lambda: out.update(summary=session.run()), name="test-loop")
+    runner.start()
+    try:
+        yield session, sock, rec, out
+    finally:
+        session.loop.request_stop("test over")
+        runner.join(timeout=10)
+        server.close()
+
+
+def wait_for_tick(client, tick, limit_s=5.0):
+    deadline = time.monotonic() + limit_s
+    while client.status()["tick"] < tick and time.monotonic() < deadline:
+        time.sleep(0.02)

@@ -1,22 +1,20 @@
 """The control protocol and server: every error path, fuzzing, and changes at tick boundaries."""
 
+import itertools
 import json
 import os
 import random
 import socket
 import stat
-import threading
 import time
 
 import numpy as np
 import pytest
 
 from hapticd import recording
-from hapticd.control import ControlClient, ControlServer
-from hapticd.profile import load_profile
+from hapticd.control import ControlClient
 from hapticd.protocol import MAX_LINE_BYTES, ProtocolError, parse_request
-from hapticd.runner import build_session
-from tests.conftest import GRASP_PROFILE
+from tests.conftest import wait_for_tick
 
 
 @pytest.mark.parametrize(
@@ -34,6 +32,17 @@ from tests.conftest import GRASP_PROFILE
         (b'{"cmd": "set", "param": "allocator", "value": "magic"}', "bad_value"),
         (b"x" * (MAX_LINE_BYTES + 1), "too_large"),
         (b"\xff\xfe", "malformed"),
+        (b'{"cmd": "set", "param": "force_limit_n", "value": 100}', "out_of_range"),
+        (b'{"cmd": "set", "param": "actuated_directions", "value": [[[0, 0]]]}', "bad_value"),
+        (b'{"cmd": "set", "param": "actuated_directions", "value": [[[0, 0, 0]]]}', "bad_value"),
+        (b'{"cmd": "set", "param": "actuated_directions", "value": "z"}', "bad_value"),
+        (b'{"cmd": "record_start"}', "bad_value"),
+        (b'{"cmd": "record_start", "path": "rel/x.hrec"}', "bad_value"),
+        (b'{"cmd": "record_start", "path": "/x.hrec", "overwrite": "yes"}', "bad_value"),
+        (b'{"cmd": "reload", "profile": "configs/x.yaml"}', "bad_value"),
+        (b'{"cmd": "subscribe", "rate_hz": 0}', "out_of_range"),
+        (b'{"cmd": "subscribe", "rate_hz": 1e6}', "out_of_range"),
+        (b'{"cmd": "subscribe", "rate_hz": true}', "bad_value"),
     ],
 )
 def test_bad_requests_are_named(line, code):
@@ -45,33 +54,6 @@ def test_bad_requests_are_named(line, code):
 def test_good_requests_are_normalised():
     req = parse_request(b'{"id": 7, "cmd": "set", "param": "friction", "value": [0.8, 0.6]}')
     assert req["value"] == (0.8, 0.6) and req["id"] == 7
-
-
-@pytest.fixture
-def live(tmp_path):
-    """A paced grasp run serving its control socket in a thread: session, socket, recording, out."""
-    sock = tmp_path / "hapticd.sock"
-    rec = tmp_path / "live.hrec"
-    session = build_session(
-        load_profile(GRASP_PROFILE), paced=True, duration_s=4.0, record_path=rec
-    )
-    server = ControlServer(session, sock)
-    server.start()
-    out = {}
-    runner = threading.Thread(target=lambda: out.update(summary=session.run()), name="test-loop")
-    runner.start()
-    try:
-        yield session, sock, rec, out
-    finally:
-        session.loop.request_stop("test over")
-        runner.join(timeout=10)
-        server.close()
-
-
-def wait_for_tick(client, tick, limit_s=5.0):
-    deadline = time.monotonic() + limit_s
-    while client.status()["tick"] < tick and time.monotonic() < deadline:
-        time.sleep(0.02)
 
 
 def test_socket_is_private_and_greets_with_versions(live):
@@ -143,3 +125,74 @@ def test_stop_ends_the_run_with_zero_force(live):
     assert out["summary"]["end_reason"] == "control: shutdown"
     for dev in session.devices:
         np.testing.assert_array_equal(dev.last_force, 0)
+
+
+def test_force_limit_and_actuation_change_live_and_bad_ones_change_nothing(live):
+    session, sock, rec, _ = live
+    with ControlClient(sock) as c:
+        wait_for_tick(c, 2700)  # in the pinch
+        k = c.set("force_limit_n", 0.4)["applied_at_tick"]
+        assert c.get("force_limit_n") == [0.4, 0.4]
+        dirs = c.get("actuated_directions")
+        with pytest.raises(ProtocolError, match="per finger must stay") as exc:
+            c.set("actuated_directions", [[[0, 0, 1]], [[0, 0, 1], [1, 0, 0]]])
+        assert exc.value.code == "rejected"
+        assert c.get("actuated_directions") == dirs
+        new = [[[0.0, 0.0, 2.0]] * len(dirs[0]), [[3.0, 0.0, 0.0]] * len(dirs[1])]
+        c.set("actuated_directions", new)
+        assert c.get("actuated_directions")[0][0] == [0.0, 0.0, 1.0]  # normalised
+        ticks = c.status()["tick"]
+        wait_for_tick(c, ticks + 100)
+        c.stop()
+    session.loop.request_stop("done")
+    time.sleep(0.3)
+    r = recording.read(rec)
+    after = np.rint(r["t"] * 1000) >= k
+    mags = np.linalg.norm(r["device_force"], axis=2)
+    assert mags[~after].max() > 0.4  # the limit matters here
+    assert mags[after].max() <= 0.4 + 1e-12
+
+
+def test_recording_starts_and_stops_over_the_socket(live, tmp_path):
+    _session, sock, _, _ = live
+    extra = tmp_path / "trial-01.hrec"
+    with ControlClient(sock) as c:
+        wait_for_tick(c, 100)
+        with pytest.raises(ProtocolError, match="already recording"):
+            c.record_start(extra)
+        assert not extra.exists()  # a refused start leaves no file behind
+        first = c.record_stop()
+        assert first["written"] == first["ticks"] > 50 and first["dropped"] == 0
+        with pytest.raises(ProtocolError, match="not recording"):
+            c.record_stop()
+        extra.write_bytes(b"keep me")
+        with pytest.raises(ProtocolError, match="exists; not overwriting") as exc:
+            c.record_start(extra)
+        assert exc.value.code == "recording" and extra.read_bytes() == b"keep me"
+        start = c.record_start(extra, overwrite=True)["applied_at_tick"]
+        wait_for_tick(c, start + 200)
+        stop = c.record_stop()
+        assert c.status()["recording"] is None
+    r = recording.read(extra)
+    ticks = np.rint(r["t"] * 1000).astype(int)
+    assert ticks[0] == start and ticks[-1] == stop["applied_at_tick"] - 1
+    assert r.ticks == stop["written"] == stop["ticks"]
+    np.testing.assert_array_equal(np.diff(ticks), 1)
+
+
+def test_telemetry_streams_and_a_reader_that_stalls_blocks_no_one(live):
+    _, sock, _, _ = live
+    with ControlClient(sock) as watcher, ControlClient(sock) as other:
+        wait_for_tick(other, 100)
+        assert watcher.subscribe(50.0) == {"subscribed": True, "rate_hz": 50.0}
+        frames = [watcher.next_telemetry() for _ in range(5)]
+        assert all(b["tick"] > a["tick"] for a, b in itertools.pairwise(frames))
+        assert len(frames[0]["force"]) == 2 and len(frames[0]["device_pos"][0]) == 3
+        # Now 1 kHz of frames to a client that reads nothing for a second...
+        watcher.subscribe(1000.0)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 1.0:
+            other.status()  # ...while another client is served promptly
+        assert other.status()["fault"] is None
+        reply = watcher.request("unsubscribe")  # frames in between are set aside
+        assert reply["ok"] and reply["result"]["skipped_frames"] > 0

@@ -1,0 +1,155 @@
+"""The service: sd_notify messages, the systemd unit, the default socket path."""
+
+from __future__ import annotations
+
+import configparser
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from hapticd import sdnotify
+from hapticd.control import ControlServer, SocketInUseError, default_socket_path
+from hapticd.profile import load_profile
+from hapticd.runner import build_session
+from tests.conftest import GRASP_PROFILE, ROOT
+
+
+def _listen(path) -> socket.socket:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    s.bind(str(path))
+    s.settimeout(0.05)
+    return s
+
+
+def _collect(s: socket.socket, until: float) -> list[str]:
+    got = []
+    while time.monotonic() < until:
+        with contextlib.suppress(TimeoutError):
+            got.append(s.recv(4096).decode())
+    return got
+
+
+def test_daemon_tells_systemd_ready_status_watchdog_and_stopping(tmp_path):
+    with _listen(tmp_path / "notify") as s:
+        env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "200000"}
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "hapticd",
+                "run",
+                str(GRASP_PROFILE),
+                "--no-realtime",
+                "-q",
+                "--socket",
+                str(tmp_path / "c.sock"),
+            ],
+            cwd=ROOT,
+            env=env,
+            stderr=subprocess.PIPE,
+        )
+        got = _collect(s, time.monotonic() + 2.5)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+        got += _collect(s, time.monotonic() + 0.2)
+    assert proc.returncode == 0, err
+    ready = [m for m in got if "READY=1" in m]
+    assert len(ready) == 1 and f"MAINPID={proc.pid}" in ready[0]
+    assert got.index(ready[0]) < min(i for i, m in enumerate(got) if m == "WATCHDOG=1") + 2
+    assert sum(m == "WATCHDOG=1" for m in got) >= 10  # every 0.1 s for a 0.2 s watchdog
+    status = [m for m in got if m.startswith("STATUS=")]
+    assert status and "1000 Hz" in status[-1] and "no fault" in status[-1]
+    assert got[-1] == "STOPPING=1"
+
+
+def test_watchdog_pings_stop_when_the_loop_stalls(tmp_path):
+    ticks = {"n": 0}
+    now = {"t": 0.0}
+    with _listen(tmp_path / "n") as s:
+        env = {"NOTIFY_SOCKET": str(tmp_path / "n"), "WATCHDOG_USEC": "1000000"}
+        n = sdnotify.ServiceNotifier(lambda: ticks["n"], lambda: "ok", env, lambda: now["t"])
+        sent = []
+        for step in range(40):  # 4 s in 0.1 s steps; the loop stalls after 2 s
+            now["t"] = step * 0.1
+            if now["t"] < 2.0:
+                ticks["n"] += 100
+            n.poll()
+            try:
+                while True:
+                    sent.append((now["t"], s.recv(4096).decode()))
+            except TimeoutError:
+                pass
+    pings = [t for t, m in sent if m == "WATCHDOG=1"]
+    assert pings and max(pings) < 2.0 + 0.51  # none once ticks stopped advancing
+    assert sum(1 for _, m in sent if m.startswith("READY=1")) == 1
+
+
+def test_notify_without_a_service_manager_does_nothing():
+    assert sdnotify.notify("READY=1", {}) is False
+    n = sdnotify.ServiceNotifier(lambda: 1, lambda: "x", {})
+    n.poll()
+    assert not n.enabled and not n.ready
+
+
+def test_notify_reaches_an_abstract_socket():
+    name = f"hapticd-test-{os.getpid()}"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
+        s.bind("\0" + name)
+        assert sdnotify.notify("STATUS=hi", {"NOTIFY_SOCKET": "@" + name})
+        assert s.recv(100) == b"STATUS=hi"
+
+
+def test_the_systemd_unit_has_what_the_daemon_needs():
+    unit = configparser.ConfigParser(strict=False, interpolation=None)
+    unit.optionxform = str
+    unit.read(ROOT / "configs" / "systemd" / "hapticd.service")
+    svc = unit["Service"]
+    assert svc["Type"] == "notify"
+    assert svc["ExecStart"].split()[1:3] == ["run", "/etc/hapticd/profile.yaml"]
+    assert svc["ExecReload"].endswith("kill -HUP $MAINPID")
+    assert svc["RuntimeDirectory"] == "hapticd" and svc["RuntimeDirectoryMode"] == "0700"
+    assert svc["LimitRTPRIO"] == "99" and svc["LimitMEMLOCK"] == "infinity"
+    assert svc["Restart"] == "on-abnormal" and "WatchdogSec" in svc
+    assert "RestrictRealtime" not in svc  # it would forbid SCHED_FIFO
+    assert unit["Install"]["WantedBy"] == "multi-user.target"
+
+
+def test_default_socket_path_follows_the_environment(monkeypatch, tmp_path):
+    for var in ("HAPTICD_SOCKET", "RUNTIME_DIRECTORY", "XDG_RUNTIME_DIR"):
+        monkeypatch.delenv(var, raising=False)
+    assert default_socket_path() == tmp_path.root / type(tmp_path)(
+        f"tmp/hapticd-{os.getuid()}/control.sock"
+    )
+    monkeypatch.setenv("XDG_RUNTIME_DIR", "/run/user/1000")
+    assert str(default_socket_path()) == "/run/user/1000/hapticd/control.sock"
+    monkeypatch.setenv("RUNTIME_DIRECTORY", "/run/hapticd")
+    assert str(default_socket_path()) == "/run/hapticd/control.sock"
+    monkeypatch.setenv("HAPTICD_SOCKET", str(tmp_path / "x.sock"))
+    assert default_socket_path() == tmp_path / "x.sock"
+
+
+def test_a_live_socket_is_not_stolen_and_a_stale_one_is_replaced(tmp_path):
+    path = tmp_path / "run" / "c.sock"
+    sessions = [build_session(load_profile(GRASP_PROFILE), paced=False) for _ in range(2)]
+    first = ControlServer(sessions[0], path)
+    first.start()
+    try:
+        assert (path.parent.stat().st_mode & 0o777) == 0o700
+        with pytest.raises(SocketInUseError, match="another hapticd is serving"):
+            ControlServer(sessions[1], path).start()
+    finally:
+        first.close()
+    # A socket file left by a crashed daemon (nobody listening) is replaced.
+    stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    stale.bind(str(path))
+    stale.close()
+    second = ControlServer(sessions[1], path)
+    second.start()
+    second.close()
+    assert not path.exists()
