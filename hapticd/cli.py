@@ -233,12 +233,18 @@ def cmd_client(args: argparse.Namespace) -> int:
     if args.command == "record" and args.action == "start" and args.path is None:
         print("hapticd: record start needs a PATH", file=sys.stderr)
         return EXIT_BAD_INPUT
+    value: Any = None
+    if args.command == "set":
+        try:
+            value = _value(_param(args.param), args.value)
+        except ValueError as exc:
+            print(f"hapticd: bad value {args.value!r} for {args.param}: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
     try:
         with ControlClient(args.socket) as client:
             cmd = args.command
             if cmd == "set":
-                param = _param(args.param)
-                result = client.set(param, _value(param, args.value))
+                result = client.set(_param(args.param), value)
             elif cmd == "allocator":
                 result = client.set("allocator", args.name)
             elif cmd == "get":

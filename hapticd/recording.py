@@ -432,7 +432,8 @@ PER_FINGER = frozenset(
 
 def csv_columns(rec: Recording) -> list[str]:
     """Column names of a CSV export: one per scalar, e.g. ``device_pos.thumb.x`` (units in
-    docs/recording.md); finger axes use the finger names, 3-vectors x/y/z."""
+    docs/recording.md); finger axes use the finger names, a last axis of 3 x/y/z, any other
+    axis its index (``object_rot.2.y`` is R[2, 1])."""
     cols: list[str] = []
     F = len(rec.fingers)
     for f in rec.fields:
@@ -440,7 +441,7 @@ def csv_columns(rec: Recording) -> list[str]:
         for axis_i, n in enumerate(f.shape):
             if axis_i == 0 and n == F and f.name in PER_FINGER:
                 labels = list(rec.fingers)
-            elif n == 3:
+            elif n == 3 and axis_i == len(f.shape) - 1:
                 labels = ["x", "y", "z"]
             else:
                 labels = [str(j) for j in range(n)]
