@@ -82,9 +82,18 @@ class Device(abc.ABC):
 
 def check_force(force: np.ndarray, limit_n: float, who: str) -> None:
     """Device-side guard: refuse non-finite or over-limit forces, as firmware would."""
-    f = np.asarray(force, dtype=float)
-    if f.shape != (3,) or not np.all(np.isfinite(f)):
-        raise DeviceError(f"{who}: refused force {force!r}: expected 3 finite values in N")
-    mag = math.hypot(f[0], f[1], f[2])
+    # Plain floats, not numpy reductions: this runs for every device on every tick.
+    given = force
+    try:
+        if getattr(force, "shape", None) is None:
+            force = np.asarray(force, dtype=float)  # a list or tuple: the rare path
+        if force.shape != (3,):
+            raise ValueError
+        x, y, z = float(force[0]), float(force[1]), float(force[2])
+    except (TypeError, ValueError):
+        x = y = z = math.nan
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        raise DeviceError(f"{who}: refused force {given!r}: expected 3 finite values in N")
+    mag = math.hypot(x, y, z)
     if mag > limit_n * (1.0 + 1e-9):
         raise DeviceError(f"{who}: refused force of {mag:.6g} N above its limit {limit_n:g} N")

@@ -17,9 +17,10 @@ from hapticd_drivers import BackendUnavailableError
 from hapticd import __version__
 from hapticd.allocation import METHODS
 from hapticd.control import ControlClient, ControlServer, default_socket_path
+from hapticd.export import csv_columns, export_csv, export_mcap
 from hapticd.profile import ProfileError, load_profile
 from hapticd.protocol import ProtocolError
-from hapticd.recording import RecordingError, csv_columns, export_csv
+from hapticd.recording import RecordingError
 from hapticd.recording import read as read_recording
 from hapticd.runner import build_session, load_trajectories
 from hapticd.scene import Scene
@@ -314,16 +315,24 @@ def cmd_watch(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     try:
         rec = read_recording(args.recording)
-        out = args.csv or args.recording.with_suffix(".csv")
-        rows = export_csv(rec, out)
+        if args.mcap is not None:
+            out, rows = args.mcap, export_mcap(rec, args.mcap)
+            what = "messages on /hapticd/tick"
+        else:
+            out = args.csv or args.recording.with_suffix(".csv")
+            rows = export_csv(rec, out)
+            what = f"ticks, {len(csv_columns(rec))} columns"
     except RecordingError as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except RuntimeError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_ERROR
     except OSError as exc:
         print(f"hapticd: cannot write the export: {exc}", file=sys.stderr)
         return EXIT_ERROR
     torn = f" (a torn last record of {rec.torn_bytes} bytes was dropped)" if rec.torn_bytes else ""
-    print(f"{out}: {rows} ticks, {len(csv_columns(rec))} columns{torn}")
+    print(f"{out}: {rows} {what}{torn}")
     return EXIT_OK
 
 
@@ -447,9 +456,11 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--rate", type=_positive, default=10.0, help="lines per second")
             p.add_argument("--count", type=int, help="stop after this many lines")
             p.set_defaults(func=cmd_watch)
-    exp = sub.add_parser("export", help="export a recording to CSV")
+    exp = sub.add_parser("export", help="export a recording to CSV or MCAP (Foxglove)")
     exp.add_argument("recording", type=Path)
-    exp.add_argument("--csv", type=Path, metavar="OUT", help="default: the recording's name .csv")
+    fmt = exp.add_mutually_exclusive_group()
+    fmt.add_argument("--csv", type=Path, metavar="OUT", help="default: the recording's name .csv")
+    fmt.add_argument("--mcap", type=Path, metavar="OUT", help="MCAP with JSON messages")
     exp.set_defaults(func=cmd_export)
     dev = sub.add_parser("devices", help="list the haptic devices found, or why none can be")
     dev.add_argument("--json", action="store_true", help="machine-readable output")

@@ -17,6 +17,7 @@ import contextlib
 import json
 import logging
 import os
+import select
 import selectors
 import socket
 import threading
@@ -39,6 +40,10 @@ log = logging.getLogger("hapticd.control")
 MAX_OUTPUT_BYTES = 1 << 20  # a client this far behind is dropped
 TELEMETRY_BACKLOG_BYTES = 64 * 1024  # above this a telemetry frame is skipped, not queued
 PERIODIC_S = 0.1
+# Work in the server thread waits for the loop to go to sleep with this much time left...
+WINDOW_S = 200e-6
+# ...but no longer than this (at high rates the loop's sleep may never be that long).
+WINDOW_MAX_WAIT_S = 0.005
 
 
 def default_socket_path() -> Path:
@@ -93,6 +98,7 @@ class ControlServer:
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._wake_r = self._wake_w = -1
+        self._gate_r = -1
         self.reloads: list[str] = []  # outcome of each SIGHUP reload, for status and tests
 
     # -- lifecycle ---------------------------------------------------------------------
@@ -106,6 +112,7 @@ class ControlServer:
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         self._sel.register(self._wake_r, selectors.EVENT_READ, None)
+        self._gate_r = self.loop.open_sleep_gate()
         self._thread = threading.Thread(target=self._serve, name="hapticd-control", daemon=True)
         self._thread.start()
 
@@ -150,16 +157,36 @@ class ControlServer:
                 with contextlib.suppress(FileNotFoundError):
                     self.path.unlink()
         self._sel.close()
-        for fd in (self._wake_r, self._wake_w):
+        if self._gate_r >= 0:
+            self.loop.close_sleep_gate()
+        for fd in (self._wake_r, self._wake_w, self._gate_r):
             if fd >= 0:
                 os.close(fd)
-        self._wake_r = self._wake_w = -1
+        self._wake_r = self._wake_w = self._gate_r = -1
+        self._gate_r = -1
 
     def _wake(self, what: bytes) -> None:
         if self._wake_w < 0:
             return
         with contextlib.suppress(OSError):  # full pipe: a wake-up is already pending
             os.write(self._wake_w, what)
+
+    def _await_window(self) -> None:
+        """Wait, without holding the GIL, until the servo loop has just gone to sleep with
+        at least WINDOW_S left, so Python work here does not make the loop wait for the
+        GIL (measured in docs/daemon.md). Gives up after WINDOW_MAX_WAIT_S."""
+        loop = self.loop
+        if not loop.running or not loop.paced:
+            return
+        give_up = time.monotonic() + WINDOW_MAX_WAIT_S
+        while True:
+            with contextlib.suppress(BlockingIOError):
+                while os.read(self._gate_r, 4096):
+                    pass
+            now = time.monotonic()
+            if now < loop.sleep_until - WINDOW_S or now >= give_up:
+                return
+            select.select([self._gate_r], [], [], give_up - now)
 
     def request_reload(self) -> None:
         """Reload the profile from its file in the server thread (safe in a signal handler)."""
@@ -189,6 +216,7 @@ class ControlServer:
             if now >= next_periodic:
                 next_periodic = now + PERIODIC_S
                 for fn in self.periodic:
+                    self._await_window()
                     try:
                         fn()
                     except Exception as exc:  # a notification must not end the server
@@ -283,6 +311,7 @@ class ControlServer:
                 conn.skipped += 1
                 continue
             if sample is None:
+                self._await_window()
                 sample = self.loop.telemetry()
             self._send(conn, proto.telemetry(sample))
 
@@ -290,6 +319,7 @@ class ControlServer:
 
     def _handle(self, conn: _Conn, line: bytes) -> bytes:
         req_id = None
+        self._await_window()
         try:
             req = proto.parse_request(line)
             req_id = req.get("id")

@@ -254,6 +254,13 @@ class LoopConfig(_Strict):
         description="this many periods in a row longer than 1.1x nominal latch a fault; 0: off",
     )
     realtime: RealtimeConfig = RealtimeConfig()
+    gil_switch_interval_s: float = Field(
+        default=5e-4,
+        ge=1e-6,
+        le=0.1,
+        description="Python's GIL switch interval while the loop runs, s: the longest the "
+        "loop waits for the GIL held by the control thread (Python's default is 0.005)",
+    )
 
 
 class RobustnessConfig(_Strict):

@@ -10,6 +10,7 @@ apply to the calling thread only (Linux), so threads started before ``apply``
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import os
@@ -113,14 +114,13 @@ def apply(settings: RealtimeSettings) -> RealtimeReport:
 
 
 def restore(rep: RealtimeReport) -> None:
-    """Put the calling thread back on the normal policy (for shutdown work after the loop)."""
+    """Put the calling thread back on the normal policy (for shutdown work after the loop).
+
+    The report keeps saying what the loop ran with."""
     if rep.fifo_priority:
-        try:
+        with contextlib.suppress(OSError):
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-            rep.fifo_priority = 0
-        except OSError:
-            pass
     if rep.memory_locked:
         libc = _libc()
-        if libc is not None and libc.munlockall() == 0:
-            rep.memory_locked = False
+        if libc is not None:
+            libc.munlockall()

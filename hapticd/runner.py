@@ -289,6 +289,7 @@ def build_session(
         reconnect=profile.safety.reconnect,
         max_consecutive_overruns=profile.loop.max_consecutive_overruns,
         stop_ramp_s=profile.safety.stop_ramp_s,
+        switch_interval_s=profile.loop.gil_switch_interval_s,
         realtime_settings=realtime_settings(profile) if paced else None,
     )
     clock_box.append(loop)

@@ -19,6 +19,8 @@ import contextlib
 import gc
 import logging
 import math
+import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -97,6 +99,7 @@ class ServoLoop:
         max_consecutive_overruns: int = 0,
         stop_ramp_s: float = 0.0,
         realtime_settings: realtime.RealtimeSettings | None = None,
+        switch_interval_s: float | None = None,
     ) -> None:
         if not (rate_hz > 0 and math.isfinite(rate_hz)):
             raise ValueError(f"rate_hz must be positive, got {rate_hz}")
@@ -120,10 +123,17 @@ class ServoLoop:
         self._stopping_at: float | None = None
         self.stop_ramp_s = float(stop_ramp_s)
         self.realtime_settings = realtime_settings
+        # Python's GIL switch interval while the loop runs: how long the loop can wait for
+        # the GIL when another thread (the control server) holds it (docs/daemon.md).
+        self.switch_interval_s = switch_interval_s
         self.rt_report: realtime.RealtimeReport | None = None
         # Counts applied control changes; recorded every tick, so a change is findable.
         self.control_seq = 0
         self.recording_problems: list[str] = []
+        # The sleep gate: a byte per tick, written just before the loop sleeps (-1: off).
+        self._gate_w = -1
+        self.sleep_until = 0.0
+        self.running = False
         self.end_reason = ""
         self.stats = LoopStats(max_force=[0.0] * F, contact_ticks=[0] * F)
         # Reconnect mode: a device error latches a fault but the loop goes on, looking for
@@ -136,6 +146,23 @@ class ServoLoop:
         self.events: list[tuple[float, str]] = []
         # Changes from the control thread, applied at tick boundaries (deque: thread-safe ends).
         self._inbox: collections.deque[tuple[dict[str, Any], Applied]] = collections.deque()
+
+    def open_sleep_gate(self) -> int:
+        """A pipe the loop writes a byte to just before each sleep; returns its read end.
+
+        Another thread that waits on it (without the GIL) and then works until
+        ``sleep_until`` (monotonic s) never makes the loop wait for the GIL.
+        """
+        r, w = os.pipe()
+        os.set_blocking(r, False)
+        os.set_blocking(w, False)
+        self._gate_w = w
+        return r
+
+    def close_sleep_gate(self) -> None:
+        w, self._gate_w = self._gate_w, -1
+        if w >= 0:
+            os.close(w)
 
     def submit(self, action: dict[str, Any]) -> Applied:
         """Queue a change (from another thread); the loop applies it at its next tick start."""
@@ -462,9 +489,15 @@ class ServoLoop:
         gc.freeze()
         gc_was_enabled = gc.isenabled()
         gc.disable()
+        old_switch = sys.getswitchinterval()
+        if self.switch_interval_s is not None and self.paced:
+            sys.setswitchinterval(self.switch_interval_s)
+        self.running = True
         try:
             self._loop()
         finally:
+            self.running = False
+            sys.setswitchinterval(old_switch)
             if self.rt_report is not None:
                 realtime.restore(self.rt_report)  # shutdown work runs at normal priority
             errors = self._zero_all()
@@ -495,6 +528,14 @@ class ServoLoop:
             self._t = t
             deadline = t0 + t
             if paced:
+                if self._gate_w >= 0:
+                    # Tell the control thread the loop is about to sleep: its window to take
+                    # the GIL without making the loop wait for it (docs/daemon.md).
+                    self.sleep_until = deadline - margin
+                    try:  # noqa: SIM105 - suppress() would allocate every tick
+                        os.write(self._gate_w, b"\0")
+                    except BlockingIOError:
+                        pass  # nobody is waiting; the pipe is full of old news
                 _wait_until(deadline, margin)
             start = time.monotonic()
             if k == 0:
@@ -570,12 +611,20 @@ def summarize(loop: ServoLoop, allocator: str, finger_names: Sequence[str]) -> d
         "duration_s": round(st.ticks * loop.period, 6),
         "paced": loop.paced,
         "rate_hz": {"target": loop.rate_hz, "achieved": round(achieved, 3)},
-        "period_error_us": {"p50": us(pe, 50), "p99": us(pe, 99), "max": us(pe, None)},
+        "period_error_us": {
+            "p50": us(pe, 50),
+            "p99": us(pe, 99),
+            "p99.9": us(pe, 99.9),
+            "max": us(pe, None),
+        },
+        "period_error_hist_us": [[round(e * 1e6, 4), c] for e, c in pe.nonzero()],
         "overruns": st.overruns if loop.paced else 0,
+        "overruns_per_10k": round(1e4 * st.overruns / max(st.ticks - 1, 1), 3) if loop.paced else 0,
         "reanchors": st.reanchors,
         "tick_compute_us": {
             "p50": us(st.compute, 50),
             "p99": us(st.compute, 99),
+            "p99.9": us(st.compute, 99.9),
             "max": us(st.compute, None),
         },
         "allocator": allocator,

@@ -58,3 +58,7 @@ class LogHistogram:
     @property
     def mean(self) -> float:
         return self.total / self.count if self.count else math.nan
+
+    def nonzero(self) -> list[tuple[float, int]]:
+        """(upper bin edge, count) of every non-empty bin: the histogram, sparsely."""
+        return [(self._upper_edge(b), c) for b, c in enumerate(self.counts) if c]

@@ -64,6 +64,12 @@ def _rings() -> set[str]:
 
 
 @pytest.fixture(autouse=True)
+def private_socket(tmp_path, monkeypatch):
+    """A daemon started without --socket serves here, never in the user's runtime dir."""
+    monkeypatch.setenv("HAPTICD_SOCKET", str(tmp_path / "default.sock"))
+
+
+@pytest.fixture(autouse=True)
 def no_leaks():
     """Fail a test that leaves threads, child processes, sockets or recording rings behind."""
     before = set(threading.enumerate()), _children(), _sockets(), _rings()

@@ -81,3 +81,29 @@ def test_export_csv_has_a_named_column_per_scalar(capsys, tmp_path):
     assert "lam_a.0" in header and "in_contact.thumb" in header
     rc, _, err = run(capsys, "export", str(tmp_path / "r.csv"))
     assert rc == 2 and "not a hapticd recording" in err
+
+
+def test_export_mcap_reads_back_with_the_mcap_reader(capsys, tmp_path):
+    from mcap.reader import make_reader
+
+    from tests.conftest import GRASP_PROFILE
+
+    rec_path = tmp_path / "r.hrec"
+    assert main(["run", str(GRASP_PROFILE), "--unpaced", "--no-socket", "-q",
+                 "--duration", "0.2", "--record", str(rec_path)]) == 0  # fmt: skip
+    capsys.readouterr()
+    out = tmp_path / "r.mcap"
+    rc, text, _ = run(capsys, "export", str(rec_path), "--mcap", str(out))
+    assert rc == 0 and "200 messages" in text
+    rec = recording.read(rec_path)
+    with open(out, "rb") as fh:
+        reader = make_reader(fh)
+        msgs = list(reader.iter_messages())
+        summary = reader.get_summary()
+    assert len(msgs) == 200 and summary.statistics.message_count == 200
+    schema, channel, message = msgs[150]
+    assert channel.topic == "/hapticd/tick" and schema.encoding == "jsonschema"
+    assert message.log_time == round(rec["t"][150] * 1e9)
+    tick = json.loads(message.data)
+    assert tick["device_pos"]["index"]["z"] == rec["device_pos"][150, 1, 2]
+    assert tick["allocator"] == rec["allocator"][150]

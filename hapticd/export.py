@@ -1,0 +1,127 @@
+"""Exports of a recording for other tools: CSV (a column per scalar) and MCAP (Foxglove).
+
+Both are offline conversions of a read ``Recording``; neither runs in the daemon.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hapticd.recording import Recording
+
+PER_FINGER = frozenset(
+    {
+        "device_pos",
+        "device_vel",
+        "proxy_pos",
+        "in_contact",
+        "contact_force",
+        "rendered_force",
+        "device_force",
+        "env_force",
+    }
+)
+
+
+def csv_columns(rec: Recording) -> list[str]:
+    """Column names of a CSV export: one per scalar, e.g. ``device_pos.thumb.x`` (units in
+    docs/recording.md); finger axes use the finger names, a last axis of 3 x/y/z, any other
+    axis its index (``object_rot.2.y`` is R[2, 1])."""
+    cols: list[str] = []
+    F = len(rec.fingers)
+    for f in rec.fields:
+        names = [f.name]
+        for axis_i, n in enumerate(f.shape):
+            if axis_i == 0 and n == F and f.name in PER_FINGER:
+                labels = list(rec.fingers)
+            elif n == 3 and axis_i == len(f.shape) - 1:
+                labels = ["x", "y", "z"]
+            else:
+                labels = [str(j) for j in range(n)]
+            names = [f"{a}.{b}" for a in names for b in labels]
+        cols += names
+    return cols
+
+
+def export_csv(rec: Recording, out: str | Path) -> int:
+    """Write ``rec`` as CSV (a header row, then one row per tick); returns the rows written."""
+    cols = csv_columns(rec)
+    flat = np.concatenate(
+        [np.asarray(rec[f.name], dtype=float).reshape(rec.ticks, -1) for f in rec.fields], axis=1
+    )
+    assert flat.shape[1] == len(cols)
+    with open(out, "w", encoding="utf-8") as fh:
+        fh.write(",".join(cols) + "\n")
+        np.savetxt(fh, flat, delimiter=",", fmt="%.17g")
+    return rec.ticks
+
+
+def _tick_message(rec: Recording, i: int) -> dict[str, Any]:
+    """Tick ``i`` as nested JSON: per-finger fields keyed by finger, 3-vectors as x/y/z."""
+    msg: dict[str, Any] = {}
+    F = len(rec.fingers)
+    for f in rec.fields:
+        v = rec[f.name][i]
+        if f.name in PER_FINGER and f.shape[:1] == (F,):
+            msg[f.name] = {name: _jsonable(v[j]) for j, name in enumerate(rec.fingers)}
+        else:
+            msg[f.name] = _jsonable(v)
+    return msg
+
+
+def _jsonable(v: np.ndarray | np.generic) -> Any:
+    a = np.asarray(v)
+    if a.shape == (3,):
+        return {"x": float(a[0]), "y": float(a[1]), "z": float(a[2])}
+    if a.ndim == 0:
+        return a.item()
+    return a.tolist()
+
+
+def export_mcap(rec: Recording, out: str | Path, topic: str = "/hapticd/tick") -> int:
+    """Write ``rec`` as MCAP: one JSON message per tick on ``topic``, stamped with the
+    tick's nominal time, for viewing and plotting in Foxglove. Needs ``pip install mcap``
+    (the ``mcap`` extra). Returns the messages written."""
+    try:
+        from mcap.writer import Writer
+    except ImportError as exc:
+        raise RuntimeError(
+            "MCAP export needs the mcap package: pip install 'hapticd[mcap]'"
+        ) from exc
+    with open(out, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="", library="hapticd")
+        schema = w.register_schema(
+            name="hapticd.Tick",
+            encoding="jsonschema",
+            data=json.dumps(
+                {
+                    "type": "object",
+                    "title": "hapticd.Tick",
+                    "description": "one servo tick; units in hapticd docs/recording.md",
+                }
+            ).encode(),
+        )
+        channel = w.register_channel(
+            topic=topic,
+            message_encoding="json",
+            schema_id=schema,
+            metadata={"fingers": ",".join(rec.fingers)},
+        )
+        w.add_metadata("hapticd", {k: str(v) for k, v in rec.meta.items()})
+        t = rec["t"] if "t" in rec else np.arange(rec.ticks, dtype=float)
+        for i in range(rec.ticks):
+            ns = round(float(t[i]) * 1e9)
+            w.add_message(
+                channel_id=channel,
+                log_time=ns,
+                publish_time=ns,
+                sequence=i,
+                data=json.dumps(_tick_message(rec, i), separators=(",", ":")).encode(),
+            )
+        w.finish()
+    return rec.ticks

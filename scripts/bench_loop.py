@@ -1,0 +1,297 @@
+"""Servo-loop timing benchmark: what rate, load, recording and real time do to the period.
+
+Each case runs ``hapticd run`` as its own process (as the service runs) on the
+grasp profile at 1, 2, 4 or 8 kHz, on the replay device or on hid devices over
+the emulator, optionally with control load (another process sending status
+requests as fast as it can plus a 100 Hz telemetry subscriber) and with every
+tick recorded, with or without real-time settings (SCHED_FIFO, mlockall, timer
+slack; needs root or LimitRTPRIO). Every case runs ``--rounds`` times,
+interleaved, and the table gives the median over rounds of each figure and the
+p99 ratio to the idle real-time replay case at the same rate (the machines are
+shared and noisy: compare within one run).
+
+    python scripts/bench_loop.py --rounds 3 --seconds 5
+    python scripts/bench_loop.py --quick          # 1 and 4 kHz, replay only
+
+Prints a Markdown table and saves a histogram plot (docs/img/bench-loop.png).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parent.parent
+PROFILE = ROOT / "configs" / "grasp-stiffness.yaml"
+
+LOAD_SCRIPT = r"""
+import signal, sys, threading
+from hapticd.control import ControlClient
+stop = threading.Event()
+signal.signal(signal.SIGTERM, lambda *a: stop.set())
+sock = sys.argv[1]
+n = 0
+try:
+    with ControlClient(sock) as watcher, ControlClient(sock) as c:
+        watcher.subscribe(100.0)
+        while not stop.is_set():
+            c.status()
+            n += 1
+except (OSError, ValueError):
+    pass  # the daemon's run ended first
+print(n)
+"""
+
+
+# The machine's floor: the same deadline wait (sleep, then spin the last 200 us or half a
+# period) with no work at all, under SCHED_FIFO when permitted.
+BARE_SCRIPT = r"""
+import gc, json, os, sys, time
+rate, seconds = float(sys.argv[1]), float(sys.argv[2])
+try:
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(80))
+except OSError:
+    pass
+T = 1.0 / rate
+margin = min(200e-6, 0.5 * T)
+n = int(seconds * rate)
+errs = [0.0] * (n - 1)
+gc.freeze(); gc.disable()
+t0 = time.monotonic() + 2e-3
+prev = None
+for k in range(n):
+    d = t0 + k * T
+    r = d - time.monotonic()
+    if r > margin:
+        time.sleep(r - margin)
+    while time.monotonic() < d:
+        pass
+    s = time.monotonic()
+    if prev is not None:
+        errs[k - 1] = abs(s - prev - T)
+    prev = s
+errs.sort()
+q = lambda p: errs[min(len(errs) - 1, int(p / 100 * len(errs)))] * 1e6
+print(json.dumps({
+    "period_error_us": {"p50": q(50), "p99": q(99), "p99.9": q(99.9), "max": errs[-1] * 1e6},
+    "overruns_per_10k": 1e4 * sum(e > 0.1 * T for e in errs) / len(errs),
+    "tick_compute_us": {"p50": 0.0, "p99": 0.0},
+    "period_error_hist_us": [],
+}))
+"""
+
+
+@dataclass(frozen=True)
+class Case:
+    rate_hz: int
+    device: str  # "replay" or "emulated"
+    load: bool  # control load + recording
+    realtime: bool
+
+    @property
+    def label(self) -> str:
+        if self.device == "bare":
+            return f"{self.rate_hz // 1000} kHz | bare wait, no work | idle | FIFO"
+        return (
+            f"{self.rate_hz // 1000} kHz | {self.device} | "
+            f"{'control + recording' if self.load else 'idle'} | "
+            f"{'FIFO' if self.realtime else 'normal'}"
+        )
+
+
+def _wait_socket(path: Path, proc: subprocess.Popen, timeout_s: float = 20.0) -> bool:
+    from hapticd.control import ControlClient
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and proc.poll() is None:
+        with contextlib.suppress(OSError):
+            ControlClient(path).close()
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def run_case(case: Case, seconds: float, work: Path) -> dict:
+    if case.device == "bare":
+        out = subprocess.run(
+            [sys.executable, "-c", BARE_SCRIPT, str(case.rate_hz), str(seconds)],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+        return {**json.loads(out), "requests_per_s": None}
+    data = yaml.safe_load(PROFILE.read_text())
+    data["loop"] = {**data.get("loop", {}), "rate_hz": float(case.rate_hz)}
+    profile = work / f"bench-{case.rate_hz}.yaml"
+    profile.write_text(yaml.safe_dump(data, sort_keys=False))
+    sock = work / "bench.sock"
+    summary = work / "summary.json"
+    cmd = [
+        sys.executable,
+        "-m",
+        "hapticd",
+        "run",
+        str(profile),
+        "--duration",
+        str(seconds),
+        "--socket",
+        str(sock),
+        "--summary-json",
+        str(summary),
+        "-q",
+    ]
+    if case.device == "emulated":
+        cmd += ["--device", "hid", "--emulate"]
+    if not case.realtime:
+        cmd.append("--no-realtime")
+    if case.load:
+        cmd += ["--record", str(work / "bench.hrec")]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    load = None
+    if case.load and _wait_socket(sock, proc):
+        load = subprocess.Popen(
+            [sys.executable, "-c", LOAD_SCRIPT, str(sock)],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
+    _, err = proc.communicate(timeout=seconds + 60)
+    requests = None
+    if load is not None:
+        load.send_signal(signal.SIGTERM)
+        out, _ = load.communicate(timeout=10)
+        with contextlib.suppress(ValueError):
+            requests = int(out.strip() or 0)
+    if proc.returncode not in (0, 3) or not summary.exists():
+        raise RuntimeError(f"{case.label}: hapticd exited {proc.returncode}: {err[-2000:]}")
+    s = json.loads(summary.read_text())
+    summary.unlink()
+    s["requests_per_s"] = None if requests is None else requests / seconds
+    return s
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--seconds", type=float, default=5.0, help="length of each run, s (<= 7.8)")
+    ap.add_argument("--quick", action="store_true", help="1 and 4 kHz, replay only")
+    ap.add_argument("--plot", type=Path, default=ROOT / "docs" / "img" / "bench-loop.png")
+    args = ap.parse_args()
+    rates = [1000, 4000] if args.quick else [1000, 2000, 4000, 8000]
+    devices = ["replay"] if args.quick else ["replay", "emulated"]
+    rt_options = [True, False]
+    cases = [Case(r, "bare", False, True) for r in rates] + [
+        Case(r, d, load, rt)
+        for r in rates
+        for d in devices
+        for load in (False, True)
+        for rt in rt_options
+        if not (d == "emulated" and not load and not rt)  # keep the matrix to what tells
+    ]
+    results: dict[Case, list[dict]] = {c: [] for c in cases}
+    with tempfile.TemporaryDirectory(prefix="hapticd-bench-") as tmp:
+        work = Path(tmp)
+        for rnd in range(args.rounds):
+            for case in cases:
+                results[case].append(run_case(case, args.seconds, work))
+                print(f"round {rnd + 1}/{args.rounds}: {case.label}", file=sys.stderr)
+    fifo = any(
+        r["realtime"]["fifo_priority"] for rs in results.values() for r in rs if r.get("realtime")
+    )
+    if not fifo:
+        print("note: SCHED_FIFO was not granted; the FIFO rows ran on the normal policy.")
+
+    def med(rs: list[dict], *keys: str) -> float:
+        vals = []
+        for r in rs:
+            v = r
+            for k in keys:
+                v = v[k]
+            vals.append(float("nan") if v is None else float(v))
+        return statistics.median(vals)
+
+    cols = [
+        "rate", "device", "load", "policy", "period error p50 us", "p99 us", "p99.9 us",
+        "max us", "overruns /10k", "compute p50 us", "compute p99 us", "p99 x idle FIFO",
+        "requests/s",
+    ]  # fmt: skip
+    print("| " + " | ".join(cols) + " |")
+    print("|" + "---|" * len(cols))
+    for case in cases:
+        rs = results[case]
+        base = results.get(Case(case.rate_hz, "replay", False, True))
+        p99 = med(rs, "period_error_us", "p99")
+        ratio = p99 / med(base, "period_error_us", "p99") if base else float("nan")
+        req = [r["requests_per_s"] for r in rs if r["requests_per_s"] is not None]
+        cells = [
+            case.label,
+            f"{med(rs, 'period_error_us', 'p50'):.2f}",
+            f"{p99:.1f}",
+            f"{med(rs, 'period_error_us', 'p99.9'):.1f}",
+            f"{med(rs, 'period_error_us', 'max'):.0f}",
+            f"{med(rs, 'overruns_per_10k'):.1f}",
+            f"{med(rs, 'tick_compute_us', 'p50'):.1f}",
+            f"{med(rs, 'tick_compute_us', 'p99'):.1f}",
+            f"{ratio:.2f}",
+            f"{statistics.median(req):.0f}" if req else "-",
+        ]
+        print("| " + " | ".join(cells) + " |")
+    plot(results, rates, args.plot)
+
+
+def plot(results: dict[Case, list[dict]], rates: list[int], path: Path) -> None:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("(matplotlib not installed: no plot; pip install 'hapticd[bench]')")
+        return
+    shown = [r for r in rates if r in (1000, 4000)] or rates[:2]
+    fig, axes = plt.subplots(1, len(shown), figsize=(6 * len(shown), 4), squeeze=False)
+    for ax, rate in zip(axes[0], shown, strict=True):
+        for case, rs in results.items():
+            if case.rate_hz != rate or case.device != "replay":
+                continue
+            hist = rs[0]["period_error_hist_us"]
+            if not hist:
+                continue
+            edges = [max(e, 1e-3) for e, _ in hist]
+            counts = [c for _, c in hist]
+            total = sum(counts)
+            # Survival curve: the fraction of periods whose error exceeds x.
+            surv, left = [], total
+            for c in counts:
+                left -= c
+                surv.append(max(left / total, 1e-7))
+            ax.step(edges, surv, where="post", label=case.label.split(" | ", 2)[2])
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("period error, us")
+        ax.set_ylabel("fraction of periods with a larger error")
+        ax.set_title(f"{rate // 1000} kHz, replay device")
+        ax.axvline(10, color="grey", lw=0.8, ls="--")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    print(f"plot: {path}")
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    main()
