@@ -61,6 +61,17 @@ def format_summary(s: dict[str, Any]) -> str:
         lines.append(
             f"    {name:<12} max {f['max_force_n']:.4f} N, in contact {f['contact_ticks']} ticks"
         )
+    rt = s.get("realtime")
+    if rt is not None:
+        policy = f"SCHED_FIFO {rt['fifo_priority']}" if rt["fifo_priority"] else "normal policy"
+        lock = ", memory locked" if rt["memory_locked"] else ""
+        lines.append(f"  real time       {policy}{lock}")
+    rec = s.get("recording")
+    if rec is not None:
+        lines.append(
+            f"  recording       {rec['path']}: {rec['written']} ticks written, "
+            f"{rec['dropped']} dropped"
+        )
     if s["fault"]:
         lines.append(f"  FAULT (latched) at tick {s['fault']['tick']}: {s['fault']['cause']}")
     return "\n".join(lines)

@@ -129,7 +129,6 @@ class ServoLoop:
         self.rt_report: realtime.RealtimeReport | None = None
         # Counts applied control changes; recorded every tick, so a change is findable.
         self.control_seq = 0
-        self.recording_problems: list[str] = []
         # The sleep gate: a byte per tick, written just before the loop sleeps (-1: off).
         self._gate_w = -1
         self.sleep_until = 0.0
@@ -191,6 +190,9 @@ class ServoLoop:
     def _apply(self, action: dict[str, Any], t: float) -> Any:
         """Make one control change; raise (changing nothing) if it cannot be made."""
         cmd = action["cmd"]
+        if self._stop_reason is not None and cmd in ("enable", "reload"):
+            # Either would restart the force ramp and undo the stop's ramp to zero.
+            raise ValueError(f"the daemon is stopping ({self._stop_reason})")
         if cmd == "set":
             param, value = action["param"], action["value"]
             if param == "force_limit_n":

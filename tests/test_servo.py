@@ -228,3 +228,14 @@ def test_sustained_overruns_latch_a_fault(grasp_data, write_profile):
     assert 300 < out["fault"]["tick"] < 400
     for dev in s.devices:
         np.testing.assert_array_equal(dev.forces[out["fault"]["tick"] + 1 :], 0)
+
+
+def test_enable_while_stopping_is_refused_so_the_stop_ramp_ends():
+    s = session()
+    loop = s.loop
+    loop.request_stop("test")
+    done = loop.submit({"cmd": "enable"})
+    out = s.run()
+    assert done.is_set() and "stopping" in done.error
+    assert out["end_reason"] == "test"
+    assert out["ticks"] == 1 + round(s.profile.safety.stop_ramp_s * s.profile.loop.rate_hz) + 1
