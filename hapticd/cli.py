@@ -241,6 +241,16 @@ def format_status(st: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _client_failed(args: argparse.Namespace, exc: Exception) -> int:
+    """Report a failed client command; the exit code says whose fault it was."""
+    if isinstance(exc, ProtocolError):
+        print(f"hapticd: {exc.code}: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    where = args.socket or default_socket_path()
+    print(f"hapticd: cannot talk to {where}: {exc}", file=sys.stderr)
+    return EXIT_ERROR
+
+
 def cmd_client(args: argparse.Namespace) -> int:
     if args.command == "record" and args.action == "start" and args.path is None:
         print("hapticd: record start needs a PATH", file=sys.stderr)
@@ -278,13 +288,8 @@ def cmd_client(args: argparse.Namespace) -> int:
                     return EXIT_OK
             else:
                 result = client.call(cmd)
-    except ProtocolError as exc:
-        print(f"hapticd: {exc.code}: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
     except (OSError, ValueError) as exc:
-        where = args.socket or default_socket_path()
-        print(f"hapticd: cannot talk to {where}: {exc}", file=sys.stderr)
-        return EXIT_ERROR
+        return _client_failed(args, exc)
     print(json.dumps(result, indent=2 if getattr(args, "json", False) else None))
     return EXIT_OK
 
@@ -313,13 +318,8 @@ def cmd_watch(args: argparse.Namespace) -> int:
                 shown += 1
     except KeyboardInterrupt:
         return EXIT_OK
-    except ProtocolError as exc:
-        print(f"hapticd: {exc.code}: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
     except (OSError, ValueError) as exc:
-        where = args.socket or default_socket_path()
-        print(f"hapticd: cannot talk to {where}: {exc}", file=sys.stderr)
-        return EXIT_ERROR
+        return _client_failed(args, exc)
     return EXIT_OK
 
 
