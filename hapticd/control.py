@@ -215,8 +215,9 @@ class ControlServer:
             self._stream(now)
             if now >= next_periodic:
                 next_periodic = now + PERIODIC_S
+                # Also empties the sleep gate's pipe, which otherwise fills (a byte a tick).
+                self._await_window()
                 for fn in self.periodic:
-                    self._await_window()
                     try:
                         fn()
                     except Exception as exc:  # a notification must not end the server

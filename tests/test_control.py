@@ -6,6 +6,7 @@ import os
 import random
 import socket
 import stat
+import threading
 import time
 
 import numpy as np
@@ -13,8 +14,10 @@ import pytest
 
 from hapticd import recording
 from hapticd.control import ControlClient
+from hapticd.profile import load_profile
 from hapticd.protocol import MAX_LINE_BYTES, ProtocolError, parse_request
-from tests.conftest import wait_for_tick
+from hapticd.runner import build_session
+from tests.conftest import GRASP_PROFILE, wait_for_tick
 
 
 @pytest.mark.parametrize(
@@ -196,3 +199,69 @@ def test_telemetry_streams_and_a_reader_that_stalls_blocks_no_one(live):
         assert other.status()["fault"] is None
         reply = watcher.request("unsubscribe")  # frames in between are set aside
         assert reply["ok"] and reply["result"]["skipped_frames"] > 0
+
+
+def test_the_loop_writes_one_gate_byte_per_tick_before_it_sleeps():
+    session = build_session(load_profile(GRASP_PROFILE), paced=True, duration_s=0.1)
+    session.loop.realtime_settings = None
+    r = session.loop.open_sleep_gate()
+    try:
+        session.run()
+        got = os.read(r, 65536)
+    finally:
+        session.loop.close_sleep_gate()
+        os.close(r)
+    assert len(got) == session.loop.stats.ticks == 100
+    assert session.loop.sleep_until > 0
+
+
+def test_the_control_thread_waits_for_the_loop_to_sleep(monkeypatch):
+    import hapticd.control as control
+
+    class FakeLoop:
+        running, paced, sleep_until = True, True, 0.0
+        stats = None
+
+        def open_sleep_gate(self):
+            self.r, self.w = os.pipe()
+            os.set_blocking(self.r, False)
+            return self.r
+
+        def close_sleep_gate(self):
+            os.close(self.w)
+
+    class FakeSession:
+        loop = FakeLoop()
+
+    server = control.ControlServer(FakeSession(), None)
+    server._gate_r = FakeSession.loop.open_sleep_gate()
+    loop = FakeSession.loop
+    try:
+        # No sleep announced: it gives up after WINDOW_MAX_WAIT_S, never sooner.
+        t0 = time.monotonic()
+        server._await_window()
+        assert time.monotonic() - t0 >= control.WINDOW_MAX_WAIT_S
+        # The loop announces a sleep 20 ms from now: the thread works only after that.
+        monkeypatch.setattr(control, "WINDOW_MAX_WAIT_S", 5.0)
+
+        def sleep_soon():
+            time.sleep(0.02)
+            loop.sleep_until = time.monotonic() + 0.5
+            os.write(loop.w, b"\0")
+
+        t = threading.Thread(target=sleep_soon, name="fake-loop")
+        t0 = time.monotonic()
+        t.start()
+        server._await_window()
+        back = time.monotonic()
+        t.join()
+        assert 0.02 <= back - t0 < 5.0 and back < loop.sleep_until - control.WINDOW_S
+        # Not running: no waiting at all.
+        loop.running = False
+        loop.sleep_until = 0.0
+        t0 = time.monotonic()
+        server._await_window()
+        assert time.monotonic() - t0 < 1.0
+    finally:
+        loop.close_sleep_gate()
+        os.close(server._gate_r)
