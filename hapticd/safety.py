@@ -91,9 +91,17 @@ class SafetyChain:
         self._t_down = float(t)
         self._down_s = max(float(duration_s), 0.0)
 
+    def _down_factor(self, t: float) -> float:
+        """The ramp-down's scale at ``t``: 1 before it, falling to exactly 0 at its end
+        (tick times carry rounding: a remainder of 1e-15 must not leave a force of 1e-15 N)."""
+        if t < self._t_down:
+            return 1.0
+        left = 1.0 - (t - self._t_down) / self._down_s if self._down_s > 0 else 0.0
+        return left if left > 1e-9 else 0.0
+
     def ramped_down(self, t: float) -> bool:
         """True once a ramp-down begun before ``t`` has reached zero."""
-        return t >= self._t_down + self._down_s
+        return self._down_factor(t) == 0.0
 
     def trip(self, tick: int, t: float, cause: str) -> None:
         """Latch a fault (the first cause is kept) and zero the output."""
@@ -159,8 +167,7 @@ class SafetyChain:
         if prm.ramp_s > 0.0:
             ramp = min(1.0, max(0.0, (t - self._t_enabled) / prm.ramp_s))
         if t >= self._t_down:
-            left = 1.0 - (t - self._t_down) / self._down_s if self._down_s > 0 else 0.0
-            ramp = min(ramp, max(0.0, left))
+            ramp = min(ramp, self._down_factor(t))
         for i, limit in enumerate(self.limits):
             f = out[i]
             mag = math.hypot(f[0], f[1], f[2])

@@ -143,3 +143,18 @@ def test_a_stalled_servo_loop_ends_in_zero_force(monkeypatch):
     for dev in s.devices:
         assert np.all(dev.forces[2999:] == 0)
         assert np.any(dev.forces[:2999] != 0)
+
+
+def test_a_ramp_down_ends_at_exactly_zero_despite_rounded_tick_times():
+    from hapticd.safety import SafetyChain
+
+    dt = 1e-3
+    for start in range(2000, 4000, 7):  # many start ticks: some end a hair short of 1.0
+        chain = SafetyChain([5.0, 5.0], dt=dt)
+        chain.ramp_down((start + 1) * dt, 0.05)
+        k = start + 1
+        while not chain.ramped_down(k * dt):
+            chain.apply(np.full((2, 3), 1.0), k, k * dt)
+            k += 1
+        out = chain.apply(np.full((2, 3), 1.0), k, k * dt)
+        assert k - (start + 1) == 50 and np.all(out == 0.0), (start, out)
