@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Generate the bundled replay trajectories from the motion model (hapticd.trajectory).
 
-Writes hapticd/data/trajectories/*.hrec. Deterministic: running it again gives
-identical files (a test checks this). Usage: python scripts/make_trajectories.py [--out DIR]
+Writes hapticd/data/trajectories/*.hrec. Deterministic: running it again gives the same
+files to 1e-15 m (a test checks this). Usage: python scripts/make_trajectories.py [--out DIR]
 """
 
 from __future__ import annotations

@@ -35,14 +35,20 @@ def test_sampled_path_is_continuous_with_smooth_velocity():
     assert np.max(np.abs(np.diff(v, axis=0))) < 0.01  # no velocity steps at segment joins
 
 
-def test_bundled_trajectory_regenerates_identically(tmp_path):
+def test_bundled_trajectory_regenerates_to_rounding(tmp_path):
     subprocess.run(
         [sys.executable, str(ROOT / "scripts" / "make_trajectories.py"), "--out", str(tmp_path)],
         check=True,
         capture_output=True,
     )
-    for new in tmp_path.glob("*.hrec"):
-        assert new.read_bytes() == builtin_trajectory(new.stem).read_bytes(), new.name
+    made = sorted(tmp_path.glob("*.hrec"))
+    assert [p.name for p in made] == ["grasp-stiffness.hrec", "lift-weight.hrec"]
+    for path in made:
+        new, old = recording.read(path), recording.read(builtin_trajectory(path.stem))
+        assert (new.fields, new.fingers, new.meta) == (old.fields, old.fingers, old.meta)
+        # To the last bit or so: numpy releases may round a sine's last bit differently.
+        for name in new:
+            np.testing.assert_allclose(new[name], old[name], rtol=0, atol=1e-15, err_msg=name)
 
 
 def test_bundled_grasp_trajectory_pinches_the_cube():
