@@ -16,15 +16,16 @@ from hapticd_drivers import BackendUnavailableError
 
 from hapticd import __version__
 from hapticd.allocation import METHODS
-from hapticd.control import ControlClient, ControlServer, default_socket_path
-from hapticd.export import csv_columns, export_csv, export_mcap
+from hapticd.build import build_scene, load_trajectories
+from hapticd.control import ControlClient, default_socket_path
+from hapticd.daemon.sdnotify import ServiceNotifier
+from hapticd.daemon.server import ControlServer
+from hapticd.daemon.session import build_session
 from hapticd.profile import ProfileError, load_profile
 from hapticd.protocol import ProtocolError
 from hapticd.recording import RecordingError
 from hapticd.recording import read as read_recording
-from hapticd.runner import build_session, load_trajectories
-from hapticd.scene import Scene
-from hapticd.sdnotify import ServiceNotifier
+from hapticd.recording.export import csv_columns, export_csv, export_mcap
 from hapticd.servo import ServoLoop, summarize
 
 EXIT_OK = 0
@@ -159,7 +160,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     try:
         profile = load_profile(args.profile)
         load_trajectories(profile)
-        Scene.from_config(profile.scene, profile)
+        build_scene(profile.scene, profile)
     except ProfileError as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 
 from hapticd.contact import Polytope
-from hapticd.profile import ObjectConfig, Profile, ProfileError, SceneConfig, SurfaceConfig
 
 
 def rpy_matrix(rpy: tuple[float, float, float]) -> np.ndarray:
@@ -131,36 +130,6 @@ class SceneObject:
     def vertices_world(self) -> np.ndarray:
         return self.shape.vertices @ self.rotation.T + self.position
 
-    @classmethod
-    def from_config(cls, cfg: ObjectConfig, base: Path | None = None) -> SceneObject:
-        if cfg.shape == "box":
-            assert cfg.size_m is not None
-            shape = ConvexShape.box(np.array(cfg.size_m))
-        else:
-            assert cfg.mesh is not None
-            path = Path(cfg.mesh)
-            if not path.is_absolute() and base is not None:
-                path = base / path
-            try:
-                shape = ConvexShape.from_mesh(path, cfg.mesh_scale)
-            except (OSError, ValueError) as exc:
-                raise ProfileError(f"scene.object.mesh: cannot use {path}: {exc}") from None
-        mat = Material(
-            cfg.stiffness_n_per_m,
-            cfg.damping_n_s_per_m,
-            cfg.friction.static,
-            cfg.friction.dynamic,
-            cfg.friction.torsion_m,
-        )
-        return cls(
-            shape,
-            mat,
-            np.array(cfg.position_m),
-            rpy_matrix(cfg.orientation_rpy_rad),
-            fixed=cfg.fixed,
-            mass=cfg.mass_kg or 0.0,
-        )
-
 
 @dataclass(frozen=True)
 class Surface:
@@ -176,12 +145,6 @@ class Surface:
         return Polytope(np.array([self.normal]), np.array([self.offset]), np.zeros(3))
 
 
-def _material(cfg: SurfaceConfig) -> Material:
-    return Material(
-        cfg.stiffness_n_per_m, cfg.damping_n_s_per_m, cfg.friction.static, cfg.friction.dynamic
-    )
-
-
 @dataclass
 class Scene:
     """Everything the fingers and the object can touch, and gravity (m/s^2) if enabled."""
@@ -190,31 +153,3 @@ class Scene:
     surfaces: list[Surface]
     gravity: np.ndarray | None
     substeps: int = 1  # 0: chosen by the renderer's plan (auto)
-
-    @classmethod
-    def from_config(cls, cfg: SceneConfig, profile: Profile | None = None) -> Scene:
-        base = profile.source.parent if profile is not None and profile.source else None
-        try:
-            obj = SceneObject.from_config(cfg.object, base)
-        except ProfileError as exc:
-            where = profile.source if profile is not None and profile.source else "<profile>"
-            raise ProfileError(f"{where}: {exc}") from None
-        surfaces: list[Surface] = []
-        if cfg.ground is not None:
-            surfaces.append(
-                Surface("ground", (0.0, 0.0, 1.0), cfg.ground.height_m, _material(cfg.ground))
-            )
-        if cfg.walls is not None:
-            wx, wy = cfg.walls.half_width_m
-            m = _material(cfg.walls)
-            # Solid beyond each wall; the normal points back into the workspace.
-            surfaces += [
-                Surface("wall +x", (-1.0, 0.0, 0.0), -wx, m),
-                Surface("wall -x", (1.0, 0.0, 0.0), -wx, m),
-                Surface("wall +y", (0.0, -1.0, 0.0), -wy, m),
-                Surface("wall -y", (0.0, 1.0, 0.0), -wy, m),
-            ]
-        gravity = None if cfg.gravity_m_s2 is None else np.array(cfg.gravity_m_s2, dtype=float)
-        if gravity is not None and not np.any(gravity):
-            gravity = None
-        return cls(obj, surfaces, gravity, 0 if cfg.substeps == "auto" else int(cfg.substeps))

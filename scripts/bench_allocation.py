@@ -45,10 +45,10 @@ from hapticd.allocation import (
     two_contact_pinv,
     two_contact_structure,
 )
-from hapticd.allocation_cases import SWEEPS, sweep
+from hapticd.allocation.cases import SWEEPS, sweep
+from hapticd.daemon.session import build_session
 from hapticd.grasp import grasp_matrix
 from hapticd.profile import load_profile
-from hapticd.runner import build_session
 
 ROOT = Path(__file__).resolve().parent.parent
 PROFILE = ROOT / "configs" / "grasp-stiffness.yaml"

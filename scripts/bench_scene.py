@@ -29,11 +29,11 @@ import yaml
 
 from hapticd import recording
 from hapticd.actuation import Actuation
+from hapticd.build import build_scene, builtin_trajectory
 from hapticd.dynamics import SurfaceSet, kinetic_energy, step_body, step_body_small
 from hapticd.profile import parse_profile
 from hapticd.render import Renderer
-from hapticd.runner import builtin_trajectory
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
+from hapticd.scene import ConvexShape, Material, SceneObject, Surface
 
 ROOT = Path(__file__).resolve().parent.parent
 LIFT = ROOT / "configs" / "lift-weight.yaml"
@@ -41,7 +41,7 @@ LIFT = ROOT / "configs" / "lift-weight.yaml"
 
 def renderer_for(data: dict) -> Renderer:
     prof = parse_profile(data, LIFT)
-    scene = Scene.from_config(prof.scene, prof)
+    scene = build_scene(prof.scene, prof)
     return Renderer(
         scene,
         [f.radius_m for f in prof.fingers],

@@ -11,9 +11,9 @@ import pytest
 import yaml
 from hypothesis import HealthCheck, settings
 
-from hapticd.control import ControlServer
+from hapticd.daemon.server import ControlServer
+from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
-from hapticd.runner import build_session
 
 ROOT = Path(__file__).resolve().parent.parent
 GRASP_PROFILE = ROOT / "configs" / "grasp-stiffness.yaml"

@@ -20,8 +20,8 @@ from hapticd.allocation import (
     two_contact_accuracy,
     two_contact_structure,
 )
-from hapticd.allocation_cases import SWEEPS
-from hapticd.allocation_cases import block_actuation as block_m
+from hapticd.allocation.cases import SWEEPS
+from hapticd.allocation.cases import block_actuation as block_m
 from hapticd.grasp import grasp_matrix, internal_projector
 from hapticd.render import Renderer
 from hapticd.scene import ConvexShape, Material, SceneObject

@@ -255,8 +255,8 @@ FAULTS = {
 @pytest.mark.parametrize("backend", PROTOCOL)
 @pytest.mark.parametrize("fault", list(FAULTS))
 def test_a_fault_in_a_running_loop_ends_in_zero_force_and_a_latched_fault(backend, fault):
+    from hapticd.daemon.session import build_session
     from hapticd.profile import load_profile
-    from hapticd.runner import build_session
     from tests.conftest import GRASP_PROFILE
 
     s = build_session(load_profile(GRASP_PROFILE), paced=False, device=backend, emulate=True)
@@ -282,8 +282,8 @@ def test_a_fault_in_a_running_loop_ends_in_zero_force_and_a_latched_fault(backen
 
 @pytest.mark.parametrize("backend", PROTOCOL)
 def test_an_unplugged_device_is_reopened_with_forces_off(grasp_data, write_profile, backend):
+    from hapticd.daemon.session import build_session
     from hapticd.profile import load_profile
-    from hapticd.runner import build_session
 
     grasp_data["safety"]["reconnect"] = True
     s = build_session(

@@ -14,9 +14,9 @@ import pytest
 
 from hapticd import recording
 from hapticd.control import ControlClient
+from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
 from hapticd.protocol import MAX_LINE_BYTES, ProtocolError, parse_request
-from hapticd.runner import build_session
 from tests.conftest import GRASP_PROFILE, wait_for_tick
 
 
@@ -216,7 +216,7 @@ def test_the_loop_writes_one_gate_byte_per_tick_before_it_sleeps():
 
 
 def test_the_control_thread_waits_for_the_loop_to_sleep(monkeypatch):
-    import hapticd.control as control
+    import hapticd.daemon.server as control
 
     class FakeLoop:
         running, paced, sleep_until = True, True, 0.0

@@ -8,8 +8,8 @@ import threading
 import pytest
 
 from hapticd import realtime
+from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
-from hapticd.runner import build_session
 from tests.conftest import GRASP_PROFILE
 
 

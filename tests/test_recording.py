@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hapticd import recording, ring
-from hapticd.recording import MAGIC, Field, Recorder, RecordingError, loop_fields, read
+from hapticd import recording
+from hapticd.recording import MAGIC, Field, Recorder, RecordingError, loop_fields, read, ring
 
 
 def _fields():

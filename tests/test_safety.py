@@ -120,8 +120,8 @@ def test_leaving_the_workspace_latches():
 
 
 def test_a_stalled_servo_loop_ends_in_zero_force(monkeypatch):
+    from hapticd.daemon.session import build_session
     from hapticd.profile import load_profile
-    from hapticd.runner import build_session
     from tests.conftest import GRASP_PROFILE
 
     s = build_session(load_profile(GRASP_PROFILE), paced=False)

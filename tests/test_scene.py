@@ -14,11 +14,11 @@ import hapticd.render
 from hapticd import recording
 from hapticd.actuation import Actuation
 from hapticd.allocation import Robustness
+from hapticd.build import build_scene
 from hapticd.cli import main
 from hapticd.contact import ObstacleSet, proxy_step_multi
 from hapticd.profile import ProfileError, parse_profile
 from hapticd.render import Renderer
-from hapticd.scene import Scene
 from tests.conftest import ROOT
 
 LIFT = ROOT / "configs" / "lift-weight.yaml"
@@ -35,7 +35,7 @@ def make_renderer(
     data: dict, full_actuation: bool = False, allocator: str | None = None
 ) -> Renderer:
     prof = parse_profile(data, "lift.yaml")
-    scene = Scene.from_config(prof.scene, None)
+    scene = build_scene(prof.scene, None)
     dirs = [list(f.actuated_directions) for f in prof.fingers]
     frame = prof.rendering.actuation_frame
     if full_actuation:
@@ -313,7 +313,7 @@ def test_convex_mesh_object_from_stl(tmp_path):
         "stiffness_n_per_m": 100.0,
     }
     prof = parse_profile(data, tmp_path / "p.yaml")
-    scene = Scene.from_config(prof.scene, prof)
+    scene = build_scene(prof.scene, prof)
     assert len(scene.object.shape.normals) == 320
     r = Renderer(scene, [R, R], Actuation([[(1.0, 0, 0), (0, 1.0, 0), (0, 0, 1.0)]] * 2), "pinv")
     d = np.array([1.0, 1.0, 1.0]) / np.sqrt(3)
@@ -358,7 +358,7 @@ def test_missing_mesh_file_is_a_profile_error(tmp_path):
     with pytest.raises(
         ProfileError, match=r"p\.yaml: scene\.object\.mesh: cannot use .*nowhere\.stl"
     ):
-        Scene.from_config(prof.scene, prof)
+        build_scene(prof.scene, prof)
 
 
 @settings(max_examples=60)

@@ -13,10 +13,11 @@ import time
 
 import pytest
 
-from hapticd import sdnotify
-from hapticd.control import ControlServer, SocketInUseError, default_socket_path
+from hapticd.control import default_socket_path
+from hapticd.daemon import sdnotify
+from hapticd.daemon.server import ControlServer, SocketInUseError
+from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
-from hapticd.runner import build_session
 from tests.conftest import GRASP_PROFILE, ROOT
 
 

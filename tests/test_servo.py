@@ -7,8 +7,8 @@ from hapticd_drivers import Device, DeviceError, DeviceInfo
 
 import hapticd.render
 from hapticd import recording
+from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
-from hapticd.runner import build_session
 from tests.conftest import GRASP_PROFILE
 
 

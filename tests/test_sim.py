@@ -6,8 +6,9 @@ import yaml
 from hapticd_drivers import DeviceError, DeviceState, open_device
 
 from hapticd import recording
+from hapticd.build import builtin_trajectory
+from hapticd.daemon.session import build_session
 from hapticd.profile import ProfileError, parse_profile
-from hapticd.runner import build_session, builtin_trajectory
 from tests.conftest import GRASP_PROFILE
 
 K = 5000.0  # an omega.3's rated stiffness, N/m

@@ -4,7 +4,7 @@ import sys
 import numpy as np
 
 from hapticd import recording
-from hapticd.runner import builtin_trajectory
+from hapticd.build import builtin_trajectory
 from hapticd.trajectory import Hold, MinJerk, Squeeze, minjerk_profile, sample
 from tests.conftest import ROOT
 

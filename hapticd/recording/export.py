@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from hapticd.recording import Recording
+from hapticd.recording.format import Recording
 
 PER_FINGER = frozenset(
     {

@@ -1,13 +1,18 @@
-"""Assemble a servo loop from a profile: devices, scene, renderer, safety, recorder."""
+"""From a profile to the objects a run is made of: scene, renderer, safety chain, devices.
+
+Everything that reads the profile's configuration lives here (and in the
+daemon's session), so the physics and allocation modules never see it.
+"""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from hapticd_drivers import Device, DeviceError, open_device
 from hapticd_drivers.delta import load_description
 from hapticd_drivers.emulator import DeltaEmulator, FakeHidModule
@@ -15,23 +20,23 @@ from hapticd_drivers.path import Path as DevicePath
 
 from hapticd import recording
 from hapticd.actuation import Actuation
-from hapticd.allocation import METHODS, AdaptiveState, Robustness
+from hapticd.allocation import AdaptiveState, Robustness
 from hapticd.profile import (
     FingerConfig,
     HidDeviceConfig,
+    ObjectConfig,
     Profile,
     ProfileError,
-    load_profile,
+    SceneConfig,
+    SurfaceConfig,
 )
 from hapticd.realtime import RealtimeSettings
-from hapticd.recording import Recorder, RecordingError
+from hapticd.recording import RecordingError
 from hapticd.render import Renderer
 from hapticd.safety import SafetyChain, SafetyParams
-from hapticd.scene import Scene
-from hapticd.servo import Applied, ServoLoop, summarize
+from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface, rpy_matrix
 
 BUILTIN = "builtin:"
-APPLY_TIMEOUT_S = 2.0
 
 
 def builtin_trajectory(name: str) -> Path:
@@ -101,120 +106,20 @@ def _emulated_seam(backend: str, emulators: list[DeltaEmulator]) -> dict[str, An
     return {"usb_backend": EmulatedUsbBackend(emulators)}
 
 
-@dataclass
-class Session:
-    """Everything one run needs, built from a profile."""
-
-    profile: Profile
-    devices: list[Device]
-    renderer: Renderer
-    safety: SafetyChain
-    loop: ServoLoop
-    recorder: Recorder | None
-    emulators: list[DeltaEmulator] = field(default_factory=list)
-
-    def run(self) -> dict[str, Any]:
-        """Run the loop to its end; then flush and close whatever recording is open."""
-        rec_status = None
-        try:
-            self.loop.run()
-        finally:
-            rec = self.loop.recorder
-            if rec is not None:
-                self.loop.recorder = None
-                rec_status = rec.close()
-        summary = summarize(self.loop, self.loop.renderer.allocator, self.profile.finger_names)
-        if rec_status is not None:
-            summary["recording"] = rec_status
-        return summary
-
-    # -- live changes, called from the control thread (never from the loop) ---------------
-
-    def apply(self, action: dict[str, Any], timeout_s: float = APPLY_TIMEOUT_S) -> Applied:
-        """Hand ``action`` to the loop and wait for its tick boundary.
-
-        TimeoutError if the loop does not get there in time (not running); ValueError
-        with the loop's reason if it refused (nothing changed).
-        """
-        done = self.loop.submit(action)
-        if not done.wait(timeout_s):
-            raise TimeoutError("the loop did not reach a tick boundary in time (is it running?)")
-        if done.error is not None:
-            raise ValueError(done.error)
-        return done
-
-    def record_start(self, path: str | Path, *, overwrite: bool = False) -> dict[str, Any]:
-        """Start recording every tick to ``path``; the reply names the first recorded tick."""
-        if self.loop.recorder is not None:
-            raise ValueError(f"already recording to {self.loop.recorder.path}; stop it first")
-        rec = make_recorder(
-            self.profile,
-            path,
-            self.loop.renderer,
-            self.loop.safety,
-            paced=self.loop.paced,
-            overwrite=overwrite,
-        )
-        try:
-            done = self.apply({"cmd": "record_start", "recorder": rec, "value": str(path)})
-        except BaseException:
-            rec.close()
-            Path(path).unlink(missing_ok=True)  # only its header: ours, and useless
-            raise
-        return {"applied_at_tick": done.tick, "path": str(path)}
-
-    def record_stop(self) -> dict[str, Any]:
-        """Stop recording; returns once every tick is in the file."""
-        done = self.apply({"cmd": "record_stop"})
-        rec: Recorder = done.result
-        status = rec.close()
-        return {"applied_at_tick": done.tick, **status}
-
-    def reload(self, path: str | Path | None = None) -> dict[str, Any]:
-        """Load ``path`` (default: the running profile's file) and switch to its scene,
-        rendering and safety settings at a tick boundary. ProfileError for an invalid
-        profile or one that changes what needs a restart; the old profile keeps running."""
-        source = Path(path) if path is not None else self.profile.source
-        if source is None:
-            raise ProfileError("the running profile has no file to reload")
-        new = load_profile(source)
-        where = str(source)
-        old = self.profile
-        if new.loop != old.loop:
-            raise ProfileError(f"{where}: loop settings changed; restart hapticd to change them")
-        if len(new.fingers) != len(old.fingers):
-            raise ProfileError(f"{where}: the number of fingers changed; restart hapticd")
-        for i, (a, b) in enumerate(zip(old.fingers, new.fingers, strict=True)):
-            if a.name != b.name or a.device != b.device:
-                raise ProfileError(
-                    f"{where}: fingers[{i}] name or device changed; restart hapticd to change "
-                    "devices"
-                )
-        renderer = build_renderer(new)
-        safety = build_safety(new, self.devices)
-        done = self.apply(
-            {"cmd": "reload", "renderer": renderer, "safety": safety, "value": str(source)}
-        )
-        self.profile = new
-        return {"applied_at_tick": done.tick, "profile": new.name, "path": str(source)}
-
-
-def build_session(
+def build_devices(
     profile: Profile,
     *,
-    paced: bool = True,
-    duration_s: float | None = None,
-    record_path: str | Path | None = None,
     device: str | None = None,
     emulate: bool = False,
-) -> Session:
-    """Create devices, renderer, safety chain, recorder and loop for ``profile``.
+    clock: Callable[[], float],
+) -> tuple[list[Device], list[DeltaEmulator]]:
+    """The devices of ``profile`` (created, not opened), and the emulators under them.
 
-    ``device`` overrides every finger's backend; ``emulate`` puts the device
-    emulator under the hid backend, moved along each finger's trajectory.
+    ``device`` overrides every finger's backend; ``emulate`` puts the device emulator
+    under the hid or usb backend, moved along each finger's trajectory; ``clock`` is
+    the loop's nominal time (s) for devices that play a trajectory.
     """
     trajectories = load_trajectories(profile)
-    clock_box: list[ServoLoop] = []
     devices: list[Device] = []
     emulators: list[DeltaEmulator] = []
     where = f"{profile.source or '<profile>'}"
@@ -237,7 +142,7 @@ def build_session(
                         backend,
                         times=traj[0],
                         positions=traj[1],
-                        clock=lambda: clock_box[0].now(),
+                        clock=clock,
                         serial=f"{backend}-{finger.name}",
                         **params,
                     )
@@ -262,7 +167,7 @@ def build_session(
                     DeltaEmulator(
                         load_description(hid_cfg.description),
                         DevicePath(traj[0], traj[1], f"emulator {finger.name}"),
-                        lambda: clock_box[0].now(),
+                        clock,
                         serial=serial,
                     )
                 )
@@ -270,30 +175,73 @@ def build_session(
             devices.append(open_device(backend, **kwargs))
         except DeviceError as exc:
             raise ProfileError(f"{where}: fingers[{i}:{finger.name}].device: {exc}") from None
-    if emulate and duration_s is None:
-        # Emulated devices do not end; stop where the trajectories do.
-        duration_s = max(float(t[0][-1] - t[0][0]) for t in trajectories if t is not None)
-    renderer = build_renderer(profile)
-    safety = build_safety(profile, devices)
-    recorder = None
-    if record_path is not None:
-        recorder = make_recorder(profile, record_path, renderer, safety, paced=paced)
-    loop = ServoLoop(
-        devices,
-        renderer,
-        safety,
-        profile.loop.rate_hz,
-        paced=paced,
-        duration_s=duration_s,
-        recorder=recorder,
-        reconnect=profile.safety.reconnect,
-        max_consecutive_overruns=profile.loop.max_consecutive_overruns,
-        stop_ramp_s=profile.safety.stop_ramp_s,
-        switch_interval_s=profile.loop.gil_switch_interval_s,
-        realtime_settings=realtime_settings(profile) if paced else None,
+    return devices, emulators
+
+
+def build_object(cfg: ObjectConfig, base: Path | None = None) -> SceneObject:
+    """The grasped object of a profile's scene (ProfileError for a mesh it cannot use)."""
+    if cfg.shape == "box":
+        assert cfg.size_m is not None
+        shape = ConvexShape.box(np.array(cfg.size_m))
+    else:
+        assert cfg.mesh is not None
+        path = Path(cfg.mesh)
+        if not path.is_absolute() and base is not None:
+            path = base / path
+        try:
+            shape = ConvexShape.from_mesh(path, cfg.mesh_scale)
+        except (OSError, ValueError) as exc:
+            raise ProfileError(f"scene.object.mesh: cannot use {path}: {exc}") from None
+    mat = Material(
+        cfg.stiffness_n_per_m,
+        cfg.damping_n_s_per_m,
+        cfg.friction.static,
+        cfg.friction.dynamic,
+        cfg.friction.torsion_m,
     )
-    clock_box.append(loop)
-    return Session(profile, devices, renderer, safety, loop, recorder, emulators)
+    return SceneObject(
+        shape,
+        mat,
+        np.array(cfg.position_m),
+        rpy_matrix(cfg.orientation_rpy_rad),
+        fixed=cfg.fixed,
+        mass=cfg.mass_kg or 0.0,
+    )
+
+
+def _material(cfg: SurfaceConfig) -> Material:
+    return Material(
+        cfg.stiffness_n_per_m, cfg.damping_n_s_per_m, cfg.friction.static, cfg.friction.dynamic
+    )
+
+
+def build_scene(cfg: SceneConfig, profile: Profile | None = None) -> Scene:
+    """The scene of a profile: object, ground and walls, gravity (ProfileError naming the file)."""
+    base = profile.source.parent if profile is not None and profile.source else None
+    try:
+        obj = build_object(cfg.object, base)
+    except ProfileError as exc:
+        where = profile.source if profile is not None and profile.source else "<profile>"
+        raise ProfileError(f"{where}: {exc}") from None
+    surfaces: list[Surface] = []
+    if cfg.ground is not None:
+        surfaces.append(
+            Surface("ground", (0.0, 0.0, 1.0), cfg.ground.height_m, _material(cfg.ground))
+        )
+    if cfg.walls is not None:
+        wx, wy = cfg.walls.half_width_m
+        m = _material(cfg.walls)
+        # Solid beyond each wall; the normal points back into the workspace.
+        surfaces += [
+            Surface("wall +x", (-1.0, 0.0, 0.0), -wx, m),
+            Surface("wall -x", (1.0, 0.0, 0.0), -wx, m),
+            Surface("wall +y", (0.0, -1.0, 0.0), -wy, m),
+            Surface("wall -y", (0.0, 1.0, 0.0), -wy, m),
+        ]
+    gravity = None if cfg.gravity_m_s2 is None else np.array(cfg.gravity_m_s2, dtype=float)
+    if gravity is not None and not np.any(gravity):
+        gravity = None
+    return Scene(obj, surfaces, gravity, 0 if cfg.substeps == "auto" else int(cfg.substeps))
 
 
 def realtime_settings(profile: Profile) -> RealtimeSettings | None:
@@ -305,7 +253,7 @@ def realtime_settings(profile: Profile) -> RealtimeSettings | None:
 
 def build_renderer(profile: Profile) -> Renderer:
     """The scene and rendering pipeline of ``profile`` (ProfileError for a bad scene)."""
-    scene = Scene.from_config(profile.scene, profile)
+    scene = build_scene(profile.scene, profile)
     actuation = Actuation(
         [list(f.actuated_directions) for f in profile.fingers], profile.rendering.actuation_frame
     )
@@ -340,35 +288,3 @@ def build_safety(profile: Profile, devices: list[Device]) -> SafetyChain:
         ),
         dt=1.0 / profile.loop.rate_hz,
     )
-
-
-def make_recorder(
-    profile: Profile,
-    path: str | Path,
-    renderer: Renderer,
-    safety: SafetyChain,
-    *,
-    paced: bool = True,
-    overwrite: bool = True,
-) -> Recorder:
-    """A recorder of every tick to ``path``, its writer process started (RecordingError)."""
-    rate = profile.loop.rate_hz
-    rec = Recorder(
-        path,
-        recording.loop_fields(len(profile.fingers), renderer.actuation.n_actuators),
-        profile.finger_names,
-        {
-            "profile": profile.name,
-            "profile_path": str(profile.source),
-            "rate_hz": rate,
-            "allocator": renderer.allocator,
-            "allocators": list(METHODS),
-            "paced": paced,
-            "force_limits_n": list(safety.limits),
-        },
-        capacity=max(4096, int(2.0 * rate)),  # 2 s of ticks: the writer may pause that long
-        block_when_full=not paced,
-        overwrite=overwrite,
-    )
-    rec.wait_running()
-    return rec

@@ -1,0 +1,358 @@
+"""The control server: live changes to a running servo loop over a Unix socket.
+
+The server runs in one thread that mostly waits in system calls (select,
+recv, send), so it barely takes the GIL from the loop (measured in
+docs/daemon.md). It makes no change itself: it hands each change to the loop,
+which applies it at the start of its next tick, and the reply names that tick.
+Sockets are non-blocking with a bounded output buffer per client, so a client
+that stops reading is dropped instead of stalling everyone. The same thread
+streams telemetry to subscribers, performs reloads asked for by SIGHUP (a
+signal handler only writes one byte to a pipe) and sends the service manager
+its notifications. The socket is created with mode 0600; no TCP listener.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import select
+import selectors
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from hapticd import __version__
+from hapticd import protocol as proto
+from hapticd.profile import ProfileError
+from hapticd.recording import RecordingError
+
+if TYPE_CHECKING:
+    from hapticd.daemon.session import Session
+
+log = logging.getLogger("hapticd.control")
+
+MAX_OUTPUT_BYTES = 1 << 20  # a client this far behind is dropped
+TELEMETRY_BACKLOG_BYTES = 64 * 1024  # above this a telemetry frame is skipped, not queued
+PERIODIC_S = 0.1
+# Work in the server thread waits for the loop to go to sleep with this much time left...
+WINDOW_S = 200e-6
+# ...but no longer than this (at high rates the loop's sleep may never be that long).
+WINDOW_MAX_WAIT_S = 0.005
+
+
+class SocketInUseError(OSError):
+    """Another live hapticd already serves this socket."""
+
+
+@dataclass
+class _Conn:
+    sock: socket.socket
+    inbuf: bytearray = field(default_factory=bytearray)
+    outbuf: bytearray = field(default_factory=bytearray)
+    rate_hz: float = 0.0  # telemetry subscription; 0: none
+    next_due: float = 0.0
+    skipped: int = 0
+
+
+class ControlServer:
+    """Serves the control protocol for ``session`` on the Unix socket at ``path``.
+
+    ``path`` None serves no socket but still handles SIGHUP reloads and service
+    notifications. ``periodic`` callables run in the server thread about every 0.1 s.
+    """
+
+    def __init__(
+        self,
+        session: Session,
+        path: str | Path | None,
+        *,
+        periodic: list[Callable[[], None]] | None = None,
+    ) -> None:
+        self.session = session
+        self.loop = session.loop
+        self.path = Path(path) if path is not None else None
+        self.periodic = list(periodic or [])
+        self._sel = selectors.DefaultSelector()
+        self._stop = threading.Event()
+        self._conns: dict[socket.socket, _Conn] = {}
+        self._sock: socket.socket | None = None
+        self._thread: threading.Thread | None = None
+        self._wake_r = self._wake_w = -1
+        self._gate_r = -1
+        self.reloads: list[str] = []  # outcome of each SIGHUP reload, for status and tests
+
+    # -- lifecycle ---------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Bind the socket (SocketInUseError if a live daemon has it) and start serving."""
+        if self.path is not None:
+            self._sock = self._bind(self.path)
+            self._sel.register(self._sock, selectors.EVENT_READ, None)
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
+        self._sel.register(self._wake_r, selectors.EVENT_READ, None)
+        self._gate_r = self.loop.open_sleep_gate()
+        self._thread = threading.Thread(target=self._serve, name="hapticd-control", daemon=True)
+        self._thread.start()
+
+    @staticmethod
+    def _bind(path: Path) -> socket.socket:
+        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        if path.exists() or path.is_symlink():
+            probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            try:
+                probe.connect(str(path))
+            except OSError:
+                path.unlink()  # stale: left by a daemon that crashed
+            else:
+                raise SocketInUseError(f"another hapticd is serving {path}")
+            finally:
+                probe.close()
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        old = os.umask(0o177)  # created 0600: only this user may connect
+        try:
+            sock.bind(str(path))
+        except OSError:
+            sock.close()
+            raise
+        finally:
+            os.umask(old)
+        sock.listen(16)
+        sock.setblocking(False)
+        return sock
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake(b"Q")
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        for conn in list(self._conns):
+            self._drop(conn)
+        if self._sock is not None:
+            self._sel.unregister(self._sock)
+            self._sock.close()
+            self._sock = None
+            if self.path is not None:
+                with contextlib.suppress(FileNotFoundError):
+                    self.path.unlink()
+        self._sel.close()
+        if self._gate_r >= 0:
+            self.loop.close_sleep_gate()
+        for fd in (self._wake_r, self._wake_w, self._gate_r):
+            if fd >= 0:
+                os.close(fd)
+        self._wake_r = self._wake_w = self._gate_r = -1
+        self._gate_r = -1
+
+    def _wake(self, what: bytes) -> None:
+        if self._wake_w < 0:
+            return
+        with contextlib.suppress(OSError):  # full pipe: a wake-up is already pending
+            os.write(self._wake_w, what)
+
+    def _await_window(self) -> None:
+        """Wait, without holding the GIL, until the servo loop has just gone to sleep with
+        at least WINDOW_S left, so Python work here does not make the loop wait for the
+        GIL (measured in docs/daemon.md). Gives up after WINDOW_MAX_WAIT_S."""
+        loop = self.loop
+        if not loop.running or not loop.paced:
+            return
+        give_up = time.monotonic() + WINDOW_MAX_WAIT_S
+        while True:
+            with contextlib.suppress(BlockingIOError):
+                while os.read(self._gate_r, 4096):
+                    pass
+            now = time.monotonic()
+            if now < loop.sleep_until - WINDOW_S or now >= give_up:
+                return
+            select.select([self._gate_r], [], [], give_up - now)
+
+    def request_reload(self) -> None:
+        """Reload the profile from its file in the server thread (safe in a signal handler)."""
+        self._wake(b"R")
+
+    # -- the server thread -------------------------------------------------------------
+
+    def _serve(self) -> None:
+        next_periodic = time.monotonic()
+        while not self._stop.is_set():
+            now = time.monotonic()
+            due = [next_periodic] + [c.next_due for c in self._conns.values() if c.rate_hz]
+            timeout = max(0.0, min(due) - now)
+            for key, events in self._sel.select(timeout=timeout):
+                obj = key.fileobj
+                if obj is self._sock:
+                    self._accept()
+                elif obj == self._wake_r:
+                    self._woken()
+                elif isinstance(obj, socket.socket) and obj in self._conns:
+                    if events & selectors.EVENT_WRITE:
+                        self._flush(self._conns[obj])
+                    if events & selectors.EVENT_READ and obj in self._conns:
+                        self._read(self._conns[obj])
+            now = time.monotonic()
+            self._stream(now)
+            if now >= next_periodic:
+                next_periodic = now + PERIODIC_S
+                # Also empties the sleep gate's pipe, which otherwise fills (a byte a tick).
+                self._await_window()
+                for fn in self.periodic:
+                    try:
+                        fn()
+                    except Exception as exc:  # a notification must not end the server
+                        log.warning("periodic task failed: %s", exc)
+
+    def _woken(self) -> None:
+        try:
+            data = os.read(self._wake_r, 64)
+        except BlockingIOError:
+            return
+        if b"R" in data:
+            self._reload_from_signal()
+
+    def _reload_from_signal(self) -> None:
+        try:
+            result = self.session.reload()
+        except (ProfileError, ValueError, TimeoutError, OSError) as exc:
+            msg = f"reload rejected, the running profile stays: {exc}"
+            log.error("%s", msg)
+        else:
+            msg = f"reloaded {result['path']} at tick {result['applied_at_tick']}"
+            log.info("%s", msg)
+        self.reloads.append(msg)
+
+    def _accept(self) -> None:
+        assert self._sock is not None
+        try:
+            sock, _ = self._sock.accept()
+        except OSError:
+            return
+        sock.setblocking(False)
+        conn = _Conn(sock)
+        self._conns[sock] = conn
+        self._sel.register(sock, selectors.EVENT_READ, None)
+        self._send(conn, proto.greeting(__version__))
+
+    def _drop(self, sock: socket.socket) -> None:
+        with contextlib.suppress(KeyError, ValueError):
+            self._sel.unregister(sock)
+        self._conns.pop(sock, None)
+        sock.close()
+
+    def _send(self, conn: _Conn, data: bytes) -> None:
+        conn.outbuf += data
+        if len(conn.outbuf) > MAX_OUTPUT_BYTES:
+            log.warning("dropping a control client that stopped reading")
+            self._drop(conn.sock)
+            return
+        self._flush(conn)
+
+    def _flush(self, conn: _Conn) -> None:
+        try:
+            n = conn.sock.send(conn.outbuf) if conn.outbuf else 0
+        except BlockingIOError:
+            n = 0
+        except OSError:
+            self._drop(conn.sock)  # the client went away: harmless
+            return
+        del conn.outbuf[:n]
+        want = selectors.EVENT_READ | (selectors.EVENT_WRITE if conn.outbuf else 0)
+        with contextlib.suppress(KeyError, ValueError):
+            if self._sel.get_key(conn.sock).events != want:
+                self._sel.modify(conn.sock, want, None)
+
+    def _read(self, conn: _Conn) -> None:
+        try:
+            data = conn.sock.recv(65536)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if not data:
+            self._drop(conn.sock)
+            return
+        conn.inbuf += data
+        while conn.sock in self._conns and b"\n" in conn.inbuf:
+            line, _, rest = bytes(conn.inbuf).partition(b"\n")
+            conn.inbuf[:] = rest
+            self._send(conn, self._handle(conn, line))
+        if len(conn.inbuf) > proto.MAX_LINE_BYTES:
+            conn.inbuf.clear()
+            self._send(conn, proto.error(None, "too_large", "request line too long; discarded"))
+
+    def _stream(self, now: float) -> None:
+        sample: dict[str, Any] | None = None
+        for conn in list(self._conns.values()):
+            if not conn.rate_hz or now < conn.next_due:
+                continue
+            period = 1.0 / conn.rate_hz
+            conn.next_due = max(conn.next_due + period, now)  # no bursts to catch up
+            if len(conn.outbuf) > TELEMETRY_BACKLOG_BYTES:
+                conn.skipped += 1
+                continue
+            if sample is None:
+                self._await_window()
+                sample = self.loop.telemetry()
+            self._send(conn, proto.telemetry(sample))
+
+    # -- requests ----------------------------------------------------------------------
+
+    def _handle(self, conn: _Conn, line: bytes) -> bytes:
+        req_id = None
+        self._await_window()
+        try:
+            req = proto.parse_request(line)
+            req_id = req.get("id")
+            return proto.ok(req_id, self._execute(conn, req))
+        except proto.ProtocolError as exc:
+            return proto.error(req_id, exc.code, str(exc))
+        except ProfileError as exc:
+            return proto.error(req_id, "bad_profile", str(exc))
+        except RecordingError as exc:
+            return proto.error(req_id, "recording", str(exc))
+        except TimeoutError as exc:
+            return proto.error(req_id, "timeout", str(exc))
+        except ValueError as exc:
+            return proto.error(req_id, "rejected", str(exc))
+        except Exception as exc:  # a request must never take the daemon down
+            log.exception("control request failed")
+            return proto.error(req_id, "internal", f"{type(exc).__name__}: {exc}")
+
+    def _execute(self, conn: _Conn, req: dict[str, Any]) -> Any:
+        cmd = req["cmd"]
+        loop, session = self.loop, self.session
+        if cmd == "status":
+            return {**loop.status(), "profile": session.profile.name, "reloads": self.reloads}
+        if cmd == "get":
+            return {req["param"]: loop.get_param(req["param"])}
+        if cmd in ("stop", "shutdown"):
+            loop.request_stop(f"control: {cmd}")
+            return {"stopping": True, "ramp_s": loop.stop_ramp_s}
+        if cmd == "subscribe":
+            conn.rate_hz = req["rate_hz"]
+            conn.next_due = time.monotonic()
+            return {"subscribed": True, "rate_hz": conn.rate_hz}
+        if cmd == "unsubscribe":
+            conn.rate_hz = 0.0
+            return {"subscribed": False, "skipped_frames": conn.skipped}
+        if cmd == "record_start":
+            result = session.record_start(req["path"], overwrite=req.get("overwrite", False))
+        elif cmd == "record_stop":
+            result = session.record_stop()
+        elif cmd == "reload":
+            result = session.reload(req.get("profile"))
+        else:
+            action = {"cmd": cmd, "param": req.get("param"), "value": req.get("value")}
+            done = session.apply(action)
+            result = {"applied_at_tick": done.tick}
+            if cmd == "set":
+                result["param"] = req["param"]
+        what = " ".join(str(req[k]) for k in ("cmd", "param", "value", "path") if k in req)
+        log.info("control: %s applied at tick %d", what, result["applied_at_tick"])
+        return result
