@@ -21,12 +21,13 @@ from hapticd.control import ControlClient, default_socket_path
 from hapticd.daemon.sdnotify import ServiceNotifier
 from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
+from hapticd.daemon.summary import status, summarize
 from hapticd.profile import ProfileError, load_profile
 from hapticd.protocol import ProtocolError
 from hapticd.recording import RecordingError
 from hapticd.recording import read as read_recording
 from hapticd.recording.export import csv_columns, export_csv, export_mcap
-from hapticd.servo import ServoLoop, summarize
+from hapticd.servo import ServoLoop
 
 EXIT_OK = 0
 EXIT_ERROR = 1
@@ -125,7 +126,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     except RecordingError as exc:
         # The loop ended safely; only the file is in doubt, and the message says how.
         print(f"hapticd: {exc}", file=sys.stderr)
-        summary = summarize(loop, loop.renderer.allocator, session.profile.finger_names)
+        summary = summarize(loop, session.profile.finger_names)
         summary["recording_error"] = str(exc)
     finally:
         notifier.stopping()
@@ -146,7 +147,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def _service_status(loop: ServoLoop) -> str:
-    st = loop.status()
+    st = status(loop)
     p99 = st["period_error_us"]["p99"]
     fault = st["fault"]
     return (

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hapticd.frame import Frame
+
 
 @dataclass(frozen=True)
 class Fault:
@@ -115,6 +117,15 @@ class SafetyChain:
         self.fault = None
         self.output[:] = 0.0
         self.start(t)
+
+    def run(self, frame: Frame, t_wall: float) -> None:
+        """The safety stage: ``device_force`` from the frame's ``rendered_force``, checked
+        against its tick, nominal time and device positions; ``t_wall`` (monotonic s)
+        feeds the watchdog."""
+        out = self.apply(
+            frame.rendered_force, int(frame.tick), float(frame.t), frame.device_pos, t_wall
+        )
+        frame.device_force[:] = out
 
     def apply(
         self,

@@ -53,22 +53,23 @@ def renderer_for(data: dict) -> Renderer:
     )
 
 
-STAGE_METHODS = {"friction": "_friction", "allocation": "_allocate", "dynamics": "_dynamics"}
+TIMED_STAGES = ("friction", "allocation", "dynamics")
 
 
 def instrument(r: Renderer) -> dict[str, float]:
-    """Wrap the renderer's stage methods with timers; returns the running totals (s)."""
-    totals = dict.fromkeys(STAGE_METHODS, 0.0)
-    for stage, attr in STAGE_METHODS.items():
-        fn = getattr(r, attr)
+    """Wrap the timed stages' ``run`` with timers; returns the running totals (s)."""
+    totals = dict.fromkeys(TIMED_STAGES, 0.0)
+    for stage in r.stages:
+        if stage.name not in totals:
+            continue
+        fn = stage.run
 
-        def timed(*a: object, _fn=fn, _stage: str = stage) -> object:
+        def timed(frame: object, _fn=fn, _stage: str = stage.name) -> None:
             t0 = time.perf_counter()
-            out = _fn(*a)
+            _fn(frame)
             totals[_stage] += time.perf_counter() - t0
-            return out
 
-        setattr(r, attr, timed)
+        stage.run = timed  # type: ignore[method-assign]
     return totals
 
 
@@ -132,14 +133,14 @@ def bench_effects(rounds: int) -> list[dict]:
     times: dict[str, list[float]] = {name: [] for name in sets}
     stages: dict[str, list[str]] = {}
     per_stage: dict[str, dict[str, float]] = {
-        name: dict.fromkeys(STAGE_METHODS, 0.0) for name in sets
+        name: dict.fromkeys(TIMED_STAGES, 0.0) for name in sets
     }
     for data in sets.values():
         tick_times(renderer_for(data), pos[:200], 1e-3)  # warm-up, not timed
     for _ in range(rounds):
         for name, data in sets.items():
             r = renderer_for(data)
-            stages[name] = r.stages
+            stages[name] = r.stage_names
             totals = instrument(r)
             times[name] += tick_times(r, pos, 1e-3)
             for k, v in totals.items():

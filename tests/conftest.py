@@ -30,6 +30,20 @@ settings.register_profile("thorough", max_examples=5000, deadline=None)
 settings.load_profile("ci")
 
 
+class AtTick:
+    """A stage that calls ``action(frame)`` on tick ``tick``: insert it into a renderer's
+    plan (``renderer.insert(AtTick(...), after="allocation")``) to act at a known tick."""
+
+    name = "test hook"
+
+    def __init__(self, tick, action) -> None:
+        self.tick, self.action = tick, action
+
+    def run(self, frame) -> None:
+        if int(frame.tick) == self.tick:
+            self.action(frame)
+
+
 def _children() -> set[int]:
     """Live (or unreaped) child processes of this test process."""
     me = os.getpid()

@@ -293,7 +293,7 @@ def test_a_finger_lifting_off_changes_no_force_abruptly(allocator):
     worst = 0.0
     for x in path:
         r.step(np.array([[-0.02, 0.0, 0.0], [x, 0.0, 0.0]]), np.zeros((2, 3)))
-        f = r.rendered_force.copy()
+        f = r.frame.rendered_force.copy()
         if prev is not None:
             worst = max(worst, float(np.abs(f - prev).max()))
         prev = f
@@ -309,7 +309,7 @@ def test_onset_blend_matters_for_if():
         forces = []
         for x in (0.032999, 0.033001):
             r.step(np.array([[-0.02, 0.0, 0.0], [x, 0.0, 0.0]]), np.zeros((2, 3)))
-            forces.append(r.rendered_force[0].copy())
+            forces.append(r.frame.rendered_force[0].copy())
         jumps.append(np.abs(forces[1] - forces[0]).max())
     assert jumps[0] < 1e-3 < 0.1 < jumps[1]
 
@@ -326,21 +326,23 @@ def test_adaptive_switches_continuously_from_squeeze_to_push():
         pos = np.array([[-0.028 + 0.020 * ramp, 0.0, 0.0], [0.028, 0.0, 0.0]])
         for rr in (r, r_if, r_ef):
             rr.step(pos, np.zeros((2, 3)))
-        alphas.append(r.alpha)
-        forces.append(r.rendered_force.copy())
+        alphas.append(float(r.frame.alpha))
+        forces.append(r.frame.rendered_force.copy())
         if k == 900:  # pure squeeze: adaptive is IF
-            np.testing.assert_allclose(r.rendered_force, r_if.rendered_force, atol=1e-12)
+            np.testing.assert_allclose(
+                r.frame.rendered_force, r_if.frame.rendered_force, atol=1e-12
+            )
     alphas = np.array(alphas)
     assert alphas[900] == 0.0
     assert alphas[-1] > 0.95  # it did switch to external forces
     np.testing.assert_allclose(
-        r.rendered_force,
-        (1 - r.alpha) * r_if.rendered_force + r.alpha * r_ef.rendered_force,
+        r.frame.rendered_force,
+        (1 - alphas[-1]) * r_if.frame.rendered_force + alphas[-1] * r_ef.frame.rendered_force,
         atol=1e-12,
     )
     assert np.abs(np.diff(alphas)).max() <= dt / tau + 1e-12
     # No jolt: a hard switch would jump by |IF - EF|, here far above the bound.
-    assert np.abs(r_if.rendered_force - r_ef.rendered_force).max() > 1.0
+    assert np.abs(r_if.frame.rendered_force - r_ef.frame.rendered_force).max() > 1.0
     assert np.abs(np.diff(np.array(forces), axis=0)).max() < 0.02
 
 

@@ -7,6 +7,8 @@ from hapticd_drivers.delta import load_description
 from hapticd_drivers.emulator import DeltaEmulator, FakeHidModule
 from hapticd_drivers.path import Path
 
+from tests.conftest import AtTick
+
 DESC = load_description("delta-omega-class")
 TIMES = np.array([0.0, 0.5, 1.0])
 POS = np.array([[0.0, 0.0, 0.0], [0.02, 0.01, -0.01], [0.03, -0.01, 0.02]])
@@ -261,17 +263,12 @@ def test_a_fault_in_a_running_loop_ends_in_zero_force_and_a_latched_fault(backen
 
     s = build_session(load_profile(GRASP_PROFILE), paced=False, device=backend, emulate=True)
     inject, cause = FAULTS[fault]
-    real = s.renderer.step
-    ticks = {"n": 0}
 
-    def step(*a):
-        ticks["n"] += 1
-        if ticks["n"] == 3000:  # mid-pinch, both devices pushing
-            assert np.abs(s.emulators[0].currents).max() > 0
-            inject(s.emulators[0])
-        return real(*a)
+    def fault(frame):  # mid-pinch, both devices pushing
+        assert np.abs(s.emulators[0].currents).max() > 0
+        inject(s.emulators[0])
 
-    s.renderer.step = step
+    s.renderer.insert(AtTick(2999, fault), after="allocation")
     out = s.run()
     assert out["end_reason"] == "fault"
     assert cause in out["fault"]["cause"]
@@ -289,18 +286,8 @@ def test_an_unplugged_device_is_reopened_with_forces_off(grasp_data, write_profi
     s = build_session(
         load_profile(write_profile(grasp_data)), paced=False, device=backend, emulate=True
     )
-    real = s.renderer.step
-    ticks = {"n": 0}
-
-    def step(*a):
-        ticks["n"] += 1
-        if ticks["n"] == 3000:
-            s.emulators[0].unplug()
-        if ticks["n"] == 3800:
-            s.emulators[0].replug()
-        return real(*a)
-
-    s.renderer.step = step
+    s.renderer.insert(AtTick(2999, lambda f: s.emulators[0].unplug()), after="allocation")
+    s.renderer.insert(AtTick(3799, lambda f: s.emulators[0].replug()), after="allocation")
     out = s.run()
     assert out["end_reason"] == "duration reached"  # the run went on
     assert "unplugged" in out["fault"]["cause"]  # with the fault latched

@@ -111,7 +111,7 @@ def test_recorder_writes_every_row_through_the_ring_and_wraps(tmp_path):
     rec = Recorder(path, fields, ["thumb", "index"], capacity=64, block_when_full=True)
     n = 1000
     for i in range(n):
-        rec.append(_loop_row(fields, i))
+        rec.append(rec.as_record(_loop_row(fields, i)))
     status = rec.close()
     assert status["ticks"] == status["written"] == n and status["dropped"] == 0
     out = read(path)
@@ -130,7 +130,7 @@ def test_a_paced_recorder_drops_ticks_rather_than_wait_or_overwrite(tmp_path):
     os.kill(rec._proc.pid, signal.SIGSTOP)  # the writer stalls (e.g. a slow disk)
     try:
         for i in range(40):
-            rec.append(_loop_row(fields, i))
+            rec.append(rec.as_record(_loop_row(fields, i)))
         assert rec.dropped == 8
     finally:
         os.kill(rec._proc.pid, signal.SIGCONT)
@@ -147,7 +147,7 @@ def test_recorder_reports_a_writer_that_died(tmp_path):
     os.kill(rec._proc.pid, signal.SIGKILL)
     rec._proc.wait()
     for i in range(20):
-        rec.append((float(i), np.zeros((2, 3)), [0, 0]))
+        rec.append(rec.as_record((float(i), np.zeros((2, 3)), [0, 0])))
     with pytest.raises(RecordingError, match="writer stopped after 0 of 16 ticks"):
         rec.close()
 
@@ -158,7 +158,7 @@ def test_the_ring_writer_reports_a_write_failure(tmp_path):
     rec.wait_running()
     os.kill(rec._proc.pid, signal.SIGSTOP)
     for i in range(5):
-        rec.append((float(i), np.zeros((2, 3)), [0, 0]))
+        rec.append(rec.as_record((float(i), np.zeros((2, 3)), [0, 0])))
     rec._words[ring.W_CLOSED // 8] = 1
     # The writer's own code, in this process, on a disk that is full.
     ring.drain(rec._ring_path, "/dev/full", os.getppid())

@@ -119,24 +119,16 @@ def test_leaving_the_workspace_latches():
     assert np.all(chain.output == 0)
 
 
-def test_a_stalled_servo_loop_ends_in_zero_force(monkeypatch):
+def test_a_stalled_servo_loop_ends_in_zero_force():
     from hapticd.daemon.session import build_session
     from hapticd.profile import load_profile
-    from tests.conftest import GRASP_PROFILE
+    from tests.conftest import GRASP_PROFILE, AtTick
 
     s = build_session(load_profile(GRASP_PROFILE), paced=False)
-    real = s.renderer.step
-    calls = {"n": 0}
+    import time
 
-    def stalling(*a):
-        calls["n"] += 1
-        if calls["n"] == 3000:  # in the pinch
-            import time
-
-            time.sleep(0.15)  # longer than the 0.1 s watchdog
-        return real(*a)
-
-    monkeypatch.setattr(s.renderer, "step", stalling)
+    # In the pinch, a tick takes longer than the 0.1 s watchdog.
+    s.renderer.insert(AtTick(2999, lambda f: time.sleep(0.15)), after="allocation")
     out = s.run()
     assert out["fault"] is not None and "watchdog" in out["fault"]["cause"]
     assert out["fault"]["tick"] == 2999

@@ -10,7 +10,6 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 import hapticd.dynamics
-import hapticd.render
 from hapticd import recording
 from hapticd.actuation import Actuation
 from hapticd.allocation import Robustness
@@ -61,10 +60,10 @@ def drive(r: Renderer, positions: np.ndarray) -> list[dict]:
         out.append(
             {
                 "obj": r.obj.position.copy(),
-                "force": r.contact_force.copy(),
-                "env": r.env_force.copy(),
-                "rendered": r.rendered_force.copy(),
-                "proxy": r.proxy_pos.copy(),
+                "force": r.frame.contact_force.copy(),
+                "env": r.frame.env_force.copy(),
+                "rendered": r.frame.rendered_force.copy(),
+                "proxy": r.frame.proxy_pos.copy(),
             }
         )
     return out
@@ -250,16 +249,38 @@ def _forbid(monkeypatch, module, name):
     monkeypatch.setattr(module, name, boom)
 
 
-def test_fixed_frictionless_scene_runs_no_friction_and_no_dynamics(monkeypatch):
+class Spy:
+    """A stage that counts the ticks it sees (inserted into a renderer's plan)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.ticks = 0
+
+    def run(self, frame) -> None:
+        self.ticks += 1
+
+
+def test_fixed_frictionless_scene_runs_no_friction_and_no_dynamics():
     data = lift_data()
+    data["scene"].pop("ground")
+    data["scene"].pop("walls")
     data["scene"]["object"]["fixed"] = True
     data["scene"]["object"]["friction"] = {"static": 0.0, "dynamic": 0.0}
     r = make_renderer(data)
-    assert r.stages == ["contact", "forces", "allocation"]
-    for name in ("friction_proxy", "step_body", "step_body_small"):
-        _forbid(monkeypatch, hapticd.render, name)
+    assert r.stage_names == ["contact", "forces", "allocation", "scene"]
     out = drive(r, pinch_path(0.005, lift=0.01))
     assert np.linalg.norm(out[-1]["force"][0]) > 0.5
+    # With friction and a free object on the ground, the same scene runs every stage.
+    full = make_renderer(lift_data())
+    assert full.stage_names == [
+        "contact",
+        "friction",
+        "forces",
+        "allocation",
+        "environment",
+        "dynamics",
+        "scene",
+    ]
 
 
 def test_free_object_without_gravity_or_ground_skips_them(monkeypatch):
@@ -268,33 +289,36 @@ def test_free_object_without_gravity_or_ground_skips_them(monkeypatch):
     data["scene"].pop("walls")
     data["scene"]["gravity_m_s2"] = None
     r = make_renderer(data)
-    assert r.stages == ["contact", "friction", "forces", "allocation", "dynamics"]
+    assert r.stage_names == ["contact", "friction", "forces", "allocation", "dynamics", "scene"]
+    assert r.stages[4].effects == []
     _forbid(monkeypatch, hapticd.dynamics, "surface_wrench_small")
     _forbid(monkeypatch, hapticd.dynamics, "surface_wrench")
     out = drive(r, np.repeat(np.array([[-0.07, 0, 0], [0.07, 0, 0]])[None], 500, axis=0))
     np.testing.assert_array_equal(out[-1]["obj"], [0, 0, 0])  # no gravity: it floats
 
 
-def test_changed_parameters_replan_at_the_next_tick():
+def test_changed_parameters_replan_and_inserted_stages_stay():
     data = lift_data()
     data["scene"]["object"]["fixed"] = True
     data["scene"]["object"]["friction"] = {"static": 0.0, "dynamic": 0.0}
     r = make_renderer(data)
+    spy = Spy("after allocation")
+    r.insert(spy, after="allocation")
     path = pinch_path(0.005)
     drive(r, path[:300])
-    r.update(friction=(0.8, 0.6), stiffness_n_per_m=400.0)
-    assert "friction" not in r.stages  # not before the tick boundary
-    calls = []
-    real = hapticd.render.friction_proxy
-    hapticd.render.friction_proxy = lambda *a: calls.append(1) or real(*a)
-    try:
-        drive(r, path[300:302])
-    finally:
-        hapticd.render.friction_proxy = real
-    assert "friction" in r.stages and calls
+    assert "friction" not in r.stage_names and spy.ticks == 300
+    r.set_param("friction", (0.8, 0.6))
+    r.set_param("stiffness_n_per_m", 400.0)
+    names = r.stage_names
+    assert names.index("friction") < names.index("forces")
+    assert names.index("after allocation") == names.index("allocation") + 1
+    drive(r, path[300:302])
+    assert spy.ticks == 302
     assert r.obj.material.stiffness == 400.0
     with pytest.raises(ValueError, match="unknown parameter"):
-        r.update(stifness=3)
+        r.set_param("stifness", 3)
+    with pytest.raises(ValueError, match="no stage"):
+        r.insert(Spy("x"), after="nothing")
 
 
 # -- meshes and validation ----------------------------------------------------------------
@@ -397,7 +421,7 @@ def test_free_cube_stays_stable_across_the_profile_ranges(k, mass_kg, rate_hz):
     for x in path:
         r.step(x, (x - prev) * rate_hz)
         prev = x
-        assert np.all(np.isfinite(r.obj.position)) and np.all(np.isfinite(r.contact_force))
+        assert np.all(np.isfinite(r.obj.position)) and np.all(np.isfinite(r.frame.contact_force))
         speed.append(float(np.linalg.norm(r.obj.velocity)))
     hold = np.array(speed[-4 * n :])
     assert np.abs(r.obj.position).max() < 0.1  # not flung away
@@ -405,4 +429,4 @@ def test_free_cube_stays_stable_across_the_profile_ranges(k, mass_kg, rate_hz):
     # stiff, lightly damped fingers may still ring at its natural frequency.
     assert hold[-n:].max() <= hold[:n].max() + 1e-3
     assert hold.max() < 0.1
-    assert np.abs(r.contact_force).max() < k * 0.03  # no force blow-up
+    assert np.abs(r.frame.contact_force).max() < k * 0.03  # no force blow-up

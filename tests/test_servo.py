@@ -5,15 +5,19 @@ import numpy as np
 import pytest
 from hapticd_drivers import Device, DeviceError, DeviceInfo
 
-import hapticd.render
 from hapticd import recording
+from hapticd.commands import Enable
 from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
-from tests.conftest import GRASP_PROFILE
+from tests.conftest import GRASP_PROFILE, AtTick
 
 
 def session(**kw):
     return build_session(load_profile(GRASP_PROFILE), paced=False, **kw)
+
+
+def _raise(exc):
+    raise exc
 
 
 def test_unpaced_run_ends_with_trajectory_and_zero_force():
@@ -35,18 +39,14 @@ def test_duration_and_stop_request():
     assert out["ticks"] == 1 and out["end_reason"] == "test"
 
 
-def test_a_stop_ramps_forces_to_zero_before_the_devices_are_disabled(monkeypatch):
+def test_a_stop_ramps_forces_to_zero_before_the_devices_are_disabled():
     s = session()
     loop = s.loop
-    real_step = s.renderer.step
     stop_at = 3000  # fingers press the cube here
-
-    def step(pos, vel):
-        real_step(pos, vel)
-        if loop.stats.ticks == stop_at:
-            loop.request_stop("signal SIGTERM")  # what the signal handler does
-
-    monkeypatch.setattr(s.renderer, "step", step)
+    # What the signal handler does, at a known tick.
+    s.renderer.insert(
+        AtTick(stop_at, lambda f: loop.request_stop("signal SIGTERM")), after="allocation"
+    )
     out = s.run()
     ramp_ticks = round(s.profile.safety.stop_ramp_s * s.profile.loop.rate_hz)
     assert out["end_reason"] == "signal SIGTERM"
@@ -72,38 +72,29 @@ def test_a_second_stop_request_stops_at_once():
     assert out["ticks"] == 1 and out["end_reason"] == "first"
 
 
-def test_exception_in_a_stage_latches_fault_and_zeroes(monkeypatch):
+def test_exception_in_a_stage_latches_fault_and_zeroes():
     s = session()
-    real = hapticd.render.two_contact_if
-    calls = {"n": 0}
-
-    def boom(*a):
-        calls["n"] += 1
-        if calls["n"] == 100:
-            raise RuntimeError("allocator exploded")
-        return real(*a)
-
-    monkeypatch.setattr(hapticd.render, "two_contact_if", boom)
+    hook = AtTick(3000, lambda f: _raise(RuntimeError("allocator exploded")))
+    s.renderer.insert(hook, after="allocation")
     out = s.run()
     assert out["end_reason"] == "fault"
     assert "RuntimeError: allocator exploded" in out["fault"]["cause"]
+    assert out["fault"]["tick"] == 3000
     for dev in s.devices:
-        assert dev.forces.shape[0] > 0
+        # 3000 ticks' forces, the last still pressing, then the zero of the shutdown.
+        assert dev.forces.shape[0] == 3001 and np.linalg.norm(dev.forces[2999]) > 0.5
         np.testing.assert_array_equal(dev.last_force, 0)
         assert not dev.enabled
 
 
-def test_nan_force_latches_and_every_later_force_is_zero(monkeypatch, caplog):
+def test_nan_force_latches_and_every_later_force_is_zero(caplog):
     s = session(duration_s=3.0)
-    real = hapticd.render.two_contact_if
-    calls = {"n": 0}
 
-    def nan_once(*a):
-        calls["n"] += 1
-        out = real(*a)
-        return (np.nan, out[1]) if calls["n"] == 50 else out
+    def nan(frame):
+        assert frame.in_contact.all()  # the fault hits a finger that is pressing
+        frame.rendered_force[0, 1] = np.nan
 
-    monkeypatch.setattr(hapticd.render, "two_contact_if", nan_once)
+    s.renderer.insert(AtTick(2500, nan), after="allocation")
     out = s.run()
     assert out["fault"] is not None and "non-finite" in out["fault"]["cause"]
     tick = out["fault"]["tick"]
@@ -209,16 +200,15 @@ def test_sustained_overruns_latch_a_fault(grasp_data, write_profile):
 
     grasp_data["loop"]["max_consecutive_overruns"] = 20
     s = build_session(load_profile(write_profile(grasp_data)), paced=True)
-    real = s.renderer.step
-    calls = {"n": 0}
 
-    def slow(*a):
-        calls["n"] += 1
-        if calls["n"] > 300:
-            _time.sleep(0.0015)  # every tick now takes longer than the 1 ms period
-        return real(*a)
+    class Slow:
+        name = "slow"
 
-    s.renderer.step = slow
+        def run(self, frame):
+            if int(frame.tick) >= 300:
+                _time.sleep(0.0015)  # every tick now takes longer than the 1 ms period
+
+    s.renderer.insert(Slow(), after="allocation")
     timer = threading.Timer(3.0, s.loop.request_stop, args=("safety net",))
     timer.start()
     out = s.run()
@@ -234,7 +224,7 @@ def test_enable_while_stopping_is_refused_so_the_stop_ramp_ends():
     s = session()
     loop = s.loop
     loop.request_stop("test")
-    done = loop.submit({"cmd": "enable"})
+    done = loop.submit(Enable())
     out = s.run()
     assert done.is_set() and "stopping" in done.error
     assert out["end_reason"] == "test"

@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING, Any
 
 from hapticd import __version__
 from hapticd import protocol as proto
+from hapticd.commands import Command, Disable, Enable, SetParam
+from hapticd.daemon import summary as views
 from hapticd.profile import ProfileError
 from hapticd.recording import RecordingError
 
@@ -35,6 +37,9 @@ if TYPE_CHECKING:
     from hapticd.daemon.session import Session
 
 log = logging.getLogger("hapticd.control")
+
+# Requests that become a command with no arguments.
+_SIMPLE: dict[str, type[Command]] = {"enable": Enable, "disable": Disable}
 
 MAX_OUTPUT_BYTES = 1 << 20  # a client this far behind is dropped
 TELEMETRY_BACKLOG_BYTES = 64 * 1024  # above this a telemetry frame is skipped, not queued
@@ -298,7 +303,7 @@ class ControlServer:
                 continue
             if sample is None:
                 self._await_window()
-                sample = self.loop.telemetry()
+                sample = views.telemetry(self.loop)
             self._send(conn, proto.telemetry(sample))
 
     # -- requests ----------------------------------------------------------------------
@@ -328,9 +333,9 @@ class ControlServer:
         cmd = req["cmd"]
         loop, session = self.loop, self.session
         if cmd == "status":
-            return {**loop.status(), "profile": session.profile.name, "reloads": self.reloads}
+            return {**views.status(loop), "profile": session.profile.name, "reloads": self.reloads}
         if cmd == "get":
-            return {req["param"]: loop.get_param(req["param"])}
+            return {req["param"]: loop.param(req["param"])}
         if cmd in ("stop", "shutdown"):
             loop.request_stop(f"control: {cmd}")
             return {"stopping": True, "ramp_s": loop.stop_ramp_s}
@@ -347,12 +352,12 @@ class ControlServer:
             result = session.record_stop()
         elif cmd == "reload":
             result = session.reload(req.get("profile"))
+        elif cmd == "set":
+            done = session.apply(SetParam(req["param"], req["value"]))
+            result = {"applied_at_tick": done.tick, "param": req["param"]}
         else:
-            action = {"cmd": cmd, "param": req.get("param"), "value": req.get("value")}
-            done = session.apply(action)
+            done = session.apply(_SIMPLE[cmd]())
             result = {"applied_at_tick": done.tick}
-            if cmd == "set":
-                result["param"] = req["param"]
         what = " ".join(str(req[k]) for k in ("cmd", "param", "value", "path") if k in req)
         log.info("control: %s applied at tick %d", what, result["applied_at_tick"])
         return result

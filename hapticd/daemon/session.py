@@ -18,11 +18,13 @@ from hapticd.build import (
     load_trajectories,
     realtime_settings,
 )
+from hapticd.commands import Command, RecordStart, RecordStop, Reload
+from hapticd.daemon.summary import summarize
 from hapticd.profile import Profile, ProfileError, load_profile
 from hapticd.recording import Recorder
 from hapticd.render import Renderer
 from hapticd.safety import SafetyChain
-from hapticd.servo import Applied, ServoLoop, summarize
+from hapticd.servo import Applied, ServoLoop
 
 APPLY_TIMEOUT_S = 2.0
 
@@ -49,20 +51,20 @@ class Session:
             if rec is not None:
                 self.loop.recorder = None
                 rec_status = rec.close()
-        summary = summarize(self.loop, self.loop.renderer.allocator, self.profile.finger_names)
+        summary = summarize(self.loop, self.profile.finger_names)
         if rec_status is not None:
             summary["recording"] = rec_status
         return summary
 
     # -- live changes, called from the control thread (never from the loop) ---------------
 
-    def apply(self, action: dict[str, Any], timeout_s: float = APPLY_TIMEOUT_S) -> Applied:
-        """Hand ``action`` to the loop and wait for its tick boundary.
+    def apply(self, command: Command, timeout_s: float = APPLY_TIMEOUT_S) -> Applied:
+        """Hand ``command`` to the loop and wait for its tick boundary.
 
         TimeoutError if the loop does not get there in time (not running); ValueError
         with the loop's reason if it refused (nothing changed).
         """
-        done = self.loop.submit(action)
+        done = self.loop.submit(command)
         if not done.wait(timeout_s):
             raise TimeoutError("the loop did not reach a tick boundary in time (is it running?)")
         if done.error is not None:
@@ -82,7 +84,7 @@ class Session:
             overwrite=overwrite,
         )
         try:
-            done = self.apply({"cmd": "record_start", "recorder": rec, "value": str(path)})
+            done = self.apply(RecordStart(rec))
         except BaseException:
             rec.close()
             Path(path).unlink(missing_ok=True)  # only its header: ours, and useless
@@ -91,7 +93,7 @@ class Session:
 
     def record_stop(self) -> dict[str, Any]:
         """Stop recording; returns once every tick is in the file."""
-        done = self.apply({"cmd": "record_stop"})
+        done = self.apply(RecordStop())
         rec: Recorder = done.result
         status = rec.close()
         return {"applied_at_tick": done.tick, **status}
@@ -118,9 +120,7 @@ class Session:
                 )
         renderer = build_renderer(new)
         safety = build_safety(new, self.devices)
-        done = self.apply(
-            {"cmd": "reload", "renderer": renderer, "safety": safety, "value": str(source)}
-        )
+        done = self.apply(Reload(renderer, safety, str(source)))
         self.profile = new
         return {"applied_at_tick": done.tick, "profile": new.name, "path": str(source)}
 
@@ -188,7 +188,7 @@ def make_recorder(
             "profile": profile.name,
             "profile_path": str(profile.source),
             "rate_hz": rate,
-            "allocator": renderer.allocator,
+            "allocator": renderer.method,
             "allocators": list(METHODS),
             "paced": paced,
             "force_limits_n": list(safety.limits),

@@ -20,6 +20,8 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from hapticd.frame import fields_for
+
 MAGIC = b"HAPTREC\x00"
 FORMAT_VERSION = 1
 _LEN = struct.Struct("<I")
@@ -50,33 +52,11 @@ class Field:
 
 
 def loop_fields(n_fingers: int, n_actuators: int) -> list[Field]:
-    """The fields the servo loop records every tick (see docs/recording.md)."""
-    F = n_fingers
+    """The fields the servo loop records every tick: the tick frame's recorded fields."""
     return [
-        Field("t", "<f8", (), "s"),
-        Field("t_wall", "<f8", (), "s"),
-        Field("compute_s", "<f8", (), "s"),
-        Field("device_pos", "<f8", (F, 3), "m"),
-        Field("device_vel", "<f8", (F, 3), "m/s"),
-        Field("proxy_pos", "<f8", (F, 3), "m"),
-        Field("in_contact", "u1", (F,), ""),
-        Field("contact_force", "<f8", (F, 3), "N"),
-        Field("rendered_force", "<f8", (F, 3), "N"),
-        Field("device_force", "<f8", (F, 3), "N"),
-        Field("lam_a", "<f8", (n_actuators,), "N"),
-        Field("residual_internal", "<f8", (), "N"),
-        Field("residual_external", "<f8", (), "N"),
-        Field("residual_total", "<f8", (), "N"),
-        Field("amplification", "<f8", (), ""),
-        Field("alpha", "<f8", (), ""),
-        Field("env_force", "<f8", (F, 3), "N"),
-        Field("object_pos", "<f8", (3,), "m"),
-        Field("object_rot", "<f8", (3, 3), ""),
-        Field("fault", "u1", (), ""),
-        Field("control_seq", "<u4", (), ""),
-        Field("stiffness_n_per_m", "<f8", (), "N/m"),
-        Field("mass_kg", "<f8", (), "kg"),
-        Field("allocator", "u1", (), ""),
+        Field(f.name, f.dtype, shape, f.unit)
+        for f, shape in fields_for(n_fingers, n_actuators)
+        if f.recorded
     ]
 
 

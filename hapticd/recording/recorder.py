@@ -74,15 +74,18 @@ class Recorder:
         words[ring.W_ITEMSIZE // 8] = self.dtype.itemsize
         words[ring.W_CAPACITY // 8] = self.capacity
         self._words = words
-        self._rows = np.ndarray(
-            (self.capacity,), self.dtype, buffer=self._mm, offset=ring.HEADER_BYTES
+        # Slots of raw bytes: a tick is recorded with one copy of its record.
+        self._slots = np.ndarray(
+            (self.capacity, self.dtype.itemsize),
+            np.uint8,
+            buffer=self._mm,
+            offset=ring.HEADER_BYTES,
         )
-        self._cols = [self._rows[f.name] for f in fields]
         self._proc = subprocess.Popen(
             [
                 sys.executable,
                 "-m",
-                "hapticd.recording.ring",
+                "hapticd.recording",
                 ring_path,
                 str(self.path),
                 str(os.getpid()),
@@ -125,8 +128,9 @@ class Recorder:
         """Records the writer has written to the file."""
         return int(self._words[ring.W_DRAINED // 8])
 
-    def append(self, values: Sequence[Any]) -> None:
-        """Record one tick; ``values`` in field order (called by the servo loop)."""
+    def append(self, record: np.ndarray) -> None:
+        """Record one tick: ``record`` is its bytes, uint8 (itemsize,) in this recording's
+        layout (the tick frame's ``recorded``; ``as_record`` makes one from values)."""
         n = self._n
         words = self._words
         full = n - int(words[4]) >= self.capacity  # W_DRAINED
@@ -134,11 +138,16 @@ class Recorder:
             self.dropped += 1
             words[6] = self.dropped  # W_DROPPED
             return
-        i = n % self.capacity
-        for col, v in zip(self._cols, values, strict=True):
-            col[i] = v
+        self._slots[n % self.capacity] = record
         self._n = n + 1
         words[3] = n + 1  # W_WRITTEN: published after the record is complete
+
+    def as_record(self, values: Sequence[Any]) -> np.ndarray:
+        """The bytes of a record holding ``values`` in field order (not for the servo loop)."""
+        row = np.zeros(1, dtype=self.dtype)
+        for name, v in zip(self.dtype.names or (), values, strict=True):
+            row[name] = v
+        return row.view(np.uint8)
 
     def _wait_for_room(self, n: int) -> bool:
         while n - int(self._words[4]) >= self.capacity:
@@ -184,8 +193,7 @@ class Recorder:
         if self._proc.poll() is None:
             self._proc.kill()
         self._proc.wait()
-        self._cols = []
-        del self._rows, self._words
+        del self._slots, self._words
         self._mm.close()
         with contextlib.suppress(FileNotFoundError):
             os.unlink(self._ring_path)

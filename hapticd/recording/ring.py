@@ -2,7 +2,7 @@
 
 The servo loop copies each tick's record into the next slot of a file-backed
 shared-memory ring and then publishes the new count; a separate process (run
-as ``python -m hapticd.recording.ring``) copies complete records out every
+as ``python -m hapticd.recording``) copies complete records out every
 ``POLL_S`` and appends them to the recording file. The loop never does file
 I/O and never waits on the writer in a paced run; the writer never holds the
 loop's GIL (it is another process).
@@ -117,9 +117,7 @@ def drain(ring_path: str, out_path: str, parent_pid: int) -> int:
 
 def main(argv: list[str]) -> int:
     if len(argv) != 3:
-        print(
-            "usage: python -m hapticd.recording.ring RING_PATH OUT_PATH PARENT_PID", file=sys.stderr
-        )
+        print("usage: python -m hapticd.recording RING_PATH OUT_PATH PARENT_PID", file=sys.stderr)
         return 2
     # The daemon decides when recording ends: a Ctrl-C or a service stop sent to the whole
     # group must not cut the file short while the daemon is still flushing.
@@ -127,7 +125,3 @@ def main(argv: list[str]) -> int:
         signal.signal(sig, signal.SIG_IGN)
     drain(argv[0], argv[1], int(argv[2]))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,195 @@
+"""Closed forms on plain floats for one contact, and for two contacts with one direction each.
+
+Equal to the general path (``hapticd.allocation.robust``) to rounding, and much
+cheaper per tick. Vectors are 3-tuples: offsets r (m), directions d (unit),
+forces l (N).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from hapticd.allocation.robust import _TINY, contact_offsets
+
+# -- two contacts, one direction each: closed form in plain floats --------------------------
+#
+# Everything reduces to symmetric 2x2 matrices [[a, b], [b, c]], stored as (a, b, c).
+
+Sym2 = tuple[float, float, float]
+V3 = tuple[float, float, float]
+
+
+def _dot(u: V3, v: V3) -> float:
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+def _cross(u: V3, v: V3) -> V3:
+    return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+
+
+def _finv2(a: float, b: float, c: float, eps2: float) -> Sym2:
+    """Filtered inverse of [[a, b], [b, c]] (symmetric PSD): eigenvalues l -> 1/l or 1/eps2."""
+    mean = 0.5 * (a + c)
+    half = 0.5 * (a - c)
+    rad = math.sqrt(half * half + b * b)
+    l2 = mean - rad
+    if l2 >= eps2:
+        det = a * c - b * b
+        return c / det, -b / det, a / det
+    l1 = mean + rad
+    h2 = 1.0 / eps2
+    h1 = 1.0 / l1 if l1 >= eps2 else h2
+    if h1 == h2:
+        return h2, 0.0, h2
+    # f(K) = h2 I + (h1 - h2) P1 with the spectral projector P1 = (K - l2 I) / (l1 - l2).
+    s = (h1 - h2) / (l1 - l2)
+    return h2 + s * (a - l2), s * b, h2 + s * (c - l2)
+
+
+def _mul2(x: Sym2, y: Sym2) -> tuple[float, float, float, float]:
+    """x @ y for symmetric x, y, as a general 2x2 (r00, r01, r10, r11)."""
+    return (
+        x[0] * y[0] + x[1] * y[1],
+        x[0] * y[1] + x[1] * y[2],
+        x[1] * y[0] + x[2] * y[1],
+        x[1] * y[1] + x[2] * y[2],
+    )
+
+
+def _sandwich(p: Sym2, k: Sym2) -> Sym2:
+    """p @ k @ p for symmetric p, k."""
+    r00, r01, r10, r11 = _mul2(p, k)
+    return (
+        r00 * p[0] + r01 * p[1],
+        r00 * p[1] + r01 * p[2],
+        r10 * p[1] + r11 * p[2],
+    )
+
+
+def _apply(m: Sym2, v0: float, v1: float) -> tuple[float, float]:
+    return m[0] * v0 + m[1] * v1, m[1] * v0 + m[2] * v1
+
+
+def two_contact_pinv(d1: V3, d2: V3, l1: V3, l2: V3, eps: float) -> tuple[float, float]:
+    """Robust pinv for two fingers with one unit direction each."""
+    eps2 = eps * eps
+    k1, k2 = _dot(d1, d1), _dot(d2, d2)
+    g1 = 1.0 / k1 if k1 >= eps2 else 1.0 / eps2
+    g2 = 1.0 / k2 if k2 >= eps2 else 1.0 / eps2
+    return g1 * _dot(d1, l1), g2 * _dot(d2, l2)
+
+
+def two_contact_ef(
+    r1: V3, r2: V3, d1: V3, d2: V3, l1: V3, l2: V3, eps: float
+) -> tuple[float, float]:
+    """Robust EF for two fingers: r_i contact offsets from the reference point (m)."""
+    m1, m2 = _cross(r1, d1), _cross(r2, d2)
+    f = (l1[0] + l2[0], l1[1] + l2[1], l1[2] + l2[2])
+    t1, t2 = _cross(r1, l1), _cross(r2, l2)
+    t = (t1[0] + t2[0], t1[1] + t2[1], t1[2] + t2[2])
+    K = (_dot(d1, d1) + _dot(m1, m1), _dot(d1, d2) + _dot(m1, m2), _dot(d2, d2) + _dot(m2, m2))
+    y0 = _dot(d1, f) + _dot(m1, t)
+    y1 = _dot(d2, f) + _dot(m2, t)
+    return _apply(_finv2(*K, eps * eps), y0, y1)
+
+
+def one_contact(method: str, r: V3, d: V3, lam: V3, eps: float, alpha: float = 0.0) -> float:
+    """Robust allocation for one contact with one direction (closed form of the general path).
+
+    With one contact N(G) = {0}, so IF is pinv; EF matches the contact's wrench.
+    """
+    eps2 = eps * eps
+    k = _dot(d, d)
+    x_pinv = _dot(d, lam) / (k if k >= eps2 else eps2)
+    if method in ("pinv", "if") or (method == "adaptive" and alpha == 0.0):
+        return x_pinv
+    m = _cross(r, d)
+    K = k + _dot(m, m)
+    x_ef = (_dot(d, lam) + _dot(m, _cross(r, lam))) / (K if eps2 <= K else eps2)
+    if method == "ef":
+        return x_ef
+    return (1.0 - alpha) * x_pinv + alpha * x_ef
+
+
+def _grasp_line(r1: V3, r2: V3, min_sep: float) -> tuple[V3, float]:
+    """Unit grasp line e (first to second contact) and the blend w toward all opposing pairs."""
+    dx, dy, dz = r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2]
+    dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+    w = 1.0 - (dist / min_sep) ** 2 if dist < min_sep else 0.0
+    if dist > _TINY:
+        return (dx / dist, dy / dist, dz / dist), w
+    return (1.0, 0.0, 0.0), 1.0  # coincident: w = 1 makes e irrelevant
+
+
+def _soft_line(e: V3, w: float, v: V3) -> V3:
+    """(1 - w)(e.v) e + w v: the soft internal projector's action on an opposing pair."""
+    s = (1.0 - w) * _dot(e, v)
+    return (s * e[0] + w * v[0], s * e[1] + w * v[1], s * e[2] + w * v[2])
+
+
+def two_contact_if(
+    r1: V3, r2: V3, d1: V3, d2: V3, l1: V3, l2: V3, eps: float, min_sep: float
+) -> tuple[float, float]:
+    """Robust IF for two fingers with one direction each (closed form of ``_if_general``)."""
+    eps2 = eps * eps
+    e, w = _grasp_line(r1, r2, min_sep)
+    # B's columns are +-(1/2)[a_k; -a_k]; P_int lam = (1/2)[s; -s].
+    a1, a2 = _soft_line(e, w, d1), _soft_line(e, w, d2)
+    s = _soft_line(e, w, (l1[0] - l2[0], l1[1] - l2[1], l1[2] - l2[2]))
+    KB = (0.5 * _dot(a1, a1), -0.5 * _dot(a1, a2), 0.5 * _dot(a2, a2))
+    FB = _finv2(*KB, eps2)
+    x0, x1 = _apply(FB, 0.5 * _dot(a1, s), -0.5 * _dot(a2, s))
+    # P = I - F(K_B) K_B (symmetric: F and K commute).
+    r00, r01, _, r11 = _mul2(FB, KB)
+    P = (1.0 - r00, -r01, 1.0 - r11)
+    # Residual after the internal task, seen by the actuators: M^T (lam - M x).
+    k1, k2 = _dot(d1, d1), _dot(d2, d2)
+    m0 = _dot(d1, l1) - x0 * k1
+    m1 = _dot(d2, l2) - x1 * k2
+    # x2 = P F(P K_M P) P M^T r, K_M = diag(k1, k2).
+    FP = _finv2(*_sandwich(P, (k1, 0.0, k2)), eps2)
+    v0, v1 = _apply(P, m0, m1)
+    v0, v1 = _apply(FP, v0, v1)
+    v0, v1 = _apply(P, v0, v1)
+    return x0 + v0, x1 + v1
+
+
+def two_contact_structure(G: np.ndarray, M_a: np.ndarray) -> tuple[V3, V3, V3, V3] | None:
+    """(r1, r2, d1, d2) if G has two contacts and M_a one direction per finger, else None."""
+    if G.shape[1] != 6 or M_a.shape[1] != 2:
+        return None
+    if np.any(M_a[3:6, 0]) or np.any(M_a[0:3, 1]):
+        return None
+    off = contact_offsets(G)
+    r1 = (float(off[0, 0]), float(off[0, 1]), float(off[0, 2]))
+    r2 = (float(off[1, 0]), float(off[1, 1]), float(off[1, 2]))
+    d1 = (float(M_a[0, 0]), float(M_a[1, 0]), float(M_a[2, 0]))
+    d2 = (float(M_a[3, 1]), float(M_a[4, 1]), float(M_a[5, 1]))
+    return r1, r2, d1, d2
+
+
+def two_contact(
+    method: str,
+    r1: V3,
+    r2: V3,
+    d1: V3,
+    d2: V3,
+    l1: V3,
+    l2: V3,
+    eps: float,
+    min_sep: float,
+    alpha: float = 0.0,
+) -> tuple[float, float]:
+    """(x1, x2) N for two contacts with one direction each, by robust ``method``
+    (pinv, if, ef, adaptive with external weight ``alpha``)."""
+    if method == "pinv":
+        return two_contact_pinv(d1, d2, l1, l2, eps)
+    if method == "ef":
+        return two_contact_ef(r1, r2, d1, d2, l1, l2, eps)
+    x_if = two_contact_if(r1, r2, d1, d2, l1, l2, eps, min_sep)
+    if method != "adaptive" or alpha == 0.0:
+        return x_if
+    y0, y1 = two_contact_ef(r1, r2, d1, d2, l1, l2, eps)
+    return (1.0 - alpha) * x_if[0] + alpha * y0, (1.0 - alpha) * x_if[1] + alpha * y1

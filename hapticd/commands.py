@@ -1,0 +1,114 @@
+"""Control commands: each checks and applies itself to the servo loop at a tick boundary.
+
+The control thread builds a command and hands it to the loop
+(``ServoLoop.submit``); the loop applies it at the start of its next tick,
+before the devices are read, so a change is seen by the whole tick. A command
+raises ``ValueError`` (changing nothing) when it cannot be made.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from hapticd.recording import Recorder
+    from hapticd.render import Renderer
+    from hapticd.safety import SafetyChain
+    from hapticd.servo import ServoLoop
+
+
+class Command:
+    """A change to the running loop. ``while_stopping``: may it apply during a stop ramp?"""
+
+    while_stopping = True
+
+    def apply(self, loop: ServoLoop, t: float) -> Any:
+        """Make the change at nominal time ``t`` (s); return a result for the caller."""
+        raise NotImplementedError
+
+    def describe(self) -> str:
+        """One line for the event log."""
+        return type(self).__name__.lower()
+
+
+@dataclass
+class SetParam(Command):
+    """Set a scene, rendering or safety parameter (already checked against its spec)."""
+
+    name: str
+    value: Any
+
+    def apply(self, loop: ServoLoop, t: float) -> Any:
+        loop.set_param(self.name, self.value)
+
+    def describe(self) -> str:
+        return f"set {self.name} {self.value}"
+
+
+class Enable(Command):
+    """Clear a latched fault and enable forces again (they ramp up from zero)."""
+
+    while_stopping = False  # it would restart the force ramp and undo the stop's
+
+    def apply(self, loop: ServoLoop, t: float) -> Any:
+        loop.safety.reset(t)
+        loop.bank.enable(True)
+
+    def describe(self) -> str:
+        return "enable"
+
+
+class Disable(Command):
+    """Turn every device's forces off."""
+
+    def apply(self, loop: ServoLoop, t: float) -> Any:
+        loop.bank.enable(False)
+
+    def describe(self) -> str:
+        return "disable"
+
+
+@dataclass
+class RecordStart(Command):
+    """Start recording every tick with ``recorder`` (its writer already running)."""
+
+    recorder: Recorder
+
+    def apply(self, loop: ServoLoop, t: float) -> Any:
+        if loop.recorder is not None:
+            raise ValueError(f"already recording to {loop.recorder.path}; stop it first")
+        loop.recorder = self.recorder
+
+    def describe(self) -> str:
+        return f"record_start {self.recorder.path}"
+
+
+class RecordStop(Command):
+    """Stop recording; the result is the recorder, for the caller to close."""
+
+    def apply(self, loop: ServoLoop, t: float) -> Any:
+        if loop.recorder is None:
+            raise ValueError("not recording")
+        old, loop.recorder = loop.recorder, None
+        return old
+
+    def describe(self) -> str:
+        return "record_stop"
+
+
+@dataclass
+class Reload(Command):
+    """Switch to a renderer and safety chain built from another profile (off the loop)."""
+
+    renderer: Renderer
+    safety: SafetyChain
+    source: str = ""
+
+    while_stopping = False  # it would restart the force ramp and undo the stop's
+
+    def apply(self, loop: ServoLoop, t: float) -> Any:
+        loop.reload(self.renderer, self.safety, t)
+
+    def describe(self) -> str:
+        return f"reload {self.source}"

@@ -1,0 +1,159 @@
+"""The servo loop's devices: read their state into the tick frame, write the frame's forces.
+
+A device that fails is *lost*: without reconnect mode the error ends the run;
+with it, a fault is latched (forces zero on every device), the device is
+closed, and it is looked for again every ``RECONNECT_PERIOD_S`` with forces
+left off until someone re-enables them. Every way out zeroes and disables.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from hapticd_drivers import Device, DeviceError, DeviceState
+
+from hapticd.frame import Frame
+
+# How often a lost device is looked for again (reconnect mode), s of loop time.
+RECONNECT_PERIOD_S = 0.5
+
+
+class DeviceBank:
+    """The F devices of a run, finger i on ``devices[i]``.
+
+    ``on_fault(tick, t, cause)`` latches a fault; ``on_event(t, what)`` records a
+    device event (lost, reconnected).
+    """
+
+    def __init__(
+        self,
+        devices: Sequence[Device],
+        *,
+        reconnect: bool,
+        on_fault: Callable[[int, float, str], None],
+        on_event: Callable[[float, str], None],
+    ) -> None:
+        self.devices = list(devices)
+        self.reconnect = reconnect
+        self._on_fault = on_fault
+        self._on_event = on_event
+        self._states = [DeviceState() for _ in self.devices]
+        self.lost: list[float | None] = [None] * len(self.devices)
+        self._n_lost = 0
+        self._zero = np.zeros(3)
+
+    @property
+    def finished(self) -> bool:
+        """True when every device plays a trajectory that has ended."""
+        return bool(self.devices) and all(d.finished for d in self.devices)
+
+    def open(self) -> None:
+        """Open every device and enable its forces; on failure, close what was opened."""
+        opened: list[Device] = []
+        try:
+            for dev in self.devices:
+                dev.open()
+                opened.append(dev)
+            for dev in self.devices:
+                dev.enable_forces(True)
+        except Exception:
+            self.zero()
+            for dev in opened:
+                with contextlib.suppress(Exception):
+                    dev.close()
+            raise
+
+    def enable(self, on: bool) -> None:
+        for dev in self.devices:
+            dev.enable_forces(on)
+
+    def read(self, frame: Frame, k: int, t: float) -> None:
+        """Fill ``device_pos``, ``device_vel`` and ``buttons``; a lost device keeps its last
+        position, at rest."""
+        pos, vel, buttons = frame.device_pos, frame.device_vel, frame.buttons
+        lost = self.lost
+        for i, dev in enumerate(self.devices):
+            if lost[i] is not None:
+                continue
+            st = self._states[i]
+            try:
+                dev.read_state(st)
+            except DeviceError as exc:
+                self._lose(frame, i, k, t, exc)
+                continue
+            pos[i] = st.position
+            vel[i] = st.velocity
+            buttons[i] = st.buttons
+
+    def write(self, frame: Frame, k: int, t: float) -> None:
+        """Command ``device_force`` on every connected device, then look for lost ones."""
+        out = frame.device_force
+        lost = self.lost
+        for i, dev in enumerate(self.devices):
+            if lost[i] is None:
+                try:
+                    dev.write_force(out[i])
+                except DeviceError as exc:
+                    self._lose(frame, i, k, t, exc)
+        if self._n_lost:
+            self._look_for_lost(t)
+
+    def zero(self) -> list[str]:
+        """Command zero force and disable every device; return the errors met (never raises)."""
+        errors: list[str] = []
+        for dev in self.devices:
+            for action in (
+                lambda d=dev: d.write_force(self._zero),
+                lambda d=dev: d.enable_forces(False),
+            ):
+                try:
+                    action()
+                except Exception as exc:
+                    errors.append(f"{_name(dev)}: {exc}")
+        return errors
+
+    def close(self) -> list[str]:
+        """Close every device; return the errors met (never raises)."""
+        errors: list[str] = []
+        for dev in self.devices:
+            try:
+                dev.close()
+            except Exception as exc:
+                errors.append(f"{_name(dev)}: close: {exc}")
+        return errors
+
+    def _lose(self, frame: Frame, i: int, k: int, t: float, exc: DeviceError) -> None:
+        if not self.reconnect:
+            raise exc
+        self._on_fault(k, t, f"{type(exc).__name__}: {exc}")
+        frame.device_force[:] = 0.0
+        self.zero()
+        dev = self.devices[i]
+        with contextlib.suppress(Exception):
+            dev.close()
+        self.lost[i] = t
+        self._n_lost += 1
+        frame.device_vel[i] = 0.0
+        self._on_event(t, f"device {_name(dev)} lost: {exc}")
+
+    def _look_for_lost(self, t: float) -> None:
+        for i, since in enumerate(self.lost):
+            if since is None or t - since < RECONNECT_PERIOD_S:
+                continue
+            dev = self.devices[i]
+            try:
+                dev.open()
+                dev.enable_forces(False)  # forces stay off until someone re-enables them
+            except Exception:
+                self.lost[i] = t  # still gone: try again later
+                continue
+            self.lost[i] = None
+            self._n_lost -= 1
+            self._on_event(t, f"device {_name(dev)} reconnected; forces stay off")
+
+
+def _name(dev: Device) -> str:
+    info = getattr(dev, "info", None)
+    return info.serial if info is not None else type(dev).__name__

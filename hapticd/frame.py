@@ -1,0 +1,139 @@
+"""The tick frame: everything the stages of one servo tick hand to each other, in one record.
+
+``FIELDS`` is the one declaration: name, numpy dtype, per-tick shape (``"F"``
+fingers, ``"r"`` actuated directions), SI unit and meaning. A ``Frame`` is one
+preallocated numpy record of those fields; each field is an attribute that is a
+view into it (``frame.device_pos`` (F, 3) m), so a stage writes in place and
+nothing is allocated per tick. The recording's layout is the recorded fields of
+the frame in this order (a tick is recorded by copying the record's leading
+bytes), and the control server's status and telemetry read the frame.
+
+Data flows one way through a tick: the device bank fills the device state, the
+renderer's stages fill proxies, contact forces, allocation and the scene's
+state, the safety chain fills ``device_force`` and ``fault``, the device bank
+writes ``device_force``.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class FrameField:
+    """One quantity of a tick: numpy dtype (little-endian), shape, SI unit, meaning.
+
+    ``shape`` holds ints and the symbols ``"F"`` (fingers) and ``"r"`` (actuated
+    directions); ``recorded`` fields go to the recording (hand-offs between stages
+    that say nothing new are not recorded).
+    """
+
+    name: str
+    dtype: str
+    shape: tuple[int | str, ...]
+    unit: str
+    doc: str
+    recorded: bool = True
+
+    def resolve(self, n_fingers: int, n_actuators: int) -> tuple[int, ...]:
+        sizes = {"F": n_fingers, "r": n_actuators}
+        return tuple(sizes[s] if isinstance(s, str) else s for s in self.shape)
+
+
+F3 = ("F", 3)
+
+FIELDS: tuple[FrameField, ...] = (
+    # Recorded, in the recording's order.
+    FrameField("t", "<f8", (), "s", "nominal time of the tick, tick / rate"),
+    FrameField("t_wall", "<f8", (), "s", "when the tick started, monotonic, from the run's start"),
+    FrameField("compute_s", "<f8", (), "s", "the tick's compute time up to recording"),
+    FrameField("device_pos", "<f8", F3, "m", "fingertip (device) positions, world frame"),
+    FrameField("device_vel", "<f8", F3, "m/s", "fingertip velocities, world frame"),
+    FrameField("proxy_pos", "<f8", F3, "m", "god-object proxies shown for each finger"),
+    FrameField("in_contact", "u1", ("F",), "", "1 where the finger touches the object"),
+    FrameField("contact_force", "<f8", F3, "N", "full contact force on each finger"),
+    FrameField("rendered_force", "<f8", F3, "N", "M_a lam_a per finger, plus ground and walls"),
+    FrameField("device_force", "<f8", F3, "N", "force sent to each device, after safety"),
+    FrameField("lam_a", "<f8", ("r",), "N", "actuator forces, one per actuated direction"),
+    FrameField("residual_internal", "<f8", (), "N", "squeeze the allocation could not render"),
+    FrameField("residual_external", "<f8", (), "N", "net wrench error (N and N m stacked)"),
+    FrameField("residual_total", "<f8", (), "N", "|lam - M_a lam_a|"),
+    FrameField("amplification", "<f8", (), "", "|M_a lam_a| / |lam|"),
+    FrameField("alpha", "<f8", (), "", "the adaptive allocator's external-force weight"),
+    FrameField("env_force", "<f8", F3, "N", "force of the ground and walls on each finger"),
+    FrameField("object_pos", "<f8", (3,), "m", "the object's centre of mass, after the tick"),
+    FrameField("object_rot", "<f8", (3, 3), "", "the object's rotation, body to world"),
+    FrameField("fault", "u1", (), "", "1 while a safety fault is latched"),
+    FrameField("control_seq", "<u4", (), "", "control changes applied so far"),
+    FrameField("stiffness_n_per_m", "<f8", (), "N/m", "the object's contact stiffness"),
+    FrameField("mass_kg", "<f8", (), "kg", "the object's mass"),
+    FrameField("allocator", "u1", (), "", "index of the allocator in the recording's allocators"),
+    FrameField("tick", "<u8", (), "", "tick number from the run's start"),
+    FrameField("buttons", "<u4", ("F",), "", "each device's button bits"),
+    FrameField("contact_point", "<f8", F3, "m", "contact point on the object's surface"),
+    FrameField("contact_normal", "<f8", F3, "", "outward surface normal at each contact"),
+    # Hand-offs within a tick, not recorded.
+    FrameField("god_proxy", "<f8", F3, "m", "proxy outside every obstacle", False),
+    FrameField(
+        "object_proxy", "<f8", F3, "m", "device pushed out of the object alone, frictionless", False
+    ),
+    FrameField("surface_point", "<f8", F3, "m", "fingertip centre held on the object", False),
+)
+
+_NAMES = frozenset(f.name for f in FIELDS)
+if any(a.recorded < b.recorded for a, b in itertools.pairwise(FIELDS)):
+    raise RuntimeError("frame fields: every recorded field must come before the unrecorded ones")
+
+
+def fields_for(n_fingers: int, n_actuators: int) -> list[tuple[FrameField, tuple[int, ...]]]:
+    """Every field with its shape resolved for F fingers and r actuated directions."""
+    return [(f, f.resolve(n_fingers, n_actuators)) for f in FIELDS]
+
+
+def _dtype(fields: Sequence[tuple[FrameField, tuple[int, ...]]]) -> np.dtype:
+    return np.dtype([(f.name, f.dtype, shape) for f, shape in fields])
+
+
+class Frame:
+    """One tick's data for F fingers and r actuated directions (see ``FIELDS``).
+
+    Every field is an attribute holding a view into ``record`` (scalars are 0-d
+    views: write ``frame.alpha[()] = 0.5``, read ``float(frame.alpha)``).
+    ``recorded`` is the recorded prefix of the record as bytes.
+    """
+
+    def __init__(self, n_fingers: int, n_actuators: int) -> None:
+        self.n_fingers = n_fingers
+        self.n_actuators = n_actuators
+        resolved = fields_for(n_fingers, n_actuators)
+        self.dtype = _dtype(resolved)
+        self.recorded_dtype = _dtype([(f, s) for f, s in resolved if f.recorded])
+        self.record = np.zeros((), dtype=self.dtype)
+        for f, _ in resolved:
+            setattr(self, f.name, self.record[f.name])
+        # Recorded fields come first, so a tick's record is this prefix of the bytes.
+        self.recorded = self.record.reshape(1).view(np.uint8)[: self.recorded_dtype.itemsize]
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        # Only reached for names that are not fields: say which exist.
+        raise AttributeError(f"the frame has no field {name!r}; fields: {sorted(_NAMES)}")
+
+    def copy(self) -> Frame:
+        """A frame holding a copy of this one's values."""
+        out = Frame(self.n_fingers, self.n_actuators)
+        out.record[()] = self.record
+        return out
+
+    def get(self, name: str) -> np.ndarray:
+        """Field ``name`` as a view (KeyError for an unknown field)."""
+        if name not in _NAMES:
+            raise KeyError(f"no frame field {name!r}")
+        return self.record[name]
+
+    def sample(self, names: Sequence[str]) -> dict[str, object]:
+        """Plain Python values (lists, floats, ints) of ``names``, for JSON."""
+        return {n: self.record[n].tolist() for n in names}

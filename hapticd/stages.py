@@ -1,0 +1,425 @@
+"""The renderer's stages: each does one job on the tick frame (``hapticd.frame``).
+
+A stage reads the frame fields earlier stages wrote and writes its own; a stage
+that carries state from tick to tick (proxies, friction anchors, the adaptive
+allocator, the object's motion) keeps it itself. ``Renderer`` (hapticd.render)
+puts the stages a scene needs in order:
+
+    contact -> friction -> forces -> allocation -> environment -> dynamics -> scene
+
+Units: positions m, velocities m/s, forces N, stiffness N/m, damping N s/m.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Protocol
+
+import numpy as np
+
+from hapticd.actuation import Actuation
+from hapticd.allocation.contacts import ContactAllocator
+from hapticd.contact import MultiResult, ObstacleSet, Polytope, proxy_step_multi
+from hapticd.dynamics import SMALL_SHAPE, SurfaceSet, auto_substeps, step_body, step_body_small
+from hapticd.frame import Frame
+from hapticd.friction import friction_proxy
+from hapticd.scene import Scene
+
+V3 = tuple[float, float, float]
+ZERO3: V3 = (0.0, 0.0, 0.0)
+
+
+class Stage(Protocol):
+    """One step of a tick: reads and writes fields of the frame, nothing else of the tick."""
+
+    name: str
+
+    def run(self, frame: Frame) -> None: ...
+
+
+def _unit(v: V3, fallback: V3) -> V3:
+    n = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    return (v[0] / n, v[1] / n, v[2] / n) if n > 1e-15 else fallback
+
+
+def _shown(p: V3, held: V3, plain: V3) -> V3:
+    """The proxy shown for a finger: the god-object ``p`` moved as friction moved the
+    fingertip from ``plain`` (frictionless) to ``held``."""
+    return (p[0] + held[0] - plain[0], p[1] + held[1] - plain[1], p[2] + held[2] - plain[2])
+
+
+def _projector(directions: list[V3]) -> np.ndarray:
+    """Orthogonal projector (3, 3) onto the span of a finger's actuated directions."""
+    if not directions:
+        return np.zeros((3, 3))
+    D = np.array(directions).T
+    return D @ np.linalg.pinv(D)
+
+
+class Contact:
+    """God-object contact of spherical fingertips with the object, the ground and the walls.
+
+    Writes ``god_proxy`` (outside every obstacle), ``object_proxy`` (the device pushed
+    out of the object's active planes only), ``surface_point`` (= object_proxy),
+    ``contact_normal``, ``in_contact``, ``contact_point``, ``proxy_pos`` and
+    ``env_force`` (the ground and walls' spring-damper force on each finger).
+    """
+
+    name = "contact"
+
+    def __init__(self, scene: Scene, radii: list[float]) -> None:
+        self.scene = scene
+        self.radii = radii
+        self._surfaces = [[s.polytope.inflated(r) for s in scene.surfaces] for r in radii]
+        self._proxy: list[V3] | None = None
+        self._built_for: Polytope | None = None
+        self._sets: list[ObstacleSet] = []
+
+    def _obstacles(self) -> list[ObstacleSet]:
+        """The obstacle sets per finger, rebuilt when the object has moved."""
+        poly = self.scene.object.polytope
+        if poly is not self._built_for:
+            self._sets = []
+            for i, r in enumerate(self.radii):
+                obj_poly = poly.inflated(r)
+                obstacles = [(obj_poly.normals_list, obj_poly.offsets_list)]
+                obstacles += [(p.normals_list, p.offsets_list) for p in self._surfaces[i]]
+                self._sets.append(ObstacleSet(obstacles))
+            self._built_for = poly
+        return self._sets
+
+    def run(self, frame: Frame) -> None:
+        pos: list[V3] = [tuple(p) for p in frame.device_pos.tolist()]  # type: ignore[misc]
+        if self._proxy is None:
+            self._proxy = list(pos)  # the first tick: every proxy starts at its device
+        sets = self._obstacles()
+        proxies = self._proxy
+        n_fingers = len(pos)
+        shown = list(pos)
+        points = list(pos)
+        held = list(pos)
+        normals = [ZERO3] * n_fingers
+        env = [ZERO3] * n_fingers
+        touching = [False] * n_fingers
+        vel = frame.device_vel
+        for i in range(n_fingers):
+            g = pos[i]
+            oset = sets[i]
+            res = proxy_step_multi(oset, proxies[i], g)
+            p = res.proxy
+            proxies[i] = p
+            shown[i] = p
+            points[i] = p
+            held[i] = p
+            obj_planes = [(pl, m) for (j, pl), m in zip(res.active, res.mu, strict=True) if j == 0]
+            if len(obj_planes) < len(res.active):
+                env[i] = self._env_force(oset, res, vel[i])
+            if not obj_planes:
+                continue
+            # The proxy's displacement due to the object's planes alone.
+            onorm = oset.obstacles[0][0]
+            po = [g[0], g[1], g[2]]
+            for pl, m in obj_planes:
+                nv = onorm[pl]
+                po[0] += m * nv[0]
+                po[1] += m * nv[1]
+                po[2] += m * nv[2]
+            pf: V3 = (po[0], po[1], po[2])
+            if len(obj_planes) == 1:
+                n = onorm[obj_planes[0][0]]
+            else:
+                n = _unit((pf[0] - g[0], pf[1] - g[1], pf[2] - g[2]), onorm[obj_planes[0][0]])
+            held[i] = pf
+            normals[i] = n
+            touching[i] = True
+            shown[i] = _shown(p, pf, pf)
+            r = self.radii[i]
+            points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
+        frame.god_proxy[:] = proxies
+        frame.object_proxy[:] = held
+        frame.surface_point[:] = held
+        frame.contact_normal[:] = normals
+        frame.in_contact[:] = touching
+        frame.contact_point[:] = points
+        frame.proxy_pos[:] = shown
+        frame.env_force[:] = env
+
+    def _env_force(self, oset: ObstacleSet, res: MultiResult, v_dev: np.ndarray) -> V3:
+        """Force on a finger from the ground and walls it touches, N."""
+        f = [0.0, 0.0, 0.0]
+        for (j, pl), m in zip(res.active, res.mu, strict=True):
+            if j == 0:
+                continue
+            n = oset.obstacles[j][0][pl]
+            mat = self.scene.surfaces[j - 1].material
+            vn = float(v_dev[0] * n[0] + v_dev[1] * n[1] + v_dev[2] * n[2])
+            mag = max(mat.stiffness * m - mat.damping * vn, 0.0)
+            f[0] += mag * n[0]
+            f[1] += mag * n[1]
+            f[2] += mag * n[2]
+        return (f[0], f[1], f[2])
+
+
+class Friction:
+    """Coulomb stick/slip at each fingertip: moves ``surface_point`` within the friction cone.
+
+    Keeps one anchor per finger in the object's body frame (so a sticking finger
+    moves with the object); updates ``proxy_pos`` and ``contact_point`` to match.
+    """
+
+    name = "friction"
+
+    def __init__(self, scene: Scene, radii: list[float]) -> None:
+        self.scene = scene
+        self.radii = radii
+        self._anchor: list[V3 | None] = [None] * len(radii)
+
+    def run(self, frame: Frame) -> None:
+        obj = self.scene.object
+        R, x0 = obj.rotation, obj.position
+        mat = obj.material
+        touching = frame.in_contact.tolist()
+        if not any(touching):
+            self._anchor = [None] * len(self._anchor)
+            return
+        pos = frame.device_pos.tolist()
+        held = frame.surface_point.tolist()
+        normals = frame.contact_normal.tolist()
+        god = frame.god_proxy.tolist()
+        plain = frame.object_proxy.tolist()
+        shown = frame.proxy_pos.tolist()
+        points = frame.contact_point.tolist()
+        for i, on in enumerate(touching):
+            if not on:
+                self._anchor[i] = None
+                continue
+            anchor = self._anchor[i]
+            aw = None
+            if anchor is not None:
+                a = R @ np.array(anchor) + x0
+                aw = (float(a[0]), float(a[1]), float(a[2]))
+            g, n = tuple(pos[i]), tuple(normals[i])
+            pf, _ = friction_proxy(tuple(held[i]), g, n, aw, mat.mu_static, mat.mu_dynamic)  # type: ignore[arg-type]
+            local = R.T @ (np.array(pf) - x0)
+            self._anchor[i] = (float(local[0]), float(local[1]), float(local[2]))
+            held[i] = pf
+            p, po = god[i], plain[i]
+            shown[i] = _shown(p, pf, po)
+            r = self.radii[i]
+            points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
+        frame.surface_point[:] = held
+        frame.proxy_pos[:] = shown
+        frame.contact_point[:] = points
+
+
+class Forces:
+    """The full contact force on each finger: k (surface point - device) - b v_rel.
+
+    Damping may slow the finger but never pull it into the object. Writes
+    ``contact_force``; zero for a finger out of contact.
+    """
+
+    name = "forces"
+
+    def __init__(self, scene: Scene) -> None:
+        self.scene = scene
+
+    def run(self, frame: Frame) -> None:
+        obj = self.scene.object
+        k, b = obj.material.stiffness, obj.material.damping
+        touching = frame.in_contact.tolist()
+        pos = frame.device_pos.tolist()
+        held = frame.surface_point.tolist()
+        normals = frame.contact_normal.tolist()
+        forces = [ZERO3] * len(touching)
+        for i, on in enumerate(touching):
+            if not on:
+                continue
+            g, pf, n = pos[i], held[i], normals[i]
+            f = (k * (pf[0] - g[0]), k * (pf[1] - g[1]), k * (pf[2] - g[2]))
+            if b:
+                v = self._relative_velocity(frame.device_vel[i], pf)
+                f = (f[0] - b * v[0], f[1] - b * v[1], f[2] - b * v[2])
+                fn = f[0] * n[0] + f[1] * n[1] + f[2] * n[2]
+                if fn < 0.0:
+                    f = (f[0] - fn * n[0], f[1] - fn * n[1], f[2] - fn * n[2])
+            forces[i] = f
+        frame.contact_force[:] = forces
+
+    def _relative_velocity(self, v_dev: np.ndarray, point: list[float]) -> V3:
+        obj = self.scene.object
+        if obj.fixed:
+            return (float(v_dev[0]), float(v_dev[1]), float(v_dev[2]))
+        rel = np.array(point) - obj.position
+        w = obj.omega
+        spin = (
+            w[1] * rel[2] - w[2] * rel[1],
+            w[2] * rel[0] - w[0] * rel[2],
+            w[0] * rel[1] - w[1] * rel[0],
+        )
+        v = v_dev - obj.velocity - spin
+        return (float(v[0]), float(v[1]), float(v[2]))
+
+
+class Allocation:
+    """Projects the full contact forces onto the actuated directions (``ContactAllocator``).
+
+    Writes ``lam_a``, ``rendered_force`` (M_a lam_a per finger; zero out of
+    contact), the four accuracy measures and ``alpha``.
+    """
+
+    name = "allocation"
+
+    def __init__(self, scene: Scene, allocator: ContactAllocator) -> None:
+        self.scene = scene
+        self.allocator = allocator
+
+    @property
+    def actuation(self) -> Actuation:
+        return self.allocator.actuation
+
+    def run(self, frame: Frame) -> None:
+        touching = frame.in_contact.tolist()
+        contacts = [i for i, on in enumerate(touching) if on]
+        pos = frame.device_pos.tolist()
+        points = frame.contact_point.tolist()
+        forces = frame.contact_force.tolist()
+        c = self.scene.object.position
+        center = (float(c[0]), float(c[1]), float(c[2]))
+        act = self.allocator.actuation
+        world = act.world_directions(pos) if contacts else []
+        lam_a, acc = self.allocator.allocate(contacts, world, points, forces, center)
+        frame.alpha[()] = self.allocator.alpha
+        frame.residual_internal[()] = acc[0]
+        frame.residual_external[()] = acc[1]
+        frame.residual_total[()] = acc[2]
+        frame.amplification[()] = acc[3]
+        rendered = frame.rendered_force
+        rendered[:] = 0.0
+        if lam_a is None:
+            frame.lam_a[:] = 0.0
+            return
+        frame.lam_a[:] = lam_a
+        for i in contacts:
+            f = [0.0, 0.0, 0.0]
+            for col, d in zip(act.columns[i], world[i], strict=True):
+                x = lam_a[col]
+                f[0] += x * d[0]
+                f[1] += x * d[1]
+                f[2] += x * d[2]
+            rendered[i] = f
+
+
+class Environment:
+    """Renders the ground's and walls' force through each finger's own actuated directions
+    (adds to ``rendered_force``)."""
+
+    name = "environment"
+
+    def __init__(self, actuation: Actuation) -> None:
+        self.actuation = actuation
+
+    def run(self, frame: Frame) -> None:
+        env = frame.env_force
+        if not env.any():
+            return
+        world = self.actuation.world_directions(frame.device_pos.tolist())
+        rendered = frame.rendered_force
+        for i, e in enumerate(env):
+            if e.any():
+                rendered[i] += _projector(world[i]) @ e
+
+
+class Dynamics:
+    """Moves a free object one tick under the fingers' reactions, gravity, ground and walls.
+
+    The fingers act as springs that move with the object during the tick's
+    substeps; soft-finger contacts resist spin about their normals. Writes the
+    object's pose to the scene (the next tick's contact sees it).
+    """
+
+    name = "dynamics"
+
+    def __init__(self, scene: Scene, n_fingers: int, dt: float) -> None:
+        self.scene = scene
+        obj = scene.object
+        self.dt = dt
+        self.gravity = scene.gravity
+        self.surfaces = SurfaceSet(scene.surfaces) if scene.surfaces else None
+        self.substeps = scene.substeps
+        if scene.substeps == 0:  # auto
+            self.substeps = auto_substeps(
+                obj, scene.surfaces, obj.material.stiffness, n_fingers, dt
+            )
+        self.small = len(obj.shape.vertices) <= SMALL_SHAPE
+
+    @property
+    def effects(self) -> list[str]:
+        """What moves the object besides the fingers."""
+        return (["gravity"] if self.gravity is not None else []) + (
+            ["surfaces"] if self.surfaces else []
+        )
+
+    def run(self, frame: Frame) -> None:
+        obj = self.scene.object
+        k = obj.material.stiffness
+        touching = frame.in_contact.tolist()
+        contacts = [i for i, on in enumerate(touching) if on]
+        points = frame.contact_point.tolist()
+        forces = frame.contact_force.tolist()
+        # The object feels the reaction of the full (virtual) contact force.
+        springs = [(points[i], (-forces[i][0], -forces[i][1], -forces[i][2]), k) for i in contacts]
+        torsion = None
+        mu_t = obj.material.torsion
+        if mu_t > 0.0 and contacts:
+            normals = frame.contact_normal.tolist()
+            torsion = []
+            for i in contacts:
+                n, f = normals[i], forces[i]
+                fn = abs(f[0] * n[0] + f[1] * n[1] + f[2] * n[2])
+                if fn > 0.0:
+                    torsion.append((n, mu_t * fn))
+        if self.small:
+            step_body_small(
+                obj,
+                (0.0, 0.0, 0.0),
+                (0.0, 0.0, 0.0),
+                self.dt,
+                gravity=self.gravity,
+                surfaces=self.surfaces,
+                substeps=self.substeps,
+                torsion=torsion,  # type: ignore[arg-type]
+                springs=springs,  # type: ignore[arg-type]
+            )
+        else:
+            step_body(
+                obj,
+                np.zeros(3),
+                np.zeros(3),
+                self.dt,
+                gravity=self.gravity,
+                surfaces=self.surfaces,
+                substeps=self.substeps,
+                torsion=torsion,  # type: ignore[arg-type]
+                springs=springs,  # type: ignore[arg-type]
+            )
+
+
+class SceneState:
+    """Publishes the scene's state after the tick: the object's pose, stiffness and mass,
+    and the allocator in use (an index into ``methods``)."""
+
+    name = "scene"
+
+    def __init__(self, scene: Scene, allocator: ContactAllocator, methods: tuple[str, ...]) -> None:
+        self.scene = scene
+        self.allocator = allocator
+        self.methods = methods
+
+    def run(self, frame: Frame) -> None:
+        obj = self.scene.object
+        frame.object_pos[:] = obj.position
+        frame.object_rot[:] = obj.rotation
+        frame.stiffness_n_per_m[()] = obj.material.stiffness
+        frame.mass_kg[()] = obj.mass
+        frame.allocator[()] = self.methods.index(self.allocator.method)
