@@ -48,34 +48,64 @@ F3 = ("F", 3)
 
 FIELDS: tuple[FrameField, ...] = (
     # Recorded, in the recording's order.
-    FrameField("t", "<f8", (), "s", "nominal time of the tick, tick / rate"),
-    FrameField("t_wall", "<f8", (), "s", "when the tick started, monotonic, from the run's start"),
-    FrameField("compute_s", "<f8", (), "s", "the tick's compute time up to recording"),
-    FrameField("device_pos", "<f8", F3, "m", "fingertip (device) positions, world frame"),
-    FrameField("device_vel", "<f8", F3, "m/s", "fingertip velocities, world frame"),
-    FrameField("proxy_pos", "<f8", F3, "m", "god-object proxies shown for each finger"),
-    FrameField("in_contact", "u1", ("F",), "", "1 where the finger touches the object"),
-    FrameField("contact_force", "<f8", F3, "N", "full contact force on each finger"),
-    FrameField("rendered_force", "<f8", F3, "N", "M_a lam_a per finger, plus ground and walls"),
-    FrameField("device_force", "<f8", F3, "N", "force sent to each device, after safety"),
+    FrameField("t", "<f8", (), "s", "nominal tick time k / rate"),
+    FrameField("t_wall", "<f8", (), "s", "monotonic time the tick started, from the loop's start"),
+    FrameField("compute_s", "<f8", (), "s", "time to read, render, make safe and write"),
+    FrameField("device_pos", "<f8", F3, "m", "device (fingertip centre) positions, world frame"),
+    FrameField("device_vel", "<f8", F3, "m/s", "device velocities, world frame"),
+    FrameField("proxy_pos", "<f8", F3, "m", "proxy (god-object) positions"),
+    FrameField("in_contact", "u1", ("F",), "", "finger in contact (0/1)"),
+    FrameField("contact_force", "<f8", F3, "N", "full contact force lam_i on the finger"),
+    FrameField(
+        "rendered_force", "<f8", F3, "N", "finger i's rows of M_a lam_a, plus ground and walls"
+    ),
+    FrameField("device_force", "<f8", F3, "N", "force sent to the device, after the safety chain"),
     FrameField("lam_a", "<f8", ("r",), "N", "actuator forces, one per actuated direction"),
-    FrameField("residual_internal", "<f8", (), "N", "squeeze the allocation could not render"),
-    FrameField("residual_external", "<f8", (), "N", "net wrench error (N and N m stacked)"),
+    FrameField(
+        "residual_internal",
+        "<f8",
+        (),
+        "N",
+        "|N_G^T (lam - M_a lam_a)|: squeeze error (allocation.md)",
+    ),
+    FrameField(
+        "residual_external", "<f8", (), "N", "|G lam - G M_a lam_a|: net wrench error (N and N m)"
+    ),
     FrameField("residual_total", "<f8", (), "N", "|lam - M_a lam_a|"),
-    FrameField("amplification", "<f8", (), "", "|M_a lam_a| / |lam|"),
-    FrameField("alpha", "<f8", (), "", "the adaptive allocator's external-force weight"),
-    FrameField("env_force", "<f8", F3, "N", "force of the ground and walls on each finger"),
-    FrameField("object_pos", "<f8", (3,), "m", "the object's centre of mass, after the tick"),
-    FrameField("object_rot", "<f8", (3, 3), "", "the object's rotation, body to world"),
-    FrameField("fault", "u1", (), "", "1 while a safety fault is latched"),
-    FrameField("control_seq", "<u4", (), "", "control changes applied so far"),
-    FrameField("stiffness_n_per_m", "<f8", (), "N/m", "the object's contact stiffness"),
-    FrameField("mass_kg", "<f8", (), "kg", "the object's mass"),
-    FrameField("allocator", "u1", (), "", "index of the allocator in the recording's allocators"),
+    FrameField("amplification", "<f8", (), "", "|M_a lam_a| / |lam| (0 without force)"),
+    FrameField("alpha", "<f8", (), "", "external weight of the adaptive allocator (0 otherwise)"),
+    FrameField("env_force", "<f8", F3, "N", "force on each finger from the ground and walls"),
+    FrameField("object_pos", "<f8", (3,), "m", "object centre of mass (the grasp reference point)"),
+    FrameField("object_rot", "<f8", (3, 3), "", "object orientation (columns: body axes in world)"),
+    FrameField("fault", "u1", (), "", "a safety fault is latched (0/1)"),
+    FrameField(
+        "control_seq",
+        "<u4",
+        (),
+        "",
+        "control changes applied so far: steps at the tick a change landed",
+    ),
+    FrameField("stiffness_n_per_m", "<f8", (), "N/m", "the object's stiffness on this tick"),
+    FrameField("mass_kg", "<f8", (), "kg", "the object's mass on this tick"),
+    FrameField(
+        "allocator", "u1", (), "", "index into meta.allocators of the allocator on this tick"
+    ),
     FrameField("tick", "<u8", (), "", "tick number from the run's start"),
-    FrameField("buttons", "<u4", ("F",), "", "each device's button bits"),
-    FrameField("contact_point", "<f8", F3, "m", "contact point on the object's surface"),
-    FrameField("contact_normal", "<f8", F3, "", "outward surface normal at each contact"),
+    FrameField("buttons", "<u4", ("F",), "", "each device's buttons, bit i for button i"),
+    FrameField(
+        "contact_point",
+        "<f8",
+        F3,
+        "m",
+        "contact point on the object's surface (device position when free)",
+    ),
+    FrameField(
+        "contact_normal",
+        "<f8",
+        F3,
+        "",
+        "the object's outward surface normal at each contact (0 when free)",
+    ),
     # Hand-offs within a tick, not recorded.
     FrameField("god_proxy", "<f8", F3, "m", "proxy outside every obstacle", False),
     FrameField(
@@ -137,3 +167,15 @@ class Frame:
     def sample(self, names: Sequence[str]) -> dict[str, object]:
         """Plain Python values (lists, floats, ints) of ``names``, for JSON."""
         return {n: self.record[n].tolist() for n in names}
+
+
+def markdown_table() -> str:
+    """The recorded fields as a Markdown table (docs/recording.md holds this table)."""
+    lines = ["| field | shape | unit | meaning |", "|---|---|---|---|"]
+    for f in FIELDS:
+        if not f.recorded:
+            continue
+        shape = "(" + ", ".join(str(s) for s in f.shape) + ("," if len(f.shape) == 1 else "") + ")"
+        doc = f.doc.replace("|", "\\|")
+        lines.append(f"| `{f.name}` | {shape} | {f.unit} | {doc} |")
+    return "\n".join(lines) + "\n"
