@@ -181,8 +181,12 @@ class ServoLoop:
                 "the new profile changes the number of actuated directions, which would "
                 f"change the layout of the recording {self.recorder.path}; stop recording first"
             )
-        if renderer.actuation.n_actuators != self.frame.n_actuators:
-            self.frame = Frame(self.frame.n_fingers, renderer.actuation.n_actuators)
+        # A fresh frame: nothing the old renderer's stages wrote may linger; the devices'
+        # last state carries over (a lost device keeps its last position).
+        old_frame = self.frame
+        self.frame = Frame(old_frame.n_fingers, renderer.actuation.n_actuators)
+        for name in ("device_pos", "device_vel", "buttons"):
+            self.frame.get(name)[...] = old_frame.get(name)
         old = self.safety
         if old.fault is not None:
             safety.fault = old.fault

@@ -59,10 +59,11 @@ def _projector(directions: list[V3]) -> np.ndarray:
 class Contact:
     """God-object contact of spherical fingertips with the object, the ground and the walls.
 
-    Writes ``god_proxy`` (outside every obstacle), ``object_proxy`` (the device pushed
-    out of the object's active planes only), ``surface_point`` (= object_proxy),
-    ``contact_normal``, ``in_contact``, ``contact_point``, ``proxy_pos`` and
-    ``env_force`` (the ground and walls' spring-damper force on each finger).
+    Writes ``surface_point`` (the device pushed out of the object's active planes
+    only), ``contact_normal``, ``in_contact``, ``contact_point``, ``proxy_pos``,
+    ``env_force`` (the ground and walls' spring-damper force on each finger; only
+    a scene with surfaces writes it) and, for a friction stage after it,
+    ``god_proxy`` (outside every obstacle) and ``object_proxy`` (= surface_point).
     """
 
     name = "contact"
@@ -71,6 +72,8 @@ class Contact:
         self.scene = scene
         self.radii = radii
         self._surfaces = [[s.polytope.inflated(r) for s in scene.surfaces] for r in radii]
+        # The proxies before friction: only a friction stage needs them (the plan says).
+        self.hand_on_proxies = True
         self._proxy: list[V3] | None = None
         self._built_for: Polytope | None = None
         self._sets: list[ObstacleSet] = []
@@ -135,14 +138,16 @@ class Contact:
             shown[i] = _shown(p, pf, pf)
             r = self.radii[i]
             points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
-        frame.god_proxy[:] = proxies
-        frame.object_proxy[:] = held
+        if self.hand_on_proxies:
+            frame.god_proxy[:] = proxies
+            frame.object_proxy[:] = held
         frame.surface_point[:] = held
         frame.contact_normal[:] = normals
         frame.in_contact[:] = touching
         frame.contact_point[:] = points
         frame.proxy_pos[:] = shown
-        frame.env_force[:] = env
+        if self._surfaces[0]:
+            frame.env_force[:] = env
 
     def _env_force(self, oset: ObstacleSet, res: MultiResult, v_dev: np.ndarray) -> V3:
         """Force on a finger from the ground and walls it touches, N."""
@@ -284,8 +289,7 @@ class Allocation:
         pos = frame.device_pos.tolist()
         points = frame.contact_point.tolist()
         forces = frame.contact_force.tolist()
-        c = self.scene.object.position
-        center = (float(c[0]), float(c[1]), float(c[2]))
+        center = tuple(self.scene.object.position.tolist())
         act = self.allocator.actuation
         world = act.world_directions(pos) if contacts else []
         lam_a, acc = self.allocator.allocate(contacts, world, points, forces, center)
@@ -294,12 +298,12 @@ class Allocation:
         frame.residual_external[()] = acc[1]
         frame.residual_total[()] = acc[2]
         frame.amplification[()] = acc[3]
-        rendered = frame.rendered_force
-        rendered[:] = 0.0
         if lam_a is None:
+            frame.rendered_force[:] = 0.0
             frame.lam_a[:] = 0.0
             return
         frame.lam_a[:] = lam_a
+        rows = [ZERO3] * len(touching)
         for i in contacts:
             f = [0.0, 0.0, 0.0]
             for col, d in zip(act.columns[i], world[i], strict=True):
@@ -307,7 +311,8 @@ class Allocation:
                 f[0] += x * d[0]
                 f[1] += x * d[1]
                 f[2] += x * d[2]
-            rendered[i] = f
+            rows[i] = (f[0], f[1], f[2])
+        frame.rendered_force[:] = rows
 
 
 class Environment:
@@ -407,7 +412,11 @@ class Dynamics:
 
 class SceneState:
     """Publishes the scene's state after the tick: the object's pose, stiffness and mass,
-    and the allocator in use (an index into ``methods``)."""
+    and the allocator in use (an index into ``methods``).
+
+    Made anew whenever the plan changes, so the parameters are written once per frame
+    and the pose on every tick only when the object can move.
+    """
 
     name = "scene"
 
@@ -415,11 +424,16 @@ class SceneState:
         self.scene = scene
         self.allocator = allocator
         self.methods = methods
+        self._written: Frame | None = None
 
     def run(self, frame: Frame) -> None:
         obj = self.scene.object
+        if frame is self._written and obj.fixed:
+            return
         frame.object_pos[:] = obj.position
         frame.object_rot[:] = obj.rotation
-        frame.stiffness_n_per_m[()] = obj.material.stiffness
-        frame.mass_kg[()] = obj.mass
-        frame.allocator[()] = self.methods.index(self.allocator.method)
+        if frame is not self._written:
+            frame.stiffness_n_per_m[()] = obj.material.stiffness
+            frame.mass_kg[()] = obj.mass
+            frame.allocator[()] = self.methods.index(self.allocator.method)
+            self._written = frame
