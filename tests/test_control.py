@@ -265,3 +265,10 @@ def test_the_control_thread_waits_for_the_loop_to_sleep(monkeypatch):
     finally:
         loop.close_sleep_gate()
         os.close(server._gate_r)
+
+
+def test_every_command_of_the_protocol_has_a_server_handler():
+    from hapticd import protocol
+    from hapticd.daemon.server import _HANDLERS
+
+    assert set(_HANDLERS) == set(protocol.COMMANDS)

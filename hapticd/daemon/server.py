@@ -38,8 +38,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("hapticd.control")
 
-# Requests that become a command with no arguments.
-_SIMPLE: dict[str, type[Command]] = {"enable": Enable, "disable": Disable}
 
 MAX_OUTPUT_BYTES = 1 << 20  # a client this far behind is dropped
 TELEMETRY_BACKLOG_BYTES = 64 * 1024  # above this a telemetry frame is skipped, not queued
@@ -330,34 +328,71 @@ class ControlServer:
             return proto.error(req_id, "internal", f"{type(exc).__name__}: {exc}")
 
     def _execute(self, conn: _Conn, req: dict[str, Any]) -> Any:
-        cmd = req["cmd"]
-        loop, session = self.loop, self.session
-        if cmd == "status":
-            return {**views.status(loop), "profile": session.profile.name, "reloads": self.reloads}
-        if cmd == "get":
-            return {req["param"]: loop.param(req["param"])}
-        if cmd in ("stop", "shutdown"):
-            loop.request_stop(f"control: {cmd}")
-            return {"stopping": True, "ramp_s": loop.stop_ramp_s}
-        if cmd == "subscribe":
-            conn.rate_hz = req["rate_hz"]
-            conn.next_due = time.monotonic()
-            return {"subscribed": True, "rate_hz": conn.rate_hz}
-        if cmd == "unsubscribe":
-            conn.rate_hz = 0.0
-            return {"subscribed": False, "skipped_frames": conn.skipped}
-        if cmd == "record_start":
-            result = session.record_start(req["path"], overwrite=req.get("overwrite", False))
-        elif cmd == "record_stop":
-            result = session.record_stop()
-        elif cmd == "reload":
-            result = session.reload(req.get("profile"))
-        elif cmd == "set":
-            done = session.apply(SetParam(req["param"], req["value"]))
-            result = {"applied_at_tick": done.tick, "param": req["param"]}
-        else:
-            done = session.apply(_SIMPLE[cmd]())
-            result = {"applied_at_tick": done.tick}
-        what = " ".join(str(req[k]) for k in ("cmd", "param", "value", "path") if k in req)
-        log.info("control: %s applied at tick %d", what, result["applied_at_tick"])
+        result = _HANDLERS[req["cmd"]](self, conn, req)
+        if "applied_at_tick" in result:
+            what = " ".join(str(req[k]) for k in ("cmd", "param", "value", "path") if k in req)
+            log.info("control: %s applied at tick %d", what, result["applied_at_tick"])
         return result
+
+    # -- one handler per request (the protocol checked its arguments) -------------------
+
+    def _status(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        return {
+            **views.status(self.loop),
+            "profile": self.session.profile.name,
+            "reloads": self.reloads,
+        }
+
+    def _get(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        return {req["param"]: self.loop.param(req["param"])}
+
+    def _stop(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        self.loop.request_stop(f"control: {req['cmd']}")
+        return {"stopping": True, "ramp_s": self.loop.stop_ramp_s}
+
+    def _subscribe(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        conn.rate_hz = req["rate_hz"]
+        conn.next_due = time.monotonic()
+        return {"subscribed": True, "rate_hz": conn.rate_hz}
+
+    def _unsubscribe(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        conn.rate_hz = 0.0
+        return {"subscribed": False, "skipped_frames": conn.skipped}
+
+    def _record_start(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        return self.session.record_start(req["path"], overwrite=req.get("overwrite", False))
+
+    def _record_stop(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        return self.session.record_stop()
+
+    def _reload(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        return self.session.reload(req.get("profile"))
+
+    def _set(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        done = self.session.apply(SetParam(req["param"], req["value"]))
+        return {"applied_at_tick": done.tick, "param": req["param"]}
+
+
+def _apply(command: type[Command]) -> Callable[[ControlServer, _Conn, dict[str, Any]], Any]:
+    """A handler that applies ``command`` (no arguments) at the next tick boundary."""
+
+    def handle(server: ControlServer, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        return {"applied_at_tick": server.session.apply(command()).tick}
+
+    return handle
+
+
+_HANDLERS: dict[str, Callable[[ControlServer, _Conn, dict[str, Any]], dict[str, Any]]] = {
+    "status": ControlServer._status,
+    "get": ControlServer._get,
+    "set": ControlServer._set,
+    "enable": _apply(Enable),
+    "disable": _apply(Disable),
+    "record_start": ControlServer._record_start,
+    "record_stop": ControlServer._record_stop,
+    "reload": ControlServer._reload,
+    "subscribe": ControlServer._subscribe,
+    "unsubscribe": ControlServer._unsubscribe,
+    "shutdown": ControlServer._stop,
+    "stop": ControlServer._stop,
+}
