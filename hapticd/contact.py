@@ -106,22 +106,22 @@ def _first_entry(
 
 
 def _project_on_planes(
-    g: Vec, normals: list[Vec], offsets: list[float], active: list[int]
+    dev: Vec, normals: list[Vec], offsets: list[float], active: list[int]
 ) -> tuple[Vec, list[float]]:
-    """Closest point to ``g`` on the intersection of the active planes, and the multipliers.
+    """Closest point to ``dev`` on the intersection of the active planes, and the multipliers.
 
-    Returns (x, mu) with x - g = sum_i mu_i n_i; mu_i >= 0 means plane i pushes
+    Returns (x, mu) with x - dev = sum_i mu_i n_i; mu_i >= 0 means plane i pushes
     outward (a true contact), mu_i < 0 means it would pull and must be released.
     """
     if len(active) == 1:
         n = normals[active[0]]
-        mu = offsets[active[0]] - _dot(n, g)
-        return (g[0] + mu * n[0], g[1] + mu * n[1], g[2] + mu * n[2]), [mu]
+        mu = offsets[active[0]] - _dot(n, dev)
+        return (dev[0] + mu * n[0], dev[1] + mu * n[1], dev[2] + mu * n[2]), [mu]
     N = np.array([normals[i] for i in active])
-    r = np.array([offsets[i] for i in active]) - N @ np.array(g)
+    r = np.array([offsets[i] for i in active]) - N @ np.array(dev)
     # Minimum-norm solution of N N^T mu = r; lstsq tolerates near-parallel planes.
     mu, *_ = np.linalg.lstsq(N @ N.T, r, rcond=1e-12)
-    x = np.array(g) + N.T @ mu
+    x = np.array(dev) + N.T @ mu
     return (float(x[0]), float(x[1]), float(x[2])), mu.tolist()
 
 
@@ -222,14 +222,14 @@ def _first_entry_any(
 
 
 def _multipliers(
-    obstacles: list[Obstacle], active: list[tuple[int, int]], p: Vec, g: Vec
+    obstacles: list[Obstacle], active: list[tuple[int, int]], p: Vec, dev: Vec
 ) -> list[float]:
     if len(active) == 1:
         j, i = active[0]
         n = obstacles[j][0][i]
-        return [(p[0] - g[0]) * n[0] + (p[1] - g[1]) * n[1] + (p[2] - g[2]) * n[2]]
+        return [(p[0] - dev[0]) * n[0] + (p[1] - dev[1]) * n[1] + (p[2] - dev[2]) * n[2]]
     N = np.array([obstacles[j][0][i] for j, i in active])
-    mu, *_ = np.linalg.lstsq(N.T, np.array(p) - np.array(g), rcond=1e-12)
+    mu, *_ = np.linalg.lstsq(N.T, np.array(p) - np.array(dev), rcond=1e-12)
     return mu.tolist()
 
 
@@ -263,14 +263,16 @@ def proxy_step_multi(
     prepared = obstacles if isinstance(obstacles, ObstacleSet) else ObstacleSet(obstacles)
     obstacles = prepared.obstacles
     all_normals, all_offsets, index = prepared.normals, prepared.offsets, prepared.index
-    g = device
+    dev = device  # the device (fingertip centre) position
     p = _push_out_of(obstacles, proxy_prev, prepared)
     active: list[tuple[int, int]] = []
     for _ in range(_MAX_ITER):
         if active:
-            target, mu = _project_on_planes(g, all_normals, all_offsets, [index[a] for a in active])
+            target, mu = _project_on_planes(
+                dev, all_normals, all_offsets, [index[a] for a in active]
+            )
         else:
-            target, mu = g, []
+            target, mu = dev, []
         d = (target[0] - p[0], target[1] - p[1], target[2] - p[2])
         hit = _first_entry_any(obstacles, p, d, prepared.arrays)
         if hit is not None:
@@ -290,16 +292,16 @@ def proxy_step_multi(
             break
         active = keep
     # A plane the device is outside of cannot push the finger.
-    active = [(j, i) for j, i in active if _dot(obstacles[j][0][i], g) < obstacles[j][1][i]]
-    mu = _multipliers(obstacles, active, p, g) if active else []
+    active = [(j, i) for j, i in active if _dot(obstacles[j][0][i], dev) < obstacles[j][1][i]]
+    mu = _multipliers(obstacles, active, p, dev) if active else []
     return MultiResult(p, active, mu)
 
 
-def _normal(normals: list[Vec], res: MultiResult, g: Vec) -> Vec:
+def _normal(normals: list[Vec], res: MultiResult, dev: Vec) -> Vec:
     p = res.proxy
     if not res.active:
         return (0.0, 0.0, 0.0)
-    diff = (p[0] - g[0], p[1] - g[1], p[2] - g[2])
+    diff = (p[0] - dev[0], p[1] - dev[1], p[2] - dev[2])
     depth = math.sqrt(_dot(diff, diff))
     if depth > 1e-15:
         return (diff[0] / depth, diff[1] / depth, diff[2] / depth)
@@ -325,16 +327,16 @@ def update_proxy(poly: Polytope, proxy_prev: np.ndarray, device: np.ndarray) -> 
     interior or ends at a target it reaches without entering, so the proxy is
     never inside.
     """
-    g: Vec = (float(device[0]), float(device[1]), float(device[2]))
+    dev: Vec = (float(device[0]), float(device[1]), float(device[2]))
     p: Vec = (float(proxy_prev[0]), float(proxy_prev[1]), float(proxy_prev[2]))
     if poly.obstacle_set is None:
         object.__setattr__(
             poly, "obstacle_set", ObstacleSet([(poly.normals_list, poly.offsets_list)])
         )
-    res = proxy_step_multi(poly.obstacle_set, p, g)
+    res = proxy_step_multi(poly.obstacle_set, p, dev)
     p = res.proxy
     n_active = len(res.active)
-    normal = _normal(poly.normals_list, res, g)
+    normal = _normal(poly.normals_list, res, dev)
     return ProxyResult(np.array(p), n_active > 0, np.array(normal), n_active)
 
 

@@ -106,9 +106,9 @@ class Contact:
         touching = [False] * n_fingers
         vel = frame.device_vel
         for i in range(n_fingers):
-            g = pos[i]
+            dev = pos[i]
             oset = sets[i]
-            res = proxy_step_multi(oset, proxies[i], g)
+            res = proxy_step_multi(oset, proxies[i], dev)
             p = res.proxy
             proxies[i] = p
             shown[i] = p
@@ -121,7 +121,7 @@ class Contact:
                 continue
             # The proxy's displacement due to the object's planes alone.
             onorm = oset.obstacles[0][0]
-            po = [g[0], g[1], g[2]]
+            po = [dev[0], dev[1], dev[2]]
             for pl, m in obj_planes:
                 nv = onorm[pl]
                 po[0] += m * nv[0]
@@ -131,7 +131,7 @@ class Contact:
             if len(obj_planes) == 1:
                 n = onorm[obj_planes[0][0]]
             else:
-                n = _unit((pf[0] - g[0], pf[1] - g[1], pf[2] - g[2]), onorm[obj_planes[0][0]])
+                n = _unit((pf[0] - dev[0], pf[1] - dev[1], pf[2] - dev[2]), onorm[obj_planes[0][0]])
             held[i] = pf
             normals[i] = n
             touching[i] = True
@@ -203,8 +203,8 @@ class Friction:
             if anchor is not None:
                 a = R @ np.array(anchor) + x0
                 aw = (float(a[0]), float(a[1]), float(a[2]))
-            g, n = tuple(pos[i]), tuple(normals[i])
-            pf, _ = friction_proxy(tuple(held[i]), g, n, aw, mat.mu_static, mat.mu_dynamic)  # type: ignore[arg-type]
+            dev, n = tuple(pos[i]), tuple(normals[i])
+            pf, _ = friction_proxy(tuple(held[i]), dev, n, aw, mat.mu_static, mat.mu_dynamic)  # type: ignore[arg-type]
             local = R.T @ (np.array(pf) - x0)
             self._anchor[i] = (float(local[0]), float(local[1]), float(local[2]))
             held[i] = pf
@@ -240,8 +240,8 @@ class Forces:
         for i, on in enumerate(touching):
             if not on:
                 continue
-            g, pf, n = pos[i], held[i], normals[i]
-            f = (k * (pf[0] - g[0]), k * (pf[1] - g[1]), k * (pf[2] - g[2]))
+            dev, pf, n = pos[i], held[i], normals[i]
+            f = (k * (pf[0] - dev[0]), k * (pf[1] - dev[1]), k * (pf[2] - dev[2]))
             if b:
                 v = self._relative_velocity(frame.device_vel[i], pf)
                 f = (f[0] - b * v[0], f[1] - b * v[1], f[2] - b * v[2])
