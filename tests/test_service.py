@@ -91,6 +91,30 @@ def test_watchdog_pings_stop_when_the_loop_stalls(tmp_path):
     assert sum(1 for _, m in sent if m.startswith("READY=1")) == 1
 
 
+def test_nothing_follows_stopping(tmp_path):
+    # The control thread may poll after the main thread said STOPPING=1: the
+    # service manager must not see a watchdog ping after it.
+    now = {"t": 0.0}
+    with _listen(tmp_path / "n") as s:
+        env = {"NOTIFY_SOCKET": str(tmp_path / "n"), "WATCHDOG_USEC": "200000"}
+        ticks = {"n": 0}
+        n = sdnotify.ServiceNotifier(lambda: ticks["n"], lambda: "ok", env, lambda: now["t"])
+        sent = []
+        for step in range(10):
+            now["t"] = step * 0.1
+            ticks["n"] += 100
+            if step == 5:
+                n.stopping()
+            n.poll()
+            try:
+                while True:
+                    sent.append(s.recv(4096).decode())
+            except TimeoutError:
+                pass
+    assert "WATCHDOG=1" in sent[: sent.index("STOPPING=1")]
+    assert sent[-1] == "STOPPING=1" and sent.count("STOPPING=1") == 1
+
+
 def test_notify_without_a_service_manager_does_nothing():
     assert sdnotify.notify("READY=1", {}) is False
     n = sdnotify.ServiceNotifier(lambda: 1, lambda: "x", {})

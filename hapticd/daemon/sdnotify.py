@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import socket
+import threading
 import time
 from collections.abc import Callable
 
@@ -57,10 +58,19 @@ class ServiceNotifier:
         self._last_ticks = -1
         self._next_watchdog = 0.0
         self._next_status = 0.0
+        self._stopped = False
+        # poll runs in the control thread, stopping in the main one: the lock keeps
+        # a last WATCHDOG=1 from following STOPPING=1.
+        self._lock = threading.Lock()
 
     def poll(self) -> None:
         if not self.enabled:
             return
+        with self._lock:
+            if not self._stopped:
+                self._poll()
+
+    def _poll(self) -> None:
         now = self._clock()
         ticks = self._ticks()
         if not self.ready and ticks > 0:
@@ -77,5 +87,9 @@ class ServiceNotifier:
             self._next_watchdog = now + self.watchdog_s
 
     def stopping(self) -> None:
-        if self.enabled:
+        """Send STOPPING=1, the last message: later polls send nothing."""
+        if not self.enabled:
+            return
+        with self._lock:
+            self._stopped = True
             notify("STOPPING=1", self.env)
