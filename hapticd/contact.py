@@ -87,9 +87,12 @@ def _first_entry(
     t_enter = -math.inf
     t_exit = math.inf
     plane = -1
-    for i, n in enumerate(normals):
-        denom = n[0] * d[0] + n[1] * d[1] + n[2] * d[2]
-        num = offsets[i] - (n[0] * p[0] + n[1] * p[1] + n[2] * p[2])
+    # The hottest loop of a tick: components in locals, the same sums in the same order.
+    dx, dy, dz = d
+    px, py, pz = p
+    for i, (nx, ny, nz) in enumerate(normals):
+        denom = nx * dx + ny * dy + nz * dz
+        num = offsets[i] - (nx * px + ny * py + nz * pz)
         if denom == 0.0:
             if num <= 0.0:
                 return None  # parallel to and outside (or on) this plane: never inside
@@ -127,8 +130,9 @@ def _project_on_planes(
 
 def _signed_distance(normals: list[Vec], offsets: list[float], x: Vec) -> tuple[float, int]:
     best, arg = -math.inf, 0
-    for i, n in enumerate(normals):
-        v = n[0] * x[0] + n[1] * x[1] + n[2] * x[2] - offsets[i]
+    x0, x1, x2 = x
+    for i, (nx, ny, nz) in enumerate(normals):
+        v = nx * x0 + ny * x1 + nz * x2 - offsets[i]
         if v > best:
             best, arg = v, i
     return best, arg
@@ -247,6 +251,22 @@ class ObstacleSet:
         self.arrays = [
             (np.array(n), np.array(o)) if len(n) > _VECTOR_PLANES else None for n, o in obstacles
         ]
+
+    def with_first(self, normals: list[Vec], offsets: list[float]) -> ObstacleSet:
+        """The same set with obstacle 0 (the object) replaced by one of as many planes:
+        what a moving object needs each tick, without re-flattening the static ones."""
+        if len(normals) != len(self.obstacles[0][0]):
+            return ObstacleSet([(normals, offsets), *self.obstacles[1:]])
+        new = object.__new__(ObstacleSet)
+        new.obstacles = [(normals, offsets), *self.obstacles[1:]]
+        n0 = len(normals)
+        new.planes = self.planes
+        new.normals = normals + self.normals[n0:]
+        new.offsets = offsets + self.offsets[n0:]
+        new.index = self.index
+        first = (np.array(normals), np.array(offsets)) if n0 > _VECTOR_PLANES else None
+        new.arrays = [first, *self.arrays[1:]]
+        return new
 
 
 def proxy_step_multi(

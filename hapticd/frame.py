@@ -107,10 +107,6 @@ FIELDS: tuple[FrameField, ...] = (
         "the object's outward surface normal at each contact (0 when free)",
     ),
     # Hand-offs within a tick, not recorded.
-    FrameField("god_proxy", "<f8", F3, "m", "proxy outside every obstacle", False),
-    FrameField(
-        "object_proxy", "<f8", F3, "m", "device pushed out of the object alone, frictionless", False
-    ),
     FrameField("surface_point", "<f8", F3, "m", "fingertip centre held on the object", False),
 )
 

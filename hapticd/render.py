@@ -79,7 +79,6 @@ class Renderer:
         sc = self.scene
         obj = sc.object
         stages: list[Stage] = [self._contact]
-        self._contact.hand_on_proxies = obj.material.has_friction
         if obj.material.has_friction:
             stages.append(self._friction)
         stages += [Forces(sc), self._allocation]

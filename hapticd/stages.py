@@ -59,11 +59,11 @@ def _projector(directions: list[V3]) -> np.ndarray:
 class Contact:
     """God-object contact of spherical fingertips with the object, the ground and the walls.
 
-    Writes ``surface_point`` (the device pushed out of the object's active planes
-    only), ``contact_normal``, ``in_contact``, ``contact_point``, ``proxy_pos``,
+    Writes ``proxy_pos`` (the god-object proxy, outside every obstacle),
+    ``surface_point`` (the device pushed out of the object's active planes only,
+    frictionless), ``contact_normal``, ``in_contact``, ``contact_point`` and
     ``env_force`` (the ground and walls' spring-damper force on each finger; only
-    a scene with surfaces writes it) and, for a friction stage after it,
-    ``god_proxy`` (outside every obstacle) and ``object_proxy`` (= surface_point).
+    a scene with surfaces writes it).
     """
 
     name = "contact"
@@ -72,23 +72,30 @@ class Contact:
         self.scene = scene
         self.radii = radii
         self._surfaces = [[s.polytope.inflated(r) for s in scene.surfaces] for r in radii]
-        # The proxies before friction: only a friction stage needs them (the plan says).
-        self.hand_on_proxies = True
         self._proxy: list[V3] | None = None
         self._built_for: Polytope | None = None
         self._sets: list[ObstacleSet] = []
+        self._untouched: Frame | None = None  # the frame whose contact normals are all zero
 
     def _obstacles(self) -> list[ObstacleSet]:
         """The obstacle sets per finger, rebuilt when the object has moved."""
         poly = self.scene.object.polytope
-        if poly is not self._built_for:
-            self._sets = []
+        if poly is self._built_for:
+            return self._sets
+        normals = poly.normals_list
+        if not self._sets:
             for i, r in enumerate(self.radii):
-                obj_poly = poly.inflated(r)
-                obstacles = [(obj_poly.normals_list, obj_poly.offsets_list)]
+                # Inflated in plain floats: the same sums as Polytope.inflated, bit for bit.
+                obstacles = [(normals, [d + r for d in poly.offsets_list])]
                 obstacles += [(p.normals_list, p.offsets_list) for p in self._surfaces[i]]
                 self._sets.append(ObstacleSet(obstacles))
-            self._built_for = poly
+        else:
+            # The object moved: only its planes change; the ground's and walls' stay.
+            self._sets = [
+                oset.with_first(normals, [d + r for d in poly.offsets_list])
+                for oset, r in zip(self._sets, self.radii, strict=True)
+            ]
+        self._built_for = poly
         return self._sets
 
     def run(self, frame: Frame) -> None:
@@ -98,7 +105,6 @@ class Contact:
         sets = self._obstacles()
         proxies = self._proxy
         n_fingers = len(pos)
-        shown = list(pos)
         points = list(pos)
         held = list(pos)
         normals = [ZERO3] * n_fingers
@@ -111,7 +117,6 @@ class Contact:
             res = proxy_step_multi(oset, proxies[i], dev)
             p = res.proxy
             proxies[i] = p
-            shown[i] = p
             points[i] = p
             held[i] = p
             obj_planes = [(pl, m) for (j, pl), m in zip(res.active, res.mu, strict=True) if j == 0]
@@ -135,19 +140,26 @@ class Contact:
             held[i] = pf
             normals[i] = n
             touching[i] = True
-            shown[i] = _shown(p, pf, pf)
             r = self.radii[i]
             points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
-        if self.hand_on_proxies:
-            frame.god_proxy[:] = proxies
-            frame.object_proxy[:] = held
-        frame.surface_point[:] = held
-        frame.contact_normal[:] = normals
-        frame.in_contact[:] = touching
-        frame.contact_point[:] = points
-        frame.proxy_pos[:] = shown
+        # Assignment through [...] is the cheapest way numpy takes a list of tuples.
+        frame.proxy_pos[...] = proxies
+        frame.in_contact[...] = touching
+        if any(touching):
+            frame.surface_point[...] = held
+            frame.contact_point[...] = points
+            frame.contact_normal[...] = normals
+            self._untouched = None
+        else:
+            # Nothing touches the object: every point is the proxy and every normal zero
+            # (still zero if this frame was written so last tick). Array copies are cheaper.
+            frame.surface_point[...] = frame.proxy_pos
+            frame.contact_point[...] = frame.proxy_pos
+            if frame is not self._untouched:
+                frame.contact_normal.fill(0.0)
+                self._untouched = frame
         if self._surfaces[0]:
-            frame.env_force[:] = env
+            frame.env_force[...] = env
 
     def _env_force(self, oset: ObstacleSet, res: MultiResult, v_dev: np.ndarray) -> V3:
         """Force on a finger from the ground and walls it touches, N."""
@@ -169,7 +181,8 @@ class Friction:
     """Coulomb stick/slip at each fingertip: moves ``surface_point`` within the friction cone.
 
     Keeps one anchor per finger in the object's body frame (so a sticking finger
-    moves with the object); updates ``proxy_pos`` and ``contact_point`` to match.
+    moves with the object); moves ``proxy_pos`` (the god-object proxy as contact
+    wrote it) with the fingertip's point and updates ``contact_point`` to match.
     """
 
     name = "friction"
@@ -188,11 +201,11 @@ class Friction:
             self._anchor = [None] * len(self._anchor)
             return
         pos = frame.device_pos.tolist()
-        held = frame.surface_point.tolist()
+        plain = frame.surface_point.tolist()  # frictionless, as contact wrote them
+        held = list(plain)
         normals = frame.contact_normal.tolist()
-        god = frame.god_proxy.tolist()
-        plain = frame.object_proxy.tolist()
-        shown = frame.proxy_pos.tolist()
+        god = frame.proxy_pos.tolist()
+        shown = list(god)
         points = frame.contact_point.tolist()
         for i, on in enumerate(touching):
             if not on:
@@ -201,20 +214,18 @@ class Friction:
             anchor = self._anchor[i]
             aw = None
             if anchor is not None:
-                a = R @ np.array(anchor) + x0
-                aw = (float(a[0]), float(a[1]), float(a[2]))
+                aw = tuple((R @ np.array(anchor) + x0).tolist())
             dev, n = tuple(pos[i]), tuple(normals[i])
             pf, _ = friction_proxy(tuple(held[i]), dev, n, aw, mat.mu_static, mat.mu_dynamic)  # type: ignore[arg-type]
-            local = R.T @ (np.array(pf) - x0)
-            self._anchor[i] = (float(local[0]), float(local[1]), float(local[2]))
+            self._anchor[i] = tuple((R.T @ (np.array(pf) - x0)).tolist())
             held[i] = pf
             p, po = god[i], plain[i]
             shown[i] = _shown(p, pf, po)
             r = self.radii[i]
             points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
-        frame.surface_point[:] = held
-        frame.proxy_pos[:] = shown
-        frame.contact_point[:] = points
+        frame.surface_point[...] = held
+        frame.proxy_pos[...] = shown
+        frame.contact_point[...] = points
 
 
 class Forces:
@@ -233,6 +244,9 @@ class Forces:
         obj = self.scene.object
         k, b = obj.material.stiffness, obj.material.damping
         touching = frame.in_contact.tolist()
+        if not any(touching):
+            frame.contact_force.fill(0.0)
+            return
         pos = frame.device_pos.tolist()
         held = frame.surface_point.tolist()
         normals = frame.contact_normal.tolist()
@@ -249,7 +263,7 @@ class Forces:
                 if fn < 0.0:
                     f = (f[0] - fn * n[0], f[1] - fn * n[1], f[2] - fn * n[2])
             forces[i] = f
-        frame.contact_force[:] = forces
+        frame.contact_force[...] = forces
 
     def _relative_velocity(self, v_dev: np.ndarray, point: list[float]) -> V3:
         obj = self.scene.object
@@ -286,12 +300,15 @@ class Allocation:
     def run(self, frame: Frame) -> None:
         touching = frame.in_contact.tolist()
         contacts = [i for i, on in enumerate(touching) if on]
-        pos = frame.device_pos.tolist()
-        points = frame.contact_point.tolist()
-        forces = frame.contact_force.tolist()
-        center = tuple(self.scene.object.position.tolist())
         act = self.allocator.actuation
-        world = act.world_directions(pos) if contacts else []
+        points: list = []
+        forces: list = []
+        world: list = []
+        if contacts:  # out of contact the allocator reads none of them
+            points = frame.contact_point.tolist()
+            forces = frame.contact_force.tolist()
+            world = act.world_directions(frame.device_pos.tolist())
+        center = tuple(self.scene.object.position.tolist())
         lam_a, acc = self.allocator.allocate(contacts, world, points, forces, center)
         frame.alpha[()] = self.allocator.alpha
         frame.residual_internal[()] = acc[0]
@@ -299,10 +316,10 @@ class Allocation:
         frame.residual_total[()] = acc[2]
         frame.amplification[()] = acc[3]
         if lam_a is None:
-            frame.rendered_force[:] = 0.0
-            frame.lam_a[:] = 0.0
+            frame.rendered_force.fill(0.0)
+            frame.lam_a.fill(0.0)
             return
-        frame.lam_a[:] = lam_a
+        frame.lam_a[...] = lam_a
         rows = [ZERO3] * len(touching)
         for i in contacts:
             f = [0.0, 0.0, 0.0]
@@ -312,7 +329,7 @@ class Allocation:
                 f[1] += x * d[1]
                 f[2] += x * d[2]
             rows[i] = (f[0], f[1], f[2])
-        frame.rendered_force[:] = rows
+        frame.rendered_force[...] = rows
 
 
 class Environment:
@@ -325,14 +342,14 @@ class Environment:
         self.actuation = actuation
 
     def run(self, frame: Frame) -> None:
-        env = frame.env_force
-        if not env.any():
+        env = frame.env_force.tolist()
+        if not any(any(e) for e in env):  # plain floats: numpy's any() costs more here
             return
         world = self.actuation.world_directions(frame.device_pos.tolist())
         rendered = frame.rendered_force
         for i, e in enumerate(env):
-            if e.any():
-                rendered[i] += _projector(world[i]) @ e
+            if any(e):
+                rendered[i] += _projector(world[i]) @ np.array(e)
 
 
 class Dynamics:

@@ -25,7 +25,7 @@ from hapticd.grasp import grasp_matrix
 
 V3 = tuple[float, float, float]
 Accuracy4 = tuple[float, float, float, float]
-_NO_ACCURACY: Accuracy4 = (0.0, 0.0, 0.0, 0.0)
+NO_ACCURACY: Accuracy4 = (0.0, 0.0, 0.0, 0.0)
 
 
 def _norm(v: V3) -> float:
@@ -76,7 +76,7 @@ class ContactAllocator:
             rho = self._external_ratio(points, forces, contacts, center)
             self.alpha = self.adaptive.update(rho, self.dt)
         if not contacts:
-            return None, _NO_ACCURACY
+            return None, NO_ACCURACY
         lam_a = self._solve(contacts, world, points, forces, center)
         onset = self.robust.contact_onset_n
         if len(contacts) >= 2 and onset > 0.0:
