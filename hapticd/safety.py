@@ -125,7 +125,7 @@ class SafetyChain:
         out = self.apply(
             frame.rendered_force, int(frame.tick), float(frame.t), frame.device_pos, t_wall
         )
-        frame.device_force[:] = out
+        frame.device_force[...] = out
 
     def apply(
         self,
@@ -145,8 +145,11 @@ class SafetyChain:
             out[:] = 0.0
             return out
         prm = self.params
-        if not np.all(np.isfinite(forces)):
-            bad = [i for i in range(len(self.limits)) if not np.all(np.isfinite(forces[i]))]
+        # Plain floats: per-element numpy access would cost more than the checks themselves.
+        rows = np.asarray(forces, dtype=float).tolist()
+        finite = math.isfinite
+        if not all(finite(x) for row in rows for x in row):
+            bad = [i for i, row in enumerate(rows) if not all(finite(x) for x in row)]
             self.trip(tick, t, f"non-finite force for finger(s) {bad}")
             return out
         if t_wall is not None:
@@ -161,7 +164,7 @@ class SafetyChain:
                 return out
         if positions is not None and math.isfinite(prm.workspace_radius_m):
             c = prm.workspace_center_m
-            for i, p in enumerate(positions):
+            for i, p in enumerate(np.asarray(positions, dtype=float).tolist()):
                 r = math.sqrt((p[0] - c[0]) ** 2 + (p[1] - c[1]) ** 2 + (p[2] - c[2]) ** 2)
                 if not r <= prm.workspace_radius_m:
                     self.trip(
@@ -171,7 +174,6 @@ class SafetyChain:
                         f"(limit {prm.workspace_radius_m:g} m)",
                     )
                     return out
-        out[:] = forces
         clamped = limited = False
         step = prm.max_rate_n_per_s * self.dt
         ramp = 1.0
@@ -179,23 +181,27 @@ class SafetyChain:
             ramp = min(1.0, max(0.0, (t - self._t_enabled) / prm.ramp_s))
         if t >= self._t_down:
             ramp = min(ramp, self._down_factor(t))
+        prevs = self._prev.tolist() if step < math.inf else None
         for i, limit in enumerate(self.limits):
-            f = out[i]
-            mag = math.hypot(f[0], f[1], f[2])
+            f0, f1, f2 = rows[i]
+            mag = math.hypot(f0, f1, f2)
             if mag > limit:
-                f *= limit / mag
+                s = limit / mag
+                f0, f1, f2 = f0 * s, f1 * s, f2 * s
                 clamped = True
             if ramp < 1.0:
-                f *= ramp
-            if step < math.inf and (f[0] or f[1] or f[2]):
-                prev = self._prev[i]
-                d0, d1, d2 = f[0] - prev[0], f[1] - prev[1], f[2] - prev[2]
+                f0, f1, f2 = f0 * ramp, f1 * ramp, f2 * ramp
+            if prevs is not None and (f0 or f1 or f2):
+                p0, p1, p2 = prevs[i]
+                d0, d1, d2 = f0 - p0, f1 - p1, f2 - p2
                 change = math.hypot(d0, d1, d2)
                 if change > step:
                     k = step / change
-                    f[0], f[1], f[2] = prev[0] + k * d0, prev[1] + k * d1, prev[2] + k * d2
+                    f0, f1, f2 = p0 + k * d0, p1 + k * d1, p2 + k * d2
                     limited = True
-        self._prev[:] = out
+            rows[i] = (f0, f1, f2)
+        out[...] = rows
+        self._prev[...] = out
         self.clamped_ticks += clamped
         self.rate_limited_ticks += limited
         return out
