@@ -287,4 +287,5 @@ def build_safety(profile: Profile, devices: list[Device]) -> SafetyChain:
             watchdog_s=sc.watchdog_s or math.inf,
         ),
         dt=1.0 / profile.loop.rate_hz,
+        rated_n=[d.info.max_force_n for d in devices],
     )
