@@ -29,8 +29,8 @@ class ProfileError(ValueError):
 
 def param_field(name: str, **kwargs: Any) -> Any:
     """A pydantic Field for the profile key where the settable parameter ``name`` starts,
-    with that parameter's range (hapticd.params): a profile accepts exactly the values
-    the control protocol does. ``kwargs`` go to Field (default, description, ...)."""
+    with that parameter's range (hapticd.params), so a profile and the control protocol
+    accept the same values. ``kwargs`` go to Field (default, description, ...)."""
     spec = params.PARAMS[name]
     if spec.lo is not None:
         kwargs["gt" if spec.lo_open else "ge"] = spec.lo
