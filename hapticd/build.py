@@ -178,6 +178,31 @@ def build_devices(
     return devices, emulators
 
 
+def mesh_shape(path: Path, scale: float = 1.0) -> ConvexShape:
+    """The convex hull of a mesh file (any format trimesh reads), centred on its centroid,
+    scaled by ``scale`` (mesh units to m). Here, not in hapticd.scene: reading files is
+    the configuration's business, and the physics stays free of I/O."""
+    import trimesh
+
+    mesh = trimesh.load(path, force="mesh")
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ValueError(f"{path}: no triangle mesh found")
+    hull = mesh.convex_hull
+    hull.apply_scale(scale)
+    if hull.volume <= 0:
+        raise ValueError(f"{path}: the convex hull has no volume")
+    com = hull.center_mass
+    verts = hull.vertices - com
+    normals = hull.face_normals
+    offsets = np.einsum("ij,ij->i", normals, verts[hull.faces[:, 0]])
+    # Coplanar triangles share a plane: keep one copy.
+    key = np.round(np.column_stack([normals, offsets]), 9)
+    _, keep = np.unique(key, axis=0, return_index=True)
+    keep.sort()
+    inertia = hull.moment_inertia / hull.volume  # trimesh assumes density 1
+    return ConvexShape(normals[keep], offsets[keep], verts, float(hull.volume), inertia)
+
+
 def build_object(cfg: ObjectConfig, base: Path | None = None) -> SceneObject:
     """The grasped object of a profile's scene (ProfileError for a mesh it cannot use)."""
     if cfg.shape == "box":
@@ -189,7 +214,7 @@ def build_object(cfg: ObjectConfig, base: Path | None = None) -> SceneObject:
         if not path.is_absolute() and base is not None:
             path = base / path
         try:
-            shape = ConvexShape.from_mesh(path, cfg.mesh_scale)
+            shape = mesh_shape(path, cfg.mesh_scale)
         except (OSError, ValueError) as exc:
             raise ProfileError(f"scene.object.mesh: cannot use {path}: {exc}") from None
     mat = Material(
@@ -287,4 +312,5 @@ def build_safety(profile: Profile, devices: list[Device]) -> SafetyChain:
             watchdog_s=sc.watchdog_s or math.inf,
         ),
         dt=1.0 / profile.loop.rate_hz,
+        rated_n=[d.info.max_force_n for d in devices],
     )

@@ -14,8 +14,7 @@ from typing import Any
 
 from hapticd_drivers import BackendUnavailableError
 
-from hapticd import __version__
-from hapticd.allocation import METHODS
+from hapticd import __version__, params
 from hapticd.build import build_scene, load_trajectories
 from hapticd.control import ControlClient, default_socket_path
 from hapticd.daemon.sdnotify import ServiceNotifier
@@ -176,29 +175,6 @@ def cmd_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-PARAM_ALIASES = {
-    "stiffness": "stiffness_n_per_m",
-    "damping": "damping_n_s_per_m",
-    "mass": "mass_kg",
-    "force_limit": "force_limit_n",
-    "actuation": "actuated_directions",
-}
-
-
-def _param(name: str) -> str:
-    return PARAM_ALIASES.get(name, name)
-
-
-def _value(param: str, text: str) -> Any:
-    if param == "friction":
-        return [float(v) for v in text.split(",")]
-    if param == "allocator":
-        return text
-    if param == "actuated_directions":
-        return json.loads(text)
-    return float(text)
-
-
 def format_status(st: dict[str, Any]) -> str:
     pe = st["period_error_us"]
     sc = st["scene"]
@@ -257,22 +233,30 @@ def cmd_client(args: argparse.Namespace) -> int:
     if args.command == "record" and args.action == "start" and args.path is None:
         print("hapticd: record start needs a PATH", file=sys.stderr)
         return EXIT_BAD_INPUT
+    spec: params.Param | None = None
+    param = ""
     value: Any = None
-    if args.command == "set":
+    if args.command in ("get", "set"):
+        # Checked here, before connecting: a typo needs no running daemon to be reported.
         try:
-            value = _value(_param(args.param), args.value)
-        except ValueError as exc:
-            print(f"hapticd: bad value {args.value!r} for {args.param}: {exc}", file=sys.stderr)
+            spec = params.lookup(args.param)
+            if args.command == "set":
+                value = spec.parse(args.value)
+                spec.check(value)
+        except params.ParamError as exc:
+            # The same "code: message" as a reply from the daemon would print.
+            what = "" if spec is None else f"bad value {args.value!r} for {args.param}: "
+            print(f"hapticd: {exc.code}: {what}{exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
+        param = spec.name
     try:
         with ControlClient(args.socket) as client:
             cmd = args.command
             if cmd == "set":
-                result = client.set(_param(args.param), value)
+                result = client.set(param, value)
             elif cmd == "allocator":
                 result = client.set("allocator", args.name)
             elif cmd == "get":
-                param = _param(args.param)
                 result = {param: client.get(param)}
             elif cmd == "record":
                 if args.action == "start":
@@ -427,6 +411,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="do not try SCHED_FIFO, mlockall or timer slack (the profile's loop.realtime)",
     )
     sock_help = "the daemon's control socket (default: $HAPTICD_SOCKET or the runtime directory)"
+    param_help = ", ".join(
+        f"{p.alias} ({p.name})" if p.alias else p.name for p in params.PARAMS.values()
+    )
+    value_help = "; ".join(f"{p.name}: {p.syntax}" for p in params.PARAMS.values())
     clients = (
         ("status", "show a running hapticd's state"),
         ("enable", "re-enable forces (clears a latched fault; forces ramp up)"),
@@ -444,19 +432,11 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--socket", type=Path, metavar="PATH", help=sock_help)
         p.set_defaults(func=cmd_client)
         if name in ("get", "set"):
-            p.add_argument(
-                "param",
-                help="stiffness (stiffness_n_per_m), damping, mass, friction, allocator, "
-                "force_limit (force_limit_n), actuation (actuated_directions)",
-            )
+            p.add_argument("param", help=param_help)
         if name == "set":
-            p.add_argument(
-                "value",
-                help="a number in SI units; friction as STATIC,DYNAMIC; an allocator name; "
-                "actuation as JSON, e.g. '[[[0,0,1]],[[0,0,1]]]'",
-            )
+            p.add_argument("value", help=value_help)
         if name == "allocator":
-            p.add_argument("name", choices=list(METHODS))
+            p.add_argument("name", choices=list(params.ALLOCATORS))
         if name == "record":
             p.add_argument("action", choices=["start", "stop"])
             p.add_argument("path", nargs="?", type=Path, help="the .hrec file (start)")

@@ -10,10 +10,12 @@ from __future__ import annotations
 import difflib
 import math
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from hapticd import params
 
 PROFILE_VERSION = 1
 UNIT_TOL = 1e-3
@@ -23,6 +25,25 @@ Vec3 = tuple[float, float, float]
 
 class ProfileError(ValueError):
     """A profile that cannot be used; the message names file, key path and expectation."""
+
+
+def param_field(name: str, **kwargs: Any) -> Any:
+    """A pydantic Field for the profile key where the settable parameter ``name`` starts,
+    with that parameter's range (hapticd.params), so a profile and the control protocol
+    accept the same values. ``kwargs`` go to Field (default, description, ...)."""
+    spec = params.PARAMS[name]
+    if spec.lo is not None:
+        kwargs["gt" if spec.lo_open else "ge"] = spec.lo
+    if spec.hi is not None:
+        kwargs["le"] = spec.hi
+    if spec.max_per_finger is not None:
+        kwargs["max_length"] = spec.max_per_finger
+    kwargs.setdefault("description", spec.doc)
+    return Field(**kwargs)
+
+
+# Built from the spec's names at import, so a type checker sees only str here.
+AllocatorName = Literal[tuple(params.ALLOCATORS)]  # type: ignore[valid-type]
 
 
 class _Strict(BaseModel):
@@ -105,9 +126,9 @@ class FingerConfig(_Strict):
     name: str = Field(min_length=1)
     radius_m: float = Field(default=0.008, gt=0, le=0.05, description="fingertip sphere radius, m")
     device: DeviceConfig
-    actuated_directions: tuple[Vec3, ...] = Field(
+    actuated_directions: tuple[Vec3, ...] = param_field(
+        "actuated_directions",
         min_length=0,
-        max_length=3,
         description="unit force directions the device renders for this finger (0-3)",
     )
 
@@ -120,8 +141,8 @@ class FingerConfig(_Strict):
 class FrictionConfig(_Strict):
     """Coulomb friction coefficients (dimensionless); 0 and 0 turn friction off."""
 
-    static: float = Field(default=0.0, ge=0, le=5)
-    dynamic: float = Field(default=0.0, ge=0, le=5)
+    static: float = param_field("friction", default=0.0, description="static coefficient")
+    dynamic: float = param_field("friction", default=0.0, description="dynamic coefficient")
     torsion_m: float = Field(
         default=0.0,
         ge=0,
@@ -156,9 +177,9 @@ class ObjectConfig(_Strict):
         default=(0.0, 0.0, 0.0), description="roll, pitch, yaw (x, y, z fixed axes), rad"
     )
     fixed: bool = True
-    mass_kg: float | None = Field(default=None, gt=0, le=10, description="needed when free, kg")
-    stiffness_n_per_m: float = Field(gt=0, le=1e5)
-    damping_n_s_per_m: float = Field(default=0.0, ge=0, le=1e3)
+    mass_kg: float | None = param_field("mass_kg", default=None, description="needed when free, kg")
+    stiffness_n_per_m: float = param_field("stiffness_n_per_m")
+    damping_n_s_per_m: float = param_field("damping_n_s_per_m", default=0.0)
     friction: FrictionConfig = FrictionConfig()
 
     @field_validator("size_m")
@@ -295,7 +316,7 @@ class AdaptiveConfig(_Strict):
 
 
 class RenderingConfig(_Strict):
-    allocator: Literal["pinv", "if", "ef", "adaptive", "pinv_exact", "if_exact", "ef_exact"] = "if"
+    allocator: AllocatorName = "if"
     robustness: RobustnessConfig = RobustnessConfig()
     adaptive: AdaptiveConfig = AdaptiveConfig()
     actuation_frame: Literal["world", "grasp"] = Field(
@@ -306,8 +327,9 @@ class RenderingConfig(_Strict):
 
 
 class SafetyConfig(_Strict):
-    max_force_n: float = Field(
-        gt=0, le=50.0, description="force limit per finger, N (the device's own limit also applies)"
+    max_force_n: float = param_field(
+        "force_limit_n",
+        description="force limit per finger, N (the device's own limit also applies)",
     )
     ramp_s: float = Field(default=0.5, ge=0, le=10, description="force ramp after enabling, s")
     stop_ramp_s: float = Field(

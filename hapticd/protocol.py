@@ -4,17 +4,17 @@ The server greets every client with ``{"hapticd": VERSION, "protocol": 1}``. A
 request is one JSON object per line: ``{"id": ANY, "cmd": NAME, ...}``; the
 reply carries the same id and either ``"ok": true, "result": ...`` or
 ``"ok": false, "error": {"code": ..., "message": ...}``. Requests are checked
-here, completely, before anything changes; a bad one changes nothing.
+here, completely, before anything changes; a bad one changes nothing. Parameters
+and their ranges are declared in ``hapticd.params``. Standard library only.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
 from typing import Any
 
-from hapticd.allocation import METHODS
+from hapticd import params
 
 PROTOCOL_VERSION = 1
 MAX_LINE_BYTES = 64 * 1024
@@ -28,75 +28,12 @@ class ProtocolError(ValueError):
         self.code = code
 
 
-@dataclass(frozen=True)
-class Param:
-    """A settable parameter: its range (SI units in its name) and how to check a value."""
-
-    name: str
-    lo: float | None = None
-    hi: float | None = None
-
-    def check(self, value: Any) -> Any:
-        if self.name == "allocator":
-            if value not in METHODS:
-                raise ProtocolError(
-                    "bad_value", f"allocator must be one of {list(METHODS)}, got {value!r}"
-                )
-            return value
-        if self.name == "actuated_directions":
-            return _directions(value)
-        if self.name == "friction":
-            if not (isinstance(value, list | tuple) and len(value) == 2):
-                raise ProtocolError("bad_value", "friction must be [static, dynamic]")
-            s, d = (_number(v, "friction") for v in value)
-            if not (0 <= d <= s <= 5):
-                raise ProtocolError(
-                    "bad_value", f"friction needs 0 <= dynamic <= static <= 5, got {value}"
-                )
-            return (s, d)
-        x = _number(value, self.name)
-        if (self.lo is not None and x < self.lo) or (self.hi is not None and x > self.hi):
-            raise ProtocolError(
-                "out_of_range", f"{self.name} must be in [{self.lo}, {self.hi}], got {x}"
-            )
-        return x
-
-
 def _number(value: Any, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise ProtocolError("bad_value", f"{name} must be a finite number, got {value!r}")
     return float(value)
 
 
-def _directions(value: Any) -> list[list[tuple[float, float, float]]]:
-    """Per-finger lists of unit 3-vectors (normalised here; zero or non-finite rejected)."""
-    msg = "actuated_directions must be a list per finger of [x, y, z] directions"
-    if not isinstance(value, list) or not all(isinstance(ds, list) for ds in value):
-        raise ProtocolError("bad_value", msg)
-    out = []
-    for i, ds in enumerate(value):
-        finger = []
-        for j, d in enumerate(ds):
-            if not (isinstance(d, list) and len(d) == 3):
-                raise ProtocolError("bad_value", f"{msg}; finger {i} direction {j} is {d!r}")
-            x, y, z = (_number(v, f"actuated_directions[{i}][{j}]") for v in d)
-            n = math.sqrt(x * x + y * y + z * z)
-            if n < 1e-9:
-                raise ProtocolError("bad_value", f"actuated_directions[{i}][{j}] is zero")
-            finger.append((x / n, y / n, z / n))
-        out.append(finger)
-    return out
-
-
-PARAMS: dict[str, Param] = {
-    "stiffness_n_per_m": Param("stiffness_n_per_m", 1e-3, 1e5),
-    "damping_n_s_per_m": Param("damping_n_s_per_m", 0.0, 1e3),
-    "mass_kg": Param("mass_kg", 1e-3, 10.0),
-    "friction": Param("friction"),
-    "allocator": Param("allocator"),
-    "force_limit_n": Param("force_limit_n", 0.01, 50.0),
-    "actuated_directions": Param("actuated_directions"),
-}
 COMMANDS = (
     "status",
     "get",
@@ -137,14 +74,15 @@ def parse_request(line: bytes) -> dict[str, Any]:
         raise ProtocolError("unknown_command", f"unknown cmd {cmd!r}; commands: {list(COMMANDS)}")
     if cmd in ("get", "set"):
         name = req.get("param")
-        if name not in PARAMS:
-            raise ProtocolError(
-                "unknown_param", f"unknown param {name!r}; params: {sorted(PARAMS)}"
-            )
+        if not (isinstance(name, str) and name in params.PARAMS):
+            raise ProtocolError("unknown_param", params.unknown_message(name))
         if cmd == "set":
             if "value" not in req:
                 raise ProtocolError("malformed", "set needs a value")
-            req["value"] = PARAMS[name].check(req["value"])
+            try:
+                req["value"] = params.PARAMS[name].check(req["value"])
+            except params.ParamError as exc:
+                raise ProtocolError(exc.code, str(exc)) from None
     elif cmd == "record_start":
         path = req.get("path")
         if not (isinstance(path, str) and path.startswith("/")):

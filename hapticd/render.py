@@ -5,9 +5,9 @@ device state is filled: contact, friction, forces, allocation, environment,
 dynamics, scene. Stages the scene does not need are not in the plan and never
 run (a fixed cube has no dynamics stage, a frictionless one no friction stage).
 ``insert`` adds a stage after a named one; ``set_param`` changes a scene or
-rendering parameter and re-plans. The same object renders off-line:
-``step(device_pos, device_vel)`` runs one tick on the renderer's own frame,
-with no devices, timing or safety.
+rendering parameter (those of hapticd.params the renderer owns) and re-plans.
+The same object renders off-line: ``step(device_pos, device_vel)`` runs one
+tick on the renderer's own frame, with no devices, timing or safety.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from hapticd.actuation import Actuation
 from hapticd.allocation import DEFAULT_ROBUSTNESS, METHODS, AdaptiveState, Robustness
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.frame import Frame
+from hapticd.params import PARAMS, ParamError
 from hapticd.scene import Material, Scene, SceneObject
 from hapticd.stages import (
     Allocation,
@@ -136,25 +137,28 @@ class Renderer:
         return self.allocator.method
 
     def param(self, name: str) -> Any:
-        """The current value of a renderer parameter (JSON-friendly)."""
-        try:
-            get = _GETTERS[name]
-        except KeyError:
-            raise KeyError(f"the renderer has no parameter {name!r}") from None
-        return get(self)
+        """The current value of a renderer parameter (hapticd.params), JSON-friendly."""
+        return _GETTERS[_own(name)](self)
 
     def set_param(self, name: str, value: Any) -> None:
         """Change a scene or rendering parameter now (call between ticks) and re-plan.
 
-        ValueError, with nothing changed, for an unknown name or an actuation whose
-        number of directions per finger differs (it fixes the recording's layout).
+        The value is taken as given: the control protocol checks it against its spec
+        first. ValueError, with nothing changed, for a name the renderer does not own or
+        an actuation whose number of directions per finger differs (it fixes the
+        recording's layout).
         """
-        try:
-            setter = _SETTERS[name]
-        except KeyError:
-            raise ValueError(f"unknown parameter {name!r}; known: {sorted(_SETTERS)}") from None
-        setter(self, value)
+        _SETTERS[_own(name)](self, value)
         self.plan()
+
+
+def _own(name: str) -> str:
+    spec = PARAMS.get(name)
+    if spec is None or spec.owner != "renderer":
+        raise ParamError(
+            "unknown_param", f"unknown parameter {name!r} for the renderer; known: {list(_SETTERS)}"
+        )
+    return name
 
 
 def _material(r: Renderer, **change: float) -> None:
@@ -186,20 +190,17 @@ def _set_allocator(r: Renderer, value: Any) -> None:
     r.allocator.method = str(value)
 
 
-def _set_fixed(r: Renderer, value: Any) -> None:
-    r.obj.fixed = bool(value)
-
-
 def _set_mass(r: Renderer, value: Any) -> None:
     r.obj.mass = float(value)
 
 
+# How the renderer changes and reads each parameter it owns (hapticd.params, owner
+# "renderer"); a test checks these cover exactly those.
 _SETTERS: dict[str, Callable[[Renderer, Any], None]] = {
     "stiffness_n_per_m": lambda r, v: _material(r, stiffness=float(v)),
     "damping_n_s_per_m": lambda r, v: _material(r, damping=float(v)),
     "friction": lambda r, v: _material(r, mu_static=float(v[0]), mu_dynamic=float(v[1])),
     "mass_kg": _set_mass,
-    "fixed": _set_fixed,
     "allocator": _set_allocator,
     "actuated_directions": _set_actuation,
 }
@@ -209,7 +210,6 @@ _GETTERS: dict[str, Callable[[Renderer], Any]] = {
     "damping_n_s_per_m": lambda r: r.obj.material.damping,
     "friction": lambda r: [r.obj.material.mu_static, r.obj.material.mu_dynamic],
     "mass_kg": lambda r: r.obj.mass,
-    "fixed": lambda r: r.obj.fixed,
     "allocator": lambda r: r.allocator.method,
     "actuated_directions": lambda r: [[list(d) for d in ds] for ds in r.actuation.local],
 }

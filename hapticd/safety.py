@@ -9,11 +9,14 @@ fault keeps all forces at zero until ``reset``. Forces in N, shape (F, 3).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from hapticd.frame import Frame
+from hapticd.params import PARAMS, ParamError
 
 
 @dataclass(frozen=True)
@@ -48,15 +51,25 @@ class SafetyChain:
     guard, watchdog, workspace, magnitude clamp (direction kept), rate limit, enable ramp.
 
     Every stage only scales a force down or moves it between two forces within the
-    limit, so the output never exceeds the limit and is never NaN.
+    limit, so the output never exceeds the limit and is never NaN. ``rated_n`` are the
+    devices' own limits (N, per finger), which a new ``force_limit_n`` never exceeds;
+    without them, the starting ``limits_n``.
     """
 
     def __init__(
-        self, limits_n: list[float], params: SafetyParams | None = None, dt: float = 1e-3
+        self,
+        limits_n: list[float],
+        params: SafetyParams | None = None,
+        dt: float = 1e-3,
+        *,
+        rated_n: list[float] | None = None,
     ) -> None:
         if not limits_n or any(not (math.isfinite(v) and v > 0) for v in limits_n):
             raise ValueError(f"force limits must be positive and finite, got {limits_n}")
         self.limits = [float(v) for v in limits_n]
+        self.rated = [float(v) for v in (rated_n if rated_n is not None else limits_n)]
+        if len(self.rated) != len(self.limits):
+            raise ValueError(f"one rated force per finger is needed, got {rated_n}")
         self.params = params or SafetyParams()
         self.dt = float(dt)
         self.fault: Fault | None = None
@@ -87,6 +100,14 @@ class SafetyChain:
         ):
             raise ValueError(f"force limits must be {len(self.limits)} positive numbers")
         self.limits = [float(v) for v in limits_n]
+
+    def param(self, name: str) -> Any:
+        """The current value of a safety parameter (hapticd.params, owner ``safety``)."""
+        return _GETTERS[_own(name)](self)
+
+    def set_param(self, name: str, value: Any) -> None:
+        """Change a safety parameter (already checked against its spec) from the next tick."""
+        _SETTERS[_own(name)](self, value)
 
     def ramp_down(self, t: float, duration_s: float) -> None:
         """Scale forces by a factor falling from 1 at ``t`` (s) to 0 after ``duration_s``."""
@@ -205,3 +226,22 @@ class SafetyChain:
         self.clamped_ticks += clamped
         self.rate_limited_ticks += limited
         return out
+
+
+def _own(name: str) -> str:
+    spec = PARAMS.get(name)
+    if spec is None or spec.owner != "safety":
+        known = list(_SETTERS)
+        raise ParamError(
+            "unknown_param", f"unknown parameter {name!r} for the safety chain; known: {known}"
+        )
+    return name
+
+
+_SETTERS: dict[str, Callable[[SafetyChain, Any], None]] = {
+    "force_limit_n": lambda s, v: s.set_limits([min(r, float(v)) for r in s.rated]),
+}
+
+_GETTERS: dict[str, Callable[[SafetyChain], Any]] = {
+    "force_limit_n": lambda s: list(s.limits),
+}

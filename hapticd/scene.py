@@ -9,7 +9,6 @@ material: stiffness (N/m), damping (N s/m), static and dynamic friction.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -43,7 +42,10 @@ class Material:
 
 @dataclass(frozen=True)
 class ConvexShape:
-    """Convex polytope in its body frame: unit normals (m, 3), offsets (m,), vertices (v, 3) m."""
+    """Convex polytope in its body frame: unit normals (m, 3), offsets (m,), vertices (v, 3) m.
+
+    A box is made here; a mesh file's convex hull by ``hapticd.build.mesh_shape``.
+    """
 
     normals: np.ndarray
     offsets: np.ndarray
@@ -60,29 +62,6 @@ class ConvexShape:
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
         inertia = np.diag([b * b + c * c, a * a + c * c, a * a + b * b]) / 12.0
         return cls(normals, offsets, signs * h, a * b * c, inertia)
-
-    @classmethod
-    def from_mesh(cls, path: Path, scale: float = 1.0) -> ConvexShape:
-        """The convex hull of a mesh file (any format trimesh reads), centred on its centroid."""
-        import trimesh
-
-        mesh = trimesh.load(path, force="mesh")
-        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-            raise ValueError(f"{path}: no triangle mesh found")
-        hull = mesh.convex_hull
-        hull.apply_scale(scale)
-        if hull.volume <= 0:
-            raise ValueError(f"{path}: the convex hull has no volume")
-        com = hull.center_mass
-        verts = hull.vertices - com
-        normals = hull.face_normals
-        offsets = np.einsum("ij,ij->i", normals, verts[hull.faces[:, 0]])
-        # Coplanar triangles share a plane: keep one copy.
-        key = np.round(np.column_stack([normals, offsets]), 9)
-        _, keep = np.unique(key, axis=0, return_index=True)
-        keep.sort()
-        inertia = hull.moment_inertia / hull.volume  # trimesh assumes density 1
-        return cls(normals[keep], offsets[keep], verts, float(hull.volume), inertia)
 
 
 @dataclass

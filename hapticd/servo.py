@@ -35,6 +35,7 @@ from hapticd.commands import Command
 from hapticd.device_bank import DeviceBank
 from hapticd.frame import Frame
 from hapticd.pacing import LoopStats, Pacer
+from hapticd.params import PARAMS, ParamError
 from hapticd.recording import Recorder
 from hapticd.render import Renderer
 from hapticd.safety import SafetyChain
@@ -158,18 +159,25 @@ class ServoLoop:
 
     # -- what commands change -------------------------------------------------------------
 
+    def _owner(self, name: str) -> Renderer | SafetyChain:
+        """The part of the loop that holds parameter ``name``, as its spec (hapticd.params)
+        says; looked up on every call, since a reload swaps both."""
+        spec = PARAMS.get(name)
+        if spec is None:
+            raise ParamError("unknown_param", f"unknown parameter {name!r}")
+        holders: dict[str, Renderer | SafetyChain] = {
+            "renderer": self.renderer,
+            "safety": self.safety,
+        }
+        return holders[spec.owner]
+
     def param(self, name: str) -> Any:
-        """A parameter's current value: the safety chain's force limit, else the renderer's."""
-        if name == "force_limit_n":
-            return list(self.safety.limits)
-        return self.renderer.param(name)
+        """A parameter's current value (JSON-friendly), from whichever part holds it."""
+        return self._owner(name).param(name)
 
     def set_param(self, name: str, value: Any) -> None:
         """Set a parameter now (at a tick boundary); ValueError changes nothing."""
-        if name == "force_limit_n":
-            self.safety.set_limits([min(d.info.max_force_n, float(value)) for d in self.devices])
-        else:
-            self.renderer.set_param(name, value)
+        self._owner(name).set_param(name, value)
 
     def reload(self, renderer: Renderer, safety: SafetyChain, t: float) -> None:
         """Switch to another renderer and safety chain; forces ramp up again, proxies start

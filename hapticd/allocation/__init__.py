@@ -38,6 +38,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from hapticd import params
 from hapticd.allocation.accuracy import (
     Accuracy,
     accuracy,
@@ -70,7 +71,8 @@ from hapticd.allocation.robust import (
     soft_internal_projector,
 )
 
-METHODS: tuple[str, ...] = ("pinv", "if", "ef", "adaptive", "pinv_exact", "if_exact", "ef_exact")
+# Declared with the other settable parameters (the control client reads them too).
+METHODS: tuple[str, ...] = tuple(params.ALLOCATORS)
 ROBUST_METHODS: tuple[str, ...] = ("pinv", "if", "ef", "adaptive")
 EXACT_METHODS: tuple[str, ...] = ("pinv_exact", "if_exact", "ef_exact")
 

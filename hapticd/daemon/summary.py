@@ -76,7 +76,7 @@ def scene_status(loop: ServoLoop) -> dict[str, Any]:
     frame = loop.frame
     return {
         "shape": type(r.obj.shape).__name__,
-        "fixed": r.param("fixed"),
+        "fixed": r.obj.fixed,
         "mass_kg": r.param("mass_kg"),
         "stiffness_n_per_m": r.param("stiffness_n_per_m"),
         "damping_n_s_per_m": r.param("damping_n_s_per_m"),

@@ -1,0 +1,241 @@
+"""The import rules of docs/architecture.md, read from every module's source (ast).
+
+Every module of hapticd/ is in exactly one category below, and drivers/ (installed as
+hapticd_drivers) is one category as a whole:
+
+- pure: numpy in, numpy out; no I/O, no configuration, no logging;
+- runtime: the servo loop and what it runs on; no configuration (it gets built objects);
+- service: configuration, the daemon, the command line, recordings; anything goes;
+- client: what an experiment script loads to talk to a daemon; the standard library only;
+- drivers: the device layer; nothing of hapticd.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+# A name ending in ".*" is a whole package (its __init__ and every module under it).
+CATEGORIES: dict[str, set[str]] = {
+    "pure": {
+        "hapticd.actuation",
+        "hapticd.allocation.*",
+        "hapticd.contact",
+        "hapticd.dynamics",
+        "hapticd.frame",
+        "hapticd.friction",
+        "hapticd.grasp",
+        "hapticd.render",
+        "hapticd.safety",
+        "hapticd.scene",
+        "hapticd.stages",
+        "hapticd.trajectory",
+    },
+    "runtime": {
+        "hapticd.commands",
+        "hapticd.device_bank",
+        "hapticd.pacing",
+        "hapticd.realtime",
+        "hapticd.servo",
+        "hapticd.stats",
+    },
+    "service": {
+        "hapticd.__main__",
+        "hapticd.build",
+        "hapticd.cli",
+        "hapticd.daemon.*",
+        "hapticd.profile",
+        "hapticd.recording.*",
+    },
+    "client": {
+        "hapticd",  # the package's __init__: every import of hapticd.control loads it
+        "hapticd.control",
+        "hapticd.params",
+        "hapticd.protocol",
+    },
+    "drivers": {"hapticd_drivers.*"},
+}
+
+# Third-party packages a pure module may use.
+PURE_THIRD_PARTY = {"numpy", "scipy"}
+# Standard-library modules that do I/O, talk to other processes or log: none in pure code.
+IO_STDLIB = {
+    "asyncio",
+    "csv",
+    "ctypes",
+    "io",
+    "json",
+    "logging",
+    "mmap",
+    "multiprocessing",
+    "os",
+    "pathlib",
+    "pickle",
+    "select",
+    "selectors",
+    "shutil",
+    "signal",
+    "socket",
+    "sqlite3",
+    "subprocess",
+    "tempfile",
+    "threading",
+}
+# What the servo loop is built from, never what it imports.
+CONFIGURATION = {"pydantic", "yaml", "hapticd.profile", "hapticd.build", "hapticd.daemon"}
+FRONT = {"hapticd.cli", "hapticd.daemon"}
+
+
+def _modules() -> dict[str, Path]:
+    """Every module: its import name and its file."""
+    out = {}
+    for folder, package in (("hapticd", "hapticd"), ("drivers", "hapticd_drivers")):
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            parts = [package, *path.relative_to(ROOT / folder).with_suffix("").parts]
+            if parts[-1] == "__init__":
+                parts.pop()
+            out[".".join(parts)] = path
+    return out
+
+
+MODULES = _modules()
+
+
+def _categories(module: str) -> list[str]:
+    def matches(pattern: str) -> bool:
+        if pattern.endswith(".*"):
+            package = pattern[:-2]
+            return module == package or module.startswith(package + ".")
+        return module == pattern
+
+    return [c for c, patterns in CATEGORIES.items() if any(matches(p) for p in patterns)]
+
+
+def _imports(module: str) -> set[str]:
+    """The modules ``module`` imports, anywhere in its source (also inside functions and
+    TYPE_CHECKING blocks), as absolute dotted names: ``from a import b`` is a.b when that
+    is a module of ours, else a. (Parent packages load too: the package __init__s are
+    categorised like any module.)"""
+    path = MODULES[module]
+    tree = ast.parse(path.read_text(), str(path))
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")
+                anchor = anchor[: len(anchor) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            if base == "__future__":
+                continue
+            for alias in node.names:
+                sub = f"{base}.{alias.name}"
+                out.add(sub if sub in MODULES else base)
+    return out
+
+
+def _top(name: str) -> str:
+    return name.partition(".")[0]
+
+
+def _ours(name: str) -> bool:
+    return _top(name) in ("hapticd", "hapticd_drivers")
+
+
+def _within(name: str, prefixes: set[str]) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in prefixes)
+
+
+def _in(category: str) -> list[str]:
+    return [m for m in MODULES if _categories(m) == [category]]
+
+
+def test_every_module_is_in_exactly_one_category():
+    problems = []
+    for module in MODULES:
+        cats = _categories(module)
+        if not cats:
+            problems.append(
+                f"{module} has no category: add it to one of CATEGORIES in "
+                f"tests/test_layout.py ({', '.join(CATEGORIES)}; docs/architecture.md "
+                "says what each may import)"
+            )
+        elif len(cats) > 1:
+            problems.append(f"{module} is in more than one category: {cats}")
+    stale = [
+        p for ps in CATEGORIES.values() for p in ps if not p.endswith(".*") and p not in MODULES
+    ]
+    assert not problems and not stale, "\n".join(problems + [f"no module {p}" for p in stale])
+
+
+@pytest.mark.parametrize("module", _in("pure"))
+def test_pure_modules_do_no_io_and_read_no_configuration(module):
+    bad = set()
+    for name in _imports(module):
+        top = _top(name)
+        if _ours(name):
+            # Only other pure modules, and the parameter spec (plain data, no I/O).
+            allowed = _categories(name) == ["pure"] or name == "hapticd.params"
+        else:
+            allowed = top in PURE_THIRD_PARTY or (
+                top in sys.stdlib_module_names and top not in IO_STDLIB
+            )
+        if not allowed:
+            bad.add(name)
+    tree = ast.parse(MODULES[module].read_text())
+    calls = {
+        n.func.id
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)
+    }
+    if "open" in calls:
+        bad.add("open()")
+    assert not bad, f"{module} is pure (numpy in, numpy out) but uses {sorted(bad)}"
+
+
+@pytest.mark.parametrize("module", _in("runtime"))
+def test_the_loop_reads_no_configuration(module):
+    bad = {n for n in _imports(module) if _within(n, CONFIGURATION | FRONT)}
+    assert not bad, f"{module} runs the loop, which gets built objects, but imports {sorted(bad)}"
+
+
+@pytest.mark.parametrize("module", _in("client"))
+def test_the_client_side_imports_only_the_standard_library(module):
+    client = set(_in("client"))
+    bad = set()
+    for name in _imports(module):
+        if _ours(name):
+            if name not in client:
+                bad.add(name)
+        elif _top(name) not in sys.stdlib_module_names:
+            bad.add(name)
+    assert not bad, (
+        f"{module} is loaded by experiment scripts (standard library only) but imports "
+        f"{sorted(bad)}"
+    )
+
+
+@pytest.mark.parametrize("module", _in("drivers"))
+def test_drivers_import_nothing_of_hapticd(module):
+    bad = {n for n in _imports(module) if _top(n) == "hapticd"}
+    assert not bad, f"{module} is in the device layer, which never imports hapticd: {sorted(bad)}"
+
+
+def test_an_experiment_script_loads_no_numpy_pydantic_or_yaml():
+    code = (
+        "import sys; from hapticd.control import ControlClient; "
+        "print('numpy' in sys.modules, 'pydantic' in sys.modules, 'yaml' in sys.modules)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    assert out.stdout.split() == ["False", "False", "False"], out.stdout + out.stderr
