@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 from hapticd_drivers.delta import Delta, DeltaDescription
-from hapticd_drivers.path import Path
-from hapticd_drivers.protocol import Protocol, ReportError
+from hapticd_drivers.reports import ReportError, ReportSet
+from hapticd_drivers.trajectory import Trajectory
 
 
 class UnpluggedError(OSError):
@@ -32,7 +32,7 @@ class DeltaEmulator:
     def __init__(
         self,
         desc: DeltaDescription,
-        path: Path,
+        path: Trajectory,
         clock: Callable[[], float],
         serial: str = "EMU-0001",
         firmware: int = 0x0100,
@@ -42,7 +42,7 @@ class DeltaEmulator:
             raise ReportError(f"{desc.model}: the description has no report layouts")
         self.desc = desc
         self.delta = Delta(desc)
-        self.protocol = Protocol(desc.reports, desc.model)
+        self.protocol = ReportSet(desc.reports, desc.model)
         self.path = path
         self.clock = clock
         # With a hand (hapticd_drivers.sim.Hand) the end-effector is a fingertip that feels

@@ -1,5 +1,5 @@
-"""The ``hid`` backend: a protocol delta device through cython-hidapi (see protocol_device)."""
+"""The ``hid`` backend: a report-protocol delta device through cython-hidapi (see report_device)."""
 
-from hapticd_drivers.protocol_device import HidDelta
+from hapticd_drivers.report_device import HidDelta
 
 __all__ = ["HidDelta"]

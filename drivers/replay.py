@@ -14,7 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 from hapticd_drivers.base import Device, DeviceError, DeviceInfo, DeviceState, check_force
-from hapticd_drivers.path import Path
+from hapticd_drivers.trajectory import Trajectory
 
 
 class ReplayDevice(Device):
@@ -30,7 +30,7 @@ class ReplayDevice(Device):
         hold_s: float = 0.0,
         workspace_radius_m: float = 0.075,
     ) -> None:
-        self.path = Path(times, positions, f"replay {serial}")
+        self.path = Trajectory(times, positions, f"replay {serial}")
         self.info = DeviceInfo("replay", serial, float(max_force_n), workspace_radius_m)
         self._clock = clock
         self._t0 = 0.0

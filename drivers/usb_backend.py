@@ -16,7 +16,7 @@ import importlib
 from typing import Any
 
 from hapticd_drivers.base import DeviceError
-from hapticd_drivers.protocol_device import ProtocolDelta
+from hapticd_drivers.report_device import ReportDelta
 
 # Vendor control requests for feature reports (bmRequestType: vendor, interface).
 REQ_GET_FEATURE = 0x01
@@ -26,7 +26,7 @@ RT_VENDOR_OUT = 0x41
 CTRL_TIMEOUT_MS = 100
 
 
-class UsbDelta(ProtocolDelta):
+class UsbDelta(ReportDelta):
     """A protocol delta device on a vendor-class USB interface."""
 
     transport = "usb"

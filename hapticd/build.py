@@ -16,7 +16,7 @@ import numpy as np
 from hapticd_drivers import Device, DeviceError, open_device
 from hapticd_drivers.delta import load_description
 from hapticd_drivers.emulator import DeltaEmulator, FakeHidModule
-from hapticd_drivers.path import Path as DevicePath
+from hapticd_drivers.trajectory import Trajectory
 
 from hapticd import recording
 from hapticd.actuation import Actuation
@@ -166,7 +166,7 @@ def build_devices(
                 emulators.append(
                     DeltaEmulator(
                         load_description(hid_cfg.description),
-                        DevicePath(traj[0], traj[1], f"emulator {finger.name}"),
+                        Trajectory(traj[0], traj[1], f"emulator {finger.name}"),
                         clock,
                         serial=serial,
                     )

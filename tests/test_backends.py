@@ -5,7 +5,7 @@ import pytest
 from hapticd_drivers import DeviceError, DeviceState, open_device
 from hapticd_drivers.delta import load_description
 from hapticd_drivers.emulator import DeltaEmulator, FakeHidModule
-from hapticd_drivers.path import Path
+from hapticd_drivers.trajectory import Trajectory
 
 from tests.conftest import AtTick
 
@@ -23,7 +23,7 @@ class Clock:
 
 def make(backend, clock, **kw):
     if backend in ("hid", "usb"):
-        emu = DeltaEmulator(DESC, Path(TIMES, POS, "emu"), clock, serial="EMU-1")
+        emu = DeltaEmulator(DESC, Trajectory(TIMES, POS, "emu"), clock, serial="EMU-1")
         if backend == "hid":
             seam = {"hid_module": FakeHidModule([emu])}
         else:
@@ -56,7 +56,7 @@ def test_conformance_read_write_enable_close(backend):
             dev.read_state(st)
             assert np.all(np.isfinite(st.position)) and np.all(np.isfinite(st.velocity))
             dev.write_force(np.array([0.5, -0.2, 0.1]))
-        want, _ = Path(TIMES, POS, "p").at(clock.t)
+        want, _ = Trajectory(TIMES, POS, "p").at(clock.t)
         tol = 0.01 if backend == "sim" else 2e-5  # sim lags on its hand spring; encoders quantise
         np.testing.assert_allclose(st.position, want, atol=tol)
         with pytest.raises(DeviceError, match="finite"):
@@ -320,7 +320,7 @@ def test_emulator_moved_by_a_hand_feels_the_rendered_force(backend):
     from hapticd_drivers.sim import Hand
 
     clock = Clock()
-    path = Path(np.array([0.0, 1.0]), np.zeros((2, 3)), "still hand")
+    path = Trajectory(np.array([0.0, 1.0]), np.zeros((2, 3)), "still hand")
     hand = Hand(path, mass=0.05, k=300.0, b=3.0)
     emu = DeltaEmulator(DESC, path, clock, serial="EMU-1", hand=hand)
     if backend == "hid":

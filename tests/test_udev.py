@@ -7,7 +7,7 @@ import types
 import numpy as np
 from hapticd_drivers.delta import load_description
 from hapticd_drivers.emulator import DeltaEmulator, FakeHidModule
-from hapticd_drivers.path import Path
+from hapticd_drivers.trajectory import Trajectory
 from hapticd_drivers.udev import discover, rules
 
 from hapticd.cli import main
@@ -22,7 +22,7 @@ def test_rules_cover_every_backends_devices():
 
 
 def test_discover_lists_emulated_hid_devices(monkeypatch):
-    path = Path(np.array([0.0, 1.0]), np.zeros((2, 3)), "p")
+    path = Trajectory(np.array([0.0, 1.0]), np.zeros((2, 3)), "p")
     fake = FakeHidModule(
         [DeltaEmulator(load_description("delta-omega-class"), path, lambda: 0.0, serial="EMU-9")]
     )

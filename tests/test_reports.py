@@ -2,11 +2,11 @@
 
 import pytest
 from hapticd_drivers.delta import load_description
-from hapticd_drivers.protocol import Codec, Protocol, ReportError, sequence_gap
+from hapticd_drivers.reports import Codec, ReportError, ReportSet, sequence_gap
 from hypothesis import given
 from hypothesis import strategies as st
 
-PROTO = Protocol(load_description("delta-omega-class").reports)
+PROTO = ReportSet(load_description("delta-omega-class").reports)
 
 i32 = st.integers(-(2**31), 2**31 - 1)
 u16 = st.integers(0, 2**16 - 1)
@@ -118,4 +118,4 @@ def test_a_description_without_the_required_reports():
     with pytest.raises(
         ReportError, match=r"reports \['output', 'identity', 'limits'\] are missing"
     ):
-        Protocol({"input": {"id": 1, "size": 4, "crc_offset": 2, "fields": []}})
+        ReportSet({"input": {"id": 1, "size": 4, "crc_offset": 2, "fields": []}})

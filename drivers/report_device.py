@@ -1,6 +1,6 @@
 """Delta devices speaking the report protocol (docs/protocol.md), over any transport.
 
-``ProtocolDelta`` holds everything but the transport: it decodes and checks
+``ReportDelta`` holds everything but the transport: it decodes and checks
 every input report (length, ID, CRC, sequence), turns encoder counts into
 position and velocity, and maps a force to motor currents through the Jacobian
 (tau = J^T f), scaling all three down together at the motors' limit so the
@@ -20,12 +20,12 @@ from typing import Any
 import numpy as np
 from hapticd_drivers.base import Device, DeviceError, DeviceInfo, DeviceState, check_force
 from hapticd_drivers.delta import Delta, load_description
-from hapticd_drivers.protocol import Protocol, ReportError, sequence_gap
+from hapticd_drivers.reports import ReportError, ReportSet, sequence_gap
 
 STATUS_WATCHDOG = 2
 
 
-class ProtocolDelta(Device):
+class ReportDelta(Device):
     """A delta device speaking the report protocol; subclasses provide the transport."""
 
     transport = "protocol"
@@ -45,7 +45,7 @@ class ProtocolDelta(Device):
         if self.desc.reports is None or self.desc.usb is None:
             raise DeviceError(f"{self.desc.model}: the description lacks 'reports' or 'usb'")
         self.delta = Delta(self.desc)
-        self.protocol = Protocol(self.desc.reports, self.desc.model)
+        self.protocol = ReportSet(self.desc.reports, self.desc.model)
         self.serial_number = serial_number
         self.index = index
         self.read_timeout_ms = max(1, round(read_timeout_s * 1e3))
@@ -206,7 +206,7 @@ class ProtocolDelta(Device):
         self._enabled = bool(enabled)
 
 
-class HidDelta(ProtocolDelta):
+class HidDelta(ReportDelta):
     """A protocol delta device over HID (hidraw) through cython-hidapi."""
 
     transport = "hid"

@@ -8,7 +8,7 @@ from hapticd_drivers.base import DeviceError
 Vec = tuple[float, float, float]
 
 
-class Path:
+class Trajectory:
     """Positions (N, 3) m at strictly increasing times (N,) s, shifted to start at t = 0."""
 
     def __init__(self, times: np.ndarray, positions: np.ndarray, who: str) -> None:

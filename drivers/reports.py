@@ -134,7 +134,7 @@ class Codec:
         return out
 
 
-class Protocol:
+class ReportSet:
     """All report codecs of one device model, from its description's ``reports`` mapping."""
 
     REQUIRED = ("input", "output", "identity", "limits")
