@@ -49,8 +49,9 @@ def load_libdhd(library: str | None = None) -> ctypes.CDLL:
     path = library or os.environ.get("HAPTICD_LIBDHD") or ctypes.util.find_library("dhd")
     if not path:
         raise DeviceError(
-            "the dhd backend needs Force Dimension's SDK: install it, or point "
-            "HAPTICD_LIBDHD at libdhd"
+            "the dhd backend needs Force Dimension's SDK (libdhd), which was not found: "
+            "install it, or give its path in the profile's device key 'library' "
+            "or in the environment variable HAPTICD_LIBDHD"
         )
     try:
         lib = ctypes.CDLL(path)
@@ -64,6 +65,26 @@ def load_libdhd(library: str | None = None) -> ctypes.CDLL:
             raise DeviceError(f"{path} lacks {name}: an SDK too old or not libdhd")
         fn.restype, fn.argtypes = restype, argtypes
     return lib
+
+
+def preflight(library: str | None = None, **_: Any) -> None:
+    """Check that libdhd loads (DeviceError saying how to point at it if not)."""
+    load_libdhd(library)
+
+
+def discover() -> list[dict[str, Any]]:
+    """The SDK's devices (indices), or why it cannot look."""
+    try:
+        lib = load_libdhd()
+    except DeviceError as exc:
+        return [{"backend": "dhd", "problem": str(exc)}]
+    return [
+        {
+            "backend": "dhd",
+            "model": "Force Dimension",
+            "found": list(range(lib.dhdGetDeviceCount())),
+        }
+    ]
 
 
 class DhdDevice(Device):

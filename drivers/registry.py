@@ -1,19 +1,213 @@
-"""Backend registry: a name maps to a module and class, imported only when selected."""
+"""The backend registry: every device backend declared once.
+
+Each ``Backend`` names its module and class (imported only when selected), the
+pip extra that provides its optional dependency, the keys a profile may give
+it (with their SI units, defaults and bounds) and how it is used: whether it
+plays a finger's trajectory (replay, sim), whether the device emulator can run
+under it (``--emulate``), how to find attached devices and what to check
+before a run. The profile's device schema, ``--device`` choices, the session's
+device construction, ``hapticd devices`` and the docs' backend table all
+derive from ``BACKENDS``.
+"""
 
 from __future__ import annotations
 
 import importlib
+from dataclasses import dataclass, field
 from typing import Any
 
 from hapticd_drivers.base import BackendUnavailableError, Device
 
-# name -> (module, class, pip extra that provides its optional dependency)
-BACKENDS: dict[str, tuple[str, str, str | None]] = {
-    "replay": ("hapticd_drivers.replay", "ReplayDevice", None),
-    "sim": ("hapticd_drivers.sim", "SimulatedFinger", None),
-    "hid": ("hapticd_drivers.hid_backend", "HidDelta", "hid"),
-    "usb": ("hapticd_drivers.usb_backend", "UsbDelta", "usb"),
-    "dhd": ("hapticd_drivers.dhd_backend", "DhdDevice", None),
+REQUIRED: Any = object()  # a key without a default: the profile must give it
+
+
+@dataclass(frozen=True)
+class Key:
+    """One profile key of a backend: ``type`` is float, int, str, or that or None
+    (``optional``); ``gt``/``ge``/``le`` bound a number; ``doc`` names the unit."""
+
+    name: str
+    type: type
+    default: Any
+    doc: str
+    optional: bool = False
+    gt: float | None = None
+    ge: float | None = None
+    le: float | None = None
+
+
+@dataclass(frozen=True)
+class Backend:
+    """One device backend.
+
+    ``plays_trajectory``: the device follows the finger's trajectory (it gets
+    ``times``, ``positions`` and ``clock``). ``emulated``: the delta emulator can
+    run under it (``--emulate``). ``discover`` and ``preflight`` are
+    "module:function" paths: the first lists attached devices, the second checks
+    what a run needs (a library, a driver) and raises DeviceError saying how to fix it.
+    """
+
+    name: str
+    module: str
+    cls: str
+    doc: str
+    keys: tuple[Key, ...]
+    extra: str | None = None
+    plays_trajectory: bool = False
+    emulated: bool = False
+    discover: str | None = None
+    preflight: str | None = None
+    status: str = ""
+    defaults: dict[str, Any] = field(default_factory=dict, init=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self.defaults.update({k.name: k.default for k in self.keys if k.default is not REQUIRED})
+
+    def key(self, name: str) -> Key:
+        return next(k for k in self.keys if k.name == name)
+
+
+def _trajectory(required: bool, doc: str) -> Key:
+    return Key("trajectory", str, REQUIRED if required else None, doc, optional=not required)
+
+
+_FINGER = Key(
+    "finger", str, None, "finger of the recording to play; defaults to this finger's name", True
+)
+_MAX_FORCE = Key("max_force_n", float, 12.0, "the device's rated force, N", gt=0.0)
+_HOLD = Key("hold_s", float, 0.0, "keep running this long after the trajectory ends, s", ge=0.0)
+_INDEX = Key("index", int, 0, "pick the n-th matching device", ge=0)
+
+# The protocol devices (hid, usb) share their keys: the same device on two transports.
+_REPORT_KEYS = (
+    Key(
+        "description",
+        str,
+        "delta-omega-class",
+        "device description: a bundled name or a YAML path (docs/protocol.md)",
+    ),
+    Key("serial_number", str, None, "pick the device by its USB serial number", True),
+    _INDEX,
+    Key(
+        "device_watchdog_s",
+        float,
+        0.05,
+        "the device cuts its forces after this long without a command, s",
+        gt=0.0,
+        le=8.0,
+    ),
+    _trajectory(False, "path for the emulator (--emulate) to move the device along"),
+    _FINGER,
+)
+
+BACKENDS: dict[str, Backend] = {
+    b.name: b
+    for b in (
+        Backend(
+            "replay",
+            "hapticd_drivers.replay",
+            "ReplayDevice",
+            "plays a recorded trajectory, open loop (the tests' device)",
+            (
+                _trajectory(True, "recording path (relative to the profile) or 'builtin:NAME'"),
+                _FINGER,
+                _MAX_FORCE,
+                _HOLD,
+            ),
+            plays_trajectory=True,
+            status="done",
+        ),
+        Backend(
+            "sim",
+            "hapticd_drivers.sim",
+            "SimulatedFinger",
+            "a simulated finger that follows a trajectory and feels the rendered force",
+            (
+                _trajectory(True, "path for the hand: recording path or 'builtin:NAME'"),
+                _FINGER,
+                _MAX_FORCE,
+                _HOLD,
+                Key("mass_kg", float, 0.05, "fingertip and device mass, kg", gt=0.0, le=5.0),
+                Key(
+                    "hand_stiffness_n_per_m",
+                    float,
+                    300.0,
+                    "grip of the hand on the path, N/m",
+                    ge=0.0,
+                    le=1e4,
+                ),
+                Key(
+                    "hand_damping_n_s_per_m",
+                    float,
+                    3.0,
+                    "damping of finger and device, N s/m",
+                    ge=0.0,
+                    le=100.0,
+                ),
+            ),
+            plays_trajectory=True,
+            status="done",
+        ),
+        Backend(
+            "hid",
+            "hapticd_drivers.hid_backend",
+            "HidDelta",
+            "an Omega-class delta device speaking hapticd's report protocol, through cython-hidapi",
+            _REPORT_KEYS,
+            extra="hid",
+            emulated=True,
+            discover="hapticd_drivers.udev:discover_hid",
+            status="done, tested through the emulator",
+        ),
+        Backend(
+            "usb",
+            "hapticd_drivers.usb_backend",
+            "UsbDelta",
+            "the same protocol on a vendor-class interface, through pyusb and libusb",
+            _REPORT_KEYS,
+            extra="usb",
+            emulated=True,
+            discover="hapticd_drivers.udev:discover_usb",
+            status="done, tested through an emulated pyusb backend",
+        ),
+        Backend(
+            "dhd",
+            "hapticd_drivers.dhd_backend",
+            "DhdDevice",
+            "a Force Dimension device (omega.3, ...) through its SDK, libdhd",
+            (
+                Key(
+                    "library",
+                    str,
+                    None,
+                    "path to libdhd; else $HAPTICD_LIBDHD, else the system's dhd library",
+                    True,
+                ),
+                Key("serial_number", int, None, "pick the device by its serial number", True),
+                _INDEX,
+                Key(
+                    "device_watchdog_s",
+                    float,
+                    0.03,
+                    "the SDK cuts forces after this long without a command, s "
+                    "(its watchdog counts 125 us units up to 255: at most 0.031875 s)",
+                    gt=0.0,
+                    le=0.031875,
+                ),
+                Key(
+                    "max_force_n",
+                    float,
+                    12.0,
+                    "the device's rated force, and the SDK's own force limit, N",
+                    gt=0.0,
+                ),
+                _FINGER,
+            ),
+            discover="hapticd_drivers.dhd_backend:discover",
+            preflight="hapticd_drivers.dhd_backend:preflight",
+            status="done, tested through a fake libdhd compiled by the tests",
+        ),
+    )
 }
 
 
@@ -21,20 +215,78 @@ def backend_names() -> list[str]:
     return sorted(BACKENDS)
 
 
-def open_device(backend: str, **kwargs: Any) -> Device:
-    """Create (not yet open) a device of ``backend`` with backend-specific ``kwargs``."""
+def backend(name: str) -> Backend:
+    """The registry entry of ``name``; BackendUnavailableError naming the known ones."""
     try:
-        module_name, class_name, extra = BACKENDS[backend]
+        return BACKENDS[name]
     except KeyError:
         raise BackendUnavailableError(
-            f"unknown device backend {backend!r}; known backends: {', '.join(backend_names())}"
+            f"unknown device backend {name!r}; known backends: {', '.join(backend_names())}"
         ) from None
+
+
+def _import(name: str, dotted: str) -> Any:
+    b = backend(name)
+    module_name, _, attr = dotted.partition(":")
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
-        hint = f" (install it with: pip install 'hapticd[{extra}]')" if extra else ""
+        hint = f" (install it with: pip install 'hapticd[{b.extra}]')" if b.extra else ""
         raise BackendUnavailableError(
-            f"device backend {backend!r} needs a package that is missing: {exc.name}{hint}"
+            f"device backend {name!r} needs a package that is missing: {exc.name}{hint}"
         ) from exc
-    cls = getattr(module, class_name)
+    return getattr(module, attr) if attr else module
+
+
+def open_device(name: str, **kwargs: Any) -> Device:
+    """Create (not yet open) a device of backend ``name`` with backend-specific ``kwargs``."""
+    b = backend(name)
+    cls = _import(name, f"{b.module}:{b.cls}")
     return cls(**kwargs)
+
+
+def preflight(name: str, **kwargs: Any) -> None:
+    """Check what a device of backend ``name`` needs before a run (DeviceError if missing)."""
+    b = backend(name)
+    if b.preflight is not None:
+        _import(name, b.preflight)(**kwargs)
+
+
+def discover() -> list[dict[str, Any]]:
+    """Per backend that can look for devices: what it found (``model``, ``found``) or why it
+    cannot look (``problem``)."""
+    report: list[dict[str, Any]] = []
+    for b in BACKENDS.values():
+        if b.discover is not None:
+            report += _import(b.name, b.discover)()
+    return report
+
+
+def markdown_table() -> str:
+    """The backends as a Markdown table (docs/devices.md keeps a copy; a test compares)."""
+    rows = ["| backend | what | pip extra | status |", "|---|---|---|---|"]
+    for b in BACKENDS.values():
+        extra = f"`hapticd[{b.extra}]`" if b.extra else "-"
+        rows.append(f"| `{b.name}` | {b.doc} | {extra} | {b.status} |")
+    return "\n".join(rows) + "\n"
+
+
+def keys_table(name: str) -> str:
+    """One backend's profile keys as a Markdown table."""
+    rows = ["| key | default | meaning |", "|---|---|---|"]
+    for k in backend(name).keys:
+        default = "required" if k.default is REQUIRED else f"`{k.default!r}`"
+        bounds = [
+            f"{op} {v:g}" for op, v in ((">", k.gt), (">=", k.ge), ("<=", k.le)) if v is not None
+        ]
+        extra = f" ({', '.join(bounds)})" if bounds else ""
+        rows.append(f"| `{k.name}` | {default} | {k.doc}{extra} |")
+    return "\n".join(rows) + "\n"
+
+
+def docs() -> str:
+    """The generated part of docs/devices.md: the backend table and each backend's keys."""
+    parts = [markdown_table(), "### Profile keys\n"]
+    for name in BACKENDS:
+        parts.append(f"`backend: {name}`\n\n{keys_table(name)}")
+    return "\n".join(parts)

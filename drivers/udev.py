@@ -50,31 +50,37 @@ def rules() -> str:
     return "\n".join(lines) + "\n"
 
 
-def discover() -> list[dict[str, Any]]:
-    """Per backend and device model: what was found, or why nothing could be looked for."""
-    report: list[dict[str, Any]] = []
-    ids = [(v, p, w) for v, p, w in usb_ids() if p is not None]
+def discover_hid() -> list[dict[str, Any]]:
+    """hid devices per model (serial numbers), or why cython-hidapi cannot look."""
     try:
         hid = importlib.import_module("hid")
-        for vid, pid, what in ids:
-            found = hid.enumerate(vid, pid)
-            report.append(
-                {"backend": "hid", "model": what, "found": [d.get("serial_number") for d in found]}
-            )
     except ImportError:
-        report.append(
+        return [
             {
                 "backend": "hid",
                 "problem": "cython-hidapi is not installed: pip install 'hapticd[hid]'",
             }
-        )
+        ]
+    return [
+        {
+            "backend": "hid",
+            "model": what,
+            "found": [d.get("serial_number") for d in hid.enumerate(vid, pid)],
+        }
+        for vid, pid, what in _ids()
+    ]
+
+
+def discover_usb() -> list[dict[str, Any]]:
+    """usb devices per model (serial numbers), or why pyusb and libusb cannot look."""
+    report: list[dict[str, Any]] = []
     try:
         core = importlib.import_module("usb.core")
         libusb_package = importlib.import_module("libusb_package")
         backend = libusb_package.get_libusb1_backend()
         if backend is None:
             raise DeviceError("libusb could not be loaded")
-        for vid, pid, what in ids:
+        for vid, pid, what in _ids():
             found = list(core.find(find_all=True, idVendor=vid, idProduct=pid, backend=backend))
             serials = []
             for dev in found:
@@ -92,17 +98,8 @@ def discover() -> list[dict[str, Any]]:
         )
     except (DeviceError, OSError) as exc:
         report.append({"backend": "usb", "problem": str(exc)})
-    try:
-        from hapticd_drivers.dhd_backend import load_libdhd
-
-        lib = load_libdhd()
-        report.append(
-            {
-                "backend": "dhd",
-                "model": "Force Dimension",
-                "found": list(range(lib.dhdGetDeviceCount())),
-            }
-        )
-    except DeviceError as exc:
-        report.append({"backend": "dhd", "problem": str(exc)})
     return report
+
+
+def _ids() -> list[tuple[int, int, str]]:
+    return [(v, p, w) for v, p, w in usb_ids() if p is not None]

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from hapticd_drivers import Device, DeviceError, open_device
+from hapticd_drivers import Device, DeviceError, registry
 from hapticd_drivers.delta import load_description
 from hapticd_drivers.emulator import DeltaEmulator, FakeHidModule
 from hapticd_drivers.trajectory import Trajectory
@@ -23,7 +23,6 @@ from hapticd.actuation import Actuation
 from hapticd.allocation import AdaptiveState, Robustness
 from hapticd.profile import (
     FingerConfig,
-    HidDeviceConfig,
     ObjectConfig,
     Profile,
     ProfileError,
@@ -69,17 +68,17 @@ def load_trajectories(profile: Profile) -> list[tuple[Any, Any] | None]:
     cache: dict[Path, recording.Recording] = {}
     out: list[tuple[Any, Any] | None] = []
     for i, finger in enumerate(profile.fingers):
-        dev = finger.device
-        if dev.trajectory is None:
+        ref = getattr(finger.device, "trajectory", None)  # not every backend has one
+        if ref is None:
             out.append(None)
             continue
         try:
-            path = trajectory_path(profile, dev.trajectory)
+            path = trajectory_path(profile, ref)
             rec = cache.get(path) or recording.read(path)
         except (FileNotFoundError, RecordingError) as exc:
             raise ProfileError(f"{_where(profile, i, finger, 'trajectory')}: {exc}") from None
         cache[path] = rec
-        want = dev.finger or finger.name
+        want = finger.device.finger or finger.name
         missing = [k for k in ("t", "device_pos") if k not in rec]
         if missing:
             raise ProfileError(
@@ -125,56 +124,47 @@ def build_devices(
     where = f"{profile.source or '<profile>'}"
     for i, (finger, traj) in enumerate(zip(profile.fingers, trajectories, strict=True)):
         cfg = finger.device
-        backend = device or cfg.backend
-        if emulate and backend not in ("hid", "usb"):
-            raise ProfileError(f"--emulate works with the hid and usb backends, not {backend!r}")
+        name = device or cfg.backend
+        loc = f"{where}: fingers[{i}:{finger.name}].device"
         try:
-            if backend in ("replay", "sim"):
-                if traj is None:
-                    raise ProfileError(
-                        f"{where}: fingers[{i}:{finger.name}].device needs a trajectory"
-                    )
-                params = {}
-                if cfg.backend == backend:
-                    params = cfg.model_dump(exclude={"backend", "trajectory", "finger"})
-                devices.append(
-                    open_device(
-                        backend,
-                        times=traj[0],
-                        positions=traj[1],
-                        clock=clock,
-                        serial=f"{backend}-{finger.name}",
-                        **params,
-                    )
+            entry = registry.backend(name)
+            if emulate and not entry.emulated:
+                emulable = [b.name for b in registry.BACKENDS.values() if b.emulated]
+                raise ProfileError(
+                    f"--emulate works with the {' and '.join(emulable)} backends, not {name!r}"
                 )
-                continue
-            hid_cfg = (
-                cfg if isinstance(cfg, HidDeviceConfig) else HidDeviceConfig(backend="hid", index=i)
-            )
-            kwargs: dict[str, Any] = {
-                "description": hid_cfg.description,
-                "serial_number": hid_cfg.serial_number,
-                "index": hid_cfg.index,
-                "device_watchdog_s": hid_cfg.device_watchdog_s,
-            }
-            if emulate:
-                if traj is None:
-                    raise ProfileError(
-                        f"{where}: fingers[{i}:{finger.name}].device: --emulate needs a trajectory"
-                    )
+            # The profile's keys for its own backend; another backend (--device) runs on its
+            # defaults, the n-th device for the n-th finger.
+            if cfg.backend == name:
+                kwargs = cfg.model_dump()
+            else:
+                kwargs = dict(entry.defaults)
+                if "index" in kwargs:
+                    kwargs["index"] = i
+            kwargs.pop("backend", None)
+            kwargs.pop("trajectory", None)
+            kwargs.pop("finger", None)
+            if (entry.plays_trajectory or emulate) and traj is None:
+                raise ProfileError(f"{loc}: backend {name!r} needs a trajectory")
+            if entry.plays_trajectory:
+                kwargs.update(times=traj[0], positions=traj[1], clock=clock)
+                kwargs["serial"] = f"{name}-{finger.name}"
+            elif emulate:
                 serial = f"EMU-{finger.name}"
                 emulators.append(
                     DeltaEmulator(
-                        load_description(hid_cfg.description),
+                        load_description(kwargs["description"]),
                         Trajectory(traj[0], traj[1], f"emulator {finger.name}"),
                         clock,
                         serial=serial,
                     )
                 )
-                kwargs.update(serial_number=serial, index=0, **_emulated_seam(backend, emulators))
-            devices.append(open_device(backend, **kwargs))
+                kwargs.update(serial_number=serial, index=0, **_emulated_seam(name, emulators))
+            else:
+                registry.preflight(name, **kwargs)
+            devices.append(registry.open_device(name, **kwargs))
         except DeviceError as exc:
-            raise ProfileError(f"{where}: fingers[{i}:{finger.name}].device: {exc}") from None
+            raise ProfileError(f"{loc}: {exc}") from None
     return devices, emulators
 
 

@@ -13,9 +13,10 @@ from pathlib import Path
 from typing import Any
 
 from hapticd_drivers import BackendUnavailableError
+from hapticd_drivers.registry import backend_names, discover
 
 from hapticd import __version__, params
-from hapticd.build import build_scene, load_trajectories
+from hapticd.build import build_devices, build_scene, load_trajectories
 from hapticd.control import ControlClient, default_socket_path
 from hapticd.daemon.sdnotify import ServiceNotifier
 from hapticd.daemon.server import ControlServer
@@ -161,6 +162,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         profile = load_profile(args.profile)
         load_trajectories(profile)
         build_scene(profile.scene, profile)
+        # The devices are created (not opened): a backend's library or driver is checked.
+        build_devices(profile, clock=lambda: 0.0)
     except ProfileError as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -334,8 +337,6 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_devices(args: argparse.Namespace) -> int:
-    from hapticd_drivers.udev import discover
-
     report = discover()
     if args.json:
         print(json.dumps(report, indent=2))
@@ -388,7 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--device",
-        choices=["replay", "sim", "hid", "usb"],
+        choices=backend_names(),
         help="use this backend for every finger instead of the profile's",
     )
     run.add_argument(

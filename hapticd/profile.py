@@ -10,10 +10,19 @@ from __future__ import annotations
 import difflib
 import math
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from hapticd_drivers.registry import BACKENDS, REQUIRED, Backend
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    create_model,
+    field_validator,
+    model_validator,
+)
 
 from hapticd import params
 
@@ -50,64 +59,25 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-class ReplayDeviceConfig(_Strict):
-    """A device that plays recorded positions (see docs/recording.md)."""
-
-    backend: Literal["replay"]
-    trajectory: str = Field(
-        description="recording path (relative to the profile) or 'builtin:NAME' for a bundled one"
-    )
-    finger: str | None = Field(
-        default=None, description="finger of the recording to play; defaults to this finger's name"
-    )
-    max_force_n: float = Field(default=12.0, gt=0, description="the device's rated force, N")
-    hold_s: float = Field(
-        default=0.0, ge=0, description="keep running this long after the trajectory ends, s"
-    )
+def _device_model(b: Backend) -> type[_Strict]:
+    """The profile model of one backend's ``device`` section, built from its registry keys."""
+    fields: dict[str, Any] = {"backend": (Literal[b.name], ...)}  # type: ignore[valid-type]
+    for k in b.keys:
+        kind: Any = k.type | None if k.optional else k.type
+        bounds = {n: v for n, v in (("gt", k.gt), ("ge", k.ge), ("le", k.le)) if v is not None}
+        default = ... if k.default is REQUIRED else k.default
+        fields[k.name] = (kind, Field(default=default, description=k.doc, **bounds))
+    name = f"{b.name.capitalize()}DeviceConfig"
+    model = create_model(name, __base__=_Strict, __doc__=b.doc, **fields)
+    return model
 
 
-class SimDeviceConfig(_Strict):
-    """A simulated finger that follows a recorded path and feels the rendered force."""
-
-    backend: Literal["sim"]
-    trajectory: str = Field(description="path for the hand: recording path or 'builtin:NAME'")
-    finger: str | None = Field(default=None, description="finger of the recording to follow")
-    max_force_n: float = Field(default=12.0, gt=0, description="the device's rated force, N")
-    hold_s: float = Field(default=0.0, ge=0, description="keep running after the path ends, s")
-    mass_kg: float = Field(default=0.05, gt=0, le=5, description="fingertip and device mass, kg")
-    hand_stiffness_n_per_m: float = Field(
-        default=300.0, ge=0, le=1e4, description="grip of the hand on the path, N/m"
-    )
-    hand_damping_n_s_per_m: float = Field(
-        default=3.0, ge=0, le=100, description="damping of finger and device, N s/m"
-    )
-
-
-class ProtocolDeviceConfig(_Strict):
-    """An Omega-class delta device speaking hapticd's report protocol (hid or usb)."""
-
-    backend: Literal["hid", "usb"]
-    description: str = Field(
-        default="delta-omega-class", description="device description: bundled name or YAML path"
-    )
-    serial_number: str | None = Field(default=None, description="pick the device by serial")
-    index: int = Field(default=0, ge=0, description="pick the n-th matching device")
-    device_watchdog_s: float = Field(
-        default=0.05,
-        gt=0,
-        le=8,
-        description="the device cuts forces after this long without a command, s",
-    )
-    trajectory: str | None = Field(
-        default=None, description="path for the emulator (--emulate) to move the device along"
-    )
-    finger: str | None = None
-
-
-HidDeviceConfig = ProtocolDeviceConfig
+# One model per registered backend (drivers/registry.py declares their keys).
+DEVICE_MODELS: dict[str, type[_Strict]] = {name: _device_model(b) for name, b in BACKENDS.items()}
 
 DeviceConfig = Annotated[
-    ReplayDeviceConfig | SimDeviceConfig | ProtocolDeviceConfig, Field(discriminator="backend")
+    Union[tuple(DEVICE_MODELS.values())],  # type: ignore[valid-type]  # noqa: UP007
+    Field(discriminator="backend"),
 ]
 
 
@@ -398,11 +368,7 @@ def _format_loc(loc: tuple[int | str, ...], data: object) -> str:
             parts.append(f"[{item}]" if name is None else f"[{item}:{name}]")
             node = node[item] if isinstance(node, list) and item < len(node) else None
         else:
-            if (
-                item in ("replay", "sim", "hid")
-                and isinstance(node, dict)
-                and node.get("backend") == item
-            ):
+            if item in BACKENDS and isinstance(node, dict) and node.get("backend") == item:
                 continue  # pydantic's discriminator tag, not a key the user wrote
             parts.append(("." if parts else "") + str(item))
             node = node.get(item) if isinstance(node, dict) else None

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import ctypes
 import os
+import shutil
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -147,3 +150,19 @@ def wait_for_tick(client, tick, limit_s=5.0):
     deadline = time.monotonic() + limit_s
     while client.status()["tick"] < tick and time.monotonic() < deadline:
         time.sleep(0.02)
+
+
+@pytest.fixture(scope="session")
+def libdhd(tmp_path_factory):
+    """A fake libdhd compiled from tests/fakes/fake_dhd.c: (path, ctypes handle with the
+    fake's own controls). Skips when there is no C compiler."""
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        pytest.skip("no C compiler to build the fake libdhd")
+    out = tmp_path_factory.mktemp("dhd") / "libfakedhd.so"
+    src = Path(__file__).with_name("fakes") / "fake_dhd.c"
+    subprocess.run([cc, "-shared", "-fPIC", "-O1", "-o", str(out), str(src), "-lm"], check=True)
+    lib = ctypes.CDLL(str(out))
+    lib.fake_set_state.argtypes = [ctypes.c_int] + [ctypes.c_double] * 6
+    lib.fake_get_force.argtypes = [ctypes.c_int, ctypes.POINTER(ctypes.c_double)]
+    return str(out), lib

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hapticd_drivers import DeviceError, DeviceState, open_device
+from hapticd_drivers import DeviceError, DeviceState, open_device, registry
 from hapticd_drivers.delta import load_description
 from hapticd_drivers.emulator import DeltaEmulator, FakeHidModule
 from hapticd_drivers.trajectory import Trajectory
@@ -21,7 +21,20 @@ class Clock:
         return self.t
 
 
-def make(backend, clock, **kw):
+def make(backend, clock, request=None, **kw):
+    if backend == "dhd":
+        # The fake libdhd's device 0 is moved along the same path by the test's clock.
+        path, lib = request.getfixturevalue("libdhd")
+        lib.fake_reset(1)
+        traj = Trajectory(TIMES, POS, "fake hand")
+        dev = open_device("dhd", library=path, index=0, **kw)
+
+        def move() -> None:
+            p, v = traj.at(clock.t)
+            lib.fake_set_state(0, *p, *v)
+
+        dev.move = move
+        return dev
     if backend in ("hid", "usb"):
         emu = DeltaEmulator(DESC, Trajectory(TIMES, POS, "emu"), clock, serial="EMU-1")
         if backend == "hid":
@@ -36,14 +49,14 @@ def make(backend, clock, **kw):
     return open_device(backend, times=TIMES, positions=POS, clock=clock, **kw)
 
 
-BACKENDS = ["replay", "sim", "hid", "usb"]
+BACKENDS = sorted(registry.BACKENDS)  # every registered backend passes the same suite
 PROTOCOL = ["hid", "usb"]
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_conformance_read_write_enable_close(backend):
+def test_conformance_read_write_enable_close(backend, request):
     clock = Clock()
-    dev = make(backend, clock)
+    dev = make(backend, clock, request)
     st = DeviceState()
     with pytest.raises(DeviceError):
         dev.read_state(st)  # not open yet
@@ -53,6 +66,8 @@ def test_conformance_read_write_enable_close(backend):
         dev.enable_forces(True)
         for k in range(300):
             clock.t = k * 1e-3
+            if hasattr(dev, "move"):
+                dev.move()
             dev.read_state(st)
             assert np.all(np.isfinite(st.position)) and np.all(np.isfinite(st.velocity))
             dev.write_force(np.array([0.5, -0.2, 0.1]))

@@ -1,28 +1,10 @@
 """The dhd backend against a fake libdhd compiled here (tests/fakes/fake_dhd.c)."""
 
 import ctypes
-import shutil
-import subprocess
 
 import numpy as np
 import pytest
 from hapticd_drivers import DeviceError, DeviceState, open_device
-
-from tests.conftest import ROOT
-
-
-@pytest.fixture(scope="module")
-def libdhd(tmp_path_factory):
-    cc = shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
-        pytest.skip("no C compiler to build the fake libdhd")
-    out = tmp_path_factory.mktemp("dhd") / "libfakedhd.so"
-    src = ROOT / "tests" / "fakes" / "fake_dhd.c"
-    subprocess.run([cc, "-shared", "-fPIC", "-O1", "-o", str(out), str(src), "-lm"], check=True)
-    lib = ctypes.CDLL(str(out))
-    lib.fake_set_state.argtypes = [ctypes.c_int] + [ctypes.c_double] * 6
-    lib.fake_get_force.argtypes = [ctypes.c_int, ctypes.POINTER(ctypes.c_double)]
-    return str(out), lib
 
 
 def force_of(lib, i):

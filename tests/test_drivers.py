@@ -4,7 +4,7 @@ import sys
 import numpy as np
 import pytest
 from hapticd_drivers import BackendUnavailableError, DeviceError, DeviceState, open_device
-from hapticd_drivers.registry import BACKENDS
+from hapticd_drivers.registry import BACKENDS, Backend
 
 
 class Clock:
@@ -88,7 +88,8 @@ def test_unknown_backend_lists_known_ones():
 
 
 def test_missing_optional_dependency_names_the_extra(monkeypatch):
-    monkeypatch.setitem(BACKENDS, "fancy", ("hapticd_drivers._no_such_module", "X", "usb"))
+    fancy = Backend("fancy", "hapticd_drivers._no_such_module", "X", "a test backend", (), "usb")
+    monkeypatch.setitem(BACKENDS, "fancy", fancy)
     with pytest.raises(BackendUnavailableError, match=r"pip install 'hapticd\[usb\]'"):
         open_device("fancy")
 

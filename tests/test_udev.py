@@ -7,8 +7,9 @@ import types
 import numpy as np
 from hapticd_drivers.delta import load_description
 from hapticd_drivers.emulator import DeltaEmulator, FakeHidModule
+from hapticd_drivers.registry import discover
 from hapticd_drivers.trajectory import Trajectory
-from hapticd_drivers.udev import discover, rules
+from hapticd_drivers.udev import rules
 
 from hapticd.cli import main
 
