@@ -26,6 +26,7 @@ CATEGORIES: dict[str, set[str]] = {
     "pure": {
         "hapticd.actuation",
         "hapticd.allocation.*",
+        "hapticd.analysis.pipeline",
         "hapticd.contact",
         "hapticd.dynamics",
         "hapticd.frame",
@@ -47,6 +48,7 @@ CATEGORIES: dict[str, set[str]] = {
     },
     "service": {
         "hapticd.__main__",
+        "hapticd.analysis",  # Pipeline.from_profile reads the profile through hapticd.build
         "hapticd.build",
         "hapticd.cli",
         "hapticd.daemon.*",
