@@ -215,7 +215,10 @@ def null_directions(K: np.ndarray) -> np.ndarray:
     for row in range(m):
         sub = np.abs(A[row:, :])
         sub[:, pivots] = 0.0
-        i, j = np.unravel_index(int(np.argmax(sub)), sub.shape)
+        # The largest entry, ties (to rounding) going to the first axis: a stable order.
+        cols = np.flatnonzero(sub.max(axis=0) >= sub.max() * (1.0 - 1e-9))
+        j = int(cols[0])
+        i = int(np.argmax(sub[:, j]))
         A[[row, row + i]] = A[[row + i, row]]
         A[row] /= A[row, j]
         for other in range(m):
