@@ -431,7 +431,10 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         if args.plot is not None:
             try:
                 report.plot(
-                    args.plot, pipe.allocators, title=f"{profile.name}: asymmetry", **plot_kw
+                    args.plot,
+                    pipe.allocators,
+                    title=f"{profile.name}: asymmetry and work per loop area, per allocator",
+                    **plot_kw,
                 )
             except ImportError:
                 print(

@@ -79,17 +79,20 @@ class TiltedWall:
         s, c = math.sin(self.alpha), math.cos(self.alpha)
         return depth * np.array([s, -c])
 
-    def triangle(self, delta: float, n: int = 40) -> np.ndarray:
-        """The closed path (3 n + 1, 1, 3) m of the seed's Fig. 3: from the wall's origin
-        ``delta`` along x (into the wall), along y back to the wall (delta tan(alpha)), and
-        along the wall to the start; ``n`` steps per leg."""
+    def triangle_q(self, delta: float, n: int = 40) -> np.ndarray:
+        """The closed path (3 n + 1, 2) of the seed's Fig. 3 in the seed's coordinates (m):
+        from the wall's origin ``delta`` along x (into the wall), along y back to the wall
+        (delta tan(alpha)), and along the wall to the start; ``n`` steps per leg."""
         t = math.tan(self.alpha)
-        corners = [(0.0, 0.0), (delta, 0.0), (delta, delta * t), (0.0, 0.0)]
-        qs = [np.array(corners[0])]
+        corners = [np.array(c) for c in ((0.0, 0.0), (delta, 0.0), (delta, delta * t), (0.0, 0.0))]
+        qs = [corners[0]]
         for a, b in itertools.pairwise(corners):
-            for i in range(1, n + 1):
-                qs.append(np.array(a) + (np.array(b) - np.array(a)) * (i / n))
-        return np.array([self.coords(q) for q in qs])
+            qs += [a + (b - a) * (i / n) for i in range(1, n + 1)]
+        return np.array(qs)
+
+    def triangle(self, delta: float, n: int = 40) -> np.ndarray:
+        """``triangle_q`` as finger positions (3 n + 1, 1, 3) m in the world."""
+        return np.array([self.coords(q) for q in self.triangle_q(delta, n)])
 
 
 def tilted_wall(

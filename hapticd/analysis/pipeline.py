@@ -176,6 +176,12 @@ def _still(v: np.ndarray) -> np.ndarray:
     return np.zeros_like(v)
 
 
+def _copy_renderer(r: Renderer) -> Renderer:
+    """A deep copy of ``r`` with its state. The frame is copied with ``Frame.copy``: a plain
+    deep copy would detach the frame's field views from its record."""
+    return copy.deepcopy(r, memo={id(r.frame): r.frame.copy()})
+
+
 def _held_scene(scene: Scene | SceneObject) -> Scene:
     """A deep copy of ``scene`` with its object held fixed and at rest (quasi-static)."""
     sc = copy.deepcopy(scene if isinstance(scene, Scene) else Scene(scene, [], None))
@@ -507,7 +513,7 @@ class Pipeline:
             r.step(self._outside(x), _still(x))
             self._hold(r, x)
             return r
-        r = copy.deepcopy(state._renderer)
+        r = _copy_renderer(state._renderer)
         self._move(r, state.x, x)
         return r
 

@@ -206,18 +206,7 @@ def format_samples(samples: list[Sample], times: np.ndarray, allocators: Sequenc
     allocator), the ticks skipped and why, and a summary per allocator."""
     names = list(allocators)
     col = max(9, *(len(n) + 2 for n in names))
-    head = f"{'tick':>7} {'t (s)':>8}  {'contact':<9}"
-    lines = [
-        " " * len(head)
-        + "  "
-        + "asymmetry".ljust(col * len(names))
-        + "  work per loop area (J/m^2)",
-        head
-        + "  "
-        + "".join(f"{n:<{col}}" for n in names)
-        + "  "
-        + "".join(f"{n:<{col}}" for n in names),
-    ]
+    rows: list[tuple[Sample, str]] = []
     quiet = 0
     skipped = []
     for s in samples:
@@ -228,14 +217,30 @@ def format_samples(samples: list[Sample], times: np.ndarray, allocators: Sequenc
         if not first.in_contact.any():
             quiet += 1
             continue
-        contact = "+".join(
-            lab.rsplit(".", 1)[0] for i, lab in enumerate(first.labels[::3]) if first.in_contact[i]
-        )
+        fingers = [lab.rsplit(".", 1)[0] for lab in first.labels[::3]]
+        rows.append((s, "+".join(f for f, on in zip(fingers, first.in_contact, strict=True) if on)))
+    cw = max([9, *(len(c) + 1 for _, c in rows)])
+    head = f"{'tick':>7} {'t (s)':>8}  {'contact':<{cw}}"
+    lines = [
+        " " * len(head)
+        + "  "
+        + "asymmetry".ljust(col * len(names))
+        + "  work per loop area (J/m^2)",
+        head
+        + "  "
+        + "".join(f"{n:<{col}}" for n in names)
+        + "  "
+        + "".join(f"{n:<{col}}" for n in names).rstrip(),
+    ]
+    for s, contact in rows:
+        assert s.result is not None
         lines.append(
-            f"{s.tick:>7} {float(times[s.tick]):>8.3f}  {contact:<9}  "
-            + "".join(f"{s.result[n].asymmetry:<{col}.4f}" for n in names)
-            + "  "
-            + "".join(f"{_num(s.result[n].work_per_area):<{col}}" for n in names)
+            (
+                f"{s.tick:>7} {float(times[s.tick]):>8.3f}  {contact:<{cw}}  "
+                + "".join(f"{s.result[n].asymmetry:<{col}.4f}" for n in names)
+                + "  "
+                + "".join(f"{_num(s.result[n].work_per_area):<{col}}" for n in names)
+            ).rstrip()
         )
     if quiet:
         lines.append(f"({quiet} samples without contact omitted: zero matrices, asymmetry 0)")
@@ -302,9 +307,12 @@ def plot(
     if samples is not None and times is not None:
         ok = [s for s in samples if s.result is not None]
         t = np.array([float(times[s.tick]) for s in ok])
-        for n in allocators:
-            ax1.plot(t, [s.result[n].asymmetry for s in ok], label=n)  # type: ignore[index]
-            ax2.plot(t, [s.result[n].work_per_area for s in ok], label=n)  # type: ignore[index]
+        # Allocators often coincide (adaptive is IF while squeezing): each its own dash.
+        styles = ["-", "--", "-.", ":"]
+        for i, n in enumerate(allocators):
+            ls = styles[i % len(styles)]
+            ax1.plot(t, [s.result[n].asymmetry for s in ok], ls, label=n)  # type: ignore[index]
+            ax2.plot(t, [s.result[n].work_per_area for s in ok], ls, label=n)  # type: ignore[index]
         ax2.set_xlabel("t (s)")
         ax1.legend(loc="best")
     elif results is not None:
