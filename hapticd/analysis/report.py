@@ -252,22 +252,28 @@ def format_samples(samples: list[Sample], times: np.ndarray, allocators: Sequenc
         lines.append("no sample is in contact: every matrix is zero")
         return "\n".join(lines) + "\n"
     lines.append(f"over the {len(touching)} samples in contact:")
-    lw = 28
-    lines.append(" " * lw + "".join(f"{n:<{col}}" for n in names))
-    for label, fn in (
-        ("mean asymmetry", lambda n: f"{np.mean([s.result[n].asymmetry for s in touching]):.4f}"),
+    stats = [
+        (
+            "mean asymmetry",
+            [f"{np.mean([s.result[n].asymmetry for s in touching]):.4f}" for n in names],
+        ),
         (
             "largest asymmetry (tick)",
-            lambda n: "{:.4f} ({})".format(*max((s.result[n].asymmetry, s.tick) for s in touching)),
+            [
+                "{:.4f} ({})".format(*max((s.result[n].asymmetry, s.tick) for s in touching))
+                for n in names
+            ],
         ),
         (
             "largest work/area (J/m^2)",
-            lambda n: _num(max(s.result[n].work_per_area for s in touching)),
+            [_num(max(s.result[n].work_per_area for s in touching)) for n in names],
         ),
-    ):
-        cells = [fn(n) for n in names]
-        width = max(col, *(len(c) + 2 for c in cells))
-        lines.append(f"{label:<{lw}}" + "".join(f"{c:<{width}}" for c in cells))
+    ]
+    lw = max(len(label) for label, _ in stats) + 2
+    width = max(col, *(len(c) + 2 for _, cells in stats for c in cells))
+    lines.append((" " * lw + "".join(f"{n:<{width}}" for n in names)).rstrip())
+    for label, cells in stats:
+        lines.append((f"{label:<{lw}}" + "".join(f"{c:<{width}}" for c in cells)).rstrip())
     return "\n".join(lines) + "\n"
 
 
