@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hapticd import recording
 from hapticd.actuation import Actuation
 from hapticd.analysis import Pipeline, examples
 from hapticd.analysis.pipeline import asymmetry, loop_work_rate, null_directions
@@ -420,3 +421,15 @@ def test_cli_analyze_bad_arguments(capsys, tmp_path):
     assert main(["analyze", str(tmp_path / "missing.yaml")]) == 2
     with pytest.raises(SystemExit):
         main(["analyze", str(GRASP), "--every", "0"])
+
+
+def test_a_kink_in_the_force_is_flagged_not_hidden():
+    """Releasing the cube: both contacts weaker than contact_onset_n and equally strong, so
+    which one the allocator fades out flips with the smallest motion; the rendered force
+    jumps there, and the estimate with twice the step says so."""
+    rec = recording.read(builtin_trajectory("grasp-stiffness"))
+    pipe = Pipeline.from_profile(GRASP, allocators=["pinv"])
+    release = pipe.linearize(rec["device_pos"][3020])["pinv"]
+    assert np.abs(release.full_force).max() < 0.05
+    assert not release.smooth
+    assert pipe.linearize(rec["device_pos"][2000])["pinv"].smooth

@@ -83,6 +83,8 @@ ZERO_STIFFNESS = 1e-9
 """A stiffness matrix with Frobenius norm below this (N/m) counts as zero."""
 NULL_RTOL = 1e-7
 """Singular values below this fraction of the largest (or below ZERO_STIFFNESS) are null."""
+KINK_RTOL = 1e-3
+"""An error estimate above this fraction of K's largest entry marks a kink (see ``smooth``)."""
 RANK_TOL = 1e-9
 """Singular-value tolerance for the rank of the (unit-direction) actuation matrix."""
 
@@ -146,6 +148,16 @@ class Linearization:
     Q_full: np.ndarray | None = None  # generalized forces J^T F
     Q_rendered: np.ndarray | None = None
 
+    @property
+    def smooth(self) -> bool:
+        """False where the differences straddle a kink of the force (a face edge, contact
+        onset, the weakest of two equally weak contacts changing): ``fd_error`` above
+        KINK_RTOL of the largest entry. There K is a difference quotient across a jump, not
+        a derivative."""
+        scale = max(float(np.abs(self.K_full).max(initial=0.0)), ZERO_STIFFNESS)
+        scale = max(scale, float(np.abs(self.K_rendered).max(initial=0.0)))
+        return self.fd_error <= KINK_RTOL * scale
+
     def to_dict(self) -> dict[str, Any]:
         """Plain lists and floats, for JSON."""
         out: dict[str, Any] = {}
@@ -153,6 +165,7 @@ class Linearization:
             v = getattr(self, name)
             out[name] = v.tolist() if isinstance(v, np.ndarray) else v
         out["labels"] = list(self.labels)
+        out["smooth"] = self.smooth
         return out
 
 

@@ -122,6 +122,12 @@ def format_linearization(
         f"central differences, step {first.fd_step:g} m; largest change against twice the "
         f"step: {max(r.fd_error for r in results.values()):.2g} N/m"
     )
+    rough = [n for n, r in results.items() if not r.smooth]
+    if rough:
+        lines.append(
+            f"WARNING: the force has a kink here for {', '.join(rough)} (the estimate with "
+            "twice the step differs): those matrices are difference quotients across a jump"
+        )
     lines.append("")
     col = max(10, *(len(n) + 2 for n in names))
     rows: list[tuple[str, list[str]]] = [
@@ -234,24 +240,31 @@ def format_samples(samples: list[Sample], times: np.ndarray, allocators: Sequenc
     ]
     for s, contact in rows:
         assert s.result is not None
+        mark = " " if all(r.smooth for r in s.result.values()) else "*"
         lines.append(
             (
-                f"{s.tick:>7} {float(times[s.tick]):>8.3f}  {contact:<{cw}}  "
+                f"{s.tick:>7}{mark}{float(times[s.tick]):>8.3f}  {contact:<{cw}}  "
                 + "".join(f"{s.result[n].asymmetry:<{col}.4f}" for n in names)
                 + "  "
                 + "".join(f"{_num(s.result[n].work_per_area):<{col}}" for n in names)
             ).rstrip()
         )
+    kinked = [s for s, _ in rows if not all(r.smooth for r in s.result.values())]  # type: ignore[union-attr]
+    if kinked:
+        lines.append(
+            f"* {len(kinked)} samples where the force has a kink (contact onset, a face edge): "
+            "the finite differences straddle a jump; left out of the summary"
+        )
     if quiet:
         lines.append(f"({quiet} samples without contact omitted: zero matrices, asymmetry 0)")
     for s in skipped:
         lines.append(f"tick {s.tick} skipped: {s.skipped}")
-    touching = [s for s in samples if s.result is not None and s.result[names[0]].in_contact.any()]
+    touching = [s for s, _ in rows if s not in kinked]
     lines.append("")
     if not touching:
-        lines.append("no sample is in contact: every matrix is zero")
+        lines.append("no sample is in contact with a smooth force: nothing to summarize")
         return "\n".join(lines) + "\n"
-    lines.append(f"over the {len(touching)} samples in contact:")
+    lines.append(f"over the {len(touching)} samples in contact (smooth):")
     stats = [
         (
             "mean asymmetry",
@@ -317,8 +330,12 @@ def plot(
         styles = ["-", "--", "-.", ":"]
         for i, n in enumerate(allocators):
             ls = styles[i % len(styles)]
-            ax1.plot(t, [s.result[n].asymmetry for s in ok], ls, label=n)  # type: ignore[index]
-            ax2.plot(t, [s.result[n].work_per_area for s in ok], ls, label=n)  # type: ignore[index]
+            lins = [s.result[n] for s in ok]  # type: ignore[index]
+            # A kink (contact onset, an edge) leaves a gap: its quotient is no stiffness.
+            asym = [lin.asymmetry if lin.smooth else np.nan for lin in lins]
+            work = [lin.work_per_area if lin.smooth else np.nan for lin in lins]
+            ax1.plot(t, asym, ls, label=n)
+            ax2.plot(t, work, ls, label=n)
         ax2.set_xlabel("t (s)")
         ax1.legend(loc="best")
     elif results is not None:
