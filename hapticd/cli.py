@@ -12,7 +12,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from hapticd_drivers import BackendUnavailableError
 
 from hapticd import __version__, params
@@ -310,30 +309,6 @@ def cmd_watch(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def cmd_export(args: argparse.Namespace) -> int:
-    try:
-        rec = read_recording(args.recording)
-        if args.mcap is not None:
-            out, rows = args.mcap, export_mcap(rec, args.mcap)
-            what = "messages on /hapticd/tick"
-        else:
-            out = args.csv or args.recording.with_suffix(".csv")
-            rows = export_csv(rec, out)
-            what = f"ticks, {len(csv_columns(rec))} columns"
-    except RecordingError as exc:
-        print(f"hapticd: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except RuntimeError as exc:
-        print(f"hapticd: {exc}", file=sys.stderr)
-        return EXIT_ERROR
-    except OSError as exc:
-        print(f"hapticd: cannot write the export: {exc}", file=sys.stderr)
-        return EXIT_ERROR
-    torn = f" (a torn last record of {rec.torn_bytes} bytes was dropped)" if rec.torn_bytes else ""
-    print(f"{out}: {rows} {what}{torn}")
-    return EXIT_OK
-
-
 def _at(text: list[str], n_fingers: int) -> list[float]:
     if len(text) != 3 * n_fingers:
         raise ValueError(
@@ -348,6 +323,8 @@ def _at(text: list[str], n_fingers: int) -> list[float]:
 
 def cmd_analyze(args: argparse.Namespace) -> int:
     """Barbagli & Salisbury's analysis of a profile's rendering (docs/analysis.md)."""
+    import numpy as np
+
     from hapticd.analysis import Pipeline, report
 
     try:
@@ -454,6 +431,69 @@ def _every(text: str) -> int:
     if v < 1:
         raise argparse.ArgumentTypeError(f"expected a positive number of ticks, got {text}")
     return v
+
+
+def _add_analyze(sub: Any) -> None:
+    """The analyze subcommand's arguments."""
+    ana = sub.add_parser(
+        "analyze",
+        help="Barbagli & Salisbury's asymmetry analysis of a profile's rendering, per allocator",
+        description="Linearize the rendering of PROFILE (central differences on the loop's own "
+        "stages, at rest, before safety): K_full (the seed's F_L), K_rendered (M_A F_L M_S), "
+        "asymmetry, controllability, observability, the directions without rendered stiffness "
+        "and the work per unit loop area, for each allocator. See docs/analysis.md.",
+    )
+    ana.add_argument("profile", type=Path)
+    where = ana.add_mutually_exclusive_group()
+    where.add_argument(
+        "--at",
+        nargs="+",
+        metavar="M",
+        help="finger positions, x y z in m per finger (default: each finger 2 mm inside the "
+        "object along its x axis, the first on the -x side)",
+    )
+    where.add_argument(
+        "--recording", type=Path, metavar="REC", help="analyse the ticks of a recording"
+    )
+    ana.add_argument(
+        "--every", type=_every, default=10, metavar="K", help="every K-th tick (default 10)"
+    )
+    ana.add_argument(
+        "--allocators",
+        metavar="A,B",
+        help=f"allocators to compare (default: pinv,if,ef,adaptive; any of "
+        f"{','.join(params.ALLOCATORS)})",
+    )
+    ana.add_argument("--json", type=Path, metavar="OUT", help="write every number as JSON")
+    ana.add_argument("--plot", type=Path, metavar="OUT.png", help="plot (needs matplotlib)")
+    ana.add_argument(
+        "--progress", action="store_true", help="show progress on stderr even when not a terminal"
+    )
+    ana.set_defaults(func=cmd_analyze)
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    try:
+        rec = read_recording(args.recording)
+        if args.mcap is not None:
+            out, rows = args.mcap, export_mcap(rec, args.mcap)
+            what = "messages on /hapticd/tick"
+        else:
+            out = args.csv or args.recording.with_suffix(".csv")
+            rows = export_csv(rec, out)
+            what = f"ticks, {len(csv_columns(rec))} columns"
+    except RecordingError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except RuntimeError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except OSError as exc:
+        print(f"hapticd: cannot write the export: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    torn = f" (a torn last record of {rec.torn_bytes} bytes was dropped)" if rec.torn_bytes else ""
+    print(f"{out}: {rows} {what}{torn}")
+    return EXIT_OK
 
 
 def cmd_devices(args: argparse.Namespace) -> int:
@@ -572,47 +612,13 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--rate", type=_positive, default=10.0, help="lines per second")
             p.add_argument("--count", type=int, help="stop after this many lines")
             p.set_defaults(func=cmd_watch)
+    _add_analyze(sub)
     exp = sub.add_parser("export", help="export a recording to CSV or MCAP (Foxglove)")
     exp.add_argument("recording", type=Path)
     fmt = exp.add_mutually_exclusive_group()
     fmt.add_argument("--csv", type=Path, metavar="OUT", help="default: the recording's name .csv")
     fmt.add_argument("--mcap", type=Path, metavar="OUT", help="MCAP with JSON messages")
     exp.set_defaults(func=cmd_export)
-    ana = sub.add_parser(
-        "analyze",
-        help="Barbagli & Salisbury's asymmetry analysis of a profile's rendering, per allocator",
-        description="Linearize the rendering of PROFILE (central differences on the loop's own "
-        "stages, at rest, before safety): K_full (the seed's F_L), K_rendered (M_A F_L M_S), "
-        "asymmetry, controllability, observability, the directions without rendered stiffness "
-        "and the work per unit loop area, for each allocator. See docs/analysis.md.",
-    )
-    ana.add_argument("profile", type=Path)
-    where = ana.add_mutually_exclusive_group()
-    where.add_argument(
-        "--at",
-        nargs="+",
-        metavar="M",
-        help="finger positions, x y z in m per finger (default: each finger 2 mm inside the "
-        "object along its x axis, the first on the -x side)",
-    )
-    where.add_argument(
-        "--recording", type=Path, metavar="REC", help="analyse the ticks of a recording"
-    )
-    ana.add_argument(
-        "--every", type=_every, default=10, metavar="K", help="every K-th tick (default 10)"
-    )
-    ana.add_argument(
-        "--allocators",
-        metavar="A,B",
-        help=f"allocators to compare (default: pinv,if,ef,adaptive; any of "
-        f"{','.join(params.ALLOCATORS)})",
-    )
-    ana.add_argument("--json", type=Path, metavar="OUT", help="write every number as JSON")
-    ana.add_argument("--plot", type=Path, metavar="OUT.png", help="plot (needs matplotlib)")
-    ana.add_argument(
-        "--progress", action="store_true", help="show progress on stderr even when not a terminal"
-    )
-    ana.set_defaults(func=cmd_analyze)
     dev = sub.add_parser("devices", help="list the haptic devices found, or why none can be")
     dev.add_argument("--json", action="store_true", help="machine-readable output")
     dev.set_defaults(func=cmd_devices)
