@@ -312,6 +312,169 @@ def cmd_watch(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _at(text: list[str], n_fingers: int) -> list[float]:
+    if len(text) != 3 * n_fingers:
+        raise ValueError(
+            f"--at needs {3 * n_fingers} numbers (x y z in m for each of {n_fingers} fingers), "
+            f"got {len(text)}"
+        )
+    try:
+        return [float(v) for v in text]
+    except ValueError as exc:
+        raise ValueError(f"--at: {exc}") from None
+
+
+def cmd_analyze(args: argparse.Namespace) -> int:
+    """Barbagli & Salisbury's analysis of a profile's rendering (docs/analysis.md)."""
+    import numpy as np
+
+    from hapticd.analysis import Pipeline, report
+
+    try:
+        profile = load_profile(args.profile)
+        allocators = args.allocators.split(",") if args.allocators else None
+        pipe = Pipeline.from_profile(profile, allocators=allocators)
+    except ProfileError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except ValueError as exc:
+        print(f"hapticd: --allocators: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    obj = profile.scene.object
+    head = (
+        f"hapticd analyze {args.profile}: profile {profile.name!r}, {obj.shape} "
+        f"{'fixed' if obj.fixed else 'free (held at its pose)'}, "
+        f"{pipe.scene.object.material.stiffness:g} N/m, "
+        f"{'friction' if pipe.has_friction else 'frictionless'}, "
+        f"{profile.rendering.actuation_frame}-frame actuation; at rest (zero velocity), "
+        "before safety"
+    )
+    out: dict[str, Any] = {"profile": str(args.profile), "allocators": list(pipe.allocators)}
+    try:
+        if args.recording is not None:
+            rec = read_recording(args.recording)
+            if "device_pos" not in rec:
+                raise RecordingError(f"{args.recording}: no device_pos field")
+            pos = rec["device_pos"]
+            note = ""
+            if list(rec.fingers) != list(pipe.finger_names):
+                if pos.ndim != 3 or pos.shape[1] != pipe.n_fingers:
+                    raise RecordingError(
+                        f"{args.recording} has fingers {rec.fingers}, the profile "
+                        f"{list(pipe.finger_names)}"
+                    )
+                note = f"; its fingers {', '.join(rec.fingers)} taken in the profile's order"
+            extra = {
+                k: rec[k] for k in ("object_pos", "object_rot", "stiffness_n_per_m") if k in rec
+            }
+            times = rec["t"] if "t" in rec else np.arange(len(pos)) * pipe.dt
+            show = args.progress or sys.stderr.isatty()
+            samples = pipe.along(
+                pos,
+                args.every,
+                object_pos=extra.get("object_pos"),
+                object_rot=extra.get("object_rot"),
+                stiffness=extra.get("stiffness_n_per_m"),
+                progress=report.Progress("analyze") if show else None,
+            )
+            recorded = ", ".join(extra) or "none"
+            print(head)
+            print(
+                f"recording {args.recording}: {len(pos)} ticks; every {args.every}th: "
+                f"{len(samples)} samples (recorded scene state applied: {recorded}){note}\n"
+            )
+            print(report.format_samples(samples, times, pipe.allocators), end="")
+            out["recording"] = str(args.recording)
+            out["every"] = args.every
+            out["samples"] = report.samples_json(samples, times)
+            plot_kw: dict[str, Any] = {"samples": samples, "times": times}
+        else:
+            if args.at is not None:
+                x = np.array(_at(args.at, pipe.n_fingers)).reshape(-1, 3)
+                how = "given with --at"
+            else:
+                x, how = report.default_configuration(pipe)
+            results = pipe.linearize(x)
+            print(
+                report.format_linearization(results, header=[head, f"configuration: {how}"]),
+                end="",
+            )
+            out["configuration"] = {"x_m": x.tolist(), "how": how}
+            out["results"] = report.to_json(results)
+            plot_kw = {"results": results}
+    except (ValueError, RecordingError) as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    try:
+        if args.json is not None:
+            args.json.write_text(json.dumps(out, indent=1, allow_nan=False) + "\n")
+        if args.plot is not None:
+            try:
+                report.plot(
+                    args.plot,
+                    pipe.allocators,
+                    title=f"{profile.name}: asymmetry and work per loop area, per allocator",
+                    **plot_kw,
+                )
+            except ImportError:
+                print(
+                    "hapticd: --plot needs matplotlib: pip install matplotlib "
+                    "(or the 'bench' extra)",
+                    file=sys.stderr,
+                )
+                return EXIT_ERROR
+    except OSError as exc:
+        print(f"hapticd: cannot write: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    return EXIT_OK
+
+
+def _every(text: str) -> int:
+    v = int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive number of ticks, got {text}")
+    return v
+
+
+def _add_analyze(sub: Any) -> None:
+    """The analyze subcommand's arguments."""
+    ana = sub.add_parser(
+        "analyze",
+        help="Barbagli & Salisbury's asymmetry analysis of a profile's rendering, per allocator",
+        description="Linearize the rendering of PROFILE (central differences on the loop's own "
+        "stages, at rest, before safety): K_full (the seed's F_L), K_rendered (M_A F_L M_S), "
+        "asymmetry, controllability, observability, the directions without rendered stiffness "
+        "and the work per unit loop area, for each allocator. See docs/analysis.md.",
+    )
+    ana.add_argument("profile", type=Path)
+    where = ana.add_mutually_exclusive_group()
+    where.add_argument(
+        "--at",
+        nargs="+",
+        metavar="M",
+        help="finger positions, x y z in m per finger (default: each finger 2 mm inside the "
+        "object along its x axis, the first on the -x side)",
+    )
+    where.add_argument(
+        "--recording", type=Path, metavar="REC", help="analyse the ticks of a recording"
+    )
+    ana.add_argument(
+        "--every", type=_every, default=10, metavar="K", help="every K-th tick (default 10)"
+    )
+    ana.add_argument(
+        "--allocators",
+        metavar="A,B",
+        help=f"allocators to compare (default: pinv,if,ef,adaptive; any of "
+        f"{','.join(params.ALLOCATORS)})",
+    )
+    ana.add_argument("--json", type=Path, metavar="OUT", help="write every number as JSON")
+    ana.add_argument("--plot", type=Path, metavar="OUT.png", help="plot (needs matplotlib)")
+    ana.add_argument(
+        "--progress", action="store_true", help="show progress on stderr even when not a terminal"
+    )
+    ana.set_defaults(func=cmd_analyze)
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     try:
         rec = read_recording(args.recording)
@@ -450,6 +613,7 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--rate", type=_positive, default=10.0, help="lines per second")
             p.add_argument("--count", type=int, help="stop after this many lines")
             p.set_defaults(func=cmd_watch)
+    _add_analyze(sub)
     exp = sub.add_parser("export", help="export a recording to CSV or MCAP (Foxglove)")
     exp.add_argument("recording", type=Path)
     fmt = exp.add_mutually_exclusive_group()

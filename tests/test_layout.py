@@ -26,6 +26,8 @@ CATEGORIES: dict[str, set[str]] = {
     "pure": {
         "hapticd.actuation",
         "hapticd.allocation.*",
+        "hapticd.analysis.examples",
+        "hapticd.analysis.pipeline",
         "hapticd.contact",
         "hapticd.dynamics",
         "hapticd.frame",
@@ -47,6 +49,8 @@ CATEGORIES: dict[str, set[str]] = {
     },
     "service": {
         "hapticd.__main__",
+        "hapticd.analysis",  # Pipeline.from_profile reads the profile through hapticd.build
+        "hapticd.analysis.report",  # hapticd analyze's tables, JSON and plot
         "hapticd.build",
         "hapticd.cli",
         "hapticd.daemon.*",
