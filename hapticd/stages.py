@@ -76,6 +76,7 @@ class Contact:
         self._built_for: Polytope | None = None
         self._sets: list[ObstacleSet] = []
         self._untouched: Frame | None = None  # the frame whose contact normals are all zero
+        self._off_surfaces: Frame | None = None  # the frame whose env_force is all zero
 
     def _obstacles(self) -> list[ObstacleSet]:
         """The obstacle sets per finger, rebuilt when the object has moved."""
@@ -109,6 +110,7 @@ class Contact:
         held = list(pos)
         normals = [ZERO3] * n_fingers
         env = [ZERO3] * n_fingers
+        on_surface = False
         touching = [False] * n_fingers
         vel = frame.device_vel
         for i in range(n_fingers):
@@ -122,6 +124,7 @@ class Contact:
             obj_planes = [(pl, m) for (j, pl), m in zip(res.active, res.mu, strict=True) if j == 0]
             if len(obj_planes) < len(res.active):
                 env[i] = self._env_force(oset, res, vel[i])
+                on_surface = True
             if not obj_planes:
                 continue
             # The proxy's displacement due to the object's planes alone.
@@ -158,8 +161,12 @@ class Contact:
             if frame is not self._untouched:
                 frame.contact_normal.fill(0.0)
                 self._untouched = frame
-        if self._surfaces[0]:
+        if on_surface:
             frame.env_force[...] = env
+            self._off_surfaces = None
+        elif self._surfaces[0] and frame is not self._off_surfaces:
+            frame.env_force.fill(0.0)  # zero until a finger touches the ground or a wall
+            self._off_surfaces = frame
 
     def _env_force(self, oset: ObstacleSet, res: MultiResult, v_dev: np.ndarray) -> V3:
         """Force on a finger from the ground and walls it touches, N."""
@@ -191,6 +198,7 @@ class Friction:
         self.scene = scene
         self.radii = radii
         self._anchor: list[V3 | None] = [None] * len(radii)
+        self._holding = False  # any anchor set
 
     def run(self, frame: Frame) -> None:
         obj = self.scene.object
@@ -198,8 +206,11 @@ class Friction:
         mat = obj.material
         touching = frame.in_contact.tolist()
         if not any(touching):
-            self._anchor = [None] * len(self._anchor)
+            if self._holding:
+                self._anchor = [None] * len(self._anchor)
+                self._holding = False
             return
+        self._holding = True
         pos = frame.device_pos.tolist()
         plain = frame.surface_point.tolist()  # frictionless, as contact wrote them
         held = list(plain)
