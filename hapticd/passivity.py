@@ -117,6 +117,33 @@ def authority(speed: float, threshold: float) -> float:
     return min(max(speed / threshold - 1.0, 0.0), 1.0)
 
 
+def observe(energy: float, force: Sequence[float], dx: Sequence[float]) -> float:
+    """The observer: E_pre(n) = E(n-1) - f(n) . v(n) T (J), for ``energy`` E(n-1) (J), the
+    rendered force ``force`` f(n) (3,) N on the finger and its motion ``dx`` = x(n) - x(n-1)
+    (3,) m. Non-finite input gives a non-finite result (``control`` then adds nothing)."""
+    return energy - (force[0] * dx[0] + force[1] * dx[1] + force[2] * dx[2])
+
+
+def control(
+    observed: float, dx_actuated: Sequence[float], dt: float, params: PassivityParams
+) -> tuple[float, float]:
+    """The controller: (E(n) J, alpha(n) N s/m) for the observed energy E_pre(n) (J) and the
+    finger's motion projected onto its actuated directions, ``dx_actuated`` = P_a dx (3,) m,
+    over a tick of ``dt`` s. The force to display is f(n) - alpha(n) P_a dx / T."""
+    if not observed < 0.0:  # also for NaN: nothing to pay back, or nothing sound to pay
+        return observed, 0.0
+    ua2 = dx_actuated[0] ** 2 + dx_actuated[1] ** 2 + dx_actuated[2] ** 2  # |P_a v|^2 T^2
+    w = authority(math.sqrt(ua2) / dt, params.velocity_threshold)  # 0 for NaN too
+    if not w > 0.0:
+        return observed, 0.0
+    # T alpha |P_a v|^2 = alpha ua2 / T: the damping's dissipation over the tick.
+    need = -observed * dt / ua2
+    cap = w * params.max_damping
+    if need <= cap:
+        return 0.0, need  # exactly what brings E back to zero
+    return observed + cap * ua2 / dt, cap
+
+
 def step(
     energy: float,
     force: Sequence[float],
@@ -133,19 +160,7 @@ def step(
     display is f(n) - alpha(n) P_a dx / T. Non-finite input leaves E unchanged and adds
     no damping.
     """
-    absorbed = -(force[0] * dx[0] + force[1] * dx[1] + force[2] * dx[2])  # J, -f.v T
-    ua2 = dx_actuated[0] ** 2 + dx_actuated[1] ** 2 + dx_actuated[2] ** 2  # m^2, |P_a v|^2 T^2
-    if not (math.isfinite(absorbed) and math.isfinite(ua2)):
+    observed = observe(energy, force, dx)
+    if not math.isfinite(observed):
         return energy, 0.0
-    e = energy + absorbed
-    if e >= 0.0:
-        return e, 0.0
-    w = authority(math.sqrt(ua2) / dt, params.velocity_threshold)
-    if w <= 0.0:
-        return e, 0.0
-    # T alpha |P_a v|^2 = alpha ua2 / T: the damping's dissipation over the tick.
-    need = -e * dt / ua2
-    cap = w * params.max_damping
-    if need <= cap:
-        return 0.0, need  # exactly what brings E back to zero
-    return e + cap * ua2 / dt, cap
+    return control(observed, dx_actuated, dt, params)

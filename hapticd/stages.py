@@ -23,8 +23,7 @@ from hapticd.contact import MultiResult, ObstacleSet, Polytope, proxy_step_multi
 from hapticd.dynamics import SMALL_SHAPE, SurfaceSet, auto_substeps, step_body, step_body_small
 from hapticd.frame import Frame
 from hapticd.friction import friction_proxy
-from hapticd.passivity import PassivityParams, orthonormal, project
-from hapticd.passivity import step as passivity_step
+from hapticd.passivity import PassivityParams, control, observe, orthonormal, project
 from hapticd.scene import Scene
 
 V3 = tuple[float, float, float]
@@ -407,21 +406,28 @@ class Passivity:
         prev = self._prev if self._prev is not None else pos
         self._prev = pos
         forces = frame.rendered_force.tolist()
-        bases = self._bases(pos)
         energy, damping = self._energy, self._damping
         dt, params = self.dt, self.params
+        bases = None
         damped = False
         for i, f in enumerate(forces):
             x, xp = pos[i], prev[i]
             dx = (x[0] - xp[0], x[1] - xp[1], x[2] - xp[2])
-            du = project(bases[i], dx)
-            e, alpha = passivity_step(energy[i], f, dx, du, dt, params)
+            e = observe(energy[i], f, dx)
+            alpha = 0.0
+            if e < 0.0:  # only then the controller needs the actuated motion
+                if bases is None:
+                    bases = self._bases(pos)
+                du = project(bases[i], dx)
+                e, alpha = control(e, du, dt, params)
+                if alpha > 0.0:
+                    c = alpha / dt  # the damping force is -alpha P_a v, v = dx / T
+                    forces[i] = [f[0] - c * du[0], f[1] - c * du[1], f[2] - c * du[2]]
+                    damped = True
+            elif not e >= 0.0:  # NaN: a non-finite position or force; keep the last energy
+                e = energy[i]
             energy[i] = e
             damping[i] = alpha
-            if alpha > 0.0:
-                c = alpha / dt  # the damping force is -alpha P_a v, v = dx / T
-                forces[i] = [f[0] - c * du[0], f[1] - c * du[1], f[2] - c * du[2]]
-                damped = True
         frame.passivity_energy[...] = energy
         frame.passivity_damping[...] = damping
         if damped:
