@@ -104,6 +104,11 @@ class Renderer:
         self.stages: list[Stage] = stages
 
     @property
+    def passivity(self) -> Passivity | None:
+        """The passivity stage (planned when the renderer was given its parameters), or None."""
+        return self._passivity
+
+    @property
     def stage_names(self) -> list[str]:
         """Names of the stages in the plan, in tick order."""
         return [s.name for s in self.stages]

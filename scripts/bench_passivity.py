@@ -133,7 +133,7 @@ def simulate(scene: Scene, params: PassivityParams | None) -> dict[str, np.ndarr
     r = scene.make(params)
     stage_in = np.zeros_like(r.frame.rendered_force)
     if params is not None:
-        stage = r._passivity
+        stage = r.passivity
         run = stage.run
 
         def tapped(frame, _run=run) -> None:
@@ -184,7 +184,7 @@ def time_ticks(scene: Scene, positions: np.ndarray, rounds: int) -> dict[str, li
             r = scene.make(None if variant == "off" else PARAMS)
             ticks = times[variant]
             if variant == "stage":
-                stage = r._passivity
+                stage = r.passivity
                 run = stage.run
 
                 def timed(frame, _run=run, _acc=ticks) -> None:

@@ -13,6 +13,7 @@ from hapticd import passivity
 from hapticd.actuation import Actuation
 from hapticd.analysis import Pipeline, examples
 from hapticd.build import build_renderer
+from hapticd.cli import format_status
 from hapticd.daemon.session import build_session
 from hapticd.daemon.summary import status
 from hapticd.passivity import PassivityParams, authority, orthonormal, project
@@ -124,7 +125,7 @@ def test_damping_is_bounded_idle_below_the_threshold_and_never_nan(
 def test_as_v_goes_to_zero_the_stage_adds_nothing_and_no_nan(v, energy):
     assume(energy < 0.0)  # a deficit the controller would like to pay back
     r = _wall_renderer(PARAMS)
-    r._passivity._energy[0] = energy
+    r.passivity._energy[0] = energy
     x = np.array([[0.0, -0.002, 0.0]])
     r.step(x, np.zeros((1, 3)))
     f = r.step(x + np.array([[v * DT, 0.0, 0.0]]), np.zeros((1, 3)))
@@ -134,10 +135,10 @@ def test_as_v_goes_to_zero_the_stage_adds_nothing_and_no_nan(v, energy):
 
 def test_non_finite_positions_add_no_damping_and_leave_the_energy():
     r = _wall_renderer(PARAMS)
-    r._passivity._energy[0] = -1e-3
+    r.passivity._energy[0] = -1e-3
     x = np.array([[0.0, -0.002, 0.0]])
     r.step(x, np.zeros((1, 3)))
-    r._passivity._prev = [[math.nan, 0.0, 0.0]]  # as after a NaN read
+    r.passivity._prev = [[math.nan, 0.0, 0.0]]  # as after a NaN read
     f = r.step(x, np.zeros((1, 3)))
     assert float(f.passivity_damping[0]) == 0.0 and float(f.passivity_energy[0]) == -1e-3
     assert np.all(np.isfinite(f.rendered_force))
@@ -257,7 +258,7 @@ def test_at_rest_the_stage_adds_nothing_so_the_analysis_leaves_it_out():
     # The analysis linearizes at rest; there the stage adds no damping even with a deficit,
     # so a pipeline with or without it renders the same forces.
     r = _wall_renderer(PARAMS)
-    r._passivity._energy[0] = -1.0
+    r.passivity._energy[0] = -1.0
     x = np.array([[0.0, -0.002, 0.0]])
     for _ in range(3):
         f = r.step(x, np.zeros((1, 3)))
@@ -277,7 +278,7 @@ def test_the_stage_is_planned_only_when_enabled(grasp_data, write_profile):
     grasp_data["rendering"]["passivity"] = {"enabled": True}
     r = build_renderer(parse_profile(grasp_data))
     assert r.stage_names == ["contact", "forces", "allocation", "passivity", "scene"]
-    assert r._passivity.params == PassivityParams(0.005, 20.0)
+    assert r.passivity.params == PassivityParams(0.005, 20.0)
     # With ground and walls it observes their force too: after the environment stage.
     lift = load_profile(ROOT / "configs" / "lift-weight.yaml")
     assert "passivity" not in build_renderer(lift).stage_names
@@ -329,8 +330,13 @@ def test_a_run_records_and_reports_the_stage(grasp_data, tmp_path):
         record_path=tmp_path / "run.hrec",
     )
     s.run()
-    st = status(s.loop)["passivity"]
+    full = status(s.loop)
+    st = full["passivity"]
     assert st["enabled"] is True and len(st["energy_j"]) == 2
+    line = next(ln for ln in format_status(full).splitlines() if ln.startswith("passivity"))
+    assert " J; damping 0, 0 N s/m" in line
+    full["passivity"] = {"enabled": False, "energy_j": [0.0, 0.0], "damping_n_s_per_m": [0.0] * 2}
+    assert "passivity     off" in format_status(full)
     from hapticd import recording
 
     rec = recording.read(tmp_path / "run.hrec")
