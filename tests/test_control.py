@@ -66,6 +66,11 @@ def test_socket_is_private_and_greets_with_versions(live):
         assert c.greeting["protocol"] == 1 and "hapticd" in c.greeting
         st = c.status()
         assert st["rate_hz"] == 1000 and st["fault"] is None and st["stages"][0] == "contact"
+        assert st["passivity"] == {
+            "enabled": False,
+            "energy_j": [0.0, 0.0],
+            "damping_n_s_per_m": [0.0, 0.0],
+        }
 
 
 def test_a_change_lands_at_a_tick_boundary_and_in_the_recording(live, caplog):
