@@ -146,10 +146,29 @@ def live(tmp_path):
         server.close()
 
 
+def wait_for(read, what, *, until=bool, timeout_s=20.0, poll_s=0.02):
+    """Call ``read()`` every ``poll_s`` s until ``until(value)`` holds and return that value;
+    at ``timeout_s`` s fail the test, naming ``what`` it waited for and the last value read."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = read()
+        if until(value):
+            return value
+        if time.monotonic() >= deadline:
+            seen = repr(value)
+            seen = seen if len(seen) <= 400 else seen[:400] + "..."
+            pytest.fail(f"timed out after {timeout_s:g} s waiting for {what}; last seen: {seen}")
+        time.sleep(poll_s)
+
+
 def wait_for_tick(client, tick, limit_s=5.0):
-    deadline = time.monotonic() + limit_s
-    while client.status()["tick"] < tick and time.monotonic() < deadline:
-        time.sleep(0.02)
+    """Wait until the daemon behind ``client`` has reached tick ``tick``; fail at ``limit_s``."""
+    return wait_for(
+        lambda: client.status()["tick"],
+        f"tick {tick}",
+        until=lambda k: k >= tick,
+        timeout_s=limit_s,
+    )
 
 
 @pytest.fixture(scope="session")
