@@ -106,6 +106,7 @@ def test_paced_subprocess_run_is_real_time_and_matches_unpaced(tmp_path):
     assert s["rate_hz"]["target"] == 1000
     assert abs(s["rate_hz"]["achieved"] - 1000) / 1000 < 0.03
     rec = recording.read(r_path)
+    assert s["recording"]["dropped"] == 0 and rec.ticks == s["ticks"] == 7801
     check_grasp_recording(rec)
     # Wall-clock tick times follow the nominal ones (real-time pacing).
     assert abs((rec["t_wall"][-1] - rec["t_wall"][0]) - (rec["t"][-1] - rec["t"][0])) < 0.2
