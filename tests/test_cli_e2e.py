@@ -6,14 +6,13 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
 
 from hapticd import recording
 from hapticd.cli import main
-from tests.conftest import GRASP_PROFILE, ROOT
+from tests.conftest import GRASP_PROFILE, ROOT, wait_for
 
 SUMMARY_KEYS = {
     "ticks",
@@ -144,15 +143,14 @@ def test_sigterm_stops_with_summary_and_exit_0(tmp_path):
         cwd=ROOT,
     )
     try:
-        deadline = time.monotonic() + 20
         # Wait for a few hundred recorded ticks (the writer flushes every 10 ms; a torn
         # last record is fine to read).
-        while time.monotonic() < deadline and (
-            not r_path.exists()
-            or r_path.stat().st_size < 1000
-            or recording.read(r_path).ticks < 300
-        ):
-            time.sleep(0.05)
+        def recorded() -> int:
+            if not r_path.exists() or r_path.stat().st_size < 1000:
+                return 0
+            return recording.read(r_path).ticks
+
+        wait_for(recorded, "300 recorded ticks", until=lambda n: n >= 300, poll_s=0.05)
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=20)
     finally:

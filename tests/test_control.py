@@ -17,7 +17,7 @@ from hapticd.control import ControlClient
 from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
 from hapticd.protocol import MAX_LINE_BYTES, ProtocolError, parse_request
-from tests.conftest import GRASP_PROFILE, wait_for_tick
+from tests.conftest import GRASP_PROFILE, wait_for, wait_for_tick
 
 
 @pytest.mark.parametrize(
@@ -122,9 +122,7 @@ def test_stop_ends_the_run_with_zero_force(live):
     with ControlClient(sock) as c:
         wait_for_tick(c, 200)
         assert c.stop() == {"stopping": True, "ramp_s": 0.05}
-    deadline = time.monotonic() + 5
-    while "summary" not in out and time.monotonic() < deadline:
-        time.sleep(0.02)
+    wait_for(lambda: out.get("summary"), "the run's summary", until=bool, timeout_s=5)
     assert out["summary"]["end_reason"] == "control: shutdown"
     for dev in session.devices:
         np.testing.assert_array_equal(dev.last_force, 0)
