@@ -21,6 +21,30 @@ from hapticd.profile import load_profile
 ROOT = Path(__file__).resolve().parent.parent
 GRASP_PROFILE = ROOT / "configs" / "grasp-stiffness.yaml"
 
+pytest_plugins = ["pytester"]
+
+
+def timing_mark_problems(items) -> list[str]:
+    """Tests marked ``timing`` without a reason string: each needs
+    ``@pytest.mark.timing("why this needs wall-clock time")``."""
+    out = []
+    for item in items:
+        for mark in item.iter_markers("timing"):
+            reason = mark.args[0] if mark.args else mark.kwargs.get("reason")
+            if len(mark.args) > 1 or not isinstance(reason, str) or not reason.strip():
+                out.append(item.nodeid)
+    return out
+
+
+def pytest_collection_modifyitems(config, items):
+    bad = timing_mark_problems(items)
+    if bad:
+        raise pytest.UsageError(
+            "@pytest.mark.timing needs one reason string, why the test needs wall-clock "
+            'time, as in @pytest.mark.timing("the achieved rate is measured"): ' + ", ".join(bad)
+        )
+
+
 # Deterministic generated cases in CI; more examples on demand (HYPOTHESIS_PROFILE=thorough).
 settings.register_profile(
     "ci",
