@@ -1,7 +1,6 @@
 import json
 import os
 import signal
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -120,7 +119,6 @@ def test_recorder_writes_every_row_through_the_ring_and_wraps(tmp_path):
     np.testing.assert_array_equal(out["device_pos"][:, 1, 2], np.arange(n))
     np.testing.assert_array_equal(out["lam_a"][:, 1], -np.arange(n))
     np.testing.assert_array_equal(out["fault"], np.arange(n) % 2)
-    assert not list(Path(rec._ring_path).parent.glob(Path(rec._ring_path).name))
 
 
 def test_a_paced_recorder_drops_ticks_rather_than_wait_or_overwrite(tmp_path):
@@ -148,7 +146,7 @@ def test_recorder_reports_a_writer_that_died(tmp_path):
     rec._proc.wait()
     for i in range(20):
         rec.append(rec.as_record((float(i), np.zeros((2, 3)), [0, 0])))
-    with pytest.raises(RecordingError, match="writer stopped after 0 of 16 ticks"):
+    with pytest.raises(RecordingError, match=r"writer process .* ended .killed by signal 9"):
         rec.close()
 
 
@@ -161,7 +159,7 @@ def test_the_ring_writer_reports_a_write_failure(tmp_path):
         rec.append(rec.as_record((float(i), np.zeros((2, 3)), [0, 0])))
     rec._words[ring.W_CLOSED // 8] = 1
     # The writer's own code, in this process, on a disk that is full.
-    ring.drain(rec._ring_path, "/dev/full", os.getppid())
+    ring.drain(rec._ring_fd, os.open("/dev/full", os.O_WRONLY), "/dev/full", os.getppid())
     assert "writing /dev/full failed" in rec.error
     os.kill(rec._proc.pid, signal.SIGKILL)
     with pytest.raises(RecordingError, match="No space left"):
