@@ -201,7 +201,7 @@ def read(path: str | Path) -> Recording:
     if not _depth_ok(header, MAX_HEADER_DEPTH):
         raise RecordingError(f"{p}: header nests deeper than {MAX_HEADER_DEPTH} levels")
     version = header.get("version")
-    if version != FORMAT_VERSION:
+    if type(version) is not int or version != FORMAT_VERSION:  # not True, not 1.0
         raise RecordingError(f"{p}: format version {version!r} is not supported (expected 1)")
     fields = _parse_fields(header.get("fields"), str(p))
     dtype = make_dtype(fields)
@@ -213,7 +213,9 @@ def read(path: str | Path) -> Recording:
     if not isinstance(fingers, list) or not all(isinstance(f, str) for f in fingers):
         raise RecordingError(f"{p}: header 'fingers' must be a list of names")
     meta = header.get("meta", {})
-    return Recording(p, data, fields, fingers, meta if isinstance(meta, dict) else {}, torn)
+    if not isinstance(meta, dict):
+        raise RecordingError(f"{p}: header 'meta' must be a JSON object")
+    return Recording(p, data, fields, fingers, meta, torn)
 
 
 def _read_regular(p: Path) -> bytes:
