@@ -83,7 +83,8 @@ class ControlServer:
         self.session = session
         self.loop = session.loop
         self.path = Path(path) if path is not None else None
-        self.periodic = list(periodic or [])
+        self.periodic = [*(periodic or []), self._watch_recording]
+        self._reported: object = None  # the recorder whose failure was last logged
         self._sel = selectors.DefaultSelector()
         self._stop = threading.Event()
         self._conns: dict[socket.socket, _Conn] = {}
@@ -215,6 +216,17 @@ class ControlServer:
                         fn()
                     except Exception as exc:  # a notification must not end the server
                         log.warning("periodic task failed: %s", exc)
+
+    def _watch_recording(self) -> None:
+        """Log, once, a recording that is failing (its writer died, its file was deleted):
+        status and record_stop report it too, but nobody may be asking."""
+        rec = self.loop.recorder
+        if rec is None or rec is self._reported:
+            return
+        error = rec.error
+        if error is not None:
+            self._reported = rec
+            log.error("recording %s is failing: %s", rec.path, error)
 
     def _woken(self) -> None:
         try:

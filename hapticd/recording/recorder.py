@@ -114,6 +114,8 @@ class Recorder:
     def error(self) -> str | None:
         """Why the recording is failing, if it is: the writer's own message, or that the
         writer process is gone (seen at once, not when the ring fills)."""
+        if self._closed:
+            return None if self._final is None else self._final["error"]
         if self.state == ring.STATE_FAILED:
             raw = bytes(self._mm[ring.ERROR_AT : ring.ERROR_AT + ring.ERROR_BYTES])
             return raw.rstrip(b"\x00").decode("utf-8", "replace")
