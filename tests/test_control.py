@@ -455,3 +455,22 @@ def test_record_start_over_the_socket_stays_in_the_recording_directory(live, tmp
             c.record_stop()
         assert exc.value.code == "recording"
     assert session.record_dir == tmp_path
+
+
+def test_the_readme_python_example_runs(live, tmp_path, monkeypatch):
+    """The README's control example, as written, against a live daemon whose recording
+    directory is tmp_path: it records where it says."""
+    _, sock, _, _ = live
+    from tests.conftest import ROOT
+
+    readme = (ROOT / "README.md").read_text()
+    start = readme.index("```python\nfrom hapticd.control import ControlClient")
+    code = readme[start + len("```python\n") : readme.index("```", start + 10)]
+    monkeypatch.setenv("HAPTICD_SOCKET", str(sock))
+    with ControlClient(sock) as c:
+        c.record_stop()  # the live run records from its start
+    exec(compile(code, "README.md", "exec"), {})
+    with ControlClient(sock) as c:
+        assert c.status()["recording"]["path"] == str(tmp_path / "s01-trial-01.hrec")
+        assert c.record_stop()["written"] > 0
+    assert recording.read(tmp_path / "s01-trial-01.hrec").ticks > 0
