@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import logging
 import os
+import platform
 import stat
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,10 +25,12 @@ from hapticd.build import (
 from hapticd.commands import Command, RecordStart, RecordStop, Reload
 from hapticd.daemon.summary import summarize
 from hapticd.profile import Profile, ProfileError, load_profile
-from hapticd.recording import Recorder, files
+from hapticd.recording import Recorder, files, ring
 from hapticd.render import Renderer
 from hapticd.safety import SafetyChain
 from hapticd.servo import Applied, ServoLoop
+
+log = logging.getLogger("hapticd")
 
 APPLY_TIMEOUT_S = 2.0
 MAX_PROFILE_BYTES = 1 << 20  # a profile to reload is a few KiB; more is not a profile
@@ -249,4 +253,10 @@ def make_recorder(
         root=root,
     )
     rec.wait_running()
+    if not ring.ORDERED_STORES:
+        log.warning(
+            "recording on %s: the ring relies on x86's store ordering; on this CPU a record "
+            "could in principle be read before it is complete (docs/daemon.md)",
+            platform.machine(),
+        )
     return rec

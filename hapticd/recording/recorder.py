@@ -194,7 +194,10 @@ class Recorder:
         self._shutdown()
         self._final = st
         if st["error"] is not None:
-            raise RecordingError(f"{self.path}: {st['error']}")
+            error = st["error"]
+            raise RecordingError(
+                error if error.startswith(str(self.path)) else f"{self.path}: {error}"
+            )
         if st["written"] != st["ticks"]:
             raise RecordingError(
                 f"{self.path}: the writer stopped after {st['written']} of {st['ticks']} ticks"
