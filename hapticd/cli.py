@@ -17,7 +17,7 @@ from hapticd_drivers.registry import backend_names, discover
 
 from hapticd import __version__, params
 from hapticd.build import build_devices, build_scene, load_trajectories
-from hapticd.control import ControlClient, default_socket_path
+from hapticd.control import ControlClient, NoDaemonError, default_socket_path
 from hapticd.daemon.sdnotify import ServiceNotifier
 from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
@@ -89,6 +89,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             record_path=args.record,
             device=args.device,
             emulate=args.emulate,
+            record_dir=args.record_dir,
         )
     except (ProfileError, BackendUnavailableError, RecordingError) as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
@@ -232,11 +233,30 @@ def format_status(st: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+# Replies that say the request itself was wrong (exit 2); any other error is about the
+# daemon's state (not recording, the file exists, not running: exit 1).
+BAD_INPUT_CODES = frozenset(
+    {
+        "malformed",
+        "bad_request",
+        "too_large",
+        "unknown_command",
+        "unknown_param",
+        "bad_value",
+        "out_of_range",
+        "bad_profile",
+    }
+)
+
+
 def _client_failed(args: argparse.Namespace, exc: Exception) -> int:
     """Report a failed client command; the exit code says whose fault it was."""
     if isinstance(exc, ProtocolError):
         print(f"hapticd: {exc.code}: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return EXIT_BAD_INPUT if exc.code in BAD_INPUT_CODES else EXIT_ERROR
+    if isinstance(exc, NoDaemonError):
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_ERROR
     where = args.socket or default_socket_path()
     print(f"hapticd: cannot talk to {where}: {exc}", file=sys.stderr)
     return EXIT_ERROR
@@ -551,7 +571,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="run as fast as possible on a simulated clock (same forces as paced)",
     )
     run.add_argument(
-        "--record", type=Path, metavar="PATH", help="record every tick to PATH (.hrec)"
+        "--record",
+        type=Path,
+        metavar="PATH",
+        help="record every tick to PATH (.hrec), anywhere you may write",
+    )
+    run.add_argument(
+        "--record-dir",
+        type=Path,
+        metavar="DIR",
+        help="the only folder record_start over the socket writes in (default: the profile's "
+        "recording.directory, else $STATE_DIRECTORY, $XDG_STATE_HOME/hapticd or "
+        "~/.local/state/hapticd)",
     )
     run.add_argument(
         "--socket",

@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import os
 import socket
+import struct
+import time
 from pathlib import Path
 from typing import Any
 
@@ -30,23 +32,57 @@ def default_socket_path() -> Path:
     return Path(f"/tmp/hapticd-{os.getuid()}") / "control.sock"
 
 
+class NoDaemonError(ConnectionError):
+    """Nothing serves the control socket: no file there, or a stale one."""
+
+
+def _connect(path: Path, timeout_s: float) -> socket.socket:
+    """A connected socket with ``timeout_s`` on every operation. The connect itself blocks
+    (a busy daemon's full accept queue is waited out, up to ``timeout_s``) rather than
+    failing at once with EAGAIN as a non-blocking connect does on a Unix socket."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        left = max(deadline - time.monotonic(), 0.001)
+        # A blocking connect on a Unix socket waits up to the send timeout for queue room.
+        sec = int(left)
+        sock.setsockopt(
+            socket.SOL_SOCKET,
+            socket.SO_SNDTIMEO,
+            struct.pack("ll", sec, int((left - sec) * 1e6)),
+        )
+        try:
+            sock.connect(str(path))
+        except (FileNotFoundError, ConnectionRefusedError) as exc:
+            sock.close()
+            what = "no socket at" if isinstance(exc, FileNotFoundError) else "nothing serves"
+            raise NoDaemonError(f"is hapticd running? ({what} {path})") from None
+        except (BlockingIOError, InterruptedError):
+            sock.close()
+            if time.monotonic() >= deadline:
+                raise TimeoutError(
+                    f"{path}: the daemon accepted no connection within {timeout_s:g} s"
+                ) from None
+            time.sleep(0.005)
+            continue
+        except OSError:
+            sock.close()
+            raise
+        sock.settimeout(timeout_s)
+        return sock
+
+
 class ControlClient:
     """A client for experiment scripts::
 
     with ControlClient() as hd:          # the default socket path
         hd.set("stiffness_n_per_m", 60)
-        hd.record_start("/data/s01/trial-07.hrec")
+        hd.record_start("s01-trial-07.hrec")   # in the daemon's recording directory
     """
 
     def __init__(self, path: str | Path | None = None, timeout_s: float = 5.0) -> None:
         self.path = Path(path) if path is not None else default_socket_path()
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self.sock.settimeout(timeout_s)
-        try:
-            self.sock.connect(str(self.path))
-        except OSError:
-            self.sock.close()
-            raise
+        self.sock = _connect(self.path, timeout_s)
         self._file = self.sock.makefile("rb")
         self.greeting = json.loads(self._file.readline())
         if self.greeting.get("protocol") != proto.PROTOCOL_VERSION:
@@ -94,7 +130,9 @@ class ControlClient:
         return self.call("get", param=param)[param]
 
     def record_start(self, path: str | Path, overwrite: bool = False) -> dict[str, Any]:
-        return self.call("record_start", path=str(Path(path).absolute()), overwrite=overwrite)
+        """Record every tick to ``path``: a name in the daemon's recording directory (or an
+        absolute path inside it). The result's ``path`` is where the file is."""
+        return self.call("record_start", path=str(path), overwrite=overwrite)
 
     def record_stop(self) -> dict[str, Any]:
         return self.call("record_stop")

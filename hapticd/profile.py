@@ -318,6 +318,15 @@ class RenderingConfig(_Strict):
     )
 
 
+class RecordingConfig(_Strict):
+    directory: str | None = Field(
+        default=None,
+        min_length=1,
+        description="where record_start over the control socket may write (relative to the "
+        "profile's folder); none: the service's state directory",
+    )
+
+
 class SafetyConfig(_Strict):
     max_force_n: float = param_field(
         "force_limit_n",
@@ -355,6 +364,7 @@ class Profile(_Strict):
     rendering: RenderingConfig = RenderingConfig()
     scene: SceneConfig
     safety: SafetyConfig
+    recording: RecordingConfig = RecordingConfig()
 
     source: Path | None = Field(default=None, exclude=True, description="file it was loaded from")
 

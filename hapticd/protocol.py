@@ -18,6 +18,9 @@ from hapticd import params
 
 PROTOCOL_VERSION = 1
 MAX_LINE_BYTES = 64 * 1024
+MAX_DEPTH = 8  # JSON nesting of a request (actuated_directions needs 4)
+MAX_ID_CHARS = 256
+MAX_PATH_BYTES = 4096
 
 
 class ProtocolError(ValueError):
@@ -30,7 +33,7 @@ class ProtocolError(ValueError):
 
 def _number(value: Any, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ProtocolError("bad_value", f"{name} must be a finite number, got {value!r}")
+        raise ProtocolError("bad_value", f"{name} must be a finite number, got {_short(value)}")
     return float(value)
 
 
@@ -59,23 +62,88 @@ def encode(obj: dict[str, Any]) -> bytes:
     return (json.dumps(obj, separators=(",", ":")) + "\n").encode("utf-8")
 
 
-def parse_request(line: bytes) -> dict[str, Any]:
-    """A checked request; ProtocolError for anything malformed, unknown or out of range."""
+def _no_constant(word: str) -> Any:
+    raise ProtocolError("bad_value", f"{word} is not a number JSON allows (no NaN or Infinity)")
+
+
+def _too_deep(obj: Any, limit: int) -> bool:
+    """True if ``obj`` (parsed JSON) nests deeper than ``limit`` (iteratively: no recursion)."""
+    todo: list[tuple[Any, int]] = [(obj, 1)]
+    while todo:
+        node, d = todo.pop()
+        if isinstance(node, dict | list):
+            if d > limit:
+                return True
+            todo.extend((v, d + 1) for v in (node.values() if isinstance(node, dict) else node))
+    return False
+
+
+def decode(line: bytes) -> dict[str, Any]:
+    """One request line as a JSON object, its ``id`` checked; ProtocolError otherwise."""
     if len(line) > MAX_LINE_BYTES:
         raise ProtocolError("too_large", f"request longer than {MAX_LINE_BYTES} bytes")
     try:
-        req = json.loads(line.decode("utf-8"))
+        req = json.loads(line.decode("utf-8"), parse_constant=_no_constant)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ProtocolError("malformed", f"not a JSON object: {exc}") from None
+    except RecursionError:
+        raise ProtocolError(
+            "bad_request", f"request nested too deeply (at most {MAX_DEPTH} levels)"
+        ) from None
     if not isinstance(req, dict):
         raise ProtocolError("malformed", "a request must be a JSON object")
+    if _too_deep(req, MAX_DEPTH):
+        raise ProtocolError(
+            "bad_request", f"request nested too deeply (at most {MAX_DEPTH} levels)"
+        )
+    rid = req.get("id")
+    ok_id = rid is None or (
+        (isinstance(rid, str) and len(rid) <= MAX_ID_CHARS)
+        or (isinstance(rid, int) and not isinstance(rid, bool) and abs(rid) < 2**63)
+        or (isinstance(rid, float) and math.isfinite(rid))
+    )
+    if not ok_id:
+        req.pop("id", None)  # not echoed: the reply's id is null
+        raise ProtocolError(
+            "bad_request",
+            f"'id' must be a string of at most {MAX_ID_CHARS} characters, a number or null",
+        )
+    return req
+
+
+def request_id(req: dict[str, Any]) -> Any:
+    """The id to echo in the reply to ``req`` (a decoded request)."""
+    return req.get("id")
+
+
+def parse_request(line: bytes) -> dict[str, Any]:
+    """A checked request; ProtocolError for anything malformed, unknown or out of range."""
+    return check(decode(line))
+
+
+def check(req: dict[str, Any]) -> dict[str, Any]:
+    """Check a decoded request completely; ProtocolError names what is wrong."""
     cmd = req.get("cmd")
+    if not isinstance(cmd, str):
+        raise ProtocolError(
+            "bad_request" if "cmd" in req else "unknown_command",
+            f"'cmd' must be a command name; commands: {list(COMMANDS)}",
+        )
     if cmd not in COMMANDS:
-        raise ProtocolError("unknown_command", f"unknown cmd {cmd!r}; commands: {list(COMMANDS)}")
+        raise ProtocolError(
+            "unknown_command", f"unknown cmd {cmd[:64]!r}; commands: {list(COMMANDS)}"
+        )
     if cmd in ("get", "set"):
         name = req.get("param")
+        if name is not None and not isinstance(name, str):
+            raise ProtocolError(
+                "bad_request",
+                f"'param' must be a parameter's name (a string); params: "
+                f"{', '.join(params.PARAMS)}",
+            )
         if not (isinstance(name, str) and name in params.PARAMS):
-            raise ProtocolError("unknown_param", params.unknown_message(name))
+            shown = name if name is None or len(name) <= 64 else name[:64] + "..."
+            raise ProtocolError("unknown_param", params.unknown_message(shown))
         if cmd == "set":
             if "value" not in req:
                 raise ProtocolError("malformed", "set needs a value")
@@ -85,15 +153,29 @@ def parse_request(line: bytes) -> dict[str, Any]:
                 raise ProtocolError(exc.code, str(exc)) from None
     elif cmd == "record_start":
         path = req.get("path")
-        if not (isinstance(path, str) and path.startswith("/")):
-            raise ProtocolError("bad_value", f"record_start needs an absolute 'path', got {path!r}")
+        if not (
+            isinstance(path, str)
+            and path
+            and "\x00" not in path
+            and len(path.encode("utf-8", "replace")) <= MAX_PATH_BYTES
+        ):
+            raise ProtocolError(
+                "bad_value",
+                "record_start needs a 'path': a file name in the daemon's recording "
+                f"directory (or an absolute path inside it), got {_short(path)}",
+            )
         if not isinstance(req.get("overwrite", False), bool):
             raise ProtocolError("bad_value", "'overwrite' must be true or false")
     elif cmd == "reload":
         path = req.get("profile")
-        if path is not None and not (isinstance(path, str) and path.startswith("/")):
+        if path is not None and not (
+            isinstance(path, str)
+            and path.startswith("/")
+            and "\x00" not in path
+            and len(path.encode("utf-8", "replace")) <= MAX_PATH_BYTES
+        ):
             raise ProtocolError(
-                "bad_value", f"reload's 'profile' must be an absolute path, got {path!r}"
+                "bad_value", f"reload's 'profile' must be an absolute path, got {_short(path)}"
             )
     elif cmd == "subscribe":
         rate = _number(req.get("rate_hz", 30.0), "rate_hz")
@@ -102,6 +184,11 @@ def parse_request(line: bytes) -> dict[str, Any]:
             raise ProtocolError("out_of_range", f"rate_hz must be in [{lo}, {hi}], got {rate}")
         req["rate_hz"] = rate
     return req
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def telemetry(sample: dict[str, Any]) -> bytes:

@@ -102,6 +102,7 @@ class ServoLoop:
         self.rt_report: realtime.RealtimeReport | None = None
         # Counts applied control changes; recorded every tick, so a change is findable.
         self.control_seq = 0
+        self._last_recorded = -1  # tick of the last record handed to the recorder
         self.running = False
         self.end_reason = ""
         self.events: list[tuple[float, str]] = []
@@ -276,6 +277,26 @@ class ServoLoop:
         errors += self.bank.close()
         return errors
 
+    def _record_shutdown(self) -> None:
+        """Record the zero force the shutdown sent, as one more tick after the last recorded
+        (its other fields repeat that tick's): a recording ends where the devices did, at
+        zero force, also when the run ended without a ramp (duration, fault, a second
+        signal)."""
+        rec = self.recorder
+        if rec is None or rec.ticks == 0:
+            return
+        frame = self.frame
+        k = self._last_recorded + 1
+        frame.tick[()] = k
+        frame.t[()] = k * self.period
+        frame.t_wall[()] = time.monotonic() - self.pacer.t0
+        frame.compute_s[()] = 0.0
+        frame.device_force[:] = 0.0
+        frame.fault[()] = self.safety.fault is not None
+        frame.control_seq[()] = self.control_seq
+        with contextlib.suppress(Exception):  # never stands between shutdown and its report
+            rec.append(frame.recorded)
+
     def run(self) -> LoopStats:
         """Open and enable the devices, run until a stop condition, then zero and close."""
         try:
@@ -308,8 +329,12 @@ class ServoLoop:
             self._loop()
         finally:
             self.running = False
+            # Was the last force sent not zero? Then the recording needs the shutdown's zero.
+            unrecorded_zero = bool(self.frame.device_force.any())
             # The devices first: nothing below may stand between a fault and zero force.
             errors = self._shut_down()
+            if unrecorded_zero:
+                self._record_shutdown()
             with contextlib.suppress(Exception):
                 sys.setswitchinterval(old_switch)
             if self.rt_report is not None:
@@ -366,6 +391,7 @@ class ServoLoop:
             if rec is not None:
                 frame.compute_s[()] = compute
                 rec.append(frame.recorded)
+                self._last_recorded = k
             reason = self._finished(k)
             if reason is not None:
                 self.end_reason = reason

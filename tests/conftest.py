@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import shutil
@@ -101,7 +102,13 @@ def _sockets() -> set[str]:
 
 
 def _rings() -> set[str]:
-    return {p.name for p in Path("/dev/shm").glob(f"hapticd-ring-{os.getpid()}-*")}
+    """Recording rings this process holds open (anonymous memory files), or left by name."""
+    out = {p.name for p in Path("/dev/shm").glob(f"hapticd-ring-{os.getpid()}-*")}
+    for fd in os.listdir("/proc/self/fd"):
+        with contextlib.suppress(OSError):
+            if os.readlink(f"/proc/self/fd/{fd}").startswith("/memfd:hapticd-ring"):
+                out.add(f"fd {fd}")
+    return out
 
 
 @pytest.fixture(autouse=True)
@@ -151,11 +158,16 @@ def write_profile(tmp_path):
 
 @pytest.fixture
 def live(tmp_path):
-    """A paced grasp run serving its control socket in a thread: session, socket, recording, out."""
+    """A paced grasp run serving its control socket in a thread (recording directory: tmp_path):
+    session, socket, recording, out."""
     sock = tmp_path / "hapticd.sock"
     rec = tmp_path / "live.hrec"
     session = build_session(
-        load_profile(GRASP_PROFILE), paced=True, duration_s=4.0, record_path=rec
+        load_profile(GRASP_PROFILE),
+        paced=True,
+        duration_s=4.0,
+        record_path=rec,
+        record_dir=tmp_path,
     )
     server = ControlServer(session, sock)
     server.start()

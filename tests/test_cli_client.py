@@ -42,7 +42,16 @@ def test_client_commands_change_and_show_the_live_loop(live, capsys, tmp_path):
     assert rc == 2 and "out_of_range" in err
     rc, _, _ = run(capsys, "record", "stop", "--socket", s)
     assert rc == 0
+    # The daemon's state, not the arguments, is wrong: exit 1 (2 is for bad arguments).
+    rc, _, err = run(capsys, "record", "stop", "--socket", s)
+    assert rc == 1 and "rejected: not recording" in err
     trial = tmp_path / "t.hrec"
+    trial.write_bytes(b"keep")
+    rc, _, err = run(capsys, "record", "start", str(trial), "--socket", s)
+    assert rc == 1 and "exists; not overwriting" in err and trial.read_bytes() == b"keep"
+    rc, _, err = run(capsys, "record", "start", "/etc/t.hrec", "--socket", s)
+    assert rc == 1 and "outside the recording directory" in err
+    trial.unlink()
     rc, out, _ = run(capsys, "record", "start", str(trial), "--socket", s)
     assert rc == 0 and json.loads(out)["path"] == str(trial)
     rc, out, _ = run(capsys, "watch", "--count", "3", "--rate", "50", "--socket", s)
@@ -56,7 +65,8 @@ def test_client_commands_change_and_show_the_live_loop(live, capsys, tmp_path):
 
 def test_client_without_a_daemon_says_where_it_looked(capsys, tmp_path):
     rc, _, err = run(capsys, "status", "--socket", str(tmp_path / "none.sock"))
-    assert rc == 1 and f"cannot talk to {tmp_path / 'none.sock'}" in err
+    assert rc == 1 and f"is hapticd running? (no socket at {tmp_path / 'none.sock'})" in err
+    assert "Traceback" not in err
 
 
 def test_export_csv_has_a_named_column_per_scalar(capsys, tmp_path):

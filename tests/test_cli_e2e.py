@@ -235,10 +235,12 @@ def test_relative_trajectory_path_and_duration(grasp_data, write_profile, tmp_pa
     s = json.loads(s_path.read_text())
     assert s["ticks"] == 4000 and s["end_reason"] == "duration reached" and s["allocator"] == "pinv"
     a, b = recording.read(first), recording.read(second)
-    np.testing.assert_allclose(b["device_pos"], a["device_pos"][:4000], atol=1e-15)
+    # 4000 ticks, then the zero force the shutdown sent (the run ended mid-grasp).
+    assert b.ticks == 4001 and not b["device_force"][-1].any() and b["device_force"][-2].any()
+    np.testing.assert_allclose(b["device_pos"][:4000], a["device_pos"][:4000], atol=1e-15)
     # pinv renders less of the squeeze than IF with tilted actuators (cos^2 vs 1).
     pinch = (a["t"][:4000] > 2.6) & (a["t"][:4000] < 3.9)
-    ratio = np.abs(b["lam_a"][pinch]) / np.abs(a["lam_a"][:4000][pinch])
+    ratio = np.abs(b["lam_a"][:4000][pinch]) / np.abs(a["lam_a"][:4000][pinch])
     np.testing.assert_allclose(ratio, np.cos(np.radians(30)) ** 2, rtol=0.05)
 
 

@@ -1,9 +1,11 @@
 """The control protocol and server: every error path, fuzzing, and changes at tick boundaries."""
 
+import contextlib
 import itertools
 import json
 import os
 import random
+import shutil
 import socket
 import stat
 import threading
@@ -40,7 +42,8 @@ from tests.conftest import GRASP_PROFILE, wait_for, wait_for_tick
         (b'{"cmd": "set", "param": "actuated_directions", "value": [[[0, 0, 0]]]}', "bad_value"),
         (b'{"cmd": "set", "param": "actuated_directions", "value": "z"}', "bad_value"),
         (b'{"cmd": "record_start"}', "bad_value"),
-        (b'{"cmd": "record_start", "path": "rel/x.hrec"}', "bad_value"),
+        (b'{"cmd": "record_start", "path": ""}', "bad_value"),
+        (b'{"cmd": "record_start", "path": "a\\u0000b"}', "bad_value"),
         (b'{"cmd": "record_start", "path": "/x.hrec", "overwrite": "yes"}', "bad_value"),
         (b'{"cmd": "reload", "profile": "configs/x.yaml"}', "bad_value"),
         (b'{"cmd": "subscribe", "rate_hz": 0}', "out_of_range"),
@@ -280,3 +283,214 @@ def test_every_command_of_the_protocol_has_a_server_handler():
     from hapticd.daemon.server import _HANDLERS
 
     assert set(_HANDLERS) == set(protocol.COMMANDS)
+
+
+# -- hostile clients: each case below was a crash, a hang or a wrong reply ---------------------
+
+
+def _raw(sock_path):
+    """A raw connection (greeting read) and a strict reader of its reply lines."""
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(10)
+    s.connect(str(sock_path))
+    f = s.makefile("rb")
+    f.readline()
+
+    def reply():
+        line = f.readline()
+        assert line.endswith(b"\n"), "the daemon closed the connection"
+        return json.loads(line, parse_constant=lambda w: pytest.fail(f"reply holds {w}"))
+
+    return s, f, reply
+
+
+def test_error_replies_echo_the_request_id(live):
+    _, sock, _, _ = live
+    s, f, reply = _raw(sock)
+    with s, f:
+        s.sendall(
+            b'{"id": 41, "cmd": "explode"}\n'
+            b'{"id": "b", "cmd": "get", "param": "colour"}\n'
+            b'{"id": 43.5, "cmd": "set", "param": "mass_kg", "value": -1}\n'
+            b'{"id": 44, "cmd": "get", "param": "mass_kg"}\n'
+        )
+        got = [reply() for _ in range(4)]
+    assert [r["id"] for r in got] == [41, "b", 43.5, 44]
+    assert [r["ok"] for r in got] == [False, False, False, True]
+
+
+def test_nan_ids_deep_nesting_and_wrong_types_are_request_errors(live):
+    _, sock, _, _ = live
+    s, f, reply = _raw(sock)
+    with s, f:
+        s.sendall(b'{"id": NaN, "cmd": "status"}\n')
+        r = reply()  # strict JSON: a NaN echoed back would fail here
+        assert r["id"] is None and r["error"]["code"] == "bad_value"
+        s.sendall(b'{"id": 5, "cmd": "status", "x": ' + b"[" * 1000 + b"]" * 1000 + b"}\n")
+        r = reply()
+        assert r["error"]["code"] == "bad_request" and "nested too deeply" in r["error"]["message"]
+        s.sendall(b"[" * 60_000 + b"\n")
+        assert reply()["error"]["code"] in {"bad_request", "malformed"}
+        s.sendall(b'{"id": 6, "cmd": "get", "param": ["mass_kg"]}\n')
+        r = reply()
+        assert r["id"] == 6 and r["error"]["code"] == "bad_request"
+        s.sendall(b'{"id": [1], "cmd": "status"}\n')
+        assert reply()["error"]["code"] == "bad_request"
+
+
+def test_a_huge_line_gets_one_reply_and_its_tail_is_not_a_request(live):
+    _, sock, _, _ = live
+    s, f, reply = _raw(sock)
+    with s, f:
+        # 10 MB whose tail looks like a request: it must be discarded with the line.
+        tail = b'{"id": "tail", "cmd": "shutdown"}'
+        sender = threading.Thread(
+            target=s.sendall, args=(b"x" * 10_000_000 + tail + b"\n",), name="big-sender"
+        )
+        sender.start()
+        r = reply()
+        sender.join(timeout=20)
+        assert r["error"]["code"] == "too_large"
+        s.sendall(b'{"id": "after", "cmd": "get", "param": "mass_kg"}\n')
+        r = reply()
+        assert r["id"] == "after" and r["ok"], r  # the next reply answers the next request
+    with ControlClient(sock) as c:
+        assert c.status()["fault"] is None  # and no shutdown came of the tail
+
+
+def test_a_hundred_clients_connect_at_once(live):
+    _, sock, _, _ = live
+    barrier = threading.Barrier(100, timeout=20)
+    results: list[object] = []
+
+    def connect():
+        try:
+            barrier.wait()
+            with ControlClient(sock, timeout_s=20) as c:
+                results.append(c.get("mass_kg"))
+        except Exception as exc:
+            results.append(exc)
+
+    threads = [threading.Thread(target=connect, name=f"client-{i}") for i in range(100)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    failures = [r for r in results if isinstance(r, Exception)]
+    assert len(results) == 100 and not failures, failures[:3]
+
+
+def test_a_pipelined_burst_does_not_make_other_clients_wait_for_all_of_it(live, monkeypatch):
+    """Order, not time: a burst and another client's request wait together (the server is
+    held inside a request meanwhile); when the other client's reply arrives, most of the
+    burst must still be unanswered (each client is served a few requests per turn)."""
+    from hapticd.daemon.server import ControlServer
+
+    _, sock, _, _ = live
+    held, release = threading.Event(), threading.Event()
+    handle = ControlServer._handle
+
+    def holding(self, conn, line):
+        if b'"hold"' in line:
+            held.set()
+            release.wait(10)
+        return handle(self, conn, line)
+
+    monkeypatch.setattr(ControlServer, "_handle", holding)
+    burst = 1200  # about 55 KB: all of it fits in the socket's buffer at once
+    a = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    a.settimeout(10)
+    a.connect(str(sock))
+    b, fb, reply_b = _raw(sock)
+    with a, b, fb:
+        got = b""
+        while b"\n" not in got:  # the greeting
+            got += a.recv(4096)
+        got = got.partition(b"\n")[2]
+        a.sendall(b'{"id": "hold", "cmd": "get", "param": "mass_kg"}\n')
+        assert held.wait(10)
+        a.sendall(
+            b"".join(b'{"id": %d, "cmd": "get", "param": "mass_kg"}\n' % i for i in range(burst))
+        )
+        b.sendall(b'{"id": "b", "cmd": "get", "param": "mass_kg"}\n')
+        time.sleep(0.05)  # both are in the daemon's socket buffers
+        release.set()
+        assert reply_b()["id"] == "b"
+        a.setblocking(False)
+        with contextlib.suppress(BlockingIOError):
+            while chunk := a.recv(1 << 20):
+                got += chunk
+        a.settimeout(10)
+        answered = got.count(b"\n") - 1  # the held request's reply
+        while got.count(b"\n") < burst + 1:  # the rest of the burst is answered too
+            got += a.recv(1 << 20)
+    assert answered < burst // 3, f"the other client waited for {answered} of the burst"
+
+
+def test_reload_reads_only_small_regular_files_and_never_blocks(live, tmp_path):
+    _, sock, _, _ = live
+    fifo = tmp_path / "profile.fifo"
+    os.mkfifo(fifo)
+    big = tmp_path / "big.yaml"
+    big.write_bytes(b"#" * (2 << 20))
+    with ControlClient(sock, timeout_s=10) as c:
+        for path, why in (
+            ("/dev/zero", "not a regular file"),
+            (fifo, "not a regular file"),
+            (big, "at most 1048576 bytes"),
+            (tmp_path, "not a regular file"),
+        ):
+            with pytest.raises(ProtocolError, match=why) as exc:
+                c.reload(path)
+            assert exc.value.code == "bad_profile" and str(path) in str(exc.value)
+        assert c.status()["fault"] is None
+
+
+def test_record_start_over_the_socket_stays_in_the_recording_directory(live, tmp_path):
+    session, sock, _, _ = live
+    outside = tmp_path.parent / f"{tmp_path.name}-outside.hrec"
+    victim = tmp_path / "victim.txt"
+    victim.write_bytes(b"precious")
+    (tmp_path / "link.hrec").symlink_to(victim)
+    with ControlClient(sock) as c:
+        c.record_stop()
+        with pytest.raises(ProtocolError, match="outside the recording directory") as exc:
+            c.record_start(outside)
+        assert exc.value.code == "recording" and not outside.exists()
+        with pytest.raises(ProtocolError, match="symbolic link"):
+            c.record_start("link.hrec", overwrite=True)
+        assert victim.read_bytes() == b"precious"
+        started = c.record_start("s01/trial-01.hrec")
+        assert started["path"] == str(tmp_path / "s01" / "trial-01.hrec")
+        wait_for_tick(c, started["applied_at_tick"] + 100)
+        assert c.record_stop()["written"] >= 100
+        # A recording whose directory is removed mid-run: status says so, and record_stop.
+        started = c.record_start("s02/trial-01.hrec")
+        shutil.rmtree(tmp_path / "s02")
+        deadline = time.monotonic() + 5
+        while c.status()["recording"]["error"] is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert "deleted while recording" in c.status()["recording"]["error"]
+        with pytest.raises(ProtocolError, match="deleted while recording") as exc:
+            c.record_stop()
+        assert exc.value.code == "recording"
+    assert session.record_dir == tmp_path
+
+
+def test_the_readme_python_example_runs(live, tmp_path, monkeypatch):
+    """The README's control example, as written, against a live daemon whose recording
+    directory is tmp_path: it records where it says."""
+    _, sock, _, _ = live
+    from tests.conftest import ROOT
+
+    readme = (ROOT / "README.md").read_text()
+    start = readme.index("```python\nfrom hapticd.control import ControlClient")
+    code = readme[start + len("```python\n") : readme.index("```", start + 10)]
+    monkeypatch.setenv("HAPTICD_SOCKET", str(sock))
+    with ControlClient(sock) as c:
+        c.record_stop()  # the live run records from its start
+    exec(compile(code, "README.md", "exec"), {})
+    with ControlClient(sock) as c:
+        assert c.status()["recording"]["path"] == str(tmp_path / "s01-trial-01.hrec")
+        assert c.record_stop()["written"] > 0
+    assert recording.read(tmp_path / "s01-trial-01.hrec").ticks > 0

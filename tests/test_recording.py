@@ -5,7 +5,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -125,7 +124,6 @@ def test_recorder_writes_every_row_through_the_ring_and_wraps(tmp_path):
     np.testing.assert_array_equal(out["device_pos"][:, 1, 2], np.arange(n))
     np.testing.assert_array_equal(out["lam_a"][:, 1], -np.arange(n))
     np.testing.assert_array_equal(out["fault"], np.arange(n) % 2)
-    assert not list(Path(rec._ring_path).parent.glob(Path(rec._ring_path).name))
 
 
 def test_a_paced_recorder_drops_ticks_rather_than_wait_or_overwrite(tmp_path):
@@ -153,7 +151,7 @@ def test_recorder_reports_a_writer_that_died(tmp_path):
     rec._proc.wait()
     for i in range(20):
         rec.append(rec.as_record((float(i), np.zeros((2, 3)), [0, 0])))
-    with pytest.raises(RecordingError, match="writer stopped after 0 of 16 ticks"):
+    with pytest.raises(RecordingError, match=r"writer process .* ended .killed by signal 9"):
         rec.close()
 
 
@@ -166,7 +164,7 @@ def test_the_ring_writer_reports_a_write_failure(tmp_path):
         rec.append(rec.as_record((float(i), np.zeros((2, 3)), [0, 0])))
     rec._words[ring.W_CLOSED // 8] = 1
     # The writer's own code, in this process, on a disk that is full.
-    ring.drain(rec._ring_path, "/dev/full", os.getppid())
+    ring.drain(rec._ring_fd, os.open("/dev/full", os.O_WRONLY), "/dev/full", os.getppid())
     assert "writing /dev/full failed" in rec.error
     os.kill(rec._proc.pid, signal.SIGKILL)
     with pytest.raises(RecordingError, match="No space left"):
@@ -195,8 +193,9 @@ def test_a_header_count_is_never_seen_half_written_by_the_other_process(tmp_path
         "from hapticd.recording import ring\n"
         "with open(sys.argv[1], 'r+b') as f:\n"
         "    mm = mmap.mmap(f.fileno(), 0)\n"
+        "words = ring.Words(mm)\n"
         f"for v in range(1, {n + 1}):\n"
-        "    ring._put(mm, ring.W_DRAINED, v)\n"
+        "    words[ring.W_DRAINED] = v\n"
     )
     with path.open("r+b") as f:
         mm = mmap.mmap(f.fileno(), 0)

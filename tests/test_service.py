@@ -10,6 +10,7 @@ import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -161,6 +162,7 @@ def test_the_systemd_unit_has_what_the_daemon_needs():
     assert svc["ExecStart"].split()[1:3] == ["run", "/etc/hapticd/profile.yaml"]
     assert svc["ExecReload"].endswith("kill -HUP $MAINPID")
     assert svc["RuntimeDirectory"] == "hapticd" and svc["RuntimeDirectoryMode"] == "0700"
+    assert svc["StateDirectory"] == "hapticd" and svc["StateDirectoryMode"] == "0700"
     assert svc["LimitRTPRIO"] == "99" and svc["LimitMEMLOCK"] == "infinity"
     assert svc["Restart"] == "on-abnormal" and "WatchdogSec" in svc
     assert "RestrictRealtime" not in svc  # it would forbid SCHED_FIFO
@@ -177,6 +179,28 @@ def test_default_socket_path_follows_the_environment(monkeypatch, tmp_path):
     assert str(default_socket_path()) == "/run/hapticd/control.sock"
     monkeypatch.setenv("HAPTICD_SOCKET", str(tmp_path / "x.sock"))
     assert default_socket_path() == tmp_path / "x.sock"
+
+
+def test_the_recording_directory_follows_the_environment_the_profile_and_the_flag(
+    monkeypatch, tmp_path, grasp_data, write_profile
+):
+    from hapticd.daemon.session import record_directory
+    from hapticd.recording.files import state_directory
+
+    for var in ("STATE_DIRECTORY", "XDG_STATE_HOME"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert state_directory() == tmp_path / "home" / ".local" / "state" / "hapticd"
+    monkeypatch.setenv("XDG_STATE_HOME", "/x/state")
+    assert state_directory() == Path("/x/state/hapticd")
+    monkeypatch.setenv("STATE_DIRECTORY", "/var/lib/hapticd:/other")
+    assert state_directory() == Path("/var/lib/hapticd")
+    profile = load_profile(GRASP_PROFILE)
+    assert record_directory(profile) == Path("/var/lib/hapticd")
+    grasp_data["recording"] = {"directory": "recordings"}
+    profile = load_profile(write_profile(grasp_data))
+    assert record_directory(profile) == tmp_path / "recordings"  # beside the profile
+    assert record_directory(profile, tmp_path / "flag") == tmp_path / "flag"
 
 
 def test_a_live_socket_is_not_stolen_and_a_stale_one_is_replaced(tmp_path):

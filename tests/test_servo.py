@@ -172,6 +172,19 @@ def test_recording_matches_what_the_devices_received(tmp_path):
     np.testing.assert_allclose(np.diff(rec["t"]), 1e-3, atol=1e-12)
 
 
+def test_a_run_that_ends_mid_grasp_records_the_shutdowns_zero_force(tmp_path):
+    path = tmp_path / "run.hrec"
+    s = session(record_path=path, duration_s=3.0)  # in the pinch: forces are not zero
+    s.run()
+    rec = recording.read(path)
+    assert rec.ticks == 3001  # 3000 ticks, then the shutdown
+    for i, dev in enumerate(s.devices):
+        np.testing.assert_array_equal(dev.forces, rec["device_force"][:, i, :])
+        assert np.abs(dev.forces[-2]).max() > 0.1 and not dev.forces[-1].any()
+    np.testing.assert_array_equal(rec["tick"], np.arange(3001))
+    np.testing.assert_allclose(np.diff(rec["t"]), 1e-3, atol=1e-12)
+
+
 def test_paced_and_unpaced_runs_render_identical_forces(tmp_path):
     paced = build_session(load_profile(GRASP_PROFILE), paced=True, duration_s=2.2)
     unpaced = build_session(load_profile(GRASP_PROFILE), paced=False, duration_s=2.2)

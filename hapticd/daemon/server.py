@@ -40,6 +40,9 @@ log = logging.getLogger("hapticd.control")
 
 
 MAX_OUTPUT_BYTES = 1 << 20  # a client this far behind is dropped
+MAX_PENDING_BYTES = 256 * 1024  # unread requests held per client; beyond, reading pauses
+LINES_PER_TURN = 4  # requests served per client before the next client's turn
+BACKLOG = socket.SOMAXCONN  # connections waiting to be accepted
 TELEMETRY_BACKLOG_BYTES = 64 * 1024  # above this a telemetry frame is skipped, not queued
 PERIODIC_S = 0.1
 # Work in the server thread waits for the loop to go to sleep with this much time left...
@@ -57,6 +60,7 @@ class _Conn:
     sock: socket.socket
     inbuf: bytearray = field(default_factory=bytearray)
     outbuf: bytearray = field(default_factory=bytearray)
+    discarding: bool = False  # inside a line that was too long: skip to its newline
     rate_hz: float = 0.0  # telemetry subscription; 0: none
     next_due: float = 0.0
     skipped: int = 0
@@ -79,7 +83,8 @@ class ControlServer:
         self.session = session
         self.loop = session.loop
         self.path = Path(path) if path is not None else None
-        self.periodic = list(periodic or [])
+        self.periodic = [*(periodic or []), self._watch_recording]
+        self._reported: object = None  # the recorder whose failure was last logged
         self._sel = selectors.DefaultSelector()
         self._stop = threading.Event()
         self._conns: dict[socket.socket, _Conn] = {}
@@ -126,7 +131,7 @@ class ControlServer:
             raise
         finally:
             os.umask(old)
-        sock.listen(16)
+        sock.listen(BACKLOG)
         sock.setblocking(False)
         return sock
 
@@ -187,7 +192,7 @@ class ControlServer:
         while not self._stop.is_set():
             now = time.monotonic()
             due = [next_periodic] + [c.next_due for c in self._conns.values() if c.rate_hz]
-            timeout = max(0.0, min(due) - now)
+            timeout = 0.0 if self._pending() else max(0.0, min(due) - now)
             for key, events in self._sel.select(timeout=timeout):
                 obj = key.fileobj
                 if obj is self._sock:
@@ -199,6 +204,7 @@ class ControlServer:
                         self._flush(self._conns[obj])
                     if events & selectors.EVENT_READ and obj in self._conns:
                         self._read(self._conns[obj])
+            self._serve_turns()
             now = time.monotonic()
             self._stream(now)
             if now >= next_periodic:
@@ -210,6 +216,17 @@ class ControlServer:
                         fn()
                     except Exception as exc:  # a notification must not end the server
                         log.warning("periodic task failed: %s", exc)
+
+    def _watch_recording(self) -> None:
+        """Log, once, a recording that is failing (its writer died, its file was deleted):
+        status and record_stop report it too, but nobody may be asking."""
+        rec = self.loop.recorder
+        if rec is None or rec is self._reported:
+            return
+        error = rec.error
+        if error is not None:
+            self._reported = rec
+            log.error("recording %s is failing: %s", rec.path, error)
 
     def _woken(self) -> None:
         try:
@@ -265,12 +282,10 @@ class ControlServer:
             self._drop(conn.sock)  # the client went away: harmless
             return
         del conn.outbuf[:n]
-        want = selectors.EVENT_READ | (selectors.EVENT_WRITE if conn.outbuf else 0)
-        with contextlib.suppress(KeyError, ValueError):
-            if self._sel.get_key(conn.sock).events != want:
-                self._sel.modify(conn.sock, want, None)
+        self._update_events(conn)
 
     def _read(self, conn: _Conn) -> None:
+        """Take what the client sent; requests are served later, a few per turn."""
         try:
             data = conn.sock.recv(65536)
         except BlockingIOError:
@@ -280,14 +295,67 @@ class ControlServer:
         if not data:
             self._drop(conn.sock)
             return
+        if conn.discarding:
+            cut = data.find(b"\n")
+            if cut < 0:
+                return
+            conn.discarding = False
+            data = data[cut + 1 :]
         conn.inbuf += data
-        while conn.sock in self._conns and b"\n" in conn.inbuf:
-            line, _, rest = bytes(conn.inbuf).partition(b"\n")
-            conn.inbuf[:] = rest
-            self._send(conn, self._handle(conn, line))
-        if len(conn.inbuf) > proto.MAX_LINE_BYTES:
-            conn.inbuf.clear()
-            self._send(conn, proto.error(None, "too_large", "request line too long; discarded"))
+        tail = len(conn.inbuf) - (conn.inbuf.rfind(b"\n") + 1)
+        if tail > proto.MAX_LINE_BYTES:
+            # One reply for the whole line, then everything up to its newline is dropped.
+            del conn.inbuf[len(conn.inbuf) - tail :]
+            conn.discarding = True
+            self._send(
+                conn,
+                proto.error(
+                    None,
+                    "too_large",
+                    f"request line longer than {proto.MAX_LINE_BYTES} bytes; discarded",
+                ),
+            )
+        self._update_events(conn)
+
+    def _pending(self) -> bool:
+        """Does a client have a whole request waiting?"""
+        return any(b"\n" in c.inbuf for c in self._conns.values())
+
+    def _serve_turns(self) -> None:
+        """Serve up to LINES_PER_TURN waiting requests of each client, round-robin: one
+        client's burst of pipelined requests does not delay the others."""
+        for conn in list(self._conns.values()):
+            for _ in range(LINES_PER_TURN):
+                if conn.sock not in self._conns:
+                    break
+                cut = conn.inbuf.find(b"\n")
+                if cut < 0:
+                    break
+                line = bytes(conn.inbuf[:cut])
+                del conn.inbuf[: cut + 1]
+                self._send(conn, self._handle(conn, line))
+            if conn.sock in self._conns:
+                self._update_events(conn)
+
+    def _update_events(self, conn: _Conn) -> None:
+        """Read while fewer than MAX_PENDING_BYTES of requests wait; write while output does."""
+        want = (selectors.EVENT_READ if len(conn.inbuf) < MAX_PENDING_BYTES else 0) | (
+            selectors.EVENT_WRITE if conn.outbuf else 0
+        )
+        if conn.sock not in self._conns:
+            return
+        try:
+            events = self._sel.get_key(conn.sock).events
+        except KeyError:
+            events = 0
+        if events == want:
+            return
+        if not want:
+            self._sel.unregister(conn.sock)  # paused until its waiting requests are served
+        elif not events:
+            self._sel.register(conn.sock, want, None)
+        else:
+            self._sel.modify(conn.sock, want, None)
 
     def _stream(self, now: float) -> None:
         sample: dict[str, Any] | None = None
@@ -307,12 +375,14 @@ class ControlServer:
     # -- requests ----------------------------------------------------------------------
 
     def _handle(self, conn: _Conn, line: bytes) -> bytes:
+        """The reply to one request line; an error reply echoes the request's id whenever
+        the line could be read as a JSON object with a valid id."""
         req_id = None
         self._await_window()
         try:
-            req = proto.parse_request(line)
-            req_id = req.get("id")
-            return proto.ok(req_id, self._execute(conn, req))
+            req = proto.decode(line)
+            req_id = proto.request_id(req)
+            return proto.ok(req_id, self._execute(conn, proto.check(req)))
         except proto.ProtocolError as exc:
             return proto.error(req_id, exc.code, str(exc))
         except ProfileError as exc:

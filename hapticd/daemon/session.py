@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import logging
+import os
+import platform
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,12 +25,44 @@ from hapticd.build import (
 from hapticd.commands import Command, RecordStart, RecordStop, Reload
 from hapticd.daemon.summary import summarize
 from hapticd.profile import Profile, ProfileError, load_profile
-from hapticd.recording import Recorder
+from hapticd.recording import Recorder, files, ring
 from hapticd.render import Renderer
 from hapticd.safety import SafetyChain
 from hapticd.servo import Applied, ServoLoop
 
+log = logging.getLogger("hapticd")
+
 APPLY_TIMEOUT_S = 2.0
+MAX_PROFILE_BYTES = 1 << 20  # a profile to reload is a few KiB; more is not a profile
+
+
+def record_directory(profile: Profile, given: str | Path | None = None) -> Path:
+    """Where ``record_start`` over the socket may write: ``given`` (``--record-dir``), else
+    the profile's ``recording.directory``, else the service's state directory."""
+    if given is not None:
+        return Path(given).absolute()
+    if profile.recording.directory is not None:
+        return profile.resolve_path(profile.recording.directory).absolute()
+    return files.state_directory().absolute()
+
+
+def check_profile_file(path: Path) -> None:
+    """ProfileError unless ``path`` is a regular file of at most MAX_PROFILE_BYTES: a reload
+    must not read /dev/zero forever or wait on a FIFO in the control thread."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as exc:
+        raise ProfileError(f"{path}: cannot read profile: {exc.strerror or exc}") from None
+    try:
+        st = os.fstat(fd)
+    finally:
+        os.close(fd)
+    if not stat.S_ISREG(st.st_mode):
+        raise ProfileError(f"{path}: not a regular file; a profile is a YAML file")
+    if st.st_size > MAX_PROFILE_BYTES:
+        raise ProfileError(
+            f"{path}: {st.st_size} bytes; a profile may be at most {MAX_PROFILE_BYTES} bytes"
+        )
 
 
 @dataclass
@@ -40,6 +76,7 @@ class Session:
     loop: ServoLoop
     recorder: Recorder | None
     emulators: list[DeltaEmulator] = field(default_factory=list)
+    record_dir: Path = field(default_factory=lambda: files.state_directory().absolute())
 
     def run(self) -> dict[str, Any]:
         """Run the loop to its end; then flush and close whatever recording is open."""
@@ -72,7 +109,8 @@ class Session:
         return done
 
     def record_start(self, path: str | Path, *, overwrite: bool = False) -> dict[str, Any]:
-        """Start recording every tick to ``path``; the reply names the first recorded tick."""
+        """Start recording every tick to ``path``, inside ``record_dir`` (a relative name
+        resolves there; anything outside is refused); the reply names the first tick."""
         if self.loop.recorder is not None:
             raise ValueError(f"already recording to {self.loop.recorder.path}; stop it first")
         rec = make_recorder(
@@ -82,17 +120,18 @@ class Session:
             self.loop.safety,
             paced=self.loop.paced,
             overwrite=overwrite,
+            root=self.record_dir,
         )
         try:
             done = self.apply(RecordStart(rec))
         except BaseException:
-            rec.close()
-            Path(path).unlink(missing_ok=True)  # only its header: ours, and useless
+            rec.discard()  # only its header: ours, and useless
             raise
-        return {"applied_at_tick": done.tick, "path": str(path)}
+        return {"applied_at_tick": done.tick, "path": str(rec.path)}
 
     def record_stop(self) -> dict[str, Any]:
-        """Stop recording; returns once every tick is in the file."""
+        """Stop recording; returns once every tick is in the file. RecordingError (naming
+        the file and how many ticks are in it) if the writer failed or the file was lost."""
         done = self.apply(RecordStop())
         rec: Recorder = done.result
         status = rec.close()
@@ -105,6 +144,7 @@ class Session:
         source = Path(path) if path is not None else self.profile.source
         if source is None:
             raise ProfileError("the running profile has no file to reload")
+        check_profile_file(source)
         new = load_profile(source)
         where = str(source)
         old = self.profile
@@ -133,11 +173,14 @@ def build_session(
     record_path: str | Path | None = None,
     device: str | None = None,
     emulate: bool = False,
+    record_dir: str | Path | None = None,
 ) -> Session:
     """Create devices, renderer, safety chain, recorder and loop for ``profile``.
 
     ``device`` overrides every finger's backend; ``emulate`` puts the device
     emulator under the hid backend, moved along each finger's trajectory.
+    ``record_path`` (the user's own argument) may be anywhere; ``record_start`` over
+    the socket writes only in ``record_directory(profile, record_dir)``.
     """
     clock_box: list[ServoLoop] = []
     devices, emulators = build_devices(
@@ -166,7 +209,16 @@ def build_session(
         realtime_settings=realtime_settings(profile) if paced else None,
     )
     clock_box.append(loop)
-    return Session(profile, devices, renderer, safety, loop, recorder, emulators)
+    return Session(
+        profile,
+        devices,
+        renderer,
+        safety,
+        loop,
+        recorder,
+        emulators,
+        record_directory(profile, record_dir),
+    )
 
 
 def make_recorder(
@@ -177,8 +229,10 @@ def make_recorder(
     *,
     paced: bool = True,
     overwrite: bool = True,
+    root: Path | None = None,
 ) -> Recorder:
-    """A recorder of every tick to ``path``, its writer process started (RecordingError)."""
+    """A recorder of every tick to ``path`` (confined to ``root`` when given), its writer
+    process started (RecordingError)."""
     rate = profile.loop.rate_hz
     rec = Recorder(
         path,
@@ -196,6 +250,13 @@ def make_recorder(
         capacity=max(4096, int(2.0 * rate)),  # 2 s of ticks: the writer may pause that long
         block_when_full=not paced,
         overwrite=overwrite,
+        root=root,
     )
     rec.wait_running()
+    if not ring.ORDERED_STORES:
+        log.warning(
+            "recording on %s: the ring relies on x86's store ordering; on this CPU a record "
+            "could in principle be read before it is complete (docs/daemon.md)",
+            platform.machine(),
+        )
     return rec

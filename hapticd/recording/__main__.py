@@ -1,4 +1,4 @@
-"""The recording writer process: ``python -m hapticd.recording RING_PATH OUT_PATH PARENT_PID``."""
+"""The recording writer: ``python -m hapticd.recording RING_FD OUT_FD OUT_PATH PARENT_PID``."""
 
 import sys
 

@@ -6,6 +6,7 @@ Both are offline conversions of a read ``Recording``; neither runs in the daemon
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -50,8 +51,13 @@ def csv_columns(rec: Recording) -> list[str]:
 def export_csv(rec: Recording, out: str | Path) -> int:
     """Write ``rec`` as CSV (a header row, then one row per tick); returns the rows written."""
     cols = csv_columns(rec)
+    # Explicit widths: with 0 ticks (a run killed right after it began) -1 is ambiguous.
     flat = np.concatenate(
-        [np.asarray(rec[f.name], dtype=float).reshape(rec.ticks, -1) for f in rec.fields], axis=1
+        [
+            np.asarray(rec[f.name], dtype=float).reshape(rec.ticks, math.prod(f.shape))
+            for f in rec.fields
+        ],
+        axis=1,
     )
     assert flat.shape[1] == len(cols)
     with open(out, "w", encoding="utf-8") as fh:

@@ -11,7 +11,10 @@ with the tick axis first (e.g. ``device_pos`` is (ticks, fingers, 3), m).
 
 from __future__ import annotations
 
+import errno
 import json
+import os
+import stat
 import struct
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -20,13 +23,20 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from hapticd.frame import fields_for
+from hapticd.frame import FIELDS, fields_for
 
 MAGIC = b"HAPTREC\x00"
 FORMAT_VERSION = 1
 _LEN = struct.Struct("<I")
 MAX_HEADER_BYTES = 1 << 20
 SUFFIX = ".hrec"
+# The dtypes a recording may hold: those of the tick frame's fields (trajectories use <f8).
+DTYPES = frozenset(f.dtype for f in FIELDS) | {"<f8"}
+MAX_FIELDS = 1024
+MAX_DIMS = 4
+MAX_RECORD_BYTES = 1 << 20  # one tick's record
+MAX_NAME_CHARS = 256
+MAX_HEADER_DEPTH = 32  # JSON nesting of the header (it needs 4)
 
 
 class RecordingError(ValueError):
@@ -109,30 +119,70 @@ class Recording(Mapping[str, np.ndarray]):
         return {f.name: f.unit for f in self.fields}
 
 
+def _depth_ok(obj: object, limit: int) -> bool:
+    """True if ``obj`` (parsed JSON) nests no deeper than ``limit`` (iteratively: no recursion)."""
+    todo: list[tuple[object, int]] = [(obj, 1)]
+    while todo:
+        node, d = todo.pop()
+        if isinstance(node, dict | list):
+            if d > limit:
+                return False
+            todo.extend((v, d + 1) for v in (node.values() if isinstance(node, dict) else node))
+    return True
+
+
 def _parse_fields(raw: object, where: str) -> list[Field]:
     if not isinstance(raw, list) or not raw:
         raise RecordingError(f"{where}: header 'fields' must be a non-empty list")
+    if len(raw) > MAX_FIELDS:
+        raise RecordingError(f"{where}: header has {len(raw)} fields; at most {MAX_FIELDS}")
     out: list[Field] = []
+    seen: set[str] = set()
     for i, item in enumerate(raw):
-        try:
-            f = Field(
-                str(item["name"]),
-                str(item["dtype"]),
-                tuple(int(s) for s in item.get("shape", [])),
-                str(item.get("unit", "")),
+        bad = f"{where}: header field {i} is malformed:"
+        if not isinstance(item, dict):
+            raise RecordingError(f"{bad} expected an object with name, dtype, shape, unit")
+        name, dtype = item.get("name"), item.get("dtype")
+        shape, unit = item.get("shape", []), item.get("unit", "")
+        if not isinstance(name, str) or not 0 < len(name) <= MAX_NAME_CHARS:
+            raise RecordingError(f"{bad} 'name' must be a string of 1 to {MAX_NAME_CHARS} chars")
+        if name in seen:
+            raise RecordingError(f"{bad} the name {name!r} is repeated")
+        seen.add(name)
+        if not isinstance(dtype, str) or dtype not in DTYPES:
+            raise RecordingError(
+                f"{bad} {name}: dtype {dtype!r} is not one a recording holds "
+                f"(one of {', '.join(sorted(DTYPES))})"
             )
-            np.dtype(f.dtype)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise RecordingError(f"{where}: header field {i} is malformed: {exc}") from None
-        out.append(f)
+        if (
+            not isinstance(shape, list)
+            or len(shape) > MAX_DIMS
+            or not all(type(n) is int and n >= 1 for n in shape)
+        ):
+            raise RecordingError(
+                f"{bad} {name}: 'shape' must be a list of at most {MAX_DIMS} positive "
+                f"integers, got {shape!r}"[:300]
+            )
+        if not isinstance(unit, str):
+            raise RecordingError(f"{bad} {name}: 'unit' must be a string")
+        out.append(Field(name, dtype, tuple(shape), unit))
+    size = sum(np.dtype(f.dtype).itemsize * int(np.prod(f.shape, dtype=object)) for f in out)
+    if size > MAX_RECORD_BYTES:
+        raise RecordingError(
+            f"{where}: a record of these fields would be {size} bytes; at most {MAX_RECORD_BYTES}"
+        )
     return out
+
+
+def _no_nan(word: str) -> float:
+    raise ValueError(f"{word} is not valid JSON")
 
 
 def read(path: str | Path) -> Recording:
     """Read a recording; a torn final record (crash mid-write) is dropped, not an error."""
     p = Path(path)
     try:
-        blob = p.read_bytes()
+        blob = _read_regular(p)
     except OSError as exc:
         raise RecordingError(f"{p}: cannot read recording: {exc.strerror or exc}") from None
     if len(blob) < len(MAGIC) + _LEN.size or blob[: len(MAGIC)] != MAGIC:
@@ -142,13 +192,16 @@ def read(path: str | Path) -> Recording:
     if hlen > MAX_HEADER_BYTES or start + hlen > len(blob):
         raise RecordingError(f"{p}: header length {hlen} is larger than the file allows")
     try:
-        header = json.loads(blob[start : start + hlen].decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        header = json.loads(blob[start : start + hlen].decode("utf-8"), parse_constant=_no_nan)
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        # ValueError: JSONDecodeError or NaN/Infinity; RecursionError: nested far too deep.
         raise RecordingError(f"{p}: header is not valid JSON: {exc}") from None
     if not isinstance(header, dict):
         raise RecordingError(f"{p}: header must be a JSON object")
+    if not _depth_ok(header, MAX_HEADER_DEPTH):
+        raise RecordingError(f"{p}: header nests deeper than {MAX_HEADER_DEPTH} levels")
     version = header.get("version")
-    if version != FORMAT_VERSION:
+    if type(version) is not int or version != FORMAT_VERSION:  # not True, not 1.0
         raise RecordingError(f"{p}: format version {version!r} is not supported (expected 1)")
     fields = _parse_fields(header.get("fields"), str(p))
     dtype = make_dtype(fields)
@@ -160,7 +213,42 @@ def read(path: str | Path) -> Recording:
     if not isinstance(fingers, list) or not all(isinstance(f, str) for f in fingers):
         raise RecordingError(f"{p}: header 'fingers' must be a list of names")
     meta = header.get("meta", {})
-    return Recording(p, data, fields, fingers, meta if isinstance(meta, dict) else {}, torn)
+    if not isinstance(meta, dict):
+        raise RecordingError(f"{p}: header 'meta' must be a JSON object")
+    return Recording(p, data, fields, fingers, meta, torn)
+
+
+def _read_regular(p: Path) -> bytes:
+    """The bytes of the regular file ``p``, opened without blocking (a FIFO is refused)."""
+    fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise OSError(errno.EINVAL, "not a regular file")
+        os.set_blocking(fd, True)
+        with os.fdopen(os.dup(fd), "rb") as fh:
+            return fh.read()
+    finally:
+        os.close(fd)
+
+
+def header_bytes(
+    fields: Sequence[Field], fingers: Sequence[str], meta: dict[str, Any] | None = None
+) -> bytes:
+    """The start of a recording file: magic, header length, JSON header."""
+    bad = [f.dtype for f in fields if f.dtype not in DTYPES]
+    if bad:
+        raise RecordingError(f"dtypes {bad} are not ones a recording holds: {sorted(DTYPES)}")
+    header = json.dumps(
+        {
+            "version": FORMAT_VERSION,
+            "fields": [f.to_json() for f in fields],
+            "fingers": list(fingers),
+            "meta": meta or {},
+        },
+        sort_keys=True,
+    ).encode("utf-8")
+    return MAGIC + _LEN.pack(len(header)) + header
 
 
 class RecordingWriter:
@@ -176,17 +264,9 @@ class RecordingWriter:
         self.path = Path(path)
         self.fields = list(fields)
         self.dtype = make_dtype(self.fields)
-        header = json.dumps(
-            {
-                "version": FORMAT_VERSION,
-                "fields": [f.to_json() for f in self.fields],
-                "fingers": list(fingers),
-                "meta": meta or {},
-            },
-            sort_keys=True,
-        ).encode("utf-8")
+        header = header_bytes(self.fields, fingers, meta)
         self._f: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._f.write(MAGIC + _LEN.pack(len(header)) + header)
+        self._f.write(header)
         self._f.flush()
         self.rows_written = 0
 

@@ -6,12 +6,10 @@ docs/recording.md for the file format.
 
 from __future__ import annotations
 
-import contextlib
 import mmap
 import os
 import subprocess
 import sys
-import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -19,20 +17,16 @@ from typing import Any
 
 import numpy as np
 
-from hapticd.recording import ring
-from hapticd.recording.format import Field, RecordingError, RecordingWriter, make_dtype
-
-
-def _ring_dir() -> Path:
-    shm = Path("/dev/shm")
-    return shm if shm.is_dir() and os.access(shm, os.W_OK) else Path(tempfile.gettempdir())
+from hapticd.recording import files, ring
+from hapticd.recording.format import Field, RecordingError, header_bytes, make_dtype
 
 
 class Recorder:
     """Records servo ticks with no file I/O on the loop's thread (see hapticd.recording.ring).
 
-    The header is written here; a writer process appends the records that the
-    loop puts into a shared-memory ring. In a paced run a full ring drops the
+    The file is created and its header written here (``files.create``: confined to
+    ``root`` when given, never through a link); a writer process appends the records
+    that the loop puts into a shared-memory ring. In a paced run a full ring drops the
     tick (counted in ``dropped``) rather than make the loop wait; unpaced
     (``block_when_full``) the loop waits for the writer instead.
     """
@@ -47,54 +41,59 @@ class Recorder:
         capacity: int = 4096,
         block_when_full: bool = False,
         overwrite: bool = True,
+        root: Path | None = None,
     ) -> None:
-        self.path = Path(path)
-        if not overwrite and self.path.exists():
-            raise RecordingError(f"{self.path}: exists; not overwriting it")
-        try:
-            RecordingWriter(self.path, fields, fingers, meta).close()
-        except OSError as exc:
-            raise RecordingError(f"{self.path}: cannot create: {exc.strerror or exc}") from None
         self.dtype = make_dtype(fields)
+        out_fd, self.path = files.create(
+            path, header_bytes(fields, fingers, meta), overwrite=overwrite, root=root
+        )
+        self._file_id = files.identity(out_fd)
         self.capacity = int(capacity)
         self.block_when_full = block_when_full
         self.dropped = 0
         self._n = 0
         self._drained = 0  # the most the writer has been seen to have drained
         self._closed = False
+        self._final: dict[str, Any] | None = None
         size = ring.HEADER_BYTES + self.capacity * self.dtype.itemsize
-        fd, ring_path = tempfile.mkstemp(prefix=f"hapticd-ring-{os.getpid()}-", dir=_ring_dir())
-        self._ring_path = ring_path
+        # An anonymous memory file: no name to leave behind in /dev/shm, whatever happens.
+        ring_fd = os.memfd_create("hapticd-ring", os.MFD_CLOEXEC)
+        self._ring_fd = ring_fd  # closed with the recorder
         try:
-            os.ftruncate(fd, size)
-            self._mm = mmap.mmap(fd, size)
+            os.ftruncate(ring_fd, size)
+            self._mm = mmap.mmap(ring_fd, size)
+            self._mm[:8] = ring.MAGIC
+            words = np.ndarray((8,), "<u8", buffer=self._mm, offset=0)
+            words[ring.W_ITEMSIZE // 8] = self.dtype.itemsize
+            words[ring.W_CAPACITY // 8] = self.capacity
+            self._words = words
+            # Slots of raw bytes: a tick is recorded with one copy of its record.
+            self._slots = np.ndarray(
+                (self.capacity, self.dtype.itemsize),
+                np.uint8,
+                buffer=self._mm,
+                offset=ring.HEADER_BYTES,
+            )
+            self._proc = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "hapticd.recording",
+                    str(ring_fd),
+                    str(out_fd),
+                    str(self.path),
+                    str(os.getpid()),
+                ],
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                pass_fds=(ring_fd, out_fd),
+            )
+        except BaseException:
+            files.remove_if_ours(self.path, self._file_id)
+            os.close(ring_fd)
+            raise
         finally:
-            os.close(fd)
-        self._mm[:8] = ring.MAGIC
-        # Native uint64 at an aligned offset: each word is one 8-byte load or store (ring.py).
-        words = np.ndarray((8,), "=u8", buffer=self._mm, offset=0)
-        words[ring.W_ITEMSIZE // 8] = self.dtype.itemsize
-        words[ring.W_CAPACITY // 8] = self.capacity
-        self._words = words
-        # Slots of raw bytes: a tick is recorded with one copy of its record.
-        self._slots = np.ndarray(
-            (self.capacity, self.dtype.itemsize),
-            np.uint8,
-            buffer=self._mm,
-            offset=ring.HEADER_BYTES,
-        )
-        self._proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "hapticd.recording",
-                ring_path,
-                str(self.path),
-                str(os.getpid()),
-            ],
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL,
-        )
+            os.close(out_fd)  # the writer has its own copy
 
     def wait_running(self, timeout_s: float = 5.0) -> None:
         """Wait until the writer process has opened the file; RecordingError if it failed."""
@@ -105,7 +104,7 @@ class Recorder:
             time.sleep(0.005)
         if self.state != ring.STATE_RUNNING:
             err = self.error or "the writer process did not start"
-            self._shutdown()
+            self.discard()
             raise RecordingError(f"{self.path}: {err}")
 
     @property
@@ -114,11 +113,22 @@ class Recorder:
 
     @property
     def error(self) -> str | None:
-        """The writer's error message, if it failed."""
-        if self.state != ring.STATE_FAILED:
-            return None
-        raw = bytes(self._mm[ring.ERROR_AT : ring.ERROR_AT + ring.ERROR_BYTES])
-        return raw.rstrip(b"\x00").decode("utf-8", "replace")
+        """Why the recording is failing, if it is: the writer's own message, or that the
+        writer process is gone (seen at once, not when the ring fills)."""
+        if self._closed:
+            return None if self._final is None else self._final["error"]
+        if self.state == ring.STATE_FAILED:
+            raw = bytes(self._mm[ring.ERROR_AT : ring.ERROR_AT + ring.ERROR_BYTES])
+            return raw.rstrip(b"\x00").decode("utf-8", "replace")
+        if not self._closed and self.state != ring.STATE_DONE:
+            rc = self._proc.poll()
+            if rc is not None:
+                how = f"killed by signal {-rc}" if rc < 0 else f"exit status {rc}"
+                return (
+                    f"the writer process {self._proc.pid} ended ({how}); ticks after the "
+                    f"{self.drained} written are not recorded"
+                )
+        return None
 
     @property
     def ticks(self) -> int:
@@ -163,6 +173,9 @@ class Recorder:
         return True
 
     def status(self) -> dict[str, Any]:
+        """path, ticks (handed to the ring), written (in the file), dropped, error, writer_pid."""
+        if self._final is not None:
+            return dict(self._final)
         return {
             "path": str(self.path),
             "ticks": self._n,
@@ -184,13 +197,24 @@ class Recorder:
             self._proc.wait()
         st = self.status()
         self._shutdown()
+        self._final = st
         if st["error"] is not None:
-            raise RecordingError(f"{self.path}: {st['error']}")
+            error = st["error"]
+            raise RecordingError(
+                error if error.startswith(str(self.path)) else f"{self.path}: {error}"
+            )
         if st["written"] != st["ticks"]:
             raise RecordingError(
                 f"{self.path}: the writer stopped after {st['written']} of {st['ticks']} ticks"
             )
         return st
+
+    def discard(self) -> None:
+        """Stop the writer and delete the file (a recording that never began)."""
+        if not self._closed:
+            self._final = {**self.status(), "error": "discarded"}
+        self._shutdown()
+        files.remove_if_ours(self.path, self._file_id)
 
     def _shutdown(self) -> None:
         if self._closed:
@@ -201,5 +225,4 @@ class Recorder:
         self._proc.wait()
         del self._slots, self._words
         self._mm.close()
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(self._ring_path)
+        os.close(self._ring_fd)

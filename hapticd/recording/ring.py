@@ -1,31 +1,43 @@
 """A shared-memory ring of fixed-size tick records, and the writer process that drains it.
 
-The servo loop copies each tick's record into the next slot of a file-backed
-shared-memory ring and then publishes the new count; a separate process (run
-as ``python -m hapticd.recording``) copies complete records out every
-``POLL_S`` and appends them to the recording file. The loop never does file
-I/O and never waits on the writer in a paced run; the writer never holds the
-loop's GIL (it is another process).
+The servo loop copies each tick's record into the next slot of a shared-memory
+ring and then publishes the new count; a separate process (run as
+``python -m hapticd.recording``) copies complete records out every ``POLL_S``
+and appends them to the recording file. The loop never does file I/O and never
+waits on the writer in a paced run; the writer never holds the loop's GIL (it
+is another process).
+
+The ring is an anonymous memory file (``memfd_create``): it has no name in
+/dev/shm, so nothing is left behind however the processes end. The daemon
+passes the ring's and the recording's file descriptors to the writer; the
+writer never opens a path.
 
 Crash safety: records reach the kernel within ``POLL_S`` of being written. If
 the daemon is killed (even ``kill -9``), the writer notices its parent is gone,
 drains every complete record, and exits; if both are killed, only the last
-``POLL_S`` of ticks can be missing.
+``POLL_S`` of ticks can be missing. A recording file deleted while recording
+(its directory removed) is noticed within ``CHECK_S`` and reported as an error.
 
-Layout: a 4096-byte header of native-endian uint64 words (see the ``W_*``
-offsets; both processes run on one machine) and an error text, then
-``capacity`` records of ``itemsize`` bytes. Each word is read and written with
-one aligned 8-byte access, never byte by byte: the two processes share them
-without a lock.
+Layout: a 4096-byte header of little-endian uint64 words (see the ``W_*``
+offsets) and an error text, then ``capacity`` records of ``itemsize`` bytes.
+
+Publication: every word is read and written whole, with one aligned 8-byte load
+or store (``Words``: a memoryview of the words as native uint64; ``struct``
+would zero the word before writing it and read it byte by byte, so the other
+side could see 0 or a torn count). The loop stores a record, then the count;
+the writer loads the count, then the records. That order is kept by the CPU on
+x86 and x86-64 (total store order); on weakly ordered CPUs (ARM) it is not
+guaranteed and ``ORDERED_STORES`` is False (docs/daemon.md states the limit).
 This module imports nothing heavy: the writer starts in about 50 ms.
 """
 
 from __future__ import annotations
 
-import contextlib
 import mmap
 import os
+import platform
 import signal
+import stat
 import sys
 import time
 
@@ -43,26 +55,35 @@ ERROR_AT = 64
 ERROR_BYTES = 512
 STATE_STARTING, STATE_RUNNING, STATE_DONE, STATE_FAILED = 0, 1, 2, 3
 POLL_S = 0.01
+CHECK_S = 0.1  # how often the writer checks that its file still exists
+# Stores become visible in program order only on these CPUs (see the module docstring).
+ORDERED_STORES = platform.machine().lower() in {"x86_64", "amd64", "i386", "i686", "x86"}
+if sys.byteorder != "little":  # the words are little-endian and read as native uint64
+    raise ImportError("hapticd recording rings need a little-endian CPU")
 
 
-def _get(mm: mmap.mmap, at: int) -> int:
-    """The header word at byte ``at``, read with one aligned 8-byte load."""
-    with memoryview(mm) as mv, mv[at : at + 8] as raw, raw.cast("Q") as word:
-        return int(word[0])
+class Words:
+    """The ring header's uint64 words, each read and written with one aligned 8-byte access."""
+
+    def __init__(self, mm: mmap.mmap) -> None:
+        # An mmap starts on a page boundary, so every word is 8-byte aligned.
+        self._view = memoryview(mm)[:HEADER_BYTES].cast("Q")
+
+    def __getitem__(self, at: int) -> int:
+        return self._view[at // 8]
+
+    def __setitem__(self, at: int, value: int) -> None:
+        self._view[at // 8] = value
+
+    def release(self) -> None:
+        self._view.release()
 
 
-def _put(mm: mmap.mmap, at: int, value: int) -> None:
-    """Store the header word at byte ``at`` with one aligned 8-byte store: the other process
-    reads these words with no lock, so it must never see one half-written.
-    (``struct.pack_into`` stores byte by byte: a reader saw a count of 0 for a moment.)"""
-    with memoryview(mm) as mv, mv[at : at + 8] as raw, raw.cast("Q") as word:
-        word[0] = value
-
-
-def _fail(mm: mmap.mmap, message: str) -> None:
+def fail(mm: mmap.mmap, words: Words, message: str) -> None:
+    """Mark the ring's writer failed with ``message`` (read back by the daemon)."""
     raw = message.encode("utf-8", "replace")[: ERROR_BYTES - 1]
     mm[ERROR_AT : ERROR_AT + ERROR_BYTES] = raw.ljust(ERROR_BYTES, b"\x00")
-    _put(mm, W_STATE, STATE_FAILED)
+    words[W_STATE] = STATE_FAILED
 
 
 def _write_all(fd: int, data: memoryview) -> None:
@@ -71,64 +92,89 @@ def _write_all(fd: int, data: memoryview) -> None:
         data = data[n:]
 
 
-def drain(ring_path: str, out_path: str, parent_pid: int) -> int:
-    """Copy records from the ring at ``ring_path`` to ``out_path`` until closed; return count."""
-    fd_ring = os.open(ring_path, os.O_RDWR)
-    try:
-        mm = mmap.mmap(fd_ring, 0)
-    finally:
-        os.close(fd_ring)
+def _deleted(fd: int) -> bool:
+    """True when the open file has no name left (deleted, or its directory removed)."""
+    st = os.fstat(fd)
+    return stat.S_ISREG(st.st_mode) and st.st_nlink == 0
+
+
+def drain(ring_fd: int, out_fd: int, out_path: str, parent_pid: int) -> int:
+    """Copy records from the ring ``ring_fd`` to the file ``out_fd`` (named ``out_path`` in
+    messages) until the loop closes the ring or its parent dies; return the count."""
+    mm = mmap.mmap(ring_fd, 0)
     if mm[:8] != MAGIC:
-        raise SystemExit(f"hapticd ring writer: {ring_path} is not a tick ring")
-    size = _get(mm, W_ITEMSIZE)
-    cap = _get(mm, W_CAPACITY)
-    try:
-        fd = os.open(out_path, os.O_WRONLY | os.O_APPEND)
-    except OSError as exc:
-        _fail(mm, f"cannot open {out_path}: {exc.strerror or exc}")
-        return 0
-    _put(mm, W_STATE, STATE_RUNNING)
+        raise SystemExit(f"hapticd ring writer: fd {ring_fd} is not a tick ring")
+    words = Words(mm)
     view = memoryview(mm)
-    done = _get(mm, W_DRAINED)
+    try:
+        done = _drain(words, view, out_fd, out_path, parent_pid)
+    except _WriterFailedError as exc:
+        fail(mm, words, str(exc))
+        done = exc.done
+    else:
+        words[W_STATE] = STATE_DONE
+    finally:
+        os.close(out_fd)
+        view.release()
+        words.release()
+        mm.close()
+    return done
+
+
+class _WriterFailedError(Exception):
+    def __init__(self, message: str, done: int) -> None:
+        super().__init__(message)
+        self.done = done
+
+
+def _drain(words: Words, view: memoryview, out_fd: int, out_path: str, parent_pid: int) -> int:
+    size = words[W_ITEMSIZE]
+    cap = words[W_CAPACITY]
+    done = words[W_DRAINED]
+    words[W_STATE] = STATE_RUNNING
     orphaned = False
+    next_check = time.monotonic() + CHECK_S
+    lost = f"{out_path} was deleted while recording (its directory removed?): every tick is lost"
     try:
         while True:
-            closed = _get(mm, W_CLOSED)
-            n = _get(mm, W_WRITTEN)
+            closed = words[W_CLOSED]
+            n = words[W_WRITTEN]
             while done < n:
                 i = done % cap
                 k = min(n - done, cap - i)
                 start = HEADER_BYTES + i * size
-                _write_all(fd, view[start : start + k * size])
+                _write_all(out_fd, view[start : start + k * size])
                 done += k
-                _put(mm, W_DRAINED, done)
+                words[W_DRAINED] = done
             if closed or orphaned:
                 break
             if os.getppid() != parent_pid:
                 orphaned = True  # the daemon died: one more pass takes every complete record
                 continue
+            now = time.monotonic()
+            if now >= next_check:
+                next_check = now + CHECK_S
+                if _deleted(out_fd):
+                    raise _WriterFailedError(lost, done)
             time.sleep(POLL_S)
+        if _deleted(out_fd):
+            raise _WriterFailedError(lost, done)
     except OSError as exc:
-        _fail(mm, f"writing {out_path} failed: {exc.strerror or exc}")
-        return done
-    finally:
-        os.close(fd)
-        view.release()
-    _put(mm, W_STATE, STATE_DONE)
-    mm.close()
-    if orphaned:
-        with contextlib.suppress(OSError):
-            os.unlink(ring_path)  # nobody else will
+        why = f"writing {out_path} failed: {exc.strerror or exc}"
+        raise _WriterFailedError(why, done) from None
     return done
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) != 3:
-        print("usage: python -m hapticd.recording RING_PATH OUT_PATH PARENT_PID", file=sys.stderr)
+    if len(argv) != 4:
+        print(
+            "usage: python -m hapticd.recording RING_FD OUT_FD OUT_PATH PARENT_PID",
+            file=sys.stderr,
+        )
         return 2
     # The daemon decides when recording ends: a Ctrl-C or a service stop sent to the whole
     # group must not cut the file short while the daemon is still flushing.
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
-    drain(argv[0], argv[1], int(argv[2]))
+    drain(int(argv[0]), int(argv[1]), argv[2], int(argv[3]))
     return 0
