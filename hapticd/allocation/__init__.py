@@ -46,6 +46,7 @@ from hapticd.allocation.accuracy import (
     two_contact_accuracy,
 )
 from hapticd.allocation.adaptive import AdaptiveState, external_ratio, smoothstep
+from hapticd.allocation.batch import allocate_many
 from hapticd.allocation.closed import (
     one_contact,
     two_contact,
@@ -168,6 +169,7 @@ __all__ = [
     "Robustness",
     "accuracy",
     "allocate",
+    "allocate_many",
     "contact_offsets",
     "ef_exact",
     "external_ratio",

@@ -1,0 +1,376 @@
+"""Batched allocation for offline work: N grasps at once, equal to ``allocate()`` one by one.
+
+Shapes: G (N, 6, 3p), M_a (N, 3p, r) or shared (3p, r), lam (N, 3p) -> lam_a (N, r);
+forces in N, lengths in m. Pure: numpy in, numpy out.
+
+Same methods and the same filtered-gain scheme as ``allocate()``:
+
+- two contacts with one direction each (the closed form ``allocate()`` takes) run
+  the closed form of ``hapticd.allocation.closed`` elementwise over the batch, in
+  the same operation order (equal to rounding);
+- every other grasp takes the general path on Gram matrices: a filtered
+  pseudoinverse g(s) = 1/s or s/eps^2 of A is F(A^T A) A^T with F the spectral
+  function 1/max(l, eps^2) of the Gram matrix (one stacked ``eigh`` of an r x r
+  matrix instead of an SVD), and the soft internal projector is
+  I - (1/p) sum of force blocks - Gm^T F(Gm Gm^T) Gm, since about the contacts'
+  centroid the weighted G's Gram matrix is block diagonal (p I3, Gm Gm^T);
+- the exact (seed) methods repeat exact.py's numpy calls on stacks, grouped by
+  the ranks that pick their null-space bases, so they jump and blow up exactly
+  where the one-by-one ones do.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hapticd import params
+from hapticd.allocation.closed import _apply, _cross, _dot, _mul2, _sandwich, _soft_line
+from hapticd.allocation.robust import (
+    _TINY,
+    DEFAULT_ROBUSTNESS,
+    AllocationError,
+    Robustness,
+)
+
+_METHODS: tuple[str, ...] = tuple(params.ALLOCATORS)
+_EXACT = ("pinv_exact", "if_exact", "ef_exact")
+
+# -- validation -------------------------------------------------------------------------------
+
+
+def _first_bad(arr: np.ndarray) -> int | None:
+    """Index of the first grasp (axis 0) holding NaN or inf, or None."""
+    bad = ~np.isfinite(arr.reshape(arr.shape[0], -1)).all(axis=1)
+    return int(np.argmax(bad)) if bad.any() else None
+
+
+def _check(
+    method: str, G: object, M_a: object, lam: object, alpha: object
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    if method not in _METHODS:
+        raise AllocationError(f"unknown allocator {method!r}; expected one of {list(_METHODS)}")
+    G = np.asarray(G, dtype=float)
+    if G.ndim != 3 or G.shape[1] != 6 or G.shape[2] % 3:
+        raise AllocationError(f"G must have shape (N, 6, 3p), got {G.shape}")
+    N, _, n = G.shape
+    M = np.asarray(M_a, dtype=float)
+    if not (M.ndim == 2 and M.shape[0] == n) and not (M.ndim == 3 and M.shape[:2] == (N, n)):
+        raise AllocationError(
+            f"M_a must have shape ({N}, {n}, r) or shared ({n}, r) to match G {G.shape}, "
+            f"got {M.shape}"
+        )
+    lam_arr = np.asarray(lam, dtype=float)
+    if lam_arr.shape != (N, n):
+        raise AllocationError(
+            f"lam must have shape ({N}, {n}) to match G {G.shape}, got {lam_arr.shape}"
+        )
+    a = np.asarray(alpha, dtype=float)
+    if method == "adaptive":
+        if a.ndim > 1 or (a.ndim == 1 and a.shape != (N,)):
+            raise AllocationError(f"alpha must be a scalar or have shape ({N},), got {a.shape}")
+        if not np.all((a >= 0.0) & (a <= 1.0)):  # False for NaN too
+            raise AllocationError("adaptive alpha must be in [0, 1] (and finite)")
+    for name, arr in (("G", G), ("lam", lam_arr)):
+        k = _first_bad(arr) if N else None
+        if k is not None:
+            raise AllocationError(
+                f"{name} contains NaN or inf (grasp {k}); refusing to compute a force"
+            )
+    if M.ndim == 2:
+        if not np.all(np.isfinite(M)):
+            raise AllocationError("M_a contains NaN or inf; refusing to compute a force")
+    elif N and (k := _first_bad(M)) is not None:
+        raise AllocationError(f"M_a contains NaN or inf (grasp {k}); refusing to compute a force")
+    return G, M, lam_arr, np.broadcast_to(a, (N,)).astype(float)
+
+
+# -- the two-contact closed form, elementwise over the batch ---------------------------------
+#
+# Same formulas and operation order as hapticd.allocation.closed (whose helpers _dot,
+# _cross, _mul2, ... work on tuples of arrays as they do on tuples of floats); the branches
+# become np.where with safe denominators.
+
+
+def _safe(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """x where ok, else 1 (a denominator in a branch np.where discards)."""
+    return np.where(ok, x, 1.0)
+
+
+def _finv2_v(a: np.ndarray, b: np.ndarray, c: np.ndarray, eps2: float) -> tuple:
+    """Vectorised closed._finv2: filtered inverse of [[a, b], [b, c]]."""
+    mean = 0.5 * (a + c)
+    half = 0.5 * (a - c)
+    rad = np.sqrt(half * half + b * b)
+    l2 = mean - rad
+    reg = l2 >= eps2
+    det = _safe(a * c - b * b, reg)
+    l1 = mean + rad
+    h2 = 1.0 / eps2
+    big1 = l1 >= eps2
+    h1 = np.where(big1, 1.0 / _safe(l1, big1), h2)
+    same = h1 == h2
+    s = (h1 - h2) / _safe(l1 - l2, ~(reg | same))
+    out0 = np.where(reg, c / det, np.where(same, h2, h2 + s * (a - l2)))
+    out1 = np.where(reg, -b / det, np.where(same, 0.0, s * b))
+    out2 = np.where(reg, a / det, np.where(same, h2, h2 + s * (c - l2)))
+    return out0, out1, out2
+
+
+def _two_pinv_v(d1, d2, l1, l2, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    eps2 = eps * eps
+    k1, k2 = _dot(d1, d1), _dot(d2, d2)
+    g1 = np.where(k1 >= eps2, 1.0 / _safe(k1, k1 >= eps2), 1.0 / eps2)
+    g2 = np.where(k2 >= eps2, 1.0 / _safe(k2, k2 >= eps2), 1.0 / eps2)
+    return g1 * _dot(d1, l1), g2 * _dot(d2, l2)
+
+
+def _two_ef_v(r1, r2, d1, d2, l1, l2, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    m1, m2 = _cross(r1, d1), _cross(r2, d2)
+    f = (l1[0] + l2[0], l1[1] + l2[1], l1[2] + l2[2])
+    t1, t2 = _cross(r1, l1), _cross(r2, l2)
+    t = (t1[0] + t2[0], t1[1] + t2[1], t1[2] + t2[2])
+    K = (_dot(d1, d1) + _dot(m1, m1), _dot(d1, d2) + _dot(m1, m2), _dot(d2, d2) + _dot(m2, m2))
+    y0 = _dot(d1, f) + _dot(m1, t)
+    y1 = _dot(d2, f) + _dot(m2, t)
+    return _apply(_finv2_v(*K, eps * eps), y0, y1)
+
+
+def _grasp_line_v(r1, r2, min_sep: float) -> tuple[tuple, np.ndarray]:
+    dx, dy, dz = r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2]
+    dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+    near = dist < min_sep
+    q = dist / min_sep
+    w = np.where(near, 1.0 - q * q, 0.0)
+    apart = dist > _TINY
+    sd = _safe(dist, apart)
+    e = (
+        np.where(apart, dx / sd, 1.0),
+        np.where(apart, dy / sd, 0.0),
+        np.where(apart, dz / sd, 0.0),
+    )
+    return e, np.where(apart, w, 1.0)  # coincident: w = 1 makes e irrelevant
+
+
+def _two_if_v(r1, r2, d1, d2, l1, l2, eps: float, min_sep: float) -> tuple:
+    eps2 = eps * eps
+    e, w = _grasp_line_v(r1, r2, min_sep)
+    a1, a2 = _soft_line(e, w, d1), _soft_line(e, w, d2)
+    s = _soft_line(e, w, (l1[0] - l2[0], l1[1] - l2[1], l1[2] - l2[2]))
+    KB = (0.5 * _dot(a1, a1), -0.5 * _dot(a1, a2), 0.5 * _dot(a2, a2))
+    FB = _finv2_v(*KB, eps2)
+    x0, x1 = _apply(FB, 0.5 * _dot(a1, s), -0.5 * _dot(a2, s))
+    r00, r01, _, r11 = _mul2(FB, KB)
+    P = (1.0 - r00, -r01, 1.0 - r11)
+    k1, k2 = _dot(d1, d1), _dot(d2, d2)
+    m0 = _dot(d1, l1) - x0 * k1
+    m1 = _dot(d2, l2) - x1 * k2
+    FP = _finv2_v(*_sandwich(P, (k1, 0.0, k2)), eps2)
+    v0, v1 = _apply(P, m0, m1)
+    v0, v1 = _apply(FP, v0, v1)
+    v0, v1 = _apply(P, v0, v1)
+    return x0 + v0, x1 + v1
+
+
+def _two_contact_v(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust) -> tuple:
+    """(x1, x2) arrays for two contacts with one direction each, robust ``method``."""
+    # contact_offsets: (S[2, 1], S[0, 2], S[1, 0]) of each contact's moment block.
+    r1 = (G[:, 5, 1], G[:, 3, 2], G[:, 4, 0])
+    r2 = (G[:, 5, 4], G[:, 3, 5], G[:, 4, 3])
+    d1 = (M[:, 0, 0], M[:, 1, 0], M[:, 2, 0])
+    d2 = (M[:, 3, 1], M[:, 4, 1], M[:, 5, 1])
+    l1 = (lam[:, 0], lam[:, 1], lam[:, 2])
+    l2 = (lam[:, 3], lam[:, 4], lam[:, 5])
+    if method == "pinv":
+        return _two_pinv_v(d1, d2, l1, l2, robust.eps)
+    if method == "ef":
+        return _two_ef_v(r1, r2, d1, d2, l1, l2, robust.eps)
+    return _two_if_v(r1, r2, d1, d2, l1, l2, robust.eps, robust.min_separation_m)
+
+
+# -- the general path on Gram matrices --------------------------------------------------------
+
+
+def _tr(A: np.ndarray) -> np.ndarray:
+    return np.swapaxes(A, -1, -2)
+
+
+def _spectral(f: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """V diag(f) V^T on stacks."""
+    return (V * f[..., None, :]) @ _tr(V)
+
+
+def _finv(K: np.ndarray, eps2: float) -> np.ndarray:
+    """Filtered inverse of symmetric PSD stacks K (..., r, r): eigenvalue l -> 1/max(l, eps^2).
+
+    F(A^T A) A^T is the filtered pseudoinverse sum g(s) v u^T of A, g(s) = 1/s or s/eps^2.
+    """
+    lk, V = np.linalg.eigh(K)
+    return _spectral(1.0 / np.maximum(lk, eps2), V)
+
+
+def _mv(A: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """A @ x on stacks: A (..., m, n), x (..., n) -> (..., m)."""
+    return (A @ x[..., None])[..., 0]
+
+
+def _soft_internal_projector_v(G: np.ndarray, robust: Robustness) -> np.ndarray:
+    """Stacked soft_internal_projector (N, 3p, 3p), from the Gram matrix of the weighted G.
+
+    About the centroid Gw Gw^T = diag(p I3, Gm Gm^T), so the SVD form
+    V diag(1 - min(1, s^2/eps^2)) V^T equals I - (1/p) Gf^T Gf - Gm^T F(Gm Gm^T) Gm.
+    """
+    N, _, n = G.shape
+    p = n // 3
+    pts = np.stack([G[:, 5, 1::3], G[:, 3, 2::3], G[:, 4, 0::3]], axis=-1)  # (N, p, 3)
+    c = (pts - pts.mean(axis=1, keepdims=True)) / robust.length_scale_m
+    x, y, z = c[..., 0], c[..., 1], c[..., 2]
+    zero = np.zeros_like(x)
+    # Moment rows of Gw: block i is S(c_i); Gm (N, 3, 3p).
+    S = np.stack(
+        [np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)],
+        axis=1,
+    )  # (N, 3, p, 3)
+    Gm = S.reshape(N, 3, n)
+    eps2 = robust.eps * robust.eps
+    out = np.eye(n) - np.kron(np.ones((p, p)) / p, np.eye(3))
+    return out - _tr(Gm) @ _finv(Gm @ _tr(Gm), eps2) @ Gm
+
+
+def _general(
+    method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness
+) -> np.ndarray:
+    """Robust pinv / ef / if on stacks; M (N, n, r) or shared (n, r)."""
+    eps2 = robust.eps * robust.eps
+    if method == "pinv":
+        # M^T M is the same for every grasp when M_a is shared: one eigh for the batch.
+        return _mv(_finv(_tr(M) @ M, eps2) @ _tr(M), lam)
+    if method == "ef":
+        A = G @ M
+        return _mv(_finv(_tr(A) @ A, eps2), _mv(_tr(A), _mv(G, lam)))
+    P_int = _soft_internal_projector_v(G, robust)
+    B = P_int @ M
+    lb, VB = np.linalg.eigh(_tr(B) @ B)
+    FB = _spectral(1.0 / np.maximum(lb, eps2), VB)
+    x1 = _mv(FB @ _tr(B), _mv(P_int, lam))
+    # P = I - B^+ B = I - phi(B^T B), phi(l) = min(1, l / eps^2): B^+ B's eigenvalues g(s) s.
+    P = np.eye(M.shape[-1]) - _spectral(np.clip(lb / eps2, 0.0, 1.0), VB)
+    P = 0.5 * (P + _tr(P))
+    MP = M @ P
+    rest = lam - _mv(M, x1)
+    return x1 + _mv(P @ _finv(_tr(MP) @ MP, eps2), _mv(_tr(MP), rest))
+
+
+# -- the exact (seed) formulas on stacks -------------------------------------------------------
+
+
+def _null_bases(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rank, vt) per stacked matrix with hapticd.grasp.null_space_basis's tolerance."""
+    _, s, vt = np.linalg.svd(A, full_matrices=True)
+    tol = s.max(axis=-1) * max(A.shape[-2:]) * np.finfo(float).eps
+    return np.sum(s > tol[:, None], axis=-1), vt
+
+
+def _basis(vt: np.ndarray, k: int) -> np.ndarray:
+    """null_space_basis's layout: vt[k:].T copied C-contiguous, (g, n, n - k)."""
+    return np.ascontiguousarray(_tr(vt[:, k:, :]))
+
+
+def _if_exact_v(G: np.ndarray, M: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    N, _, n = G.shape
+    r = M.shape[-1]
+    M = np.broadcast_to(M, (N, n, r))
+    out = np.empty((N, r))
+    kG, vtG = _null_bases(G)
+    for k in np.unique(kG):
+        idx = np.flatnonzero(kG == k)
+        Mi, li = np.ascontiguousarray(M[idx]), lam[idx]
+        if k == n:  # N(G) = {0}: B is empty, IF is the pseudoinverse of M_a
+            out[idx] = _mv(np.linalg.pinv(Mi), li)
+            continue
+        NG = _basis(vtG[idx], int(k))
+        B = _tr(NG) @ Mi
+        first = _mv(np.linalg.pinv(B), _mv(_tr(NG), li))
+        kB, vtB = _null_bases(B)
+        for kb in np.unique(kB):
+            jdx = np.flatnonzero(kB == kb)
+            if kb == r:
+                out[idx[jdx]] = first[jdx]
+                continue
+            NB = _basis(vtB[jdx], int(kb))
+            Mj = Mi[jdx]
+            rest = li[jdx] - _mv(Mj, first[jdx])
+            out[idx[jdx]] = first[jdx] + _mv(NB, _mv(np.linalg.pinv(Mj @ NB), rest))
+    return out
+
+
+def _exact(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    if method == "pinv_exact":
+        return _mv(np.linalg.pinv(M), lam)
+    if method == "ef_exact":
+        return _mv(np.linalg.pinv(G @ M), _mv(G, lam))
+    return _if_exact_v(G, M, lam)
+
+
+# -- public API -------------------------------------------------------------------------------
+
+
+def _robust_many(
+    method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness
+) -> np.ndarray:
+    """Robust pinv / if / ef: the closed form where allocate() takes it, else the general path."""
+    N, _, n = G.shape
+    r = M.shape[-1]
+    if n == 6 and r == 2:
+        # allocate()'s two_contact_structure: one direction per finger, block by block.
+        simple = ~(np.any(M[..., 3:6, 0] != 0, axis=-1) | np.any(M[..., 0:3, 1] != 0, axis=-1))
+        simple = np.broadcast_to(simple, (N,))
+        if simple.all():
+            Mb = np.broadcast_to(M, (N, 6, 2))
+            return np.stack(_two_contact_v(method, G, Mb, lam, robust), -1)
+        out = np.empty((N, 2))
+        idx, rest = np.flatnonzero(simple), np.flatnonzero(~simple)
+        if idx.size:
+            Ms = np.broadcast_to(M, (N, 6, 2))[idx]
+            out[idx] = np.stack(_two_contact_v(method, G[idx], Ms, lam[idx], robust), -1)
+        Mr = M if M.ndim == 2 else M[rest]
+        out[rest] = _general(method, G[rest], Mr, lam[rest], robust)
+        return out
+    return _general(method, G, M, lam, robust)
+
+
+def allocate_many(
+    method: str,
+    G: np.ndarray,
+    M_a: np.ndarray,
+    lam: np.ndarray,
+    *,
+    robust: Robustness = DEFAULT_ROBUSTNESS,
+    alpha: float | np.ndarray = 0.0,
+) -> np.ndarray:
+    """Actuator forces lam_a (N, r) N for a batch of N grasps, equal to ``allocate()`` one by one.
+
+    G (N, 6, 3p) grasp matrices (moments in N m per N), M_a (N, 3p, r) or shared
+    (3p, r) actuated directions, lam (N, 3p) contact forces in N. ``alpha`` (a
+    scalar or (N,), each in [0, 1]) is the external-force weight of ``adaptive``.
+    Raises AllocationError (a ValueError) on an unknown method, a shape that does
+    not match, NaN or inf, or alpha outside [0, 1].
+    """
+    G, M, lam, a = _check(method, G, M_a, lam, alpha)
+    N, _, n = G.shape
+    r = M.shape[-1]
+    if N == 0 or r == 0 or n == 0:
+        return np.zeros((N, r))
+    if method in _EXACT:
+        return _exact(method, G, M, lam)
+    if method != "adaptive":
+        return _robust_many(method, G, M, lam, robust)
+    x_if = _robust_many("if", G, M, lam, robust)
+    mix = a != 0.0
+    if not mix.any():
+        return x_if
+    idx = np.flatnonzero(mix)
+    Mi = M if M.ndim == 2 else M[idx]
+    x_ef = _robust_many("ef", G[idx], Mi, lam[idx], robust)
+    ai = a[idx, None]
+    x_if[idx] = (1.0 - ai) * x_if[idx] + ai * x_ef
+    return x_if
