@@ -166,6 +166,27 @@ def test_coincident_contacts_equal_one_by_one(method, counts):
 
 
 @pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("counts", [[2], [3], [2, 1], [1, 3], [2, 1, 1]])
+def test_directions_closing_through_the_threshold_equal_one_by_one(method, counts):
+    # The thumb's directions close from 40 degrees apart to parallel, so singular values of
+    # M_a, G M_a, B and M_a P cross eps (where the filtered gain changes formula) and 0.
+    rng = np.random.default_rng(11)
+    p = len(counts)
+    Gs, Ms, lams = [], [], []
+    for deg in np.linspace(0.0, 40.0, 321):
+        th = np.radians(deg)
+        pts = np.array([[-0.03, 0, 0], [0.03, 0.01, 0], [0, 0.04, 0.01]])[:p]
+        thumb = [(1, 0, 0.5), (np.cos(th), np.sin(th), 0.5), (np.cos(th), 0, 0.5 + np.sin(th))]
+        others = [[(-1, 0.2 * k, 0.5), (0, 1, 0), (0, 0, 1)][:c] for k, c in enumerate(counts[1:])]
+        Gs.append(grasp_matrix(pts, np.zeros(3)))
+        Ms.append(block_actuation([thumb[: counts[0]], *others]))
+        lams.append(rng.normal(size=3 * p))
+    G, M, lam = np.array(Gs), np.array(Ms), np.array(lams)
+    got = allocate_many(method, G, M, lam, alpha=0.5)
+    assert_rows_equal(got, one_by_one(method, G, M, lam, 0.5), lam)
+
+
+@pytest.mark.parametrize("method", METHODS)
 def test_closed_form_and_general_grasps_mixed_in_one_batch(method):
     # Two contacts, two directions: block-structured ones take allocate()'s closed form,
     # the others (a direction acting on both fingers) the general path.

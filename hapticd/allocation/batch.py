@@ -199,13 +199,60 @@ def _spectral(f: np.ndarray, V: np.ndarray) -> np.ndarray:
     return (V * f[..., None, :]) @ _tr(V)
 
 
+def _finv_eigh(K: np.ndarray, eps2: float) -> np.ndarray:
+    lk, V = np.linalg.eigh(K)
+    return _spectral(1.0 / np.maximum(lk, eps2), V)
+
+
+def _inv_regular(K: np.ndarray, eps2: float) -> tuple[np.ndarray, np.ndarray]:
+    """(K^-1, regular) for stacks of symmetric r x r, r <= 3, by cofactors.
+
+    ``regular`` marks K - eps^2 I positive definite (Sylvester: leading minors > 0),
+    where the filtered inverse is the plain inverse; elsewhere the inverse is garbage.
+    """
+    r = K.shape[-1]
+    a = K[..., 0, 0]
+    if r == 1:
+        return (1.0 / np.maximum(a, eps2))[..., None, None], np.ones(a.shape, dtype=bool)
+    b, d = K[..., 1, 0], K[..., 1, 1]
+    ae, de = a - eps2, d - eps2
+    if r == 2:
+        regular = (ae > 0.0) & (ae * de - b * b > 0.0)
+        det = np.where(regular, a * d - b * b, 1.0)
+        inv = np.stack([np.stack([d, -b], -1), np.stack([-b, a], -1)], -2)
+        return inv / det[..., None, None], regular
+    c, e, f = K[..., 2, 0], K[..., 2, 1], K[..., 2, 2]
+    fe = f - eps2
+    m3 = ae * (de * fe - e * e) + b * (c * e - b * fe) + c * (b * e - c * de)
+    regular = (ae > 0.0) & (ae * de - b * b > 0.0) & (m3 > 0.0)
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = np.where(regular, a * c00 + b * c01 + c * c02, 1.0)
+    inv = np.stack(
+        [
+            np.stack([c00, c01, c02], -1),
+            np.stack([c01, c11, c12], -1),
+            np.stack([c02, c12, c22], -1),
+        ],
+        -2,
+    )
+    return inv / det[..., None, None], regular
+
+
 def _finv(K: np.ndarray, eps2: float) -> np.ndarray:
     """Filtered inverse of symmetric PSD stacks K (..., r, r): eigenvalue l -> 1/max(l, eps^2).
 
     F(A^T A) A^T is the filtered pseudoinverse sum g(s) v u^T of A, g(s) = 1/s or s/eps^2.
+    Where every eigenvalue is >= eps^2 that is K^-1 (cofactors for r <= 3, much
+    cheaper than a stacked eigh); the others take the eigendecomposition.
     """
-    lk, V = np.linalg.eigh(K)
-    return _spectral(1.0 / np.maximum(lk, eps2), V)
+    if K.ndim == 2 or K.shape[-1] > 3:
+        return _finv_eigh(K, eps2)
+    inv, regular = _inv_regular(K, eps2)
+    if not regular.all():
+        odd = np.flatnonzero(~regular)
+        inv[odd] = _finv_eigh(K[odd], eps2)
+    return inv
 
 
 def _mv(A: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -247,6 +294,14 @@ def _general(
     if method == "ef":
         A = G @ M
         return _mv(_finv(_tr(A) @ A, eps2), _mv(_tr(A), _mv(G, lam)))
+    if G.shape[-1] == 6 and M.shape[-1] <= 3:
+        return _if_two(G, M, lam, robust)
+    return _if_soft(G, M, lam, robust)
+
+
+def _if_soft(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) -> np.ndarray:
+    """Robust IF, ``_if_general`` on stacks."""
+    eps2 = robust.eps * robust.eps
     P_int = _soft_internal_projector_v(G, robust)
     B = P_int @ M
     lb, VB = np.linalg.eigh(_tr(B) @ B)
@@ -258,6 +313,41 @@ def _general(
     MP = M @ P
     rest = lam - _mv(M, x1)
     return x1 + _mv(P @ _finv(_tr(MP) @ MP, eps2), _mv(_tr(MP), rest))
+
+
+def _if_two(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) -> np.ndarray:
+    """Robust IF for two contacts at least min_separation_m apart, any r <= 3 directions.
+
+    There P_int = n n^T with n = (e, -e)/sqrt(2), e the grasp line, so B = n b^T with
+    b = M^T n: B's filtered pseudoinverse is h(|b|^2) b n^T and P = I - h(|b|^2) b b^T,
+    h(l) = 1/max(l, eps^2). When |b| >= eps, P projects b out, and M P's Gram matrix
+    gets b b^T / |b|^2 added (an eigenvalue 1 on b, where nothing is applied) so
+    that it can be inverted. Grasps with closer contacts, or a Gram matrix with an
+    eigenvalue below eps^2, take ``_if_soft``.
+    """
+    eps2 = robust.eps * robust.eps
+    dvec = np.stack([G[:, 5, 4] - G[:, 5, 1], G[:, 3, 5] - G[:, 3, 2], G[:, 4, 3] - G[:, 4, 0]], -1)
+    dist = np.sqrt(np.einsum("ni,ni->n", dvec, dvec))
+    apart = dist >= robust.min_separation_m
+    e = dvec / np.where(apart, dist, 1.0)[:, None]
+    n = np.concatenate([e, -e], axis=-1) * np.sqrt(0.5)
+    b = _mv(_tr(M), n)
+    bb = np.einsum("ni,ni->n", b, b)
+    hb = 1.0 / np.maximum(bb, eps2)
+    x1 = (hb * np.einsum("ni,ni->n", n, lam))[:, None] * b
+    bbt = b[:, :, None] * b[:, None, :]
+    P = np.eye(M.shape[-1]) - hb[:, None, None] * bbt
+    MP = M @ P
+    K2 = _tr(MP) @ MP
+    full = bb >= eps2
+    K2 = K2 + (full / np.where(full, bb, 1.0))[:, None, None] * bbt
+    F2, regular = _inv_regular(K2, eps2)
+    rest = lam - _mv(M, x1)
+    out = x1 + _mv(P @ F2, _mv(_tr(MP), rest))
+    odd = np.flatnonzero(~(apart & regular))
+    if odd.size:
+        out[odd] = _if_soft(G[odd], M if M.ndim == 2 else M[odd], lam[odd], robust)
+    return out
 
 
 # -- the exact (seed) formulas on stacks -------------------------------------------------------
