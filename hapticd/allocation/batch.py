@@ -40,6 +40,9 @@ _EXACT = ("pinv_exact", "if_exact", "ef_exact")
 
 def _first_bad(arr: np.ndarray) -> int | None:
     """Index of the first grasp (axis 0) holding NaN or inf, or None."""
+    with np.errstate(over="ignore"):
+        if np.isfinite(np.sum(arr)):  # NaN and inf propagate into the sum: all finite
+            return None
     bad = ~np.isfinite(arr.reshape(arr.shape[0], -1)).all(axis=1)
     return int(np.argmax(bad)) if bad.any() else None
 
@@ -71,7 +74,7 @@ def _check(
         if not np.all((a >= 0.0) & (a <= 1.0)):  # False for NaN too
             raise AllocationError("adaptive alpha must be in [0, 1] (and finite)")
     for name, arr in (("G", G), ("lam", lam_arr)):
-        k = _first_bad(arr) if N else None
+        k = _first_bad(arr) if arr.size else None
         if k is not None:
             raise AllocationError(
                 f"{name} contains NaN or inf (grasp {k}); refusing to compute a force"
@@ -79,7 +82,7 @@ def _check(
     if M.ndim == 2:
         if not np.all(np.isfinite(M)):
             raise AllocationError("M_a contains NaN or inf; refusing to compute a force")
-    elif N and (k := _first_bad(M)) is not None:
+    elif N and M.size and (k := _first_bad(M)) is not None:
         raise AllocationError(f"M_a contains NaN or inf (grasp {k}); refusing to compute a force")
     return G, M, lam_arr, np.broadcast_to(a, (N,)).astype(float)
 
@@ -173,13 +176,14 @@ def _two_if_v(r1, r2, d1, d2, l1, l2, eps: float, min_sep: float) -> tuple:
 
 def _two_contact_v(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust) -> tuple:
     """(x1, x2) arrays for two contacts with one direction each, robust ``method``."""
+    # Components as contiguous rows (strided columns make every elementwise op slow).
     # contact_offsets: (S[2, 1], S[0, 2], S[1, 0]) of each contact's moment block.
-    r1 = (G[:, 5, 1], G[:, 3, 2], G[:, 4, 0])
-    r2 = (G[:, 5, 4], G[:, 3, 5], G[:, 4, 3])
-    d1 = (M[:, 0, 0], M[:, 1, 0], M[:, 2, 0])
-    d2 = (M[:, 3, 1], M[:, 4, 1], M[:, 5, 1])
-    l1 = (lam[:, 0], lam[:, 1], lam[:, 2])
-    l2 = (lam[:, 3], lam[:, 4], lam[:, 5])
+    r = G[:, [5, 3, 4, 5, 3, 4], [1, 2, 0, 4, 5, 3]].T.copy()
+    d = M[:, [0, 1, 2, 3, 4, 5], [0, 0, 0, 1, 1, 1]].T.copy()
+    f = lam.T.copy()
+    r1, r2 = (r[0], r[1], r[2]), (r[3], r[4], r[5])
+    d1, d2 = (d[0], d[1], d[2]), (d[3], d[4], d[5])
+    l1, l2 = (f[0], f[1], f[2]), (f[3], f[4], f[5])
     if method == "pinv":
         return _two_pinv_v(d1, d2, l1, l2, robust.eps)
     if method == "ef":
@@ -204,55 +208,58 @@ def _finv_eigh(K: np.ndarray, eps2: float) -> np.ndarray:
     return _spectral(1.0 / np.maximum(lk, eps2), V)
 
 
-def _inv_regular(K: np.ndarray, eps2: float) -> tuple[np.ndarray, np.ndarray]:
-    """(K^-1, regular) for stacks of symmetric r x r, r <= 3, by cofactors.
+def _solve_regular(K: np.ndarray, y: np.ndarray, eps2: float) -> tuple[np.ndarray, np.ndarray]:
+    """(K^-1 y, regular) for stacks of symmetric K (N, r, r), r <= 3, and y (N, r), by cofactors.
 
     ``regular`` marks K - eps^2 I positive definite (Sylvester: leading minors > 0),
-    where the filtered inverse is the plain inverse; elsewhere the inverse is garbage.
+    where the filtered inverse is the plain inverse; elsewhere the result is garbage.
     """
-    r = K.shape[-1]
-    a = K[..., 0, 0]
+    N, r, _ = K.shape
+    k = K.reshape(N, r * r).T.copy()  # contiguous rows: strided columns are slow
+    v = y.T.copy()
     if r == 1:
-        return (1.0 / np.maximum(a, eps2))[..., None, None], np.ones(a.shape, dtype=bool)
-    b, d = K[..., 1, 0], K[..., 1, 1]
-    ae, de = a - eps2, d - eps2
+        return (v[0] / np.maximum(k[0], eps2))[:, None], np.ones(N, dtype=bool)
     if r == 2:
-        regular = (ae > 0.0) & (ae * de - b * b > 0.0)
+        a, b, d = k[0], k[2], k[3]
+        ae = a - eps2
+        regular = (ae > 0.0) & (ae * (d - eps2) - b * b > 0.0)
         det = np.where(regular, a * d - b * b, 1.0)
-        inv = np.stack([np.stack([d, -b], -1), np.stack([-b, a], -1)], -2)
-        return inv / det[..., None, None], regular
-    c, e, f = K[..., 2, 0], K[..., 2, 1], K[..., 2, 2]
-    fe = f - eps2
+        return np.stack([d * v[0] - b * v[1], a * v[1] - b * v[0]], -1) / det[:, None], regular
+    a, b, c, d, e, f = k[0], k[3], k[6], k[4], k[7], k[8]
+    ae, de, fe = a - eps2, d - eps2, f - eps2
     m3 = ae * (de * fe - e * e) + b * (c * e - b * fe) + c * (b * e - c * de)
     regular = (ae > 0.0) & (ae * de - b * b > 0.0) & (m3 > 0.0)
     c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
     c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
     det = np.where(regular, a * c00 + b * c01 + c * c02, 1.0)
-    inv = np.stack(
+    x = np.stack(
         [
-            np.stack([c00, c01, c02], -1),
-            np.stack([c01, c11, c12], -1),
-            np.stack([c02, c12, c22], -1),
+            c00 * v[0] + c01 * v[1] + c02 * v[2],
+            c01 * v[0] + c11 * v[1] + c12 * v[2],
+            c02 * v[0] + c12 * v[1] + c22 * v[2],
         ],
-        -2,
+        -1,
     )
-    return inv / det[..., None, None], regular
+    return x / det[:, None], regular
 
 
-def _finv(K: np.ndarray, eps2: float) -> np.ndarray:
-    """Filtered inverse of symmetric PSD stacks K (..., r, r): eigenvalue l -> 1/max(l, eps^2).
+def _finv_apply(K: np.ndarray, y: np.ndarray, eps2: float) -> np.ndarray:
+    """F(K) y for stacks of symmetric PSD K (N, r, r) or one shared (r, r), y (N, r).
 
-    F(A^T A) A^T is the filtered pseudoinverse sum g(s) v u^T of A, g(s) = 1/s or s/eps^2.
-    Where every eigenvalue is >= eps^2 that is K^-1 (cofactors for r <= 3, much
-    cheaper than a stacked eigh); the others take the eigendecomposition.
+    F is the filtered inverse, eigenvalue l -> 1/max(l, eps^2); F(A^T A) A^T is the
+    filtered pseudoinverse sum g(s) v u^T of A, g(s) = 1/s or s/eps^2. Where every
+    eigenvalue is >= eps^2, F(K) = K^-1 (cofactors for r <= 3, much cheaper than a
+    stacked eigh); the others take the eigendecomposition.
     """
-    if K.ndim == 2 or K.shape[-1] > 3:
-        return _finv_eigh(K, eps2)
-    inv, regular = _inv_regular(K, eps2)
+    if K.ndim == 2:
+        return y @ _finv_eigh(K, eps2).T
+    if K.shape[-1] > 3:
+        return _mv(_finv_eigh(K, eps2), y)
+    x, regular = _solve_regular(K, y, eps2)
     if not regular.all():
         odd = np.flatnonzero(~regular)
-        inv[odd] = _finv_eigh(K[odd], eps2)
-    return inv
+        x[odd] = _mv(_finv_eigh(K[odd], eps2), y[odd])
+    return x
 
 
 def _mv(A: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -280,7 +287,7 @@ def _soft_internal_projector_v(G: np.ndarray, robust: Robustness) -> np.ndarray:
     Gm = S.reshape(N, 3, n)
     eps2 = robust.eps * robust.eps
     out = np.eye(n) - np.kron(np.ones((p, p)) / p, np.eye(3))
-    return out - _tr(Gm) @ _finv(Gm @ _tr(Gm), eps2) @ Gm
+    return out - _tr(Gm) @ _finv_eigh(Gm @ _tr(Gm), eps2) @ Gm
 
 
 def _general(
@@ -290,10 +297,10 @@ def _general(
     eps2 = robust.eps * robust.eps
     if method == "pinv":
         # M^T M is the same for every grasp when M_a is shared: one eigh for the batch.
-        return _mv(_finv(_tr(M) @ M, eps2) @ _tr(M), lam)
+        return _finv_apply(_tr(M) @ M, lam @ M if M.ndim == 2 else _mv(_tr(M), lam), eps2)
     if method == "ef":
         A = G @ M
-        return _mv(_finv(_tr(A) @ A, eps2), _mv(_tr(A), _mv(G, lam)))
+        return _finv_apply(_tr(A) @ A, _mv(_tr(A), _mv(G, lam)), eps2)
     if G.shape[-1] == 6 and M.shape[-1] <= 3:
         return _if_two(G, M, lam, robust)
     return _if_soft(G, M, lam, robust)
@@ -312,7 +319,7 @@ def _if_soft(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) 
     P = 0.5 * (P + _tr(P))
     MP = M @ P
     rest = lam - _mv(M, x1)
-    return x1 + _mv(P @ _finv(_tr(MP) @ MP, eps2), _mv(_tr(MP), rest))
+    return x1 + _mv(P, _finv_apply(_tr(MP) @ MP, _mv(_tr(MP), rest), eps2))
 
 
 def _if_two(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) -> np.ndarray:
@@ -341,9 +348,9 @@ def _if_two(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) -
     K2 = _tr(MP) @ MP
     full = bb >= eps2
     K2 = K2 + (full / np.where(full, bb, 1.0))[:, None, None] * bbt
-    F2, regular = _inv_regular(K2, eps2)
     rest = lam - _mv(M, x1)
-    out = x1 + _mv(P @ F2, _mv(_tr(MP), rest))
+    y2, regular = _solve_regular(K2, _mv(_tr(MP), rest), eps2)
+    out = x1 + _mv(P, y2)
     odd = np.flatnonzero(~(apart & regular))
     if odd.size:
         out[odd] = _if_soft(G[odd], M if M.ndim == 2 else M[odd], lam[odd], robust)
@@ -412,8 +419,8 @@ def _robust_many(
     r = M.shape[-1]
     if n == 6 and r == 2:
         # allocate()'s two_contact_structure: one direction per finger, block by block.
-        simple = ~(np.any(M[..., 3:6, 0] != 0, axis=-1) | np.any(M[..., 0:3, 1] != 0, axis=-1))
-        simple = np.broadcast_to(simple, (N,))
+        cross = M[..., [3, 4, 5, 0, 1, 2], [0, 0, 0, 1, 1, 1]]  # each column on the other finger
+        simple = np.broadcast_to(~cross.any(axis=-1), (N,))
         if simple.all():
             Mb = np.broadcast_to(M, (N, 6, 2))
             return np.stack(_two_contact_v(method, G, Mb, lam, robust), -1)
