@@ -10,10 +10,13 @@ Same methods and the same filtered-gain scheme as ``allocate()``:
   the same operation order (equal to rounding);
 - every other grasp takes the general path on Gram matrices: a filtered
   pseudoinverse g(s) = 1/s or s/eps^2 of A is F(A^T A) A^T with F the spectral
-  function 1/max(l, eps^2) of the Gram matrix (one stacked ``eigh`` of an r x r
-  matrix instead of an SVD), and the soft internal projector is
-  I - (1/p) sum of force blocks - Gm^T F(Gm Gm^T) Gm, since about the contacts'
-  centroid the weighted G's Gram matrix is block diagonal (p I3, Gm Gm^T);
+  function 1/max(l, eps^2) of the Gram matrix. Where every eigenvalue is at
+  least eps^2 (most grasps) F is the plain inverse, by cofactors for r <= 3;
+  the rest take a stacked ``eigh`` (never an SVD). The soft internal projector
+  is I - (1/p) sum of force blocks - Gm^T F(Gm Gm^T) Gm, since about the
+  contacts' centroid the weighted G's Gram matrix is block diagonal
+  (p I3, Gm Gm^T); for two contacts at least min_separation_m apart it is
+  n n^T and IF needs no eigendecomposition at all (``_if_two``);
 - the exact (seed) methods repeat exact.py's numpy calls on stacks, grouped by
   the ranks that pick their null-space bases, so they jump and blow up exactly
   where the one-by-one ones do.
@@ -33,7 +36,7 @@ from hapticd.allocation.robust import (
 )
 
 _METHODS: tuple[str, ...] = tuple(params.ALLOCATORS)
-_EXACT = ("pinv_exact", "if_exact", "ef_exact")
+_EXACT = tuple(m for m in _METHODS if m.endswith("_exact"))
 
 # -- validation -------------------------------------------------------------------------------
 
