@@ -13,15 +13,18 @@ Variants per method (pinv, if, ef), per grasp:
 - allocate loop  : a Python loop over allocate() (robust, closed form where it applies)
 - allocate_many  : one call on a batch of 1e3, and of 1e4, grasps
 
-Loops: median and p99 of the per-call time, over ``--loop-grasps`` grasps in
-each of ``--rounds`` rounds. Batches: batch time / N, median and p99 over the
-rounds (each round runs all 1e4 grasps: ten batches of 1e3, one of 1e4).
-Variants are interleaved within each round so that machine noise hits all
-alike; ratios are against the seed loop and the allocate loop of the same run.
-The last column is the largest |allocate_many - allocate| over the timed grasps
-(N). Prints a Markdown table and saves a plot.
+Every variant is timed the same way: the process's CPU time of a whole pass
+divided by its number of grasps (a loop over ``--loop-grasps`` grasps, a batch
+of N), median and p99 over the passes of ``--rounds`` rounds (each round runs
+all 1e4 grasps in batches: ten of 1e3, one of 1e4). CPU time, because the
+machine is shared: wall-clock time would count other jobs' time slices, and
+unevenly (a 5 ms batch is nearly always preempted, a 20 us call rarely).
+Variants are interleaved within each round; ratios are against the seed loop
+and the allocate loop of the same run. The last column is the largest
+|allocate_many - allocate| over the loop's grasps (N). Prints a Markdown table
+and saves a plot.
 
-Usage: python scripts/bench_allocate_many.py [--rounds 15] [--plot PATH]
+Usage: python scripts/bench_allocate_many.py [--rounds 25] [--plot PATH]
 (default plot: bench-allocate-many.png in the system temp directory)
 """
 
@@ -100,23 +103,21 @@ def _stats(ts: list[float]) -> tuple[float, float]:
 def measure(
     method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, rounds: int, loop_n: int
 ) -> dict[str, tuple[float, float]]:
-    """Per-grasp (median us, p99 us) of every variant, interleaved over ``rounds``."""
+    """Per-grasp CPU time (median us, p99 us) of every variant, interleaved over ``rounds``."""
     seed_fn = SEED[method]
     times: dict[str, list[float]] = {"seed loop": [], "allocate loop": []}
     for nb in BATCHES:
         times[f"allocate_many {nb:.0e}"] = []
-    clock = time.perf_counter
+    clock = time.process_time  # this process's CPU time: other jobs' time slices do not count
     for _ in range(rounds):
-        ts = times["seed loop"]
+        t0 = clock()
         for i in range(loop_n):
-            t0 = clock()
             seed_fn(G[i], M[i], lam[i])
-            ts.append(clock() - t0)
-        ts = times["allocate loop"]
+        times["seed loop"].append((clock() - t0) / loop_n)
+        t0 = clock()
         for i in range(loop_n):
-            t0 = clock()
             allocate(method, G[i], M[i], lam[i])
-            ts.append(clock() - t0)
+        times["allocate loop"].append((clock() - t0) / loop_n)
         for nb in BATCHES:
             ts = times[f"allocate_many {nb:.0e}"]
             for k in range(0, G.shape[0] - nb + 1, nb):  # every grasp once per round
@@ -165,7 +166,7 @@ def plot(path: Path, rows: list[tuple[str, str, str, float, float]]) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description="allocate_many against per-grasp loops.")
-    ap.add_argument("--rounds", type=int, default=15, help="interleaved timing rounds")
+    ap.add_argument("--rounds", type=int, default=25, help="interleaved timing rounds")
     ap.add_argument("--loop-grasps", type=int, default=1000, help="grasps per loop per round")
     ap.add_argument(
         "--plot", type=Path, default=Path(tempfile.gettempdir()) / "bench-allocate-many.png"
