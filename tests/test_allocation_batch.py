@@ -11,6 +11,7 @@ from hapticd.allocation import (
     Robustness,
     allocate,
     allocate_many,
+    batch,
     two_contact_structure,
 )
 from hapticd.allocation.cases import SWEEPS, block_actuation, sweep
@@ -211,6 +212,26 @@ def test_shared_directions_equal_per_grasp_copies(method):
     copies = allocate_many(method, G, np.broadcast_to(M, (20, 9, 4)).copy(), lam, alpha=0.2)
     np.testing.assert_allclose(shared, copies, rtol=1e-12, atol=1e-12)
     assert_rows_equal(shared, one_by_one(method, G, M, lam, 0.2), lam)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("shared", [False, True])
+def test_chunks_give_what_one_pass_gives(method, shared, monkeypatch):
+    # Large batches run in chunks of batch.CHUNK grasps; 8 here, 45 grasps: five full
+    # chunks and a partial one, mixing closed-form and general-path grasps.
+    rng = np.random.default_rng(9)
+    G = np.array([grasp_matrix(rng.uniform(-0.05, 0.05, (2, 3)), np.zeros(3)) for _ in range(45)])
+    dirs = [[[rng.normal(size=3)], [rng.normal(size=3)]] for _ in range(45)]
+    Ms = np.array([block_actuation(d) for d in dirs])
+    Ms[::4] = rng.normal(size=(12, 6, 2))
+    M = Ms[0] if shared else Ms
+    lam = rng.normal(size=(45, 6))
+    alpha = rng.uniform(0, 1, 45)
+    whole = allocate_many(method, G, M, lam, alpha=alpha)
+    monkeypatch.setattr(batch, "CHUNK", 8)
+    chunked = allocate_many(method, G, M, lam, alpha=alpha)
+    np.testing.assert_allclose(chunked, whole, rtol=1e-13, atol=1e-15)
+    assert_rows_equal(chunked, one_by_one(method, G, M, lam, alpha), lam)
 
 
 # -- linear in lam ------------------------------------------------------------------------------

@@ -37,6 +37,7 @@ from hapticd.allocation.robust import (
 
 _METHODS: tuple[str, ...] = tuple(params.ALLOCATORS)
 _EXACT = tuple(m for m in _METHODS if m.endswith("_exact"))
+CHUNK = 1024  # grasps per internal pass of allocate_many
 
 # -- validation -------------------------------------------------------------------------------
 
@@ -201,6 +202,11 @@ def _tr(A: np.ndarray) -> np.ndarray:
     return np.swapaxes(A, -1, -2)
 
 
+def _gram(A: np.ndarray) -> np.ndarray:
+    """A^T A on stacks (a contiguous A^T: matmul is twice as fast as with a transposed view)."""
+    return np.ascontiguousarray(_tr(A)) @ A
+
+
 def _spectral(f: np.ndarray, V: np.ndarray) -> np.ndarray:
     """V diag(f) V^T on stacks."""
     return (V * f[..., None, :]) @ _tr(V)
@@ -290,7 +296,7 @@ def _soft_internal_projector_v(G: np.ndarray, robust: Robustness) -> np.ndarray:
     Gm = S.reshape(N, 3, n)
     eps2 = robust.eps * robust.eps
     out = np.eye(n) - np.kron(np.ones((p, p)) / p, np.eye(3))
-    return out - _tr(Gm) @ _finv_eigh(Gm @ _tr(Gm), eps2) @ Gm
+    return out - _tr(Gm) @ _finv_eigh(_gram(_tr(Gm)), eps2) @ Gm
 
 
 def _general(
@@ -300,10 +306,10 @@ def _general(
     eps2 = robust.eps * robust.eps
     if method == "pinv":
         # M^T M is the same for every grasp when M_a is shared: one eigh for the batch.
-        return _finv_apply(_tr(M) @ M, lam @ M if M.ndim == 2 else _mv(_tr(M), lam), eps2)
+        return _finv_apply(_gram(M), lam @ M if M.ndim == 2 else _mv(_tr(M), lam), eps2)
     if method == "ef":
         A = G @ M
-        return _finv_apply(_tr(A) @ A, _mv(_tr(A), _mv(G, lam)), eps2)
+        return _finv_apply(_gram(A), _mv(_tr(A), _mv(G, lam)), eps2)
     if G.shape[-1] == 6 and M.shape[-1] <= 3:
         return _if_two(G, M, lam, robust)
     return _if_soft(G, M, lam, robust)
@@ -314,7 +320,7 @@ def _if_soft(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) 
     eps2 = robust.eps * robust.eps
     P_int = _soft_internal_projector_v(G, robust)
     B = P_int @ M
-    lb, VB = np.linalg.eigh(_tr(B) @ B)
+    lb, VB = np.linalg.eigh(_gram(B))
     FB = _spectral(1.0 / np.maximum(lb, eps2), VB)
     x1 = _mv(FB @ _tr(B), _mv(P_int, lam))
     # P = I - B^+ B = I - phi(B^T B), phi(l) = min(1, l / eps^2): B^+ B's eigenvalues g(s) s.
@@ -322,7 +328,7 @@ def _if_soft(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) 
     P = 0.5 * (P + _tr(P))
     MP = M @ P
     rest = lam - _mv(M, x1)
-    return x1 + _mv(P, _finv_apply(_tr(MP) @ MP, _mv(_tr(MP), rest), eps2))
+    return x1 + _mv(P, _finv_apply(_gram(MP), _mv(_tr(MP), rest), eps2))
 
 
 def _if_two(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) -> np.ndarray:
@@ -348,7 +354,7 @@ def _if_two(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) -
     bbt = b[:, :, None] * b[:, None, :]
     P = np.eye(M.shape[-1]) - hb[:, None, None] * bbt
     MP = M @ P
-    K2 = _tr(MP) @ MP
+    K2 = _gram(MP)
     full = bb >= eps2
     K2 = K2 + (full / np.where(full, bb, 1.0))[:, None, None] * bbt
     rest = lam - _mv(M, x1)
@@ -460,6 +466,21 @@ def allocate_many(
     r = M.shape[-1]
     if N == 0 or r == 0 or n == 0:
         return np.zeros((N, r))
+    if N <= CHUNK:
+        return _allocate_chunk(method, G, M, lam, a, robust)
+    # In chunks, so that a chunk's temporaries (about 150 arrays of CHUNK floats for the
+    # closed forms) stay in cache: one pass over 1e4 grasps costs more per grasp than 1e3.
+    out = np.empty((N, r))
+    for k in range(0, N, CHUNK):
+        s = slice(k, k + CHUNK)
+        out[s] = _allocate_chunk(method, G[s], M if M.ndim == 2 else M[s], lam[s], a[s], robust)
+    return out
+
+
+def _allocate_chunk(
+    method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, a: np.ndarray, robust: Robustness
+) -> np.ndarray:
+    """allocate_many on validated input."""
     if method in _EXACT:
         return _exact(method, G, M, lam)
     if method != "adaptive":
