@@ -135,7 +135,7 @@ def max_difference(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, n
 
 
 def plot(path: Path, rows: list[tuple[str, str, str, float, float]]) -> None:
-    """Median time per grasp (bars, log scale, p99 whiskers) per workload and method."""
+    """Median CPU time per grasp (bars, log scale, p99 whiskers) per workload and method."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -154,7 +154,7 @@ def plot(path: Path, rows: list[tuple[str, str, str, float, float]]) -> None:
             ax.bar(x, med, width, yerr=[np.zeros_like(med), p99 - med], label=v, capsize=2)
         ax.set_xticks(np.arange(len(METHODS)), METHODS)
         ax.set_yscale("log")
-        ax.set_ylabel("time per grasp (us): median, p99 whisker")
+        ax.set_ylabel("CPU time per grasp (us): median, p99 whisker")
         ax.set_title(wl)
         ax.grid(True, axis="y", which="both", alpha=0.3)
     axes[0, 0].legend(fontsize=8)
@@ -175,7 +175,7 @@ def main() -> None:
 
     rows: list[tuple[str, str, str, float, float]] = []
     lines = [
-        "| workload | method | variant | median us/grasp | p99 us/grasp | vs seed loop | "
+        "| workload | method | variant | median CPU us/grasp | p99 CPU us/grasp | vs seed loop | "
         "vs allocate loop | max diff N |",
         "|---|---|---|---|---|---|---|---|",
     ]
