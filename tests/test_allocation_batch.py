@@ -308,6 +308,10 @@ def test_non_finite_input_names_the_argument_and_the_grasp(bad):
         for method in METHODS:
             with pytest.raises(AllocationError, match=rf"{name} contains NaN or inf \(grasp 2\)"):
                 allocate_many(method, G, M, lam)
+    G = G2.copy()
+    G[3, 0, 0], G[3, 1, 1] = np.inf, -np.inf  # inf - inf in a sum is NaN: still found
+    with pytest.raises(AllocationError, match=r"G contains NaN or inf \(grasp 3\)"):
+        allocate_many("pinv", G, M2, L2)
     M = M2.copy()
     M[1, 0] = bad
     with pytest.raises(AllocationError, match="M_a contains NaN or inf"):
@@ -322,3 +326,7 @@ def test_bad_method_and_alpha():
             allocate_many("adaptive", G2, M2, L2, alpha=np.asarray(alpha))
     with pytest.raises(AllocationError, match=r"alpha must be a scalar or have shape \(4,\)"):
         allocate_many("adaptive", G2, M2, L2, alpha=np.zeros(3))
+    # The other methods ignore alpha, as allocate() does.
+    np.testing.assert_array_equal(
+        allocate_many("if", G2, M2, L2, alpha=np.zeros(3)), allocate_many("if", G2, M2, L2)
+    )

@@ -44,7 +44,7 @@ CHUNK = 1024  # grasps per internal pass of allocate_many
 
 def _first_bad(arr: np.ndarray) -> int | None:
     """Index of the first grasp (axis 0) holding NaN or inf, or None."""
-    with np.errstate(over="ignore"):
+    with np.errstate(over="ignore", invalid="ignore"):
         if np.isfinite(np.sum(arr)):  # NaN and inf propagate into the sum: all finite
             return None
     bad = ~np.isfinite(arr.reshape(arr.shape[0], -1)).all(axis=1)
@@ -71,12 +71,14 @@ def _check(
         raise AllocationError(
             f"lam must have shape ({N}, {n}) to match G {G.shape}, got {lam_arr.shape}"
         )
-    a = np.asarray(alpha, dtype=float)
+    a = np.zeros(N)  # other methods ignore alpha, as allocate() does
     if method == "adaptive":
+        a = np.asarray(alpha, dtype=float)
         if a.ndim > 1 or (a.ndim == 1 and a.shape != (N,)):
             raise AllocationError(f"alpha must be a scalar or have shape ({N},), got {a.shape}")
         if not np.all((a >= 0.0) & (a <= 1.0)):  # False for NaN too
             raise AllocationError("adaptive alpha must be in [0, 1] (and finite)")
+        a = np.broadcast_to(a, (N,)).astype(float)
     for name, arr in (("G", G), ("lam", lam_arr)):
         k = _first_bad(arr) if arr.size else None
         if k is not None:
@@ -88,7 +90,7 @@ def _check(
             raise AllocationError("M_a contains NaN or inf; refusing to compute a force")
     elif N and M.size and (k := _first_bad(M)) is not None:
         raise AllocationError(f"M_a contains NaN or inf (grasp {k}); refusing to compute a force")
-    return G, M, lam_arr, np.broadcast_to(a, (N,)).astype(float)
+    return G, M, lam_arr, a
 
 
 # -- the two-contact closed form, elementwise over the batch ---------------------------------
