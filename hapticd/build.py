@@ -21,6 +21,7 @@ from hapticd_drivers.trajectory import Trajectory
 from hapticd import recording
 from hapticd.actuation import Actuation
 from hapticd.allocation import AdaptiveState, Robustness
+from hapticd.passivity import PassivityParams
 from hapticd.profile import (
     FingerConfig,
     ObjectConfig,
@@ -285,6 +286,13 @@ def build_renderer(profile: Profile) -> Renderer:
             rc.adaptive.ratio_low, rc.adaptive.ratio_high, rc.adaptive.time_constant_s
         ),
         dt=1.0 / profile.loop.rate_hz,
+        passivity=(
+            PassivityParams(
+                rc.passivity.velocity_threshold_m_per_s, rc.passivity.max_damping_n_s_per_m
+            )
+            if rc.passivity.enabled
+            else None
+        ),
     )
 
 

@@ -200,6 +200,16 @@ def format_status(st: dict[str, Any]) -> str:
             for d in st["devices"]
         ),
         f"allocator     {st['allocator']}   stages: {' '.join(st['stages'])}",
+        "passivity     "
+        + (
+            "off"
+            if not (pa := st.get("passivity")) or not pa["enabled"]
+            else "energy "
+            + ", ".join(f"{e:.3g}" for e in pa["energy_j"])
+            + " J; damping "
+            + ", ".join(f"{b:.3g}" for b in pa["damping_n_s_per_m"])
+            + " N s/m"
+        ),
         f"scene         {sc['shape']}, {'fixed' if sc['fixed'] else 'free'}, "
         f"stiffness {sc['stiffness_n_per_m']:g} N/m, mass {sc['mass_kg']:g} kg, "
         f"friction {sc['friction'][0]:g}/{sc['friction'][1]:g}",

@@ -106,6 +106,22 @@ FIELDS: tuple[FrameField, ...] = (
         "",
         "the object's outward surface normal at each contact (0 when free)",
     ),
+    FrameField(
+        "passivity_energy",
+        "<f8",
+        ("F",),
+        "J",
+        "energy each finger's port absorbed, as the passivity observer sees it (negative: "
+        "the display generated energy); 0 without the passivity stage",
+    ),
+    FrameField(
+        "passivity_damping",
+        "<f8",
+        ("F",),
+        "N s/m",
+        "damping the passivity controller added along each finger's actuated directions; "
+        "0 without the passivity stage",
+    ),
     # Hand-offs within a tick, not recorded.
     FrameField("surface_point", "<f8", F3, "m", "fingertip centre held on the object", False),
 )

@@ -285,10 +285,32 @@ class AdaptiveConfig(_Strict):
         return self
 
 
+class PassivityConfig(_Strict):
+    """The time-domain passivity controller (docs/analysis.md, "Passivity controller")."""
+
+    enabled: bool = Field(
+        default=False, description="run the passivity observer and controller on every tick"
+    )
+    velocity_threshold_m_per_s: float = Field(
+        default=0.005,
+        gt=0,
+        le=1.0,
+        description="speed along a finger's actuated directions below which the controller "
+        "does not act (full authority at twice it), m/s",
+    )
+    max_damping_n_s_per_m: float = Field(
+        default=20.0,
+        gt=0,
+        le=100.0,
+        description="most damping the controller adds along a finger's actuated directions, N s/m",
+    )
+
+
 class RenderingConfig(_Strict):
     allocator: AllocatorName = "if"
     robustness: RobustnessConfig = RobustnessConfig()
     adaptive: AdaptiveConfig = AdaptiveConfig()
+    passivity: PassivityConfig = PassivityConfig()
     actuation_frame: Literal["world", "grasp"] = Field(
         default="world",
         description="frame of actuated_directions: world, or the grasp frame "

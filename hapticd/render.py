@@ -2,8 +2,9 @@
 
 ``Renderer.run(frame)`` runs the plan on a tick frame (hapticd.frame) whose
 device state is filled: contact, friction, forces, allocation, environment,
-dynamics, scene. Stages the scene does not need are not in the plan and never
-run (a fixed cube has no dynamics stage, a frictionless one no friction stage).
+passivity, dynamics, scene. Stages the scene does not need are not in the plan
+and never run (a fixed cube has no dynamics stage, a frictionless one no
+friction stage, a renderer without ``passivity`` parameters no passivity stage).
 ``insert`` adds a stage after a named one; ``set_param`` changes a scene or
 rendering parameter (those of hapticd.params the renderer owns) and re-plans.
 The same object renders off-line: ``step(device_pos, device_vel)`` runs one
@@ -22,6 +23,7 @@ from hapticd.allocation import DEFAULT_ROBUSTNESS, METHODS, AdaptiveState, Robus
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.frame import Frame
 from hapticd.params import PARAMS, ParamError
+from hapticd.passivity import PassivityParams
 from hapticd.scene import Material, Scene, SceneObject
 from hapticd.stages import (
     Allocation,
@@ -30,6 +32,7 @@ from hapticd.stages import (
     Environment,
     Forces,
     Friction,
+    Passivity,
     SceneState,
     Stage,
 )
@@ -37,7 +40,8 @@ from hapticd.stages import (
 
 class Renderer:
     """One tick of the scene for F spherical fingertips of ``radii`` (m), rendered through
-    ``actuation`` with ``allocator`` (a name in hapticd.allocation.METHODS)."""
+    ``actuation`` with ``allocator`` (a name in hapticd.allocation.METHODS); with
+    ``passivity`` a time-domain passivity controller runs on the rendered forces."""
 
     def __init__(
         self,
@@ -49,6 +53,7 @@ class Renderer:
         robust: Robustness = DEFAULT_ROBUSTNESS,
         adaptive: AdaptiveState | None = None,
         dt: float = 1e-3,
+        passivity: PassivityParams | None = None,
     ) -> None:
         if len(radii) != actuation.n_fingers:
             raise ValueError("one radius per finger is needed")
@@ -69,6 +74,9 @@ class Renderer:
         self._contact = Contact(self.scene, self.radii)
         self._friction = Friction(self.scene, self.radii)
         self._allocation = Allocation(self.scene, self.allocator)
+        self._passivity = (
+            None if passivity is None else Passivity(self.allocator, passivity, self.n_fingers, dt)
+        )
         self._inserted: list[tuple[str, Stage]] = []
         self.frame = Frame(self.n_fingers, actuation.n_actuators)
         self.plan()
@@ -85,6 +93,8 @@ class Renderer:
         stages += [Forces(sc), self._allocation]
         if sc.surfaces:
             stages.append(Environment(self.allocator.actuation))
+        if self._passivity is not None:  # after the last stage that writes rendered_force
+            stages.append(self._passivity)
         if not obj.fixed:
             stages.append(Dynamics(sc, self.n_fingers, self.dt))
         stages.append(SceneState(sc, self.allocator, METHODS))
@@ -92,6 +102,11 @@ class Renderer:
             names = [s.name for s in stages]
             stages.insert(names.index(after) + 1, stage)
         self.stages: list[Stage] = stages
+
+    @property
+    def passivity(self) -> Passivity | None:
+        """The passivity stage (planned when the renderer was given its parameters), or None."""
+        return self._passivity
 
     @property
     def stage_names(self) -> list[str]:

@@ -2,10 +2,10 @@
 
 A stage reads the frame fields earlier stages wrote and writes its own; a stage
 that carries state from tick to tick (proxies, friction anchors, the adaptive
-allocator, the object's motion) keeps it itself. ``Renderer`` (hapticd.render)
-puts the stages a scene needs in order:
+allocator, the passivity observer, the object's motion) keeps it itself.
+``Renderer`` (hapticd.render) puts the stages a scene needs in order:
 
-    contact -> friction -> forces -> allocation -> environment -> dynamics -> scene
+    contact -> friction -> forces -> allocation -> environment -> passivity -> dynamics -> scene
 
 Units: positions m, velocities m/s, forces N, stiffness N/m, damping N s/m.
 """
@@ -23,6 +23,7 @@ from hapticd.contact import MultiResult, ObstacleSet, Polytope, proxy_step_multi
 from hapticd.dynamics import SMALL_SHAPE, SurfaceSet, auto_substeps, step_body, step_body_small
 from hapticd.frame import Frame
 from hapticd.friction import friction_proxy
+from hapticd.passivity import PassivityParams, control, observe, orthonormal, project
 from hapticd.scene import Scene
 
 V3 = tuple[float, float, float]
@@ -361,6 +362,76 @@ class Environment:
         for i, e in enumerate(env):
             if any(e):
                 rendered[i] += _projector(world[i]) @ np.array(e)
+
+
+class Passivity:
+    """Time-domain passivity per finger (hapticd.passivity): observes the energy each finger's
+    port has absorbed and adds the least damping along that finger's actuated directions
+    that keeps it from going negative.
+
+    Runs after the last stage that writes ``rendered_force`` (allocation, or environment
+    with ground or walls), so it observes the whole rendered force; rewrites
+    ``rendered_force`` where it adds damping, and writes ``passivity_energy`` (J) and
+    ``passivity_damping`` (N s/m) every tick. Keeps each finger's observed energy and
+    last position; the first tick sees no motion.
+    """
+
+    name = "passivity"
+
+    def __init__(
+        self, allocator: ContactAllocator, params: PassivityParams, n_fingers: int, dt: float
+    ) -> None:
+        self.allocator = allocator  # its actuation is read every tick: it may change live
+        self.params = params
+        self.dt = dt
+        self._energy = [0.0] * n_fingers
+        self._damping = [0.0] * n_fingers
+        self._prev: list[list[float]] | None = None
+        self._basis_for: Actuation | None = None
+        self._basis: list[list[V3]] = []
+
+    def _bases(self, pos: list[list[float]]) -> list[list[V3]]:
+        """Orthonormal bases of each finger's actuated directions in the world (cached while
+        they cannot change: world-frame directions of the same actuation)."""
+        act = self.allocator.actuation
+        if act is self._basis_for:
+            return self._basis
+        world = act.world_directions(pos)  # type: ignore[arg-type]
+        self._basis = [orthonormal(ds) for ds in world]
+        self._basis_for = act if act.frame == "world" else None
+        return self._basis
+
+    def run(self, frame: Frame) -> None:
+        pos = frame.device_pos.tolist()
+        prev = self._prev if self._prev is not None else pos
+        self._prev = pos
+        forces = frame.rendered_force.tolist()
+        energy, damping = self._energy, self._damping
+        dt, params = self.dt, self.params
+        bases = None
+        damped = False
+        for i, f in enumerate(forces):
+            x, xp = pos[i], prev[i]
+            dx = (x[0] - xp[0], x[1] - xp[1], x[2] - xp[2])
+            e = observe(energy[i], f, dx)
+            alpha = 0.0
+            if e < 0.0:  # only then the controller needs the actuated motion
+                if bases is None:
+                    bases = self._bases(pos)
+                du = project(bases[i], dx)
+                e, alpha = control(e, du, dt, params)
+                if alpha > 0.0:
+                    c = alpha / dt  # the damping force is -alpha P_a v, v = dx / T
+                    forces[i] = [f[0] - c * du[0], f[1] - c * du[1], f[2] - c * du[2]]
+                    damped = True
+            elif not e >= 0.0:  # NaN: a non-finite position or force; keep the last energy
+                e = energy[i]
+            energy[i] = e
+            damping[i] = alpha
+        frame.passivity_energy[...] = energy
+        frame.passivity_damping[...] = damping
+        if damped:
+            frame.rendered_force[...] = forces
 
 
 class Dynamics:

@@ -11,13 +11,16 @@ and figures of docs/analysis.md.
    M_A F_L M_S (eq. 18), with the seed's printed lower-right entry beside the
    derived one.
 
-Usage: python scripts/analysis_examples.py [--plot docs/img]
+Usage: python scripts/analysis_examples.py [--plot FOLDER]
+(the figures go to the system temp dir unless --plot names a folder; the
+docs' figures: --plot docs/img)
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +30,8 @@ from hapticd.analysis import examples
 K = 60.0
 DEPTH = 0.002
 DELTA = 0.002
+# Outside the repository: a run never overwrites the docs' figures unless asked to.
+DEFAULT_FOLDER = Path(tempfile.gettempdir()) / "hapticd-analysis-examples"
 
 
 def fmt(M: np.ndarray) -> str:
@@ -183,13 +188,20 @@ def plot(folder: Path, wall_rows, rod_rows, r_x: float) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--plot", type=Path, metavar="FOLDER", help="save the figures there")
+    ap.add_argument(
+        "--plot",
+        type=Path,
+        default=DEFAULT_FOLDER,
+        metavar="FOLDER",
+        help=f"save the figures there (default {DEFAULT_FOLDER})",
+    )
     args = ap.parse_args()
     np.set_printoptions(precision=6, suppress=True)
     wall_rows = wall_section()
     rod_rows = rod_section()
-    if args.plot is not None:
-        plot(args.plot, wall_rows, rod_rows, examples.rod(K).x_r)
+    args.plot.mkdir(parents=True, exist_ok=True)
+    plot(args.plot, wall_rows, rod_rows, examples.rod(K).x_r)
+    print(f"\nfigures: {args.plot / 'analysis-tilted-wall.png'}, {args.plot / 'analysis-rod.png'}")
 
 
 if __name__ == "__main__":

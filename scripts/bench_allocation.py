@@ -20,13 +20,16 @@ amplification |M_a lam_a| / |lam|, and the largest step of lam_a between
 consecutive problems. Prints a Markdown table and saves a plot of accuracy
 against time.
 
-Usage: python scripts/bench_allocation.py [--rounds 5] [--plot docs/img/bench-allocation.png]
+Usage: python scripts/bench_allocation.py [--rounds 5] [--plot PATH]
+(the plot goes to the system temp dir unless --plot names a file; the docs'
+figure: --plot docs/img/bench-allocation.png)
 """
 
 from __future__ import annotations
 
 import argparse
 import statistics
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -51,6 +54,8 @@ from hapticd.grasp import grasp_matrix
 from hapticd.profile import load_profile
 
 ROOT = Path(__file__).resolve().parent.parent
+# Outside the repository: a run never overwrites the docs' figure unless asked to.
+DEFAULT_PLOT = Path(tempfile.gettempdir()) / "hapticd-bench-allocation.png"
 PROFILE = ROOT / "configs" / "grasp-stiffness.yaml"
 EPS, SEP = DEFAULT_ROBUSTNESS.eps, DEFAULT_ROBUSTNESS.min_separation_m
 
@@ -261,7 +266,13 @@ def plot(path: Path, all_res: dict[str, dict]) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description="Allocation benchmark: accuracy beside time.")
     ap.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds")
-    ap.add_argument("--plot", type=Path, default=ROOT / "docs" / "img" / "bench-allocation.png")
+    ap.add_argument(
+        "--plot",
+        type=Path,
+        default=DEFAULT_PLOT,
+        metavar="PATH",
+        help=f"save the plot here (default {DEFAULT_PLOT})",
+    )
     ap.add_argument("--sweep-points", type=int, default=401, help="points per singular sweep")
     args = ap.parse_args()
 

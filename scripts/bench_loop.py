@@ -14,7 +14,8 @@ shared and noisy: compare within one run).
     python scripts/bench_loop.py --rounds 3 --seconds 5
     python scripts/bench_loop.py --quick          # 1 and 4 kHz, replay only
 
-Prints a Markdown table and saves a histogram plot (docs/img/bench-loop.png).
+Prints a Markdown table and saves a histogram plot, in the system temp dir unless
+--plot PATH names a file (the docs' figure: --plot docs/img/bench-loop.png).
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 PROFILE = ROOT / "configs" / "grasp-stiffness.yaml"
+# Outside the repository: a run never overwrites the docs' figure unless asked to.
+DEFAULT_PLOT = Path(tempfile.gettempdir()) / "hapticd-bench-loop.png"
 
 LOAD_SCRIPT = r"""
 import signal, sys, threading
@@ -188,7 +191,13 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--seconds", type=float, default=5.0, help="length of each run, s (<= 7.8)")
     ap.add_argument("--quick", action="store_true", help="1 and 4 kHz, replay only")
-    ap.add_argument("--plot", type=Path, default=ROOT / "docs" / "img" / "bench-loop.png")
+    ap.add_argument(
+        "--plot",
+        type=Path,
+        default=DEFAULT_PLOT,
+        metavar="PATH",
+        help=f"save the plot here (default {DEFAULT_PLOT})",
+    )
     args = ap.parse_args()
     rates = [1000, 4000] if args.quick else [1000, 2000, 4000, 8000]
     devices = ["replay"] if args.quick else ["replay", "emulated"]

@@ -13,7 +13,9 @@
    ground (1 s).
 
 Timings are medians and p99 over repeated runs, interleaved per section.
-Usage: python scripts/bench_scene.py [--rounds 3] [--plot docs/img/bench-scene.png]
+Usage: python scripts/bench_scene.py [--rounds 3] [--plot PATH]
+(the plot goes to the system temp dir unless --plot names a file; the docs'
+figure: --plot docs/img/bench-scene.png)
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from __future__ import annotations
 import argparse
 import copy
 import statistics
+import tempfile
 import time
 from pathlib import Path
 
@@ -36,6 +39,8 @@ from hapticd.render import Renderer
 from hapticd.scene import ConvexShape, Material, SceneObject, Surface
 
 ROOT = Path(__file__).resolve().parent.parent
+# Outside the repository: a run never overwrites the docs' figure unless asked to.
+DEFAULT_PLOT = Path(tempfile.gettempdir()) / "hapticd-bench-scene.png"
 LIFT = ROOT / "configs" / "lift-weight.yaml"
 
 
@@ -363,7 +368,13 @@ def plot(path: Path, effects: list[dict], meshes: list[dict], subs: list[dict]) 
 def main() -> None:
     ap = argparse.ArgumentParser(description="Scene benchmark: accuracy beside time.")
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--plot", type=Path, default=ROOT / "docs" / "img" / "bench-scene.png")
+    ap.add_argument(
+        "--plot",
+        type=Path,
+        default=DEFAULT_PLOT,
+        metavar="PATH",
+        help=f"save the plot here (default {DEFAULT_PLOT})",
+    )
     args = ap.parse_args()
     import tempfile
 

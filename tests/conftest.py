@@ -21,6 +21,30 @@ from hapticd.profile import load_profile
 ROOT = Path(__file__).resolve().parent.parent
 GRASP_PROFILE = ROOT / "configs" / "grasp-stiffness.yaml"
 
+pytest_plugins = ["pytester"]
+
+
+def timing_mark_problems(items) -> list[str]:
+    """Tests marked ``timing`` without a reason string: each needs
+    ``@pytest.mark.timing("why this needs wall-clock time")``."""
+    out = []
+    for item in items:
+        for mark in item.iter_markers("timing"):
+            reason = mark.args[0] if mark.args else mark.kwargs.get("reason")
+            if len(mark.args) > 1 or not isinstance(reason, str) or not reason.strip():
+                out.append(item.nodeid)
+    return out
+
+
+def pytest_collection_modifyitems(config, items):
+    bad = timing_mark_problems(items)
+    if bad:
+        raise pytest.UsageError(
+            "@pytest.mark.timing needs one reason string, why the test needs wall-clock "
+            'time, as in @pytest.mark.timing("the achieved rate is measured"): ' + ", ".join(bad)
+        )
+
+
 # Deterministic generated cases in CI; more examples on demand (HYPOTHESIS_PROFILE=thorough).
 settings.register_profile(
     "ci",
@@ -146,10 +170,29 @@ def live(tmp_path):
         server.close()
 
 
+def wait_for(read, what, *, until=bool, timeout_s=20.0, poll_s=0.02):
+    """Call ``read()`` every ``poll_s`` s until ``until(value)`` holds and return that value;
+    at ``timeout_s`` s fail the test, naming ``what`` it waited for and the last value read."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = read()
+        if until(value):
+            return value
+        if time.monotonic() >= deadline:
+            seen = repr(value)
+            seen = seen if len(seen) <= 400 else seen[:400] + "..."
+            pytest.fail(f"timed out after {timeout_s:g} s waiting for {what}; last seen: {seen}")
+        time.sleep(poll_s)
+
+
 def wait_for_tick(client, tick, limit_s=5.0):
-    deadline = time.monotonic() + limit_s
-    while client.status()["tick"] < tick and time.monotonic() < deadline:
-        time.sleep(0.02)
+    """Wait until the daemon behind ``client`` has reached tick ``tick``; fail at ``limit_s``."""
+    return wait_for(
+        lambda: client.status()["tick"],
+        f"tick {tick}",
+        until=lambda k: k >= tick,
+        timeout_s=limit_s,
+    )
 
 
 @pytest.fixture(scope="session")

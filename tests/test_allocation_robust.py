@@ -36,14 +36,21 @@ def unit(v):
 
 
 @st.composite
-def grasps(draw, min_p=1, max_p=4, degenerate=False):
-    """(G, M_a, lam): p contacts, 1-3 directions each; degenerate cases on request."""
+def grasps(draw, min_p=1, max_p=4, degenerate=False, accept=None):
+    """(G, M_a, lam): p contacts, 1-3 directions each; degenerate cases on request.
+
+    ``accept(G, M)``: the geometry is drawn again (from the same seed, up to 40 times)
+    until it holds, so a test that needs such cases gets mostly valid ones.
+    """
     seed = draw(st.integers(0, 2**32 - 1))
     rng = np.random.default_rng(seed)
     p = draw(st.integers(min_p, max_p))
-    pts = rng.uniform(-0.06, 0.06, (p, 3))
-    center = rng.uniform(-0.03, 0.03, 3)
-    dirs = [[unit(rng.normal(size=3)) for _ in range(rng.integers(1, 4))] for _ in range(p)]
+    for _ in range(40):
+        pts = rng.uniform(-0.06, 0.06, (p, 3))
+        center = rng.uniform(-0.03, 0.03, 3)
+        dirs = [[unit(rng.normal(size=3)) for _ in range(rng.integers(1, 4))] for _ in range(p)]
+        if accept is None or accept(grasp_matrix(pts, center), block_m(dirs)):
+            break
     scale = 10.0 ** draw(st.integers(-9, 3))
     lam = rng.normal(size=3 * p) * scale
     if degenerate:
@@ -106,6 +113,9 @@ def well_conditioned(method, G, M):
         return ok(G @ M)
     if method == "if":
         P_int = internal_projector(G)
+        # Three or more contacts that are nearly collinear (pairwise far apart) blend too.
+        if np.abs(soft_internal_projector(G) - P_int).max() > 1e-9:
+            return False
         B = P_int @ M
         if not ok(B):
             return False
@@ -118,10 +128,13 @@ def well_conditioned(method, G, M):
 
 
 @pytest.mark.parametrize("method", ROBUST)
-@given(grasps())
-def test_equals_seed_formula_where_well_conditioned(method, g):
-    G, M, lam = g
-    assume(well_conditioned(method, G, M))
+@given(st.data())
+def test_equals_seed_formula_where_well_conditioned(method, data):
+    # EF's G M_a is well-conditioned for one or two contacts only: with more, the moment
+    # rows (lever arms of centimetres) put singular values between 0 and 1.5 eps.
+    max_p = 2 if method == "ef" else 4
+    G, M, lam = data.draw(grasps(max_p=max_p, accept=lambda G, M: well_conditioned(method, G, M)))
+    assume(well_conditioned(method, G, M))  # the rare geometry the 40 draws did not fix
     robust = allocate(method, G, M, lam)
     exact = allocate(method + "_exact", G, M, lam)
     scale = max(np.abs(exact).max(), np.abs(lam).max(), 1e-300)

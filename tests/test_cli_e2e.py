@@ -2,18 +2,16 @@
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
 
 from hapticd import recording
 from hapticd.cli import main
-from tests.conftest import GRASP_PROFILE, ROOT
+from tests.conftest import GRASP_PROFILE, ROOT, wait_for
 
 SUMMARY_KEYS = {
     "ticks",
@@ -28,8 +26,8 @@ LIMIT = 8.0  # safety.max_force_n in the bundled profile
 
 
 def hapticd_cmd():
-    exe = shutil.which("hapticd")
-    return [exe] if exe else [sys.executable, "-m", "hapticd.cli"]
+    """The command line of this checkout's hapticd (not whichever is first on PATH)."""
+    return [sys.executable, "-m", "hapticd"]
 
 
 def check_grasp_recording(rec, limit=LIMIT):
@@ -80,6 +78,10 @@ def test_unpaced_run_summary_and_recording(tmp_path, capsys):
 
 
 @pytest.mark.slow
+@pytest.mark.timing(
+    "checks real-time pacing: the achieved rate within 3 % of 1 kHz and the recorded "
+    "wall-clock span of the ticks within 0.2 s of the nominal one"
+)
 def test_paced_subprocess_run_is_real_time_and_matches_unpaced(tmp_path):
     s_path, r_path = tmp_path / "s.json", tmp_path / "r.hrec"
     proc = subprocess.run(
@@ -106,6 +108,7 @@ def test_paced_subprocess_run_is_real_time_and_matches_unpaced(tmp_path):
     assert s["rate_hz"]["target"] == 1000
     assert abs(s["rate_hz"]["achieved"] - 1000) / 1000 < 0.03
     rec = recording.read(r_path)
+    assert s["recording"]["dropped"] == 0 and rec.ticks == s["ticks"] == 7801
     check_grasp_recording(rec)
     # Wall-clock tick times follow the nominal ones (real-time pacing).
     assert abs((rec["t_wall"][-1] - rec["t_wall"][0]) - (rec["t"][-1] - rec["t"][0])) < 0.2
@@ -125,13 +128,16 @@ def test_paced_subprocess_run_is_real_time_and_matches_unpaced(tmp_path):
 
 
 @pytest.mark.slow
-def test_sigterm_stops_with_summary_and_exit_0(tmp_path):
+def test_sigterm_stops_with_summary_and_exit_0(tmp_path, grasp_data, write_profile):
     s_path, r_path = tmp_path / "s.json", tmp_path / "r.hrec"
+    # Held a minute after the trajectory: the run cannot end before the signal.
+    for finger in grasp_data["fingers"]:
+        finger["device"]["hold_s"] = 60.0
     proc = subprocess.Popen(
         [
             *hapticd_cmd(),
             "run",
-            str(GRASP_PROFILE),
+            str(write_profile(grasp_data)),
             "--summary-json",
             str(s_path),
             "--record",
@@ -143,15 +149,14 @@ def test_sigterm_stops_with_summary_and_exit_0(tmp_path):
         cwd=ROOT,
     )
     try:
-        deadline = time.monotonic() + 20
         # Wait for a few hundred recorded ticks (the writer flushes every 10 ms; a torn
         # last record is fine to read).
-        while time.monotonic() < deadline and (
-            not r_path.exists()
-            or r_path.stat().st_size < 1000
-            or recording.read(r_path).ticks < 300
-        ):
-            time.sleep(0.05)
+        def recorded() -> int:
+            if not r_path.exists() or r_path.stat().st_size < 1000:
+                return 0
+            return recording.read(r_path).ticks
+
+        wait_for(recorded, "300 recorded ticks", until=lambda n: n >= 300, poll_s=0.05)
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=20)
     finally:
@@ -161,7 +166,7 @@ def test_sigterm_stops_with_summary_and_exit_0(tmp_path):
     assert proc.returncode == 0, err
     s = json.loads(s_path.read_text())
     assert s["end_reason"] == "signal SIGTERM"
-    assert 100 < s["ticks"] < 7000
+    assert s["ticks"] > 300
     assert recording.read(r_path).ticks == s["ticks"]
 
 

@@ -5,8 +5,10 @@ allocators and the docs."""
 from __future__ import annotations
 
 import copy
+import json
 import math
 import re
+import socket
 import threading
 import typing
 from pathlib import Path
@@ -16,6 +18,7 @@ import pytest
 import yaml
 
 from hapticd import params, render, safety
+from hapticd import protocol as proto
 from hapticd.allocation import METHODS
 from hapticd.cli import build_parser, main
 from hapticd.control import ControlClient
@@ -161,20 +164,51 @@ def test_the_cli_checks_before_connecting(argv, code, capsys, tmp_path):
     assert rc == 2 and f"hapticd: {code}: " in err and "cannot talk" not in err
 
 
+class FakeDaemon:
+    """A socket that speaks the protocol's greeting and answers every request with an
+    empty result, keeping what it was sent: the client side of the CLI, without a loop."""
+
+    def __init__(self, path: Path) -> None:
+        self.requests: list[dict[str, Any]] = []
+        self._listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self._listener.bind(str(path))
+        self._listener.listen(1)
+        self._listener.settimeout(10)
+        self._thread = threading.Thread(target=self._serve, name="fake-daemon")
+        self._thread.start()
+
+    def _serve(self) -> None:
+        try:
+            conn, _ = self._listener.accept()
+        except OSError:
+            return
+        with conn, conn.makefile("rb") as lines:
+            conn.sendall(proto.greeting("fake"))
+            for line in lines:
+                req = json.loads(line)
+                self.requests.append(req)
+                conn.sendall(proto.ok(req.get("id"), {}))
+
+    def close(self) -> None:
+        self._listener.close()
+        self._thread.join(timeout=10)
+
+
 @pytest.mark.parametrize("spec", SPECS, ids=IDS)
-def test_the_cli_sends_a_good_value_under_its_name(spec, capsys, tmp_path, monkeypatch):
-    sent = []
-    monkeypatch.setattr(ControlClient, "__init__", lambda self, path=None: None)
-    monkeypatch.setattr(ControlClient, "__exit__", lambda self, *exc: None)
-    monkeypatch.setattr(ControlClient, "set", lambda self, name, value: sent.append(name) or {})
+def test_the_cli_sends_a_good_value_under_its_name(spec, capsys, tmp_path):
+    sock = tmp_path / "fake.sock"
+    daemon = FakeDaemon(sock)
     if spec.kind == "number":
         text = f"{spec.hi:g}"
     elif spec.kind == "choice":
         text = spec.choices[-1]
     else:
         text = {"friction": "0.8,0.6", "directions": "[[[0,0,1]],[[0,0,1]]]"}[spec.kind]
-    assert main(["set", spec.alias or spec.name, text]) == 0
-    assert sent == [spec.name]
+    try:
+        assert main(["set", spec.alias or spec.name, text, "--socket", str(sock)]) == 0
+    finally:
+        daemon.close()
+    assert [(r["cmd"], r["param"]) for r in daemon.requests] == [("set", spec.name)]
 
 
 # -- a live loop over the control protocol --------------------------------------------------

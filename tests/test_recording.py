@@ -1,6 +1,10 @@
 import json
+import mmap
 import os
 import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -8,6 +12,7 @@ import pytest
 
 from hapticd import recording
 from hapticd.recording import MAGIC, Field, Recorder, RecordingError, loop_fields, read, ring
+from tests.conftest import wait_for
 
 
 def _fields():
@@ -175,3 +180,71 @@ def test_recorder_refuses_to_overwrite_when_asked(tmp_path):
     assert (tmp_path / "x.hrec").read_bytes() == b"precious"
     with pytest.raises(RecordingError, match="cannot create"):
         Recorder(tmp_path / "missing" / "x.hrec", _fields(), ["a", "b"])
+
+
+def test_a_header_count_is_never_seen_half_written_by_the_other_process(tmp_path):
+    """The writer stores its drained count while the loop reads it (another process, no
+    lock): every value read is one the writer stored, so the count never goes back.
+    A byte-wise store (struct.pack_into) showed 0 for a moment, and a paced loop took the
+    ring for full and dropped a tick."""
+    path = tmp_path / "words"
+    path.write_bytes(bytes(ring.HEADER_BYTES))
+    n = 300_000
+    code = (
+        "import mmap, sys\n"
+        "from hapticd.recording import ring\n"
+        "with open(sys.argv[1], 'r+b') as f:\n"
+        "    mm = mmap.mmap(f.fileno(), 0)\n"
+        f"for v in range(1, {n + 1}):\n"
+        "    ring._put(mm, ring.W_DRAINED, v)\n"
+    )
+    with path.open("r+b") as f:
+        mm = mmap.mmap(f.fileno(), 0)
+    words = np.ndarray((8,), "=u8", buffer=mm, offset=0)  # as the Recorder reads them
+    proc = subprocess.Popen([sys.executable, "-c", code, str(path)])
+    went_back = []
+    last = 0
+    try:
+        deadline = time.monotonic() + 60
+        while proc.poll() is None:
+            v = int(words[ring.W_DRAINED // 8])
+            if v < last:
+                went_back.append((last, v))
+            last = max(last, v)
+            if time.monotonic() > deadline:
+                pytest.fail(f"the storing process did not finish {n} stores in 60 s")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+        del words
+        mm.close()
+    assert proc.returncode == 0
+    assert not went_back, f"{len(went_back)} reads went back, e.g. {went_back[:3]}"
+
+
+def test_a_paced_recorder_takes_a_stale_drained_count_for_what_it_is(tmp_path):
+    """The writer's drained count only grows: a lower reading is stale, never a full ring.
+    Forced here: the loop has seen 5 drained, then reads 0; the next tick is kept."""
+    fields = _fields()
+    rec = Recorder(tmp_path / "x.hrec", fields, ["a", "b"], capacity=4)
+    rec.wait_running()
+
+    def drained(count):
+        wait_for(lambda: rec.drained, f"{count} drained records", until=lambda d: d == count)
+
+    for i in range(4):
+        rec.append(rec.as_record((float(i), np.zeros((2, 3)), [0, 0])))
+    drained(4)
+    rec.append(rec.as_record((4.0, np.zeros((2, 3)), [0, 0])))  # the loop sees 4 drained
+    drained(5)
+    os.kill(rec._proc.pid, signal.SIGSTOP)  # nothing stores the count while we look
+    try:
+        rec._words[ring.W_DRAINED // 8] = 0  # what a half-written store showed
+        rec.append(rec.as_record((5.0, np.zeros((2, 3)), [0, 0])))
+        rec._words[ring.W_DRAINED // 8] = 5
+    finally:
+        os.kill(rec._proc.pid, signal.SIGCONT)
+    status = rec.close()
+    assert status["dropped"] == 0 and status["written"] == 6
+    np.testing.assert_array_equal(read(tmp_path / "x.hrec")["t"], np.arange(6))

@@ -119,6 +119,10 @@ def test_leaving_the_workspace_latches():
     assert np.all(chain.output == 0)
 
 
+@pytest.mark.timing(
+    "the loop watchdog reads the monotonic clock: the stall is a real 0.15 s sleep, and "
+    "another stall over 0.1 s on a loaded machine would trip it at another tick"
+)
 def test_a_stalled_servo_loop_ends_in_zero_force():
     from hapticd.daemon.session import build_session
     from hapticd.profile import load_profile

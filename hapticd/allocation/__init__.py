@@ -11,8 +11,9 @@ Methods (see docs/allocation.md):
 
 - ``pinv``, ``if``, ``ef``: singularity-robust versions of the seed's
   allocators (Meli & Prattichizzo). Equal to the seed's formulas wherever the
-  problem is well-conditioned (every singular value involved is 0 or >= eps
-  and contacts are at least ``min_separation_m`` apart); near and at
+  problem is well-conditioned (every singular value involved is 0 or >= eps,
+  contacts are at least ``min_separation_m`` apart and, three or more, not
+  nearly collinear); near and at
   singularities finite, bounded and continuous.
 - ``pinv_exact``, ``if_exact``, ``ef_exact``: the seed's formulas with numpy's
   default pseudoinverse, for comparison. They blow up or jump at singularities.

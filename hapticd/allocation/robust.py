@@ -84,10 +84,13 @@ def contact_offsets(G: np.ndarray) -> np.ndarray:
 def soft_internal_projector(G: np.ndarray, robust: Robustness = DEFAULT_ROBUSTNESS) -> np.ndarray:
     """Soft projector onto the internal forces N(G), (3p, 3p).
 
-    Exact (N N^T) when no two contacts are closer than min_separation_m; as
-    contacts approach, directions whose moment lever vanishes blend in
-    continuously. Computed from G about the contacts' centroid with moments
-    weighted by 1/L (N(G) depends on neither).
+    Exact (N N^T) when every singular value of the weighted G below is 0 or at
+    least eps: for two contacts, when they are at least min_separation_m apart;
+    three or more contacts also need to be far from collinear (a rotation about
+    their near-common line has almost no lever). As contacts approach such a
+    configuration, directions whose moment lever vanishes blend in continuously.
+    Computed from G about the contacts' centroid with moments weighted by 1/L
+    (N(G) depends on neither).
     """
     n = G.shape[1]
     if n == 0:

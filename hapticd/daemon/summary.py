@@ -98,6 +98,17 @@ def telemetry(loop: ServoLoop) -> dict[str, Any]:
     return sample
 
 
+def passivity_status(loop: ServoLoop) -> dict[str, Any]:
+    """The passivity stage on the last tick: whether it runs, each finger's observed energy
+    (J, negative: the display generated energy) and added damping (N s/m); zeros when off."""
+    frame = loop.frame
+    return {
+        "enabled": "passivity" in loop.renderer.stage_names,
+        "energy_j": frame.passivity_energy.tolist(),
+        "damping_n_s_per_m": frame.passivity_damping.tolist(),
+    }
+
+
 def status(loop: ServoLoop) -> dict[str, Any]:
     """A snapshot of the loop for the control API."""
     st = loop.stats
@@ -124,6 +135,7 @@ def status(loop: ServoLoop) -> dict[str, Any]:
         ],
         "allocator": loop.renderer.method,
         "stages": loop.renderer.stage_names,
+        "passivity": passivity_status(loop),
         "scene": scene_status(loop),
         "control_seq": loop.control_seq,
         "recording": None if loop.recorder is None else loop.recorder.status(),

@@ -60,6 +60,7 @@ class Recorder:
         self.block_when_full = block_when_full
         self.dropped = 0
         self._n = 0
+        self._drained = 0  # the most the writer has been seen to have drained
         self._closed = False
         size = ring.HEADER_BYTES + self.capacity * self.dtype.itemsize
         fd, ring_path = tempfile.mkstemp(prefix=f"hapticd-ring-{os.getpid()}-", dir=_ring_dir())
@@ -70,7 +71,8 @@ class Recorder:
         finally:
             os.close(fd)
         self._mm[:8] = ring.MAGIC
-        words = np.ndarray((8,), "<u8", buffer=self._mm, offset=0)
+        # Native uint64 at an aligned offset: each word is one 8-byte load or store (ring.py).
+        words = np.ndarray((8,), "=u8", buffer=self._mm, offset=0)
         words[ring.W_ITEMSIZE // 8] = self.dtype.itemsize
         words[ring.W_CAPACITY // 8] = self.capacity
         self._words = words
@@ -133,7 +135,10 @@ class Recorder:
         layout (the tick frame's ``recorded``; ``as_record`` makes one from values)."""
         n = self._n
         words = self._words
-        full = n - int(words[4]) >= self.capacity  # W_DRAINED
+        drained = int(words[4])  # W_DRAINED
+        if drained > self._drained:
+            self._drained = drained  # it only grows: a lower reading is stale, not a full ring
+        full = n - self._drained >= self.capacity
         if full and not (self.block_when_full and self._wait_for_room(n)):
             self.dropped += 1
             words[6] = self.dropped  # W_DROPPED
@@ -150,10 +155,11 @@ class Recorder:
         return row.view(np.uint8)
 
     def _wait_for_room(self, n: int) -> bool:
-        while n - int(self._words[4]) >= self.capacity:
+        while n - self._drained >= self.capacity:
             if self._proc.poll() is not None or self.state == ring.STATE_FAILED:
                 return False
             time.sleep(ring.POLL_S / 4)
+            self._drained = max(self._drained, int(self._words[4]))
         return True
 
     def status(self) -> dict[str, Any]:
