@@ -1,9 +1,11 @@
 """Force allocation: contact forces ``lam`` onto the actuated directions ``M_a``.
 
 Solves lam ~= M_a @ lam_a for the actuator forces lam_a. Shapes: G (6, 3p),
-M_a (3p, r), lam (3p,), lam_a (r,); forces in N. ``lam`` may be the force on
-the object (the seed's convention) or on the finger (hapticd's): every
-allocator is linear, so flipping its sign flips lam_a.
+M_a (3p, r), lam (3p,), lam_a (r,); forces in N. ``allocate_many`` does the
+same for a batch of N grasps (G (N, 6, 3p), lam (N, 3p), M_a per grasp or
+shared), equal to ``allocate`` one by one (``hapticd.allocation.batch``).
+``lam`` may be the force on the object (the seed's convention) or on the
+finger (hapticd's): every allocator is linear, so flipping its sign flips lam_a.
 
 Methods (see docs/allocation.md):
 
@@ -47,6 +49,7 @@ from hapticd.allocation.accuracy import (
     two_contact_accuracy,
 )
 from hapticd.allocation.adaptive import AdaptiveState, external_ratio, smoothstep
+from hapticd.allocation.batch import allocate_many
 from hapticd.allocation.closed import (
     one_contact,
     two_contact,
@@ -169,6 +172,7 @@ __all__ = [
     "Robustness",
     "accuracy",
     "allocate",
+    "allocate_many",
     "contact_offsets",
     "ef_exact",
     "external_ratio",

@@ -1,0 +1,499 @@
+"""Batched allocation for offline work: N grasps at once, equal to ``allocate()`` one by one.
+
+Shapes: G (N, 6, 3p), M_a (N, 3p, r) or shared (3p, r), lam (N, 3p) -> lam_a (N, r);
+forces in N, lengths in m. Pure: numpy in, numpy out.
+
+Same methods and the same filtered-gain scheme as ``allocate()``:
+
+- two contacts with one direction each (the closed form ``allocate()`` takes) run
+  the closed form of ``hapticd.allocation.closed`` elementwise over the batch, in
+  the same operation order (equal to rounding);
+- every other grasp takes the general path on Gram matrices: a filtered
+  pseudoinverse g(s) = 1/s or s/eps^2 of A is F(A^T A) A^T with F the spectral
+  function 1/max(l, eps^2) of the Gram matrix. Where every eigenvalue is at
+  least eps^2 (most grasps) F is the plain inverse, by cofactors for r <= 3;
+  the rest take a stacked ``eigh`` (never an SVD). The soft internal projector
+  is I - (1/p) sum of force blocks - Gm^T F(Gm Gm^T) Gm, since about the
+  contacts' centroid the weighted G's Gram matrix is block diagonal
+  (p I3, Gm Gm^T); for two contacts at least min_separation_m apart it is
+  n n^T and IF needs no eigendecomposition at all (``_if_two``);
+- the exact (seed) methods repeat exact.py's numpy calls on stacks, grouped by
+  the ranks that pick their null-space bases, so they jump and blow up exactly
+  where the one-by-one ones do.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hapticd import params
+from hapticd.allocation.closed import _apply, _cross, _dot, _mul2, _sandwich, _soft_line
+from hapticd.allocation.robust import (
+    _TINY,
+    DEFAULT_ROBUSTNESS,
+    AllocationError,
+    Robustness,
+)
+
+_METHODS: tuple[str, ...] = tuple(params.ALLOCATORS)
+_EXACT = tuple(m for m in _METHODS if m.endswith("_exact"))
+CHUNK = 1024  # grasps per internal pass of allocate_many
+
+# -- validation -------------------------------------------------------------------------------
+
+
+def _first_bad(arr: np.ndarray) -> int | None:
+    """Index of the first grasp (axis 0) holding NaN or inf, or None."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        if np.isfinite(np.sum(arr)):  # NaN and inf propagate into the sum: all finite
+            return None
+    bad = ~np.isfinite(arr.reshape(arr.shape[0], -1)).all(axis=1)
+    return int(np.argmax(bad)) if bad.any() else None
+
+
+def _check(
+    method: str, G: object, M_a: object, lam: object, alpha: object
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    if method not in _METHODS:
+        raise AllocationError(f"unknown allocator {method!r}; expected one of {list(_METHODS)}")
+    G = np.asarray(G, dtype=float)
+    if G.ndim != 3 or G.shape[1] != 6 or G.shape[2] % 3:
+        raise AllocationError(f"G must have shape (N, 6, 3p), got {G.shape}")
+    N, _, n = G.shape
+    M = np.asarray(M_a, dtype=float)
+    if not (M.ndim == 2 and M.shape[0] == n) and not (M.ndim == 3 and M.shape[:2] == (N, n)):
+        raise AllocationError(
+            f"M_a must have shape ({N}, {n}, r) or shared ({n}, r) to match G {G.shape}, "
+            f"got {M.shape}"
+        )
+    lam_arr = np.asarray(lam, dtype=float)
+    if lam_arr.shape != (N, n):
+        raise AllocationError(
+            f"lam must have shape ({N}, {n}) to match G {G.shape}, got {lam_arr.shape}"
+        )
+    a = np.zeros(N)  # other methods ignore alpha, as allocate() does
+    if method == "adaptive":
+        a = np.asarray(alpha, dtype=float)
+        if a.ndim > 1 or (a.ndim == 1 and a.shape != (N,)):
+            raise AllocationError(f"alpha must be a scalar or have shape ({N},), got {a.shape}")
+        if not np.all((a >= 0.0) & (a <= 1.0)):  # False for NaN too
+            raise AllocationError("adaptive alpha must be in [0, 1] (and finite)")
+        a = np.broadcast_to(a, (N,)).astype(float)
+    for name, arr in (("G", G), ("lam", lam_arr)):
+        k = _first_bad(arr) if arr.size else None
+        if k is not None:
+            raise AllocationError(
+                f"{name} contains NaN or inf (grasp {k}); refusing to compute a force"
+            )
+    if M.ndim == 2:
+        if not np.all(np.isfinite(M)):
+            raise AllocationError("M_a contains NaN or inf; refusing to compute a force")
+    elif N and M.size and (k := _first_bad(M)) is not None:
+        raise AllocationError(f"M_a contains NaN or inf (grasp {k}); refusing to compute a force")
+    return G, M, lam_arr, a
+
+
+# -- the two-contact closed form, elementwise over the batch ---------------------------------
+#
+# Same formulas and operation order as hapticd.allocation.closed (whose helpers _dot,
+# _cross, _mul2, ... work on tuples of arrays as they do on tuples of floats); the branches
+# become np.where with safe denominators.
+
+
+def _safe(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """x where ok, else 1 (a denominator in a branch np.where discards)."""
+    return np.where(ok, x, 1.0)
+
+
+def _finv2_v(a: np.ndarray, b: np.ndarray, c: np.ndarray, eps2: float) -> tuple:
+    """Vectorised closed._finv2: filtered inverse of [[a, b], [b, c]]."""
+    mean = 0.5 * (a + c)
+    half = 0.5 * (a - c)
+    rad = np.sqrt(half * half + b * b)
+    l2 = mean - rad
+    reg = l2 >= eps2
+    det = _safe(a * c - b * b, reg)
+    l1 = mean + rad
+    h2 = 1.0 / eps2
+    big1 = l1 >= eps2
+    h1 = np.where(big1, 1.0 / _safe(l1, big1), h2)
+    same = h1 == h2
+    s = (h1 - h2) / _safe(l1 - l2, ~(reg | same))
+    out0 = np.where(reg, c / det, np.where(same, h2, h2 + s * (a - l2)))
+    out1 = np.where(reg, -b / det, np.where(same, 0.0, s * b))
+    out2 = np.where(reg, a / det, np.where(same, h2, h2 + s * (c - l2)))
+    return out0, out1, out2
+
+
+def _two_pinv_v(d1, d2, l1, l2, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    eps2 = eps * eps
+    k1, k2 = _dot(d1, d1), _dot(d2, d2)
+    g1 = np.where(k1 >= eps2, 1.0 / _safe(k1, k1 >= eps2), 1.0 / eps2)
+    g2 = np.where(k2 >= eps2, 1.0 / _safe(k2, k2 >= eps2), 1.0 / eps2)
+    return g1 * _dot(d1, l1), g2 * _dot(d2, l2)
+
+
+def _two_ef_v(r1, r2, d1, d2, l1, l2, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    m1, m2 = _cross(r1, d1), _cross(r2, d2)
+    f = (l1[0] + l2[0], l1[1] + l2[1], l1[2] + l2[2])
+    t1, t2 = _cross(r1, l1), _cross(r2, l2)
+    t = (t1[0] + t2[0], t1[1] + t2[1], t1[2] + t2[2])
+    K = (_dot(d1, d1) + _dot(m1, m1), _dot(d1, d2) + _dot(m1, m2), _dot(d2, d2) + _dot(m2, m2))
+    y0 = _dot(d1, f) + _dot(m1, t)
+    y1 = _dot(d2, f) + _dot(m2, t)
+    return _apply(_finv2_v(*K, eps * eps), y0, y1)
+
+
+def _grasp_line_v(r1, r2, min_sep: float) -> tuple[tuple, np.ndarray]:
+    dx, dy, dz = r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2]
+    dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+    near = dist < min_sep
+    q = dist / min_sep
+    w = np.where(near, 1.0 - q * q, 0.0)
+    apart = dist > _TINY
+    sd = _safe(dist, apart)
+    e = (
+        np.where(apart, dx / sd, 1.0),
+        np.where(apart, dy / sd, 0.0),
+        np.where(apart, dz / sd, 0.0),
+    )
+    return e, np.where(apart, w, 1.0)  # coincident: w = 1 makes e irrelevant
+
+
+def _two_if_v(r1, r2, d1, d2, l1, l2, eps: float, min_sep: float) -> tuple:
+    eps2 = eps * eps
+    e, w = _grasp_line_v(r1, r2, min_sep)
+    a1, a2 = _soft_line(e, w, d1), _soft_line(e, w, d2)
+    s = _soft_line(e, w, (l1[0] - l2[0], l1[1] - l2[1], l1[2] - l2[2]))
+    KB = (0.5 * _dot(a1, a1), -0.5 * _dot(a1, a2), 0.5 * _dot(a2, a2))
+    FB = _finv2_v(*KB, eps2)
+    x0, x1 = _apply(FB, 0.5 * _dot(a1, s), -0.5 * _dot(a2, s))
+    r00, r01, _, r11 = _mul2(FB, KB)
+    P = (1.0 - r00, -r01, 1.0 - r11)
+    k1, k2 = _dot(d1, d1), _dot(d2, d2)
+    m0 = _dot(d1, l1) - x0 * k1
+    m1 = _dot(d2, l2) - x1 * k2
+    FP = _finv2_v(*_sandwich(P, (k1, 0.0, k2)), eps2)
+    v0, v1 = _apply(P, m0, m1)
+    v0, v1 = _apply(FP, v0, v1)
+    v0, v1 = _apply(P, v0, v1)
+    return x0 + v0, x1 + v1
+
+
+def _two_contact_v(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust) -> tuple:
+    """(x1, x2) arrays for two contacts with one direction each, robust ``method``."""
+    # Components as contiguous rows (strided columns make every elementwise op slow).
+    # contact_offsets: (S[2, 1], S[0, 2], S[1, 0]) of each contact's moment block.
+    r = G[:, [5, 3, 4, 5, 3, 4], [1, 2, 0, 4, 5, 3]].T.copy()
+    d = M[:, [0, 1, 2, 3, 4, 5], [0, 0, 0, 1, 1, 1]].T.copy()
+    f = lam.T.copy()
+    r1, r2 = (r[0], r[1], r[2]), (r[3], r[4], r[5])
+    d1, d2 = (d[0], d[1], d[2]), (d[3], d[4], d[5])
+    l1, l2 = (f[0], f[1], f[2]), (f[3], f[4], f[5])
+    if method == "pinv":
+        return _two_pinv_v(d1, d2, l1, l2, robust.eps)
+    if method == "ef":
+        return _two_ef_v(r1, r2, d1, d2, l1, l2, robust.eps)
+    return _two_if_v(r1, r2, d1, d2, l1, l2, robust.eps, robust.min_separation_m)
+
+
+# -- the general path on Gram matrices --------------------------------------------------------
+
+
+def _tr(A: np.ndarray) -> np.ndarray:
+    return np.swapaxes(A, -1, -2)
+
+
+def _gram(A: np.ndarray) -> np.ndarray:
+    """A^T A on stacks (a contiguous A^T: matmul is twice as fast as with a transposed view)."""
+    return np.ascontiguousarray(_tr(A)) @ A
+
+
+def _spectral(f: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """V diag(f) V^T on stacks."""
+    return (V * f[..., None, :]) @ _tr(V)
+
+
+def _finv_eigh(K: np.ndarray, eps2: float) -> np.ndarray:
+    lk, V = np.linalg.eigh(K)
+    return _spectral(1.0 / np.maximum(lk, eps2), V)
+
+
+def _solve_regular(K: np.ndarray, y: np.ndarray, eps2: float) -> tuple[np.ndarray, np.ndarray]:
+    """(K^-1 y, regular) for stacks of symmetric K (N, r, r), r <= 3, and y (N, r), by cofactors.
+
+    ``regular`` marks K - eps^2 I positive definite (Sylvester: leading minors > 0),
+    where the filtered inverse is the plain inverse; elsewhere the result is garbage.
+    """
+    N, r, _ = K.shape
+    k = K.reshape(N, r * r).T.copy()  # contiguous rows: strided columns are slow
+    v = y.T.copy()
+    if r == 1:
+        return (v[0] / np.maximum(k[0], eps2))[:, None], np.ones(N, dtype=bool)
+    if r == 2:
+        a, b, d = k[0], k[2], k[3]
+        ae = a - eps2
+        regular = (ae > 0.0) & (ae * (d - eps2) - b * b > 0.0)
+        det = np.where(regular, a * d - b * b, 1.0)
+        return np.stack([d * v[0] - b * v[1], a * v[1] - b * v[0]], -1) / det[:, None], regular
+    a, b, c, d, e, f = k[0], k[3], k[6], k[4], k[7], k[8]
+    ae, de, fe = a - eps2, d - eps2, f - eps2
+    m3 = ae * (de * fe - e * e) + b * (c * e - b * fe) + c * (b * e - c * de)
+    regular = (ae > 0.0) & (ae * de - b * b > 0.0) & (m3 > 0.0)
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = np.where(regular, a * c00 + b * c01 + c * c02, 1.0)
+    x = np.stack(
+        [
+            c00 * v[0] + c01 * v[1] + c02 * v[2],
+            c01 * v[0] + c11 * v[1] + c12 * v[2],
+            c02 * v[0] + c12 * v[1] + c22 * v[2],
+        ],
+        -1,
+    )
+    return x / det[:, None], regular
+
+
+def _finv_apply(K: np.ndarray, y: np.ndarray, eps2: float) -> np.ndarray:
+    """F(K) y for stacks of symmetric PSD K (N, r, r) or one shared (r, r), y (N, r).
+
+    F is the filtered inverse, eigenvalue l -> 1/max(l, eps^2); F(A^T A) A^T is the
+    filtered pseudoinverse sum g(s) v u^T of A, g(s) = 1/s or s/eps^2. Where every
+    eigenvalue is >= eps^2, F(K) = K^-1 (cofactors for r <= 3, much cheaper than a
+    stacked eigh); the others take the eigendecomposition.
+    """
+    if K.ndim == 2:
+        return y @ _finv_eigh(K, eps2).T
+    if K.shape[-1] > 3:
+        return _mv(_finv_eigh(K, eps2), y)
+    x, regular = _solve_regular(K, y, eps2)
+    if not regular.all():
+        odd = np.flatnonzero(~regular)
+        x[odd] = _mv(_finv_eigh(K[odd], eps2), y[odd])
+    return x
+
+
+def _mv(A: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """A @ x on stacks: A (..., m, n), x (..., n) -> (..., m)."""
+    return (A @ x[..., None])[..., 0]
+
+
+def _soft_internal_projector_v(G: np.ndarray, robust: Robustness) -> np.ndarray:
+    """Stacked soft_internal_projector (N, 3p, 3p), from the Gram matrix of the weighted G.
+
+    About the centroid Gw Gw^T = diag(p I3, Gm Gm^T), so the SVD form
+    V diag(1 - min(1, s^2/eps^2)) V^T equals I - (1/p) Gf^T Gf - Gm^T F(Gm Gm^T) Gm.
+    """
+    N, _, n = G.shape
+    p = n // 3
+    pts = np.stack([G[:, 5, 1::3], G[:, 3, 2::3], G[:, 4, 0::3]], axis=-1)  # (N, p, 3)
+    c = (pts - pts.mean(axis=1, keepdims=True)) / robust.length_scale_m
+    x, y, z = c[..., 0], c[..., 1], c[..., 2]
+    zero = np.zeros_like(x)
+    # Moment rows of Gw: block i is S(c_i); Gm (N, 3, 3p).
+    S = np.stack(
+        [np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)],
+        axis=1,
+    )  # (N, 3, p, 3)
+    Gm = S.reshape(N, 3, n)
+    eps2 = robust.eps * robust.eps
+    out = np.eye(n) - np.kron(np.ones((p, p)) / p, np.eye(3))
+    return out - _tr(Gm) @ _finv_eigh(_gram(_tr(Gm)), eps2) @ Gm
+
+
+def _general(
+    method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness
+) -> np.ndarray:
+    """Robust pinv / ef / if on stacks; M (N, n, r) or shared (n, r)."""
+    eps2 = robust.eps * robust.eps
+    if method == "pinv":
+        # M^T M is the same for every grasp when M_a is shared: one eigh for the batch.
+        return _finv_apply(_gram(M), lam @ M if M.ndim == 2 else _mv(_tr(M), lam), eps2)
+    if method == "ef":
+        A = G @ M
+        return _finv_apply(_gram(A), _mv(_tr(A), _mv(G, lam)), eps2)
+    if G.shape[-1] == 6 and M.shape[-1] <= 3:
+        return _if_two(G, M, lam, robust)
+    return _if_soft(G, M, lam, robust)
+
+
+def _if_soft(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) -> np.ndarray:
+    """Robust IF, ``_if_general`` on stacks."""
+    eps2 = robust.eps * robust.eps
+    P_int = _soft_internal_projector_v(G, robust)
+    B = P_int @ M
+    lb, VB = np.linalg.eigh(_gram(B))
+    FB = _spectral(1.0 / np.maximum(lb, eps2), VB)
+    x1 = _mv(FB @ _tr(B), _mv(P_int, lam))
+    # P = I - B^+ B = I - phi(B^T B), phi(l) = min(1, l / eps^2): B^+ B's eigenvalues g(s) s.
+    P = np.eye(M.shape[-1]) - _spectral(np.clip(lb / eps2, 0.0, 1.0), VB)
+    P = 0.5 * (P + _tr(P))
+    MP = M @ P
+    rest = lam - _mv(M, x1)
+    return x1 + _mv(P, _finv_apply(_gram(MP), _mv(_tr(MP), rest), eps2))
+
+
+def _if_two(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) -> np.ndarray:
+    """Robust IF for two contacts at least min_separation_m apart, any r <= 3 directions.
+
+    There P_int = n n^T with n = (e, -e)/sqrt(2), e the grasp line, so B = n b^T with
+    b = M^T n: B's filtered pseudoinverse is h(|b|^2) b n^T and P = I - h(|b|^2) b b^T,
+    h(l) = 1/max(l, eps^2). When |b| >= eps, P projects b out, and M P's Gram matrix
+    gets b b^T / |b|^2 added (an eigenvalue 1 on b, where nothing is applied) so
+    that it can be inverted. Grasps with closer contacts, or a Gram matrix with an
+    eigenvalue below eps^2, take ``_if_soft``.
+    """
+    eps2 = robust.eps * robust.eps
+    dvec = np.stack([G[:, 5, 4] - G[:, 5, 1], G[:, 3, 5] - G[:, 3, 2], G[:, 4, 3] - G[:, 4, 0]], -1)
+    dist = np.sqrt(np.einsum("ni,ni->n", dvec, dvec))
+    apart = dist >= robust.min_separation_m
+    e = dvec / np.where(apart, dist, 1.0)[:, None]
+    n = np.concatenate([e, -e], axis=-1) * np.sqrt(0.5)
+    b = _mv(_tr(M), n)
+    bb = np.einsum("ni,ni->n", b, b)
+    hb = 1.0 / np.maximum(bb, eps2)
+    x1 = (hb * np.einsum("ni,ni->n", n, lam))[:, None] * b
+    bbt = b[:, :, None] * b[:, None, :]
+    P = np.eye(M.shape[-1]) - hb[:, None, None] * bbt
+    MP = M @ P
+    K2 = _gram(MP)
+    full = bb >= eps2
+    K2 = K2 + (full / np.where(full, bb, 1.0))[:, None, None] * bbt
+    rest = lam - _mv(M, x1)
+    y2, regular = _solve_regular(K2, _mv(_tr(MP), rest), eps2)
+    out = x1 + _mv(P, y2)
+    odd = np.flatnonzero(~(apart & regular))
+    if odd.size:
+        out[odd] = _if_soft(G[odd], M if M.ndim == 2 else M[odd], lam[odd], robust)
+    return out
+
+
+# -- the exact (seed) formulas on stacks -------------------------------------------------------
+
+
+def _null_bases(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rank, vt) per stacked matrix with hapticd.grasp.null_space_basis's tolerance."""
+    _, s, vt = np.linalg.svd(A, full_matrices=True)
+    tol = s.max(axis=-1) * max(A.shape[-2:]) * np.finfo(float).eps
+    return np.sum(s > tol[:, None], axis=-1), vt
+
+
+def _basis(vt: np.ndarray, k: int) -> np.ndarray:
+    """null_space_basis's layout: vt[k:].T copied C-contiguous, (g, n, n - k)."""
+    return np.ascontiguousarray(_tr(vt[:, k:, :]))
+
+
+def _if_exact_v(G: np.ndarray, M: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    N, _, n = G.shape
+    r = M.shape[-1]
+    M = np.broadcast_to(M, (N, n, r))
+    out = np.empty((N, r))
+    kG, vtG = _null_bases(G)
+    for k in np.unique(kG):
+        idx = np.flatnonzero(kG == k)
+        Mi, li = np.ascontiguousarray(M[idx]), lam[idx]
+        if k == n:  # N(G) = {0}: B is empty, IF is the pseudoinverse of M_a
+            out[idx] = _mv(np.linalg.pinv(Mi), li)
+            continue
+        NG = _basis(vtG[idx], int(k))
+        B = _tr(NG) @ Mi
+        first = _mv(np.linalg.pinv(B), _mv(_tr(NG), li))
+        kB, vtB = _null_bases(B)
+        for kb in np.unique(kB):
+            jdx = np.flatnonzero(kB == kb)
+            if kb == r:
+                out[idx[jdx]] = first[jdx]
+                continue
+            NB = _basis(vtB[jdx], int(kb))
+            Mj = Mi[jdx]
+            rest = li[jdx] - _mv(Mj, first[jdx])
+            out[idx[jdx]] = first[jdx] + _mv(NB, _mv(np.linalg.pinv(Mj @ NB), rest))
+    return out
+
+
+def _exact(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    if method == "pinv_exact":
+        return _mv(np.linalg.pinv(M), lam)
+    if method == "ef_exact":
+        return _mv(np.linalg.pinv(G @ M), _mv(G, lam))
+    return _if_exact_v(G, M, lam)
+
+
+# -- public API -------------------------------------------------------------------------------
+
+
+def _robust_many(
+    method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness
+) -> np.ndarray:
+    """Robust pinv / if / ef: the closed form where allocate() takes it, else the general path."""
+    N, _, n = G.shape
+    r = M.shape[-1]
+    if n == 6 and r == 2:
+        # allocate()'s two_contact_structure: one direction per finger, block by block.
+        cross = M[..., [3, 4, 5, 0, 1, 2], [0, 0, 0, 1, 1, 1]]  # each column on the other finger
+        simple = np.broadcast_to(~cross.any(axis=-1), (N,))
+        if simple.all():
+            Mb = np.broadcast_to(M, (N, 6, 2))
+            return np.stack(_two_contact_v(method, G, Mb, lam, robust), -1)
+        out = np.empty((N, 2))
+        idx, rest = np.flatnonzero(simple), np.flatnonzero(~simple)
+        if idx.size:
+            Ms = np.broadcast_to(M, (N, 6, 2))[idx]
+            out[idx] = np.stack(_two_contact_v(method, G[idx], Ms, lam[idx], robust), -1)
+        Mr = M if M.ndim == 2 else M[rest]
+        out[rest] = _general(method, G[rest], Mr, lam[rest], robust)
+        return out
+    return _general(method, G, M, lam, robust)
+
+
+def allocate_many(
+    method: str,
+    G: np.ndarray,
+    M_a: np.ndarray,
+    lam: np.ndarray,
+    *,
+    robust: Robustness = DEFAULT_ROBUSTNESS,
+    alpha: float | np.ndarray = 0.0,
+) -> np.ndarray:
+    """Actuator forces lam_a (N, r) N for a batch of N grasps, equal to ``allocate()`` one by one.
+
+    G (N, 6, 3p) grasp matrices (moments in N m per N), M_a (N, 3p, r) or shared
+    (3p, r) actuated directions, lam (N, 3p) contact forces in N. ``alpha`` (a
+    scalar or (N,), each in [0, 1]) is the external-force weight of ``adaptive``.
+    Raises AllocationError (a ValueError) on an unknown method, a shape that does
+    not match, NaN or inf, or alpha outside [0, 1].
+    """
+    G, M, lam, a = _check(method, G, M_a, lam, alpha)
+    N, _, n = G.shape
+    r = M.shape[-1]
+    if N == 0 or r == 0 or n == 0:
+        return np.zeros((N, r))
+    if N <= CHUNK:
+        return _allocate_chunk(method, G, M, lam, a, robust)
+    # In chunks, so that a chunk's temporaries (about 150 arrays of CHUNK floats for the
+    # closed forms) stay in cache: one pass over 1e4 grasps costs more per grasp than 1e3.
+    out = np.empty((N, r))
+    for k in range(0, N, CHUNK):
+        s = slice(k, k + CHUNK)
+        out[s] = _allocate_chunk(method, G[s], M if M.ndim == 2 else M[s], lam[s], a[s], robust)
+    return out
+
+
+def _allocate_chunk(
+    method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, a: np.ndarray, robust: Robustness
+) -> np.ndarray:
+    """allocate_many on validated input."""
+    if method in _EXACT:
+        return _exact(method, G, M, lam)
+    if method != "adaptive":
+        return _robust_many(method, G, M, lam, robust)
+    x_if = _robust_many("if", G, M, lam, robust)
+    mix = a != 0.0
+    if not mix.any():
+        return x_if
+    idx = np.flatnonzero(mix)
+    Mi = M if M.ndim == 2 else M[idx]
+    x_ef = _robust_many("ef", G[idx], Mi, lam[idx], robust)
+    ai = a[idx, None]
+    x_if[idx] = (1.0 - ai) * x_if[idx] + ai * x_ef
+    return x_if
