@@ -18,8 +18,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# Segment parameters closer than this count as touching, not entering: keeps a
-# proxy that slides along a face (or grazes an edge) from being captured.
+# A point within this distance (m) of a plane counts as on it. A proxy that slides on a
+# face lies on its plane only to rounding (some 1e-17 m at hand scale, whatever the face's
+# orientation), and so does the projection of the device onto it: a path between two such
+# points lies on the plane, it does not enter the object through it.
+_ON_PLANE = 1e-13
+# Segment parameters closer than this count as touching, not entering: keeps a path that
+# grazes an edge from capturing the proxy there.
 _T_EPS = 1e-12
 _MAX_CONSTRAINTS = 3
 
@@ -83,29 +88,43 @@ def _dot(a: Vec, b: Vec) -> float:
 def _first_entry(
     normals: list[Vec], offsets: list[float], p: Vec, d: Vec
 ) -> tuple[float, int] | None:
-    """First t in [0, 1) where p + t d enters the open interior, and the plane entered."""
-    t_enter = -math.inf
+    """First t in [0, 1) where p + t d enters the open interior, and the plane entered.
+
+    None when the segment stays outside, or on the surface to ``_ON_PLANE``: a segment
+    whose two ends are both outside or on one plane never enters. A crossing time is
+    computed only when it lies on the segment (no ratio of two rounding errors, no
+    overflow for a path parallel to a far plane).
+    """
+    t_enter = 0.0
     t_exit = math.inf
     plane = -1
-    # The hottest loop of a tick: components in locals, the same sums in the same order.
+    # The hottest loop of a tick: components in locals.
     dx, dy, dz = d
     px, py, pz = p
     for i, (nx, ny, nz) in enumerate(normals):
+        num = offsets[i] - (nx * px + ny * py + nz * pz)  # how far p is inside plane i
         denom = nx * dx + ny * dy + nz * dz
-        num = offsets[i] - (nx * px + ny * py + nz * pz)
-        if denom == 0.0:
-            if num <= 0.0:
-                return None  # parallel to and outside (or on) this plane: never inside
-            continue
-        t = num / denom
-        if denom < 0.0:
-            if t > t_enter:
-                t_enter, plane = t, i
-        elif t < t_exit:
-            t_exit = t
-    if plane < 0 or t_enter >= 1.0 or t_exit <= t_enter + _T_EPS or t_exit <= 0.0:
+        if num <= _ON_PLANE:
+            if num - denom <= _ON_PLANE:
+                return None  # both ends outside or on plane i: never inside
+            # Enters plane i's half-space on the segment (at t <= 0 when p is on it).
+            if num < 0.0:
+                t = num / denom
+                if t > t_enter:
+                    t_enter, plane = t, i
+            elif plane < 0:
+                plane = i
+        elif denom > num:
+            t = num / denom  # leaves plane i's half-space on the segment
+            if t < t_exit:
+                t_exit = t
+    if plane < 0:
+        # Inside every plane by more than _ON_PLANE (only if a push-out could not clear
+        # another obstacle): in at once, through the nearest plane.
+        return 0.0, _signed_distance(normals, offsets, p)[1]
+    if t_exit <= t_enter + _T_EPS:
         return None
-    return max(t_enter, 0.0), plane
+    return t_enter, plane
 
 
 def _project_on_planes(
@@ -188,24 +207,25 @@ _VECTOR_PLANES = 200
 
 def _first_entry_np(N: np.ndarray, off: np.ndarray, p: Vec, d: Vec) -> tuple[float, int] | None:
     """``_first_entry`` vectorised over the planes of one large obstacle."""
-    denom = N @ np.asarray(d)
     num = off - N @ np.asarray(p)
-    par = denom == 0.0
-    if np.any(par & (num <= 0.0)):
+    denom = N @ np.asarray(d)
+    near = num <= _ON_PLANE
+    end = num - denom
+    if np.any(near & (end <= _ON_PLANE)):
         return None
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        t = num / denom
-    entering = denom < 0.0
-    if not entering.any():
+    if not near.any():
+        return 0.0, int(np.argmin(num))
+    # Crossing times only where they lie on the segment: every divisor is away from 0.
+    crossing = near & (num < 0.0)
+    t = np.zeros_like(num)
+    np.divide(num, denom, out=t, where=crossing)
+    plane = int(np.argmax(np.where(near, t, -1.0)))
+    t_enter = float(t[plane])
+    leaving = ~near & (end < 0.0)
+    t_exit = float(np.min(num[leaving] / denom[leaving])) if leaving.any() else math.inf
+    if t_exit <= t_enter + _T_EPS:
         return None
-    te = np.where(entering, t, -np.inf)
-    plane = int(np.argmax(te))
-    t_enter = float(te[plane])
-    leaving = denom > 0.0
-    t_exit = float(t[leaving].min()) if leaving.any() else math.inf
-    if t_enter >= 1.0 or t_exit <= t_enter + _T_EPS or t_exit <= 0.0:
-        return None
-    return max(t_enter, 0.0), plane
+    return t_enter, plane
 
 
 def _first_entry_any(
