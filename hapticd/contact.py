@@ -157,7 +157,9 @@ def _signed_distance(normals: list[Vec], offsets: list[float], x: Vec) -> tuple[
     return best, arg
 
 
-_MAX_ITER = 8
+# Proxy moves per update: each face a fast finger crosses on a convex mesh takes two (slide
+# off, re-enter), and 2 cm per tick over a sphere of 5 mm faces took up to 14.
+_MAX_ITER = 16
 _FREE_TOL = 1e-12
 
 

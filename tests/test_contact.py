@@ -183,3 +183,30 @@ def test_a_path_parallel_to_a_far_plane_divides_nothing_out_of_range():
         warnings.simplefilter("error")
         res = proxy_step_multi(obs, tuple(np.array([0.05, 0.0, 0.0])), dev)
     assert res.proxy == dev and not res.active
+
+
+def test_a_fast_finger_over_a_fine_mesh_ends_on_the_projection():
+    # 2 cm per tick over an icosphere of 3.3 cm radius (1280 faces, the vectorised tests):
+    # the proxy slides off a face and re-enters the next several times in one update, and
+    # must still end at the device's projection onto the face that holds it.
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=3, radius=0.033)
+    N = m.face_normals
+    off = np.einsum("ij,ij->i", N, m.vertices[m.faces[:, 0]])
+    normals, offsets = [tuple(n) for n in N.tolist()], off.tolist()
+    obs = ObstacleSet([(normals, offsets)])
+    rng = np.random.default_rng(4)
+    u = np.array([1.0, 0.0, 0.0])
+    p = (0.05, 0.0, 0.0)
+    for _ in range(400):
+        u = u + rng.normal(size=3) * 0.02 / 0.03
+        u /= np.linalg.norm(u)
+        dev = u * (off.min() - 0.002)  # 2 mm inside every face
+        res = proxy_step_multi(obs, p, tuple(dev.tolist()))
+        p = res.proxy
+        assert len(res.active) == 1
+        i = res.active[0][1]
+        n = np.array(normals[i])
+        want = dev + (offsets[i] - n @ dev) * n
+        np.testing.assert_allclose(p, want, rtol=0, atol=1e-15)
