@@ -357,10 +357,17 @@ def proxy_step_multi(
             held = mu
             break
         active = keep
-    # A plane the device is outside of cannot push the finger.
+    if held is not None:
+        # The proxy is the projection: proxy - device = sum mu n over the planes that push
+        # (mu > 0), whether or not the device is inside that obstacle (a finger pressed into
+        # the ground that slides into the cube pushes it).
+        if all(m > 0.0 for m in held):
+            return MultiResult(p, active, held)
+        keep = [k for k, m in enumerate(held) if m > 0.0]
+        return MultiResult(p, [active[k] for k in keep], [held[k] for k in keep])
+    # Stopped short of a projection (stuck, or out of moves): a plane the device is outside
+    # of does not push.
     pushing = [(j, i) for j, i in active if _dot(obstacles[j][0][i], dev) < obstacles[j][1][i]]
-    if held is not None and len(pushing) == len(active):
-        return MultiResult(p, active, held)
     mu = _multipliers(obstacles, pushing, p, dev) if pushing else []
     return MultiResult(p, pushing, mu)
 
