@@ -205,11 +205,19 @@ def _distance(prepared: ObstacleSet, j: int, p: Vec) -> float:
     return _signed_distance(*prepared.obstacles[j], p)[0]
 
 
-def _push_out_of(obstacles: list[Obstacle], p: Vec, prepared: ObstacleSet | None = None) -> Vec:
+def _push_out_of(obstacles: list[Obstacle], p: Vec, prepared: ObstacleSet) -> Vec:
+    """``p`` moved out of every obstacle it is inside (a first tick, or a moving object).
+
+    Out through the nearest plane of each; once a push has gone through the planes of two
+    or three obstacles (a crease, where one push undoes another: slowly, in an acute one),
+    onto the projection of the starting point onto all those planes instead.
+    """
+    start = p
+    pushed: list[int] = []  # the planes pushed through (indices into prepared's flat lists)
     for _ in range(len(obstacles) + 1):
         moved = False
         for j, (normals, offsets) in enumerate(obstacles):
-            arr = prepared.arrays[j] if prepared is not None else None
+            arr = prepared.arrays[j]
             if arr is not None:
                 dists = arr[0] @ np.asarray(p) - arr[1]
                 i = int(np.argmax(dists))
@@ -217,9 +225,17 @@ def _push_out_of(obstacles: list[Obstacle], p: Vec, prepared: ObstacleSet | None
             else:
                 dist, i = _signed_distance(normals, offsets, p)
             if dist < 0.0:
+                moved = True
+                k = prepared.index[(j, i)]
+                if k not in pushed and len(pushed) < _MAX_CONSTRAINTS:
+                    pushed.append(k)
+                if len(pushed) > 1:
+                    x, mu = _project_on_planes(start, prepared.normals, prepared.offsets, pushed)
+                    if min(mu) >= 0.0:
+                        p = x
+                        continue
                 n = normals[i]
                 p = (p[0] - dist * n[0], p[1] - dist * n[1], p[2] - dist * n[2])
-                moved = True
         if not moved:
             break
     return p

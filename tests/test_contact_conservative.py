@@ -251,6 +251,22 @@ def test_in_a_concave_corner_the_proxy_is_the_projection_onto_the_free_region(ya
         np.testing.assert_allclose(x + push, p, rtol=0, atol=1e-15)
 
 
+def test_a_proxy_inside_the_wall_of_an_acute_corner_is_pushed_out_of_everything():
+    # A first tick with the proxy 0.9 mm inside the wall, 14 degrees from the cube's face:
+    # a push out of the wall lands in the cube, the push out of the cube back in the wall,
+    # and so on, shrinking by cos 14 deg a round; the pushes now go onto their crease.
+    obs, n, d = _corner_scene(0.0, 0.25)
+    corner = np.linalg.solve(n, d)
+    dev = corner + np.array([0.0, 0.005, 0.0])
+    start = dev + 0.01 * (n[0] + n[1] + n[2])
+    wall_n, wall_d = np.array(obs.obstacles[2][0]), np.array(obs.obstacles[2][1])
+    assert float(np.max(wall_n @ start - wall_d)) < -5e-4
+    res = proxy_step_multi(obs, tuple(start.tolist()), tuple(dev.tolist()))
+    for normals, offsets in obs.obstacles:
+        assert float(np.max(np.array(normals) @ np.array(res.proxy) - offsets)) >= -1e-13
+    np.testing.assert_allclose(res.proxy, _project_on_free(dev, n, d), rtol=0, atol=1e-15)
+
+
 # -- closed loops do no work ----------------------------------------------------------------
 
 
