@@ -5,7 +5,11 @@ position but never enters the object inflated by the sphere radius. Each update
 moves the proxy from its previous position toward the device position, stopping
 at the first face the path enters and then sliding on up to three active
 constraint planes (face, edge, corner), after Zilles & Salisbury (1995). A fast
-finger therefore cannot pop through a thin part of the object.
+finger therefore cannot pop through a thin part of the object. The proxy ends on
+the projection of the device onto its active planes, so proxy - device is their
+multipliers times their normals and frictionless contact is conservative in any
+orientation (k x depth along a face's normal). A path that runs along a plane to
+rounding (within ``_ON_PLANE``) does not enter through it.
 
 Units: m. Planes are half-spaces n . x <= d with unit outward normals n.
 Pure functions on numpy arrays; the only state is the proxy position, passed in.
