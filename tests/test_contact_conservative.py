@@ -230,6 +230,7 @@ wedge = st.floats(-0.5, 0.5)
 corner_walk = arrays(float, (80, 3), elements=st.floats(-0.003, 0.003))
 
 
+@settings(max_examples=100)  # 80 ticks each, with a KKT enumeration per tick
 @given(st.floats(-np.pi, np.pi), wedge, corner_walk)
 def test_in_a_concave_corner_the_proxy_is_the_projection_onto_the_free_region(yaw, turn, walk):
     obs, n, d = _corner_scene(yaw, turn)
