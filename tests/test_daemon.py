@@ -4,6 +4,7 @@ stopped by signals, reloaded by SIGHUP, killed with -9 while recording."""
 from __future__ import annotations
 
 import contextlib
+import copy
 import os
 import signal
 import subprocess
@@ -13,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from hapticd import recording
 from hapticd.allocation import METHODS
@@ -226,3 +228,55 @@ def test_realtime_is_applied_or_its_absence_explained(tmp_path):
     else:
         assert rt["fifo_priority"] > 0 or any("SCHED_FIFO" in p for p in rt["problems"])
         assert all(p in err for p in rt["problems"])
+
+
+def test_a_rejected_sighup_leaves_the_control_thread_serving_and_a_later_reload_works(
+    tmp_path, grasp_data, write_profile
+):
+    """Profiles that once killed the control thread (an item of the wrong type in a
+    list, 5,000 nested brackets) or froze the daemon (an alias bomb): each reload is
+    rejected, status still answers, and a valid profile then reloads."""
+
+    def dump(change) -> str:
+        data = copy.deepcopy(grasp_data)
+        change(data)
+        return yaml.safe_dump(data, sort_keys=False)
+
+    path = write_profile(grasp_data)
+    good = path.read_text()
+    bomb = "lol0: &l0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n" + "".join(
+        f"lol{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 9)}]\n" for i in range(1, 9)
+    )
+    start, end = good.index("fingers:"), good.index("rendering:")
+    hostile = {
+        "wrong item": dump(lambda d: d["fingers"][0].update(actuated_directions=[[1, 0]])),
+        "deep nesting": dump(lambda d: d["scene"]["object"].update(size_m="DEEP")).replace(
+            "DEEP", "[" * 5000 + "]" * 5000
+        ),
+        "alias bomb": bomb + good[:start] + "fingers: *l8\n" + good[end:],
+    }
+    assert all(text != good for text in hostile.values())
+    proc, _sock, c = start_daemon(tmp_path, "--no-realtime", profile=path)
+    with c:
+        wait_for(c, lambda s: s["tick"] > 100, "the loop")
+        for n, (what, text) in enumerate(hostile.items(), start=1):
+            path.write_text(text)
+            proc.send_signal(signal.SIGHUP)
+            st = wait_for(c, lambda s, n=n: len(s["reloads"]) == n, f"{what} rejected", 10.0)
+            assert st["reloads"][-1].startswith("reload rejected"), (what, st["reloads"])
+            assert str(path) in st["reloads"][-1], (what, st["reloads"])
+            assert st["fault"] is None, what
+        # Over the socket too: a bad_profile error, not a hang or a dropped connection.
+        with pytest.raises(ProtocolError, match="aliases") as exc:
+            c.reload(path)
+        assert exc.value.code == "bad_profile"
+        grasp_data["scene"]["object"]["stiffness_n_per_m"] = 120.0
+        write_profile(grasp_data)
+        proc.send_signal(signal.SIGHUP)
+        st = wait_for(c, lambda s: len(s["reloads"]) == 4, "the valid reload", 10.0)
+        assert st["reloads"][-1].startswith(f"reloaded {path} at tick"), st["reloads"]
+        assert c.get("stiffness_n_per_m") == 120.0
+        c.stop()
+    rc, _out, err = finish(proc)
+    assert rc == 0, err
+    assert "Traceback" not in err
