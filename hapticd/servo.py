@@ -179,9 +179,12 @@ class ServoLoop:
         """Set a parameter now (at a tick boundary); ValueError changes nothing."""
         self._owner(name).set_param(name, value)
 
-    def reload(self, renderer: Renderer, safety: SafetyChain, t: float) -> None:
+    def reload(
+        self, renderer: Renderer, safety: SafetyChain, t: float, frame: Frame | None = None
+    ) -> None:
         """Switch to another renderer and safety chain; forces ramp up again, proxies start
-        anew. A latched fault stays latched (``enable`` clears it)."""
+        anew. A latched fault stays latched (``enable`` clears it). ``frame``: a fresh frame
+        for the new layout, built off the loop (else built here)."""
         if self.recorder is not None and (
             renderer.actuation.n_actuators != self.renderer.actuation.n_actuators
         ):
@@ -192,7 +195,10 @@ class ServoLoop:
         # A fresh frame: nothing the old renderer's stages wrote may linger; the devices'
         # last state carries over (a lost device keeps its last position).
         old_frame = self.frame
-        self.frame = Frame(old_frame.n_fingers, renderer.actuation.n_actuators)
+        n_act = renderer.actuation.n_actuators
+        if frame is None or frame.n_fingers != old_frame.n_fingers or frame.n_actuators != n_act:
+            frame = Frame(old_frame.n_fingers, n_act)
+        self.frame = frame
         for name in ("device_pos", "device_vel", "buttons"):
             self.frame.get(name)[...] = old_frame.get(name)
         old = self.safety
