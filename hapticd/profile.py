@@ -10,6 +10,8 @@ from __future__ import annotations
 import difflib
 import functools
 import math
+import os
+import stat
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
@@ -671,9 +673,17 @@ def load_profile(path: str | Path) -> Profile:
     key, its line and what was expected)."""
     p = Path(path)
     try:
-        with p.open("rb") as f:
+        # Non-blocking: a FIFO or device named as a profile must not hang a reload.
+        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise ProfileError(f"{p}: cannot read profile: not a regular file")
             raw = f.read(MAX_BYTES + 1)  # a larger file is refused unread
     except OSError as exc:
         raise ProfileError(f"{p}: cannot read profile: {exc.strerror or exc}") from None
+    except ProfileError:
+        raise
+    except ValueError as exc:  # e.g. a NUL byte in the path
+        raise ProfileError(f"{p!r}: cannot read profile: {exc}") from None
     data, lines = _read_yaml(raw, p)
     return parse_profile(data, p.resolve(), lines)

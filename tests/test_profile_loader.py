@@ -4,6 +4,7 @@ file, the key, the line and what was expected."""
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -239,3 +240,10 @@ def test_many_errors_are_capped(tmp_path):
 def test_the_internal_source_field_is_not_a_profile_key(tmp_path):
     msg = _error(_write(tmp_path, GRASP + "source: /etc/passwd\n"))
     assert "source: unknown key" in msg
+
+
+def test_a_fifo_or_a_directory_is_refused_without_blocking(tmp_path):
+    fifo = tmp_path / "fifo.yaml"
+    os.mkfifo(fifo)  # opening it for reading would wait for a writer forever
+    assert "not a regular file" in _error(fifo)
+    assert "cannot read profile" in _error(tmp_path)
