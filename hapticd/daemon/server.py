@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 from hapticd import __version__
 from hapticd import protocol as proto
 from hapticd.commands import Command, Disable, Enable, SetParam
+from hapticd.control import check_socket_dir
 from hapticd.daemon import summary as views
 from hapticd.profile import ProfileError
 from hapticd.recording import RecordingError
@@ -116,7 +117,7 @@ class ControlServer:
 
     @staticmethod
     def _bind(path: Path) -> socket.socket:
-        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        check_socket_dir(path, create=True)  # UnsafeSocketDirError: someone else's directory
         if path.exists() or path.is_symlink():
             probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             try:
