@@ -30,6 +30,7 @@ from pydantic import (
     ConfigDict,
     Field,
     Strict,
+    StringConstraints,
     ValidationError,
     create_model,
     field_validator,
@@ -46,6 +47,9 @@ UNIT_TOL = 1e-3
 Float = Annotated[float, Strict(), AllowInfNan(False)]
 Int = Annotated[int, Strict()]
 Bool = Annotated[bool, Strict()]
+# Strings: bounded, so no message echoes a megabyte; a path at most as long as Linux's.
+Name = Annotated[str, Strict(), StringConstraints(min_length=1, max_length=64)]
+PathText = Annotated[str, Strict(), StringConstraints(min_length=1, max_length=4096)]
 Vec3 = tuple[Float, Float, Float]
 # A position in the workspace, m; an angle of at most one turn either way, rad; an
 # acceleration of at most about 10 g, m/s^2.
@@ -58,7 +62,7 @@ _Angle = Annotated[Float, Ge(-math.tau), Le(math.tau)]
 Angles = tuple[_Angle, _Angle, _Angle]
 _Accel = Annotated[Float, Ge(-100.0), Le(100.0)]
 Acceleration = tuple[_Accel, _Accel, _Accel]
-_SCALAR_TYPES: dict[type, Any] = {float: Float, int: Int, bool: Bool, str: str}
+_SCALAR_TYPES: dict[type, Any] = {float: Float, int: Int, bool: Bool, str: PathText}
 
 
 class ProfileError(ValueError):
@@ -123,7 +127,7 @@ def _unit(v: Vec3, what: str) -> Vec3:
 class FingerConfig(_Strict):
     """One fingertip: its thimble sphere, its device and its actuated force directions."""
 
-    name: str = Field(min_length=1)
+    name: Name
     radius_m: Float = Field(default=0.008, gt=0, le=0.05, description="fingertip sphere radius, m")
     device: DeviceConfig
     actuated_directions: tuple[Vec3, ...] = param_field(
@@ -167,7 +171,7 @@ class ObjectConfig(_Strict):
 
     shape: Literal["box", "mesh"] = "box"
     size_m: Vec3 | None = Field(default=None, description="box edge lengths along x, y, z, m")
-    mesh: str | None = Field(
+    mesh: PathText | None = Field(
         default=None,
         description="STL/OBJ/PLY file (relative to the profile); its convex hull is used",
     )
@@ -220,7 +224,7 @@ class GroundConfig(SurfaceConfig):
 class WallsConfig(SurfaceConfig):
     """Workspace walls: vertical planes bounding |x| and |y| around the origin."""
 
-    half_width_m: tuple[float, float] = Field(
+    half_width_m: tuple[Float, Float] = Field(
         description="wall distance from the origin in x, y, m"
     )
 
@@ -368,8 +372,8 @@ class Profile(_Strict):
     """A complete hapticd profile (see docs/profiles.md)."""
 
     version: Literal[1] = 1
-    name: str = Field(min_length=1)
-    description: str = ""
+    name: Annotated[str, Strict(), StringConstraints(min_length=1, max_length=200)]
+    description: Annotated[str, Strict(), StringConstraints(max_length=10_000)] = ""
     loop: LoopConfig = LoopConfig()
     fingers: tuple[FingerConfig, ...] = Field(min_length=1, max_length=5)
     rendering: RenderingConfig = RenderingConfig()
@@ -377,6 +381,13 @@ class Profile(_Strict):
     safety: SafetyConfig
 
     source: Path | None = Field(default=None, exclude=True, description="file it was loaded from")
+
+    @field_validator("version", mode="before")
+    @classmethod
+    def _version(cls, v: object) -> object:
+        if type(v) is not int:  # true == 1, but a bool is no version number
+            raise ValueError(f"version must be the number {PROFILE_VERSION}")
+        return v
 
     @model_validator(mode="after")
     def _consistent(self) -> Profile:
@@ -404,8 +415,8 @@ class Profile(_Strict):
 
 # A profile is a few kilobytes and a few hundred values; these bounds are far above any
 # real one and keep a hostile file's parsing, validation and error message short.
-MAX_BYTES = 1 << 20
-MAX_NODES = 20_000
+MAX_BYTES = 256 << 10
+MAX_NODES = 1_000
 MAX_DEPTH = 64
 MAX_ERRORS_SHOWN = 20
 _SHOWN_CHARS = 60
@@ -615,8 +626,11 @@ def _explain(err: dict) -> str:
         return "required key is missing"
     if kind == "tuple_type":
         return "Input should be a list"  # pydantic's tuple is a YAML list
-    msg = str(err["msg"])
-    return msg.removeprefix("Value error, ")
+    if kind == "union_tag_invalid":  # pydantic's own message repeats the whole tag
+        got = err["input"].get("backend") if isinstance(err["input"], dict) else None
+        return f"unknown backend {_shown(got)}; the backends: {', '.join(BACKENDS)}"
+    msg = str(err["msg"]).removeprefix("Value error, ")
+    return msg if len(msg) <= 300 else msg[:297] + "..."
 
 
 def _shown(value: object) -> str:
