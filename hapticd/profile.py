@@ -533,8 +533,8 @@ def _read_yaml(raw: bytes, p: Path) -> tuple[object, dict[Path_, int]]:
     """The document in ``raw`` and the line of each key path (ProfileError naming ``p``)."""
     if len(raw) > MAX_BYTES:
         raise ProfileError(
-            f"{p}: larger than {MAX_BYTES // 1024} KiB ({len(raw)} bytes); a profile is a "
-            "few kilobytes (is this the right file?)"
+            f"{p}: larger than {MAX_BYTES // 1024} KiB; a profile is a few kilobytes "
+            "(is this the right file?)"
         )
     try:
         text = raw.decode("utf-8")

@@ -7,6 +7,7 @@ import contextlib
 import copy
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -230,12 +231,14 @@ def test_realtime_is_applied_or_its_absence_explained(tmp_path):
         assert all(p in err for p in rt["problems"])
 
 
+@pytest.mark.timing
 def test_a_rejected_sighup_leaves_the_control_thread_serving_and_a_later_reload_works(
     tmp_path, grasp_data, write_profile
 ):
     """Profiles that once killed the control thread (an item of the wrong type in a
     list, 5,000 nested brackets) or froze the daemon (an alias bomb): each reload is
-    rejected, status still answers, and a valid profile then reloads."""
+    rejected, status still answers, watchdog pings go on, and a valid profile then
+    reloads. (timing: it counts the control thread's watchdog pings over 1 s.)"""
 
     def dump(change) -> str:
         data = copy.deepcopy(grasp_data)
@@ -256,8 +259,12 @@ def test_a_rejected_sighup_leaves_the_control_thread_serving_and_a_later_reload_
         "alias bomb": bomb + good[:start] + "fingers: *l8\n" + good[end:],
     }
     assert all(text != good for text in hostile.values())
-    proc, _sock, c = start_daemon(tmp_path, "--no-realtime", profile=path)
-    with c:
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)  # the service manager's end
+    notify.bind(str(tmp_path / "notify"))
+    notify.settimeout(0.05)
+    env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "200000"}
+    proc, _sock, c = start_daemon(tmp_path, "--no-realtime", profile=path, env=env)
+    with c, notify:
         wait_for(c, lambda s: s["tick"] > 100, "the loop")
         for n, (what, text) in enumerate(hostile.items(), start=1):
             path.write_text(text)
@@ -266,6 +273,15 @@ def test_a_rejected_sighup_leaves_the_control_thread_serving_and_a_later_reload_
             assert st["reloads"][-1].startswith("reload rejected"), (what, st["reloads"])
             assert str(path) in st["reloads"][-1], (what, st["reloads"])
             assert st["fault"] is None, what
+        # The control thread still pings the watchdog (every 0.1 s for a 0.2 s watchdog).
+        with contextlib.suppress(TimeoutError):
+            while notify.recv(4096):
+                pass  # what came before
+        pings, until = 0, time.monotonic() + 1.0
+        while time.monotonic() < until:
+            with contextlib.suppress(TimeoutError):
+                pings += notify.recv(4096) == b"WATCHDOG=1"
+        assert pings >= 5, f"{pings} watchdog pings in 1 s after the rejected reloads"
         # Over the socket too: a bad_profile error, not a hang or a dropped connection.
         with pytest.raises(ProtocolError, match="aliases") as exc:
             c.reload(path)
