@@ -170,7 +170,9 @@ class Param:
                 if not (isinstance(d, list) and len(d) == 3):
                     raise ParamError("bad_value", f"{msg}; finger {i} direction {j} is {d!r}")
                 x, y, z = (_number(v, f"{self.name}[{i}][{j}]") for v in d)
-                n = math.hypot(x, y, z)  # x * x would overflow to inf for |x| > 1e154
+                n = math.sqrt(x * x + y * y + z * z)
+                if not math.isfinite(n):  # a square overflowed (|x| > 1e154)
+                    n = math.hypot(x, y, z)
                 if n < 1e-9:
                     raise ParamError("bad_value", f"{self.name}[{i}][{j}] is zero")
                 finger.append((x / n, y / n, z / n))

@@ -116,7 +116,7 @@ DeviceConfig = Annotated[
 
 
 def _unit(v: Vec3, what: str) -> Vec3:
-    n = math.hypot(*v)  # no overflow to inf for large components
+    n = math.sqrt(sum(c * c for c in v))  # inf for huge components: not a unit vector
     if not math.isfinite(n) or abs(n - 1.0) > UNIT_TOL:
         raise ValueError(
             f"{what} must be a unit vector (norm 1 within {UNIT_TOL}), got norm {n:.6g}"

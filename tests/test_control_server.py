@@ -155,3 +155,16 @@ def test_out_of_file_descriptors_the_server_backs_off_instead_of_spinning(tmp_pa
             child.communicate()
     assert child.returncode == 0, err
     assert err.count("cannot accept a control client") == 1, err
+
+
+def test_a_service_notification_out_of_file_descriptors_is_not_an_exception(monkeypatch):
+    """STOPPING=1 is sent on every way out of `hapticd run`: it must not raise there."""
+    import errno
+
+    from hapticd.daemon import sdnotify
+
+    def no_fds(*args, **kwargs):
+        raise OSError(errno.EMFILE, "Too many open files")
+
+    monkeypatch.setattr(sdnotify.socket, "socket", no_fds)
+    assert sdnotify.notify("STOPPING=1", {"NOTIFY_SOCKET": "/run/systemd/notify"}) is False
