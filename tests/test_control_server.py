@@ -119,7 +119,7 @@ _EMFILE_CHILD = textwrap.dedent(
 )
 
 
-@pytest.mark.timing
+@pytest.mark.timing("counts accept() retries over a 1 s window")
 def test_out_of_file_descriptors_the_server_backs_off_instead_of_spinning(tmp_path):
     """accept() failing with EMFILE left the listener readable: the control thread spun
     at 100% CPU. Counted over 1 s: a few retries, not thousands (a 1 s window, so this

@@ -254,7 +254,7 @@ def test_realtime_is_applied_or_its_absence_explained(tmp_path):
         assert all(p in err for p in rt["problems"])
 
 
-@pytest.mark.timing
+@pytest.mark.timing("counts the control thread's watchdog pings over 1 s")
 def test_a_rejected_sighup_leaves_the_control_thread_serving_and_a_later_reload_works(
     tmp_path, grasp_data, write_profile
 ):
