@@ -288,11 +288,16 @@ def test_a_rejected_sighup_leaves_the_control_thread_serving_and_a_later_reload_
     env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "200000"}
     proc, _sock, c = start_daemon(tmp_path, "--no-realtime", profile=path, env=env)
     with c, notify:
-        wait_for(c, lambda s: s["tick"] > 100, "the loop")
+        wait_for(c.status, "the loop", until=lambda s: s["tick"] > 100)
         for n, (what, text) in enumerate(hostile.items(), start=1):
             path.write_text(text)
             proc.send_signal(signal.SIGHUP)
-            st = wait_for(c, lambda s, n=n: len(s["reloads"]) == n, f"{what} rejected", 10.0)
+            st = wait_for(
+                c.status,
+                f"{what} rejected",
+                until=lambda s, n=n: len(s["reloads"]) == n,
+                timeout_s=10.0,
+            )
             assert st["reloads"][-1].startswith("reload rejected"), (what, st["reloads"])
             assert str(path) in st["reloads"][-1], (what, st["reloads"])
             assert st["fault"] is None, what
@@ -312,7 +317,9 @@ def test_a_rejected_sighup_leaves_the_control_thread_serving_and_a_later_reload_
         grasp_data["scene"]["object"]["stiffness_n_per_m"] = 120.0
         write_profile(grasp_data)
         proc.send_signal(signal.SIGHUP)
-        st = wait_for(c, lambda s: len(s["reloads"]) == 4, "the valid reload", 10.0)
+        st = wait_for(
+            c.status, "the valid reload", until=lambda s: len(s["reloads"]) == 4, timeout_s=10.0
+        )
         assert st["reloads"][-1].startswith(f"reloaded {path} at tick"), st["reloads"]
         assert c.get("stiffness_n_per_m") == 120.0
         c.stop()
