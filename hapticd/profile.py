@@ -647,6 +647,13 @@ def _explain(err: dict) -> str:
     if kind == "extra_forbidden":
         key = str(err["loc"][-1])
         keys = sorted(_all_keys())
+        if key in keys:  # a real key, in the wrong place: suggesting itself would not help
+            backend = next((str(p) for p in err["loc"][:-1] if p in BACKENDS), None)
+            where = f"the {backend} backend" if backend else "this section"
+            return (
+                f"unknown key: {where} has no key {key!r} (the keys of each section are "
+                "listed in docs/profiles.md)"
+            )
         # Keys carry their unit ("mass_kg"): a key written without it is the likeliest slip.
         close = [k for k in keys if k.startswith(key + "_")][:1]
         close = close or difflib.get_close_matches(key, keys, n=1, cutoff=0.75)
