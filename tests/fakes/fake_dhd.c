@@ -8,6 +8,7 @@
  * Signatures follow the DHD and DRD APIs (char ID last). */
 #include <math.h>
 #include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
 
 #define MAX_DEV 4
@@ -22,6 +23,9 @@ static struct {
     double pos[3], vel[3], force[3], max_force, effector_mass;
     unsigned char watchdog;
     int autoinits;
+    /* A path to play, one sample per dhdGetPosition: (n, 3) positions and velocities. */
+    double *path_pos, *path_vel;
+    int path_n, reads, k;
 } dev[MAX_DEV];
 static int count = 0;
 static int current = -1;
@@ -44,6 +48,7 @@ static int pick(char id) {
 
 /* -- test controls -- */
 void fake_reset(int n) {
+    for (int i = 0; i < MAX_DEV; i++) { free(dev[i].path_pos); free(dev[i].path_vel); }
     memset(dev, 0, sizeof dev);
     count = n < MAX_DEV ? n : MAX_DEV;
     for (int i = 0; i < count; i++) {
@@ -56,6 +61,15 @@ void fake_set_state(int i, double x, double y, double z, double vx, double vy, d
     dev[i].pos[0] = x; dev[i].pos[1] = y; dev[i].pos[2] = z;
     dev[i].vel[0] = vx; dev[i].vel[1] = vy; dev[i].vel[2] = vz;
 }
+/* Device i moves along n samples: read k (from 0) of dhdGetPosition gives sample k (the
+ * last one once the path is over), and dhdGetLinearVelocity the same sample's velocity. */
+void fake_set_path(int i, int n, const double *pos, const double *vel) {
+    free(dev[i].path_pos); free(dev[i].path_vel);
+    dev[i].path_pos = malloc(sizeof(double) * 3 * n); dev[i].path_vel = malloc(sizeof(double) * 3 * n);
+    memcpy(dev[i].path_pos, pos, sizeof(double) * 3 * n); memcpy(dev[i].path_vel, vel, sizeof(double) * 3 * n);
+    dev[i].path_n = n; dev[i].reads = 0; dev[i].k = 0;
+}
+int fake_reads(int i) { return dev[i].reads; }
 void fake_get_force(int i, double *f) { for (int k = 0; k < 3; k++) f[k] = dev[i].force[k]; }
 int fake_is_enabled(int i) { return dev[i].enabled; }
 int fake_is_open(int i) { return dev[i].open; }
@@ -127,6 +141,11 @@ unsigned int dhdGetButtonMask(char id) { int i = pick(id); return i < 0 ? 0 : de
 
 int dhdGetPosition(double *x, double *y, double *z, char id) {
     int i = pick(id); if (i < 0 || !dev[i].plugged) return fail("USB error: device unplugged");
+    if (dev[i].path_n > 0) {
+        int k = dev[i].reads < dev[i].path_n ? dev[i].reads : dev[i].path_n - 1;
+        dev[i].k = k; dev[i].reads++;
+        for (int c = 0; c < 3; c++) { dev[i].pos[c] = dev[i].path_pos[3 * k + c]; dev[i].vel[c] = dev[i].path_vel[3 * k + c]; }
+    }
     *x = dev[i].pos[0]; *y = dev[i].pos[1]; *z = dev[i].pos[2]; return DHD_NO_ERROR;
 }
 int dhdGetLinearVelocity(double *x, double *y, double *z, char id) {
