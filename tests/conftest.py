@@ -218,6 +218,7 @@ def _build_fake_sdk(out_dir: Path, name: str, *defines: str) -> tuple[str, ctype
     lib = ctypes.CDLL(str(out))
     lib.fake_set_state.argtypes = [ctypes.c_int] + [ctypes.c_double] * 6
     lib.fake_get_force.argtypes = [ctypes.c_int, ctypes.POINTER(ctypes.c_double)]
+    lib.fake_get_force_sum.argtypes = [ctypes.c_int, ctypes.POINTER(ctypes.c_double)]
     lib.fake_set_buttons.argtypes = [ctypes.c_int, ctypes.c_uint]
     dp = ctypes.POINTER(ctypes.c_double)
     lib.fake_set_path.argtypes = [ctypes.c_int, ctypes.c_int, dp, dp]

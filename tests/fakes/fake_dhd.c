@@ -20,7 +20,7 @@ static struct {
     int present, open, enabled, plugged, calibrated, gravity, memory_fault, drd_open;
     unsigned short serial;
     unsigned int buttons;
-    double pos[3], vel[3], force[3], max_force, effector_mass;
+    double pos[3], vel[3], force[3], force_sum[3], max_force, effector_mass;
     unsigned char watchdog;
     int autoinits;
     /* A path to play, one sample per dhdGetPosition: (n, 3) positions and velocities. */
@@ -71,6 +71,8 @@ void fake_set_path(int i, int n, const double *pos, const double *vel) {
 }
 int fake_reads(int i) { return dev[i].reads; }
 void fake_get_force(int i, double *f) { for (int k = 0; k < 3; k++) f[k] = dev[i].force[k]; }
+/* The sum of every force the device applied since the reset, N. */
+void fake_get_force_sum(int i, double *f) { for (int k = 0; k < 3; k++) f[k] = dev[i].force_sum[k]; }
 int fake_is_enabled(int i) { return dev[i].enabled; }
 int fake_is_open(int i) { return dev[i].open; }
 int fake_watchdog(int i) { return dev[i].watchdog; }
@@ -156,7 +158,7 @@ int dhdSetForce(double fx, double fy, double fz, char id) {
     int i = pick(id); if (i < 0 || !dev[i].plugged) return fail("USB error: device unplugged");
     double f[3] = {fx, fy, fz}, n = sqrt(fx * fx + fy * fy + fz * fz), s = 1.0; int r = DHD_NO_ERROR;
     if (n > dev[i].max_force) { s = dev[i].max_force / n; r = DHD_MOTOR_SATURATED; }
-    for (int k = 0; k < 3; k++) dev[i].force[k] = dev[i].enabled ? f[k] * s : 0.0;
+    for (int k = 0; k < 3; k++) { dev[i].force[k] = dev[i].enabled ? f[k] * s : 0.0; dev[i].force_sum[k] += dev[i].force[k]; }
     /* Only the first commands after opening are logged: enough to check the start sequence. */
     if (strlen(call_log) < 2048) logf_("force %d %g %g %g;", i, fx, fy, fz);
     return r;
