@@ -33,7 +33,7 @@ def test_the_maps_are_each_others_inverse_and_keep_force_magnitudes(rpy, t, s, x
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
     assert np.linalg.det(R) == pytest.approx(1.0)
     np.testing.assert_allclose(m.point_to_world(m.point_to_device(np.array(x))), x, atol=1e-12)
-    np.testing.assert_allclose(m.point_to_world(np.array(x)), s * R @ np.array(x) + t)
+    np.testing.assert_allclose(m.point_to_world(np.array(x)), s * R @ np.array(x) + t, atol=1e-15)
     f = np.array(x) * 20.0
     assert np.linalg.norm(m.force_to_device(f)) == pytest.approx(np.linalg.norm(f), abs=1e-12)
     # Power: what the world port exchanges is s times what the device port does.
