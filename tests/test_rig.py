@@ -179,3 +179,30 @@ def test_devices_lists_the_sdk_devices_with_model_and_serial(libdhd, capsys, mon
     assert main(["devices"]) == 0
     out = capsys.readouterr().out
     assert "dhd  omega.3: 10001 (index 0, calibrated), 10002 (index 1, NOT calibrated)" in out
+
+
+def test_the_hardware_guide_mounting_example(tmp_path, libdhd, capsys):
+    """docs/hardware.md's two-device example: each device's y axis points at the object,
+    and both fingers reach it."""
+    import re
+
+    from hapticd.build import build_mounts
+    from hapticd.profile import load_profile
+
+    text = (GRASP_PROFILE.parent.parent / "docs" / "hardware.md").read_text()
+    block = re.search(r"```yaml\n(fingers:.*?)```", text, re.S).group(1)
+    fingers = yaml.safe_load(block)["fingers"]
+    data = yaml.safe_load(GRASP_PROFILE.read_text())
+    for finger, given in zip(data["fingers"], fingers, strict=True):
+        assert finger["name"] == given["name"]
+        finger["device"] = {**given["device"], "library": libdhd[0]}
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(data))
+    thumb, index = build_mounts(load_profile(path))
+    np.testing.assert_allclose(thumb.rotation @ [0, 1, 0], [1, 0, 0], atol=1e-7)
+    np.testing.assert_allclose(thumb.rotation @ [1, 0, 0], [0, -1, 0], atol=1e-7)
+    np.testing.assert_allclose(index.rotation @ [0, 1, 0], [-1, 0, 0], atol=1e-7)
+    assert main(["check", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert out.count("the object is reachable") == 2 and "out of reach" not in out
+    assert out.count("nearest object point 35.0 mm") == 2
