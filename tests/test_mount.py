@@ -191,6 +191,8 @@ def test_check_reports_where_each_workspace_meets_the_object(tmp_path):
     }
     # The index's 60 mm to the right: the cube (25 mm half size) is within its 75 mm.
     data["fingers"][1]["device"]["mount"] = {"position_m": [0.06, 0.0, 0.0]}
+    data["safety"]["workspace_radius_m"] = 0.1
+    data["safety"]["workspace_center_m"] = [0.0, 0.0, 0.01]
     path = tmp_path / "p.yaml"
     path.write_text(yaml.safe_dump(data))
     out = subprocess.run(
@@ -207,7 +209,10 @@ def test_check_reports_where_each_workspace_meets_the_object(tmp_path):
     assert "nearest object point 175.0 mm" in thumb and "out of reach" in thumb
     assert "(-60.0, 0.0, 0.0) mm in its coordinates" in index
     assert "nearest object point 35.0 mm" in index
+    index, safety = index.split("  safety:")
     assert "reachable (part of it lies outside)" in index
+    assert "(0.0, 0.0, -10.0) mm in its coordinates" in safety
+    assert "the whole object is inside" in safety
 
 
 @given(st.tuples(angles, angles, angles))
