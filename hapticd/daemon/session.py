@@ -17,6 +17,7 @@ from hapticd import recording
 from hapticd.allocation import METHODS
 from hapticd.build import (
     build_devices,
+    build_mounts,
     build_renderer,
     build_safety,
     load_trajectories,
@@ -211,6 +212,7 @@ def build_session(
         switch_interval_s=profile.loop.gil_switch_interval_s,
         realtime_settings=realtime_settings(profile) if paced else None,
     )
+    loop.bank.set_mounts(build_mounts(profile))
     clock_box.append(loop)
     return Session(
         profile,
