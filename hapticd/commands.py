@@ -55,6 +55,7 @@ class Enable(Command):
     def apply(self, loop: ServoLoop, t: float) -> Any:
         loop.safety.reset(t)
         loop.bank.enable(True)
+        loop.forces_off = False
 
     def describe(self) -> str:
         return "enable"

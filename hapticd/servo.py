@@ -81,6 +81,7 @@ class ServoLoop:
         self.rate_hz = self.pacer.rate_hz
         self.period = self.pacer.period
         self.paced = paced
+        self.forces_off = False  # the devices' forces were turned off for a latched fault
         # The safety watchdog times the gap between ticks on the wall clock. An unpaced run
         # whose devices all follow the loop's nominal clock (replay, sim, emulated) is a
         # simulation: a machine pausing it endangers no one, so it feeds no watchdog.
@@ -246,6 +247,12 @@ class ServoLoop:
         self.renderer.run(frame)
         self.safety.run(frame, time.monotonic() if self.wall_watchdog else None)
         self.bank.write(frame, k, t)
+        if self.safety.fault is not None and not self.forces_off:
+            # A latched fault: after the zero force just written, the devices' forces go off
+            # too (an SDK's gravity compensation would otherwise still push). Once, never
+            # raising; `enable` turns them on again.
+            self.forces_off = True
+            self.bank.zero()
 
     def _trip(self, k: int, t: float, cause: str) -> None:
         self.safety.trip(k, t, cause)

@@ -106,6 +106,30 @@ def test_nan_force_latches_and_every_later_force_is_zero(caplog):
         assert np.any(f[:tick] != 0)
 
 
+def test_a_latched_fault_turns_the_devices_forces_off_until_enable():
+    """Zero force is not enough: a device with gravity compensation still pushes while its
+    forces are on. A latched fault turns them off at once; `enable` turns them on again."""
+    s = session(duration_s=3.0)
+    seen = {}
+
+    def nan(frame):
+        frame.rendered_force[0, 1] = np.nan
+
+    def look(key):
+        return lambda frame: seen.__setitem__(key, [d.enabled for d in s.devices])
+
+    s.renderer.insert(AtTick(2000, nan), after="allocation")
+    s.renderer.insert(AtTick(1999, look("before")), after="allocation")
+    s.renderer.insert(AtTick(2001, look("after")), after="allocation")
+    s.renderer.insert(AtTick(2100, lambda f: s.loop.submit(Enable())), after="allocation")
+    s.renderer.insert(AtTick(2102, look("enabled")), after="allocation")
+    out = s.run()
+    assert out["fault"] is None  # cleared by enable
+    assert seen == {"before": [True, True], "after": [False, False], "enabled": [True, True]}
+    for dev in s.devices:
+        assert np.all(dev.forces[2000:2101] == 0)
+
+
 class FlakyDevice(Device):
     """Reads a fixed point; fails on the Nth read or write."""
 
