@@ -21,11 +21,13 @@ from hapticd.params import PARAMS, ParamError
 
 @dataclass(frozen=True)
 class Fault:
-    """A latched fault: tick, time (s) and a human-readable cause."""
+    """A latched fault: tick, time (s), a human-readable cause and its kind (a name of
+    hapticd.events.FAULT_CAUSES, e.g. ``nonfinite_force``)."""
 
     tick: int
     t: float
     cause: str
+    kind: str = "other"
 
 
 @dataclass(frozen=True)
@@ -126,10 +128,11 @@ class SafetyChain:
         """True once a ramp-down begun before ``t`` has reached zero."""
         return self._down_factor(t) == 0.0
 
-    def trip(self, tick: int, t: float, cause: str) -> None:
-        """Latch a fault (the first cause is kept) and zero the output."""
+    def trip(self, tick: int, t: float, cause: str, kind: str = "other") -> None:
+        """Latch a fault (the first cause is kept) and zero the output; ``kind`` names the
+        cause's kind (hapticd.events.FAULT_CAUSES)."""
         if self.fault is None:
-            self.fault = Fault(tick, t, cause)
+            self.fault = Fault(tick, t, cause, kind)
         self.output[:] = 0.0
         self._prev[:] = 0.0
 
@@ -171,7 +174,7 @@ class SafetyChain:
         finite = math.isfinite
         if not all(finite(x) for row in rows for x in row):
             bad = [i for i, row in enumerate(rows) if not all(finite(x) for x in row)]
-            self.trip(tick, t, f"non-finite force for finger(s) {bad}")
+            self.trip(tick, t, f"non-finite force for finger(s) {bad}", "nonfinite_force")
             return out
         if t_wall is not None:
             last, self._last_wall = self._last_wall, t_wall
@@ -181,6 +184,7 @@ class SafetyChain:
                     tick,
                     t,
                     f"watchdog: {gap:.1f} ms between ticks (limit {prm.watchdog_s * 1e3:g} ms)",
+                    "watchdog",
                 )
                 return out
         if positions is not None and math.isfinite(prm.workspace_radius_m):
@@ -193,6 +197,7 @@ class SafetyChain:
                         t,
                         f"finger {i} left the workspace: {r:.4f} m from its centre "
                         f"(limit {prm.workspace_radius_m:g} m)",
+                        "workspace",
                     )
                     return out
         clamped = limited = False
