@@ -90,8 +90,47 @@ def _unit(v: Vec3, what: str) -> Vec3:
     return (v[0] / n, v[1] / n, v[2] / n)
 
 
+BUTTON_ROLES = ("deadman", "response")
+
+
+class DeadmanButtonConfig(_Strict):
+    """A deadman button: the finger gets force only while it is held."""
+
+    button: int = Field(
+        ge=0, le=31, description="the button's index on the finger's device (bit of buttons)"
+    )
+    role: Literal["deadman"]
+    ramp_s: float = Field(
+        default=0.25,
+        ge=0,
+        le=10,
+        description="after a press, the finger's force ramps from zero to full over this "
+        "time, s; a release zeroes it at once",
+    )
+
+
+class ResponseButtonConfig(_Strict):
+    """A response key for experiments: its presses are button_down events tagged
+    ``response`` (docs/control.md)."""
+
+    button: int = Field(
+        ge=0, le=31, description="the button's index on the finger's device (bit of buttons)"
+    )
+    role: Literal["response"]
+    label: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=64,
+        description="the tag its events carry as response; default FINGER-BUTTON, e.g. thumb-1",
+    )
+
+
+ButtonConfig = Annotated[DeadmanButtonConfig | ResponseButtonConfig, Field(discriminator="role")]
+
+
 class FingerConfig(_Strict):
-    """One fingertip: its thimble sphere, its device and its actuated force directions."""
+    """One fingertip: its thimble sphere, its device, its actuated force directions and what
+    its device's buttons do."""
 
     name: str = Field(min_length=1)
     radius_m: float = Field(default=0.008, gt=0, le=0.05, description="fingertip sphere radius, m")
@@ -102,10 +141,42 @@ class FingerConfig(_Strict):
         description="unit force directions the device renders for this finger (0-3)",
     )
 
+    buttons: tuple[ButtonConfig, ...] = Field(
+        default=(),
+        max_length=32,
+        description="roles of the device's buttons: at most one deadman, any response keys",
+    )
+
     @field_validator("actuated_directions")
     @classmethod
     def _units(cls, v: tuple[Vec3, ...]) -> tuple[Vec3, ...]:
         return tuple(_unit(d, f"direction {i}") for i, d in enumerate(v))
+
+    @field_validator("buttons")
+    @classmethod
+    def _one_role_each(
+        cls, v: tuple[DeadmanButtonConfig | ResponseButtonConfig, ...]
+    ) -> tuple[DeadmanButtonConfig | ResponseButtonConfig, ...]:
+        seen = [b.button for b in v]
+        dup = sorted({b for b in seen if seen.count(b) > 1})
+        if dup:
+            raise ValueError(f"each button may have one role; repeated: {dup}")
+        if sum(b.role == "deadman" for b in v) > 1:
+            raise ValueError("at most one deadman button per finger")
+        return v
+
+    @property
+    def deadman(self) -> DeadmanButtonConfig | None:
+        """This finger's deadman button, if it has one."""
+        return next((b for b in self.buttons if isinstance(b, DeadmanButtonConfig)), None)
+
+    def responses(self) -> dict[int, str]:
+        """Button index -> response label of this finger's response keys."""
+        return {
+            b.button: b.label or f"{self.name}-{b.button}"
+            for b in self.buttons
+            if isinstance(b, ResponseButtonConfig)
+        }
 
 
 class FrictionConfig(_Strict):
@@ -400,7 +471,10 @@ def _format_loc(loc: tuple[int | str, ...], data: object) -> str:
             parts.append(f"[{item}]" if name is None else f"[{item}:{name}]")
             node = node[item] if isinstance(node, list) and item < len(node) else None
         else:
-            if item in BACKENDS and isinstance(node, dict) and node.get("backend") == item:
+            if isinstance(node, dict) and (
+                (item in BACKENDS and node.get("backend") == item)
+                or (item in BUTTON_ROLES and node.get("role") == item)
+            ):
                 continue  # pydantic's discriminator tag, not a key the user wrote
             parts.append(("." if parts else "") + str(item))
             node = node.get(item) if isinstance(node, dict) else None
