@@ -75,9 +75,11 @@ def _trajectory(required: bool, doc: str) -> Key:
 _FINGER = Key(
     "finger", str, None, "finger of the recording to play; defaults to this finger's name", True
 )
-_MAX_FORCE = Key("max_force_n", float, 12.0, "the device's rated force, N", gt=0.0)
-_HOLD = Key("hold_s", float, 0.0, "keep running this long after the trajectory ends, s", ge=0.0)
-_INDEX = Key("index", int, 0, "pick the n-th matching device", ge=0)
+_MAX_FORCE = Key("max_force_n", float, 12.0, "the device's rated force, N", gt=0.0, le=100.0)
+_HOLD = Key(
+    "hold_s", float, 0.0, "keep running this long after the trajectory ends, s", ge=0.0, le=86400.0
+)
+_INDEX = Key("index", int, 0, "pick the n-th matching device", ge=0, le=255)
 
 # The protocol devices (hid, usb) share their keys: the same device on two transports.
 _REPORT_KEYS = (
@@ -184,7 +186,15 @@ BACKENDS: dict[str, Backend] = {
                     "path to libdhd; else $HAPTICD_LIBDHD, else the system's dhd library",
                     True,
                 ),
-                Key("serial_number", int, None, "pick the device by its serial number", True),
+                Key(
+                    "serial_number",
+                    int,
+                    None,
+                    "pick the device by its serial number",
+                    True,
+                    ge=0,
+                    le=2**31 - 1,
+                ),
                 _INDEX,
                 Key(
                     "device_watchdog_s",
@@ -201,6 +211,7 @@ BACKENDS: dict[str, Backend] = {
                     12.0,
                     "the device's rated force, and the SDK's own force limit, N",
                     gt=0.0,
+                    le=100.0,
                 ),
                 _FINGER,
             ),

@@ -78,7 +78,7 @@ def load_trajectories(profile: Profile) -> list[tuple[Any, Any, Any] | None]:
         try:
             path = trajectory_path(profile, ref)
             rec = cache.get(path) or recording.read(path)
-        except (FileNotFoundError, RecordingError) as exc:
+        except (OSError, ValueError, RecordingError) as exc:  # ValueError: a NUL in the path
             raise ProfileError(f"{_where(profile, i, finger, 'trajectory')}: {exc}") from None
         cache[path] = rec
         want = finger.device.finger or finger.name

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 from hapticd.params import PARAMS
 
 if TYPE_CHECKING:
+    from hapticd.frame import Frame
     from hapticd.recording import Recorder
     from hapticd.render import Renderer
     from hapticd.safety import SafetyChain
@@ -121,11 +122,12 @@ class Reload(Command):
     renderer: Renderer
     safety: SafetyChain
     source: str = ""
+    frame: Frame | None = None  # built off the loop too: at the tick only a swap
 
     while_stopping = False  # it would restart the force ramp and undo the stop's
 
     def apply(self, loop: ServoLoop, t: float) -> Any:
-        loop.reload(self.renderer, self.safety, t)
+        loop.reload(self.renderer, self.safety, t, self.frame)
 
     def describe(self) -> str:
         return f"reload {self.source}"

@@ -5,7 +5,11 @@ position but never enters the object inflated by the sphere radius. Each update
 moves the proxy from its previous position toward the device position, stopping
 at the first face the path enters and then sliding on up to three active
 constraint planes (face, edge, corner), after Zilles & Salisbury (1995). A fast
-finger therefore cannot pop through a thin part of the object.
+finger therefore cannot pop through a thin part of the object. The proxy ends on
+the projection of the device onto its active planes, so proxy - device is their
+multipliers times their normals and frictionless contact is conservative in any
+orientation (k x depth along a face's normal). A path that runs along a plane to
+rounding (within ``_ON_PLANE``) does not enter through it.
 
 Units: m. Planes are half-spaces n . x <= d with unit outward normals n.
 Pure functions on numpy arrays; the only state is the proxy position, passed in.
@@ -18,8 +22,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# Segment parameters closer than this count as touching, not entering: keeps a
-# proxy that slides along a face (or grazes an edge) from being captured.
+# A point within this distance (m) of a plane counts as on it. A proxy that slides on a
+# face lies on its plane only to rounding (some 1e-17 m at hand scale, whatever the face's
+# orientation), and so does the projection of the device onto it: a path between two such
+# points lies on the plane, it does not enter the object through it.
+_ON_PLANE = 1e-13
+# Segment parameters closer than this count as touching, not entering: keeps a path that
+# grazes an edge from capturing the proxy there.
 _T_EPS = 1e-12
 _MAX_CONSTRAINTS = 3
 
@@ -83,29 +92,48 @@ def _dot(a: Vec, b: Vec) -> float:
 def _first_entry(
     normals: list[Vec], offsets: list[float], p: Vec, d: Vec
 ) -> tuple[float, int] | None:
-    """First t in [0, 1) where p + t d enters the open interior, and the plane entered."""
-    t_enter = -math.inf
+    """First t in [0, 1) where p + t d enters the open interior, and the plane entered.
+
+    None when the segment stays outside, or on the surface to ``_ON_PLANE``: a segment
+    whose two ends are both outside or on one plane never enters. A crossing time is
+    computed only when it lies on the segment (no ratio of two rounding errors, no
+    overflow for a path parallel to a far plane).
+    """
+    t_enter = 0.0
     t_exit = math.inf
     plane = -1
-    # The hottest loop of a tick: components in locals, the same sums in the same order.
+    # The hottest loop of a tick: components in locals.
     dx, dy, dz = d
     px, py, pz = p
     for i, (nx, ny, nz) in enumerate(normals):
+        num = offsets[i] - (nx * px + ny * py + nz * pz)  # how far p is inside plane i
         denom = nx * dx + ny * dy + nz * dz
-        num = offsets[i] - (nx * px + ny * py + nz * pz)
-        if denom == 0.0:
-            if num <= 0.0:
-                return None  # parallel to and outside (or on) this plane: never inside
-            continue
-        t = num / denom
-        if denom < 0.0:
-            if t > t_enter:
-                t_enter, plane = t, i
-        elif t < t_exit:
-            t_exit = t
-    if plane < 0 or t_enter >= 1.0 or t_exit <= t_enter + _T_EPS or t_exit <= 0.0:
+        if num <= _ON_PLANE:
+            if num - denom <= _ON_PLANE:
+                return None  # both ends outside or on plane i: never inside
+            # Enters plane i's half-space on the segment (at t <= 0 when p is on it).
+            if num < 0.0:
+                t = num / denom
+                if t > t_enter:
+                    t_enter, plane = t, i
+            elif plane < 0:
+                plane = i
+        elif denom > num:
+            t = num / denom  # leaves plane i's half-space on the segment
+            if t < t_exit:
+                t_exit = t
+    if plane < 0:
+        # Inside every plane by more than _ON_PLANE (only if a push-out could not clear
+        # another obstacle): in at once, through the nearest plane.
+        return 0.0, _signed_distance(normals, offsets, p)[1]
+    if t_exit <= t_enter + _T_EPS:
         return None
-    return max(t_enter, 0.0), plane
+    return t_enter, plane
+
+
+# Below this Gram determinant, sin^2 of the angle between two planes (within 3e-5 rad of
+# parallel), a crease's projection takes lstsq.
+_GRAM_MIN = 1e-9
 
 
 def _project_on_planes(
@@ -120,6 +148,23 @@ def _project_on_planes(
         n = normals[active[0]]
         mu = offsets[active[0]] - _dot(n, dev)
         return (dev[0] + mu * n[0], dev[1] + mu * n[1], dev[2] + mu * n[2]), [mu]
+    if len(active) == 2:
+        # A crease: the 2 x 2 Gram system [[1, c], [c, 1]] mu = r in closed form (a numpy
+        # solve costs more than the rest of the update) unless the planes are near parallel.
+        n, m = normals[active[0]], normals[active[1]]
+        r0 = offsets[active[0]] - _dot(n, dev)
+        r1 = offsets[active[1]] - _dot(m, dev)
+        c = _dot(n, m)
+        det = 1.0 - c * c
+        if det > _GRAM_MIN:
+            mu0 = (r0 - c * r1) / det
+            mu1 = (r1 - c * r0) / det
+            x = (
+                dev[0] + mu0 * n[0] + mu1 * m[0],
+                dev[1] + mu0 * n[1] + mu1 * m[1],
+                dev[2] + mu0 * n[2] + mu1 * m[2],
+            )
+            return x, [mu0, mu1]
     N = np.array([normals[i] for i in active])
     r = np.array([offsets[i] for i in active]) - N @ np.array(dev)
     # Minimum-norm solution of N N^T mu = r; lstsq tolerates near-parallel planes.
@@ -138,7 +183,9 @@ def _signed_distance(normals: list[Vec], offsets: list[float], x: Vec) -> tuple[
     return best, arg
 
 
-_MAX_ITER = 8
+# Proxy moves per update: each face a fast finger crosses on a convex mesh takes two (slide
+# off, re-enter), and 2 cm per tick over a sphere of 5 mm faces took up to 14.
+_MAX_ITER = 16
 _FREE_TOL = 1e-12
 
 
@@ -162,11 +209,19 @@ def _distance(prepared: ObstacleSet, j: int, p: Vec) -> float:
     return _signed_distance(*prepared.obstacles[j], p)[0]
 
 
-def _push_out_of(obstacles: list[Obstacle], p: Vec, prepared: ObstacleSet | None = None) -> Vec:
+def _push_out_of(obstacles: list[Obstacle], p: Vec, prepared: ObstacleSet) -> Vec:
+    """``p`` moved out of every obstacle it is inside (a first tick, or a moving object).
+
+    Out through the nearest plane of each; once a push has gone through the planes of two
+    or three obstacles (a crease, where one push undoes another: slowly, in an acute one),
+    onto the projection of the starting point onto all those planes instead.
+    """
+    start = p
+    pushed: list[int] = []  # the planes pushed through (indices into prepared's flat lists)
     for _ in range(len(obstacles) + 1):
         moved = False
         for j, (normals, offsets) in enumerate(obstacles):
-            arr = prepared.arrays[j] if prepared is not None else None
+            arr = prepared.arrays[j]
             if arr is not None:
                 dists = arr[0] @ np.asarray(p) - arr[1]
                 i = int(np.argmax(dists))
@@ -174,9 +229,17 @@ def _push_out_of(obstacles: list[Obstacle], p: Vec, prepared: ObstacleSet | None
             else:
                 dist, i = _signed_distance(normals, offsets, p)
             if dist < 0.0:
+                moved = True
+                k = prepared.index[(j, i)]
+                if k not in pushed and len(pushed) < _MAX_CONSTRAINTS:
+                    pushed.append(k)
+                if len(pushed) > 1:
+                    x, mu = _project_on_planes(start, prepared.normals, prepared.offsets, pushed)
+                    if min(mu) >= 0.0:
+                        p = x
+                        continue
                 n = normals[i]
                 p = (p[0] - dist * n[0], p[1] - dist * n[1], p[2] - dist * n[2])
-                moved = True
         if not moved:
             break
     return p
@@ -188,24 +251,25 @@ _VECTOR_PLANES = 200
 
 def _first_entry_np(N: np.ndarray, off: np.ndarray, p: Vec, d: Vec) -> tuple[float, int] | None:
     """``_first_entry`` vectorised over the planes of one large obstacle."""
-    denom = N @ np.asarray(d)
     num = off - N @ np.asarray(p)
-    par = denom == 0.0
-    if np.any(par & (num <= 0.0)):
+    denom = N @ np.asarray(d)
+    near = num <= _ON_PLANE
+    end = num - denom
+    if np.any(near & (end <= _ON_PLANE)):
         return None
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        t = num / denom
-    entering = denom < 0.0
-    if not entering.any():
+    if not near.any():
+        return 0.0, int(np.argmin(num))
+    # Crossing times only where they lie on the segment: every divisor is away from 0.
+    crossing = near & (num < 0.0)
+    t = np.zeros_like(num)
+    np.divide(num, denom, out=t, where=crossing)
+    plane = int(np.argmax(np.where(near, t, -1.0)))
+    t_enter = float(t[plane])
+    leaving = ~near & (end < 0.0)
+    t_exit = float(np.min(num[leaving] / denom[leaving])) if leaving.any() else math.inf
+    if t_exit <= t_enter + _T_EPS:
         return None
-    te = np.where(entering, t, -np.inf)
-    plane = int(np.argmax(te))
-    t_enter = float(te[plane])
-    leaving = denom > 0.0
-    t_exit = float(t[leaving].min()) if leaving.any() else math.inf
-    if t_enter >= 1.0 or t_exit <= t_enter + _T_EPS or t_exit <= 0.0:
-        return None
-    return max(t_enter, 0.0), plane
+    return t_enter, plane
 
 
 def _first_entry_any(
@@ -286,6 +350,7 @@ def proxy_step_multi(
     dev = device  # the device (fingertip centre) position
     p = _push_out_of(obstacles, proxy_prev, prepared)
     active: list[tuple[int, int]] = []
+    held: list[float] | None = None  # the multipliers, once the proxy rests on the projection
     for _ in range(_MAX_ITER):
         if active:
             target, mu = _project_on_planes(
@@ -306,15 +371,25 @@ def proxy_step_multi(
         if not active:
             break
         # Slid off an obstacle into free space: its planes no longer hold the proxy.
-        touching = {j for j, _ in active if _signed_distance(*obstacles[j], p)[0] <= _FREE_TOL}
+        touching = {j for j, _ in active if _distance(prepared, j, p) <= _FREE_TOL}
         keep = [a for a, m in zip(active, mu, strict=True) if a[0] in touching and m >= 0.0]
         if len(keep) == len(active):
+            held = mu
             break
         active = keep
-    # A plane the device is outside of cannot push the finger.
-    active = [(j, i) for j, i in active if _dot(obstacles[j][0][i], dev) < obstacles[j][1][i]]
-    mu = _multipliers(obstacles, active, p, dev) if active else []
-    return MultiResult(p, active, mu)
+    if held is not None:
+        # The proxy is the projection: proxy - device = sum mu n over the planes that push
+        # (mu > 0), whether or not the device is inside that obstacle (a finger pressed into
+        # the ground that slides into the cube pushes it).
+        if all(m > 0.0 for m in held):
+            return MultiResult(p, active, held)
+        keep = [k for k, m in enumerate(held) if m > 0.0]
+        return MultiResult(p, [active[k] for k in keep], [held[k] for k in keep])
+    # Stopped short of a projection (stuck, or out of moves): a plane the device is outside
+    # of does not push.
+    pushing = [(j, i) for j, i in active if _dot(obstacles[j][0][i], dev) < obstacles[j][1][i]]
+    mu = _multipliers(obstacles, pushing, p, dev) if pushing else []
+    return MultiResult(p, pushing, mu)
 
 
 def _normal(normals: list[Vec], res: MultiResult, dev: Vec) -> Vec:

@@ -8,10 +8,12 @@ running hapticd loads no numpy, pydantic or yaml. The protocol is in
 from __future__ import annotations
 
 import collections
+import contextlib
 import json
 import os
 import select
 import socket
+import stat
 import struct
 import time
 from collections.abc import Iterator, Sequence
@@ -19,6 +21,22 @@ from pathlib import Path
 from typing import Any
 
 from hapticd import protocol as proto
+
+# Where the per-user fallback directory lives (a seam for the tests).
+TMP_DIR = Path("/tmp")
+
+
+class UnsafeSocketDirError(PermissionError):
+    """The control socket's directory is one another user could control."""
+
+
+def _own_socket_dirs(uid: int) -> list[Path]:
+    """The directories hapticd makes for its socket (and so checks): $XDG_RUNTIME_DIR/hapticd
+    and TMP_DIR/hapticd-UID."""
+    dirs = [TMP_DIR / f"hapticd-{uid}"]
+    if os.environ.get("XDG_RUNTIME_DIR"):
+        dirs.append(Path(os.environ["XDG_RUNTIME_DIR"]) / "hapticd")
+    return [Path(os.path.abspath(d)) for d in dirs]
 
 
 def default_socket_path() -> Path:
@@ -32,7 +50,51 @@ def default_socket_path() -> Path:
         return Path(env["RUNTIME_DIRECTORY"].split(":")[0]) / "control.sock"
     if env.get("XDG_RUNTIME_DIR"):
         return Path(env["XDG_RUNTIME_DIR"]) / "hapticd" / "control.sock"
-    return Path(f"/tmp/hapticd-{os.getuid()}") / "control.sock"
+    return TMP_DIR / f"hapticd-{os.getuid()}" / "control.sock"
+
+
+def check_socket_dir(path: str | Path, *, create: bool = False, uid: int | None = None) -> None:
+    """Make sure nobody else controls the directory of the socket ``path``.
+
+    For hapticd's own directories ($XDG_RUNTIME_DIR/hapticd, /tmp/hapticd-UID), as
+    ssh-agent and tmux check theirs: not a symbolic link, a directory, owned by ``uid``
+    (default: this process's), no access for group or others. ``create`` (the daemon)
+    makes it with mode 0700 when absent. Any other directory was chosen by the user
+    (--socket, $HAPTICD_SOCKET, systemd's RuntimeDirectory=) and is only created.
+    Raises UnsafeSocketDirError saying what is wrong and what to do.
+    """
+    uid = os.getuid() if uid is None else uid
+    d = Path(os.path.abspath(Path(path).parent))
+    if d not in _own_socket_dirs(uid):
+        if create:
+            d.mkdir(mode=0o700, parents=True, exist_ok=True)
+        return
+    if create:
+        with contextlib.suppress(FileExistsError):
+            os.mkdir(d, 0o700)  # not its parents: $XDG_RUNTIME_DIR and /tmp must exist
+    try:
+        st = os.lstat(d)
+    except FileNotFoundError:
+        return  # the client's connect() then says no daemon is there
+    fix = (
+        "remove it (after a look at what it is) and start hapticd again, or choose another "
+        "socket with --socket or $HAPTICD_SOCKET"
+    )
+    if stat.S_ISLNK(st.st_mode):
+        problem = f"is a symbolic link (to {os.readlink(d)}), not a directory"
+    elif not stat.S_ISDIR(st.st_mode):
+        problem = "is not a directory"
+    elif st.st_uid != uid:
+        problem = f"belongs to uid {st.st_uid}, not to uid {uid}"
+    elif st.st_mode & 0o077:
+        problem = f"has mode {stat.S_IMODE(st.st_mode):04o}; it must be 0700 (only you)"
+        fix = f"chmod 700 {d}, or remove it"
+    else:
+        return
+    raise UnsafeSocketDirError(
+        f"unsafe socket directory {d}: it {problem}, so another user could control the "
+        f"socket; {fix}"
+    )
 
 
 class NoDaemonError(ConnectionError):
@@ -90,6 +152,7 @@ class ControlClient:
     def __init__(self, path: str | Path | None = None, timeout_s: float = 5.0) -> None:
         self.path = Path(path) if path is not None else default_socket_path()
         self.timeout_s = timeout_s
+        check_socket_dir(self.path)  # never talk through a directory someone else controls
         self.sock = _connect(self.path, timeout_s)
         self._buf = bytearray()
         try:

@@ -94,7 +94,10 @@ class EventRing:
 
     def drain(self) -> tuple[np.ndarray, int]:
         """(the events written since the last drain, in order, as a copy; how many were lost
-        since the last drain, all of them after those events). Consumer side only."""
+        since the last drain, all of them after those events). Consumer side only.
+
+        A loss while this runs (the ring still full) is counted by the next drain, after
+        the events it returns: those may have been made after that loss."""
         # The loss count first: a loss happens only on a full ring, whose head cannot move
         # until tail does, so every loss counted here came after every event copied below.
         lost = self.lost

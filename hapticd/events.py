@@ -78,7 +78,8 @@ EVENTS: tuple[EventKind, ...] = (
     EventKind(
         "events_lost",
         ("count",),
-        "the loop's event ring was full: `count` events up to this tick were not delivered",
+        "the loop's event ring was full: `count` events were dropped, the last on this tick; "
+        "it follows every event made before them",
         source="server",
     ),
 )

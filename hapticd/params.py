@@ -171,6 +171,8 @@ class Param:
                     raise ParamError("bad_value", f"{msg}; finger {i} direction {j} is {d!r}")
                 x, y, z = (_number(v, f"{self.name}[{i}][{j}]") for v in d)
                 n = math.sqrt(x * x + y * y + z * z)
+                if not math.isfinite(n):  # a square overflowed (|x| > 1e154)
+                    n = math.hypot(x, y, z)
                 if n < 1e-9:
                     raise ParamError("bad_value", f"{self.name}[{i}][{j}] is zero")
                 finger.append((x / n, y / n, z / n))
@@ -180,9 +182,16 @@ class Param:
 
 def _number(value: Any, name: str) -> float:
     # JSON true/false decode to bool, a subclass of int: not a number here.
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, int | float):
         raise ParamError("bad_value", f"{name} must be a finite number, got {value!r}")
-    return float(value)
+    try:
+        x = float(value)  # an integer beyond float's range: OverflowError
+    except OverflowError:
+        x = math.inf
+    if not math.isfinite(x):
+        shown = "a huge integer" if isinstance(value, int) else repr(value)
+        raise ParamError("bad_value", f"{name} must be a finite number, got {shown}")
+    return x
 
 
 PARAMS: dict[str, Param] = {

@@ -8,16 +8,29 @@ the file, the dotted key path and what was expected. See docs/profiles.md.
 from __future__ import annotations
 
 import difflib
+import functools
 import math
+import os
+import stat
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 import yaml
+import yaml.composer
+import yaml.constructor
+import yaml.parser
+import yaml.reader
+import yaml.resolver
+import yaml.scanner
+from annotated_types import Ge, Le
 from hapticd_drivers.registry import BACKENDS, REQUIRED, Backend
 from pydantic import (
+    AllowInfNan,
     BaseModel,
     ConfigDict,
     Field,
+    Strict,
+    StringConstraints,
     ValidationError,
     create_model,
     field_validator,
@@ -29,7 +42,27 @@ from hapticd import params
 PROFILE_VERSION = 1
 UNIT_TOL = 1e-3
 
-Vec3 = tuple[float, float, float]
+# Strict scalars: a YAML bool or string is not a number, a float is not an integer, and no
+# number is NaN or infinite. Every number also has a physical range where it is declared.
+Float = Annotated[float, Strict(), AllowInfNan(False)]
+Int = Annotated[int, Strict()]
+Bool = Annotated[bool, Strict()]
+# Strings: bounded, so no message echoes a megabyte; a path at most as long as Linux's.
+Name = Annotated[str, Strict(), StringConstraints(min_length=1, max_length=64)]
+PathText = Annotated[str, Strict(), StringConstraints(min_length=1, max_length=4096)]
+Vec3 = tuple[Float, Float, Float]
+# A position in the workspace, m; an angle of at most one turn either way, rad; an
+# acceleration of at most about 10 g, m/s^2.
+Position = tuple[
+    Annotated[Float, Ge(-1.0), Le(1.0)],
+    Annotated[Float, Ge(-1.0), Le(1.0)],
+    Annotated[Float, Ge(-1.0), Le(1.0)],
+]
+_Angle = Annotated[Float, Ge(-math.tau), Le(math.tau)]
+Angles = tuple[_Angle, _Angle, _Angle]
+_Accel = Annotated[Float, Ge(-100.0), Le(100.0)]
+Acceleration = tuple[_Accel, _Accel, _Accel]
+_SCALAR_TYPES: dict[type, Any] = {float: Float, int: Int, bool: Bool, str: PathText}
 
 
 class ProfileError(ValueError):
@@ -63,7 +96,8 @@ def _device_model(b: Backend) -> type[_Strict]:
     """The profile model of one backend's ``device`` section, built from its registry keys."""
     fields: dict[str, Any] = {"backend": (Literal[b.name], ...)}  # type: ignore[valid-type]
     for k in b.keys:
-        kind: Any = k.type | None if k.optional else k.type
+        strict = _SCALAR_TYPES[k.type]
+        kind: Any = strict | None if k.optional else strict
         bounds = {n: v for n, v in (("gt", k.gt), ("ge", k.ge), ("le", k.le)) if v is not None}
         default = ... if k.default is REQUIRED else k.default
         fields[k.name] = (kind, Field(default=default, description=k.doc, **bounds))
@@ -82,7 +116,7 @@ DeviceConfig = Annotated[
 
 
 def _unit(v: Vec3, what: str) -> Vec3:
-    n = math.sqrt(sum(c * c for c in v))
+    n = math.sqrt(sum(c * c for c in v))  # inf for huge components: not a unit vector
     if not math.isfinite(n) or abs(n - 1.0) > UNIT_TOL:
         raise ValueError(
             f"{what} must be a unit vector (norm 1 within {UNIT_TOL}), got norm {n:.6g}"
@@ -90,17 +124,14 @@ def _unit(v: Vec3, what: str) -> Vec3:
     return (v[0] / n, v[1] / n, v[2] / n)
 
 
-BUTTON_ROLES = ("deadman", "response")
-
-
 class DeadmanButtonConfig(_Strict):
     """A deadman button: the finger gets force only while it is held."""
 
-    button: int = Field(
+    button: Int = Field(
         ge=0, le=31, description="the button's index on the finger's device (bit of buttons)"
     )
     role: Literal["deadman"]
-    ramp_s: float = Field(
+    ramp_s: Float = Field(
         default=0.25,
         ge=0,
         le=10,
@@ -113,14 +144,12 @@ class ResponseButtonConfig(_Strict):
     """A response key for experiments: its presses are button_down events tagged
     ``response`` (docs/control.md)."""
 
-    button: int = Field(
+    button: Int = Field(
         ge=0, le=31, description="the button's index on the finger's device (bit of buttons)"
     )
     role: Literal["response"]
-    label: str | None = Field(
+    label: Name | None = Field(
         default=None,
-        min_length=1,
-        max_length=64,
         description="the tag its events carry as response; default FINGER-BUTTON, e.g. thumb-1",
     )
 
@@ -132,8 +161,8 @@ class FingerConfig(_Strict):
     """One fingertip: its thimble sphere, its device, its actuated force directions and what
     its device's buttons do."""
 
-    name: str = Field(min_length=1)
-    radius_m: float = Field(default=0.008, gt=0, le=0.05, description="fingertip sphere radius, m")
+    name: Name
+    radius_m: Float = Field(default=0.008, gt=0, le=0.05, description="fingertip sphere radius, m")
     device: DeviceConfig
     actuated_directions: tuple[Vec3, ...] = param_field(
         "actuated_directions",
@@ -182,9 +211,9 @@ class FingerConfig(_Strict):
 class FrictionConfig(_Strict):
     """Coulomb friction coefficients (dimensionless); 0 and 0 turn friction off."""
 
-    static: float = param_field("friction", default=0.0, description="static coefficient")
-    dynamic: float = param_field("friction", default=0.0, description="dynamic coefficient")
-    torsion_m: float = Field(
+    static: Float = param_field("friction", default=0.0, description="static coefficient")
+    dynamic: Float = param_field("friction", default=0.0, description="dynamic coefficient")
+    torsion_m: Float = Field(
         default=0.0,
         ge=0,
         le=0.05,
@@ -208,19 +237,22 @@ class ObjectConfig(_Strict):
 
     shape: Literal["box", "mesh"] = "box"
     size_m: Vec3 | None = Field(default=None, description="box edge lengths along x, y, z, m")
-    mesh: str | None = Field(
+    mesh: PathText | None = Field(
         default=None,
         description="STL/OBJ/PLY file (relative to the profile); its convex hull is used",
     )
-    mesh_scale: float = Field(default=1.0, gt=0, description="factor from mesh units to m")
-    position_m: Vec3 = (0.0, 0.0, 0.0)
-    orientation_rpy_rad: Vec3 = Field(
-        default=(0.0, 0.0, 0.0), description="roll, pitch, yaw (x, y, z fixed axes), rad"
+    mesh_scale: Float = Field(default=1.0, gt=0, le=1000, description="factor from mesh units to m")
+    position_m: Position = Field(
+        default=(0.0, 0.0, 0.0), description="centre of mass, each coordinate in [-1, 1] m"
     )
-    fixed: bool = True
-    mass_kg: float | None = param_field("mass_kg", default=None, description="needed when free, kg")
-    stiffness_n_per_m: float = param_field("stiffness_n_per_m")
-    damping_n_s_per_m: float = param_field("damping_n_s_per_m", default=0.0)
+    orientation_rpy_rad: Angles = Field(
+        default=(0.0, 0.0, 0.0),
+        description="roll, pitch, yaw (x, y, z fixed axes), each in [-2 pi, 2 pi] rad",
+    )
+    fixed: Bool = True
+    mass_kg: Float | None = param_field("mass_kg", default=None, description="needed when free, kg")
+    stiffness_n_per_m: Float = param_field("stiffness_n_per_m")
+    damping_n_s_per_m: Float = param_field("damping_n_s_per_m", default=0.0)
     friction: FrictionConfig = FrictionConfig()
 
     @field_validator("size_m")
@@ -244,21 +276,21 @@ class ObjectConfig(_Strict):
 class SurfaceConfig(_Strict):
     """Material of the ground or the walls."""
 
-    stiffness_n_per_m: float = Field(default=2000.0, gt=0, le=1e5)
-    damping_n_s_per_m: float = Field(default=5.0, ge=0, le=1e3)
+    stiffness_n_per_m: Float = Field(default=2000.0, gt=0, le=1e5)
+    damping_n_s_per_m: Float = Field(default=5.0, ge=0, le=1e3)
     friction: FrictionConfig = FrictionConfig(static=0.6, dynamic=0.5)
 
 
 class GroundConfig(SurfaceConfig):
     """A horizontal ground plane: nothing goes below height_m."""
 
-    height_m: float = Field(ge=-1, le=1, description="height of the ground plane (world z), m")
+    height_m: Float = Field(ge=-1, le=1, description="height of the ground plane (world z), m")
 
 
 class WallsConfig(SurfaceConfig):
     """Workspace walls: vertical planes bounding |x| and |y| around the origin."""
 
-    half_width_m: tuple[float, float] = Field(
+    half_width_m: tuple[Float, Float] = Field(
         description="wall distance from the origin in x, y, m"
     )
 
@@ -272,8 +304,10 @@ class WallsConfig(SurfaceConfig):
 
 class SceneConfig(_Strict):
     object: ObjectConfig
-    gravity_m_s2: Vec3 | None = Field(
-        default=None, description="gravity acceleration, m/s^2 (e.g. [0, 0, -9.81]); none: off"
+    gravity_m_s2: Acceleration | None = Field(
+        default=None,
+        description="gravity acceleration, m/s^2, each component in [-100, 100] "
+        "(e.g. [0, 0, -9.81]); none: off",
     )
     ground: GroundConfig | None = None
     walls: WallsConfig | None = None
@@ -283,12 +317,13 @@ class SceneConfig(_Strict):
         "object's mass, the contact stiffness and damping",
     )
 
-    @field_validator("substeps")
+    @field_validator("substeps", mode="before")
     @classmethod
-    def _substeps(cls, v: int | str) -> int | str:
-        if v != "auto" and not (1 <= int(v) <= 64):
-            raise ValueError(f"substeps must be 1-64 or auto, got {v}")
-        return v
+    def _substeps(cls, v: object) -> object:
+        # Checked before the union, so a bad value gets one message, not one per member.
+        if v == "auto" or (type(v) is int and 1 <= v <= 64):
+            return v
+        raise ValueError("substeps must be 1-64 or auto (an integer, or the word auto)")
 
 
 BoxConfig = ObjectConfig  # the name used before meshes and free objects
@@ -298,25 +333,28 @@ class RealtimeConfig(_Strict):
     """Real-time settings for the servo thread (docs/daemon.md); each falls back with a
     message when not permitted, unless ``required``."""
 
-    enabled: bool = Field(default=True, description="try SCHED_FIFO, mlockall and timer slack")
-    priority: int = Field(default=80, ge=1, le=99, description="SCHED_FIFO priority")
-    cpu: int | None = Field(default=None, ge=0, description="pin the servo thread to this CPU")
-    lock_memory: bool = Field(default=True, description="mlockall: no page faults in the loop")
-    timer_slack_ns: int = Field(default=1, ge=1, le=50_000_000, description="timer slack, ns")
-    required: bool = Field(
+    enabled: Bool = Field(default=True, description="try SCHED_FIFO, mlockall and timer slack")
+    priority: Int = Field(default=80, ge=1, le=99, description="SCHED_FIFO priority")
+    cpu: Int | None = Field(
+        default=None, ge=0, le=4095, description="pin the servo thread to this CPU"
+    )
+    lock_memory: Bool = Field(default=True, description="mlockall: no page faults in the loop")
+    timer_slack_ns: Int = Field(default=1, ge=1, le=50_000_000, description="timer slack, ns")
+    required: Bool = Field(
         default=False, description="refuse to run when a setting cannot be applied"
     )
 
 
 class LoopConfig(_Strict):
-    rate_hz: float = Field(default=1000.0, ge=100.0, le=8000.0, description="servo rate, Hz")
-    max_consecutive_overruns: int = Field(
+    rate_hz: Float = Field(default=1000.0, ge=100.0, le=8000.0, description="servo rate, Hz")
+    max_consecutive_overruns: Int = Field(
         default=200,
         ge=0,
+        le=1_000_000,
         description="this many periods in a row longer than 1.1x nominal latch a fault; 0: off",
     )
     realtime: RealtimeConfig = RealtimeConfig()
-    gil_switch_interval_s: float = Field(
+    gil_switch_interval_s: Float = Field(
         default=5e-4,
         ge=1e-6,
         le=0.1,
@@ -328,16 +366,16 @@ class LoopConfig(_Strict):
 class RobustnessConfig(_Strict):
     """Singularity-robust allocation (docs/allocation.md)."""
 
-    eps: float = Field(
+    eps: Float = Field(
         default=0.2, gt=0, lt=1, description="singular-value threshold below which gains are damped"
     )
-    min_separation_m: float = Field(
+    min_separation_m: Float = Field(
         default=0.005,
         gt=0,
         lt=1,
         description="contacts closer than this blend internal subspaces, m",
     )
-    contact_onset_n: float = Field(
+    contact_onset_n: Float = Field(
         default=0.05, ge=0, lt=10, description="a contact weaker than this joins gradually, N"
     )
 
@@ -345,9 +383,9 @@ class RobustnessConfig(_Strict):
 class AdaptiveConfig(_Strict):
     """The task-adaptive allocator's switch from internal to external forces."""
 
-    ratio_low: float = Field(default=0.2, ge=0, lt=1, description="external ratio where it starts")
-    ratio_high: float = Field(default=0.6, gt=0, le=1, description="external ratio where it ends")
-    time_constant_s: float = Field(default=0.1, ge=0, le=10, description="lag of the switch, s")
+    ratio_low: Float = Field(default=0.2, ge=0, lt=1, description="external ratio where it starts")
+    ratio_high: Float = Field(default=0.6, gt=0, le=1, description="external ratio where it ends")
+    time_constant_s: Float = Field(default=0.1, ge=0, le=10, description="lag of the switch, s")
 
     @model_validator(mode="after")
     def _ordered(self) -> AdaptiveConfig:
@@ -399,25 +437,28 @@ class RecordingConfig(_Strict):
 
 
 class SafetyConfig(_Strict):
-    max_force_n: float = param_field(
+    max_force_n: Float = param_field(
         "force_limit_n",
         description="force limit per finger, N (the device's own limit also applies)",
     )
-    ramp_s: float = Field(default=0.5, ge=0, le=10, description="force ramp after enabling, s")
-    stop_ramp_s: float = Field(
+    ramp_s: Float = Field(default=0.5, ge=0, le=10, description="force ramp after enabling, s")
+    stop_ramp_s: Float = Field(
         default=0.05, ge=0, le=2, description="forces ramp to zero over this time on a stop, s"
     )
-    max_force_rate_n_per_s: float | None = Field(
-        default=5000.0, gt=0, description="largest change of a finger's force, N/s; none: off"
+    max_force_rate_n_per_s: Float | None = Field(
+        default=5000.0,
+        gt=0,
+        le=1e6,
+        description="largest change of a finger's force, N/s; none: off",
     )
-    workspace_center_m: Vec3 = (0.0, 0.0, 0.0)
-    workspace_radius_m: float | None = Field(
+    workspace_center_m: Position = (0.0, 0.0, 0.0)
+    workspace_radius_m: Float | None = Field(
         default=None, gt=0, le=2, description="fingers beyond this sphere latch a fault, m"
     )
-    watchdog_s: float | None = Field(
+    watchdog_s: Float | None = Field(
         default=0.1, gt=0, le=10, description="longest wall time between ticks, s; none: off"
     )
-    reconnect: bool = Field(
+    reconnect: Bool = Field(
         default=False,
         description="on a device error keep running (forces off) and reopen the device when "
         "it returns; false: end the run",
@@ -428,8 +469,8 @@ class Profile(_Strict):
     """A complete hapticd profile (see docs/profiles.md)."""
 
     version: Literal[1] = 1
-    name: str = Field(min_length=1)
-    description: str = ""
+    name: Annotated[str, Strict(), StringConstraints(min_length=1, max_length=200)]
+    description: Annotated[str, Strict(), StringConstraints(max_length=10_000)] = ""
     loop: LoopConfig = LoopConfig()
     fingers: tuple[FingerConfig, ...] = Field(min_length=1, max_length=5)
     rendering: RenderingConfig = RenderingConfig()
@@ -438,6 +479,13 @@ class Profile(_Strict):
     recording: RecordingConfig = RecordingConfig()
 
     source: Path | None = Field(default=None, exclude=True, description="file it was loaded from")
+
+    @field_validator("version", mode="before")
+    @classmethod
+    def _version(cls, v: object) -> object:
+        if type(v) is not int:  # true == 1, but a bool is no version number
+            raise ValueError(f"version must be the number {PROFILE_VERSION}")
+        return v
 
     @model_validator(mode="after")
     def _consistent(self) -> Profile:
@@ -461,27 +509,184 @@ class Profile(_Strict):
         return self.source.parent / p
 
 
-def _format_loc(loc: tuple[int | str, ...], data: object) -> str:
-    """Dotted key path; list indices become the item's name where it has one."""
+# -- reading a profile: YAML without aliases or duplicate keys, within bounds -------------
+
+# A profile is a few kilobytes and a few hundred values; these bounds are far above any
+# real one and keep a hostile file's parsing, validation and error message short.
+MAX_BYTES = 256 << 10
+MAX_NODES = 1_000
+MAX_DEPTH = 64
+MAX_ERRORS_SHOWN = 20
+_SHOWN_CHARS = 60
+
+Path_ = tuple[int | str, ...]
+
+
+class _Refused(yaml.YAMLError):
+    """A YAML construct a profile may not use; ``line`` is 1-based."""
+
+    def __init__(self, line: int, message: str) -> None:
+        super().__init__(message)
+        self.line = line
+        self.message = message
+
+
+if yaml.__with_libyaml__:
+    # YAML events from libyaml: about ten times faster than PyYAML's own parser.
+    from yaml.cyaml import CParser as _Events
+else:  # pragma: no cover - PyYAML built without libyaml
+
+    class _Events(yaml.reader.Reader, yaml.scanner.Scanner, yaml.parser.Parser):  # type: ignore[no-redef]
+        """YAML events from PyYAML's pure-Python parser."""
+
+        def __init__(self, stream: str) -> None:
+            yaml.reader.Reader.__init__(self, stream)
+            yaml.scanner.Scanner.__init__(self)
+            yaml.parser.Parser.__init__(self)
+
+
+class _ProfileLoader(
+    yaml.composer.Composer, _Events, yaml.constructor.SafeConstructor, yaml.resolver.Resolver
+):
+    """A safe loader (PyYAML's composer, safe constructor and resolver on YAML events)
+    that refuses anchors and aliases (an alias bomb expands to billions of values), merge
+    keys and duplicate keys, and bounds nesting and size."""
+
+    def __init__(self, stream: str) -> None:
+        _Events.__init__(self, stream)
+        yaml.composer.Composer.__init__(self)
+        yaml.constructor.SafeConstructor.__init__(self)
+        yaml.resolver.Resolver.__init__(self)
+        self._nodes = 0
+        self._depth = 0
+
+    def compose_node(self, parent: yaml.Node | None, index: object) -> yaml.Node:
+        event = self.peek_event()
+        line = event.start_mark.line + 1
+        if isinstance(event, yaml.AliasEvent) or getattr(event, "anchor", None) is not None:
+            raise _Refused(
+                line,
+                "anchors and aliases (&name, *name) are not allowed in a profile; "
+                "write the value out in full",
+            )
+        self._nodes += 1
+        if self._nodes > MAX_NODES:
+            raise _Refused(line, f"more than {MAX_NODES} values; a profile is far smaller")
+        self._depth += 1
+        try:
+            if self._depth > MAX_DEPTH:
+                raise _Refused(line, f"values nested more than {MAX_DEPTH} levels deep")
+            return super().compose_node(parent, index)  # type: ignore[misc]
+        finally:
+            self._depth -= 1
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[object, int] = {}
+        for key_node, _ in node.value:
+            line = key_node.start_mark.line + 1
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                raise _Refused(line, "merge keys (<<) are not allowed in a profile")
+            key = self.construct_object(key_node, deep=True)
+            try:
+                first = seen.get(key)
+            except TypeError:
+                raise _Refused(line, "a key must be a name, not a list or mapping") from None
+            if first is not None:
+                raise _Refused(
+                    line, f"duplicate key {key!r} (first at line {first}); give each key once"
+                )
+            seen[key] = line
+        return super().construct_mapping(node, deep=deep)
+
+    def construct_object(self, node: yaml.Node, deep: bool = False) -> Any:
+        try:
+            return super().construct_object(node, deep=deep)
+        except yaml.YAMLError:
+            raise
+        except (ValueError, OverflowError, TypeError) as exc:
+            # e.g. an integer of more digits than Python converts.
+            raise _Refused(node.start_mark.line + 1, f"cannot read this value: {exc}") from None
+
+
+def _line_map(node: yaml.Node) -> dict[Path_, int]:
+    """The 1-based line of every key and list item of a document, by key path."""
+    lines: dict[Path_, int] = {(): node.start_mark.line + 1}
+    todo: list[tuple[Path_, yaml.Node]] = [((), node)]
+    while todo:
+        path, n = todo.pop()
+        if isinstance(n, yaml.MappingNode):
+            for k, v in n.value:
+                if isinstance(k, yaml.ScalarNode):
+                    sub = (*path, k.value)
+                    lines[sub] = k.start_mark.line + 1
+                    todo.append((sub, v))
+        elif isinstance(n, yaml.SequenceNode):
+            for i, v in enumerate(n.value):
+                lines[(*path, i)] = v.start_mark.line + 1
+                todo.append(((*path, i), v))
+    return lines
+
+
+def _read_yaml(raw: bytes, p: Path) -> tuple[object, dict[Path_, int]]:
+    """The document in ``raw`` and the line of each key path (ProfileError naming ``p``)."""
+    if len(raw) > MAX_BYTES:
+        raise ProfileError(
+            f"{p}: larger than {MAX_BYTES // 1024} KiB; a profile is a few kilobytes "
+            "(is this the right file?)"
+        )
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise ProfileError(
+            f"{p}: not UTF-8 text: byte 0x{raw[exc.start]:02x} at line {line}; save the "
+            "profile as UTF-8"
+        ) from None
+    loader = _ProfileLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None, {}
+        return loader.construct_document(node), _line_map(node)
+    except _Refused as exc:
+        raise ProfileError(f"{p}: line {exc.line}: {exc.message}") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ProfileError(f"{p}: not valid YAML{where}: {problem}") from None
+    finally:
+        loader.dispose()
+
+
+def _format_loc(loc: tuple[int | str, ...], data: object) -> tuple[str, Path_]:
+    """The dotted key path of pydantic's ``loc`` in ``data`` (list indices with the item's
+    name where it has one), and that path as keys and indices. Pydantic's own labels (a
+    union member such as ``int``, a discriminator tag such as ``replay``) are left out:
+    they are not keys the user wrote."""
     parts: list[str] = []
-    node = data
-    for item in loc:
-        if isinstance(item, int):
-            name = node[item].get("name") if isinstance(node, list) and item < len(node) else None
-            parts.append(f"[{item}]" if name is None else f"[{item}:{name}]")
-            node = node[item] if isinstance(node, list) and item < len(node) else None
-        else:
-            if isinstance(node, dict) and (
-                (item in BACKENDS and node.get("backend") == item)
-                or (item in BUTTON_ROLES and node.get("role") == item)
-            ):
-                continue  # pydantic's discriminator tag, not a key the user wrote
+    path: list[int | str] = []
+    node: object = data
+    known = _all_keys()
+    for n, item in enumerate(loc):
+        last = n == len(loc) - 1
+        if isinstance(item, int) and isinstance(node, list | tuple):
+            child = node[item] if 0 <= item < len(node) else None
+            name = child.get("name") if isinstance(child, dict) else None
+            shown = name if isinstance(name, str) and 0 < len(name) <= 40 else None
+            parts.append(f"[{item}]" if shown is None else f"[{item}:{shown}]")
+            path.append(item)
+            node = child
+        elif isinstance(node, dict) and (item in node or (last and item in known)):
             parts.append(("." if parts else "") + str(item))
-            node = node.get(item) if isinstance(node, dict) else None
-    return "".join(parts) or "(top level)"
+            path.append(item)
+            node = node.get(item)
+        # else: pydantic's label, not the user's key
+    return "".join(parts) or "(top level)", tuple(path)
 
 
-def _all_keys() -> set[str]:
+@functools.cache
+def _all_keys() -> frozenset[str]:
     keys: set[str] = set()
     todo: list[type[BaseModel]] = [Profile]
     while todo:
@@ -491,7 +696,7 @@ def _all_keys() -> set[str]:
             for sub in _models_in(field.annotation):
                 if sub not in todo:
                     todo.append(sub)
-    return keys
+    return frozenset(keys)
 
 
 def _models_in(annotation: object) -> list[type[BaseModel]]:
@@ -514,55 +719,109 @@ def _explain(err: dict) -> str:
         hint = f"; did you mean {close[0]!r}?" if close else ""
         return f"unknown key{hint} (the keys are listed in docs/profiles.md)"
     if kind == "missing":
+        if isinstance(err["loc"][-1], int):
+            return f"too few items (item {err['loc'][-1]} is missing)"
         return "required key is missing"
-    msg = str(err["msg"])
-    return msg.removeprefix("Value error, ")
+    if kind == "tuple_type":
+        return "Input should be a list"  # pydantic's tuple is a YAML list
+    if kind == "union_tag_invalid":  # pydantic's own message repeats the whole tag
+        got = err["input"].get("backend") if isinstance(err["input"], dict) else None
+        return f"unknown backend {_shown(got)}; the backends: {', '.join(BACKENDS)}"
+    msg = str(err["msg"]).removeprefix("Value error, ")
+    return msg if len(msg) <= 300 else msg[:297] + "..."
 
 
-def parse_profile(data: object, source: str | Path = "<profile>") -> Profile:
-    """Validate an already-parsed YAML document into a Profile."""
+def _shown(value: object) -> str:
+    """A short repr of a rejected value (a long one is cut)."""
+    text = repr(value) if not isinstance(value, int) or abs(value) < 10**40 else "a huge integer"
+    return text if len(text) <= _SHOWN_CHARS else text[: _SHOWN_CHARS - 3] + "..."
+
+
+def _line_note(path: Path_, lines: dict[Path_, int], missing: bool) -> str:
+    """`` (line N)`` for the key at ``path``; for a missing key, the mapping that lacks it."""
+    if missing:
+        line = lines.get(path[:-1])
+        return f" (in the mapping at line {line})" if line is not None and path[:-1] else ""
+    for n in range(len(path), 0, -1):
+        if path[:n] in lines:
+            return f" (line {lines[path[:n]]})"
+    return ""
+
+
+def parse_profile(
+    data: object, source: str | Path = "<profile>", lines: dict[Path_, int] | None = None
+) -> Profile:
+    """Validate an already-parsed YAML document into a Profile; ``lines`` (from the
+    loader) gives each key path's line for the messages."""
     if not isinstance(data, dict):
         raise ProfileError(f"{source}: expected a mapping of keys at the top level")
+    lines = lines or {}
+    if "source" in data:  # the model's record of the file, not a key a profile sets
+        raise ProfileError(
+            f"{source}: 1 error(s) in profile\n  source: unknown key (the keys are listed in "
+            f"docs/profiles.md){_line_note(('source',), lines, False)}"
+        )
     try:
         prof = Profile.model_validate(data)
     except ValidationError as exc:
-        errors = exc.errors()
-        locs = [tuple(e["loc"]) for e in errors]
-        # A list whose items failed also reports "too short"; that one only confuses.
-        errors = [
-            e
-            for e in errors
-            if not (
-                e["type"] == "too_short"
-                and any(
-                    len(o) > len(e["loc"]) and o[: len(e["loc"])] == tuple(e["loc"]) for o in locs
-                )
-            )
-        ]
-        lines = [f"{source}: {len(errors)} error(s) in profile"]
-        for err in errors:
-            where = _format_loc(tuple(err["loc"]), data)
-            got = err.get("input")
-            shown = ""
-            if err["type"] != "missing" and not isinstance(got, dict | list):
-                shown = f" (got {got!r})"
-            lines.append(f"  {where}: {_explain(err)}{shown}")
-        raise ProfileError("\n".join(lines)) from None
+        raise ProfileError(_format_errors(exc, data, source, lines)) from None
     return prof.model_copy(update={"source": Path(source)}) if source else prof
 
 
+def _format_errors(
+    exc: ValidationError, data: object, source: str | Path, lines: dict[Path_, int]
+) -> str:
+    """One line per error: key path, what was expected, the value given, the line."""
+    errors = exc.errors(include_url=False, include_context=False)
+    locs = [tuple(e["loc"]) for e in errors]
+    # A list whose items failed also reports "too short"; that one only confuses.
+    errors = [
+        e
+        for e in errors
+        if not (
+            e["type"] == "too_short"
+            and any(len(o) > len(e["loc"]) and o[: len(e["loc"])] == tuple(e["loc"]) for o in locs)
+        )
+    ]
+    # One entry per key: a union's members each report their own error for the same key.
+    by_key: dict[str, list[str]] = {}
+    for err in errors:
+        loc = tuple(err["loc"])
+        missing = err["type"] == "missing"
+        if missing and loc and isinstance(loc[-1], int):
+            loc = loc[:-1]  # a tuple too short: reported at the list, not its absent item
+            missing = False
+        where, path = _format_loc(loc, data)
+        got = err.get("input")
+        shown = "" if missing or isinstance(got, dict | list) else f" (got {_shown(got)})"
+        text = f"{_explain(err)}{shown}{_line_note(path, lines, missing)}"
+        msgs = by_key.setdefault(where, [])
+        if text not in msgs:
+            msgs.append(text)
+    out = [f"{source}: {len(by_key)} error(s) in profile"]
+    for where, msgs in list(by_key.items())[:MAX_ERRORS_SHOWN]:
+        out.append(f"  {where}: {'; or '.join(msgs)}")
+    if len(by_key) > MAX_ERRORS_SHOWN:
+        out.append(f"  ... and {len(by_key) - MAX_ERRORS_SHOWN} more")
+    return "\n".join(out)
+
+
 def load_profile(path: str | Path) -> Profile:
-    """Read and validate the YAML profile at ``path``."""
+    """Read and validate the YAML profile at ``path`` (ProfileError naming the file, the
+    key, its line and what was expected)."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        # Non-blocking: a FIFO or device named as a profile must not hang a reload.
+        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise ProfileError(f"{p}: cannot read profile: not a regular file")
+            raw = f.read(MAX_BYTES + 1)  # a larger file is refused unread
     except OSError as exc:
         raise ProfileError(f"{p}: cannot read profile: {exc.strerror or exc}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise ProfileError(f"{p}: not valid YAML{where}: {problem}") from None
-    return parse_profile(data, p.resolve())
+    except ProfileError:
+        raise
+    except ValueError as exc:  # e.g. a NUL byte in the path
+        raise ProfileError(f"{p!r}: cannot read profile: {exc}") from None
+    data, lines = _read_yaml(raw, p)
+    return parse_profile(data, p.resolve(), lines)

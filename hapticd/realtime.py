@@ -83,9 +83,10 @@ def apply(settings: RealtimeSettings) -> RealtimeReport:
         try:
             os.sched_setaffinity(0, {int(settings.cpu)})
             rep.cpu = int(settings.cpu)
-        except OSError as exc:
+        except (OSError, OverflowError) as exc:  # OverflowError: beyond a C long
             have = sorted(os.sched_getaffinity(0))
-            rep.problems.append(f"cpu affinity {settings.cpu}: {exc.strerror}; available: {have}")
+            why = getattr(exc, "strerror", None) or str(exc)
+            rep.problems.append(f"cpu affinity {settings.cpu}: {why}; available: {have}")
     if settings.lock_memory:
         if libc is None:
             rep.problems.append("mlockall: no C library found")

@@ -194,9 +194,12 @@ class ServoLoop:
         """Set a parameter now (at a tick boundary); ValueError changes nothing."""
         self._owner(name).set_param(name, value)
 
-    def reload(self, renderer: Renderer, safety: SafetyChain, t: float) -> None:
+    def reload(
+        self, renderer: Renderer, safety: SafetyChain, t: float, frame: Frame | None = None
+    ) -> None:
         """Switch to another renderer and safety chain; forces ramp up again, proxies start
-        anew. A latched fault stays latched (``enable`` clears it)."""
+        anew. A latched fault stays latched (``enable`` clears it). ``frame``: a fresh frame
+        for the new layout, built off the loop (else built here)."""
         if self.recorder is not None and (
             renderer.actuation.n_actuators != self.renderer.actuation.n_actuators
         ):
@@ -207,7 +210,10 @@ class ServoLoop:
         # A fresh frame: nothing the old renderer's stages wrote may linger; the devices'
         # last state carries over (a lost device keeps its last position).
         old_frame = self.frame
-        self.frame = Frame(old_frame.n_fingers, renderer.actuation.n_actuators)
+        n_act = renderer.actuation.n_actuators
+        if frame is None or frame.n_fingers != old_frame.n_fingers or frame.n_actuators != n_act:
+            frame = Frame(old_frame.n_fingers, n_act)
+        self.frame = frame
         for name in ("device_pos", "device_vel", "buttons"):
             self.frame.get(name)[...] = old_frame.get(name)
         old = self.safety
@@ -326,34 +332,39 @@ class ServoLoop:
     def run(self) -> LoopStats:
         """Open and enable the devices, run until a stop condition, then zero and close."""
         try:
-            self.bank.open()
-            self.safety.start(0.0)
+            self.bank.open()  # closes what it opened if it fails
         except Exception as exc:
             self.safety.trip(0, 0.0, f"device setup failed: {exc}", "setup")
             self._note_fault(0, 0.0)
             self.end_reason = "fault"
             return self.stats
-        if self.realtime_settings is not None:
-            try:
-                self.rt_report = realtime.apply(self.realtime_settings)
-            except realtime.RealtimeError as exc:
-                self.safety.trip(0, 0.0, str(exc), "realtime")
-                self._note_fault(0, 0.0)
-                self.end_reason = "fault"
-                self._log_fault()
-                self._shut_down()
-                return self.stats
-            for problem in self.rt_report.problems:
-                log.warning("real time: %s", problem)
-        gc.collect()
-        gc.freeze()
         gc_was_enabled = gc.isenabled()
-        gc.disable()
         old_switch = sys.getswitchinterval()
-        if self.switch_interval_s is not None and self.paced:
-            sys.setswitchinterval(self.switch_interval_s)
-        self.running = True
         try:
+            # From here on every way out, an exception included, passes the finally below.
+            self.safety.start(0.0)
+            if self.realtime_settings is not None:
+                try:
+                    self.rt_report = realtime.apply(self.realtime_settings)
+                except Exception as exc:  # RealtimeError, or a setting the OS cannot take
+                    why = (
+                        str(exc)
+                        if isinstance(exc, realtime.RealtimeError)
+                        else (f"real time settings failed: {type(exc).__name__}: {exc}")
+                    )
+                    self.safety.trip(0, 0.0, why, "realtime")
+                    self._note_fault(0, 0.0)
+                    self.end_reason = "fault"
+                    self._log_fault()
+                    return self.stats
+                for problem in self.rt_report.problems:
+                    log.warning("real time: %s", problem)
+            gc.collect()
+            gc.freeze()
+            gc.disable()
+            if self.switch_interval_s is not None and self.paced:
+                sys.setswitchinterval(self.switch_interval_s)
+            self.running = True
             self._loop()
         finally:
             self.running = False
@@ -371,10 +382,11 @@ class ServoLoop:
                 except Exception as exc:
                     errors.append(f"restoring real-time settings: {exc}")
             if errors and self.safety.fault is None:
-                self.safety.trip(
-                    self.stats.ticks, self._t, "shutdown: " + "; ".join(errors), "shutdown"
-                )
-                self._note_fault(self.stats.ticks, self._t)
+                with contextlib.suppress(Exception):
+                    self.safety.trip(
+                        self.stats.ticks, self._t, "shutdown: " + "; ".join(errors), "shutdown"
+                    )
+                    self._note_fault(self.stats.ticks, self._t)
             if gc_was_enabled:
                 gc.enable()
             gc.unfreeze()

@@ -132,22 +132,7 @@ def test_a_literally_rotated_wall_gives_the_same_matrices(deg):
     _close(lin["pinv"].K_rendered, examples.wall_rendered(a, 60.0))
 
 
-@pytest.mark.parametrize(
-    "deg",
-    [
-        30.0,
-        pytest.param(
-            60.0,
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="frictionless contact on a rotated face drags the proxy tangentially "
-                "while the finger slides inside (the contact fix in progress), so the full force "
-                "along the loop is not normal and does work; the axis-aligned wall with a tilted "
-                "actuator above is exact",
-            ),
-        ),
-    ],
-)
+@pytest.mark.parametrize("deg", [30.0, 60.0])
 def test_a_literally_rotated_wall_gives_the_seeds_loop_work(deg):
     a = math.radians(deg)
     qs = examples.tilted_wall(a).triangle_q(0.002)

@@ -4,8 +4,10 @@ stopped by signals, reloaded by SIGHUP, killed with -9 while recording."""
 from __future__ import annotations
 
 import contextlib
+import copy
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -13,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from hapticd import recording
 from hapticd.allocation import METHODS
@@ -249,3 +252,70 @@ def test_realtime_is_applied_or_its_absence_explained(tmp_path):
     else:
         assert rt["fifo_priority"] > 0 or any("SCHED_FIFO" in p for p in rt["problems"])
         assert all(p in err for p in rt["problems"])
+
+
+@pytest.mark.timing("counts the control thread's watchdog pings over 1 s")
+def test_a_rejected_sighup_leaves_the_control_thread_serving_and_a_later_reload_works(
+    tmp_path, grasp_data, write_profile
+):
+    """Profiles that once killed the control thread (an item of the wrong type in a
+    list, 5,000 nested brackets) or froze the daemon (an alias bomb): each reload is
+    rejected, status still answers, watchdog pings go on, and a valid profile then
+    reloads. (timing: it counts the control thread's watchdog pings over 1 s.)"""
+
+    def dump(change) -> str:
+        data = copy.deepcopy(grasp_data)
+        change(data)
+        return yaml.safe_dump(data, sort_keys=False)
+
+    path = write_profile(grasp_data)
+    good = path.read_text()
+    bomb = "lol0: &l0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n" + "".join(
+        f"lol{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 9)}]\n" for i in range(1, 9)
+    )
+    start, end = good.index("fingers:"), good.index("rendering:")
+    hostile = {
+        "wrong item": dump(lambda d: d["fingers"][0].update(actuated_directions=[[1, 0]])),
+        "deep nesting": dump(lambda d: d["scene"]["object"].update(size_m="DEEP")).replace(
+            "DEEP", "[" * 5000 + "]" * 5000
+        ),
+        "alias bomb": bomb + good[:start] + "fingers: *l8\n" + good[end:],
+    }
+    assert all(text != good for text in hostile.values())
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)  # the service manager's end
+    notify.bind(str(tmp_path / "notify"))
+    notify.settimeout(0.05)
+    env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "200000"}
+    proc, _sock, c = start_daemon(tmp_path, "--no-realtime", profile=path, env=env)
+    with c, notify:
+        wait_for(c, lambda s: s["tick"] > 100, "the loop")
+        for n, (what, text) in enumerate(hostile.items(), start=1):
+            path.write_text(text)
+            proc.send_signal(signal.SIGHUP)
+            st = wait_for(c, lambda s, n=n: len(s["reloads"]) == n, f"{what} rejected", 10.0)
+            assert st["reloads"][-1].startswith("reload rejected"), (what, st["reloads"])
+            assert str(path) in st["reloads"][-1], (what, st["reloads"])
+            assert st["fault"] is None, what
+        # The control thread still pings the watchdog (every 0.1 s for a 0.2 s watchdog).
+        with contextlib.suppress(TimeoutError):
+            while notify.recv(4096):
+                pass  # what came before
+        pings, until = 0, time.monotonic() + 1.0
+        while time.monotonic() < until:
+            with contextlib.suppress(TimeoutError):
+                pings += notify.recv(4096) == b"WATCHDOG=1"
+        assert pings >= 5, f"{pings} watchdog pings in 1 s after the rejected reloads"
+        # Over the socket too: a bad_profile error, not a hang or a dropped connection.
+        with pytest.raises(ProtocolError, match="aliases") as exc:
+            c.reload(path)
+        assert exc.value.code == "bad_profile"
+        grasp_data["scene"]["object"]["stiffness_n_per_m"] = 120.0
+        write_profile(grasp_data)
+        proc.send_signal(signal.SIGHUP)
+        st = wait_for(c, lambda s: len(s["reloads"]) == 4, "the valid reload", 10.0)
+        assert st["reloads"][-1].startswith(f"reloaded {path} at tick"), st["reloads"]
+        assert c.get("stiffness_n_per_m") == 120.0
+        c.stop()
+    rc, _out, err = finish(proc)
+    assert rc == 0, err
+    assert "Traceback" not in err

@@ -23,7 +23,7 @@ from hapticd.daemon.session import build_session
 from hapticd.event_ring import EventRing, FrameEvents
 from hapticd.frame import Frame
 from hapticd.profile import load_profile
-from tests.conftest import GRASP_PROFILE, ROOT, AtTick, wait_for, wait_for_tick
+from tests.conftest import ROOT, AtTick, wait_for, wait_for_tick
 
 BUNDLED = ROOT / "hapticd" / "data" / "trajectories" / "grasp-stiffness.hrec"
 
@@ -58,11 +58,20 @@ def toggling(path: Path, duration_s: float, bits: int) -> Path:
     return write_trajectory(path, t, pos, np.stack([down, down], axis=1))
 
 
+def calm(data: dict) -> dict:
+    """The profile ``data`` without its wall-clock faults (watchdog, sustained overruns):
+    these tests are about events, and a shared machine can stall a paced loop for 100 ms
+    whatever the code does; every other fault still latches."""
+    data["safety"]["watchdog_s"] = None
+    data.setdefault("loop", {})["max_consecutive_overruns"] = 0
+    return data
+
+
 def profile_on(data: dict, trajectory: Path, write_profile, **finger_keys) -> Path:
     for finger in data["fingers"]:
         finger["device"]["trajectory"] = str(trajectory)
         finger.update(finger_keys)
-    return write_profile(data)
+    return write_profile(calm(data))
 
 
 class Daemon:
@@ -91,10 +100,12 @@ class Daemon:
 
 
 @pytest.fixture
-def daemon(tmp_path):
+def daemon(tmp_path, grasp_data, write_profile):
     made: list[Daemon] = []
 
-    def make(profile: Path = GRASP_PROFILE, **kw) -> Daemon:
+    def make(profile: Path | None = None, **kw) -> Daemon:
+        if profile is None:  # the bundled grasp, calm
+            profile = write_profile(calm(grasp_data), "calm-grasp.yaml")
         d = Daemon(profile, tmp_path, **kw)
         made.append(d)
         return d
@@ -362,12 +373,13 @@ def test_a_stalled_subscriber_is_dropped_and_the_loop_goes_on(daemon, tmp_path, 
 def test_an_overflowing_ring_is_reported_as_lost_events_in_place(
     daemon, tmp_path, grasp_data, write_profile, monkeypatch
 ):
-    """A ring of 512 events (64 ticks' worth), four buttons per finger toggling every tick
-    (8 events a tick) and the server held for 200 ticks: the subscriber gets the events the
+    """A ring of 2048 events (256 ticks' worth: far more than the server lets wait when it
+    runs), four buttons per finger toggling every tick (8 events a tick) and the server
+    held for 400 ticks: the subscriber gets the events the
     ring held, then ``events_lost`` with the count the loop dropped, then the events after;
     together exactly the 8 a tick the trajectory makes."""
     traj = toggling(tmp_path / "toggle.hrec", 10.0, 4)
-    d = daemon(profile_on(grasp_data, traj, write_profile), event_capacity=512)
+    d = daemon(profile_on(grasp_data, traj, write_profile), event_capacity=2048)
     loop = d.session.loop
     d.server.events_backlog_bytes = 64 << 20  # the subscriber reads late, and is not dropped
     held, release = threading.Event(), threading.Event()
@@ -388,22 +400,29 @@ def test_an_overflowing_ring_is_reported_as_lost_events_in_place(
         holder.start()
         assert held.wait(10)
         k = loop.stats.ticks
-        wait_for(lambda: loop.stats.ticks, "200 held ticks", until=lambda n: n > k + 200)
+        wait_for(lambda: loop.stats.ticks, "400 held ticks", until=lambda n: n > k + 400)
         release.set()
         holder.join(timeout=10)
         got = collect(sub, lambda e: e["event"] == "events_lost", "events_lost")
         lost = got[-1]
         end = lost["tick"] + 20
-        got += collect(sub, lambda e: e["tick"] >= end, f"events up to tick {end}")
-    assert [e for e in got if e["event"] == "events_lost"] == [lost]
-    assert 0 < lost["count"] <= loop.event_ring.lost
-    before = [e for e in got[: got.index(lost)]]
-    after = [e for e in got[got.index(lost) + 1 :]]
+        # Far enough on for every report of the overflow to have come (the server drains
+        # every 5 ms).
+        later = lost["tick"] + 300
+        got += collect(sub, lambda e: e["tick"] >= later, f"events up to tick {later}")
+    # The ring overflowed once, while the server was held (a loss that races the drain
+    # that releases it is reported by the next drain: a second events_lost soon after).
+    reports = [e for e in got if e["event"] == "events_lost"]
+    assert reports[0] is lost and 1 <= len(reports) <= 2
+    assert all(r["tick"] < lost["tick"] + 5 for r in reports)
+    assert 0 < sum(r["count"] for r in reports) <= loop.event_ring.lost
+    before = got[: got.index(lost)]
+    after = [e for e in got[got.index(lost) + 1 :] if e["event"] != "events_lost"]
     assert before[-1]["tick"] <= lost["tick"] < after[0]["tick"]
     # Every tick from the first toggles 4 buttons of each finger: nothing missing, nothing
     # twice, except what events_lost counts.
     span = range(max(first, 1), end)
     made = sum(8 for k in span)
     seen = [e for e in before + after if e["tick"] in span]
-    assert len(seen) + lost["count"] == made
+    assert len(seen) + sum(r["count"] for r in reports) == made
     assert {e["event"] for e in seen} == {"button_down", "button_up"}

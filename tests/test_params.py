@@ -306,3 +306,24 @@ def test_the_profile_takes_the_same_ranges(spec, grasp_data):
         with pytest.raises(ProfileError) as exc:
             parse_profile(with_value(grasp_data, spec, value), "p.yaml")
         assert spec.profile_key.split(".")[-1] in str(exc.value)
+
+
+@pytest.mark.parametrize(
+    "value",
+    [
+        [[[2e154, 0.0, 0.0]], [[0.0, 0.0, 1.0]]],  # its square overflows to inf
+        [[[1e308, 1e308, 1e308]], [[0.0, 0.0, 1.0]]],
+    ],
+)
+def test_huge_direction_components_normalise_to_a_unit_vector(value):
+    dirs = PARAMS["actuated_directions"].check(value)
+    x, y, z = dirs[0][0]
+    assert math.hypot(x, y, z) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("value", [10**400, -(10**400)], ids=["1e400", "-1e400"])
+def test_a_huge_json_integer_is_a_bad_value_not_an_overflow(value):
+    with pytest.raises(ParamError, match="finite number"):
+        PARAMS["stiffness_n_per_m"].check(value)
+    with pytest.raises(ParamError, match="finite number"):
+        PARAMS["actuated_directions"].check([[[value, 0, 0]], [[0, 0, 1]]])

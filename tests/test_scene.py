@@ -1,6 +1,7 @@
 """Scene and contact against analytic results: surfaces, friction, free objects, stages."""
 
 import copy
+import math
 
 import numpy as np
 import pytest
@@ -141,6 +142,27 @@ box_obstacle = (
 )
 ground = ([(0, 0, 1.0)], [-0.017])
 wall = ([(-1.0, 0, 0)], [-0.08])
+
+
+def test_a_finger_pressed_into_the_ground_under_an_overhang_is_pushed_by_both():
+    # A block overhanging the ground by 30 degrees (an acute crease, as under a tilted cube).
+    # The device is pressed 10 mm into the ground, outside the block's plane; its proxy
+    # slides along the ground into the block and stops in the crease. Both planes push:
+    # proxy - device is their multipliers times their normals.
+    b = math.radians(30.0)
+    block = ([(-math.cos(b), 0.0, -math.sin(b))], [0.0])
+    obs = ObstacleSet([block, ([(0.0, 0.0, 1.0)], [0.0])])
+    dev = np.array([0.002, 0.0, -0.01])
+    p = (-0.02, 0.0, 0.01)
+    for x in np.linspace([-0.02, 0.0, -0.01], dev, 40):
+        res = proxy_step_multi(obs, p, tuple(x.tolist()))
+        p = res.proxy
+    np.testing.assert_allclose(p, [0.0, 0.0, 0.0], atol=1e-15)
+    mu = dict(zip(res.active, res.mu, strict=True))
+    assert set(mu) == {(0, 0), (1, 0)}
+    np.testing.assert_allclose(
+        [mu[(0, 0)], mu[(1, 0)]], [0.002 / math.cos(b), 0.01 + 0.002 * math.tan(b)], atol=1e-15
+    )
 
 
 @given(arrays(float, (200, 3), elements=st.floats(-0.04, 0.04)))

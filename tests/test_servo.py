@@ -259,3 +259,30 @@ def test_enable_while_stopping_is_refused_so_the_stop_ramp_ends():
     assert done.is_set() and "stopping" in done.error
     assert out["end_reason"] == "test"
     assert out["ticks"] == 1 + round(s.profile.safety.stop_ramp_s * s.profile.loop.rate_hz) + 1
+
+
+def test_a_realtime_setting_that_raises_after_enabling_still_zeroes_and_disables(monkeypatch):
+    """A CPU number beyond a C long made sched_setaffinity raise OverflowError after the
+    devices were enabled, and the run ended with their forces on."""
+    from hapticd import realtime
+
+    def overflow(settings):
+        raise OverflowError("Python int too large to convert to C long")
+
+    monkeypatch.setattr(realtime, "apply", overflow)
+    s = session()
+    s.loop.realtime_settings = realtime.RealtimeSettings(0, 10**30, False, None, False)
+    summary = s.run()
+    assert summary["end_reason"] == "fault"
+    assert "real time" in s.loop.safety.fault.cause
+    for dev in s.devices:
+        np.testing.assert_array_equal(dev.last_force, 0)
+        assert not dev.enabled
+
+
+def test_a_cpu_number_beyond_a_c_long_is_a_real_time_problem_not_an_exception():
+    from hapticd import realtime
+
+    # priority 0, no timer slack, no mlockall: nothing here changes the test process.
+    rep = realtime.apply(realtime.RealtimeSettings(0, 10**30, False, None, False))
+    assert rep.cpu is None and any("cpu affinity" in p for p in rep.problems)

@@ -26,11 +26,11 @@ def notify(message: str, env: dict[str, str] | None = None) -> bool:
         return False
     if addr.startswith("@"):
         addr = "\0" + addr[1:]
-    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as s:
-        try:
+    try:  # creating the socket fails too when the process is out of file descriptors
+        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as s:
             s.sendto(message.encode("utf-8"), addr)
-        except OSError:
-            return False
+    except OSError:
+        return False
     return True
 
 

@@ -16,6 +16,7 @@ TCP listener.
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
 import select
@@ -31,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 from hapticd import __version__, events
 from hapticd import protocol as proto
 from hapticd.commands import Command, Disable, Enable, SetParam
+from hapticd.control import check_socket_dir
 from hapticd.daemon import summary as views
 from hapticd.params import PARAMS
 from hapticd.profile import ProfileError
@@ -59,6 +61,11 @@ PERIODIC_S = 0.1
 WINDOW_S = 200e-6
 # ...but no longer than this (at high rates the loop's sleep may never be that long).
 WINDOW_MAX_WAIT_S = 0.005
+MAX_CLIENTS = 32  # one more is told so and closed: a runaway script cannot take every fd
+# When accept() fails for want of file descriptors the connection stays queued and the
+# listener readable; it is left unwatched this long instead of being retried in a spin.
+ACCEPT_BACKOFF_S = 0.1
+_OUT_OF_FDS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
 
 
 class SocketInUseError(OSError):
@@ -91,8 +98,10 @@ class ControlServer:
         path: str | Path | None,
         *,
         periodic: list[Callable[[], None]] | None = None,
+        max_clients: int = MAX_CLIENTS,
     ) -> None:
         self.session = session
+        self.max_clients = max_clients
         self.loop = session.loop
         self.path = Path(path) if path is not None else None
         self.periodic = [*(periodic or []), self._watch_recording]
@@ -109,6 +118,8 @@ class ControlServer:
         self.slow_event_clients = 0  # event subscribers dropped for falling behind
         self._responses: dict[tuple[int, int], str] = {}
         self._responses_of: object = None  # the profile _responses was made from
+        self._accept_paused_until: float | None = None  # out of file descriptors
+        self.accept_failures = 0  # accept() calls that failed so, since the last success
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -127,7 +138,7 @@ class ControlServer:
 
     @staticmethod
     def _bind(path: Path) -> socket.socket:
-        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        check_socket_dir(path, create=True)  # UnsafeSocketDirError: someone else's directory
         if path.exists() or path.is_symlink():
             probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             try:
@@ -152,27 +163,33 @@ class ControlServer:
         return sock
 
     def close(self) -> None:
+        """Stop the thread, drop the clients, remove the socket; never raises."""
         self._stop.set()
         self._wake(b"Q")
         if self._thread is not None:
             self._thread.join(timeout=5.0)
         for conn in list(self._conns):
-            self._drop(conn)
+            with contextlib.suppress(Exception):
+                self._drop(conn)
         if self._sock is not None:
-            self._sel.unregister(self._sock)
-            self._sock.close()
+            with contextlib.suppress(Exception):
+                self._sel.unregister(self._sock)
+            with contextlib.suppress(Exception):
+                self._sock.close()
             self._sock = None
             if self.path is not None:
-                with contextlib.suppress(FileNotFoundError):
+                with contextlib.suppress(OSError):
                     self.path.unlink()
-        self._sel.close()
+        with contextlib.suppress(Exception):
+            self._sel.close()
         if self._gate_r >= 0:
-            self.loop.close_sleep_gate()
+            with contextlib.suppress(Exception):
+                self.loop.close_sleep_gate()
         for fd in (self._wake_r, self._wake_w, self._gate_r):
             if fd >= 0:
-                os.close(fd)
+                with contextlib.suppress(OSError):
+                    os.close(fd)
         self._wake_r = self._wake_w = self._gate_r = -1
-        self._gate_r = -1
 
     def _wake(self, what: bytes) -> None:
         if self._wake_w < 0:
@@ -206,37 +223,53 @@ class ControlServer:
     def _serve(self) -> None:
         next_periodic = time.monotonic()
         while not self._stop.is_set():
-            now = time.monotonic()
-            due = [next_periodic] + [c.next_due for c in self._conns.values() if c.rate_hz]
-            if any(c.event_kinds is not None for c in self._conns.values()):
-                due.append(now + EVENT_PERIOD_S)
-            timeout = 0.0 if self._pending() else max(0.0, min(due) - now)
-            for key, ready in self._sel.select(timeout=timeout):
-                obj = key.fileobj
-                if obj is self._sock:
-                    self._accept()
-                elif obj == self._wake_r:
-                    self._woken()
-                elif isinstance(obj, socket.socket) and obj in self._conns:
-                    if ready & selectors.EVENT_WRITE:
-                        self._flush(self._conns[obj])
-                    if ready & selectors.EVENT_READ and obj in self._conns:
-                        self._read(self._conns[obj])
-            self._serve_turns()
-            now = time.monotonic()
-            self._stream(now)
-            self._deliver_events()
-            if now >= next_periodic:
-                next_periodic = now + PERIODIC_S
-                # Also empties the sleep gate's pipe, which otherwise fills (a byte a tick).
-                self._await_window()
-                for fn in self.periodic:
-                    try:
-                        fn()
-                    except Exception as exc:  # a notification must not end the server
-                        log.warning("periodic task failed: %s", exc)
+            try:
+                next_periodic = self._serve_once(next_periodic)
+            except Exception:
+                # Nothing may end this thread: it serves the socket, SIGHUP reloads and the
+                # service manager's watchdog. Log, pause a little (no hot error loop), go on.
+                log.exception("control thread: unexpected error; serving on")
+                self._stop.wait(0.05)
         # The run is over (or the server closing): what the loop's last ticks reported.
+        with contextlib.suppress(Exception):
+            self._deliver_events()
+
+    def _serve_once(self, next_periodic: float) -> float:
+        """One round: wait for sockets or the next due time, serve, run periodic tasks."""
+        now = time.monotonic()
+        due = [next_periodic] + [c.next_due for c in self._conns.values() if c.rate_hz]
+        if self._accept_paused_until is not None:
+            due.append(self._accept_paused_until)
+        if any(c.event_kinds is not None for c in self._conns.values()):
+            due.append(now + EVENT_PERIOD_S)
+        timeout = 0.0 if self._pending() else max(0.0, min(due) - now)
+        for key, ready in self._sel.select(timeout=timeout):
+            obj = key.fileobj
+            if obj is self._sock:
+                self._accept()
+            elif obj == self._wake_r:
+                self._woken()
+            elif isinstance(obj, socket.socket) and obj in self._conns:
+                if ready & selectors.EVENT_WRITE:
+                    self._flush(self._conns[obj])
+                if ready & selectors.EVENT_READ and obj in self._conns:
+                    self._read(self._conns[obj])
+        self._serve_turns()
+        now = time.monotonic()
+        if self._accept_paused_until is not None and now >= self._accept_paused_until:
+            self._resume_accept()
+        self._stream(now)
         self._deliver_events()
+        if now >= next_periodic:
+            next_periodic = now + PERIODIC_S
+            # Also empties the sleep gate's pipe, which otherwise fills (a byte a tick).
+            self._await_window()
+            for fn in self.periodic:
+                try:
+                    fn()
+                except Exception as exc:  # a notification must not end the server
+                    log.warning("periodic task failed: %s", exc)
+        return next_periodic
 
     def _watch_recording(self) -> None:
         """Log, once, a recording that is failing (its writer died, its file was deleted):
@@ -263,6 +296,9 @@ class ControlServer:
         except (ProfileError, ValueError, TimeoutError, OSError) as exc:
             msg = f"reload rejected, the running profile stays: {exc}"
             log.error("%s", msg)
+        except Exception as exc:  # whatever a profile provokes, the daemon serves on
+            msg = f"reload rejected, the running profile stays: {type(exc).__name__}: {exc}"
+            log.exception("%s", msg)
         else:
             msg = f"reloaded {result['path']} at tick {result['applied_at_tick']}"
             log.info("%s", msg)
@@ -272,13 +308,52 @@ class ControlServer:
         assert self._sock is not None
         try:
             sock, _ = self._sock.accept()
-        except OSError:
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            if exc.errno in _OUT_OF_FDS:
+                self._pause_accept(exc)
+            return  # otherwise that client went away before we got to it
+        self.accept_failures = 0
+        if len(self._conns) >= self.max_clients:
+            log.warning("refused a control client: %d already connected", len(self._conns))
+            with contextlib.suppress(OSError):
+                sock.send(
+                    proto.error(
+                        None,
+                        "too_many_clients",
+                        f"hapticd serves at most {self.max_clients} control clients at once; "
+                        "close one and try again",
+                    )
+                )
+            sock.close()
             return
         sock.setblocking(False)
         conn = _Conn(sock)
         self._conns[sock] = conn
         self._sel.register(sock, selectors.EVENT_READ, None)
         self._send(conn, proto.greeting(__version__))
+
+    def _pause_accept(self, exc: OSError) -> None:
+        """Stop watching the listener for ACCEPT_BACKOFF_S (out of file descriptors)."""
+        if self._sock is None or self._accept_paused_until is not None:
+            return
+        self.accept_failures += 1
+        if self.accept_failures == 1:  # once per episode, not every retry
+            log.warning(
+                "cannot accept a control client: %s; retrying every %g s",
+                exc.strerror or exc,
+                ACCEPT_BACKOFF_S,
+            )
+        with contextlib.suppress(KeyError, ValueError):
+            self._sel.unregister(self._sock)
+        self._accept_paused_until = time.monotonic() + ACCEPT_BACKOFF_S
+
+    def _resume_accept(self) -> None:
+        self._accept_paused_until = None
+        if self._sock is not None:
+            with contextlib.suppress(KeyError, ValueError):
+                self._sel.register(self._sock, selectors.EVENT_READ, None)
 
     def _drop(self, sock: socket.socket) -> None:
         with contextlib.suppress(KeyError, ValueError):

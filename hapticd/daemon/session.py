@@ -25,6 +25,7 @@ from hapticd.build import (
 from hapticd.commands import Command, RecordStart, RecordStop, Reload
 from hapticd.daemon.summary import summarize
 from hapticd.event_ring import DEFAULT_CAPACITY
+from hapticd.frame import Frame
 from hapticd.profile import Profile, ProfileError, load_profile
 from hapticd.recording import Recorder, files, ring
 from hapticd.render import Renderer
@@ -159,9 +160,11 @@ class Session:
                     f"{where}: fingers[{i}] name or device changed; restart hapticd to change "
                     "devices"
                 )
+        # Everything is parsed and built here, in the control thread; the loop only swaps.
         renderer = build_renderer(new)
         safety = build_safety(new, self.devices)
-        done = self.apply(Reload(renderer, safety, str(source)))
+        frame = Frame(len(new.fingers), renderer.actuation.n_actuators)
+        done = self.apply(Reload(renderer, safety, str(source), frame))
         self.profile = new
         return {"applied_at_tick": done.tick, "profile": new.name, "path": str(source)}
 

@@ -1,0 +1,170 @@
+"""The control server under abuse: an exception in a reload, more clients than it serves,
+no file descriptors left. It keeps serving and never spins."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from hapticd.control import ControlClient
+from hapticd.daemon.server import ControlServer
+from hapticd.daemon.session import build_session
+from hapticd.profile import load_profile
+from tests.conftest import GRASP_PROFILE, ROOT
+
+
+@pytest.fixture
+def server(tmp_path):
+    """A control server on a grasp session whose loop does not run (nothing here needs it)."""
+    session = build_session(load_profile(GRASP_PROFILE), paced=False)
+    srv = ControlServer(session, tmp_path / "hapticd.sock")
+    srv.start()
+    try:
+        yield srv
+    finally:
+        srv.close()
+
+
+def _until(cond, what: str, timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out waiting for {what}")
+        time.sleep(0.01)
+
+
+@pytest.mark.parametrize("exc", [RuntimeError("boom"), RecursionError("too deep")])
+def test_an_unexpected_error_in_a_sighup_reload_is_reported_and_serving_goes_on(server, exc):
+    def reload(path=None):
+        raise exc
+
+    server.session.reload = reload
+    server.request_reload()
+    _until(lambda: server.reloads, "the reload's outcome")
+    assert server.reloads[0].startswith("reload rejected, the running profile stays:")
+    assert type(exc).__name__ in server.reloads[0]
+    assert server._thread.is_alive()
+    with ControlClient(server.path, timeout_s=2.0) as c:
+        assert c.status()["reloads"] == server.reloads
+
+
+def test_one_client_beyond_the_limit_is_told_so_and_closed(server):
+    limit = 32  # docs/daemon.md
+    clients = [ControlClient(server.path, timeout_s=2.0) for _ in range(limit)]
+    try:
+        extra = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        extra.settimeout(2.0)
+        with extra:
+            extra.connect(str(server.path))
+            reply = json.loads(extra.makefile("rb").readline())
+            assert reply["ok"] is False and reply["error"]["code"] == "too_many_clients"
+            assert str(limit) in reply["error"]["message"]
+            assert extra.recv(1) == b""  # and closed
+        assert clients[0].status()["tick"] == 0  # the others are served
+        clients.pop().close()
+        _until(lambda: len(server._conns) < limit, "the server to see the client go")
+        with ControlClient(server.path, timeout_s=2.0) as again:
+            assert again.status()["tick"] == 0
+    finally:
+        for c in clients:
+            c.close()
+
+
+_EMFILE_CHILD = textwrap.dedent(
+    """
+    import os, resource, sys, time
+    from hapticd.daemon.server import ControlServer
+    from hapticd.daemon.session import build_session
+    from hapticd.profile import load_profile
+
+    session = build_session(load_profile(sys.argv[2]), paced=False)
+    server = ControlServer(session, sys.argv[1])
+    calls = [0]
+    inner = server._accept
+    def counting():
+        calls[0] += 1
+        inner()
+    server._accept = counting
+    server.start()
+    # Use up every file descriptor this process may have.
+    open_now = len(os.listdir("/proc/self/fd"))
+    hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
+    resource.setrlimit(resource.RLIMIT_NOFILE, (open_now + 8, hard))
+    held = []
+    try:
+        while True:
+            held.append(os.dup(0))
+    except OSError:
+        pass
+    print("ready", flush=True)
+    sys.stdin.readline()  # the parent has connected: accept() now fails with EMFILE
+    calls[0] = 0
+    time.sleep(1.0)
+    print("calls", calls[0], flush=True)
+    for fd in held:
+        os.close(fd)
+    deadline = time.monotonic() + 5
+    while not server._conns and time.monotonic() < deadline:
+        time.sleep(0.01)
+    print("accepted", len(server._conns), flush=True)
+    sys.stdin.readline()
+    server.close()
+    """
+)
+
+
+@pytest.mark.timing("counts accept() retries over a 1 s window")
+def test_out_of_file_descriptors_the_server_backs_off_instead_of_spinning(tmp_path):
+    """accept() failing with EMFILE left the listener readable: the control thread spun
+    at 100% CPU. Counted over 1 s: a few retries, not thousands (a 1 s window, so this
+    touches wall-clock time; the bound is loose by a factor of 10)."""
+    sock = tmp_path / "hapticd.sock"
+    child = subprocess.Popen(
+        [sys.executable, "-c", _EMFILE_CHILD, str(sock), str(GRASP_PROFILE)],
+        cwd=ROOT,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    client = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    client.settimeout(10.0)
+    try:
+        assert child.stdout.readline().strip() == "ready", child.stderr.read()
+        client.connect(str(sock))  # queued: the child cannot accept it
+        child.stdin.write("go\n")
+        child.stdin.flush()
+        calls = int(child.stdout.readline().split()[1])
+        assert calls <= 1.0 / 0.1 * 10, f"{calls} accept() attempts in 1 s: spinning"
+        assert child.stdout.readline().split() == ["accepted", "1"]
+        greeting = json.loads(client.makefile("rb").readline())
+        assert "protocol" in greeting
+        child.stdin.write("done\n")
+        child.stdin.flush()
+        _out, err = child.communicate(timeout=10)
+    finally:
+        client.close()
+        if child.poll() is None:
+            child.kill()
+            child.communicate()
+    assert child.returncode == 0, err
+    assert err.count("cannot accept a control client") == 1, err
+
+
+def test_a_service_notification_out_of_file_descriptors_is_not_an_exception(monkeypatch):
+    """STOPPING=1 is sent on every way out of `hapticd run`: it must not raise there."""
+    import errno
+
+    from hapticd.daemon import sdnotify
+
+    def no_fds(*args, **kwargs):
+        raise OSError(errno.EMFILE, "Too many open files")
+
+    monkeypatch.setattr(sdnotify.socket, "socket", no_fds)
+    assert sdnotify.notify("STOPPING=1", {"NOTIFY_SOCKET": "/run/systemd/notify"}) is False
