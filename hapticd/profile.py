@@ -13,7 +13,7 @@ import math
 import os
 import stat
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Union, get_args
 
 import yaml
 import yaml.composer
@@ -155,6 +155,10 @@ class ResponseButtonConfig(_Strict):
 
 
 ButtonConfig = Annotated[DeadmanButtonConfig | ResponseButtonConfig, Field(discriminator="role")]
+BUTTON_ROLES: tuple[str, ...] = tuple(
+    get_args(c.model_fields["role"].annotation)[0]
+    for c in (DeadmanButtonConfig, ResponseButtonConfig)
+)
 
 
 class FingerConfig(_Strict):
@@ -725,6 +729,10 @@ def _explain(err: dict) -> str:
     if kind == "tuple_type":
         return "Input should be a list"  # pydantic's tuple is a YAML list
     if kind == "union_tag_invalid":  # pydantic's own message repeats the whole tag
+        loc = err["loc"]
+        if len(loc) >= 2 and loc[-2] == "buttons":  # a button's role
+            got = err["input"].get("role") if isinstance(err["input"], dict) else None
+            return f"unknown role {_shown(got)}; the roles: {', '.join(BUTTON_ROLES)}"
         got = err["input"].get("backend") if isinstance(err["input"], dict) else None
         return f"unknown backend {_shown(got)}; the backends: {', '.join(BACKENDS)}"
     msg = str(err["msg"]).removeprefix("Value error, ")
