@@ -16,7 +16,7 @@ import importlib
 from dataclasses import dataclass, field
 from typing import Any
 
-from hapticd_drivers.base import BackendUnavailableError, Device
+from hapticd_drivers.base import BackendUnavailableError, Device, DeviceError
 
 REQUIRED: Any = object()  # a key without a default: the profile must give it
 
@@ -46,6 +46,8 @@ class Backend:
     run under it (``--emulate``). ``discover`` and ``preflight`` are
     "module:function" paths: the first lists attached devices, the second checks
     what a run needs (a library, a driver) and raises DeviceError saying how to fix it.
+    ``calibrate`` ("module:function") runs the device's own calibration (it moves the
+    device) and returns what it did; backends without one need none from hapticd.
     """
 
     name: str
@@ -58,6 +60,7 @@ class Backend:
     emulated: bool = False
     discover: str | None = None
     preflight: str | None = None
+    calibrate: str | None = None
     status: str = ""
     defaults: dict[str, Any] = field(default_factory=dict, init=False, compare=False)
 
@@ -183,7 +186,9 @@ BACKENDS: dict[str, Backend] = {
                     "library",
                     str,
                     None,
-                    "path to libdhd; else $HAPTICD_LIBDHD, else the system's dhd library",
+                    "path to the SDK: libdrd (it holds libdhd's calls too, and only it can "
+                    "check and run the calibration) or libdhd; else $HAPTICD_LIBDHD, else "
+                    "the system's drd, then dhd library",
                     True,
                 ),
                 Key(
@@ -209,14 +214,26 @@ BACKENDS: dict[str, Backend] = {
                     "max_force_n",
                     float,
                     12.0,
-                    "the device's rated force, and the SDK's own force limit, N",
+                    "the device's rated force, and the SDK's own force limit (dhdSetMaxForce, "
+                    "independent of the safety chain), N",
                     gt=0.0,
                     le=100.0,
+                ),
+                Key(
+                    "effector_mass_kg",
+                    float,
+                    None,
+                    "mass of the end effector with its thimble, for the SDK's gravity "
+                    "compensation (always on), kg; none: the SDK's default for the model",
+                    True,
+                    ge=0.0,
+                    le=1.0,
                 ),
                 _FINGER,
             ),
             discover="hapticd_drivers.dhd_backend:discover",
             preflight="hapticd_drivers.dhd_backend:preflight",
+            calibrate="hapticd_drivers.dhd_backend:calibrate",
             status="done, tested through a fake libdhd compiled by the tests",
         ),
     )
@@ -262,6 +279,15 @@ def preflight(name: str, **kwargs: Any) -> None:
     b = backend(name)
     if b.preflight is not None:
         _import(name, b.preflight)(**kwargs)
+
+
+def calibrate(name: str, **kwargs: Any) -> dict[str, Any]:
+    """Calibrate one device of backend ``name`` (it moves!); DeviceError if that fails or
+    the backend has no calibration."""
+    b = backend(name)
+    if b.calibrate is None:
+        raise DeviceError(f"backend {name!r} has no calibration to run")
+    return _import(name, b.calibrate)(**kwargs)
 
 
 def discover() -> list[dict[str, Any]]:

@@ -21,6 +21,7 @@ from hapticd_drivers.trajectory import Trajectory
 from hapticd import recording
 from hapticd.actuation import Actuation
 from hapticd.allocation import AdaptiveState, Robustness
+from hapticd.mount import Mount
 from hapticd.passivity import PassivityParams
 from hapticd.profile import (
     FingerConfig,
@@ -154,6 +155,7 @@ def build_devices(
                 if "index" in kwargs:
                     kwargs["index"] = i
             kwargs.pop("backend", None)
+            kwargs.pop("mount", None)  # hapticd's, applied by the device bank
             kwargs.pop("trajectory", None)
             kwargs.pop("finger", None)
             if (entry.plays_trajectory or emulate) and traj is None:
@@ -180,6 +182,15 @@ def build_devices(
         except DeviceError as exc:
             raise ProfileError(f"{loc}: {exc}") from None
     return devices, emulators
+
+
+def build_mounts(profile: Profile) -> list[Mount]:
+    """Each finger's device mount (device frame to world), in the profile's order."""
+    out = []
+    for f in profile.fingers:
+        m = f.device.mount
+        out.append(Mount.from_rpy(m.position_m, m.orientation_rpy_rad, m.workspace_scale))
+    return out
 
 
 def mesh_shape(path: Path, scale: float = 1.0) -> ConvexShape:

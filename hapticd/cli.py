@@ -12,17 +12,19 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from hapticd_drivers import BackendUnavailableError
+import numpy as np
+from hapticd_drivers import BackendUnavailableError, DeviceError, registry
 from hapticd_drivers.registry import backend_names, discover
 
 from hapticd import __version__, params
 from hapticd import events as event_kinds
-from hapticd.build import build_devices, build_scene, load_trajectories
+from hapticd.build import build_devices, build_mounts, build_scene, load_trajectories
 from hapticd.control import ControlClient, NoDaemonError, default_socket_path
 from hapticd.daemon.sdnotify import ServiceNotifier
 from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
 from hapticd.daemon.summary import status, summarize
+from hapticd.mount import Mount, Reach, workspace_reach
 from hapticd.profile import ProfileError, load_profile
 from hapticd.protocol import ProtocolError
 from hapticd.recording import RecordingError
@@ -159,13 +161,61 @@ def _service_status(loop: ServoLoop) -> str:
     )
 
 
+def _mm(v: Any) -> str:
+    return "(" + ", ".join(f"{1e3 * float(c):.1f}" for c in v) + ") mm"
+
+
+def _reach_line(name: str, r: Reach, where: str) -> str:
+    if r.contained:
+        verdict = "the whole object is inside"
+    elif r.reachable:
+        verdict = "the object is reachable (part of it lies outside)"
+    else:
+        verdict = "WARNING: the object is out of reach"
+    pad = " " * (len(name) + 4)
+    return (
+        f"  {name}: {where}, radius {1e3 * r.workspace_radius_m:.1f} mm; the object's centre is "
+        f"at {_mm(r.center_device_m)} in its coordinates\n{pad}"
+        f"({1e3 * r.center_distance_m:.1f} mm from its centre; nearest object point "
+        f"{1e3 * r.nearest_m:.1f} mm, farthest {1e3 * r.farthest_m:.1f} mm): {verdict}"
+    )
+
+
+def workspace_report(profile: Any, devices: list[Any]) -> list[str]:
+    """Per finger, how its device's workspace sphere (from the device description, placed
+    by its mount) and the safety section's sphere meet the object at its starting pose."""
+    obj = build_scene(profile.scene, profile).object
+    poly, verts = obj.polytope, obj.vertices_world()
+    lines = ["workspaces (the object at its starting pose):"]
+    for f, dev, mount in zip(profile.fingers, devices, build_mounts(profile), strict=True):
+        r = workspace_reach(
+            mount,
+            dev.info.workspace_radius_m,
+            poly.normals,
+            poly.offsets,
+            verts,
+            obj.center,
+            f.radius_m,
+        )
+        where = f"device workspace about {_mm(mount.position)} (world)"
+        lines.append(_reach_line(f.name, r, where))
+    sc = profile.safety
+    if sc.workspace_radius_m is not None:
+        safety = Mount(position=np.array(sc.workspace_center_m, dtype=float))
+        r = workspace_reach(
+            safety, sc.workspace_radius_m, poly.normals, poly.offsets, verts, obj.center, 0.0
+        )
+        lines.append(_reach_line("safety", r, "workspace (world)"))
+    return lines
+
+
 def cmd_check(args: argparse.Namespace) -> int:
     try:
         profile = load_profile(args.profile)
         load_trajectories(profile)
         build_scene(profile.scene, profile)
         # The devices are created (not opened): a backend's library or driver is checked.
-        build_devices(profile, clock=lambda: 0.0)
+        devices, _ = build_devices(profile, clock=lambda: 0.0)
     except ProfileError as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -177,6 +227,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"{args.profile}: OK: profile {profile.name!r}, {profile.loop.rate_hz:g} Hz, "
         f"allocator {profile.rendering.allocator}, fingers: {fingers}"
     )
+    print("\n".join(workspace_report(profile, devices)))
     return EXIT_OK
 
 
@@ -193,6 +244,88 @@ def _device_text(d: dict[str, Any]) -> str:
         state = "held" if dm["held"] else "RELEASED: no force"
         parts.append(f"deadman {dm['button']} {state}")
     return f"{d['serial']} ({', '.join(parts)})"
+
+
+CALIBRATE_WARNING = """\
+hapticd calibrate: these devices will MOVE ON THEIR OWN, one after the other, to find
+their end stops (the SDK's automatic initialisation):
+{devices}
+Before you go on, empty every workspace: no hand on or near a thimble, no cable or
+object within reach of the arms. Their forces are off afterwards."""
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Run the SDK's automatic initialisation on the profile's devices that need it."""
+    try:
+        profile = load_profile(args.profile)
+    except ProfileError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    targets = [
+        (i, f)
+        for i, f in enumerate(profile.fingers)
+        if registry.backend(f.device.backend).calibrate
+    ]
+    if args.finger:
+        targets = [(i, f) for i, f in targets if f.name in args.finger]
+        missing = set(args.finger) - {f.name for _, f in targets}
+        if missing:
+            print(
+                f"hapticd: {args.profile}: no finger {sorted(missing)} whose device hapticd "
+                "calibrates",
+                file=sys.stderr,
+            )
+            return EXIT_BAD_INPUT
+    if not targets:
+        calibrating = [b.name for b in registry.BACKENDS.values() if b.calibrate]
+        print(
+            f"hapticd: {args.profile}: nothing to calibrate: hapticd calibrates the "
+            f"{', '.join(calibrating)} backend(s), and no finger uses one",
+            file=sys.stderr,
+        )
+        return EXIT_BAD_INPUT
+    kwargs_of = {}
+    for i, f in targets:
+        kw = f.device.model_dump()
+        for key in ("backend", "mount", "trajectory", "finger"):
+            kw.pop(key, None)
+        kwargs_of[i] = kw
+    listed = "\n".join(
+        f"  {f.name}: {f.device.backend} "
+        + (
+            f"serial number {kwargs_of[i]['serial_number']}"
+            if kwargs_of[i].get("serial_number") is not None
+            else f"index {kwargs_of[i].get('index', 0)}"
+        )
+        for i, f in targets
+    )
+    print(CALIBRATE_WARNING.format(devices=listed), flush=True)
+    if not args.yes:
+        if not sys.stdin.isatty():
+            print(
+                "hapticd: refusing to calibrate without a confirmation: stdin is not a "
+                "terminal; make sure every workspace is empty, then pass --yes",
+                file=sys.stderr,
+            )
+            return EXIT_BAD_INPUT
+        try:
+            answer = input("Is every workspace empty? Type 'yes' to calibrate: ")
+        except EOFError:
+            answer = ""
+        if answer.strip().lower() != "yes":
+            print("hapticd: calibration cancelled; nothing moved", file=sys.stderr)
+            return EXIT_ERROR
+    failed = False
+    for i, f in targets:
+        try:
+            out = registry.calibrate(f.device.backend, **kwargs_of[i])
+        except DeviceError as exc:
+            print(f"hapticd: {f.name}: {exc}", file=sys.stderr)
+            failed = True
+            continue
+        before = "already calibrated, done again" if out["was_calibrated"] else "was not"
+        print(f"  {f.name}: {out['model']} {out['serial']} calibrated ({before})")
+    return EXIT_ERROR if failed else EXIT_OK
 
 
 def format_status(st: dict[str, Any]) -> str:
@@ -739,6 +872,21 @@ def build_parser() -> argparse.ArgumentParser:
     fmt.add_argument("--csv", type=Path, metavar="OUT", help="default: the recording's name .csv")
     fmt.add_argument("--mcap", type=Path, metavar="OUT", help="MCAP with JSON messages")
     exp.set_defaults(func=cmd_export)
+    cal = sub.add_parser(
+        "calibrate",
+        help="run the SDK's automatic initialisation of a profile's devices (they move!)",
+        description="Calibrate (initialise) the profile's devices that hapticd calibrates "
+        "(dhd: drdAutoInit through libdrd). The devices move on their own: empty their "
+        "workspaces first. Asks for a confirmation on a terminal; --yes skips it.",
+    )
+    cal.add_argument("profile", type=Path)
+    cal.add_argument(
+        "--yes", action="store_true", help="do not ask: every workspace is known to be empty"
+    )
+    cal.add_argument(
+        "--finger", action="append", metavar="NAME", help="only this finger's device (repeat)"
+    )
+    cal.set_defaults(func=cmd_calibrate)
     dev = sub.add_parser("devices", help="list the haptic devices found, or why none can be")
     dev.add_argument("--json", action="store_true", help="machine-readable output")
     dev.set_defaults(func=cmd_devices)

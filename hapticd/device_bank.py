@@ -1,5 +1,10 @@
 """The servo loop's devices: read their state into the tick frame, write the frame's forces.
 
+Devices speak their own frames; the tick frame holds world quantities. Each
+device's mount (hapticd.mount: rotation R, position t, workspace scale s) maps
+between them at this seam: x_world = s R x_dev + t and v_world = s R v_dev on
+reading, f_dev = R^T f_world on writing, into preallocated arrays.
+
 A device that fails is *lost*: without reconnect mode the error ends the run;
 with it, a fault is latched (forces zero on every device), the device is
 closed, and it is looked for again every ``RECONNECT_PERIOD_S`` with forces
@@ -15,6 +20,7 @@ import numpy as np
 from hapticd_drivers import Device, DeviceError, DeviceState
 
 from hapticd.frame import Frame
+from hapticd.mount import Mount
 
 # How often a lost device is looked for again (reconnect mode), s of loop time.
 RECONNECT_PERIOD_S = 0.5
@@ -43,6 +49,21 @@ class DeviceBank:
         self.lost: list[float | None] = [None] * len(self.devices)
         self._n_lost = 0
         self._zero = np.zeros(3)
+        self.set_mounts([Mount() for _ in self.devices])
+
+    def set_mounts(self, mounts: Sequence[Mount]) -> None:
+        """Each device's mount (device frame to world), finger i's in ``mounts[i]``."""
+        if len(mounts) != len(self.devices):
+            raise ValueError(f"{len(self.devices)} mounts are needed, got {len(mounts)}")
+        self.mounts = list(mounts)
+        # Preallocated per finger: s R, R^T, t, and the device-frame force written.
+        self._sR = [np.ascontiguousarray(m.scale * m.rotation) for m in self.mounts]
+        self._Rt = [np.ascontiguousarray(m.rotation.T) for m in self.mounts]
+        self._t = [m.position.copy() for m in self.mounts]
+        # An identity mount copies: the world values are the device's, bit for bit.
+        self._mounted = [not m.is_identity for m in self.mounts]
+        self._tmp = np.zeros(3)
+        self._f_dev = [np.zeros(3) for _ in self.mounts]
 
     @property
     def finished(self) -> bool:
@@ -83,18 +104,28 @@ class DeviceBank:
             except DeviceError as exc:
                 self._lose(frame, i, k, t, exc)
                 continue
-            pos[i] = st.position
-            vel[i] = st.velocity
+            if self._mounted[i]:
+                tmp = self._tmp
+                np.matmul(self._sR[i], st.position, out=tmp)
+                np.add(tmp, self._t[i], out=pos[i])
+                np.matmul(self._sR[i], st.velocity, out=vel[i])
+            else:
+                pos[i] = st.position
+                vel[i] = st.velocity
             buttons[i] = st.buttons
 
     def write(self, frame: Frame, k: int, t: float) -> None:
-        """Command ``device_force`` on every connected device, then look for lost ones."""
+        """Command ``device_force`` (world frame) on every connected device, each in its own
+        frame (R^T f), then look for lost ones."""
         out = frame.device_force
         lost = self.lost
         for i, dev in enumerate(self.devices):
             if lost[i] is None:
+                f = out[i]
+                if self._mounted[i]:
+                    f = np.matmul(self._Rt[i], f, out=self._f_dev[i])
                 try:
-                    dev.write_force(out[i])
+                    dev.write_force(f)
                 except DeviceError as exc:
                     self._lose(frame, i, k, t, exc)
         if self._n_lost:

@@ -38,6 +38,7 @@ from pydantic import (
 )
 
 from hapticd import params
+from hapticd.mount import mount_rotation
 
 PROFILE_VERSION = 1
 UNIT_TOL = 1e-3
@@ -92,9 +93,51 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class MountConfig(_Strict):
+    """Where a device's frame sits in the world: x_world = s R x_dev + t, v_world = s R v_dev,
+    force to the device R^T f_world (docs/devices.md, "Mounting")."""
+
+    position_m: Vec3 = Field(
+        default=(0.0, 0.0, 0.0), description="the device frame's origin in the world, m"
+    )
+    orientation_rpy_rad: Vec3 = Field(
+        default=(0.0, 0.0, 0.0),
+        description="the device frame's roll, pitch, yaw in the world (fixed x, y, z axes), rad",
+    )
+    workspace_scale: float = Field(
+        default=1.0,
+        gt=0.0,
+        le=10.0,
+        description="s: device motion is scaled by s into the world; the hand feels a world "
+        "stiffness k as k s",
+    )
+
+    @field_validator("position_m")
+    @classmethod
+    def _finite_position(cls, v: Vec3) -> Vec3:
+        if not all(math.isfinite(c) for c in v):
+            raise ValueError(f"the mount position must be 3 finite numbers in m, got {list(v)}")
+        return v
+
+    @field_validator("orientation_rpy_rad")
+    @classmethod
+    def _rotation(cls, v: Vec3) -> Vec3:
+        mount_rotation(v)  # ValueError saying what is wrong
+        return v
+
+    @field_validator("workspace_scale")
+    @classmethod
+    def _finite_scale(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise ValueError(f"the workspace scale must be a finite number, got {v}")
+        return v
+
+
 def _device_model(b: Backend) -> type[_Strict]:
-    """The profile model of one backend's ``device`` section, built from its registry keys."""
+    """The profile model of one backend's ``device`` section, built from its registry keys,
+    and the mount every device has."""
     fields: dict[str, Any] = {"backend": (Literal[b.name], ...)}  # type: ignore[valid-type]
+    fields["mount"] = (MountConfig, Field(default=MountConfig(), description=MountConfig.__doc__))
     for k in b.keys:
         strict = _SCALAR_TYPES[k.type]
         kind: Any = strict | None if k.optional else strict
@@ -717,6 +760,13 @@ def _explain(err: dict) -> str:
     if kind == "extra_forbidden":
         key = str(err["loc"][-1])
         keys = sorted(_all_keys())
+        if key in keys:  # a real key, in the wrong place: suggesting itself would not help
+            backend = next((str(p) for p in err["loc"][:-1] if p in BACKENDS), None)
+            where = f"the {backend} backend" if backend else "this section"
+            return (
+                f"unknown key: {where} has no key {key!r} (the keys of each section are "
+                "listed in docs/profiles.md)"
+            )
         # Keys carry their unit ("mass_kg"): a key written without it is the likeliest slip.
         close = [k for k in keys if k.startswith(key + "_")][:1]
         close = close or difflib.get_close_matches(key, keys, n=1, cutoff=0.75)

@@ -207,17 +207,37 @@ def wait_for_tick(client, tick, limit_s=5.0):
     )
 
 
-@pytest.fixture(scope="session")
-def libdhd(tmp_path_factory):
-    """A fake libdhd compiled from tests/fakes/fake_dhd.c: (path, ctypes handle with the
-    fake's own controls). Skips when there is no C compiler."""
+def _build_fake_sdk(out_dir: Path, name: str, *defines: str) -> tuple[str, ctypes.CDLL]:
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
-        pytest.skip("no C compiler to build the fake libdhd")
-    out = tmp_path_factory.mktemp("dhd") / "libfakedhd.so"
+        pytest.skip("no C compiler to build the fake Force Dimension SDK")
+    out = out_dir / f"lib{name}.so"
     src = Path(__file__).with_name("fakes") / "fake_dhd.c"
-    subprocess.run([cc, "-shared", "-fPIC", "-O1", "-o", str(out), str(src), "-lm"], check=True)
+    cmd = [cc, "-shared", "-fPIC", "-O1", *defines, "-o", str(out), str(src), "-lm"]
+    subprocess.run(cmd, check=True)
     lib = ctypes.CDLL(str(out))
     lib.fake_set_state.argtypes = [ctypes.c_int] + [ctypes.c_double] * 6
     lib.fake_get_force.argtypes = [ctypes.c_int, ctypes.POINTER(ctypes.c_double)]
+    lib.fake_get_force_sum.argtypes = [ctypes.c_int, ctypes.POINTER(ctypes.c_double)]
+    lib.fake_set_buttons.argtypes = [ctypes.c_int, ctypes.c_uint]
+    dp = ctypes.POINTER(ctypes.c_double)
+    lib.fake_set_path.argtypes = [ctypes.c_int, ctypes.c_int, dp, dp]
+    for name_ in ("fake_max_force", "fake_effector_mass"):
+        getattr(lib, name_).restype = ctypes.c_double
+    lib.fake_log.restype = ctypes.c_char_p
     return str(out), lib
+
+
+@pytest.fixture(scope="session")
+def libdhd(tmp_path_factory):
+    """The fake Force Dimension SDK a profile's ``library`` points at, as the real libdrd:
+    the DHD calls and the DRD ones (initialisation state, automatic initialisation),
+    compiled from tests/fakes/fake_dhd.c: (path, ctypes handle with the fake's own
+    controls). Skips when there is no C compiler."""
+    return _build_fake_sdk(tmp_path_factory.mktemp("drd"), "fakedrd", "-DFAKE_DRD")
+
+
+@pytest.fixture(scope="session")
+def libdhd_only(tmp_path_factory):
+    """A fake libdhd without the DRD calls: (path, ctypes handle)."""
+    return _build_fake_sdk(tmp_path_factory.mktemp("dhd"), "fakedhd")

@@ -93,8 +93,12 @@ def test_live_changes_over_the_socket_land_at_tick_boundaries_in_the_recording(
     profile = write_profile(hold_after_the_trajectory(grasp_data))
     proc, _sock, c = start_daemon(tmp_path, "--no-realtime", profile=profile)
     with c:
-        wait_for(c.status, "the grasp", until=lambda s: s["tick"] > 2500)
+        # Start recording while the fingers approach (starting the writer process can take
+        # seconds on a loaded machine), then change the stiffness early in the squeeze
+        # (ticks 2250-5750 of the bundled grasp).
+        wait_for(c.status, "the approach", until=lambda s: s["tick"] > 1000)
         started = c.record_start(rec_path)
+        wait_for(c.status, "the grasp", until=lambda s: s["tick"] > 2400)
         k_stiff = c.set("stiffness_n_per_m", 90.0)["applied_at_tick"]
         wait_for(c.status, "50 ticks more", until=lambda s: s["tick"] >= k_stiff + 50)
         k_alloc = c.call("set", param="allocator", value="pinv")["applied_at_tick"]
@@ -135,7 +139,7 @@ def test_live_changes_over_the_socket_land_at_tick_boundaries_in_the_recording(
     dev = np.linalg.norm(rec["device_force"], axis=2).max(axis=1)
     assert dev[-1] == 0.0
     ramp = dev[-52:-1]
-    assert ramp[0] > 0.3 and np.all(np.diff(ramp) <= 1e-3)
+    assert ramp[0] > 0.1 and np.all(np.diff(ramp) <= 1e-3)  # at 30 N/m: 0.3-0.6 N squeezing
 
 
 def test_sighup_reloads_and_an_invalid_profile_leaves_the_old_one_running(
@@ -288,11 +292,16 @@ def test_a_rejected_sighup_leaves_the_control_thread_serving_and_a_later_reload_
     env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "200000"}
     proc, _sock, c = start_daemon(tmp_path, "--no-realtime", profile=path, env=env)
     with c, notify:
-        wait_for(c, lambda s: s["tick"] > 100, "the loop")
+        wait_for(c.status, "the loop", until=lambda s: s["tick"] > 100)
         for n, (what, text) in enumerate(hostile.items(), start=1):
             path.write_text(text)
             proc.send_signal(signal.SIGHUP)
-            st = wait_for(c, lambda s, n=n: len(s["reloads"]) == n, f"{what} rejected", 10.0)
+            st = wait_for(
+                c.status,
+                f"{what} rejected",
+                until=lambda s, n=n: len(s["reloads"]) == n,
+                timeout_s=10.0,
+            )
             assert st["reloads"][-1].startswith("reload rejected"), (what, st["reloads"])
             assert str(path) in st["reloads"][-1], (what, st["reloads"])
             assert st["fault"] is None, what
@@ -312,7 +321,9 @@ def test_a_rejected_sighup_leaves_the_control_thread_serving_and_a_later_reload_
         grasp_data["scene"]["object"]["stiffness_n_per_m"] = 120.0
         write_profile(grasp_data)
         proc.send_signal(signal.SIGHUP)
-        st = wait_for(c, lambda s: len(s["reloads"]) == 4, "the valid reload", 10.0)
+        st = wait_for(
+            c.status, "the valid reload", until=lambda s: len(s["reloads"]) == 4, timeout_s=10.0
+        )
         assert st["reloads"][-1].startswith(f"reloaded {path} at tick"), st["reloads"]
         assert c.get("stiffness_n_per_m") == 120.0
         c.stop()

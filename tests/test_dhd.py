@@ -19,7 +19,7 @@ def test_open_by_serial_read_write_and_close(libdhd):
     lib.fake_set_state(1, 0.01, -0.02, 0.03, 0.1, 0.0, -0.1)
     dev = open_device("dhd", library=path, serial_number=10002, device_watchdog_s=0.01)
     dev.open()
-    assert dev.info.serial == "10002" and dev.info.model == "fake omega.3"
+    assert dev.info.serial == "10002" and dev.info.model == "omega.3"
     assert lib.fake_watchdog(1) == 80  # 10 ms in 125 us units
     st = DeviceState()
     dev.read_state(st)
@@ -67,3 +67,137 @@ def test_missing_library_says_how_to_get_it(monkeypatch, tmp_path):
     monkeypatch.delenv("HAPTICD_LIBDHD", raising=False)
     with pytest.raises(DeviceError, match="cannot load libdhd"):
         open_device("dhd", library=str(tmp_path / "nope.so")).open()
+
+
+def test_opening_disables_and_zeroes_first_then_sets_limit_mass_and_gravity(libdhd):
+    path, lib = libdhd
+    lib.fake_reset(1)
+    dev = open_device("dhd", library=path, max_force_n=7.5, effector_mass_kg=0.21)
+    dev.open()
+    log = lib.fake_log().decode()
+    # Forces off, then a zero force: the first two commands, before anything else is set.
+    assert log.startswith("open 0;enable 0 0;force 0 0 0 0;"), log
+    assert "maxforce 0 7.5;" in log and "mass 0 0.21;" in log and "gravity 0 1;" in log
+    assert lib.fake_max_force(0) == 7.5  # the SDK's own, independent limit
+    assert lib.fake_effector_mass(0) == pytest.approx(0.21)
+    assert lib.fake_gravity(0) == 1
+    assert lib.fake_watchdog(0) == 240  # 30 ms in 125 us units, set in expert mode
+    assert "enable 0 1" not in log  # nothing enables forces but the loop
+    dev.enable_forces(True)
+    dev.write_force(np.array([0.0, 0.0, 7.0]))
+    np.testing.assert_allclose(force_of(lib, 0), [0, 0, 7.0])
+    dev.close()
+
+
+def test_without_an_effector_mass_the_sdk_default_stays(libdhd):
+    path, lib = libdhd
+    lib.fake_reset(1)
+    dev = open_device("dhd", library=path)
+    dev.open()
+    assert lib.fake_effector_mass(0) == pytest.approx(0.19)  # the fake's model default
+    assert "mass" not in lib.fake_log().decode() and lib.fake_gravity(0) == 1
+    dev.close()
+
+
+def test_an_uncalibrated_device_opens_but_refuses_forces_and_says_what_to_do(libdhd):
+    path, lib = libdhd
+    lib.fake_reset(1)
+    lib.fake_set_calibrated(0, 0)
+    dev = open_device("dhd", library=path)
+    dev.open()
+    assert dev.calibrated() is False
+    with pytest.raises(DeviceError, match=r"not calibrated.*hapticd calibrate PROFILE"):
+        dev.enable_forces(True)
+    assert lib.fake_is_enabled(0) == 0
+    dev.write_force(np.array([1.0, 0.0, 0.0]))
+    np.testing.assert_array_equal(force_of(lib, 0), 0)  # never enabled: nothing rendered
+    dev.close()
+
+
+def test_a_bare_libdhd_cannot_check_the_calibration_so_forces_stay_off(libdhd_only):
+    path, lib = libdhd_only
+    lib.fake_reset(1)
+    dev = open_device("dhd", library=path)
+    dev.open()
+    assert dev.calibrated() is None
+    with pytest.raises(DeviceError, match=r"cannot tell whether .* calibrated.*libdrd"):
+        dev.enable_forces(True)
+    assert lib.fake_is_enabled(0) == 0
+    dev.close()
+    with pytest.raises(DeviceError, match=r"calibrating needs libdrd"):
+        from hapticd_drivers.dhd_backend import calibrate
+
+        calibrate(library=path)
+
+
+def test_a_controller_memory_fault_refuses_the_device_and_closes_it(libdhd):
+    path, lib = libdhd
+    lib.fake_reset(1)
+    lib.fake_set_memory_fault(0, 1)
+    dev = open_device("dhd", library=path)
+    with pytest.raises(DeviceError, match=r"memory check failed.*contact Force Dimension"):
+        dev.open()
+    assert lib.fake_is_open(0) == 0 and lib.fake_is_enabled(0) == 0
+    with pytest.raises(DeviceError, match="closed"):
+        dev.read_state(DeviceState())
+
+
+def test_buttons_are_read_from_the_sdk(libdhd):
+    path, lib = libdhd
+    lib.fake_reset(1)
+    dev = open_device("dhd", library=path)
+    dev.open()
+    st = DeviceState()
+    lib.fake_set_buttons(0, 0b101)
+    dev.read_state(st)
+    assert st.buttons == 0b101
+    lib.fake_set_buttons(0, 0)
+    dev.read_state(st)
+    assert st.buttons == 0
+    dev.close()
+
+
+def test_calibrate_runs_the_automatic_initialisation_by_index_and_by_serial(libdhd):
+    from hapticd_drivers.dhd_backend import calibrate
+
+    path, lib = libdhd
+    lib.fake_reset(2)
+    lib.fake_set_calibrated(1, 0)
+    lib.fake_set_state(1, 0.02, 0.01, 0.0, 0, 0, 0)
+    out = calibrate(library=path, serial_number=10002)
+    assert out == {"model": "omega.3", "serial": "10002", "was_calibrated": False}
+    assert lib.fake_autoinits(1) == 1 and lib.fake_autoinits(0) == 0
+    # Every device it looked at is closed again, forces off.
+    assert [lib.fake_is_open(i) for i in range(2)] == [0, 0]
+    assert lib.fake_is_enabled(1) == 0
+    assert "drdstop 1 0;" in lib.fake_log().decode()
+    out = calibrate(library=path, index=0)
+    assert out["serial"] == "10001" and out["was_calibrated"] is True
+    assert lib.fake_autoinits(0) == 1
+    with pytest.raises(DeviceError, match="no device with serial number 4242 among 2"):
+        calibrate(library=path, serial_number=4242)
+    lib.fake_set_calibrated(0, 0)
+    lib.fake_block_autoinit(1)
+    with pytest.raises(DeviceError, match=r"automatic initialisation failed: .*end stop"):
+        calibrate(library=path, index=0)
+    assert lib.fake_is_open(0) == 0
+
+
+def test_discover_lists_model_serial_and_calibration(libdhd, monkeypatch):
+    from hapticd_drivers.dhd_backend import discover
+
+    path, lib = libdhd
+    monkeypatch.setenv("HAPTICD_LIBDHD", path)
+    lib.fake_reset(2)
+    lib.fake_set_calibrated(1, 0)
+    (entry,) = discover()
+    assert entry["model"] == "omega.3"
+    assert entry["found"] == ["10001 (index 0, calibrated)", "10002 (index 1, NOT calibrated)"]
+    assert [d["serial"] for d in entry["devices"]] == ["10001", "10002"]
+    assert [lib.fake_is_open(i) for i in range(2)] == [0, 0]
+    # A device held open elsewhere is listed, not skipped.
+    dev = open_device("dhd", library=path, index=0)
+    dev.open()
+    entries = discover()
+    dev.close()
+    assert any("in use" in s for e in entries for s in e["found"])

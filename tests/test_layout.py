@@ -33,6 +33,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.frame",
         "hapticd.friction",
         "hapticd.grasp",
+        "hapticd.mount",
         "hapticd.passivity",
         "hapticd.render",
         "hapticd.safety",

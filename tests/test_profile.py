@@ -35,6 +35,23 @@ def test_misspelled_key_is_named_with_a_suggestion(grasp_data, write_profile):
     assert "scene.object.stiffness_n_per_m: required key is missing" in msg
 
 
+def test_a_key_of_another_section_is_not_suggested_as_its_own_fix(grasp_data, write_profile):
+    """'trajectory' is a key of the replay backend, not of dhd: the message says so, it does
+    not ask "did you mean 'trajectory'?"."""
+    grasp_data["fingers"][0]["device"]["backend"] = "dhd"
+    path = write_profile(grasp_data)
+    with pytest.raises(ProfileError) as exc:
+        load_profile(path)
+    msg = str(exc.value)
+    assert "fingers[0:thumb].device.trajectory: unknown key: the dhd backend has no key" in msg
+    assert "did you mean 'trajectory'" not in msg
+    # A section that is not a backend's says "this section".
+    grasp_data["fingers"][0]["device"]["backend"] = "replay"
+    grasp_data["scene"]["object"]["rate_hz"] = 1000
+    with pytest.raises(ProfileError, match=r"scene.object.rate_hz: unknown key: this section"):
+        load_profile(write_profile(grasp_data))
+
+
 @pytest.mark.parametrize(
     ("mutate", "where", "what"),
     [

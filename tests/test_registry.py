@@ -70,7 +70,7 @@ def test_every_entry_names_an_importable_class(name: str) -> None:
 def test_profile_models_carry_the_registry_keys(name: str) -> None:
     model = DEVICE_MODELS[name]
     fields = model.model_fields
-    assert set(fields) == {"backend"} | {k.name for k in BACKENDS[name].keys}
+    assert set(fields) == {"backend", "mount"} | {k.name for k in BACKENDS[name].keys}
     for k in BACKENDS[name].keys:
         assert fields[k.name].is_required() == (k.default is REQUIRED)
 

@@ -131,6 +131,8 @@ def test_a_stalled_servo_loop_ends_in_zero_force():
     s = build_session(load_profile(GRASP_PROFILE), paced=False)
     import time
 
+    assert not s.loop.wall_watchdog  # replay devices on the nominal clock: a simulation
+    s.loop.wall_watchdog = True  # as with a device in the loop
     # In the pinch, a tick takes longer than the 0.1 s watchdog.
     s.renderer.insert(AtTick(2999, lambda f: time.sleep(0.15)), after="allocation")
     out = s.run()
@@ -154,3 +156,21 @@ def test_a_ramp_down_ends_at_exactly_zero_despite_rounded_tick_times():
             k += 1
         out = chain.apply(np.full((2, 3), 1.0), k, k * dt)
         assert k - (start + 1) == 50 and np.all(out == 0.0), (start, out)
+
+
+def test_an_unpaced_simulation_paused_by_the_machine_is_not_a_stalled_loop():
+    """Unpaced on replay devices time is the nominal clock: a pause of the process (a
+    loaded machine, a debugger) endangers no one and must not latch the watchdog."""
+    import time
+
+    from hapticd.daemon.session import build_session
+    from hapticd.profile import load_profile
+    from tests.conftest import GRASP_PROFILE, AtTick
+
+    s = build_session(load_profile(GRASP_PROFILE), paced=False)
+    s.renderer.insert(AtTick(2999, lambda f: time.sleep(0.15)), after="allocation")
+    out = s.run()
+    assert out["fault"] is None
+    assert out["ticks"] == 7801
+    # A paced run, or any run with a device that is not simulated, keeps the watchdog.
+    assert build_session(load_profile(GRASP_PROFILE), paced=True).loop.wall_watchdog

@@ -10,13 +10,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from hapticd_drivers import Device
+from hapticd_drivers import Device, registry
 from hapticd_drivers.emulator import DeltaEmulator
 
 from hapticd import recording
 from hapticd.allocation import METHODS
 from hapticd.build import (
     build_devices,
+    build_mounts,
     build_renderer,
     build_safety,
     load_trajectories,
@@ -214,7 +215,9 @@ def build_session(
         switch_interval_s=profile.loop.gil_switch_interval_s,
         realtime_settings=realtime_settings(profile) if paced else None,
         event_capacity=event_capacity,
+        wall_watchdog=paced or not on_nominal_clock(profile, device, emulate),
     )
+    loop.bank.set_mounts(build_mounts(profile))
     clock_box.append(loop)
     return Session(
         profile,
@@ -225,6 +228,16 @@ def build_session(
         recorder,
         emulators,
         record_directory(profile, record_dir),
+    )
+
+
+def on_nominal_clock(profile: Profile, device: str | None, emulate: bool) -> bool:
+    """Whether every finger's device follows the loop's nominal clock (a backend that plays
+    its trajectory, or the emulator under ``--emulate``): no hardware in the loop."""
+    if emulate:
+        return True
+    return all(
+        registry.backend(device or f.device.backend).plays_trajectory for f in profile.fingers
     )
 
 
