@@ -41,7 +41,8 @@ class Backend:
     """One device backend.
 
     ``plays_trajectory``: the device follows the finger's trajectory (it gets
-    ``times``, ``positions`` and ``clock``). ``emulated``: the delta emulator can
+    ``times``, ``positions`` and ``clock``, and ``buttons`` when the trajectory
+    carries them). ``emulated``: the delta emulator can
     run under it (``--emulate``). ``discover`` and ``preflight`` are
     "module:function" paths: the first lists attached devices, the second checks
     what a run needs (a library, a driver) and raises DeviceError saying how to fix it.

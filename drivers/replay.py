@@ -1,7 +1,9 @@
 """Replay device: plays recorded fingertip positions on the servo loop's timeline.
 
 Positions are interpolated linearly between samples when the loop rate differs
-from the recording's; velocity is the slope of the current segment. Time comes
+from the recording's; velocity is the slope of the current segment. Buttons, when
+the trajectory has them (a recording made by the loop does), are each sample's,
+held until the next: a replay presses what the recording's devices pressed. Time comes
 from ``clock`` (s), which the servo loop sets to each tick's nominal time, so a
 paced and an unpaced run see the same positions. Forces written are checked as
 firmware would and kept for inspection.
@@ -18,7 +20,8 @@ from hapticd_drivers.trajectory import Trajectory
 
 
 class ReplayDevice(Device):
-    """Plays ``positions`` (N, 3) m at ``times`` (N,) s, strictly increasing."""
+    """Plays ``positions`` (N, 3) m and ``buttons`` (N,) bit sets (None: every button up) at
+    ``times`` (N,) s, strictly increasing."""
 
     def __init__(
         self,
@@ -29,8 +32,9 @@ class ReplayDevice(Device):
         serial: str = "replay",
         hold_s: float = 0.0,
         workspace_radius_m: float = 0.075,
+        buttons: np.ndarray | None = None,
     ) -> None:
-        self.path = Trajectory(times, positions, f"replay {serial}")
+        self.path = Trajectory(times, positions, f"replay {serial}", buttons)
         self.info = DeviceInfo("replay", serial, float(max_force_n), workspace_radius_m)
         self._clock = clock
         self._t0 = 0.0
@@ -70,7 +74,7 @@ class ReplayDevice(Device):
         state.position[:] = pos
         state.velocity[:] = vel
         state.timestamp = now
-        state.buttons = 0
+        state.buttons = self.path.buttons_at(now)
 
     def _keep(self, force: np.ndarray) -> None:
         n = self._n_forces

@@ -70,8 +70,11 @@ class SimulatedFinger(ReplayDevice):
         hand_stiffness_n_per_m: float = 300.0,
         hand_damping_n_s_per_m: float = 3.0,
         max_step_s: float = 1e-4,
+        buttons: np.ndarray | None = None,
     ) -> None:
-        super().__init__(times, positions, clock, max_force_n, serial, hold_s, workspace_radius_m)
+        super().__init__(
+            times, positions, clock, max_force_n, serial, hold_s, workspace_radius_m, buttons
+        )
         if not (mass_kg > 0 and hand_stiffness_n_per_m >= 0 and hand_damping_n_s_per_m >= 0):
             raise DeviceError(
                 f"sim {serial}: mass must be positive, hand stiffness and damping >= 0"
@@ -103,7 +106,7 @@ class SimulatedFinger(ReplayDevice):
         state.position[:] = self.hand.x
         state.velocity[:] = self.hand.v
         state.timestamp = now
-        state.buttons = 0
+        state.buttons = self.path.buttons_at(now)
         if not all(math.isfinite(c) for c in self.hand.x):
             raise DeviceError(f"sim {self.info.serial}: the simulated finger diverged")
 

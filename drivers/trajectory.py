@@ -1,4 +1,5 @@
-"""A recorded fingertip path, interpolated linearly at any time (cursor-based, O(1) per step)."""
+"""A recorded fingertip path, interpolated linearly at any time (cursor-based, O(1) per step),
+and the buttons held along it (each sample's held until the next)."""
 
 from __future__ import annotations
 
@@ -9,13 +10,31 @@ Vec = tuple[float, float, float]
 
 
 class Trajectory:
-    """Positions (N, 3) m at strictly increasing times (N,) s, shifted to start at t = 0."""
+    """Positions (N, 3) m at strictly increasing times (N,) s, shifted to start at t = 0;
+    optionally the device's buttons (N,) (bit i for button i) at each sample."""
 
-    def __init__(self, times: np.ndarray, positions: np.ndarray, who: str) -> None:
+    def __init__(
+        self,
+        times: np.ndarray,
+        positions: np.ndarray,
+        who: str,
+        buttons: np.ndarray | None = None,
+    ) -> None:
         t = np.asarray(times, dtype=float).reshape(-1)
         x = np.asarray(positions, dtype=float)
         if x.shape != (t.size, 3):
             raise DeviceError(f"{who}: positions {x.shape} do not match times ({t.size},)")
+        self._buttons: list[int] | None = None
+        if buttons is not None:
+            b = np.asarray(buttons)
+            if b.shape != (t.size,) or b.dtype.kind not in "iub":
+                raise DeviceError(
+                    f"{who}: buttons must be one integer bit set per sample ({t.size},), "
+                    f"got {b.dtype} {b.shape}"
+                )
+            if b.size and (int(b.min()) < 0 or int(b.max()) > 0xFFFFFFFF):
+                raise DeviceError(f"{who}: buttons must be 32-bit bit sets (0 to 2**32 - 1)")
+            self._buttons = [int(v) for v in b.tolist()]
         if t.size < 2 or not np.all(np.isfinite(t)) or not np.all(np.isfinite(x)):
             raise DeviceError(f"{who}: need at least 2 finite samples")
         if not np.all(np.diff(t) > 0):
@@ -28,6 +47,15 @@ class Trajectory:
     @property
     def duration(self) -> float:
         return self._t[-1]
+
+    def buttons_at(self, now: float) -> int:
+        """The buttons of the last sample at or before ``now`` (s); 0 without buttons. Call
+        after ``at(now)``: it reuses the cursor."""
+        b = self._buttons
+        if b is None:
+            return 0
+        last = len(self._t) - 1
+        return b[last] if now >= self._t[last] else b[self._k] if now >= self._t[0] else b[0]
 
     def at(self, now: float) -> tuple[Vec, Vec]:
         """(position m, velocity m/s) at time ``now`` (s); held at the ends, zero velocity there."""

@@ -34,7 +34,7 @@ from hapticd.profile import (
 from hapticd.realtime import RealtimeSettings
 from hapticd.recording import RecordingError
 from hapticd.render import Renderer
-from hapticd.safety import SafetyChain, SafetyParams
+from hapticd.safety import Deadman, SafetyChain, SafetyParams
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface, rpy_matrix
 
 BUILTIN = "builtin:"
@@ -62,13 +62,15 @@ def _where(profile: Profile, i: int, finger: FingerConfig, key: str) -> str:
     return f"{profile.source or '<profile>'}: fingers[{i}:{finger.name}].device.{key}"
 
 
-def load_trajectories(profile: Profile) -> list[tuple[Any, Any] | None]:
-    """(times, positions) per finger whose device names a trajectory, else None.
+def load_trajectories(profile: Profile) -> list[tuple[Any, Any, Any] | None]:
+    """(times (N,) s, positions (N, 3) m, buttons (N,) bit sets or None) per finger whose
+    device names a trajectory, else None. A recording made by the loop carries its
+    ``buttons``; a trajectory without that field has none (every button up).
 
     ProfileError names the bad key.
     """
     cache: dict[Path, recording.Recording] = {}
-    out: list[tuple[Any, Any] | None] = []
+    out: list[tuple[Any, Any, Any] | None] = []
     for i, finger in enumerate(profile.fingers):
         ref = getattr(finger.device, "trajectory", None)  # not every backend has one
         if ref is None:
@@ -92,7 +94,16 @@ def load_trajectories(profile: Profile) -> list[tuple[Any, Any] | None]:
                 f"{rec.fingers}, not {want!r}"
             )
         j = rec.fingers.index(want)
-        out.append((rec["t"], rec["device_pos"][:, j, :]))
+        buttons = None
+        if "buttons" in rec:
+            if rec["buttons"].shape != (rec.ticks, len(rec.fingers)):
+                raise ProfileError(
+                    f"{_where(profile, i, finger, 'trajectory')}: {path}'s buttons field has "
+                    f"shape {rec['buttons'].shape[1:]}, expected ({len(rec.fingers)},): one "
+                    "bit set per finger"
+                )
+            buttons = rec["buttons"][:, j]
+        out.append((rec["t"], rec["device_pos"][:, j, :], buttons))
     return out
 
 
@@ -151,6 +162,8 @@ def build_devices(
                 raise ProfileError(f"{loc}: backend {name!r} needs a trajectory")
             if entry.plays_trajectory:
                 kwargs.update(times=traj[0], positions=traj[1], clock=clock)
+                if traj[2] is not None:
+                    kwargs["buttons"] = traj[2]
                 kwargs["serial"] = f"{name}-{finger.name}"
             elif emulate:
                 serial = f"EMU-{finger.name}"
@@ -319,6 +332,10 @@ def build_safety(profile: Profile, devices: list[Device]) -> SafetyChain:
             workspace_center_m=sc.workspace_center_m,
             workspace_radius_m=sc.workspace_radius_m or math.inf,
             watchdog_s=sc.watchdog_s or math.inf,
+            deadman=tuple(
+                None if (d := f.deadman) is None else Deadman(d.button, d.ramp_s)
+                for f in profile.fingers
+            ),
         ),
         dt=1.0 / profile.loop.rate_hz,
         rated_n=[d.info.max_force_n for d in devices],

@@ -17,6 +17,7 @@ from hapticd_drivers import BackendUnavailableError, DeviceError, registry
 from hapticd_drivers.registry import backend_names, discover
 
 from hapticd import __version__, params
+from hapticd import events as event_kinds
 from hapticd.build import build_devices, build_mounts, build_scene, load_trajectories
 from hapticd.control import ControlClient, NoDaemonError, default_socket_path
 from hapticd.daemon.sdnotify import ServiceNotifier
@@ -230,6 +231,21 @@ def cmd_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _device_text(d: dict[str, Any]) -> str:
+    """One device in ``hapticd status``: connection, force limit, buttons held, deadman."""
+    down = d.get("buttons") or []
+    parts = [
+        "connected" if d["connected"] else "LOST",
+        f"limit {d['force_limit_n']:g} N",
+        "buttons " + (" ".join(str(b) for b in down) if down else "none") + " down",
+    ]
+    dm = d.get("deadman")
+    if dm is not None:
+        state = "held" if dm["held"] else "RELEASED: no force"
+        parts.append(f"deadman {dm['button']} {state}")
+    return f"{d['serial']} ({', '.join(parts)})"
+
+
 CALIBRATE_WARNING = """\
 hapticd calibrate: these devices will MOVE ON THEIR OWN, one after the other, to find
 their end stops (the SDK's automatic initialisation):
@@ -327,12 +343,7 @@ def format_status(st: dict[str, Any]) -> str:
         f"rate          {st['rate_hz']:g} Hz; period error p50 {us(pe['p50'])}, "
         f"p99 {us(pe['p99'])}, max {us(pe['max'])}; overruns {st['overruns']}",
         f"fault         {'none' if fault is None else fault['cause']}",
-        "devices       "
-        + ", ".join(
-            f"{d['serial']} ({'connected' if d['connected'] else 'LOST'}, "
-            f"limit {d['force_limit_n']:g} N)"
-            for d in st["devices"]
-        ),
+        "devices       " + ", ".join(_device_text(d) for d in st["devices"]),
         f"allocator     {st['allocator']}   stages: {' '.join(st['stages'])}",
         "passivity     "
         + (
@@ -468,6 +479,54 @@ def cmd_watch(args: argparse.Namespace) -> int:
                     parts.append("FAULT")
                 print("  ".join(parts), flush=True)
                 shown += 1
+    except KeyboardInterrupt:
+        return EXIT_OK
+    except (OSError, ValueError) as exc:
+        return _client_failed(args, exc)
+    return EXIT_OK
+
+
+def format_event(ev: dict[str, Any]) -> str:
+    """One event as a readable line: time, tick, kind and what it carries."""
+    parts = [f"t {ev.get('t', 0.0):9.3f} s", f"tick {ev.get('tick', 0):>8}", f"{ev['event']:<18}"]
+    if "finger" in ev:
+        parts.append(str(ev.get("finger_name") or f"finger {ev['finger']}"))
+    if "button" in ev:
+        parts.append(f"button {ev['button']}")
+    if "response" in ev:
+        parts.append(f"response {ev['response']}")
+    if "param" in ev:
+        parts.append(str(ev["param"]))
+    if "cause" in ev:
+        parts.append(str(ev["cause"]) + (f": {ev['message']}" if ev.get("message") else ""))
+    if "count" in ev:
+        parts.append(f"{ev['count']} events lost")
+    return "  ".join(parts).rstrip()
+
+
+def cmd_events(args: argparse.Namespace) -> int:
+    """The loop's events as they happen, one line each, until Ctrl-C, --count or the end of
+    the run."""
+    kinds = None
+    if args.kinds is not None:
+        kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
+        unknown = [k for k in kinds if k not in event_kinds.CODES]
+        if unknown or not kinds:
+            print(
+                f"hapticd: bad_value: unknown event(s) {unknown or args.kinds!r}; events: "
+                f"{', '.join(event_kinds.NAMES)}",
+                file=sys.stderr,
+            )
+            return EXIT_BAD_INPUT
+    shown = 0
+    try:
+        with ControlClient(args.socket) as client:
+            for ev in client.events(kinds):
+                text = json.dumps(ev) if args.json else format_event(ev)
+                print(text, flush=True)
+                shown += 1
+                if args.count is not None and shown >= args.count:
+                    break
     except KeyboardInterrupt:
         return EXIT_OK
     except (OSError, ValueError) as exc:
@@ -684,6 +743,13 @@ def cmd_udev_rules(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _count(text: str) -> int:
+    v = int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive number of events, got {text}")
+    return v
+
+
 def _positive(text: str) -> float:
     v = float(text)
     if not (v > 0 and math.isfinite(v)):
@@ -764,6 +830,7 @@ def build_parser() -> argparse.ArgumentParser:
         ("record", "record start PATH / record stop"),
         ("reload", "reload the profile (or switch to PROFILE): scene, rendering, safety"),
         ("watch", "live numbers: forces, contact, object, faults"),
+        ("events", "the loop's events as they happen: contacts, buttons, faults, changes"),
     )
     for name, help_text in clients:
         p = sub.add_parser(name, help=help_text)
@@ -787,6 +854,17 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--rate", type=_positive, default=10.0, help="lines per second")
             p.add_argument("--count", type=int, help="stop after this many lines")
             p.set_defaults(func=cmd_watch)
+        if name == "events":
+            p.add_argument("--count", type=_count, metavar="N", help="stop after N events")
+            p.add_argument(
+                "--json", action="store_true", help="one JSON object per line (for scripts)"
+            )
+            p.add_argument(
+                "--kinds",
+                metavar="A,B",
+                help=f"only these events (default all): {','.join(event_kinds.NAMES)}",
+            )
+            p.set_defaults(func=cmd_events)
     _add_analyze(sub)
     exp = sub.add_parser("export", help="export a recording to CSV or MCAP (Foxglove)")
     exp.add_argument("recording", type=Path)

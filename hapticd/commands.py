@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from hapticd.params import PARAMS
+
 if TYPE_CHECKING:
     from hapticd.frame import Frame
     from hapticd.recording import Recorder
@@ -20,9 +22,15 @@ if TYPE_CHECKING:
 
 
 class Command:
-    """A change to the running loop. ``while_stopping``: may it apply during a stop ramp?"""
+    """A change to the running loop. ``while_stopping``: may it apply during a stop ramp?
+    ``event``: the kind of event (hapticd.events) the loop reports when it applies, if any."""
 
     while_stopping = True
+    event: str | None = None
+
+    def event_value(self) -> int:
+        """The event's value (a parameter's index; -1: none)."""
+        return -1
 
     def apply(self, loop: ServoLoop, t: float) -> Any:
         """Make the change at nominal time ``t`` (s); return a result for the caller."""
@@ -39,6 +47,11 @@ class SetParam(Command):
 
     name: str
     value: Any
+
+    event = "param_changed"
+
+    def event_value(self) -> int:
+        return list(PARAMS).index(self.name)
 
     def apply(self, loop: ServoLoop, t: float) -> Any:
         loop.set_param(self.name, self.value)
@@ -77,6 +90,8 @@ class RecordStart(Command):
 
     recorder: Recorder
 
+    event = "recording_started"
+
     def apply(self, loop: ServoLoop, t: float) -> Any:
         if loop.recorder is not None:
             raise ValueError(f"already recording to {loop.recorder.path}; stop it first")
@@ -88,6 +103,8 @@ class RecordStart(Command):
 
 class RecordStop(Command):
     """Stop recording; the result is the recorder, for the caller to close."""
+
+    event = "recording_stopped"
 
     def apply(self, loop: ServoLoop, t: float) -> Any:
         if loop.recorder is None:

@@ -7,13 +7,16 @@ running hapticd loads no numpy, pydantic or yaml. The protocol is in
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import os
+import select
 import socket
 import stat
 import struct
 import time
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -140,14 +143,23 @@ class ControlClient:
     with ControlClient() as hd:          # the default socket path
         hd.set("stiffness_n_per_m", 60)
         hd.record_start("s01-trial-07.hrec")   # in the daemon's recording directory
+        for ev in hd.events(["button_down"]):  # the loop's events, in order
+            ...
+
+    ``timeout_s`` bounds connecting and waiting for each reply (TimeoutError).
     """
 
     def __init__(self, path: str | Path | None = None, timeout_s: float = 5.0) -> None:
         self.path = Path(path) if path is not None else default_socket_path()
+        self.timeout_s = timeout_s
         check_socket_dir(self.path)  # never talk through a directory someone else controls
         self.sock = _connect(self.path, timeout_s)
-        self._file = self.sock.makefile("rb")
-        self.greeting = json.loads(self._file.readline())
+        self._buf = bytearray()
+        try:
+            self.greeting = self._line()
+        except BaseException:
+            self.sock.close()
+            raise
         if self.greeting.get("protocol") != proto.PROTOCOL_VERSION:
             self.close()
             raise proto.ProtocolError(
@@ -157,12 +169,32 @@ class ControlClient:
             )
         self._next = 0
         self.telemetry: list[dict[str, Any]] = []  # frames that arrived while awaiting a reply
+        # Events that arrived while awaiting a reply or a telemetry frame, in order.
+        self.pending_events: collections.deque[dict[str, Any]] = collections.deque()
 
-    def _line(self) -> dict[str, Any]:
-        line = self._file.readline()
-        if not line:
-            raise ConnectionError(f"{self.path}: the daemon closed the connection")
-        return json.loads(line)
+    def _line(self, timeout_s: float | None = -1.0) -> dict[str, Any]:
+        """The next line from the daemon, parsed; TimeoutError after ``timeout_s`` s (default
+        the client's timeout; None: wait as long as it takes), and the connection stays
+        usable; ConnectionError when the daemon closed it."""
+        if timeout_s is not None and timeout_s < 0:
+            timeout_s = self.timeout_s
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            cut = self._buf.find(b"\n")
+            if cut >= 0:
+                line = bytes(self._buf[:cut])
+                del self._buf[: cut + 1]
+                return json.loads(line)
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
+                raise TimeoutError(f"{self.path}: nothing from the daemon in {timeout_s:g} s")
+            ready, _, _ = select.select([self.sock], [], [], left)
+            if not ready:
+                continue
+            chunk = self.sock.recv(65536)
+            if not chunk:
+                raise ConnectionError(f"{self.path}: the daemon closed the connection")
+            self._buf += chunk
 
     def request(self, cmd: str, **args: Any) -> dict[str, Any]:
         self._next += 1
@@ -171,6 +203,9 @@ class ControlClient:
             msg = self._line()
             if "telemetry" in msg:
                 self.telemetry.append(msg["telemetry"])
+                continue
+            if proto.is_event(msg):
+                self.pending_events.append(msg)
                 continue
             return msg
 
@@ -215,12 +250,52 @@ class ControlClient:
             msg = self._line()
             if "telemetry" in msg:
                 return msg["telemetry"]
+            if proto.is_event(msg):
+                self.pending_events.append(msg)
+
+    def events_subscribe(self, kinds: Sequence[str] | None = None) -> dict[str, Any]:
+        """Receive the loop's events (hapticd.events; all kinds, or those named in ``kinds``)
+        from the tick the result names (``tick``) on."""
+        args = {} if kinds is None else {"kinds": list(kinds)}
+        return self.call("events_subscribe", **args)
+
+    def events_unsubscribe(self) -> dict[str, Any]:
+        return self.call("events_unsubscribe")
+
+    def next_event(self, timeout_s: float | None = None) -> dict[str, Any]:
+        """The next event (after ``events_subscribe``): a dict with ``event``, ``tick``, ``t``
+        and the fields its kind carries (docs/control.md). Waits up to ``timeout_s`` s (None:
+        as long as it takes) and then raises TimeoutError; ConnectionError when the daemon
+        closed the connection (the run ended, or this client fell too far behind)."""
+        if self.pending_events:
+            return self.pending_events.popleft()
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            left = None if deadline is None else max(deadline - time.monotonic(), 0.0)
+            msg = self._line(left)
+            if proto.is_event(msg):
+                return msg
+            if "telemetry" in msg:
+                self.telemetry.append(msg["telemetry"])
+
+    def events(
+        self, kinds: Sequence[str] | None = None, *, timeout_s: float | None = None
+    ) -> Iterator[dict[str, Any]]:
+        """Subscribe to the loop's events (all kinds, or ``kinds``) and yield them in order
+        until the daemon closes the connection (the run ended). ``timeout_s``: at most this
+        long between two events, then TimeoutError (None: no limit)."""
+        self.events_subscribe(kinds)
+        while True:
+            try:
+                ev = self.next_event(timeout_s)
+            except ConnectionError:
+                return
+            yield ev
 
     def stop(self) -> dict[str, Any]:
         return self.call("shutdown")
 
     def close(self) -> None:
-        self._file.close()
         self.sock.close()
 
     def __enter__(self) -> ControlClient:

@@ -13,7 +13,7 @@ import math
 import os
 import stat
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Union, get_args
 
 import yaml
 import yaml.composer
@@ -167,8 +167,46 @@ def _unit(v: Vec3, what: str) -> Vec3:
     return (v[0] / n, v[1] / n, v[2] / n)
 
 
+class DeadmanButtonConfig(_Strict):
+    """A deadman button: the finger gets force only while it is held."""
+
+    button: Int = Field(
+        ge=0, le=31, description="the button's index on the finger's device (bit of buttons)"
+    )
+    role: Literal["deadman"]
+    ramp_s: Float = Field(
+        default=0.25,
+        ge=0,
+        le=10,
+        description="after a press, the finger's force ramps from zero to full over this "
+        "time, s; a release zeroes it at once",
+    )
+
+
+class ResponseButtonConfig(_Strict):
+    """A response key for experiments: its presses are button_down events tagged
+    ``response`` (docs/control.md)."""
+
+    button: Int = Field(
+        ge=0, le=31, description="the button's index on the finger's device (bit of buttons)"
+    )
+    role: Literal["response"]
+    label: Name | None = Field(
+        default=None,
+        description="the tag its events carry as response; default FINGER-BUTTON, e.g. thumb-1",
+    )
+
+
+ButtonConfig = Annotated[DeadmanButtonConfig | ResponseButtonConfig, Field(discriminator="role")]
+BUTTON_ROLES: tuple[str, ...] = tuple(
+    get_args(c.model_fields["role"].annotation)[0]
+    for c in (DeadmanButtonConfig, ResponseButtonConfig)
+)
+
+
 class FingerConfig(_Strict):
-    """One fingertip: its thimble sphere, its device and its actuated force directions."""
+    """One fingertip: its thimble sphere, its device, its actuated force directions and what
+    its device's buttons do."""
 
     name: Name
     radius_m: Float = Field(default=0.008, gt=0, le=0.05, description="fingertip sphere radius, m")
@@ -179,10 +217,42 @@ class FingerConfig(_Strict):
         description="unit force directions the device renders for this finger (0-3)",
     )
 
+    buttons: tuple[ButtonConfig, ...] = Field(
+        default=(),
+        max_length=32,
+        description="roles of the device's buttons: at most one deadman, any response keys",
+    )
+
     @field_validator("actuated_directions")
     @classmethod
     def _units(cls, v: tuple[Vec3, ...]) -> tuple[Vec3, ...]:
         return tuple(_unit(d, f"direction {i}") for i, d in enumerate(v))
+
+    @field_validator("buttons")
+    @classmethod
+    def _one_role_each(
+        cls, v: tuple[DeadmanButtonConfig | ResponseButtonConfig, ...]
+    ) -> tuple[DeadmanButtonConfig | ResponseButtonConfig, ...]:
+        seen = [b.button for b in v]
+        dup = sorted({b for b in seen if seen.count(b) > 1})
+        if dup:
+            raise ValueError(f"each button may have one role; repeated: {dup}")
+        if sum(b.role == "deadman" for b in v) > 1:
+            raise ValueError("at most one deadman button per finger")
+        return v
+
+    @property
+    def deadman(self) -> DeadmanButtonConfig | None:
+        """This finger's deadman button, if it has one."""
+        return next((b for b in self.buttons if isinstance(b, DeadmanButtonConfig)), None)
+
+    def responses(self) -> dict[int, str]:
+        """Button index -> response label of this finger's response keys."""
+        return {
+            b.button: b.label or f"{self.name}-{b.button}"
+            for b in self.buttons
+            if isinstance(b, ResponseButtonConfig)
+        }
 
 
 class FrictionConfig(_Strict):
@@ -709,6 +779,10 @@ def _explain(err: dict) -> str:
     if kind == "tuple_type":
         return "Input should be a list"  # pydantic's tuple is a YAML list
     if kind == "union_tag_invalid":  # pydantic's own message repeats the whole tag
+        loc = err["loc"]
+        if len(loc) >= 2 and loc[-2] == "buttons":  # a button's role
+            got = err["input"].get("role") if isinstance(err["input"], dict) else None
+            return f"unknown role {_shown(got)}; the roles: {', '.join(BUTTON_ROLES)}"
         got = err["input"].get("backend") if isinstance(err["input"], dict) else None
         return f"unknown backend {_shown(got)}; the backends: {', '.join(BACKENDS)}"
     msg = str(err["msg"]).removeprefix("Value error, ")

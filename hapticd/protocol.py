@@ -5,7 +5,10 @@ request is one JSON object per line: ``{"id": ANY, "cmd": NAME, ...}``; the
 reply carries the same id and either ``"ok": true, "result": ...`` or
 ``"ok": false, "error": {"code": ..., "message": ...}``. Requests are checked
 here, completely, before anything changes; a bad one changes nothing. Parameters
-and their ranges are declared in ``hapticd.params``. Standard library only.
+and their ranges are declared in ``hapticd.params``, event kinds in
+``hapticd.events``. Lines that answer no request: ``{"telemetry": {...}}`` after
+``subscribe``, and events (``{"event": NAME, "tick": ..., ...}``) after
+``events_subscribe``. Standard library only.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import json
 import math
 from typing import Any
 
-from hapticd import params
+from hapticd import events, params
 
 PROTOCOL_VERSION = 1
 MAX_LINE_BYTES = 64 * 1024
@@ -48,6 +51,8 @@ COMMANDS = (
     "reload",
     "subscribe",
     "unsubscribe",
+    "events_subscribe",
+    "events_unsubscribe",
     "shutdown",
     "stop",
 )
@@ -183,12 +188,30 @@ def check(req: dict[str, Any]) -> dict[str, Any]:
         if not lo <= rate <= hi:
             raise ProtocolError("out_of_range", f"rate_hz must be in [{lo}, {hi}], got {rate}")
         req["rate_hz"] = rate
+    elif cmd == "events_subscribe" and "kinds" in req:
+        kinds = req["kinds"]
+        if not (
+            isinstance(kinds, list)
+            and kinds
+            and len(kinds) <= len(events.NAMES)
+            and all(isinstance(k, str) and k in events.CODES for k in kinds)
+        ):
+            raise ProtocolError(
+                "bad_value",
+                f"'kinds' must be a list of event names from {list(events.NAMES)}, "
+                f"got {_short(kinds)}",
+            )
     return req
 
 
 def _short(value: Any) -> str:
     text = repr(value)
     return text if len(text) <= 80 else text[:77] + "..."
+
+
+def is_event(msg: dict[str, Any]) -> bool:
+    """Is this line from the server an event (not a reply, not telemetry)?"""
+    return "event" in msg and "ok" not in msg
 
 
 def telemetry(sample: dict[str, Any]) -> bytes:

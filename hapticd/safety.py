@@ -3,7 +3,8 @@
 Every force passes ``SafetyChain.apply``: a non-finite value latches a fault and
 zeroes every finger; a magnitude above the finger's limit (the smaller of the
 device's and the profile's) is scaled down with its direction kept. A latched
-fault keeps all forces at zero until ``reset``. Forces in N, shape (F, 3).
+fault keeps all forces at zero until ``reset``. A finger with a deadman button
+gets force only while that button is held. Forces in N, shape (F, 3).
 """
 
 from __future__ import annotations
@@ -21,11 +22,23 @@ from hapticd.params import PARAMS, ParamError
 
 @dataclass(frozen=True)
 class Fault:
-    """A latched fault: tick, time (s) and a human-readable cause."""
+    """A latched fault: tick, time (s), a human-readable cause and its kind (a name of
+    hapticd.events.FAULT_CAUSES, e.g. ``nonfinite_force``)."""
 
     tick: int
     t: float
     cause: str
+    kind: str = "other"
+
+
+@dataclass(frozen=True)
+class Deadman:
+    """A finger's deadman button: its force is exactly zero while button ``button`` (bit of
+    the device's ``buttons``) is up, and ramps from zero to full over ``ramp_s`` (s,
+    nominal clock) from the tick it is pressed."""
+
+    button: int
+    ramp_s: float = 0.25
 
 
 @dataclass(frozen=True)
@@ -37,6 +50,7 @@ class SafetyParams:
       exactly zero is never delayed.
     workspace_center_m, workspace_radius_m: a finger beyond this sphere latches a fault.
     watchdog_s: more wall time than this between two ticks latches a fault (a stalled loop).
+    deadman: per finger, its deadman button or None (empty: no finger has one).
     """
 
     ramp_s: float = 0.0
@@ -44,11 +58,13 @@ class SafetyParams:
     workspace_center_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     workspace_radius_m: float = math.inf
     watchdog_s: float = math.inf
+    deadman: tuple[Deadman | None, ...] = ()
 
 
 class SafetyChain:
     """The last stage before a device, for F fingers, in this order: fault latch, NaN/inf
-    guard, watchdog, workspace, magnitude clamp (direction kept), rate limit, enable ramp.
+    guard, watchdog, workspace, magnitude clamp (direction kept), enable ramp and deadman
+    gate, rate limit.
 
     Every stage only scales a force down or moves it between two forces within the
     limit, so the output never exceeds the limit and is never NaN. ``rated_n`` are the
@@ -71,6 +87,21 @@ class SafetyChain:
         if len(self.rated) != len(self.limits):
             raise ValueError(f"one rated force per finger is needed, got {rated_n}")
         self.params = params or SafetyParams()
+        F = len(self.limits)
+        if self.params.deadman and len(self.params.deadman) != F:
+            raise ValueError(f"one deadman entry (or None) per finger is needed, got {F} fingers")
+        self._deadman = [
+            (d.button, d.ramp_s) if d is not None else None
+            for d in (self.params.deadman or (None,) * F)
+        ]
+        for dm in self._deadman:
+            if dm is not None and not (0 <= dm[0] < 32 and dm[1] >= 0 and math.isfinite(dm[1])):
+                raise ValueError(f"a deadman needs a button in 0-31 and a ramp >= 0 s, got {dm}")
+        self._has_deadman = any(d is not None for d in self._deadman)
+        # Per finger: nominal time its deadman button went down (inf: up) and the factor
+        # the gate applied on the last tick (1 without a deadman).
+        self._held_since = [math.inf] * F
+        self.gate = [0.0 if d is not None else 1.0 for d in self._deadman]
         self.dt = float(dt)
         self.fault: Fault | None = None
         self.clamped_ticks = 0
@@ -126,10 +157,11 @@ class SafetyChain:
         """True once a ramp-down begun before ``t`` has reached zero."""
         return self._down_factor(t) == 0.0
 
-    def trip(self, tick: int, t: float, cause: str) -> None:
-        """Latch a fault (the first cause is kept) and zero the output."""
+    def trip(self, tick: int, t: float, cause: str, kind: str = "other") -> None:
+        """Latch a fault (the first cause is kept) and zero the output; ``kind`` names the
+        cause's kind (hapticd.events.FAULT_CAUSES)."""
         if self.fault is None:
-            self.fault = Fault(tick, t, cause)
+            self.fault = Fault(tick, t, cause, kind)
         self.output[:] = 0.0
         self._prev[:] = 0.0
 
@@ -144,9 +176,42 @@ class SafetyChain:
         against its tick, nominal time and device positions; ``t_wall`` (monotonic s)
         feeds the watchdog."""
         out = self.apply(
-            frame.rendered_force, int(frame.tick), float(frame.t), frame.device_pos, t_wall
+            frame.rendered_force,
+            int(frame.tick),
+            float(frame.t),
+            frame.device_pos,
+            t_wall,
+            frame.buttons if self._has_deadman else None,
         )
         frame.device_force[...] = out
+
+    def deadman_status(self) -> list[dict[str, Any] | None]:
+        """Per finger: its deadman button, whether it is held and the gate's factor (0 to 1)
+        on the last tick; None for a finger without one."""
+        return [
+            None
+            if d is None
+            else {"button": d[0], "held": self._held_since[i] < math.inf, "gate": self.gate[i]}
+            for i, d in enumerate(self._deadman)
+        ]
+
+    def _update_deadman(self, buttons: Any, t: float) -> None:
+        """Each deadman finger's gate at nominal time ``t`` (s) from its device's ``buttons``
+        (F,) bit sets (None: every button up): 0 while its button is up, then (t - press)
+        / ramp_s up to 1."""
+        bits = [0] * len(self._deadman) if buttons is None else np.asarray(buttons).tolist()
+        for i, d in enumerate(self._deadman):
+            if d is None:
+                continue
+            button, ramp_s = d
+            if not (int(bits[i]) >> button) & 1:
+                self._held_since[i] = math.inf
+                self.gate[i] = 0.0
+                continue
+            if self._held_since[i] == math.inf:
+                self._held_since[i] = t
+            held = t - self._held_since[i]
+            self.gate[i] = 1.0 if ramp_s <= 0.0 or held >= ramp_s else held / ramp_s
 
     def apply(
         self,
@@ -155,13 +220,18 @@ class SafetyChain:
         t: float,
         positions: np.ndarray | None = None,
         t_wall: float | None = None,
+        buttons: np.ndarray | None = None,
     ) -> np.ndarray:
         """Safe forces (F, 3) N for ``forces`` (F, 3) N; returns an internal buffer.
 
         ``positions`` (F, 3) m feed the workspace check, ``t_wall`` (s, monotonic)
-        the watchdog; ``t`` is the nominal tick time for the ramp.
+        the watchdog, ``buttons`` (F,) bit sets the deadman gates (None: every button up);
+        ``t`` is the nominal tick time for the ramps.
         """
         out = self.output
+        if self._has_deadman:
+            # Before the fault latch: the gate follows the button also while forces are off.
+            self._update_deadman(buttons, t)
         if self.fault is not None:
             out[:] = 0.0
             return out
@@ -171,7 +241,7 @@ class SafetyChain:
         finite = math.isfinite
         if not all(finite(x) for row in rows for x in row):
             bad = [i for i, row in enumerate(rows) if not all(finite(x) for x in row)]
-            self.trip(tick, t, f"non-finite force for finger(s) {bad}")
+            self.trip(tick, t, f"non-finite force for finger(s) {bad}", "nonfinite_force")
             return out
         if t_wall is not None:
             last, self._last_wall = self._last_wall, t_wall
@@ -181,6 +251,7 @@ class SafetyChain:
                     tick,
                     t,
                     f"watchdog: {gap:.1f} ms between ticks (limit {prm.watchdog_s * 1e3:g} ms)",
+                    "watchdog",
                 )
                 return out
         if positions is not None and math.isfinite(prm.workspace_radius_m):
@@ -193,6 +264,7 @@ class SafetyChain:
                         t,
                         f"finger {i} left the workspace: {r:.4f} m from its centre "
                         f"(limit {prm.workspace_radius_m:g} m)",
+                        "workspace",
                     )
                     return out
         clamped = limited = False
@@ -203,6 +275,7 @@ class SafetyChain:
         if t >= self._t_down:
             ramp = min(ramp, self._down_factor(t))
         prevs = self._prev.tolist() if step < math.inf else None
+        gate = self.gate
         for i, limit in enumerate(self.limits):
             f0, f1, f2 = rows[i]
             mag = math.hypot(f0, f1, f2)
@@ -210,8 +283,13 @@ class SafetyChain:
                 s = limit / mag
                 f0, f1, f2 = f0 * s, f1 * s, f2 * s
                 clamped = True
-            if ramp < 1.0:
-                f0, f1, f2 = f0 * ramp, f1 * ramp, f2 * ramp
+            scale = ramp if ramp <= gate[i] else gate[i]
+            if scale <= 0.0:
+                # A released deadman (or the ramp's start): exactly zero, never -0.0; the
+                # rate limit never delays a drop to zero.
+                f0 = f1 = f2 = 0.0
+            elif scale < 1.0:
+                f0, f1, f2 = f0 * scale, f1 * scale, f2 * scale
             if prevs is not None and (f0 or f1 or f2):
                 p0, p1, p2 = prevs[i]
                 d0, d1, d2 = f0 - p0, f1 - p1, f2 - p2

@@ -33,6 +33,8 @@ from hapticd_drivers import Device
 from hapticd import realtime
 from hapticd.commands import Command
 from hapticd.device_bank import DeviceBank
+from hapticd.event_ring import DEFAULT_CAPACITY, EventRing, FrameEvents
+from hapticd.events import CAUSE_CODES, CODES
 from hapticd.frame import Frame
 from hapticd.pacing import LoopStats, Pacer
 from hapticd.params import PARAMS, ParamError
@@ -41,6 +43,12 @@ from hapticd.render import Renderer
 from hapticd.safety import SafetyChain
 
 log = logging.getLogger("hapticd.servo")
+
+FAULT_LATCHED = CODES["fault_latched"]
+TRAJECTORY_END = CODES["trajectory_end"]
+RECORDING_STARTED = CODES["recording_started"]
+OTHER_CAUSE = CAUSE_CODES["other"]
+TRAJECTORY_ENDED = "trajectory ended"
 
 
 class Applied(threading.Event):
@@ -71,6 +79,7 @@ class ServoLoop:
         stop_ramp_s: float = 0.0,
         realtime_settings: realtime.RealtimeSettings | None = None,
         switch_interval_s: float | None = None,
+        event_capacity: int = DEFAULT_CAPACITY,
         wall_watchdog: bool = True,
     ) -> None:
         if not (rate_hz > 0 and math.isfinite(rate_hz)):
@@ -112,6 +121,11 @@ class ServoLoop:
         self.running = False
         self.end_reason = ""
         self.events: list[tuple[float, str]] = []
+        # Events for the control server's subscribers (hapticd.events): the loop pushes,
+        # the server drains in the loop's sleep window.
+        self.event_ring = EventRing(event_capacity)
+        self._frame_events = FrameEvents(self.event_ring, F)
+        self._fault_seen: object = None  # the latched fault already reported as an event
         # Commands from the control thread, applied at tick boundaries (deque: thread-safe).
         self._inbox: collections.deque[tuple[Command, Applied]] = collections.deque()
 
@@ -226,6 +240,8 @@ class ServoLoop:
                     raise ValueError(f"the daemon is stopping ({self._stop_reason})")
                 done.result = command.apply(self, t)
                 self.control_seq += 1
+                if command.event is not None:
+                    self.event_ring.push(CODES[command.event], k, t, value=command.event_value())
                 # Recorded only: forces are live here, so the control thread does the logging.
                 self._event(t, f"control: {command.describe()}", log_now=False)
             except ValueError as exc:
@@ -255,7 +271,17 @@ class ServoLoop:
             self.bank.zero()
 
     def _trip(self, k: int, t: float, cause: str) -> None:
-        self.safety.trip(k, t, cause)
+        self.safety.trip(k, t, cause, "device")
+
+    def _note_fault(self, k: int, t: float) -> None:
+        """Push a ``fault_latched`` event for a fault not reported yet (a fault cleared by
+        ``enable`` and latched again is a new one)."""
+        fault = self.safety.fault
+        if fault is not None and fault is not self._fault_seen:
+            self._fault_seen = fault
+            self.event_ring.push(
+                FAULT_LATCHED, k, t, value=CAUSE_CODES.get(fault.kind, OTHER_CAUSE)
+            )
 
     def _event(self, t: float, what: str, log_now: bool = True) -> None:
         self.events.append((t, what))
@@ -283,7 +309,7 @@ class ServoLoop:
         if self.duration_s is not None and (k + 1) * self.period >= self.duration_s - 1e-12:
             return "duration reached"
         if self.bank.finished:
-            return "trajectory ended"
+            return TRAJECTORY_ENDED
         return None
 
     # -- the run ----------------------------------------------------------------------------
@@ -320,7 +346,8 @@ class ServoLoop:
         try:
             self.bank.open()  # closes what it opened if it fails
         except Exception as exc:
-            self.safety.trip(0, 0.0, f"device setup failed: {exc}")
+            self.safety.trip(0, 0.0, f"device setup failed: {exc}", "setup")
+            self._note_fault(0, 0.0)
             self.end_reason = "fault"
             return self.stats
         gc_was_enabled = gc.isenabled()
@@ -337,7 +364,8 @@ class ServoLoop:
                         if isinstance(exc, realtime.RealtimeError)
                         else (f"real time settings failed: {type(exc).__name__}: {exc}")
                     )
-                    self.safety.trip(0, 0.0, why)
+                    self.safety.trip(0, 0.0, why, "realtime")
+                    self._note_fault(0, 0.0)
                     self.end_reason = "fault"
                     self._log_fault()
                     return self.stats
@@ -367,7 +395,10 @@ class ServoLoop:
                     errors.append(f"restoring real-time settings: {exc}")
             if errors and self.safety.fault is None:
                 with contextlib.suppress(Exception):
-                    self.safety.trip(self.stats.ticks, self._t, "shutdown: " + "; ".join(errors))
+                    self.safety.trip(
+                        self.stats.ticks, self._t, "shutdown: " + "; ".join(errors), "shutdown"
+                    )
+                    self._note_fault(self.stats.ticks, self._t)
             if gc_was_enabled:
                 gc.enable()
             gc.unfreeze()
@@ -379,18 +410,21 @@ class ServoLoop:
         F = len(self.devices)
         pacer.start()
         k = 0
+        if self.recorder is not None:
+            self.event_ring.push(RECORDING_STARTED, 0, 0.0)
         while True:
             t = k * T
             self._t = t
             start, late = pacer.begin(k)
             if late is not None:
-                self.safety.trip(k, t, late)
+                self.safety.trip(k, t, late, "overrun")
                 self._log_fault()
             latched = self.safety.fault is not None
             try:
                 self._tick(k, t, start)
             except Exception as exc:
-                self.safety.trip(k, t, f"{type(exc).__name__}: {exc}")
+                self.safety.trip(k, t, f"{type(exc).__name__}: {exc}", "exception")
+                self._note_fault(k, t)
                 self.end_reason = "fault"
                 pacer.end(k, start)
                 self._log_fault()
@@ -399,6 +433,10 @@ class ServoLoop:
             safety, frame = self.safety, self.frame
             if not latched and safety.fault is not None:
                 self._log_fault()
+            # Events read the frame the tick left, never the stages' insides.
+            self._frame_events.after_tick(frame, k, t)
+            if safety.fault is not None and safety.fault is not self._fault_seen:
+                self._note_fault(k, t)
             out = frame.device_force
             touching = frame.in_contact
             for i in range(F):
@@ -419,6 +457,8 @@ class ServoLoop:
             reason = self._finished(k)
             if reason is not None:
                 self.end_reason = reason
+                if reason == TRAJECTORY_ENDED:
+                    self.event_ring.push(TRAJECTORY_END, k, t)
                 return
             k += 1
             pacer.catch_up(k)

@@ -44,7 +44,7 @@ REQUEST_ERRORS = {
 # Valid requests of these commands act on the run (end it, swap the recording or profile):
 # they are legitimate, not hostile, and are not sent.
 NOT_SENT_WHEN_VALID = {"shutdown", "stop", "reload", "record_start", "record_stop"}
-FIELDS = ("id", "cmd", "param", "value", "path", "overwrite", "profile", "rate_hz")
+FIELDS = ("id", "cmd", "param", "value", "path", "overwrite", "profile", "rate_hz", "kinds")
 
 
 def _scalars() -> list[object]:
@@ -173,7 +173,8 @@ def _expected(line: bytes) -> tuple[bool, object]:
 
 
 class Conn:
-    """A raw client connection that reads reply lines (skipping telemetry) with a deadline."""
+    """A raw client connection that reads reply lines (skipping telemetry and events) with a
+    deadline."""
 
     def __init__(self, path) -> None:
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -204,7 +205,7 @@ class Conn:
             if line is None:
                 return None
             msg = json.loads(line, parse_constant=_reject)
-            if "telemetry" not in msg:
+            if "telemetry" not in msg and not protocol.is_event(msg):
                 return msg
 
     def close(self) -> None:

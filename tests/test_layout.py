@@ -44,6 +44,7 @@ CATEGORIES: dict[str, set[str]] = {
     "runtime": {
         "hapticd.commands",
         "hapticd.device_bank",
+        "hapticd.event_ring",
         "hapticd.pacing",
         "hapticd.realtime",
         "hapticd.servo",
@@ -62,6 +63,7 @@ CATEGORIES: dict[str, set[str]] = {
     "client": {
         "hapticd",  # the package's __init__: every import of hapticd.control loads it
         "hapticd.control",
+        "hapticd.events",
         "hapticd.params",
         "hapticd.protocol",
     },

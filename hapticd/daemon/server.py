@@ -6,9 +6,11 @@ docs/daemon.md). It makes no change itself: it hands each change to the loop,
 which applies it at the start of its next tick, and the reply names that tick.
 Sockets are non-blocking with a bounded output buffer per client, so a client
 that stops reading is dropped instead of stalling everyone. The same thread
-streams telemetry to subscribers, performs reloads asked for by SIGHUP (a
-signal handler only writes one byte to a pipe) and sends the service manager
-its notifications. The socket is created with mode 0600; no TCP listener.
+streams telemetry to subscribers, drains the loop's event ring and delivers its
+events in order to event subscribers (hapticd.events), performs reloads asked
+for by SIGHUP (a signal handler only writes one byte to a pipe) and sends the
+service manager its notifications. The socket is created with mode 0600; no
+TCP listener.
 """
 
 from __future__ import annotations
@@ -27,11 +29,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from hapticd import __version__
+from hapticd import __version__, events
 from hapticd import protocol as proto
 from hapticd.commands import Command, Disable, Enable, SetParam
 from hapticd.control import check_socket_dir
 from hapticd.daemon import summary as views
+from hapticd.params import PARAMS
 from hapticd.profile import ProfileError
 from hapticd.recording import RecordingError
 
@@ -46,6 +49,13 @@ MAX_PENDING_BYTES = 256 * 1024  # unread requests held per client; beyond, readi
 LINES_PER_TURN = 4  # requests served per client before the next client's turn
 BACKLOG = socket.SOMAXCONN  # connections waiting to be accepted
 TELEMETRY_BACKLOG_BYTES = 64 * 1024  # above this a telemetry frame is skipped, not queued
+# An event subscriber this far behind is dropped: events are never skipped silently.
+EVENTS_BACKLOG_BYTES = 256 * 1024
+# How often event subscribers get what the loop's ring holds, s (it holds seconds of events).
+EVENT_PERIOD_S = 0.005
+EVENTS_LOST = events.CODES["events_lost"]
+PARAM_NAMES = tuple(PARAMS)
+CAUSE_NAMES = tuple(events.FAULT_CAUSES)
 PERIODIC_S = 0.1
 # Work in the server thread waits for the loop to go to sleep with this much time left...
 WINDOW_S = 200e-6
@@ -71,6 +81,8 @@ class _Conn:
     rate_hz: float = 0.0  # telemetry subscription; 0: none
     next_due: float = 0.0
     skipped: int = 0
+    event_kinds: frozenset[int] | None = None  # event subscription (kind codes); None: none
+    events_from: int = 0  # the first tick whose events this subscriber gets
 
 
 class ControlServer:
@@ -102,6 +114,10 @@ class ControlServer:
         self._wake_r = self._wake_w = -1
         self._gate_r = -1
         self.reloads: list[str] = []  # outcome of each SIGHUP reload, for status and tests
+        self.events_backlog_bytes = EVENTS_BACKLOG_BYTES
+        self.slow_event_clients = 0  # event subscribers dropped for falling behind
+        self._responses: dict[tuple[int, int], str] = {}
+        self._responses_of: object = None  # the profile _responses was made from
         self._accept_paused_until: float | None = None  # out of file descriptors
         self.accept_failures = 0  # accept() calls that failed so, since the last success
 
@@ -214,6 +230,9 @@ class ControlServer:
                 # service manager's watchdog. Log, pause a little (no hot error loop), go on.
                 log.exception("control thread: unexpected error; serving on")
                 self._stop.wait(0.05)
+        # The run is over (or the server closing): what the loop's last ticks reported.
+        with contextlib.suppress(Exception):
+            self._deliver_events()
 
     def _serve_once(self, next_periodic: float) -> float:
         """One round: wait for sockets or the next due time, serve, run periodic tasks."""
@@ -221,23 +240,26 @@ class ControlServer:
         due = [next_periodic] + [c.next_due for c in self._conns.values() if c.rate_hz]
         if self._accept_paused_until is not None:
             due.append(self._accept_paused_until)
+        if any(c.event_kinds is not None for c in self._conns.values()):
+            due.append(now + EVENT_PERIOD_S)
         timeout = 0.0 if self._pending() else max(0.0, min(due) - now)
-        for key, events in self._sel.select(timeout=timeout):
+        for key, ready in self._sel.select(timeout=timeout):
             obj = key.fileobj
             if obj is self._sock:
                 self._accept()
             elif obj == self._wake_r:
                 self._woken()
             elif isinstance(obj, socket.socket) and obj in self._conns:
-                if events & selectors.EVENT_WRITE:
+                if ready & selectors.EVENT_WRITE:
                     self._flush(self._conns[obj])
-                if events & selectors.EVENT_READ and obj in self._conns:
+                if ready & selectors.EVENT_READ and obj in self._conns:
                     self._read(self._conns[obj])
         self._serve_turns()
         now = time.monotonic()
         if self._accept_paused_until is not None and now >= self._accept_paused_until:
             self._resume_accept()
         self._stream(now)
+        self._deliver_events()
         if now >= next_periodic:
             next_periodic = now + PERIODIC_S
             # Also empties the sleep gate's pipe, which otherwise fills (a byte a tick).
@@ -446,6 +468,80 @@ class ControlServer:
                 sample = views.telemetry(self.loop)
             self._send(conn, proto.telemetry(sample))
 
+    # -- events ------------------------------------------------------------------------
+
+    def _response_map(self) -> dict[tuple[int, int], str]:
+        """(finger, button) -> response label, from the running profile (a reload may
+        change it)."""
+        profile = self.session.profile
+        if profile is not self._responses_of:
+            self._responses = {
+                (i, b): label
+                for i, f in enumerate(profile.fingers)
+                for b, label in f.responses().items()
+            }
+            self._responses_of = profile
+        return self._responses
+
+    def _deliver_events(self) -> None:
+        """Drain the loop's event ring (in its sleep window) and send each subscriber the
+        events it asked for, in order, then ``events_lost`` if the ring overflowed. A
+        subscriber more than ``events_backlog_bytes`` behind is dropped."""
+        ring = self.loop.event_ring
+        if not ring.pending:
+            return
+        self._await_window()
+        records, lost = ring.drain()
+        subs = [c for c in self._conns.values() if c.event_kinds is not None]
+        if not subs:
+            return
+        names = self.session.profile.finger_names
+        responses = self._response_map()
+        fault = self.loop.safety.fault
+        out: list[tuple[int, int, bytes]] = []
+        for code, finger, button, value, tick, t in records.tolist():
+            kind = events.EVENTS[code]
+            ev: dict[str, Any] = {"event": kind.name, "tick": tick, "t": t}
+            if "finger" in kind.fields:
+                ev["finger"] = finger
+                ev["finger_name"] = names[finger] if 0 <= finger < len(names) else None
+            if "button" in kind.fields:
+                ev["button"] = button
+                label = responses.get((finger, button))
+                if label is not None:
+                    ev["response"] = label
+            if "cause" in kind.fields:
+                ev["cause"] = CAUSE_NAMES[value] if 0 <= value < len(CAUSE_NAMES) else "other"
+                if fault is not None and fault.tick == tick:
+                    ev["message"] = fault.cause
+            if "param" in kind.fields:
+                ev["param"] = PARAM_NAMES[value] if 0 <= value < len(PARAM_NAMES) else None
+            out.append((code, tick, proto.encode(ev)))
+        if lost:
+            lost_ev = {
+                "event": "events_lost",
+                "tick": ring.lost_tick,
+                "t": ring.lost_t,
+                "count": lost,
+            }
+            out.append((EVENTS_LOST, ring.lost_tick, proto.encode(lost_ev)))
+        for conn in subs:
+            kinds, first = conn.event_kinds, conn.events_from
+            assert kinds is not None
+            data = b"".join(line for code, tick, line in out if tick >= first and code in kinds)
+            if not data or conn.sock not in self._conns:
+                continue
+            conn.outbuf += data
+            if len(conn.outbuf) > self.events_backlog_bytes:
+                log.warning(
+                    "dropping an event subscriber %d bytes behind (it stopped reading)",
+                    len(conn.outbuf),
+                )
+                self.slow_event_clients += 1
+                self._drop(conn.sock)
+                continue
+            self._flush(conn)
+
     # -- requests ----------------------------------------------------------------------
 
     def _handle(self, conn: _Conn, line: bytes) -> bytes:
@@ -503,6 +599,18 @@ class ControlServer:
         conn.rate_hz = 0.0
         return {"subscribed": False, "skipped_frames": conn.skipped}
 
+    def _events_subscribe(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        names = req.get("kinds") or list(events.NAMES)
+        conn.event_kinds = frozenset(events.CODES[n] for n in names)
+        # Events of this tick on: those of earlier ticks still in the ring are not sent.
+        conn.events_from = self.loop.stats.ticks
+        kinds = [n for n in events.NAMES if events.CODES[n] in conn.event_kinds]
+        return {"subscribed": True, "kinds": kinds, "tick": conn.events_from}
+
+    def _events_unsubscribe(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        conn.event_kinds = None
+        return {"subscribed": False}
+
     def _record_start(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
         return self.session.record_start(req["path"], overwrite=req.get("overwrite", False))
 
@@ -537,6 +645,8 @@ _HANDLERS: dict[str, Callable[[ControlServer, _Conn, dict[str, Any]], dict[str, 
     "reload": ControlServer._reload,
     "subscribe": ControlServer._subscribe,
     "unsubscribe": ControlServer._unsubscribe,
+    "events_subscribe": ControlServer._events_subscribe,
+    "events_unsubscribe": ControlServer._events_unsubscribe,
     "shutdown": ControlServer._stop,
     "stop": ControlServer._stop,
 }

@@ -25,6 +25,7 @@ from hapticd.build import (
 )
 from hapticd.commands import Command, RecordStart, RecordStop, Reload
 from hapticd.daemon.summary import summarize
+from hapticd.event_ring import DEFAULT_CAPACITY
 from hapticd.frame import Frame
 from hapticd.profile import Profile, ProfileError, load_profile
 from hapticd.recording import Recorder, files, ring
@@ -178,6 +179,7 @@ def build_session(
     device: str | None = None,
     emulate: bool = False,
     record_dir: str | Path | None = None,
+    event_capacity: int = DEFAULT_CAPACITY,
 ) -> Session:
     """Create devices, renderer, safety chain, recorder and loop for ``profile``.
 
@@ -185,6 +187,7 @@ def build_session(
     emulator under the hid backend, moved along each finger's trajectory.
     ``record_path`` (the user's own argument) may be anywhere; ``record_start`` over
     the socket writes only in ``record_directory(profile, record_dir)``.
+    ``event_capacity``: events the loop's ring holds until the control server drains it.
     """
     clock_box: list[ServoLoop] = []
     devices, emulators = build_devices(
@@ -211,6 +214,7 @@ def build_session(
         stop_ramp_s=profile.safety.stop_ramp_s,
         switch_interval_s=profile.loop.gil_switch_interval_s,
         realtime_settings=realtime_settings(profile) if paced else None,
+        event_capacity=event_capacity,
         wall_watchdog=paced or not on_nominal_clock(profile, device, emulate),
     )
     loop.bank.set_mounts(build_mounts(profile))

@@ -26,7 +26,12 @@ def _us(h: LogHistogram, q: float | None) -> float | None:
 
 def _fault(loop: ServoLoop) -> dict[str, Any] | None:
     f = loop.safety.fault
-    return None if f is None else {"tick": f.tick, "t": f.t, "cause": f.cause}
+    return None if f is None else {"tick": f.tick, "t": f.t, "cause": f.cause, "kind": f.kind}
+
+
+def pressed(bits: int) -> list[int]:
+    """The buttons down in a device's ``buttons`` bit set, as indices (bit i: button i)."""
+    return [i for i in range(32) if (bits >> i) & 1]
 
 
 def summarize(loop: ServoLoop, finger_names: Sequence[str]) -> dict[str, Any]:
@@ -91,6 +96,7 @@ def telemetry(loop: ServoLoop) -> dict[str, Any]:
     sample: dict[str, Any] = {"tick": loop.stats.ticks, "t": loop.now()}
     sample.update(frame.sample(TELEMETRY_FIELDS))
     sample["in_contact"] = [bool(v) for v in sample["in_contact"]]
+    sample["buttons"] = [pressed(b) for b in frame.buttons.tolist()]
     sample["force"] = frame.device_force.tolist()
     sample["fault"] = loop.safety.fault is not None
     sample["allocator"] = loop.renderer.method
@@ -113,6 +119,8 @@ def status(loop: ServoLoop) -> dict[str, Any]:
     """A snapshot of the loop for the control API."""
     st = loop.stats
     pe = st.period_error
+    buttons = loop.frame.buttons.tolist()
+    deadman = loop.safety.deadman_status()
     return {
         "tick": st.ticks,
         "t": loop.now(),
@@ -130,6 +138,8 @@ def status(loop: ServoLoop) -> dict[str, Any]:
                 "serial": d.info.serial,
                 "connected": loop.bank.lost[i] is None,
                 "force_limit_n": loop.safety.limits[i],
+                "buttons": pressed(buttons[i]),
+                "deadman": deadman[i],
             }
             for i, d in enumerate(loop.devices)
         ],
