@@ -10,7 +10,7 @@ from __future__ import annotations
 import difflib
 import math
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, TypeVar, Union
 
 import yaml
 from hapticd_drivers.registry import BACKENDS, REQUIRED, Backend
@@ -30,6 +30,7 @@ PROFILE_VERSION = 1
 UNIT_TOL = 1e-3
 
 Vec3 = tuple[float, float, float]
+M = TypeVar("M", bound=BaseModel)
 
 
 class ProfileError(ValueError):
@@ -407,9 +408,10 @@ def _format_loc(loc: tuple[int | str, ...], data: object) -> str:
     return "".join(parts) or "(top level)"
 
 
-def _all_keys() -> set[str]:
+def _all_keys(root: type[BaseModel]) -> set[str]:
+    """Every key of ``root`` and the models nested in it (for "did you mean" hints)."""
     keys: set[str] = set()
-    todo: list[type[BaseModel]] = [Profile]
+    todo: list[type[BaseModel]] = [root]
     while todo:
         model = todo.pop()
         for name, field in model.model_fields.items():
@@ -429,28 +431,38 @@ def _models_in(annotation: object) -> list[type[BaseModel]]:
     return out
 
 
-def _explain(err: dict) -> str:
+def _explain(err: dict, root: type[BaseModel], docs: str) -> str:
     kind = err["type"]
     if kind == "extra_forbidden":
         key = str(err["loc"][-1])
-        keys = sorted(_all_keys())
+        keys = sorted(_all_keys(root))
         # Keys carry their unit ("mass_kg"): a key written without it is the likeliest slip.
         close = [k for k in keys if k.startswith(key + "_")][:1]
         close = close or difflib.get_close_matches(key, keys, n=1, cutoff=0.75)
         hint = f"; did you mean {close[0]!r}?" if close else ""
-        return f"unknown key{hint} (the keys are listed in docs/profiles.md)"
+        return f"unknown key{hint} (the keys are listed in {docs})"
     if kind == "missing":
         return "required key is missing"
     msg = str(err["msg"])
     return msg.removeprefix("Value error, ")
 
 
-def parse_profile(data: object, source: str | Path = "<profile>") -> Profile:
-    """Validate an already-parsed YAML document into a Profile."""
+def validate_document(
+    model: type[M],
+    data: object,
+    source: str | Path,
+    *,
+    what: str = "profile",
+    docs: str = "docs/profiles.md",
+    error: type[ValueError] = ProfileError,
+) -> M:
+    """Validate an already-parsed YAML document into ``model``; on failure raise ``error``
+    with one line per problem naming ``source``, the dotted key path and what was expected
+    (``what`` names the kind of file, ``docs`` where its keys are listed)."""
     if not isinstance(data, dict):
-        raise ProfileError(f"{source}: expected a mapping of keys at the top level")
+        raise error(f"{source}: expected a mapping of keys at the top level")
     try:
-        prof = Profile.model_validate(data)
+        return model.model_validate(data)
     except ValidationError as exc:
         errors = exc.errors()
         locs = [tuple(e["loc"]) for e in errors]
@@ -465,30 +477,43 @@ def parse_profile(data: object, source: str | Path = "<profile>") -> Profile:
                 )
             )
         ]
-        lines = [f"{source}: {len(errors)} error(s) in profile"]
+        lines = [f"{source}: {len(errors)} error(s) in {what}"]
         for err in errors:
             where = _format_loc(tuple(err["loc"]), data)
             got = err.get("input")
             shown = ""
             if err["type"] != "missing" and not isinstance(got, dict | list):
                 shown = f" (got {got!r})"
-            lines.append(f"  {where}: {_explain(err)}{shown}")
-        raise ProfileError("\n".join(lines)) from None
+            lines.append(f"  {where}: {_explain(err, model, docs)}{shown}")
+        raise error("\n".join(lines)) from None
+
+
+def read_yaml(
+    path: str | Path, *, what: str = "profile", error: type[ValueError] = ProfileError
+) -> object:
+    """The parsed YAML document at ``path``; ``error`` naming the file (and the line and
+    column of a syntax error) if it cannot be read or parsed."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise error(f"{p}: cannot read {what}: {exc.strerror or exc}") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise error(f"{p}: not valid YAML{where}: {problem}") from None
+
+
+def parse_profile(data: object, source: str | Path = "<profile>") -> Profile:
+    """Validate an already-parsed YAML document into a Profile."""
+    prof = validate_document(Profile, data, source)
     return prof.model_copy(update={"source": Path(source)}) if source else prof
 
 
 def load_profile(path: str | Path) -> Profile:
     """Read and validate the YAML profile at ``path``."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ProfileError(f"{p}: cannot read profile: {exc.strerror or exc}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise ProfileError(f"{p}: not valid YAML{where}: {problem}") from None
-    return parse_profile(data, p.resolve())
+    return parse_profile(read_yaml(p), p.resolve())
