@@ -34,6 +34,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.friction",
         "hapticd.grasp",
         "hapticd.passivity",
+        "hapticd.psychophysics",
         "hapticd.render",
         "hapticd.safety",
         "hapticd.scene",
