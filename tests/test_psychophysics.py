@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from hapticd import psychophysics as P
+from hapticd import psychophysics as pp
 from hapticd.psychophysics import Z75, fit_psychometric, paired_t
 
 # The seed's design for one standard: six comparisons (ratios of the standard) x 10.
@@ -81,14 +81,14 @@ def test_the_bootstrap_fitter_finds_the_same_maximum_as_lbfgsb():
     z = (LEVELS - STANDARD) / (LEVELS[-1] - LEVELS[0])
     n = REPS.astype(float)
     theta = np.array([0.05, 0.25, 0.02])
-    k = rng.binomial(REPS, P._psi(z, theta), size=(60, 6)).astype(float)
-    batch = P._refit(z, k, n, theta, 0.06)
+    k = rng.binomial(REPS, pp._psi(z, theta), size=(60, 6)).astype(float)
+    batch = pp._refit(z, k, n, theta, 0.06)
     worse = []
     for i in range(60):
-        if P._separation(LEVELS, k[i], n) or k[i].sum() in (0, 60):
+        if pp._separation(LEVELS, k[i], n) or k[i].sum() in (0, 60):
             continue
-        ref = P._fit_one(z, k[i], n, 0.06)
-        gap = P._loglik(P._psi(z, ref), k[i], n) - P._loglik(P._psi(z, batch[i]), k[i], n)
+        ref = pp._fit_one(z, k[i], n, 0.06)
+        gap = pp._loglik(pp._psi(z, ref), k[i], n) - pp._loglik(pp._psi(z, batch[i]), k[i], n)
         worse.append(gap)
     assert len(worse) > 40
     # Fisher scoring from four starts finds the best of L-BFGS-B's grid starts in almost
