@@ -505,6 +505,111 @@ def _add_analyze(sub: Any) -> None:
     ana.set_defaults(func=cmd_analyze)
 
 
+def cmd_experiment_check(args: argparse.Namespace) -> int:
+    """Validate an experiment file and its base profile; print the design."""
+    from hapticd.experiment import ExperimentError, check_experiment, make_plan
+
+    try:
+        exp, profile = check_experiment(args.experiment)
+        load_trajectories(profile)
+        build_scene(profile.scene, profile)
+    except (ExperimentError, ProfileError) as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    v, spec = exp.varied, params.PARAMS[exp.varied.param]
+    plan = make_plan(exp, exp.subject_seed("example"))
+    total = len(plan)
+    dur = exp.duration_s()
+    conds = ", ".join(
+        f"{c.name} ({', '.join(f'{k}={val}' for k, val in c.values().items())})"
+        for c in exp.conditions
+    )
+    print(
+        f"{args.experiment}: OK: experiment {exp.name!r} on profile {profile.name!r} "
+        f"({exp.profile_path()})\n"
+        f"  varied       {v.param} ({spec.unit}): standards "
+        f"{', '.join(f'{s:g}' for s in v.standards)}; ratios "
+        f"{', '.join(f'{r:g}' for r in v.ratios)}\n"
+        f"  conditions   {conds}\n"
+        f"  trials       {exp.comparisons} comparisons x {exp.repetitions} repetitions per "
+        f"standard and condition; {exp.trials_per_block} per block, {exp.n_blocks} blocks, "
+        f"{total} per subject\n"
+        f"  interval     {exp.interval.order}, 'was the second {exp.interval.question}?', "
+        f"at most {exp.interval.exploration_s:g} s, ends on {exp.interval.ends_on}\n"
+        f"  breaks       {exp.n_breaks()} of {exp.breaks.duration_s:g} s\n"
+        f"  duration     about {dur / 60:.0f} min per subject ({exp.trial_s():g} s per trial "
+        "with every interval at its limit, and the breaks)"
+    )
+    return EXIT_OK
+
+
+def cmd_experiment_analyze(args: argparse.Namespace) -> int:
+    """Fits, group means and paired t-tests from trial stores."""
+    from hapticd.experiment import analyze as ana
+    from hapticd.experiment.store import StoreError, open_for_analysis
+
+    trials: list[dict[str, Any]] = []
+    first: dict[str, str] | None = None
+    try:
+        for db in args.db:
+            meta, rows = open_for_analysis(db)
+            if first is not None and meta.get("experiment_hash") != first.get("experiment_hash"):
+                raise StoreError(
+                    f"{db}: holds experiment {meta.get('experiment')!r} with another file hash "
+                    f"than {args.db[0]} ({first.get('experiment')!r}): not analysed together"
+                )
+            first = first or meta
+            trials += rows
+    except StoreError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if not trials:
+        print(f"hapticd: {', '.join(map(str, args.db))}: no complete trials", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    result = ana.analyze(trials, n_boot=args.boot, seed=args.seed)
+    param, unit = args.param, args.unit
+    print(
+        f"hapticd experiment analyze: experiment {first.get('experiment')!r}, "  # type: ignore[union-attr]
+        f"{len(trials)} complete trials"
+    )
+    print(ana.format_report(result, unit), end="")
+    try:
+        if args.json is not None:
+            args.json.write_text(json.dumps(ana.to_json(result), indent=1, allow_nan=False) + "\n")
+        if args.plots is not None:
+            try:
+                for path in ana.plot(result, args.plots, param=param, unit=unit):
+                    print(f"plot: {path}")
+            except ImportError:
+                print("hapticd: --plots needs matplotlib: pip install matplotlib", file=sys.stderr)
+                return EXIT_ERROR
+    except OSError as exc:
+        print(f"hapticd: cannot write: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    return EXIT_OK
+
+
+def _add_experiment(sub: Any) -> None:
+    """The experiment subcommand: check a design, analyze trial stores."""
+    exp = sub.add_parser("experiment", help="JND experiments: check a design, analyze trials")
+    esub = exp.add_subparsers(dest="experiment_command", required=True)
+    chk = esub.add_parser("check", help="validate an experiment file and its profile")
+    chk.add_argument("experiment", type=Path)
+    chk.set_defaults(func=cmd_experiment_check)
+    ana = esub.add_parser(
+        "analyze",
+        help="psychometric fits, Weber fractions and paired t-tests from trial stores",
+    )
+    ana.add_argument("db", type=Path, nargs="+", help="trial store(s) of one experiment")
+    ana.add_argument("--json", type=Path, metavar="OUT", help="write the results as JSON")
+    ana.add_argument("--plots", type=Path, metavar="DIR", help="write the plots here")
+    ana.add_argument("--boot", type=int, default=1000, help="bootstrap refits per fit")
+    ana.add_argument("--seed", type=int, default=0, help="bootstrap seed")
+    ana.add_argument("--param", default="stimulus", help="the varied parameter, for labels")
+    ana.add_argument("--unit", default="SI", help="its unit, for labels")
+    ana.set_defaults(func=cmd_experiment_analyze)
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     try:
         rec = read_recording(args.recording)
@@ -655,6 +760,7 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--count", type=int, help="stop after this many lines")
             p.set_defaults(func=cmd_watch)
     _add_analyze(sub)
+    _add_experiment(sub)
     exp = sub.add_parser("export", help="export a recording to CSV or MCAP (Foxglove)")
     exp.add_argument("recording", type=Path)
     fmt = exp.add_mutually_exclusive_group()

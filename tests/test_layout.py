@@ -56,6 +56,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.build",
         "hapticd.cli",
         "hapticd.daemon.*",
+        "hapticd.experiment.*",  # experiment files, trial plan, trial store, analysis
         "hapticd.profile",
         "hapticd.recording.*",
     },
