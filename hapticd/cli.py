@@ -549,7 +549,7 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
     from hapticd.experiment.store import StoreError, open_for_analysis
 
     trials: list[dict[str, Any]] = []
-    first: dict[str, str] | None = None
+    first: dict[str, Any] | None = None
     try:
         for db in args.db:
             meta, rows = open_for_analysis(db)
@@ -566,11 +566,16 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
     if not trials:
         print(f"hapticd: {', '.join(map(str, args.db))}: no complete trials", file=sys.stderr)
         return EXIT_BAD_INPUT
-    result = ana.analyze(trials, n_boot=args.boot, seed=args.seed)
-    param, unit = args.param, args.unit
+    assert first is not None
+    design = first.get("design") or {}
+    result = ana.analyze(
+        trials, conditions=design.get("conditions"), n_boot=args.boot, seed=args.seed
+    )
+    param = args.param or design.get("param", "stimulus")
+    unit = args.unit or design.get("unit", "SI units")
     print(
-        f"hapticd experiment analyze: experiment {first.get('experiment')!r}, "  # type: ignore[union-attr]
-        f"{len(trials)} complete trials"
+        f"hapticd experiment analyze: experiment {first.get('experiment')!r}, varied {param} "
+        f"({unit}), {len(trials)} complete trials"
     )
     print(ana.format_report(result, unit), end="")
     try:
@@ -605,8 +610,10 @@ def _add_experiment(sub: Any) -> None:
     ana.add_argument("--plots", type=Path, metavar="DIR", help="write the plots here")
     ana.add_argument("--boot", type=int, default=1000, help="bootstrap refits per fit")
     ana.add_argument("--seed", type=int, default=0, help="bootstrap seed")
-    ana.add_argument("--param", default="stimulus", help="the varied parameter, for labels")
-    ana.add_argument("--unit", default="SI", help="its unit, for labels")
+    ana.add_argument(
+        "--param", help="the varied parameter, for labels (default: the store's design)"
+    )
+    ana.add_argument("--unit", help="its unit, for labels (default: the store's design)")
     ana.set_defaults(func=cmd_experiment_analyze)
 
 

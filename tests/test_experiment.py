@@ -116,6 +116,18 @@ def test_the_profile_is_checked_with_the_experiment(tmp_path, stiffness_data, ca
         check_experiment(path)
 
 
+def test_a_bad_base_profile_is_named(tmp_path, stiffness_data, grasp_data, capsys):
+    grasp_data["scene"]["object"]["stifness_n_per_m"] = 1.0
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(grasp_data))
+    stiffness_data["profile"] = "p.yaml"
+    exp = tmp_path / "e.yaml"
+    exp.write_text(yaml.safe_dump(stiffness_data))
+    assert main(["experiment", "check", str(exp)]) == 2
+    err = capsys.readouterr().err
+    assert "p.yaml: 1 error(s) in profile" in err
+    assert "scene.object.stifness_n_per_m: unknown key" in err
+
+
 def test_the_plan_presents_every_comparison_repetitions_times_in_seeded_order():
     exp = load_experiment(STIFFNESS)
     plan = make_plan(exp, 11)
@@ -276,7 +288,7 @@ TRUE_WEBER = {"if": 0.08, "pinv": 0.16}
 def synthetic_store(db: Path) -> None:
     exp = load_experiment(STIFFNESS)
     rng = np.random.default_rng(2013)
-    with TrialStore(db, experiment=exp.name, experiment_hash=exp.file_hash) as store:
+    with TrialStore.for_experiment(db, exp) as store:
         for s in range(5):
             subject = f"s{s + 1:02d}"
             seed = exp.subject_seed(subject)
@@ -337,7 +349,7 @@ def test_analyze_recovers_the_weber_fractions_and_the_direction_of_the_test(tmp_
                 "--plots",
                 str(plots),
                 "--boot",
-                "50",
+                "0",
                 "--param",
                 "stiffness_n_per_m",
                 "--unit",
@@ -347,6 +359,7 @@ def test_analyze_recovers_the_weber_fractions_and_the_direction_of_the_test(tmp_
         == 0
     )
     text = capsys.readouterr().out
+    assert "varied stiffness_n_per_m (N/m), 1800 complete trials" in text  # the store's design
     assert "paired t-tests" in text and "t(4)" in text
     data = json.loads(out.read_text())
     assert set(data) == {"fits", "groups", "tests"}

@@ -28,11 +28,15 @@ def analyze(
     standard: Weber mean, SD over subjects) and ``tests`` (per standard and pair of
     conditions: paired t over the subjects estimable in both) from complete trial rows
     (hapticd.experiment.store). Weber = JND / standard. Non-estimable fits carry a
-    ``reason`` and null numbers; JSON-ready (no NaN)."""
+    ``reason`` and null numbers; JSON-ready (no NaN). ``conditions`` orders the groups
+    and the tests (the experiment file's order; others after it, sorted); the test of
+    conditions [a, b] is of Weber(a) - Weber(b)."""
     cells: dict[tuple[str, str, float], list[dict[str, Any]]] = defaultdict(list)
     for row in trials:
         cells[_key(row)].append(row)
-    order = conditions or sorted({k[1] for k in cells})
+    present = sorted({k[1] for k in cells})
+    order = [c for c in conditions or [] if c in present]
+    order += [c for c in present if c not in order]
     fits = []
     curves = {}
     for i, (subject, cond, standard) in enumerate(sorted(cells)):

@@ -3,6 +3,7 @@ soon as the trial is answered, and each subject's plan so a run can resume."""
 
 from __future__ import annotations
 
+import json
 import sqlite3
 import time
 from collections.abc import Sequence
@@ -10,7 +11,9 @@ from dataclasses import astuple, fields
 from pathlib import Path
 from typing import Any, Literal
 
+from hapticd import params
 from hapticd.experiment.plan import PlannedTrial
+from hapticd.experiment.spec import Experiment
 
 SCHEMA_VERSION = 1
 
@@ -69,9 +72,17 @@ class TrialStore:
     loses at most the trial in progress.
     """
 
-    def __init__(self, path: str | Path, *, experiment: str, experiment_hash: str) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        experiment: str,
+        experiment_hash: str,
+        design: dict[str, Any] | None = None,
+    ) -> None:
         self.path = Path(path)
         self.experiment, self.experiment_hash = experiment, experiment_hash
+        self._design = design or {}
         self._db = _connect(self.path)
         try:
             self._init_meta()
@@ -95,6 +106,7 @@ class TrialStore:
                         ("experiment", self.experiment),
                         ("experiment_hash", self.experiment_hash),
                         ("created_unix_s", repr(time.time())),
+                        ("design", json.dumps(self._design, sort_keys=True)),
                     ],
                 )
                 return
@@ -112,6 +124,13 @@ class TrialStore:
                 f"this is {self.experiment!r} (sha256 {self.experiment_hash[:12]}); "
                 "use another database file (or restore the experiment file it was started with)"
             )
+
+    @classmethod
+    def for_experiment(cls, path: str | Path, exp: Experiment) -> TrialStore:
+        """The store of the loaded experiment ``exp`` at ``path``; its design (the
+        varied parameter and unit, standards, ratios, conditions, question) goes into
+        the meta table for the analysis."""
+        return cls(path, experiment=exp.name, experiment_hash=exp.file_hash, design=design(exp))
 
     def close(self) -> None:
         self._db.close()
@@ -229,6 +248,18 @@ class TrialStore:
         return read_trials(self._db, status)
 
 
+def design(exp: Experiment) -> dict[str, Any]:
+    """What the analysis needs to know of an experiment, JSON-ready."""
+    return {
+        "param": exp.varied.param,
+        "unit": params.PARAMS[exp.varied.param].unit,
+        "standards": list(exp.varied.standards),
+        "ratios": list(exp.varied.ratios),
+        "conditions": [c.name for c in exp.conditions],
+        "question": exp.interval.question,
+    }
+
+
 def _connect(path: Path) -> sqlite3.Connection:
     try:
         db = sqlite3.connect(path, isolation_level="DEFERRED")
@@ -275,8 +306,9 @@ def read_trials(db: sqlite3.Connection, status: str | None = "complete") -> list
         db.row_factory = None
 
 
-def open_for_analysis(path: str | Path) -> tuple[dict[str, str], list[dict[str, Any]]]:
-    """The meta table and the complete trials of the store at ``path``, read only."""
+def open_for_analysis(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The meta table (``design`` decoded) and the complete trials of the store at
+    ``path``, read only."""
     p = Path(path)
     if not p.is_file():
         raise StoreError(f"{p}: no such trial store")
@@ -291,6 +323,8 @@ def open_for_analysis(path: str | Path) -> tuple[dict[str, str], list[dict[str, 
         except sqlite3.DatabaseError as exc:
             raise StoreError(f"{p}: not a trial store (SQLite): {exc}") from None
         _check_schema(p, meta)
-        return meta, read_trials(db)
+        out: dict[str, Any] = dict(meta)
+        out["design"] = json.loads(meta.get("design") or "{}")
+        return out, read_trials(db)
     finally:
         db.close()

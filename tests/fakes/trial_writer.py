@@ -25,7 +25,7 @@ def main() -> None:
     limit = int(sys.argv[6]) if len(sys.argv) > 6 else None
     exp = load_experiment(exp_path)
     seed = exp.subject_seed(subject)
-    with TrialStore(db, experiment=exp.name, experiment_hash=exp.file_hash) as store:
+    with TrialStore.for_experiment(db, exp) as store:
         store.ensure_plan(subject, make_plan(exp, seed), seed)
         for done, trial in enumerate(store.remaining(subject)):
             if limit is not None and done >= limit:
