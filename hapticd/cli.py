@@ -543,6 +543,36 @@ def cmd_experiment_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_experiment_plan(args: argparse.Namespace) -> int:
+    """One subject's trial plan as CSV (stdout or --csv)."""
+    import csv
+    import io
+
+    from hapticd.experiment import ExperimentError, load_experiment, make_plan
+
+    try:
+        exp = load_experiment(args.experiment)
+    except ExperimentError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    seed = exp.subject_seed(args.subject) if args.seed is None else args.seed
+    plan = make_plan(exp, seed)
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(plan[0].as_dict()), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(t.as_dict() for t in plan)
+    if args.csv is None:
+        sys.stdout.write(buf.getvalue())
+        return EXIT_OK
+    try:
+        args.csv.write_text(buf.getvalue())
+    except OSError as exc:
+        print(f"hapticd: cannot write: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    print(f"{args.csv}: {len(plan)} trials of subject {args.subject!r} (seed {seed})")
+    return EXIT_OK
+
+
 def cmd_experiment_analyze(args: argparse.Namespace) -> int:
     """Fits, group means and paired t-tests from trial stores."""
     from hapticd.experiment import analyze as ana
@@ -601,6 +631,12 @@ def _add_experiment(sub: Any) -> None:
     chk = esub.add_parser("check", help="validate an experiment file and its profile")
     chk.add_argument("experiment", type=Path)
     chk.set_defaults(func=cmd_experiment_check)
+    pl = esub.add_parser("plan", help="one subject's trial plan as CSV")
+    pl.add_argument("experiment", type=Path)
+    pl.add_argument("--subject", required=True, help="the subject's id (its seed derives from it)")
+    pl.add_argument("--seed", type=int, help="use this seed instead of the subject's")
+    pl.add_argument("--csv", type=Path, metavar="OUT", help="write here (default: stdout)")
+    pl.set_defaults(func=cmd_experiment_plan)
     ana = esub.add_parser(
         "analyze",
         help="psychometric fits, Weber fractions and paired t-tests from trial stores",

@@ -161,6 +161,18 @@ def test_the_plan_presents_every_comparison_repetitions_times_in_seeded_order():
     assert exp.subject_seed("s01") == exp.subject_seed("s01") != exp.subject_seed("s02")
 
 
+def test_the_plan_command_writes_the_subjects_plan(tmp_path, capsys):
+    out = tmp_path / "plan.csv"
+    assert main(["experiment", "plan", str(STIFFNESS), "--subject", "s03", "--csv", str(out)]) == 0
+    exp = load_experiment(STIFFNESS)
+    lines = out.read_text().splitlines()
+    assert lines[0].split(",") == list(make_plan(exp, 0)[0].as_dict())
+    assert len(lines) == 361
+    first = make_plan(exp, exp.subject_seed("s03"))[0]
+    assert lines[1].split(",")[3:6] == [first.condition, f"{first.standard}", f"{first.ratio}"]
+    assert f"seed {exp.subject_seed('s03')}" in capsys.readouterr().out
+
+
 def test_a_randomized_order_is_balanced(stiffness_data):
     stiffness_data["interval"]["order"] = "randomized"
     stiffness_data["blocks"]["within"] = "shuffle"
