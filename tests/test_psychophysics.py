@@ -44,8 +44,8 @@ def test_noiseless_counts_with_a_lapse_give_back_the_lapse():
 def test_fits_recover_pse_and_jnd_and_the_interval_covers_the_truth():
     """200 simulated observers (PSE 62, sigma 9, lapse 0.02) in the seed's design, 150
     bootstrap refits each: the PSE is unbiased, the JND's ML estimate a little low (known for 60
-    trials), and the 95 % interval covers the true JND in about 90 % of experiments
-    (the bias-corrected percentile interval; the plain one covers 82 %)."""
+    trials), and the 95 % BCa interval covers the true JND in about 93 % of experiments
+    (the plain percentile interval covered 82 %, the bias-corrected one 89 %)."""
     rng = np.random.default_rng(7)
     mu, sigma, lapse = 62.0, 9.0, 0.02
     true_jnd = Z75 * sigma
@@ -72,7 +72,7 @@ def test_fits_recover_pse_and_jnd_and_the_interval_covers_the_truth():
         f"lapse {lapse}: PSE bias {np.mean(pse) - mu:+.3f}, JND median/true {ratio:.3f}, "
         f"coverage {coverage:.3f}, median width/true {np.median(widths):.2f}"
     )
-    assert 0.87 <= coverage <= 0.99, coverage
+    assert 0.89 <= coverage <= 0.99, coverage
     assert np.median(widths) < 2.0
 
 
