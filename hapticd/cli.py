@@ -513,6 +513,7 @@ def cmd_experiment_check(args: argparse.Namespace) -> int:
         exp, profile = check_experiment(args.experiment)
         load_trajectories(profile)
         build_scene(profile.scene, profile)
+        build_devices(profile, clock=lambda: 0.0)
     except (ExperimentError, ProfileError) as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -11,20 +11,25 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import AfterValidator, Field, create_model, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    create_model,
+    field_validator,
+    model_validator,
+)
 
 from hapticd import params
-from hapticd.profile import (
-    Profile,
-    ProfileError,
-    _Strict,
-    load_profile,
-    read_yaml,
-    validate_document,
-)
+from hapticd.profile import Profile, ProfileError, load_profile, read_yaml, validate_document
 
 EXPERIMENT_VERSION = 1
 DOCS = "docs/experiments.md"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
 
 
 class ExperimentError(ValueError):
