@@ -13,7 +13,7 @@ import math
 import os
 import stat
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union, get_args
+from typing import Annotated, Any, Literal, TypeVar, Union, get_args
 
 import yaml
 import yaml.composer
@@ -41,6 +41,7 @@ from hapticd import params
 from hapticd.mount import mount_rotation
 
 PROFILE_VERSION = 1
+DOCS = "docs/profiles.md"
 UNIT_TOL = 1e-3
 
 # Strict scalars: a YAML bool or string is not a number, a float is not an integer, and no
@@ -64,6 +65,7 @@ Angles = tuple[_Angle, _Angle, _Angle]
 _Accel = Annotated[Float, Ge(-100.0), Le(100.0)]
 Acceleration = tuple[_Accel, _Accel, _Accel]
 _SCALAR_TYPES: dict[type, Any] = {float: Float, int: Int, bool: Bool, str: PathText}
+M = TypeVar("M", bound=BaseModel)
 
 
 class ProfileError(ValueError):
@@ -674,20 +676,22 @@ def _line_map(node: yaml.Node) -> dict[Path_, int]:
     return lines
 
 
-def _read_yaml(raw: bytes, p: Path) -> tuple[object, dict[Path_, int]]:
-    """The document in ``raw`` and the line of each key path (ProfileError naming ``p``)."""
+def _read_yaml(
+    raw: bytes, p: Path, what: str = "profile", error: type[ValueError] = ProfileError
+) -> tuple[object, dict[Path_, int]]:
+    """The document in ``raw`` and the line of each key path (``error`` naming ``p``)."""
     if len(raw) > MAX_BYTES:
-        raise ProfileError(
-            f"{p}: larger than {MAX_BYTES // 1024} KiB; a profile is a few kilobytes "
+        raise error(
+            f"{p}: larger than {MAX_BYTES // 1024} KiB; a {what} is a few kilobytes "
             "(is this the right file?)"
         )
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         line = raw.count(b"\n", 0, exc.start) + 1
-        raise ProfileError(
+        raise error(
             f"{p}: not UTF-8 text: byte 0x{raw[exc.start]:02x} at line {line}; save the "
-            "profile as UTF-8"
+            f"{what} as UTF-8"
         ) from None
     loader = _ProfileLoader(text)
     try:
@@ -696,17 +700,19 @@ def _read_yaml(raw: bytes, p: Path) -> tuple[object, dict[Path_, int]]:
             return None, {}
         return loader.construct_document(node), _line_map(node)
     except _Refused as exc:
-        raise ProfileError(f"{p}: line {exc.line}: {exc.message}") from None
+        raise error(f"{p}: line {exc.line}: {exc.message}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
-        raise ProfileError(f"{p}: not valid YAML{where}: {problem}") from None
+        raise error(f"{p}: not valid YAML{where}: {problem}") from None
     finally:
         loader.dispose()
 
 
-def _format_loc(loc: tuple[int | str, ...], data: object) -> tuple[str, Path_]:
+def _format_loc(
+    loc: tuple[int | str, ...], data: object, root: type[BaseModel] | None = None
+) -> tuple[str, Path_]:
     """The dotted key path of pydantic's ``loc`` in ``data`` (list indices with the item's
     name where it has one), and that path as keys and indices. Pydantic's own labels (a
     union member such as ``int``, a discriminator tag such as ``replay``) are left out:
@@ -714,7 +720,7 @@ def _format_loc(loc: tuple[int | str, ...], data: object) -> tuple[str, Path_]:
     parts: list[str] = []
     path: list[int | str] = []
     node: object = data
-    known = _all_keys()
+    known = _all_keys(root or Profile)
     for n, item in enumerate(loc):
         last = n == len(loc) - 1
         if isinstance(item, int) and isinstance(node, list | tuple):
@@ -733,9 +739,10 @@ def _format_loc(loc: tuple[int | str, ...], data: object) -> tuple[str, Path_]:
 
 
 @functools.cache
-def _all_keys() -> frozenset[str]:
+def _all_keys(root: type[BaseModel]) -> frozenset[str]:
+    """Every key of ``root`` and the models nested in it (for "did you mean" hints)."""
     keys: set[str] = set()
-    todo: list[type[BaseModel]] = [Profile]
+    todo: list[type[BaseModel]] = [root]
     while todo:
         model = todo.pop()
         for name, field in model.model_fields.items():
@@ -755,23 +762,23 @@ def _models_in(annotation: object) -> list[type[BaseModel]]:
     return out
 
 
-def _explain(err: dict) -> str:
+def _explain(err: dict, root: type[BaseModel] | None = None, docs: str = DOCS) -> str:
     kind = err["type"]
     if kind == "extra_forbidden":
         key = str(err["loc"][-1])
-        keys = sorted(_all_keys())
+        keys = sorted(_all_keys(root or Profile))
         if key in keys:  # a real key, in the wrong place: suggesting itself would not help
             backend = next((str(p) for p in err["loc"][:-1] if p in BACKENDS), None)
             where = f"the {backend} backend" if backend else "this section"
             return (
                 f"unknown key: {where} has no key {key!r} (the keys of each section are "
-                "listed in docs/profiles.md)"
+                f"listed in {docs})"
             )
         # Keys carry their unit ("mass_kg"): a key written without it is the likeliest slip.
         close = [k for k in keys if k.startswith(key + "_")][:1]
         close = close or difflib.get_close_matches(key, keys, n=1, cutoff=0.75)
         hint = f"; did you mean {close[0]!r}?" if close else ""
-        return f"unknown key{hint} (the keys are listed in docs/profiles.md)"
+        return f"unknown key{hint} (the keys are listed in {docs})"
     if kind == "missing":
         if isinstance(err["loc"][-1], int):
             return f"too few items (item {err['loc'][-1]} is missing)"
@@ -806,28 +813,51 @@ def _line_note(path: Path_, lines: dict[Path_, int], missing: bool) -> str:
     return ""
 
 
+def validate_document(
+    model: type[M],
+    data: object,
+    source: str | Path,
+    lines: dict[Path_, int] | None = None,
+    *,
+    what: str = "profile",
+    docs: str = DOCS,
+    error: type[ValueError] = ProfileError,
+) -> M:
+    """Validate an already-parsed YAML document into ``model``; on failure raise ``error``
+    with one line per problem naming ``source``, the dotted key path, what was expected
+    and the key's line (from ``lines``, the loader's map); ``what`` names the kind of
+    file, ``docs`` where its keys are listed."""
+    if not isinstance(data, dict):
+        raise error(f"{source}: expected a mapping of keys at the top level")
+    lines = lines or {}
+    if "source" in data:  # the model's record of the file, not a key a file sets
+        raise error(
+            f"{source}: 1 error(s) in {what}\n  source: unknown key (the keys are listed in "
+            f"{docs}){_line_note(('source',), lines, False)}"
+        )
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise error(_format_errors(exc, data, source, lines, model, what, docs)) from None
+
+
 def parse_profile(
     data: object, source: str | Path = "<profile>", lines: dict[Path_, int] | None = None
 ) -> Profile:
     """Validate an already-parsed YAML document into a Profile; ``lines`` (from the
     loader) gives each key path's line for the messages."""
-    if not isinstance(data, dict):
-        raise ProfileError(f"{source}: expected a mapping of keys at the top level")
-    lines = lines or {}
-    if "source" in data:  # the model's record of the file, not a key a profile sets
-        raise ProfileError(
-            f"{source}: 1 error(s) in profile\n  source: unknown key (the keys are listed in "
-            f"docs/profiles.md){_line_note(('source',), lines, False)}"
-        )
-    try:
-        prof = Profile.model_validate(data)
-    except ValidationError as exc:
-        raise ProfileError(_format_errors(exc, data, source, lines)) from None
+    prof = validate_document(Profile, data, source, lines)
     return prof.model_copy(update={"source": Path(source)}) if source else prof
 
 
 def _format_errors(
-    exc: ValidationError, data: object, source: str | Path, lines: dict[Path_, int]
+    exc: ValidationError,
+    data: object,
+    source: str | Path,
+    lines: dict[Path_, int],
+    root: type[BaseModel] | None = None,
+    what: str = "profile",
+    docs: str = DOCS,
 ) -> str:
     """One line per error: key path, what was expected, the value given, the line."""
     errors = exc.errors(include_url=False, include_context=False)
@@ -849,14 +879,14 @@ def _format_errors(
         if missing and loc and isinstance(loc[-1], int):
             loc = loc[:-1]  # a tuple too short: reported at the list, not its absent item
             missing = False
-        where, path = _format_loc(loc, data)
+        where, path = _format_loc(loc, data, root)
         got = err.get("input")
         shown = "" if missing or isinstance(got, dict | list) else f" (got {_shown(got)})"
-        text = f"{_explain(err)}{shown}{_line_note(path, lines, missing)}"
+        text = f"{_explain(err, root, docs)}{shown}{_line_note(path, lines, missing)}"
         msgs = by_key.setdefault(where, [])
         if text not in msgs:
             msgs.append(text)
-    out = [f"{source}: {len(by_key)} error(s) in profile"]
+    out = [f"{source}: {len(by_key)} error(s) in {what}"]
     for where, msgs in list(by_key.items())[:MAX_ERRORS_SHOWN]:
         out.append(f"  {where}: {'; or '.join(msgs)}")
     if len(by_key) > MAX_ERRORS_SHOWN:
@@ -864,22 +894,32 @@ def _format_errors(
     return "\n".join(out)
 
 
+def read_document(
+    path: str | Path, *, what: str = "profile", error: type[ValueError] = ProfileError
+) -> tuple[object, dict[Path_, int]]:
+    """The YAML document at ``path`` and the line of each key path: a regular file of at
+    most ``MAX_BYTES``, read without blocking, without aliases or duplicate keys (``error``
+    naming the file, and the line where it can)."""
+    p = Path(path)
+    try:
+        # Non-blocking: a FIFO or device named as a file must not hang a reload.
+        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise error(f"{p}: cannot read {what}: not a regular file")
+            raw = f.read(MAX_BYTES + 1)  # a larger file is refused unread
+    except OSError as exc:
+        raise error(f"{p}: cannot read {what}: {exc.strerror or exc}") from None
+    except error:
+        raise
+    except ValueError as exc:  # e.g. a NUL byte in the path
+        raise error(f"{p!r}: cannot read {what}: {exc}") from None
+    return _read_yaml(raw, p, what, error)
+
+
 def load_profile(path: str | Path) -> Profile:
     """Read and validate the YAML profile at ``path`` (ProfileError naming the file, the
     key, its line and what was expected)."""
     p = Path(path)
-    try:
-        # Non-blocking: a FIFO or device named as a profile must not hang a reload.
-        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
-        with os.fdopen(fd, "rb") as f:
-            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
-                raise ProfileError(f"{p}: cannot read profile: not a regular file")
-            raw = f.read(MAX_BYTES + 1)  # a larger file is refused unread
-    except OSError as exc:
-        raise ProfileError(f"{p}: cannot read profile: {exc.strerror or exc}") from None
-    except ProfileError:
-        raise
-    except ValueError as exc:  # e.g. a NUL byte in the path
-        raise ProfileError(f"{p!r}: cannot read profile: {exc}") from None
-    data, lines = _read_yaml(raw, p)
+    data, lines = read_document(p)
     return parse_profile(data, p.resolve(), lines)

@@ -35,6 +35,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.grasp",
         "hapticd.mount",
         "hapticd.passivity",
+        "hapticd.psychophysics",
         "hapticd.render",
         "hapticd.safety",
         "hapticd.scene",
@@ -57,6 +58,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.build",
         "hapticd.cli",
         "hapticd.daemon.*",
+        "hapticd.experiment.*",  # experiment files, trial plan, trial store, analysis
         "hapticd.profile",
         "hapticd.recording.*",
     },

@@ -1,0 +1,328 @@
+"""Experiment files: a JND design (method of constant stimuli) as YAML, validated like
+profiles (unknown keys rejected; errors name the file and the key path). See
+docs/experiments.md."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import zlib
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    create_model,
+    field_validator,
+    model_validator,
+)
+
+from hapticd import params
+from hapticd.profile import Profile, ProfileError, load_profile, read_document, validate_document
+
+EXPERIMENT_VERSION = 1
+DOCS = "docs/experiments.md"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ExperimentError(ValueError):
+    """An experiment file that cannot be used; the message names file, key path and
+    expectation."""
+
+
+def _param_check(name: str) -> Any:
+    def check(value: Any) -> Any:
+        try:
+            return params.PARAMS[name].check(value)
+        except params.ParamError as exc:
+            raise ValueError(str(exc)) from None
+
+    return check
+
+
+# One optional key per settable parameter (hapticd.params), checked as the control
+# protocol checks it: a condition sets what a running daemon could be told to set.
+ParamSet = create_model(
+    "ParamSet",
+    __base__=_Strict,
+    __doc__="Settable parameters (hapticd.params) and their values, SI units.",
+    **{
+        name: (Annotated[Any, AfterValidator(_param_check(name))] | None, None)
+        for name in params.PARAMS
+    },
+)
+
+
+class Condition(_Strict):
+    """One rendering condition: a name and the parameters it sets."""
+
+    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    set: ParamSet = Field(description="parameters (hapticd.params) this condition sets")
+
+    def values(self) -> dict[str, Any]:
+        return {k: v for k, v in self.set.model_dump().items() if v is not None}
+
+
+class Varied(_Strict):
+    """The parameter that differs between standard and comparison."""
+
+    param: str = Field(description="a numeric settable parameter of hapticd.params")
+    standards: tuple[float, ...] = Field(min_length=1, description="standard values, SI units")
+    ratios: tuple[float, ...] = Field(
+        min_length=3, description="comparison = ratio x standard; at least 3 ratios"
+    )
+
+    @field_validator("param")
+    @classmethod
+    def _numeric(cls, v: str) -> str:
+        spec = params.PARAMS.get(v)
+        if spec is None:
+            raise ValueError(params.unknown_message(v))
+        if spec.kind != "number":
+            raise ValueError(f"{v} is not a number; the varied parameter must be one")
+        return v
+
+    @field_validator("ratios")
+    @classmethod
+    def _ratios(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if any(not (math.isfinite(r) and r > 0) for r in v):
+            raise ValueError(f"ratios must be positive, got {list(v)}")
+        if len(set(v)) != len(v):
+            raise ValueError(f"ratios must differ, got {list(v)}")
+        return v
+
+    @model_validator(mode="after")
+    def _in_range(self) -> Varied:
+        spec = params.PARAMS[self.param]
+        for s in self.standards:
+            for r in (1.0, *self.ratios):
+                if not (math.isfinite(s * r) and spec.in_range(s * r)):
+                    raise ValueError(
+                        f"standard {s:g} x ratio {r:g} = {s * r:g} is outside {self.param}'s "
+                        f"range {spec.range_text()}"
+                    )
+        if len(set(self.standards)) != len(self.standards):
+            raise ValueError(f"standards must differ, got {list(self.standards)}")
+        return self
+
+
+class Interval(_Strict):
+    """The two intervals of a trial and the question asked after them."""
+
+    order: Literal["standard_first", "randomized"] = Field(
+        description="standard_first: the standard is always the first interval; randomized: "
+        "each comparison comes first in half of its repetitions"
+    )
+    question: Literal["stiffer", "heavier", "more"] = Field(
+        description="asked after the second interval: was the second stiffer / heavier / "
+        "more (of the varied parameter)? 'yes' always means the second had more"
+    )
+    exploration_s: float = Field(gt=0, le=60, description="longest exploration per interval, s")
+    ends_on: Literal["release", "time_limit"] = Field(
+        description="release: the interval ends when the contacts end (or at exploration_s); "
+        "time_limit: it lasts exploration_s"
+    )
+    gap_s: float = Field(
+        default=1.0, ge=0, le=60, description="between the two intervals (the change), s"
+    )
+    answer_s: float = Field(
+        default=2.0, gt=0, le=60, description="expected time to answer, s (duration estimate)"
+    )
+
+
+class Blocks(_Strict):
+    """How trials are grouped: a block holds one condition and one standard."""
+
+    per_standard: int = Field(
+        default=1, ge=1, description="blocks per standard and condition; splits the repetitions"
+    )
+    standard_order: Literal["ascending", "listed", "random"] = "ascending"
+    condition_order: Literal["listed", "random"] = "listed"
+    nesting: Literal["condition_outer", "standard_outer"] = Field(
+        default="condition_outer",
+        description="condition_outer: every block of one condition, then the next condition",
+    )
+    within: Literal["cycles", "shuffle"] = Field(
+        default="cycles",
+        description="cycles: every comparison once per cycle, each cycle shuffled; "
+        "shuffle: one random permutation of the block",
+    )
+
+
+class Breaks(_Strict):
+    every_blocks: int = Field(default=1, ge=0, description="a break after every N blocks; 0: none")
+    every_trials: int | None = Field(
+        default=None, ge=1, description="also a break every N trials within a block"
+    )
+    duration_s: float = Field(default=60.0, ge=0, le=3600, description="break length, s")
+
+
+class Randomization(_Strict):
+    seed: int = Field(ge=0, lt=2**63, description="seed of the trial order")
+    per_subject: bool = Field(
+        default=True, description="derive each subject's seed from seed and the subject's id"
+    )
+
+
+class Experiment(_Strict):
+    """A complete experiment file (docs/experiments.md)."""
+
+    version: Literal[1] = 1
+    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    description: str = ""
+    profile: str = Field(min_length=1, description="base profile, relative to this file")
+    varied: Varied
+    conditions: tuple[Condition, ...] = Field(min_length=1)
+    repetitions: int = Field(ge=1, le=1000, description="presentations of each comparison")
+    interval: Interval
+    blocks: Blocks = Blocks()
+    breaks: Breaks = Breaks()
+    randomization: Randomization
+
+    source: Path | None = Field(default=None, exclude=True)
+    file_hash: str = Field(default="", exclude=True, description="sha256 of the file's bytes")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Experiment:
+        names = [c.name for c in self.conditions]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"condition names must be unique, repeated: {dup}")
+        for c in self.conditions:
+            if self.varied.param in c.values():
+                raise ValueError(
+                    f"condition {c.name!r} sets {self.varied.param}, the varied parameter"
+                )
+        if self.repetitions % self.blocks.per_standard:
+            raise ValueError(
+                f"repetitions ({self.repetitions}) must divide into blocks.per_standard "
+                f"({self.blocks.per_standard}) equal blocks"
+            )
+        if self.interval.order == "randomized" and self.repetitions % 2:
+            raise ValueError("interval.order randomized needs an even number of repetitions")
+        return self
+
+    @property
+    def comparisons(self) -> int:
+        return len(self.varied.ratios)
+
+    @property
+    def trials_per_block(self) -> int:
+        return self.comparisons * self.repetitions // self.blocks.per_standard
+
+    @property
+    def n_blocks(self) -> int:
+        return len(self.conditions) * len(self.varied.standards) * self.blocks.per_standard
+
+    def profile_path(self) -> Path:
+        p = Path(self.profile)
+        if p.is_absolute() or self.source is None:
+            return p
+        return self.source.parent / p
+
+    def subject_seed(self, subject: str) -> int:
+        """The seed of ``subject``'s plan: the file's seed, or one derived from it and the
+        subject's id (per_subject), the same on every machine."""
+        if not self.randomization.per_subject:
+            return self.randomization.seed
+        seq = np.random.SeedSequence([self.randomization.seed, zlib.crc32(subject.encode())])
+        return int(seq.generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+    def trial_s(self) -> float:
+        """Expected length of one trial, s: two explorations, the gap, the answer."""
+        i = self.interval
+        return 2 * i.exploration_s + i.gap_s + i.answer_s
+
+    def duration_s(self) -> float:
+        """Estimated session length per subject, s (every interval at its limit)."""
+        total = self.n_blocks * self.trials_per_block
+        return total * self.trial_s() + self.n_breaks() * self.breaks.duration_s
+
+    def n_breaks(self) -> int:
+        b = self.breaks
+        between = (self.n_blocks - 1) // b.every_blocks if b.every_blocks else 0
+        within = (self.trials_per_block - 1) // b.every_trials if b.every_trials else 0
+        return between + within * self.n_blocks
+
+
+def file_hash(path: str | Path) -> str:
+    """sha256 of a file's bytes (hex)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def parse_experiment(
+    data: object, source: str | Path = "<experiment>", lines: dict | None = None
+) -> Experiment:
+    """Validate an already-parsed YAML document into an Experiment; ``lines`` (from the
+    loader) gives each key path's line for the messages."""
+    exp = validate_document(
+        Experiment, data, source, lines, what="experiment", docs=DOCS, error=ExperimentError
+    )
+    return exp.model_copy(update={"source": Path(source)})
+
+
+def load_experiment(path: str | Path) -> Experiment:
+    """Read and validate the experiment file at ``path`` (not its profile: see
+    ``check_experiment``)."""
+    p = Path(path)
+    data, lines = read_document(p, what="experiment", error=ExperimentError)
+    exp = parse_experiment(data, p.resolve(), lines)
+    return exp.model_copy(update={"file_hash": file_hash(p)})
+
+
+def check_against_profile(exp: Experiment, profile: Profile) -> list[str]:
+    """What in ``exp`` the base ``profile`` cannot do, one message per problem naming
+    the experiment's key."""
+    problems = []
+    obj = profile.scene.object
+    if exp.varied.param == "mass_kg" and obj.fixed:
+        problems.append(
+            "varied.param: mass_kg on a fixed object (the profile's scene.object.fixed is "
+            "true): its mass is never felt"
+        )
+    for i, c in enumerate(exp.conditions):
+        dirs = c.values().get("actuated_directions")
+        if dirs is not None:
+            want = [len(f.actuated_directions) for f in profile.fingers]
+            got = [len(d) for d in dirs]
+            if got != want:
+                problems.append(
+                    f"conditions[{i}:{c.name}].set.actuated_directions: {got} directions per "
+                    f"finger, the profile has {want} (the number cannot change live)"
+                )
+        if c.values().get("mass_kg") is not None and obj.fixed:
+            problems.append(f"conditions[{i}:{c.name}].set.mass_kg: the profile's object is fixed")
+    return problems
+
+
+def check_experiment(path: str | Path) -> tuple[Experiment, Profile]:
+    """Load ``path`` and the base profile it names and check them together;
+    ExperimentError (or ProfileError for the profile) naming file and key."""
+    exp = load_experiment(path)
+    prof_path = exp.profile_path()
+    if not prof_path.is_file():
+        raise ExperimentError(f"{exp.source}: profile: no such file {prof_path}")
+    profile = load_profile(prof_path)
+    problems = check_against_profile(exp, profile)
+    if problems:
+        lines = [f"{exp.source}: {len(problems)} error(s) against profile {prof_path}"]
+        raise ExperimentError("\n".join(lines + [f"  {p}" for p in problems]))
+    return exp, profile
+
+
+__all__ = [
+    "Experiment",
+    "ExperimentError",
+    "ProfileError",
+    "check_against_profile",
+    "check_experiment",
+    "load_experiment",
+    "parse_experiment",
+]

@@ -1,0 +1,330 @@
+"""The trial store: one SQLite file (WAL) per experiment, a row per trial, committed as
+soon as the trial is answered, and each subject's plan so a run can resume."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import time
+from collections.abc import Sequence
+from dataclasses import astuple, fields
+from pathlib import Path
+from typing import Any, Literal
+
+from hapticd import params
+from hapticd.experiment.plan import PlannedTrial
+from hapticd.experiment.spec import Experiment
+
+SCHEMA_VERSION = 1
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS plan (
+    subject TEXT NOT NULL,
+    "index" INTEGER NOT NULL,
+    block INTEGER NOT NULL,
+    position INTEGER NOT NULL,
+    condition TEXT NOT NULL,
+    standard REAL NOT NULL,
+    ratio REAL NOT NULL,
+    comparison REAL NOT NULL,
+    comparison_first INTEGER NOT NULL,
+    break_before_s REAL NOT NULL,
+    seed INTEGER NOT NULL,
+    PRIMARY KEY (subject, "index")
+);
+CREATE TABLE IF NOT EXISTS trials (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    subject TEXT NOT NULL,
+    plan_index INTEGER NOT NULL,
+    experiment TEXT NOT NULL,
+    experiment_hash TEXT NOT NULL,
+    condition TEXT NOT NULL,
+    standard REAL NOT NULL,
+    comparison REAL NOT NULL,
+    comparison_first INTEGER NOT NULL,
+    answer_second_more INTEGER,        -- 1: "yes, the second was stiffer/heavier"
+    comparison_more INTEGER,           -- 1: the comparison was judged more
+    response_time_s REAL,
+    recording TEXT,
+    profile_hash TEXT NOT NULL,
+    seed INTEGER NOT NULL,
+    time_unix_s REAL NOT NULL,
+    status TEXT NOT NULL CHECK (status IN ('complete', 'incomplete')),
+    FOREIGN KEY (subject, plan_index) REFERENCES plan (subject, "index")
+);
+CREATE UNIQUE INDEX IF NOT EXISTS one_answer_per_planned_trial
+    ON trials (subject, plan_index) WHERE status = 'complete';
+"""
+
+_PLAN_COLUMNS = [f.name for f in fields(PlannedTrial)]
+
+
+class StoreError(RuntimeError):
+    """A trial store that cannot be used as asked; the message says why and what to do."""
+
+
+class TrialStore:
+    """The trials of one experiment (its name and file hash) in the SQLite file ``path``.
+
+    A new file is created; an existing one must hold the same experiment, else
+    StoreError. ``record`` commits each trial at once (synchronous=FULL), so a crash
+    loses at most the trial in progress.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        experiment: str,
+        experiment_hash: str,
+        design: dict[str, Any] | None = None,
+    ) -> None:
+        self.path = Path(path)
+        self.experiment, self.experiment_hash = experiment, experiment_hash
+        self._design = design or {}
+        self._db = _connect(self.path)
+        try:
+            self._init_meta()
+        except BaseException:
+            self._db.close()
+            raise
+
+    def _init_meta(self) -> None:
+        try:
+            _has_tables(self._db)
+        except StoreError as exc:
+            raise StoreError(f"{self.path}: {exc}") from None
+        self._db.executescript(_SCHEMA)
+        with self._db:
+            meta = dict(self._db.execute("SELECT key, value FROM meta"))
+            if not meta:
+                self._db.executemany(
+                    "INSERT INTO meta VALUES (?, ?)",
+                    [
+                        ("schema", str(SCHEMA_VERSION)),
+                        ("experiment", self.experiment),
+                        ("experiment_hash", self.experiment_hash),
+                        ("created_unix_s", repr(time.time())),
+                        ("design", json.dumps(self._design, sort_keys=True)),
+                    ],
+                )
+                return
+        _check_schema(self.path, meta)
+        if meta.get("experiment_hash") != self.experiment_hash:
+            same = meta.get("experiment") == self.experiment
+            why = (
+                "the experiment file changed since this database was started"
+                if same
+                else "it belongs to another experiment"
+            )
+            raise StoreError(
+                f"{self.path}: refused: {why}: the database holds experiment "
+                f"{meta.get('experiment')!r} (file sha256 {meta.get('experiment_hash', '')[:12]}), "
+                f"this is {self.experiment!r} (sha256 {self.experiment_hash[:12]}); "
+                "use another database file (or restore the experiment file it was started with)"
+            )
+
+    @classmethod
+    def for_experiment(cls, path: str | Path, exp: Experiment) -> TrialStore:
+        """The store of the loaded experiment ``exp`` at ``path``; its design (the
+        varied parameter and unit, standards, ratios, conditions, question) goes into
+        the meta table for the analysis."""
+        return cls(path, experiment=exp.name, experiment_hash=exp.file_hash, design=design(exp))
+
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self) -> TrialStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # The plan -----------------------------------------------------------------------
+
+    def ensure_plan(self, subject: str, plan: Sequence[PlannedTrial], seed: int) -> None:
+        """Store ``subject``'s plan, or check that the stored one is this very plan."""
+        stored = self.plan(subject)
+        if stored:
+            old_seed = self._db.execute(
+                "SELECT seed FROM plan WHERE subject = ? LIMIT 1", (subject,)
+            ).fetchone()[0]
+            if old_seed != seed or stored != list(plan):
+                raise StoreError(
+                    f"{self.path}: subject {subject!r} already has a plan of {len(stored)} "
+                    f"trials (seed {old_seed}) that differs from this one ({len(plan)} trials, "
+                    f"seed {seed}); resume with the same seed, or use another subject id"
+                )
+            return
+        with self._db:
+            self._db.executemany(
+                f"INSERT INTO plan VALUES (?, {', '.join('?' * len(_PLAN_COLUMNS))}, ?)",
+                [(subject, *astuple(t), seed) for t in plan],
+            )
+
+    def plan(self, subject: str) -> list[PlannedTrial]:
+        cols = ", ".join(f'"{c}"' for c in _PLAN_COLUMNS)
+        rows = self._db.execute(
+            f'SELECT {cols} FROM plan WHERE subject = ? ORDER BY "index"', (subject,)
+        ).fetchall()
+        return [_planned(r) for r in rows]
+
+    def remaining(self, subject: str) -> list[PlannedTrial]:
+        """The planned trials of ``subject`` without a complete answer, in order."""
+        cols = ", ".join(f'p."{c}"' for c in _PLAN_COLUMNS)
+        rows = self._db.execute(
+            f"""SELECT {cols} FROM plan p WHERE p.subject = ? AND NOT EXISTS (
+                    SELECT 1 FROM trials t WHERE t.subject = p.subject
+                    AND t.plan_index = p."index" AND t.status = 'complete')
+                ORDER BY p."index" """,
+            (subject,),
+        ).fetchall()
+        return [_planned(r) for r in rows]
+
+    def next_trial(self, subject: str) -> PlannedTrial | None:
+        rest = self.remaining(subject)
+        return rest[0] if rest else None
+
+    # Trials ------------------------------------------------------------------------
+
+    def record(
+        self,
+        subject: str,
+        trial: PlannedTrial,
+        *,
+        answer_second_more: bool | None,
+        response_time_s: float | None,
+        profile_hash: str,
+        seed: int,
+        recording: str | None = None,
+        status: Literal["complete", "incomplete"] = "complete",
+        time_unix_s: float | None = None,
+    ) -> int:
+        """Store one trial and commit it before returning; its row id. A complete trial
+        needs an answer; a planned trial is answered (completed) once only."""
+        if status == "complete" and answer_second_more is None:
+            raise ValueError("a complete trial needs an answer")
+        more = None
+        if answer_second_more is not None:
+            # "Was the second more?": the comparison was judged more when it was second
+            # and the answer is yes, or first and the answer is no.
+            more = int(bool(answer_second_more) != trial.comparison_first)
+        try:
+            with self._db:
+                cur = self._db.execute(
+                    """INSERT INTO trials (subject, plan_index, experiment, experiment_hash,
+                        condition, standard, comparison, comparison_first, answer_second_more,
+                        comparison_more, response_time_s, recording, profile_hash, seed,
+                        time_unix_s, status) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?,
+                        ?, ?)""",
+                    (
+                        subject,
+                        trial.index,
+                        self.experiment,
+                        self.experiment_hash,
+                        trial.condition,
+                        trial.standard,
+                        trial.comparison,
+                        int(trial.comparison_first),
+                        None if answer_second_more is None else int(bool(answer_second_more)),
+                        more,
+                        response_time_s,
+                        recording,
+                        profile_hash,
+                        seed,
+                        time.time() if time_unix_s is None else time_unix_s,
+                        status,
+                    ),
+                )
+        except sqlite3.IntegrityError as exc:
+            raise StoreError(
+                f"{self.path}: trial {trial.index} of subject {subject!r} cannot be stored: "
+                f"{exc} (already answered, or not in the subject's plan)"
+            ) from None
+        return int(cur.lastrowid or 0)
+
+    def trials(self, status: str | None = "complete") -> list[dict[str, Any]]:
+        return read_trials(self._db, status)
+
+
+def design(exp: Experiment) -> dict[str, Any]:
+    """What the analysis needs to know of an experiment, JSON-ready."""
+    return {
+        "param": exp.varied.param,
+        "unit": params.PARAMS[exp.varied.param].unit,
+        "standards": list(exp.varied.standards),
+        "ratios": list(exp.varied.ratios),
+        "conditions": [c.name for c in exp.conditions],
+        "question": exp.interval.question,
+    }
+
+
+def _connect(path: Path) -> sqlite3.Connection:
+    try:
+        db = sqlite3.connect(path, isolation_level="DEFERRED")
+        db.execute("PRAGMA foreign_keys = ON")
+        mode = db.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+        db.execute("PRAGMA synchronous = FULL")
+    except sqlite3.DatabaseError as exc:
+        raise StoreError(f"{path}: not a trial store (SQLite): {exc}") from None
+    if mode != "wal":
+        db.close()
+        raise StoreError(f"{path}: cannot use write-ahead logging (journal mode {mode})")
+    return db
+
+
+def _has_tables(db: sqlite3.Connection) -> bool:
+    names = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    if names and not {"meta", "plan", "trials"} <= names:
+        raise StoreError("not a trial store: it holds other tables: " + ", ".join(sorted(names)))
+    return bool(names)
+
+
+def _check_schema(path: Path, meta: dict[str, str]) -> None:
+    if meta.get("schema") != str(SCHEMA_VERSION):
+        raise StoreError(
+            f"{path}: trial store schema {meta.get('schema')!r}, this hapticd reads "
+            f"{SCHEMA_VERSION}"
+        )
+
+
+def _planned(row: Sequence[Any]) -> PlannedTrial:
+    d = dict(zip(_PLAN_COLUMNS, row, strict=True))
+    d["comparison_first"] = bool(d["comparison_first"])
+    return PlannedTrial(**d)
+
+
+def read_trials(db: sqlite3.Connection, status: str | None = "complete") -> list[dict[str, Any]]:
+    db.row_factory = sqlite3.Row
+    try:
+        where = "" if status is None else "WHERE status = ?"
+        args = () if status is None else (status,)
+        rows = db.execute(f"SELECT * FROM trials {where} ORDER BY id", args).fetchall()
+        return [dict(r) for r in rows]
+    finally:
+        db.row_factory = None
+
+
+def open_for_analysis(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The meta table (``design`` decoded) and the complete trials of the store at
+    ``path``, read only."""
+    p = Path(path)
+    if not p.is_file():
+        raise StoreError(f"{p}: no such trial store")
+    try:
+        db = sqlite3.connect(f"file:{p}?mode=ro", uri=True)
+    except sqlite3.DatabaseError as exc:
+        raise StoreError(f"{p}: cannot open: {exc}") from None
+    try:
+        try:
+            _has_tables(db)
+            meta = dict(db.execute("SELECT key, value FROM meta"))
+        except sqlite3.DatabaseError as exc:
+            raise StoreError(f"{p}: not a trial store (SQLite): {exc}") from None
+        _check_schema(p, meta)
+        out: dict[str, Any] = dict(meta)
+        out["design"] = json.loads(meta.get("design") or "{}")
+        return out, read_trials(db)
+    finally:
+        db.close()
