@@ -9,6 +9,7 @@ import logging
 import math
 import signal
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -80,13 +81,27 @@ def format_summary(s: dict[str, Any]) -> str:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    temp_dir = None
+    record_path = args.record
+    if args.plot is not None and record_path is None:
+        # The plot is made from the run's recording: a temporary one unless --record names one.
+        temp_dir = tempfile.TemporaryDirectory(prefix="hapticd-run-")
+        record_path = Path(temp_dir.name) / "run.hrec"
+    try:
+        return _run(args, record_path)
+    finally:
+        if temp_dir is not None:
+            temp_dir.cleanup()
+
+
+def _run(args: argparse.Namespace, record_path: Path | None) -> int:
     try:
         profile = load_profile(args.profile)
         session = build_session(
             profile,
             paced=not args.unpaced,
             duration_s=args.duration,
-            record_path=args.record,
+            record_path=record_path,
             device=args.device,
             emulate=args.emulate,
             record_dir=args.record_dir,
@@ -142,6 +157,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         Path(args.summary_json).write_text(json.dumps(summary, indent=2) + "\n")
     if not args.quiet:
         print(format_summary(summary))
+    if args.plot is not None and record_path is not None and "recording_error" not in summary:
+        code = _plot(record_path, args.plot, None)
+        if code != EXIT_OK:
+            return code
     if summary["fault"]:
         return EXIT_FAULT
     return EXIT_ERROR if "recording_error" in summary else EXIT_OK
@@ -505,6 +524,66 @@ def _add_analyze(sub: Any) -> None:
     ana.set_defaults(func=cmd_analyze)
 
 
+def _plot(source: Path, out: Path, panels: list[str] | None) -> int:
+    """Draw ``source`` (a recording or a run summary) into ``out``; print where it went."""
+    from hapticd import plot
+
+    try:
+        fig = plot.figure_for(source, panels)
+        plot.save(fig, out)
+    except plot.PlotError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except ImportError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except OSError as exc:
+        print(f"hapticd: cannot write the plot {out}: {exc.strerror or exc}", file=sys.stderr)
+        return EXIT_ERROR
+    print(f"plot: {out}")
+    return EXIT_OK
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from hapticd import plot
+
+    try:
+        panels = plot.parse_panels(args.fields)
+    except plot.PlotError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    out = args.out or Path(tempfile.gettempdir()) / f"hapticd-plot-{args.source.stem}.png"
+    return _plot(args.source, out, panels)
+
+
+def _add_plot(sub: Any) -> None:
+    """The plot subcommand's arguments."""
+    from hapticd.plot import PANELS
+
+    pl = sub.add_parser(
+        "plot",
+        help="plot a recording (forces, contact, residuals, object, timing) or a run summary",
+        description="Draw a recording (.hrec) as panels over time, or a run summary "
+        "(hapticd run --summary-json) as its period error histogram, into a PNG. Panels: "
+        + "; ".join(f"{p.name}: {p.doc}" for p in PANELS)
+        + ". Needs matplotlib (the 'plot' extra).",
+    )
+    pl.add_argument("source", type=Path, metavar="REC", help="a recording or a summary JSON")
+    pl.add_argument(
+        "--out",
+        type=Path,
+        metavar="FILE.png",
+        help="where the figure goes (default: hapticd-plot-NAME.png in the temp dir)",
+    )
+    pl.add_argument(
+        "--fields",
+        metavar="A,B",
+        help=f"the panels to draw, by name ({','.join(p.name for p in PANELS)}) or by a field "
+        "they draw (default: every panel the recording can fill)",
+    )
+    pl.set_defaults(func=cmd_plot)
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     try:
         rec = read_recording(args.recording)
@@ -602,6 +681,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="put the device emulator under the hid or usb backend, moved along the trajectory",
     )
     run.add_argument("--summary-json", type=Path, metavar="PATH", help="write the summary as JSON")
+    run.add_argument(
+        "--plot",
+        type=Path,
+        metavar="FILE.png",
+        help="plot the run when it ends (as hapticd plot; records to a temporary file unless "
+        "--record is given)",
+    )
     run.add_argument("-q", "--quiet", action="store_true", help="do not print the summary")
     run.set_defaults(func=cmd_run)
     chk = sub.add_parser("check", help="validate a profile and the files it names")
@@ -655,6 +741,7 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--count", type=int, help="stop after this many lines")
             p.set_defaults(func=cmd_watch)
     _add_analyze(sub)
+    _add_plot(sub)
     exp = sub.add_parser("export", help="export a recording to CSV or MCAP (Foxglove)")
     exp.add_argument("recording", type=Path)
     fmt = exp.add_mutually_exclusive_group()

@@ -55,6 +55,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.build",
         "hapticd.cli",
         "hapticd.daemon.*",
+        "hapticd.plot",  # hapticd plot's figures (matplotlib inside its functions only)
         "hapticd.profile",
         "hapticd.recording.*",
     },
