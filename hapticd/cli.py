@@ -10,6 +10,7 @@ import math
 import signal
 import sys
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -359,6 +360,109 @@ def cmd_watch(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         return _client_failed(args, exc)
     return EXIT_OK
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    """Serve the web view of a running daemon until Ctrl-C or SIGTERM (docs/view.md)."""
+    from hapticd.control import UnsafeSocketDirError
+    from hapticd.view import ViewServer, is_loopback
+
+    socket_path = args.socket or default_socket_path()
+    try:
+        view = ViewServer(
+            socket_path, host=args.host, port=args.port, control=args.control, rate_hz=args.rate
+        )
+    except UnsafeSocketDirError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except OSError as exc:
+        print(
+            f"hapticd: cannot serve the view on {args.host} port {args.port}: "
+            f"{exc.strerror or exc}",
+            file=sys.stderr,
+        )
+        return EXIT_ERROR
+    host, port = view.address
+    if not is_loopback(host):
+        what = "watch the run and change its parameters" if args.control else "watch the run"
+        print(
+            f"hapticd view: WARNING: serving on {host} port {port}, not loopback: other "
+            f"machines can reach this page, and anyone with its URL (it carries the key) can "
+            f"{what}; the traffic is not encrypted",
+            file=sys.stderr,
+        )
+    # The URLs first, on stdout: the experimenter's, then the subject's.
+    print(view.url)
+    print(view.subject_url, flush=True)
+    if not args.quiet:
+        print(
+            "hapticd view: the first URL is the experimenter's page, the second the subject's "
+            "(the scene alone); "
+            + ("--control: the page may set parameters" if args.control else "read-only")
+            + f"; daemon socket {socket_path}; Ctrl-C to stop",
+            file=sys.stderr,
+            flush=True,
+        )
+    stop = threading.Event()
+
+    def on_stop(_signum: int, _frame: object) -> None:
+        stop.set()
+
+    old = {s: signal.signal(s, on_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        view.start()
+        while not stop.wait(0.5):
+            pass
+    finally:
+        view.close()
+        for s, h in old.items():
+            signal.signal(s, h)
+    return EXIT_OK
+
+
+def _rate(text: str) -> float:
+    v = float(text)
+    if not 0.1 <= v <= 1000:
+        raise argparse.ArgumentTypeError(f"expected a rate in [0.1, 1000] Hz, got {text}")
+    return v
+
+
+def _port(text: str) -> int:
+    v = int(text)
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a TCP port in [0, 65535], got {text}")
+    return v
+
+
+def _add_view(sub: Any, sock_help: str) -> None:
+    """The view subcommand's arguments."""
+    v = sub.add_parser(
+        "view",
+        help="serve a web page of a running hapticd: the scene, forces, loop, faults",
+        description="A separate process, a client of the control socket, that serves a web "
+        "page drawing the scene live (the object at its pose, each fingertip's device and "
+        "proxy, the full and rendered forces) with the loop's panels, and a subject's page "
+        "with the scene alone. Prints the experimenter's URL, then the subject's. Loopback "
+        "only unless --host says otherwise; read-only unless --control. See docs/view.md.",
+    )
+    v.add_argument("--socket", type=Path, metavar="PATH", help=sock_help)
+    v.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="the address to serve on (default 127.0.0.1, this machine only; any other "
+        "address is reachable from elsewhere and prints a warning)",
+    )
+    v.add_argument("--port", type=_port, default=0, help="TCP port (default 0: a free one)")
+    v.add_argument(
+        "--control",
+        action="store_true",
+        help="let the page change parameters (the same checked set commands as hapticd set)",
+    )
+    v.add_argument(
+        "--rate", type=_rate, default=60.0, help="telemetry frames per second (default 60)"
+    )
+    v.add_argument("-q", "--quiet", action="store_true", help="only the URLs and warnings")
+    v.set_defaults(func=cmd_view)
 
 
 def _at(text: list[str], n_fingers: int) -> list[float]:
@@ -742,6 +846,7 @@ def build_parser() -> argparse.ArgumentParser:
             p.set_defaults(func=cmd_watch)
     _add_analyze(sub)
     _add_plot(sub)
+    _add_view(sub, sock_help)
     exp = sub.add_parser("export", help="export a recording to CSV or MCAP (Foxglove)")
     exp.add_argument("recording", type=Path)
     fmt = exp.add_mutually_exclusive_group()

@@ -64,6 +64,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.control",
         "hapticd.params",
         "hapticd.protocol",
+        "hapticd.view.*",  # hapticd view: a client of the control socket serving a web page
     },
     "drivers": {"hapticd_drivers.*"},
 }
