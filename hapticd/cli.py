@@ -333,6 +333,25 @@ def cmd_client(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+WATCH_COLUMNS = """\
+Live numbers from a running hapticd, one line per telemetry frame, for example
+(devices named by their serials, here A and B):
+
+  t    3.100 s  A: |F|  1.104 N *  B: |F|  0.000 N    obj z    0.00 mm  if  overruns 0
+
+columns:
+  t 3.100 s              the loop's time, tick / rate (s)
+  SERIAL: |F| 1.104 N    per device: the magnitude of the force sent to it, after the
+                         safety chain (N)
+  *                      after a device's force: that finger is in contact with the object
+  obj z 0.00 mm          the height of the object's centre of mass (mm)
+  if                     the allocator
+  overruns 0             loop periods longer than 1.1x nominal so far
+  FAULT                  a safety fault is latched: forces are zero until hapticd enable
+
+For a picture of the scene and the forces, see hapticd view (docs/view.md)."""
+
+
 def cmd_watch(args: argparse.Namespace) -> int:
     """Live numbers from a running daemon, one line per frame, until Ctrl-C or --count."""
     shown = 0
@@ -823,7 +842,13 @@ def build_parser() -> argparse.ArgumentParser:
         ("watch", "live numbers: forces, contact, object, faults"),
     )
     for name, help_text in clients:
-        p = sub.add_parser(name, help=help_text)
+        extra: dict[str, Any] = {}
+        if name == "watch":
+            extra = {
+                "description": WATCH_COLUMNS,
+                "formatter_class": argparse.RawDescriptionHelpFormatter,
+            }
+        p = sub.add_parser(name, help=help_text, **extra)
         p.add_argument("--socket", type=Path, metavar="PATH", help=sock_help)
         p.set_defaults(func=cmd_client)
         if name in ("get", "set"):

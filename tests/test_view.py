@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from hapticd.cli import build_parser
+from hapticd.cli import build_parser, main
 from hapticd.control import ControlClient
 from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
@@ -361,3 +361,25 @@ def test_a_page_in_headless_chromium_shows_advancing_ticks(daemon, view, tmp_pat
         panels = "getComputedStyle(document.getElementById('panels')).display"
         assert browser.evaluate(panels) == "none"
         browser.screenshot(tmp_path / "subject.png")
+
+
+def test_watch_explains_its_columns_and_its_lines_match(daemon, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["watch", "--help"])
+    assert exc.value.code == 0
+    help_text = capsys.readouterr().out
+    assert "that finger is in contact with the object" in help_text
+    example = next(line.strip() for line in help_text.splitlines() if line.startswith("  t "))
+    assert main(["watch", "--socket", str(daemon), "--count", "2", "--rate", "20"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2
+    # The help's example has the shape of a real line (its device names aside).
+    mark = r"N(?: \*|  )  "  # " *" in contact, else two spaces; then the separator
+    shape = (
+        rf"t +\d+\.\d{{3}} s  DEV_A: \|F\| +\d+\.\d{{3}} {mark}DEV_B: \|F\| +\d+\.\d{{3}} {mark}"
+    )
+    shape += r"obj z +-?\d+\.\d{2} mm  \w+  overruns \d+"
+    assert re.fullmatch(shape.replace("DEV_A", "A").replace("DEV_B", "B"), example), example
+    for line in lines:
+        real = shape.replace("DEV_A", "replay-thumb").replace("DEV_B", "replay-index")
+        assert re.fullmatch(real, line), line
