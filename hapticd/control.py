@@ -147,7 +147,18 @@ class ControlClient:
         check_socket_dir(self.path)  # never talk through a directory someone else controls
         self.sock = _connect(self.path, timeout_s)
         self._file = self.sock.makefile("rb")
-        self.greeting = json.loads(self._file.readline())
+        try:
+            line = self._file.readline()
+            if not line:
+                raise ConnectionError(f"{self.path}: the daemon closed the connection unasked")
+            self.greeting = json.loads(line)
+        except (OSError, ValueError):
+            # A daemon that closed (or stalled) before greeting: no socket is left open.
+            self.close()
+            raise
+        if not isinstance(self.greeting, dict):
+            self.close()
+            raise proto.ProtocolError("malformed", f"{self.path}: the greeting is not an object")
         if self.greeting.get("protocol") != proto.PROTOCOL_VERSION:
             self.close()
             raise proto.ProtocolError(

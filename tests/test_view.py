@@ -8,6 +8,7 @@ import os
 import re
 import select
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -23,7 +24,7 @@ from hapticd.control import ControlClient
 from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
-from hapticd.view import is_loopback
+from hapticd.view import ViewServer, is_loopback
 from hapticd.view.server import SUBJECT_TELEMETRY
 from tests import cdp
 from tests.conftest import ROOT, wait_for
@@ -383,3 +384,78 @@ def test_watch_explains_its_columns_and_its_lines_match(daemon, capsys):
     for line in lines:
         real = shape.replace("DEV_A", "replay-thumb").replace("DEV_B", "replay-index")
         assert re.fullmatch(real, line), line
+
+
+def test_the_view_waits_for_a_daemon_and_follows_it_when_it_comes(
+    tmp_path, grasp_data, write_profile
+):
+    sock = tmp_path / "later.sock"
+    logs: list[str] = []
+    with ViewServer(sock, log=logs.append) as v:
+        wait_for(lambda: v.hub.latest("link"), "the link state", timeout_s=10)
+        assert json.loads(v.hub.latest("link")[2])["connected"] is False
+        for finger in grasp_data["fingers"]:
+            finger["device"]["hold_s"] = 60.0
+        session = build_session(
+            load_profile(write_profile(grasp_data)), paced=True, duration_s=60.0
+        )
+        server = ControlServer(session, sock)
+        server.start()
+        runner = threading.Thread(target=session.run, name="test-loop")
+        runner.start()
+        try:
+            wait_for(
+                lambda: json.loads(v.hub.latest("link")[2])["connected"],
+                "the view to connect to the daemon that came",
+                timeout_s=10,
+            )
+            first = wait_for(lambda: v.hub.latest("telemetry"), "telemetry", timeout_s=10)
+            wait_for(
+                lambda: json.loads(v.hub.latest("telemetry")[2])["tick"],
+                "ticks that advance",
+                until=lambda k: k > json.loads(first[2])["tick"],
+                timeout_s=10,
+            )
+        finally:
+            session.loop.request_stop("test over")
+            runner.join(timeout=10)
+            server.close()
+        wait_for(
+            lambda: json.loads(v.hub.latest("link")[2])["connected"],
+            "the view to see the daemon go",
+            until=lambda c: c is False,
+            timeout_s=15,
+        )
+    assert any("connected to the daemon" in m for m in logs)
+    assert any(m.startswith("no daemon") for m in logs)
+
+
+@pytest.mark.parametrize(
+    ("greeting", "error"),
+    [
+        (b"", "closed the connection unasked"),
+        (b"[1, 2]\n", "the greeting is not an object"),
+        (b"{not json\n", "Expecting property name"),
+    ],
+)
+def test_a_daemon_that_closes_before_greeting_leaves_no_socket_open(tmp_path, greeting, error):
+    """The view reconnects while a daemon starts and stops: a connection that gets no
+    proper greeting raises and is closed (the no_leaks fixture checks the sockets)."""
+    path = tmp_path / "mute.sock"
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(str(path))
+    listener.listen(1)
+
+    def serve() -> None:
+        conn, _ = listener.accept()
+        with conn:
+            conn.sendall(greeting)
+
+    t = threading.Thread(target=serve, name="mute-daemon")
+    t.start()
+    try:
+        with pytest.raises((ConnectionError, ValueError), match=error):
+            ControlClient(path, timeout_s=5)
+    finally:
+        t.join(timeout=5)
+        listener.close()

@@ -241,6 +241,7 @@ class DaemonLink:
             except (OSError, ValueError, KeyError, TypeError):
                 self._drop_request()
             self._stop.wait(STATUS_PERIOD_S)
+        self._drop_request()  # the view is closing: its request connection goes too
 
     def _drop_request(self) -> None:
         with self._lock:
