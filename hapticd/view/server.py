@@ -205,7 +205,8 @@ class DaemonLink:
                     sample = client.next_telemetry()
                     subject = {k: sample[k] for k in SUBJECT_TELEMETRY if k in sample}
                     self.hub.publish("telemetry", sample, subject)
-            except (OSError, ValueError) as exc:  # ProtocolError and JSON errors: ValueError
+            # ProtocolError and JSON errors are ValueErrors; TypeError: a frame not an object.
+            except (OSError, ValueError, TypeError) as exc:
                 if not self._stop.is_set():
                     self._set_link(False, str(exc))
             finally:
