@@ -20,7 +20,14 @@ import numpy as np
 from hapticd.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.contact import MultiResult, ObstacleSet, Polytope, proxy_step_multi
-from hapticd.dynamics import SMALL_SHAPE, SurfaceSet, auto_substeps, step_body, step_body_small
+from hapticd.dynamics import (
+    SMALL_SHAPE,
+    SmallBody,
+    SurfaceSet,
+    auto_substeps,
+    step_body,
+    step_body_small,
+)
 from hapticd.frame import Frame
 from hapticd.friction import friction_proxy
 from hapticd.passivity import PassivityParams, control, observe, orthonormal, project
@@ -456,6 +463,7 @@ class Dynamics:
                 obj, scene.surfaces, obj.material.stiffness, n_fingers, dt
             )
         self.small = len(obj.shape.vertices) <= SMALL_SHAPE
+        self._prepared: SmallBody | None = None  # the small step's cache (shape, mass)
 
     @property
     def effects(self) -> list[str]:
@@ -484,6 +492,9 @@ class Dynamics:
                 if fn > 0.0:
                     torsion.append((n, mu_t * fn))
         if self.small:
+            prep = self._prepared
+            if prep is None or not prep.fits(obj, self.surfaces):
+                prep = self._prepared = SmallBody(obj, self.surfaces)
             step_body_small(
                 obj,
                 (0.0, 0.0, 0.0),
@@ -494,6 +505,7 @@ class Dynamics:
                 substeps=self.substeps,
                 torsion=torsion,  # type: ignore[arg-type]
                 springs=springs,  # type: ignore[arg-type]
+                prepared=prep,
             )
         else:
             step_body(
