@@ -177,7 +177,8 @@ for k in range(n):
         over += s - prev > 1.1 * T
     prev = s
 errs.sort()
-print(json.dumps({"overruns": over, "ticks": n, "period_err_p99": errs[int(0.99 * len(errs))] * 1e6}))
+p99 = errs[int(0.99 * len(errs))] * 1e6
+print(json.dumps({"overruns": over, "ticks": n, "period_err_p99": p99}))
 """
 
 
