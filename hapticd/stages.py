@@ -269,14 +269,16 @@ class Forces:
         pos = frame.device_pos.tolist()
         held = frame.surface_point.tolist()
         normals = frame.contact_normal.tolist()
+        vel = frame.device_vel.tolist() if b else None
+        motion = None if obj.fixed or not b else self._motion()
         forces = [ZERO3] * len(touching)
         for i, on in enumerate(touching):
             if not on:
                 continue
             dev, pf, n = pos[i], held[i], normals[i]
             f = (k * (pf[0] - dev[0]), k * (pf[1] - dev[1]), k * (pf[2] - dev[2]))
-            if b:
-                v = self._relative_velocity(frame.device_vel[i], pf)
+            if vel is not None:
+                v = self._relative_velocity(vel[i], pf, motion)
                 f = (f[0] - b * v[0], f[1] - b * v[1], f[2] - b * v[2])
                 fn = f[0] * n[0] + f[1] * n[1] + f[2] * n[2]
                 if fn < 0.0:
@@ -284,19 +286,33 @@ class Forces:
             forces[i] = f
         frame.contact_force[...] = forces
 
-    def _relative_velocity(self, v_dev: np.ndarray, point: list[float]) -> V3:
+    def _motion(self) -> tuple[list[float], list[float], list[float]]:
+        """The object's position (m), velocity (m/s) and angular velocity (rad/s)."""
         obj = self.scene.object
-        if obj.fixed:
-            return (float(v_dev[0]), float(v_dev[1]), float(v_dev[2]))
-        rel = np.array(point) - obj.position
-        w = obj.omega
+        return obj.position.tolist(), obj.velocity.tolist(), obj.omega.tolist()
+
+    @staticmethod
+    def _relative_velocity(
+        v_dev: list[float],
+        point: list[float],
+        motion: tuple[list[float], list[float], list[float]] | None,
+    ) -> V3:
+        """The device's velocity relative to the object's material at ``point`` (m/s):
+        elementwise on plain floats, the same sums numpy's 3-vectors made."""
+        if motion is None:
+            return (v_dev[0], v_dev[1], v_dev[2])
+        x, u, w = motion
+        rel = (point[0] - x[0], point[1] - x[1], point[2] - x[2])
         spin = (
             w[1] * rel[2] - w[2] * rel[1],
             w[2] * rel[0] - w[0] * rel[2],
             w[0] * rel[1] - w[1] * rel[0],
         )
-        v = v_dev - obj.velocity - spin
-        return (float(v[0]), float(v[1]), float(v[2]))
+        return (
+            v_dev[0] - u[0] - spin[0],
+            v_dev[1] - u[1] - spin[1],
+            v_dev[2] - u[2] - spin[2],
+        )
 
 
 class Allocation:
