@@ -363,7 +363,16 @@ def surface_wrench_small(
         if clear > 1e-9 * (nn * (ax + reach) + abs(d)):
             continue
         if rels is None:
-            rels = [_mat_vec(R, p) for p in local]
+            (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R
+            # _mat_vec inline: the same sums.
+            rels = [
+                (
+                    r00 * p0 + r01 * p1 + r02 * p2,
+                    r10 * p0 + r11 * p1 + r12 * p2,
+                    r20 * p0 + r21 * p1 + r22 * p2,
+                )
+                for p0, p1, p2 in local
+            ]
         hits = []
         for r in rels:
             pen = d - (n0 * (r[0] + x0) + n1 * (r[1] + x1) + n2 * (r[2] + x2))
