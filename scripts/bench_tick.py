@@ -11,8 +11,11 @@ settings.
 safety, device write, the loop's own bookkeeping, recording) timed with
 perf_counter_ns on every tick: median and p99 per part, unpaced and paced, and
 the ratio paced/unpaced. The timers cost ~0.1 us per part, so the parts' sum is
-a little above an untimed tick. ``--wait spin`` paces by spinning the whole
-period instead of sleeping (does the time after a sleep come from the sleep?).
+a little above an untimed tick. Besides the loop's own pacing (sleep until 200 us
+before the deadline, spin the rest) it paces with a 600 us spin (a shorter
+sleep) and by spinning the whole period (no sleep): does the slower tick after a
+sleep come from the sleep? Every mode runs the same ticks (``--seconds`` of the
+bundled trajectory).
 
 ``--compare DIR``: the tick compute time (the loop's own ``compute_s``: read,
 render, safety, write, statistics) of the hapticd package in DIR (e.g. main's,
@@ -72,7 +75,7 @@ def child(args: argparse.Namespace) -> dict:
     session = build_session(
         profile,
         paced=args.paced,
-        duration_s=args.seconds if args.paced else None,
+        duration_s=args.seconds,  # the same ticks paced and unpaced
         record_path=record,
     )
     loop = session.loop
@@ -88,6 +91,8 @@ def child(args: argparse.Namespace) -> dict:
     pacer.end = timed_end  # type: ignore[method-assign]
     if args.wait == "spin":
         pacer.margin = pacer.period  # never sleeps: spins the whole period
+    elif args.margin_us is not None:
+        pacer.margin = min(args.margin_us * 1e-6, pacer.period)  # a shorter sleep
     parts: dict[str, list[int]] = {}
     if args.instrument:
         ns = time.perf_counter_ns
@@ -190,9 +195,9 @@ def run_child(tree: Path | None, **kw: object) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child"]
     for k, v in kw.items():
         if v is True:
-            cmd.append(f"--{k}")
+            cmd.append(f"--{k.replace('_', '-')}")
         elif v is not False and v is not None:
-            cmd += [f"--{k}", str(v)]
+            cmd += [f"--{k.replace('_', '-')}", str(v)]
     res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     if res.returncode != 0:
         raise RuntimeError(f"{cmd} failed:\n{res.stderr[-2000:]}")
@@ -220,15 +225,16 @@ def med(xs: list[float]) -> float:
 def profile_stages(args: argparse.Namespace) -> list[dict]:
     cases = []
     for profile in PROFILES:
-        for label, paced, wait in (
-            ("unpaced", False, "sleep"),
-            ("paced 1 kHz", True, "sleep"),
-            ("paced 1 kHz, spin", True, "spin"),
+        for label, paced, wait, margin in (
+            ("unpaced", False, "sleep", None),
+            ("paced 1 kHz", True, "sleep", None),
+            ("paced 1 kHz, spin 600 us", True, "sleep", 600),
+            ("paced 1 kHz, spin all", True, "spin", None),
         ):
-            cases.append((profile, label, paced, wait))
+            cases.append((profile, label, paced, wait, margin))
     runs: dict[tuple[str, str], list[dict]] = {(c[0], c[1]): [] for c in cases}
     for r in range(args.rounds):
-        for profile, label, paced, wait in cases:
+        for profile, label, paced, wait, margin in cases:
             out = run_child(
                 None,
                 profile=profile,
@@ -238,6 +244,7 @@ def profile_stages(args: argparse.Namespace) -> list[dict]:
                 record=True,
                 instrument=True,
                 wait=wait,
+                margin_us=margin,
             )
             runs[(profile, label)].append(out)
             print(f"round {r + 1}: {profile} {label}: {out['compute_p50']:.1f} us", file=sys.stderr)
@@ -247,8 +254,8 @@ def profile_stages(args: argparse.Namespace) -> list[dict]:
         print(f"\n### {profile} (median over {args.rounds} runs of each run's p50 / p99, us)\n")
         labels = [c[1] for c in cases if c[0] == profile]
         head = "| part | " + " | ".join(f"{lb} p50 / p99" for lb in labels)
-        print(head + " | paced/unpaced p50 | spin/unpaced p50 |")
-        print("|---" * (len(labels) + 3) + "|")
+        print(head + " | " + " | ".join(f"{lb} / unpaced p50" for lb in labels[1:]) + " |")
+        print("|---" * (2 * len(labels)) + "|")
         for name in [*names, "compute (loop's compute_s)"]:
             vals = []
             for lb in labels:
@@ -263,9 +270,8 @@ def profile_stages(args: argparse.Namespace) -> list[dict]:
                     p50 = p99 = float("nan")
                 vals.append((p50, p99))
             cells = " | ".join(f"{a:.1f} / {b:.1f}" for a, b in vals)
-            r1 = vals[1][0] / vals[0][0] if vals[0][0] else float("nan")
-            r2 = vals[2][0] / vals[0][0] if vals[0][0] else float("nan")
-            print(f"| {name} | {cells} | {r1:.2f} | {r2:.2f} |")
+            ratios = " | ".join(f"{v[0] / vals[0][0]:.2f}" for v in vals[1:])
+            print(f"| {name} | {cells} | {ratios} |")
             rows.append({"profile": profile, "part": name, "values": vals})
     return rows
 
@@ -369,6 +375,7 @@ def main() -> None:
     ap.add_argument("--record", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--instrument", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--wait", choices=("sleep", "spin"), default="sleep", help=argparse.SUPPRESS)
+    ap.add_argument("--margin-us", type=float, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(child(args)))
