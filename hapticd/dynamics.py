@@ -311,9 +311,12 @@ def step_body_small(
             spin = w[0] * n[0] + w[1] * n[1] + w[2] * n[2]
             if spin != 0.0:
                 nb = _mat_vec(Rt, n)
-                In = sum(
-                    nb[i] * (Ib[i][0] * nb[0] + Ib[i][1] * nb[1] + Ib[i][2] * nb[2])
-                    for i in range(3)
+                # 0.0 + ...: the sum() this was, term by term (a generator costs more).
+                In = (
+                    0.0
+                    + nb[0] * (Ib[0][0] * nb[0] + Ib[0][1] * nb[1] + Ib[0][2] * nb[2])
+                    + nb[1] * (Ib[1][0] * nb[0] + Ib[1][1] * nb[1] + Ib[1][2] * nb[2])
+                    + nb[2] * (Ib[2][0] * nb[0] + Ib[2][1] * nb[1] + Ib[2][2] * nb[2])
                 )
                 t = math.copysign(min(cap, In * abs(spin) / h), spin)
                 Tx, Ty, Tz = Tx - t * n[0], Ty - t * n[1], Tz - t * n[2]

@@ -205,7 +205,7 @@ class Friction:
     def __init__(self, scene: Scene, radii: list[float]) -> None:
         self.scene = scene
         self.radii = radii
-        self._anchor: list[V3 | None] = [None] * len(radii)
+        self._anchor: list[np.ndarray | None] = [None] * len(radii)
         self._holding = False  # any anchor set
 
     def run(self, frame: Frame) -> None:
@@ -233,10 +233,11 @@ class Friction:
             anchor = self._anchor[i]
             aw = None
             if anchor is not None:
-                aw = tuple((R @ np.array(anchor) + x0).tolist())
-            dev, n = tuple(pos[i]), tuple(normals[i])
-            pf, _ = friction_proxy(tuple(held[i]), dev, n, aw, mat.mu_static, mat.mu_dynamic)  # type: ignore[arg-type]
-            self._anchor[i] = tuple((R.T @ (np.array(pf) - x0)).tolist())
+                aw = (R @ anchor + x0).tolist()
+            dev, n = pos[i], normals[i]
+            pf, _ = friction_proxy(held[i], dev, n, aw, mat.mu_static, mat.mu_dynamic)  # type: ignore[arg-type]
+            # Kept as the array numpy made (body frame, m): the next tick's product takes it.
+            self._anchor[i] = R.T @ (np.array(pf) - x0)
             held[i] = pf
             p, po = god[i], plain[i]
             shown[i] = _shown(p, pf, po)
