@@ -326,8 +326,9 @@ def compare(args: argparse.Namespace) -> list[dict]:
             o, n = results[(profile, label, "old")], results[(profile, label, "new")]
             o50, n50 = med([x["compute_p50"] for x in o]), med([x["compute_p50"] for x in n])
             o99, n99 = med([x["compute_p99"] for x in o]), med([x["compute_p99"] for x in n])
-            ov = f"{med([x['overruns'] for x in o]):g} / {med([x['overruns'] for x in n]):g}"
+            ov = "-"  # unpaced: no deadlines
             if paced:
+                ov = f"{med([x['overruns'] for x in o]):g} / {med([x['overruns'] for x in n]):g}"
                 ov += f" / {med([x['overruns'] for x in results[('bare', label, 'bare')]]):g}"
             print(
                 f"| {profile} | {label} | {o50:.1f} | {n50:.1f} | {o50 / n50:.2f} | {o99:.1f} "
