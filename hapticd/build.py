@@ -340,6 +340,7 @@ def build_safety(profile: Profile, devices: list[Device]) -> SafetyChain:
             workspace_center_m=sc.workspace_center_m,
             workspace_radius_m=sc.workspace_radius_m or math.inf,
             watchdog_s=sc.watchdog_s or math.inf,
+            max_device_speed_m_per_s=sc.max_device_speed_m_per_s,
             deadman=tuple(
                 None if (d := f.deadman) is None else Deadman(d.button, d.ramp_s)
                 for f in profile.fingers

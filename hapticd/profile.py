@@ -507,6 +507,13 @@ class SafetyConfig(_Strict):
     watchdog_s: Float | None = Field(
         default=0.1, gt=0, le=10, description="longest wall time between ticks, s; none: off"
     )
+    max_device_speed_m_per_s: Float = Field(
+        default=5.0,
+        gt=0,
+        le=100,
+        description="a device reporting a faster speed (its own frame), or a non-finite "
+        "position or velocity, latches a fault: a glitched sample, not a hand, m/s",
+    )
     reconnect: Bool = Field(
         default=False,
         description="on a device error keep running (forces off) and reopen the device when "
