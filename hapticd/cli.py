@@ -82,9 +82,34 @@ def format_summary(s: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _overrides(args: argparse.Namespace) -> list[str]:
+    """The ``--set KEY=VALUE`` values of ``run`` and ``check`` (none for other callers)."""
+    return list(getattr(args, "set", None) or [])
+
+
+def _add_set_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="override one profile value (repeatable): KEY a dotted key path, list items by "
+        "index or name (scene.object.stiffness_n_per_m=90, fingers[thumb].device.max_force_n=5), "
+        "VALUE a YAML scalar or list; validated with the profile",
+    )
+
+
+def _run_socket(args: argparse.Namespace) -> Path | None:
+    """The control socket a run serves: none with --no-socket, and none for an --unpaced
+    run (a batch render: two of them must not fight over the default socket) unless
+    --socket names one; else --socket or the default."""
+    if args.no_socket or (args.unpaced and args.socket is None):
+        return None
+    return args.socket or default_socket_path()
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     try:
-        profile = load_profile(args.profile)
+        profile = load_profile(args.profile, _overrides(args))
         session = build_session(
             profile,
             paced=not args.unpaced,
@@ -102,9 +127,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         return EXIT_ERROR
     if args.no_realtime:
         session.loop.realtime_settings = None
+    session.overrides = _overrides(args)
     loop = session.loop
     notifier = ServiceNotifier(lambda: loop.stats.ticks, lambda: _service_status(loop))
-    socket_path = None if args.no_socket else (args.socket or default_socket_path())
+    socket_path = _run_socket(args)
     server = ControlServer(session, socket_path, periodic=[notifier.poll])
     try:
         server.start()
@@ -211,7 +237,7 @@ def workspace_report(profile: Any, devices: list[Any]) -> list[str]:
 
 def cmd_check(args: argparse.Namespace) -> int:
     try:
-        profile = load_profile(args.profile)
+        profile = load_profile(args.profile, _overrides(args))
         load_trajectories(profile)
         build_scene(profile.scene, profile)
         # The devices are created (not opened): a backend's library or driver is checked.
@@ -937,7 +963,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         metavar="PATH",
         help="serve the control protocol on this Unix socket (default: $HAPTICD_SOCKET, "
-        "$RUNTIME_DIRECTORY/control.sock, $XDG_RUNTIME_DIR/hapticd/control.sock)",
+        "$RUNTIME_DIRECTORY/control.sock, $XDG_RUNTIME_DIR/hapticd/control.sock; an "
+        "--unpaced run serves one only when given)",
     )
     run.add_argument(
         "--device",
@@ -955,6 +982,8 @@ def build_parser() -> argparse.ArgumentParser:
     chk = sub.add_parser("check", help="validate a profile and the files it names")
     chk.add_argument("profile", type=Path)
     chk.set_defaults(func=cmd_check)
+    _add_set_option(run)
+    _add_set_option(chk)
     run.add_argument(
         "--no-socket", action="store_true", help="serve no control socket (SIGHUP still reloads)"
     )
