@@ -32,6 +32,8 @@ from hapticd.recording import read as read_recording
 from hapticd.recording.export import csv_columns, export_csv, export_mcap
 from hapticd.servo import ServoLoop
 
+log = logging.getLogger("hapticd")
+
 EXIT_OK = 0
 EXIT_ERROR = 1
 EXIT_BAD_INPUT = 2
@@ -107,6 +109,75 @@ def _run_socket(args: argparse.Namespace) -> Path | None:
     return args.socket or default_socket_path()
 
 
+def _run_total_s(session: Any) -> float | None:
+    """How long a run lasts on its nominal clock, s: --duration, else where its
+    trajectories end (with their hold_s); None when nothing says (devices in the loop)."""
+    loop = session.loop
+    if loop.duration_s is not None:
+        return float(loop.duration_s)
+    ends = [getattr(d, "duration", None) for d in loop.devices if getattr(d, "duration", None)]
+    if not ends or len(ends) != len(loop.devices):
+        return None
+    holds = [getattr(f.device, "hold_s", 0.0) or 0.0 for f in session.profile.fingers]
+    return max(float(e) + float(h) for e, h in zip(ends, holds, strict=True))
+
+
+def _start_run_progress(args: argparse.Namespace, session: Any) -> Any:
+    """For an --unpaced run with a progress line: a thread that shows the loop's nominal
+    time every ``_ProgressLine.PERIOD_S``; returns the function that stops it (a no-op
+    otherwise). It only reads the loop's clock; the loop never waits for it."""
+    import threading
+
+    if not (args.unpaced and _wants_progress(args)):
+        return lambda: None
+    line = _ProgressLine(f"run {args.profile} (unpaced):")
+    total = _run_total_s(session)
+    stop = threading.Event()
+
+    def show() -> None:
+        while not stop.wait(_ProgressLine.PERIOD_S):
+            line.show(round(session.loop.now(), 1), total, "s")
+
+    thread = threading.Thread(target=show, name="hapticd-progress", daemon=True)
+    thread.start()
+
+    def finish() -> None:
+        stop.set()
+        thread.join(timeout=2.0)
+        line.show(round(session.loop.now(), 3), total, "s", force=True)  # where it ended
+        line.done()
+
+    return finish
+
+
+def _log_build(args: argparse.Namespace, session: Any, socket_path: Path | None) -> None:
+    """What the run was built from, at debug level (-v)."""
+    if not log.isEnabledFor(logging.DEBUG):
+        return
+    prof = session.profile
+    log.debug(
+        "profile %s (%s)%s",
+        prof.source,
+        prof.name,
+        "".join(f" --set {o}" for o in _overrides(args)),
+    )
+    for f, dev in zip(prof.fingers, session.devices, strict=True):
+        info = dev.info
+        log.debug(
+            "finger %s: %s %s, rated %g N, workspace radius %g m",
+            f.name, info.model, info.serial, info.max_force_n, info.workspace_radius_m,
+        )  # fmt: skip
+    loop = session.loop
+    log.debug(
+        "loop: %g Hz, %s, stages %s, force limits %s N",
+        loop.rate_hz,
+        "paced" if loop.paced else "unpaced",
+        " ".join(loop.renderer.stage_names),
+        ", ".join(f"{v:g}" for v in loop.safety.limits),
+    )
+    log.debug("control socket: %s", socket_path or "none")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     try:
         profile = load_profile(args.profile, _overrides(args))
@@ -151,6 +222,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     old = {s: signal.signal(s, h) for s, h in handlers.items()}
     if socket_path is not None and not args.quiet:
         print(f"hapticd: control socket {socket_path}", file=sys.stderr)
+    _log_build(args, session, socket_path)
+    stop_progress = _start_run_progress(args, session)
     try:
         summary = session.run()
     except RecordingError as exc:
@@ -159,6 +232,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         summary = summarize(loop, session.profile.finger_names)
         summary["recording_error"] = str(exc)
     finally:
+        stop_progress()
         notifier.stopping()
         server.close()
         for s, h in old.items():
@@ -872,15 +946,65 @@ def _add_experiment(sub: Any) -> None:
     ana.set_defaults(func=cmd_experiment_analyze)
 
 
+def _wants_progress(args: argparse.Namespace) -> bool:
+    """A progress line on stderr: with --progress, or when stderr is a terminal."""
+    return bool(getattr(args, "progress", False)) or sys.stderr.isatty()
+
+
+class _ProgressLine:
+    """One line on stderr, rewritten in place (at most every ``PERIOD_S``), ended by
+    ``done``: ``hapticd: LABEL 41% (3.2 of 7.8 s)``."""
+
+    PERIOD_S = 0.25
+
+    def __init__(self, label: str) -> None:
+        self.label = label
+        self._last = -math.inf
+        self._shown = False
+
+    def show(self, done: float, total: float | None, unit: str, *, force: bool = False) -> None:
+        import time
+
+        now = time.monotonic()
+        if not force and now - self._last < self.PERIOD_S:
+            return
+        self._last = now
+        if total:
+            text = f"{100.0 * min(done / total, 1.0):3.0f}% ({done:g} of {total:g} {unit})"
+        else:
+            text = f"{done:g} {unit}"
+        sys.stderr.write(f"\rhapticd: {self.label} {text}\x1b[K")
+        sys.stderr.flush()
+        self._shown = True
+
+    def done(self) -> None:
+        if self._shown:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+
+
+def _export_progress(args: argparse.Namespace) -> tuple[Any, _ProgressLine | None]:
+    """The ``progress`` callback of an export (None without a progress line)."""
+    if not _wants_progress(args):
+        return None, None
+    line = _ProgressLine(f"export {args.recording}:")
+
+    def progress(done: int, total: int) -> None:
+        line.show(done, total, "ticks", force=done == total)
+
+    return progress, line
+
+
 def cmd_export(args: argparse.Namespace) -> int:
+    progress, line = _export_progress(args)
     try:
         rec = read_recording(args.recording)
         if args.mcap is not None:
-            out, rows = args.mcap, export_mcap(rec, args.mcap)
+            out, rows = args.mcap, export_mcap(rec, args.mcap, progress=progress)
             what = "messages on /hapticd/tick"
         else:
             out = args.csv or args.recording.with_suffix(".csv")
-            rows = export_csv(rec, out)
+            rows = export_csv(rec, out, progress=progress)
             what = f"ticks, {len(csv_columns(rec))} columns"
     except RecordingError as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
@@ -891,6 +1015,9 @@ def cmd_export(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"hapticd: cannot write the export: {exc}", file=sys.stderr)
         return EXIT_ERROR
+    finally:
+        if line is not None:
+            line.done()
     torn = f" (a torn last record of {rec.torn_bytes} bytes was dropped)" if rec.torn_bytes else ""
     print(f"{out}: {rows} {what}{torn}")
     return EXIT_OK
@@ -984,6 +1111,9 @@ def build_parser() -> argparse.ArgumentParser:
     chk.set_defaults(func=cmd_check)
     _add_set_option(run)
     _add_set_option(chk)
+    _add_progress_option(run)
+    _add_log_options(run)
+    _add_schema(sub)
     run.add_argument(
         "--no-socket", action="store_true", help="serve no control socket (SIGHUP still reloads)"
     )
@@ -1050,6 +1180,7 @@ def build_parser() -> argparse.ArgumentParser:
     fmt = exp.add_mutually_exclusive_group()
     fmt.add_argument("--csv", type=Path, metavar="OUT", help="default: the recording's name .csv")
     fmt.add_argument("--mcap", type=Path, metavar="OUT", help="MCAP with JSON messages")
+    _add_progress_option(exp)
     exp.set_defaults(func=cmd_export)
     cal = sub.add_parser(
         "calibrate",
@@ -1074,9 +1205,69 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _add_progress_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--progress",
+        action="store_true",
+        help="show a progress line on stderr (default: when stderr is a terminal; a run "
+        "shows one only --unpaced)",
+    )
+
+
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+def _add_log_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--log-level",
+        choices=LOG_LEVELS,
+        help="what the log on stderr shows (default info: faults, device events, control "
+        "changes; debug adds what the run was built from)",
+    )
+    parser.add_argument(
+        "-v", "--verbose", action="store_true", help="the same as --log-level debug"
+    )
+
+
+def _log_level(args: argparse.Namespace) -> int:
+    """The logging level ``args`` ask for (INFO unless -v or --log-level say otherwise)."""
+    if getattr(args, "verbose", False):
+        return logging.DEBUG
+    name = getattr(args, "log_level", None)
+    return getattr(logging, name.upper()) if name else logging.INFO
+
+
+def _add_schema(sub: Any) -> None:
+    sch = sub.add_parser(
+        "schema",
+        help="print the profile's JSON Schema (for editors: docs/profiles.md)",
+        description="Print the JSON Schema of a profile (keys, types, bounds, defaults, "
+        "descriptions). hapticd check remains the authority: some checks are not in it.",
+    )
+    sch.add_argument("--out", type=Path, metavar="PATH", help="write it here (default: stdout)")
+    sch.set_defaults(func=cmd_schema)
+
+
+def cmd_schema(args: argparse.Namespace) -> int:
+    from hapticd.profile import json_schema
+
+    text = json.dumps(json_schema(), indent=2) + "\n"
+    if args.out is None:
+        sys.stdout.write(text)
+        return EXIT_OK
+    try:
+        args.out.write_text(text)
+    except OSError as exc:
+        print(f"hapticd: cannot write the schema: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    print(f"{args.out}: the profile's JSON Schema")
+    return EXIT_OK
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="hapticd: %(message)s", stream=sys.stderr)
+    logging.getLogger("hapticd").setLevel(_log_level(args))
     return int(args.func(args))
 
 

@@ -1047,3 +1047,22 @@ def load_profile(path: str | Path, overrides: Sequence[str] = ()) -> Profile:
         if not overrides:
             raise
         raise ProfileError(f"{exc}\n  (with --set {' --set '.join(overrides)})") from None
+
+
+JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
+
+
+def json_schema() -> dict[str, Any]:
+    """The profile's JSON Schema (pydantic's, of ``Profile``) for editors and other tools:
+    the keys, their types, bounds, defaults and descriptions; unknown keys are refused
+    (``additionalProperties: false``). Fields that are not profile keys (the loaded file's
+    ``source``) are left out. A profile that passes it can still fail the checks the schema
+    cannot say (a finger's name unique, a free object's mass); ``hapticd check`` is the
+    authority."""
+    schema = Profile.model_json_schema()
+    for name, field in Profile.model_fields.items():
+        if field.exclude:
+            schema["properties"].pop(name, None)
+            if name in schema.get("required", []):
+                schema["required"].remove(name)
+    return {"$schema": JSON_SCHEMA_DIALECT, **schema, "title": "hapticd profile"}
