@@ -9,6 +9,8 @@ import logging
 import math
 import signal
 import sys
+import tempfile
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -179,13 +181,27 @@ def _log_build(args: argparse.Namespace, session: Any, socket_path: Path | None)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    temp_dir = None
+    record_path = args.record
+    if args.plot is not None and record_path is None:
+        # The plot is made from the run's recording: a temporary one unless --record names one.
+        temp_dir = tempfile.TemporaryDirectory(prefix="hapticd-run-")
+        record_path = Path(temp_dir.name) / "run.hrec"
+    try:
+        return _run(args, record_path)
+    finally:
+        if temp_dir is not None:
+            temp_dir.cleanup()
+
+
+def _run(args: argparse.Namespace, record_path: Path | None) -> int:
     try:
         profile = load_profile(args.profile, _overrides(args))
         session = build_session(
             profile,
             paced=not args.unpaced,
             duration_s=args.duration,
-            record_path=args.record,
+            record_path=record_path,
             device=args.device,
             emulate=args.emulate,
             record_dir=args.record_dir,
@@ -245,6 +261,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         Path(args.summary_json).write_text(json.dumps(summary, indent=2) + "\n")
     if not args.quiet:
         print(format_summary(summary))
+    if args.plot is not None and record_path is not None and "recording_error" not in summary:
+        code = _plot(record_path, args.plot, None)
+        if code != EXIT_OK:
+            return code
     if summary["fault"]:
         return EXIT_FAULT
     return EXIT_ERROR if "recording_error" in summary else EXIT_OK
@@ -557,6 +577,25 @@ def cmd_client(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+WATCH_COLUMNS = """\
+Live numbers from a running hapticd, one line per telemetry frame, for example
+(devices named by their serials, here A and B):
+
+  t    3.100 s  A: |F|  1.104 N *  B: |F|  0.000 N    obj z    0.00 mm  if  overruns 0
+
+columns:
+  t 3.100 s              the loop's time, tick / rate (s)
+  SERIAL: |F| 1.104 N    per device: the magnitude of the force sent to it, after the
+                         safety chain (N)
+  *                      after a device's force: that finger is in contact with the object
+  obj z 0.00 mm          the height of the object's centre of mass (mm)
+  if                     the allocator
+  overruns 0             loop periods longer than 1.1x nominal so far
+  FAULT                  a safety fault is latched: forces are zero until hapticd enable
+
+For a picture of the scene and the forces, see hapticd view (docs/view.md)."""
+
+
 def cmd_watch(args: argparse.Namespace) -> int:
     """Live numbers from a running daemon, one line per frame, until Ctrl-C or --count."""
     shown = 0
@@ -632,6 +671,109 @@ def cmd_events(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         return _client_failed(args, exc)
     return EXIT_OK
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    """Serve the web view of a running daemon until Ctrl-C or SIGTERM (docs/view.md)."""
+    from hapticd.control import UnsafeSocketDirError
+    from hapticd.view import ViewServer, is_loopback
+
+    socket_path = args.socket or default_socket_path()
+    try:
+        view = ViewServer(
+            socket_path, host=args.host, port=args.port, control=args.control, rate_hz=args.rate
+        )
+    except UnsafeSocketDirError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except OSError as exc:
+        print(
+            f"hapticd: cannot serve the view on {args.host} port {args.port}: "
+            f"{exc.strerror or exc}",
+            file=sys.stderr,
+        )
+        return EXIT_ERROR
+    host, port = view.address
+    if not is_loopback(host):
+        what = "watch the run and change its parameters" if args.control else "watch the run"
+        print(
+            f"hapticd view: WARNING: serving on {host} port {port}, not loopback: other "
+            f"machines can reach this page, and anyone with its URL (it carries the key) can "
+            f"{what}; the traffic is not encrypted",
+            file=sys.stderr,
+        )
+    # The URLs first, on stdout: the experimenter's, then the subject's.
+    print(view.url)
+    print(view.subject_url, flush=True)
+    if not args.quiet:
+        print(
+            "hapticd view: the first URL is the experimenter's page, the second the subject's "
+            "(the scene alone); "
+            + ("--control: the page may set parameters" if args.control else "read-only")
+            + f"; daemon socket {socket_path}; Ctrl-C to stop",
+            file=sys.stderr,
+            flush=True,
+        )
+    stop = threading.Event()
+
+    def on_stop(_signum: int, _frame: object) -> None:
+        stop.set()
+
+    old = {s: signal.signal(s, on_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        view.start()
+        while not stop.wait(0.5):
+            pass
+    finally:
+        view.close()
+        for s, h in old.items():
+            signal.signal(s, h)
+    return EXIT_OK
+
+
+def _rate(text: str) -> float:
+    v = float(text)
+    if not 0.1 <= v <= 1000:
+        raise argparse.ArgumentTypeError(f"expected a rate in [0.1, 1000] Hz, got {text}")
+    return v
+
+
+def _port(text: str) -> int:
+    v = int(text)
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a TCP port in [0, 65535], got {text}")
+    return v
+
+
+def _add_view(sub: Any, sock_help: str) -> None:
+    """The view subcommand's arguments."""
+    v = sub.add_parser(
+        "view",
+        help="serve a web page of a running hapticd: the scene, forces, loop, faults",
+        description="A separate process, a client of the control socket, that serves a web "
+        "page drawing the scene live (the object at its pose, each fingertip's device and "
+        "proxy, the full and rendered forces) with the loop's panels, and a subject's page "
+        "with the scene alone. Prints the experimenter's URL, then the subject's. Loopback "
+        "only unless --host says otherwise; read-only unless --control. See docs/view.md.",
+    )
+    v.add_argument("--socket", type=Path, metavar="PATH", help=sock_help)
+    v.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="the address to serve on (default 127.0.0.1, this machine only; any other "
+        "address is reachable from elsewhere and prints a warning)",
+    )
+    v.add_argument("--port", type=_port, default=0, help="TCP port (default 0: a free one)")
+    v.add_argument(
+        "--control",
+        action="store_true",
+        help="let the page change parameters (the same checked set commands as hapticd set)",
+    )
+    v.add_argument(
+        "--rate", type=_rate, default=60.0, help="telemetry frames per second (default 60)"
+    )
+    v.add_argument("-q", "--quiet", action="store_true", help="only the URLs and warnings")
+    v.set_defaults(func=cmd_view)
 
 
 def _at(text: list[str], n_fingers: int) -> list[float]:
@@ -995,6 +1137,66 @@ def _export_progress(args: argparse.Namespace) -> tuple[Any, _ProgressLine | Non
     return progress, line
 
 
+def _plot(source: Path, out: Path, panels: list[str] | None) -> int:
+    """Draw ``source`` (a recording or a run summary) into ``out``; print where it went."""
+    from hapticd import plot
+
+    try:
+        fig = plot.figure_for(source, panels)
+        plot.save(fig, out)
+    except plot.PlotError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except ImportError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except OSError as exc:
+        print(f"hapticd: cannot write the plot {out}: {exc.strerror or exc}", file=sys.stderr)
+        return EXIT_ERROR
+    print(f"plot: {out}")
+    return EXIT_OK
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from hapticd import plot
+
+    try:
+        panels = plot.parse_panels(args.fields)
+    except plot.PlotError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    out = args.out or Path(tempfile.gettempdir()) / f"hapticd-plot-{args.source.stem}.png"
+    return _plot(args.source, out, panels)
+
+
+def _add_plot(sub: Any) -> None:
+    """The plot subcommand's arguments."""
+    from hapticd.plot import PANELS
+
+    pl = sub.add_parser(
+        "plot",
+        help="plot a recording (forces, contact, residuals, object, timing) or a run summary",
+        description="Draw a recording (.hrec) as panels over time, or a run summary "
+        "(hapticd run --summary-json) as its period error histogram, into a PNG. Panels: "
+        + "; ".join(f"{p.name}: {p.doc}" for p in PANELS)
+        + ". Needs matplotlib (the 'plot' extra).",
+    )
+    pl.add_argument("source", type=Path, metavar="REC", help="a recording or a summary JSON")
+    pl.add_argument(
+        "--out",
+        type=Path,
+        metavar="FILE.png",
+        help="where the figure goes (default: hapticd-plot-NAME.png in the temp dir)",
+    )
+    pl.add_argument(
+        "--fields",
+        metavar="A,B",
+        help=f"the panels to draw, by name ({','.join(p.name for p in PANELS)}) or by a field "
+        "they draw (default: every panel the recording can fill)",
+    )
+    pl.set_defaults(func=cmd_plot)
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     progress, line = _export_progress(args)
     try:
@@ -1104,6 +1306,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="put the device emulator under the hid or usb backend, moved along the trajectory",
     )
     run.add_argument("--summary-json", type=Path, metavar="PATH", help="write the summary as JSON")
+    run.add_argument(
+        "--plot",
+        type=Path,
+        metavar="FILE.png",
+        help="plot the run when it ends (as hapticd plot; records to a temporary file unless "
+        "--record is given)",
+    )
     run.add_argument("-q", "--quiet", action="store_true", help="do not print the summary")
     run.set_defaults(func=cmd_run)
     chk = sub.add_parser("check", help="validate a profile and the files it names")
@@ -1141,7 +1350,13 @@ def build_parser() -> argparse.ArgumentParser:
         ("events", "the loop's events as they happen: contacts, buttons, faults, changes"),
     )
     for name, help_text in clients:
-        p = sub.add_parser(name, help=help_text)
+        extra: dict[str, Any] = {}
+        if name == "watch":
+            extra = {
+                "description": WATCH_COLUMNS,
+                "formatter_class": argparse.RawDescriptionHelpFormatter,
+            }
+        p = sub.add_parser(name, help=help_text, **extra)
         p.add_argument("--socket", type=Path, metavar="PATH", help=sock_help)
         p.set_defaults(func=cmd_client)
         if name in ("get", "set"):
@@ -1175,6 +1390,8 @@ def build_parser() -> argparse.ArgumentParser:
             p.set_defaults(func=cmd_events)
     _add_analyze(sub)
     _add_experiment(sub)
+    _add_plot(sub)
+    _add_view(sub, sock_help)
     exp = sub.add_parser("export", help="export a recording to CSV or MCAP (Foxglove)")
     exp.add_argument("recording", type=Path)
     fmt = exp.add_mutually_exclusive_group()

@@ -216,6 +216,8 @@ def _push_out_of(obstacles: list[Obstacle], p: Vec, prepared: ObstacleSet) -> Ve
     or three obstacles (a crease, where one push undoes another: slowly, in an acute one),
     onto the projection of the starting point onto all those planes instead.
     """
+    if not prepared.may_be_inside(p):
+        return p
     start = p
     pushed: list[int] = []  # the planes pushed through (indices into prepared's flat lists)
     for _ in range(len(obstacles) + 1):
@@ -315,6 +317,25 @@ class ObstacleSet:
         self.arrays = [
             (np.array(n), np.array(o)) if len(n) > _VECTOR_PLANES else None for n, o in obstacles
         ]
+        self.spans = _spans(obstacles, self.arrays)
+
+    def may_be_inside(self, p: Vec) -> bool:
+        """False when ``p`` is outside or on every obstacle (some plane of each has
+        n . p - d >= 0, the same sums as ``_signed_distance``): one pass over the flat
+        planes, leaving each obstacle at its first plane that clears ``p``. True when
+        it is inside one, for a NaN, or with a large (vectorised) obstacle."""
+        if self.spans is None:
+            return True
+        normals, offsets = self.normals, self.offsets
+        x0, x1, x2 = p
+        for lo, hi in self.spans:
+            for i in range(lo, hi):
+                nx, ny, nz = normals[i]
+                if nx * x0 + ny * x1 + nz * x2 - offsets[i] >= 0.0:
+                    break
+            else:
+                return True
+        return False
 
     def with_first(self, normals: list[Vec], offsets: list[float]) -> ObstacleSet:
         """The same set with obstacle 0 (the object) replaced by one of as many planes:
@@ -330,7 +351,21 @@ class ObstacleSet:
         new.index = self.index
         first = (np.array(normals), np.array(offsets)) if n0 > _VECTOR_PLANES else None
         new.arrays = [first, *self.arrays[1:]]
+        new.spans = self.spans if first is None else None
         return new
+
+
+def _spans(
+    obstacles: list[Obstacle], arrays: list[tuple[np.ndarray, np.ndarray] | None]
+) -> list[tuple[int, int]] | None:
+    """Each obstacle's range in the flat plane lists; None if any is vectorised."""
+    if any(a is not None for a in arrays):
+        return None
+    spans, lo = [], 0
+    for normals, _ in obstacles:
+        spans.append((lo, lo + len(normals)))
+        lo += len(normals)
+    return spans
 
 
 def proxy_step_multi(

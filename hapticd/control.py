@@ -160,6 +160,9 @@ class ControlClient:
         except BaseException:
             self.sock.close()
             raise
+        if not isinstance(self.greeting, dict):
+            self.close()
+            raise proto.ProtocolError("malformed", f"{self.path}: the greeting is not an object")
         if self.greeting.get("protocol") != proto.PROTOCOL_VERSION:
             self.close()
             raise proto.ProtocolError(

@@ -220,6 +220,38 @@ def _quat_step(
     return (r[0] / n, r[1] / n, r[2] / n, r[3] / n)
 
 
+class SmallBody:
+    """What ``step_body_small`` derives from an object's shape and mass and the surfaces,
+    on plain floats: body inertia and its inverse (kg m^2, rows), the vertices (m, body
+    frame), the surfaces' (normal, offset m, material) and the reach (m: the farthest
+    vertex from the centre of mass)."""
+
+    def __init__(self, obj: SceneObject, surfaces: SurfaceSet | None) -> None:
+        self.shape = obj.shape
+        self.mass = obj.mass
+        self.surfaces = surfaces
+        self.Ib = obj.inertia_body.tolist()
+        self.Ib_inv = np.linalg.inv(obj.inertia_body).tolist()
+        self.local = [tuple(p) for p in obj.shape.vertices.tolist()]
+        self.reach = max((math.sqrt(_dot3(p, p)) for p in self.local), default=0.0)
+        self.surf = []
+        if surfaces is not None:
+            self.surf = [
+                (tuple(map(float, n)), float(d), s.material)
+                for n, d, s in zip(
+                    surfaces.normals, surfaces.offsets, surfaces.surfaces, strict=True
+                )
+            ]
+
+    def fits(self, obj: SceneObject, surfaces: SurfaceSet | None) -> bool:
+        """True while it describes ``obj`` (same shape, same mass) and ``surfaces``."""
+        return obj.shape is self.shape and obj.mass == self.mass and surfaces is self.surfaces
+
+
+def _dot3(a: Sequence[float], b: Sequence[float]) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
 def step_body_small(
     obj: SceneObject,
     force: tuple[float, float, float],
@@ -231,8 +263,15 @@ def step_body_small(
     substeps: int = 1,
     torsion: list[tuple[np.ndarray, float]] | None = None,
     springs: list[tuple[np.ndarray, np.ndarray, float]] | None = None,
+    prepared: SmallBody | None = None,
 ) -> None:
-    """``step_body`` on plain floats, for shapes with few vertices. Same model, same results."""
+    """``step_body`` on plain floats, for shapes with few vertices. Same model, same results.
+
+    ``prepared``: what the step derives from the object's shape and mass and the
+    surfaces (made anew here when it does not fit them; the Dynamics stage keeps one).
+    """
+    if prepared is None or not prepared.fits(obj, surfaces):
+        prepared = SmallBody(obj, surfaces)
     h = dt / substeps
     m = obj.mass
     x = tuple(map(float, obj.position))
@@ -240,15 +279,7 @@ def step_body_small(
     w = tuple(map(float, obj.omega))
     R = obj.rotation.tolist()
     q = quat_from_matrix(R)
-    Ib = obj.inertia_body.tolist()
-    Ib_inv = np.linalg.inv(obj.inertia_body).tolist()
-    local = [tuple(p) for p in obj.shape.vertices.tolist()]
-    surf = []
-    if surfaces is not None:
-        surf = [
-            (tuple(map(float, n)), float(d), s.material)
-            for n, d, s in zip(surfaces.normals, surfaces.offsets, surfaces.surfaces, strict=True)
-        ]
+    Ib, Ib_inv, local, surf = prepared.Ib, prepared.Ib_inv, prepared.local, prepared.surf
     gx, gy, gz = (0.0, 0.0, 0.0) if gravity is None else tuple(map(float, gravity))
     tors = [(tuple(map(float, n)), float(c)) for n, c in torsion] if torsion else []
     Rt0 = _transpose(R)
@@ -271,7 +302,7 @@ def step_body_small(
             Fx, Fy, Fz = Fx + f[0], Fy + f[1], Fz + f[2]
             Tx, Ty, Tz = Tx + t[0], Ty + t[1], Tz + t[2]
         if surf:
-            fs, ts = surface_wrench_small(surf, local, R, x, v, w, m, h)
+            fs, ts = surface_wrench_small(surf, local, R, x, v, w, m, h, prepared.reach)
             Fx, Fy, Fz = Fx + fs[0], Fy + fs[1], Fz + fs[2]
             Tx, Ty, Tz = Tx + ts[0], Ty + ts[1], Tz + ts[2]
         # Euler's equations in the body frame, where the inertia is constant.
@@ -280,9 +311,12 @@ def step_body_small(
             spin = w[0] * n[0] + w[1] * n[1] + w[2] * n[2]
             if spin != 0.0:
                 nb = _mat_vec(Rt, n)
-                In = sum(
-                    nb[i] * (Ib[i][0] * nb[0] + Ib[i][1] * nb[1] + Ib[i][2] * nb[2])
-                    for i in range(3)
+                # 0.0 + ...: the sum() this was, term by term (a generator costs more).
+                In = (
+                    0.0
+                    + nb[0] * (Ib[0][0] * nb[0] + Ib[0][1] * nb[1] + Ib[0][2] * nb[2])
+                    + nb[1] * (Ib[1][0] * nb[0] + Ib[1][1] * nb[1] + Ib[1][2] * nb[2])
+                    + nb[2] * (Ib[2][0] * nb[0] + Ib[2][1] * nb[1] + Ib[2][2] * nb[2])
                 )
                 t = math.copysign(min(cap, In * abs(spin) / h), spin)
                 Tx, Ty, Tz = Tx - t * n[0], Ty - t * n[1], Tz - t * n[2]
@@ -312,14 +346,39 @@ def surface_wrench_small(
     w: tuple[float, float, float],
     m: float,
     h: float,
+    reach: float = math.inf,
 ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
-    """``surface_wrench`` on plain floats: (force N, torque about the COM N m)."""
+    """``surface_wrench`` on plain floats: (force N, torque about the COM N m).
+
+    ``reach`` (m): no vertex lies farther than this from the centre of mass; a surface
+    the object is farther from than that (with room for rounding) is not looked at.
+    """
     Fx = Fy = Fz = Tx = Ty = Tz = 0.0
-    rels = [_mat_vec(R, p) for p in local]
+    rels: list[tuple[float, float, float]] | None = None
+    x0, x1, x2 = x
+    ax = abs(x0) + abs(x1) + abs(x2)
     for n, d, mat in surf:
+        n0, n1, n2 = n
+        # Every vertex is at least n.x - |n| reach above the surface (|n| <= |n|_1); the
+        # margin covers the rounding of the sums below many times over. NaN never skips.
+        nn = abs(n0) + abs(n1) + abs(n2)
+        clear = n0 * x0 + n1 * x1 + n2 * x2 - nn * reach - d
+        if clear > 1e-9 * (nn * (ax + reach) + abs(d)):
+            continue
+        if rels is None:
+            (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R
+            # _mat_vec inline: the same sums.
+            rels = [
+                (
+                    r00 * p0 + r01 * p1 + r02 * p2,
+                    r10 * p0 + r11 * p1 + r12 * p2,
+                    r20 * p0 + r21 * p1 + r22 * p2,
+                )
+                for p0, p1, p2 in local
+            ]
         hits = []
         for r in rels:
-            pen = d - (n[0] * (r[0] + x[0]) + n[1] * (r[1] + x[1]) + n[2] * (r[2] + x[2]))
+            pen = d - (n0 * (r[0] + x0) + n1 * (r[1] + x1) + n2 * (r[2] + x2))
             if pen > 0.0:
                 hits.append((r, pen))
         if not hits:

@@ -71,7 +71,7 @@ def _no_constant(word: str) -> Any:
     raise ProtocolError("bad_value", f"{word} is not a number JSON allows (no NaN or Infinity)")
 
 
-def _too_deep(obj: Any, limit: int) -> bool:
+def too_deep(obj: Any, limit: int) -> bool:
     """True if ``obj`` (parsed JSON) nests deeper than ``limit`` (iteratively: no recursion)."""
     todo: list[tuple[Any, int]] = [(obj, 1)]
     while todo:
@@ -97,7 +97,7 @@ def decode(line: bytes) -> dict[str, Any]:
         ) from None
     if not isinstance(req, dict):
         raise ProtocolError("malformed", "a request must be a JSON object")
-    if _too_deep(req, MAX_DEPTH):
+    if too_deep(req, MAX_DEPTH):
         raise ProtocolError(
             "bad_request", f"request nested too deeply (at most {MAX_DEPTH} levels)"
         )

@@ -20,7 +20,14 @@ import numpy as np
 from hapticd.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.contact import MultiResult, ObstacleSet, Polytope, proxy_step_multi
-from hapticd.dynamics import SMALL_SHAPE, SurfaceSet, auto_substeps, step_body, step_body_small
+from hapticd.dynamics import (
+    SMALL_SHAPE,
+    SmallBody,
+    SurfaceSet,
+    auto_substeps,
+    step_body,
+    step_body_small,
+)
 from hapticd.frame import Frame
 from hapticd.friction import friction_proxy
 from hapticd.passivity import PassivityParams, control, observe, orthonormal, project
@@ -198,7 +205,7 @@ class Friction:
     def __init__(self, scene: Scene, radii: list[float]) -> None:
         self.scene = scene
         self.radii = radii
-        self._anchor: list[V3 | None] = [None] * len(radii)
+        self._anchor: list[np.ndarray | None] = [None] * len(radii)
         self._holding = False  # any anchor set
 
     def run(self, frame: Frame) -> None:
@@ -226,10 +233,11 @@ class Friction:
             anchor = self._anchor[i]
             aw = None
             if anchor is not None:
-                aw = tuple((R @ np.array(anchor) + x0).tolist())
-            dev, n = tuple(pos[i]), tuple(normals[i])
-            pf, _ = friction_proxy(tuple(held[i]), dev, n, aw, mat.mu_static, mat.mu_dynamic)  # type: ignore[arg-type]
-            self._anchor[i] = tuple((R.T @ (np.array(pf) - x0)).tolist())
+                aw = (R @ anchor + x0).tolist()
+            dev, n = pos[i], normals[i]
+            pf, _ = friction_proxy(held[i], dev, n, aw, mat.mu_static, mat.mu_dynamic)  # type: ignore[arg-type]
+            # Kept as the array numpy made (body frame, m): the next tick's product takes it.
+            self._anchor[i] = R.T @ (np.array(pf) - x0)
             held[i] = pf
             p, po = god[i], plain[i]
             shown[i] = _shown(p, pf, po)
@@ -262,14 +270,16 @@ class Forces:
         pos = frame.device_pos.tolist()
         held = frame.surface_point.tolist()
         normals = frame.contact_normal.tolist()
+        vel = frame.device_vel.tolist() if b else None
+        motion = None if obj.fixed or not b else self._motion()
         forces = [ZERO3] * len(touching)
         for i, on in enumerate(touching):
             if not on:
                 continue
             dev, pf, n = pos[i], held[i], normals[i]
             f = (k * (pf[0] - dev[0]), k * (pf[1] - dev[1]), k * (pf[2] - dev[2]))
-            if b:
-                v = self._relative_velocity(frame.device_vel[i], pf)
+            if vel is not None:
+                v = self._relative_velocity(vel[i], pf, motion)
                 f = (f[0] - b * v[0], f[1] - b * v[1], f[2] - b * v[2])
                 fn = f[0] * n[0] + f[1] * n[1] + f[2] * n[2]
                 if fn < 0.0:
@@ -277,19 +287,33 @@ class Forces:
             forces[i] = f
         frame.contact_force[...] = forces
 
-    def _relative_velocity(self, v_dev: np.ndarray, point: list[float]) -> V3:
+    def _motion(self) -> tuple[list[float], list[float], list[float]]:
+        """The object's position (m), velocity (m/s) and angular velocity (rad/s)."""
         obj = self.scene.object
-        if obj.fixed:
-            return (float(v_dev[0]), float(v_dev[1]), float(v_dev[2]))
-        rel = np.array(point) - obj.position
-        w = obj.omega
+        return obj.position.tolist(), obj.velocity.tolist(), obj.omega.tolist()
+
+    @staticmethod
+    def _relative_velocity(
+        v_dev: list[float],
+        point: list[float],
+        motion: tuple[list[float], list[float], list[float]] | None,
+    ) -> V3:
+        """The device's velocity relative to the object's material at ``point`` (m/s):
+        elementwise on plain floats, the same sums numpy's 3-vectors made."""
+        if motion is None:
+            return (v_dev[0], v_dev[1], v_dev[2])
+        x, u, w = motion
+        rel = (point[0] - x[0], point[1] - x[1], point[2] - x[2])
         spin = (
             w[1] * rel[2] - w[2] * rel[1],
             w[2] * rel[0] - w[0] * rel[2],
             w[0] * rel[1] - w[1] * rel[0],
         )
-        v = v_dev - obj.velocity - spin
-        return (float(v[0]), float(v[1]), float(v[2]))
+        return (
+            v_dev[0] - u[0] - spin[0],
+            v_dev[1] - u[1] - spin[1],
+            v_dev[2] - u[2] - spin[2],
+        )
 
 
 class Allocation:
@@ -456,6 +480,7 @@ class Dynamics:
                 obj, scene.surfaces, obj.material.stiffness, n_fingers, dt
             )
         self.small = len(obj.shape.vertices) <= SMALL_SHAPE
+        self._prepared: SmallBody | None = None  # the small step's cache (shape, mass)
 
     @property
     def effects(self) -> list[str]:
@@ -484,6 +509,9 @@ class Dynamics:
                 if fn > 0.0:
                     torsion.append((n, mu_t * fn))
         if self.small:
+            prep = self._prepared
+            if prep is None or not prep.fits(obj, self.surfaces):
+                prep = self._prepared = SmallBody(obj, self.surfaces)
             step_body_small(
                 obj,
                 (0.0, 0.0, 0.0),
@@ -494,6 +522,7 @@ class Dynamics:
                 substeps=self.substeps,
                 torsion=torsion,  # type: ignore[arg-type]
                 springs=springs,  # type: ignore[arg-type]
+                prepared=prep,
             )
         else:
             step_body(

@@ -120,3 +120,38 @@ def test_unknown_method_and_bad_shapes_raise():
         allocate("pinv", G2, M[:3], LAM)
     with pytest.raises(AllocationError, match="lam must have shape"):
         allocate("pinv", G2, M, LAM[:3])
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("where", ["point", "force", "direction"])
+def test_contact_allocator_refuses_non_finite_geometry(bad, where):
+    """The per-tick closed forms (one and two contacts) refuse a NaN or inf anywhere in a
+    contact's point, force or direction, and take large finite values."""
+    from hapticd.actuation import Actuation
+    from hapticd.allocation import DEFAULT_ROBUSTNESS, AdaptiveState
+    from hapticd.allocation.contacts import ContactAllocator
+
+    alloc = ContactAllocator(
+        Actuation([[[1.0, 0.0, 0.0]], [[-1.0, 0.0, 0.0]]], "world"),
+        "ef",
+        DEFAULT_ROBUSTNESS,
+        AdaptiveState(),
+        1e-3,
+    )
+    world = [[(1.0, 0.0, 0.0)], [(-1.0, 0.0, 0.0)]]
+    points = [(-A, 0.0, 0.0), (A, 0.0, 0.0)]
+    forces = [(2.0, 0.0, 0.4), (-2.0, 0.0, 0.4)]
+    big = [(1e300, -1e300, 1e300), (-1e300, 1e300, 1e300)]
+    for contacts in ([0], [0, 1]):
+        lam_a, _ = alloc.allocate(contacts, world, points, big, (0.0, 0.0, 0.0))
+        assert lam_a is not None
+        for i in contacts:
+            w, p, f = list(world), list(points), list(forces)
+            if where == "point":
+                p[i] = (p[i][0], bad, p[i][2])
+            elif where == "force":
+                f[i] = (f[i][0], f[i][1], bad)
+            else:
+                w[i] = [(bad, 0.0, 0.0)]
+            with pytest.raises(AllocationError, match="non-finite"):
+                alloc.allocate(contacts, w, p, f, (0.0, 0.0, 0.0))

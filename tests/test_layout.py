@@ -59,6 +59,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.cli",
         "hapticd.daemon.*",
         "hapticd.experiment.*",  # experiment files, trial plan, trial store, analysis
+        "hapticd.plot",  # hapticd plot's figures (matplotlib inside its functions only)
         "hapticd.profile",
         "hapticd.recording.*",
     },
@@ -68,6 +69,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.events",
         "hapticd.params",
         "hapticd.protocol",
+        "hapticd.view.*",  # hapticd view: a client of the control socket serving a web page
     },
     "drivers": {"hapticd_drivers.*"},
 }

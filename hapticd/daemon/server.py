@@ -580,6 +580,7 @@ class ControlServer:
         return {
             **views.status(self.loop),
             "profile": self.session.profile.name,
+            "fingers": list(self.session.profile.finger_names),
             "reloads": self.reloads,
         }
 

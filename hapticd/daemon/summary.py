@@ -13,8 +13,20 @@ from typing import Any
 from hapticd.servo import ServoLoop
 from hapticd.stats import LogHistogram
 
-# What a telemetry frame carries of the tick frame (see hapticd.frame for units).
-TELEMETRY_FIELDS = ("device_pos", "proxy_pos", "in_contact", "object_pos")
+# What a telemetry frame carries of the tick frame (see hapticd.frame for units): enough to
+# draw the scene (positions, the object's pose) and the forces (full and rendered).
+TELEMETRY_FIELDS = (
+    "device_pos",
+    "proxy_pos",
+    "in_contact",
+    "object_pos",
+    "object_rot",
+    "contact_force",
+    "rendered_force",
+    "residual_internal",
+    "residual_external",
+    "control_seq",
+)
 
 
 def _us(h: LogHistogram, q: float | None) -> float | None:
@@ -76,9 +88,12 @@ def summarize(loop: ServoLoop, finger_names: Sequence[str]) -> dict[str, Any]:
 
 
 def scene_status(loop: ServoLoop) -> dict[str, Any]:
-    """The scene as the loop renders it now."""
+    """The scene as the loop renders it now, with what a viewer needs to draw it: the
+    object's extent in its body frame (m), the ground and walls (solid where normal . x <=
+    offset_m) and each finger's radius (m)."""
     r = loop.renderer
     frame = loop.frame
+    vertices = r.obj.shape.vertices
     return {
         "shape": type(r.obj.shape).__name__,
         "fixed": r.obj.fixed,
@@ -87,6 +102,12 @@ def scene_status(loop: ServoLoop) -> dict[str, Any]:
         "damping_n_s_per_m": r.param("damping_n_s_per_m"),
         "friction": r.param("friction"),
         "position_m": frame.object_pos.tolist(),
+        "bounds_m": [vertices.min(axis=0).tolist(), vertices.max(axis=0).tolist()],
+        "surfaces": [
+            {"name": s.name, "normal": list(s.normal), "offset_m": s.offset}
+            for s in r.scene.surfaces
+        ],
+        "finger_radii_m": list(r.radii),
     }
 
 

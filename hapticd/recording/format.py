@@ -24,6 +24,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from hapticd.frame import FIELDS, fields_for
+from hapticd.protocol import too_deep
 
 MAGIC = b"HAPTREC\x00"
 FORMAT_VERSION = 1
@@ -119,18 +120,6 @@ class Recording(Mapping[str, np.ndarray]):
         return {f.name: f.unit for f in self.fields}
 
 
-def _depth_ok(obj: object, limit: int) -> bool:
-    """True if ``obj`` (parsed JSON) nests no deeper than ``limit`` (iteratively: no recursion)."""
-    todo: list[tuple[object, int]] = [(obj, 1)]
-    while todo:
-        node, d = todo.pop()
-        if isinstance(node, dict | list):
-            if d > limit:
-                return False
-            todo.extend((v, d + 1) for v in (node.values() if isinstance(node, dict) else node))
-    return True
-
-
 def _parse_fields(raw: object, where: str) -> list[Field]:
     if not isinstance(raw, list) or not raw:
         raise RecordingError(f"{where}: header 'fields' must be a non-empty list")
@@ -198,7 +187,7 @@ def read(path: str | Path) -> Recording:
         raise RecordingError(f"{p}: header is not valid JSON: {exc}") from None
     if not isinstance(header, dict):
         raise RecordingError(f"{p}: header must be a JSON object")
-    if not _depth_ok(header, MAX_HEADER_DEPTH):
+    if too_deep(header, MAX_HEADER_DEPTH):
         raise RecordingError(f"{p}: header nests deeper than {MAX_HEADER_DEPTH} levels")
     version = header.get("version")
     if type(version) is not int or version != FORMAT_VERSION:  # not True, not 1.0

@@ -1,0 +1,393 @@
+#!/usr/bin/env python3
+"""Where a servo tick's time goes, and how fast this tree's tick is against another tree's.
+
+Every case runs the real loop (``hapticd.daemon.session.build_session``: the
+profile's replay devices, renderer, safety chain and, with ``--record``, the
+recorder and its writer process) in a subprocess of its own, unpaced (as fast as
+it can, on the nominal clock) or paced at a given rate, without real-time
+settings.
+
+``--profile-stages``: each part of a tick (device read, every renderer stage,
+safety, device write, the loop's own bookkeeping, recording) timed with
+perf_counter_ns on every tick: median and p99 per part, unpaced and paced, and
+the ratio paced/unpaced. The timers cost ~0.1 us per part, so the parts' sum is
+a little above an untimed tick. Besides the loop's own pacing (sleep until 200 us
+before the deadline, spin the rest) it paces with a 600 us spin (a shorter
+sleep) and by spinning the whole period (no sleep): does the slower tick after a
+sleep come from the sleep? Every mode runs the same ticks (``--seconds`` of the
+bundled trajectory).
+
+``--compare DIR``: the tick compute time (the loop's own ``compute_s``: read,
+render, safety, write, statistics) of the hapticd package in DIR (e.g. main's,
+``git archive main | tar -x -C /tmp/hapticd-main``) against this tree's, in
+interleaved rounds, unpaced and paced at 1, 4 and 8 kHz, next to a bare deadline
+wait with no work (the machine's floor for overruns): medians over rounds of the
+runs' p50 and p99, and the ratios old/new.
+
+    python scripts/bench_tick.py --profile-stages --rounds 3
+    python scripts/bench_tick.py --compare /tmp/hapticd-main --rounds 5
+
+Prints Markdown tables and saves a plot in the system temp dir unless --plot PATH.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PROFILES = ("grasp-stiffness", "lift-weight")
+DEFAULT_PLOT = Path(tempfile.gettempdir()) / "hapticd-bench-tick.png"
+
+
+# -- the child: one run of the loop in this process ---------------------------------------
+
+
+def _pct(xs: list[float], q: float) -> float:
+    s = sorted(xs)
+    return s[min(len(s) - 1, int(q * len(s)))] if s else float("nan")
+
+
+def child(args: argparse.Namespace) -> dict:
+    """One run; returns per-part and compute times in us."""
+    import time
+
+    import yaml
+
+    from hapticd.daemon.session import build_session
+    from hapticd.profile import parse_profile
+
+    path = ROOT / "configs" / f"{args.profile}.yaml"
+    data = yaml.safe_load(path.read_text())
+    data.setdefault("loop", {})["rate_hz"] = args.rate
+    data["loop"]["realtime"] = {"enabled": False}
+    # A loaded machine can stall an unpaced run's recording for 0.1 s: not what is measured.
+    data.setdefault("safety", {})["watchdog_s"] = None
+    profile = parse_profile(data, path)
+    tmp = tempfile.mkdtemp(prefix="hapticd-bench-tick-")
+    record = os.path.join(tmp, "run.hrec") if args.record else None
+    session = build_session(
+        profile,
+        paced=args.paced,
+        duration_s=args.seconds,  # the same ticks paced and unpaced
+        record_path=record,
+    )
+    loop = session.loop
+    compute: list[float] = []
+    pacer = loop.pacer
+    end = pacer.end
+
+    def timed_end(k: int, start: float) -> float:
+        c = end(k, start)
+        compute.append(c)
+        return c
+
+    pacer.end = timed_end  # type: ignore[method-assign]
+    if args.wait == "spin":
+        pacer.margin = pacer.period  # never sleeps: spins the whole period
+    elif args.margin_us is not None:
+        pacer.margin = min(args.margin_us * 1e-6, pacer.period)  # a shorter sleep
+    parts: dict[str, list[int]] = {}
+    if args.instrument:
+        ns = time.perf_counter_ns
+
+        def wrap(obj: object, attr: str, name: str) -> None:
+            fn = getattr(obj, attr)
+            acc = parts.setdefault(name, [])
+
+            def timed(*a: object, _fn=fn, _acc=acc) -> object:
+                t0 = ns()
+                out = _fn(*a)
+                _acc.append(ns() - t0)
+                return out
+
+            setattr(obj, attr, timed)
+
+        wrap(loop.bank, "read", "device read")
+        for stage in loop.renderer.stages:
+            wrap(stage, "run", f"stage {stage.name}")
+        wrap(loop.safety, "run", "safety")
+        wrap(loop.bank, "write", "device write")
+        tick = loop._tick
+        acc = parts.setdefault("tick (read..write)", [])
+
+        def timed_tick(k: int, t: float, start: float) -> None:
+            t0 = ns()
+            tick(k, t, start)
+            acc.append(ns() - t0)
+
+        loop._tick = timed_tick  # type: ignore[method-assign]
+        if loop.recorder is not None:
+            wrap(loop.recorder, "append", "recording")
+        begin = pacer.begin
+        late = parts.setdefault("wake-up late", [])
+
+        def timed_begin(k: int) -> tuple[float, str | None]:
+            out = begin(k)
+            if pacer.paced:
+                late.append(int((out[0] - (pacer.t0 + k * pacer.period)) * 1e9))
+            return out
+
+        pacer.begin = timed_begin  # type: ignore[method-assign]
+    try:
+        st = loop.run()
+    finally:
+        if session.recorder is not None:
+            session.recorder.close()
+    skip = min(len(compute) // 10, 200)  # the first ticks warm caches up
+    us = [c * 1e6 for c in compute[skip:]]
+    out = {
+        "ticks": st.ticks,
+        "overruns": st.overruns,
+        "fault": None if loop.safety.fault is None else loop.safety.fault.cause,
+        "compute_p50": _pct(us, 0.5),
+        "compute_p99": _pct(us, 0.99),
+        "period_err_p99": st.period_error.percentile(99.0) * 1e6,
+        "parts": {
+            name: (_pct([x / 1e3 for x in v[skip:]], 0.5), _pct([x / 1e3 for x in v[skip:]], 0.99))
+            for name, v in parts.items()
+            if v
+        },
+    }
+    return out
+
+
+BARE = r"""
+import gc, json, sys, time
+rate, seconds = float(sys.argv[1]), float(sys.argv[2])
+T = 1.0 / rate
+margin = min(200e-6, 0.5 * T)
+n = int(seconds * rate)
+gc.freeze(); gc.disable()
+t0 = time.monotonic() + 2e-3
+prev = None
+over = 0
+errs = []
+for k in range(n):
+    d = t0 + k * T
+    r = d - time.monotonic()
+    if r > margin:
+        time.sleep(r - margin)
+    while time.monotonic() < d:
+        pass
+    s = time.monotonic()
+    if prev is not None:
+        errs.append(abs(s - prev - T))
+        over += s - prev > 1.1 * T
+    prev = s
+errs.sort()
+p99 = errs[int(0.99 * len(errs))] * 1e6
+print(json.dumps({"overruns": over, "ticks": n, "period_err_p99": p99}))
+"""
+
+
+def run_child(tree: Path | None, **kw: object) -> dict:
+    """Run one case in a subprocess, on the hapticd package in ``tree`` (None: this one)."""
+    env = dict(os.environ)
+    if tree is not None:
+        env["PYTHONPATH"] = f"{tree}:{tree / 'drivers_root'}"
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child"]
+    for k, v in kw.items():
+        if v is True:
+            cmd.append(f"--{k.replace('_', '-')}")
+        elif v is not False and v is not None:
+            cmd += [f"--{k.replace('_', '-')}", str(v)]
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    if res.returncode != 0:
+        raise RuntimeError(f"{cmd} failed:\n{res.stderr[-2000:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def run_bare(rate: float, seconds: float) -> dict:
+    res = subprocess.run(
+        [sys.executable, "-c", BARE, str(rate), str(seconds)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    return json.loads(res.stdout)
+
+
+def med(xs: list[float]) -> float:
+    return statistics.median(xs) if xs else float("nan")
+
+
+# -- the breakdown --------------------------------------------------------------------------
+
+
+def profile_stages(args: argparse.Namespace) -> list[dict]:
+    cases = []
+    for profile in PROFILES:
+        for label, paced, wait, margin in (
+            ("unpaced", False, "sleep", None),
+            ("paced 1 kHz", True, "sleep", None),
+            ("paced 1 kHz, spin 600 us", True, "sleep", 600),
+            ("paced 1 kHz, spin all", True, "spin", None),
+        ):
+            cases.append((profile, label, paced, wait, margin))
+    runs: dict[tuple[str, str], list[dict]] = {(c[0], c[1]): [] for c in cases}
+    for r in range(args.rounds):
+        for profile, label, paced, wait, margin in cases:
+            out = run_child(
+                None,
+                profile=profile,
+                rate=1000,
+                paced=paced,
+                seconds=args.seconds,
+                record=True,
+                instrument=True,
+                wait=wait,
+                margin_us=margin,
+            )
+            runs[(profile, label)].append(out)
+            print(f"round {r + 1}: {profile} {label}: {out['compute_p50']:.1f} us", file=sys.stderr)
+    rows = []
+    for profile in PROFILES:
+        names = list(runs[(profile, "unpaced")][0]["parts"])
+        print(f"\n### {profile} (median over {args.rounds} runs of each run's p50 / p99, us)\n")
+        labels = [c[1] for c in cases if c[0] == profile]
+        head = "| part | " + " | ".join(f"{lb} p50 / p99" for lb in labels)
+        print(head + " | " + " | ".join(f"{lb} / unpaced p50" for lb in labels[1:]) + " |")
+        print("|---" * (2 * len(labels)) + "|")
+        for name in [*names, "compute (loop's compute_s)"]:
+            vals = []
+            for lb in labels:
+                rs = runs[(profile, lb)]
+                if name.startswith("compute"):
+                    p50 = med([o["compute_p50"] for o in rs])
+                    p99 = med([o["compute_p99"] for o in rs])
+                elif name in rs[0]["parts"]:
+                    p50 = med([o["parts"][name][0] for o in rs])
+                    p99 = med([o["parts"][name][1] for o in rs])
+                else:
+                    p50 = p99 = float("nan")
+                vals.append((p50, p99))
+            cells = " | ".join(f"{a:.1f} / {b:.1f}" for a, b in vals)
+            ratios = " | ".join(f"{v[0] / vals[0][0]:.2f}" for v in vals[1:])
+            print(f"| {name} | {cells} | {ratios} |")
+            rows.append({"profile": profile, "part": name, "values": vals})
+    return rows
+
+
+# -- old against new ------------------------------------------------------------------------
+
+
+def compare(args: argparse.Namespace) -> list[dict]:
+    old = Path(args.compare).resolve()
+    if not (old / "hapticd" / "__init__.py").is_file():
+        raise SystemExit(f"--compare {old}: no hapticd package there")
+    # hapticd_drivers lives in drivers/: give the old tree an importable name for it.
+    shim = old / "drivers_root"
+    if not (shim / "hapticd_drivers").exists():
+        shim.mkdir(exist_ok=True)
+        (shim / "hapticd_drivers").symlink_to(old / "drivers")
+    trees = {"old": old, "new": None}
+    modes = [("unpaced", False, 1000)] + [(f"paced {r // 1000} kHz", True, r) for r in args.rates]
+    results: dict[tuple, list[dict]] = {}
+    for rnd in range(args.rounds):
+        for profile in PROFILES:
+            for label, paced, rate in modes:
+                for name, tree in trees.items():
+                    out = run_child(
+                        tree,
+                        profile=profile,
+                        rate=rate,
+                        paced=paced,
+                        seconds=args.seconds,
+                        record=True,
+                    )
+                    results.setdefault((profile, label, name), []).append(out)
+                    print(
+                        f"round {rnd + 1}: {profile} {label} {name}: "
+                        f"p50 {out['compute_p50']:.1f} us p99 {out['compute_p99']:.1f} us "
+                        f"overruns {out['overruns']}",
+                        file=sys.stderr,
+                    )
+                if paced:
+                    results.setdefault(("bare", label, "bare"), []).append(
+                        run_bare(rate, args.seconds)
+                    )
+    print(f"\n### tick compute, us (median over {args.rounds} rounds of each run's p50 / p99)\n")
+    print(
+        "| profile | mode | old p50 | new p50 | old/new p50 | old p99 | new p99 | old/new p99 "
+        "| overruns old / new / bare |"
+    )
+    print("|---" * 9 + "|")
+    rows = []
+    for profile in PROFILES:
+        for label, paced, _ in modes:
+            o, n = results[(profile, label, "old")], results[(profile, label, "new")]
+            o50, n50 = med([x["compute_p50"] for x in o]), med([x["compute_p50"] for x in n])
+            o99, n99 = med([x["compute_p99"] for x in o]), med([x["compute_p99"] for x in n])
+            ov = "-"  # unpaced: no deadlines
+            if paced:
+                ov = f"{med([x['overruns'] for x in o]):g} / {med([x['overruns'] for x in n]):g}"
+                ov += f" / {med([x['overruns'] for x in results[('bare', label, 'bare')]]):g}"
+            print(
+                f"| {profile} | {label} | {o50:.1f} | {n50:.1f} | {o50 / n50:.2f} | {o99:.1f} "
+                f"| {n99:.1f} | {o99 / n99:.2f} | {ov} |"
+            )
+            rows.append({"profile": profile, "mode": label, "old": (o50, o99), "new": (n50, n99)})
+    return rows
+
+
+def plot(path: Path, rows: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 4))
+    labels = [f"{r['profile']}\n{r['mode']}" for r in rows]
+    x = range(len(rows))
+    w = 0.2
+    ax.bar([i - 1.5 * w for i in x], [r["old"][0] for r in rows], w, label="old p50")
+    ax.bar([i - 0.5 * w for i in x], [r["new"][0] for r in rows], w, label="new p50")
+    ax.bar([i + 0.5 * w for i in x], [r["old"][1] for r in rows], w, label="old p99")
+    ax.bar([i + 1.5 * w for i in x], [r["new"][1] for r in rows], w, label="new p99")
+    ax.set_xticks(list(x), labels, fontsize=7)
+    ax.set_ylabel("tick compute, us")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    print(f"\nplot: {path}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--profile-stages", action="store_true", help="the per-part breakdown")
+    ap.add_argument("--compare", metavar="DIR", help="a tree with another hapticd package")
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--seconds", type=float, default=5.0, help="length of a paced run, s")
+    ap.add_argument("--rates", type=int, nargs="+", default=[1000, 4000, 8000])
+    ap.add_argument("--plot", type=Path, default=DEFAULT_PLOT)
+    # One run (the subprocess's side).
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--profile", default="lift-weight", help=argparse.SUPPRESS)
+    ap.add_argument("--rate", type=float, default=1000.0, help=argparse.SUPPRESS)
+    ap.add_argument("--paced", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--record", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--instrument", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--wait", choices=("sleep", "spin"), default="sleep", help=argparse.SUPPRESS)
+    ap.add_argument("--margin-us", type=float, default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(child(args)))
+        return
+    if args.profile_stages:
+        profile_stages(args)
+    if args.compare:
+        plot(args.plot, compare(args))
+    if not (args.profile_stages or args.compare):
+        ap.error("give --profile-stages or --compare DIR")
+
+
+if __name__ == "__main__":
+    main()
