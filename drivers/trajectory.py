@@ -9,6 +9,52 @@ from hapticd_drivers.base import DeviceError
 Vec = tuple[float, float, float]
 
 
+def check_samples(
+    times: np.ndarray, positions: np.ndarray, buttons: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(times (N,) s, positions (N, 3) m, buttons (N,) or None) as float arrays, checked:
+    at least 2 samples, every time and position finite, times strictly increasing,
+    buttons one 32-bit bit set per sample. DeviceError says which sample is wrong and how
+    (the one check for every trajectory: the devices' and ``hapticd check``'s)."""
+    t = np.asarray(times, dtype=float).reshape(-1)
+    x = np.asarray(positions, dtype=float)
+    if x.shape != (t.size, 3):
+        raise DeviceError(f"positions {x.shape} do not match times ({t.size},)")
+    b = None
+    if buttons is not None:
+        b = np.asarray(buttons)
+        if b.shape != (t.size,) or b.dtype.kind not in "iub":
+            raise DeviceError(
+                f"buttons must be one integer bit set per sample ({t.size},), "
+                f"got {b.dtype} {b.shape}"
+            )
+        if b.size and (int(b.min()) < 0 or int(b.max()) > 0xFFFFFFFF):
+            raise DeviceError("buttons must be 32-bit bit sets (0 to 2**32 - 1)")
+    if t.size < 2:
+        raise DeviceError(f"{t.size} sample(s); a trajectory needs at least 2")
+    bad_t = np.flatnonzero(~np.isfinite(t))
+    if bad_t.size:
+        i = int(bad_t[0])
+        raise DeviceError(f"sample {i} has a non-finite time ({t[i]}); {bad_t.size} of {t.size} do")
+    bad_x = np.flatnonzero(~np.all(np.isfinite(x), axis=1))
+    if bad_x.size:
+        i = int(bad_x[0])
+        raise DeviceError(
+            f"sample {i} (t = {t[i]:g} s) has a non-finite position {tuple(x[i].tolist())} m; "
+            f"{bad_x.size} of {t.size} do"
+        )
+    step = np.diff(t)
+    bad_dt = np.flatnonzero(~(step > 0))
+    if bad_dt.size:
+        i = int(bad_dt[0]) + 1
+        what = "repeats" if t[i] == t[i - 1] else "goes back from"
+        raise DeviceError(
+            f"sample times must strictly increase: sample {i} (t = {t[i]:g} s) {what} "
+            f"sample {i - 1} (t = {t[i - 1]:g} s); {bad_dt.size} such step(s)"
+        )
+    return t, x, b
+
+
 class Trajectory:
     """Positions (N, 3) m at strictly increasing times (N,) s, shifted to start at t = 0;
     optionally the device's buttons (N,) (bit i for button i) at each sample."""
@@ -20,25 +66,11 @@ class Trajectory:
         who: str,
         buttons: np.ndarray | None = None,
     ) -> None:
-        t = np.asarray(times, dtype=float).reshape(-1)
-        x = np.asarray(positions, dtype=float)
-        if x.shape != (t.size, 3):
-            raise DeviceError(f"{who}: positions {x.shape} do not match times ({t.size},)")
-        self._buttons: list[int] | None = None
-        if buttons is not None:
-            b = np.asarray(buttons)
-            if b.shape != (t.size,) or b.dtype.kind not in "iub":
-                raise DeviceError(
-                    f"{who}: buttons must be one integer bit set per sample ({t.size},), "
-                    f"got {b.dtype} {b.shape}"
-                )
-            if b.size and (int(b.min()) < 0 or int(b.max()) > 0xFFFFFFFF):
-                raise DeviceError(f"{who}: buttons must be 32-bit bit sets (0 to 2**32 - 1)")
-            self._buttons = [int(v) for v in b.tolist()]
-        if t.size < 2 or not np.all(np.isfinite(t)) or not np.all(np.isfinite(x)):
-            raise DeviceError(f"{who}: need at least 2 finite samples")
-        if not np.all(np.diff(t) > 0):
-            raise DeviceError(f"{who}: sample times must strictly increase")
+        try:
+            t, x, b = check_samples(times, positions, buttons)
+        except DeviceError as exc:
+            raise DeviceError(f"{who}: {exc}") from None
+        self._buttons = None if b is None else [int(v) for v in b.tolist()]
         self._t = (t - t[0]).tolist()
         self._x = [tuple(p) for p in x.tolist()]
         self._slope = [tuple(s) for s in (np.diff(x, axis=0) / np.diff(t)[:, None]).tolist()]

@@ -16,7 +16,7 @@ import numpy as np
 from hapticd_drivers import Device, DeviceError, registry
 from hapticd_drivers.delta import load_description
 from hapticd_drivers.emulator import DeltaEmulator, FakeHidModule
-from hapticd_drivers.trajectory import Trajectory
+from hapticd_drivers.trajectory import Trajectory, check_samples
 
 from hapticd import recording
 from hapticd.actuation import Actuation
@@ -65,9 +65,11 @@ def _where(profile: Profile, i: int, finger: FingerConfig, key: str) -> str:
 def load_trajectories(profile: Profile) -> list[tuple[Any, Any, Any] | None]:
     """(times (N,) s, positions (N, 3) m, buttons (N,) bit sets or None) per finger whose
     device names a trajectory, else None. A recording made by the loop carries its
-    ``buttons``; a trajectory without that field has none (every button up).
+    ``buttons``; a trajectory without that field has none (every button up). Each is
+    checked as a device playing it checks it (hapticd_drivers.trajectory.check_samples):
+    at least 2 samples, finite, strictly increasing times.
 
-    ProfileError names the bad key.
+    ProfileError names the profile, the key and the file.
     """
     cache: dict[Path, recording.Recording] = {}
     out: list[tuple[Any, Any, Any] | None] = []
@@ -103,7 +105,13 @@ def load_trajectories(profile: Profile) -> list[tuple[Any, Any, Any] | None]:
                     "bit set per finger"
                 )
             buttons = rec["buttons"][:, j]
-        out.append((rec["t"], rec["device_pos"][:, j, :], buttons))
+        try:
+            # The devices' own check, here too: what check passes, run plays.
+            out.append(check_samples(rec["t"], rec["device_pos"][:, j, :], buttons))
+        except DeviceError as exc:
+            raise ProfileError(
+                f"{_where(profile, i, finger, 'trajectory')}: {path}, finger {want!r}: {exc}"
+            ) from None
     return out
 
 
@@ -332,6 +340,7 @@ def build_safety(profile: Profile, devices: list[Device]) -> SafetyChain:
             workspace_center_m=sc.workspace_center_m,
             workspace_radius_m=sc.workspace_radius_m or math.inf,
             watchdog_s=sc.watchdog_s or math.inf,
+            max_device_speed_m_per_s=sc.max_device_speed_m_per_s,
             deadman=tuple(
                 None if (d := f.deadman) is None else Deadman(d.button, d.ramp_s)
                 for f in profile.fingers

@@ -34,6 +34,8 @@ from hapticd.recording import read as read_recording
 from hapticd.recording.export import csv_columns, export_csv, export_mcap
 from hapticd.servo import ServoLoop
 
+log = logging.getLogger("hapticd")
+
 EXIT_OK = 0
 EXIT_ERROR = 1
 EXIT_BAD_INPUT = 2
@@ -84,6 +86,100 @@ def format_summary(s: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _overrides(args: argparse.Namespace) -> list[str]:
+    """The ``--set KEY=VALUE`` values of ``run`` and ``check`` (none for other callers)."""
+    return list(getattr(args, "set", None) or [])
+
+
+def _add_set_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="override one profile value (repeatable): KEY a dotted key path, list items by "
+        "index or name (scene.object.stiffness_n_per_m=90, fingers[thumb].device.max_force_n=5), "
+        "VALUE a YAML scalar or list; validated with the profile",
+    )
+
+
+def _run_socket(args: argparse.Namespace) -> Path | None:
+    """The control socket a run serves: none with --no-socket, and none for an --unpaced
+    run (a batch render: two of them must not fight over the default socket) unless
+    --socket names one; else --socket or the default."""
+    if args.no_socket or (args.unpaced and args.socket is None):
+        return None
+    return args.socket or default_socket_path()
+
+
+def _run_total_s(session: Any) -> float | None:
+    """How long a run lasts on its nominal clock, s: --duration, else where its
+    trajectories end (with their hold_s); None when nothing says (devices in the loop)."""
+    loop = session.loop
+    if loop.duration_s is not None:
+        return float(loop.duration_s)
+    ends = [getattr(d, "duration", None) for d in loop.devices if getattr(d, "duration", None)]
+    if not ends or len(ends) != len(loop.devices):
+        return None
+    holds = [getattr(f.device, "hold_s", 0.0) or 0.0 for f in session.profile.fingers]
+    return max(float(e) + float(h) for e, h in zip(ends, holds, strict=True))
+
+
+def _start_run_progress(args: argparse.Namespace, session: Any) -> Any:
+    """For an --unpaced run with a progress line: a thread that shows the loop's nominal
+    time every ``_ProgressLine.PERIOD_S``; returns the function that stops it (a no-op
+    otherwise). It only reads the loop's clock; the loop never waits for it."""
+    import threading
+
+    if not (args.unpaced and _wants_progress(args)):
+        return lambda: None
+    line = _ProgressLine(f"run {args.profile} (unpaced):")
+    total = _run_total_s(session)
+    stop = threading.Event()
+
+    def show() -> None:
+        while not stop.wait(_ProgressLine.PERIOD_S):
+            line.show(round(session.loop.now(), 1), total, "s")
+
+    thread = threading.Thread(target=show, name="hapticd-progress", daemon=True)
+    thread.start()
+
+    def finish() -> None:
+        stop.set()
+        thread.join(timeout=2.0)
+        line.show(round(session.loop.now(), 3), total, "s", force=True)  # where it ended
+        line.done()
+
+    return finish
+
+
+def _log_build(args: argparse.Namespace, session: Any, socket_path: Path | None) -> None:
+    """What the run was built from, at debug level (-v)."""
+    if not log.isEnabledFor(logging.DEBUG):
+        return
+    prof = session.profile
+    log.debug(
+        "profile %s (%s)%s",
+        prof.source,
+        prof.name,
+        "".join(f" --set {o}" for o in _overrides(args)),
+    )
+    for f, dev in zip(prof.fingers, session.devices, strict=True):
+        info = dev.info
+        log.debug(
+            "finger %s: %s %s, rated %g N, workspace radius %g m",
+            f.name, info.model, info.serial, info.max_force_n, info.workspace_radius_m,
+        )  # fmt: skip
+    loop = session.loop
+    log.debug(
+        "loop: %g Hz, %s, stages %s, force limits %s N",
+        loop.rate_hz,
+        "paced" if loop.paced else "unpaced",
+        " ".join(loop.renderer.stage_names),
+        ", ".join(f"{v:g}" for v in loop.safety.limits),
+    )
+    log.debug("control socket: %s", socket_path or "none")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     temp_dir = None
     record_path = args.record
@@ -100,7 +196,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, record_path: Path | None) -> int:
     try:
-        profile = load_profile(args.profile)
+        profile = load_profile(args.profile, _overrides(args))
         session = build_session(
             profile,
             paced=not args.unpaced,
@@ -118,9 +214,10 @@ def _run(args: argparse.Namespace, record_path: Path | None) -> int:
         return EXIT_ERROR
     if args.no_realtime:
         session.loop.realtime_settings = None
+    session.overrides = _overrides(args)
     loop = session.loop
     notifier = ServiceNotifier(lambda: loop.stats.ticks, lambda: _service_status(loop))
-    socket_path = None if args.no_socket else (args.socket or default_socket_path())
+    socket_path = _run_socket(args)
     server = ControlServer(session, socket_path, periodic=[notifier.poll])
     try:
         server.start()
@@ -141,6 +238,8 @@ def _run(args: argparse.Namespace, record_path: Path | None) -> int:
     old = {s: signal.signal(s, h) for s, h in handlers.items()}
     if socket_path is not None and not args.quiet:
         print(f"hapticd: control socket {socket_path}", file=sys.stderr)
+    _log_build(args, session, socket_path)
+    stop_progress = _start_run_progress(args, session)
     try:
         summary = session.run()
     except RecordingError as exc:
@@ -149,6 +248,7 @@ def _run(args: argparse.Namespace, record_path: Path | None) -> int:
         summary = summarize(loop, session.profile.finger_names)
         summary["recording_error"] = str(exc)
     finally:
+        stop_progress()
         notifier.stopping()
         server.close()
         for s, h in old.items():
@@ -231,7 +331,7 @@ def workspace_report(profile: Any, devices: list[Any]) -> list[str]:
 
 def cmd_check(args: argparse.Namespace) -> int:
     try:
-        profile = load_profile(args.profile)
+        profile = load_profile(args.profile, _overrides(args))
         load_trajectories(profile)
         build_scene(profile.scene, profile)
         # The devices are created (not opened): a backend's library or driver is checked.
@@ -988,6 +1088,55 @@ def _add_experiment(sub: Any) -> None:
     ana.set_defaults(func=cmd_experiment_analyze)
 
 
+def _wants_progress(args: argparse.Namespace) -> bool:
+    """A progress line on stderr: with --progress, or when stderr is a terminal."""
+    return bool(getattr(args, "progress", False)) or sys.stderr.isatty()
+
+
+class _ProgressLine:
+    """One line on stderr, rewritten in place (at most every ``PERIOD_S``), ended by
+    ``done``: ``hapticd: LABEL 41% (3.2 of 7.8 s)``."""
+
+    PERIOD_S = 0.25
+
+    def __init__(self, label: str) -> None:
+        self.label = label
+        self._last = -math.inf
+        self._shown = False
+
+    def show(self, done: float, total: float | None, unit: str, *, force: bool = False) -> None:
+        import time
+
+        now = time.monotonic()
+        if not force and now - self._last < self.PERIOD_S:
+            return
+        self._last = now
+        if total:
+            text = f"{100.0 * min(done / total, 1.0):3.0f}% ({done:g} of {total:g} {unit})"
+        else:
+            text = f"{done:g} {unit}"
+        sys.stderr.write(f"\rhapticd: {self.label} {text}\x1b[K")
+        sys.stderr.flush()
+        self._shown = True
+
+    def done(self) -> None:
+        if self._shown:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+
+
+def _export_progress(args: argparse.Namespace) -> tuple[Any, _ProgressLine | None]:
+    """The ``progress`` callback of an export (None without a progress line)."""
+    if not _wants_progress(args):
+        return None, None
+    line = _ProgressLine(f"export {args.recording}:")
+
+    def progress(done: int, total: int) -> None:
+        line.show(done, total, "ticks", force=done == total)
+
+    return progress, line
+
+
 def _plot(source: Path, out: Path, panels: list[str] | None) -> int:
     """Draw ``source`` (a recording or a run summary) into ``out``; print where it went."""
     from hapticd import plot
@@ -1049,14 +1198,15 @@ def _add_plot(sub: Any) -> None:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    progress, line = _export_progress(args)
     try:
         rec = read_recording(args.recording)
         if args.mcap is not None:
-            out, rows = args.mcap, export_mcap(rec, args.mcap)
+            out, rows = args.mcap, export_mcap(rec, args.mcap, progress=progress)
             what = "messages on /hapticd/tick"
         else:
             out = args.csv or args.recording.with_suffix(".csv")
-            rows = export_csv(rec, out)
+            rows = export_csv(rec, out, progress=progress)
             what = f"ticks, {len(csv_columns(rec))} columns"
     except RecordingError as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
@@ -1067,6 +1217,9 @@ def cmd_export(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"hapticd: cannot write the export: {exc}", file=sys.stderr)
         return EXIT_ERROR
+    finally:
+        if line is not None:
+            line.done()
     torn = f" (a torn last record of {rec.torn_bytes} bytes was dropped)" if rec.torn_bytes else ""
     print(f"{out}: {rows} {what}{torn}")
     return EXIT_OK
@@ -1139,7 +1292,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         metavar="PATH",
         help="serve the control protocol on this Unix socket (default: $HAPTICD_SOCKET, "
-        "$RUNTIME_DIRECTORY/control.sock, $XDG_RUNTIME_DIR/hapticd/control.sock)",
+        "$RUNTIME_DIRECTORY/control.sock, $XDG_RUNTIME_DIR/hapticd/control.sock; an "
+        "--unpaced run serves one only when given)",
     )
     run.add_argument(
         "--device",
@@ -1164,6 +1318,11 @@ def build_parser() -> argparse.ArgumentParser:
     chk = sub.add_parser("check", help="validate a profile and the files it names")
     chk.add_argument("profile", type=Path)
     chk.set_defaults(func=cmd_check)
+    _add_set_option(run)
+    _add_set_option(chk)
+    _add_progress_option(run)
+    _add_log_options(run)
+    _add_schema(sub)
     run.add_argument(
         "--no-socket", action="store_true", help="serve no control socket (SIGHUP still reloads)"
     )
@@ -1238,6 +1397,7 @@ def build_parser() -> argparse.ArgumentParser:
     fmt = exp.add_mutually_exclusive_group()
     fmt.add_argument("--csv", type=Path, metavar="OUT", help="default: the recording's name .csv")
     fmt.add_argument("--mcap", type=Path, metavar="OUT", help="MCAP with JSON messages")
+    _add_progress_option(exp)
     exp.set_defaults(func=cmd_export)
     cal = sub.add_parser(
         "calibrate",
@@ -1262,9 +1422,69 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _add_progress_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--progress",
+        action="store_true",
+        help="show a progress line on stderr (default: when stderr is a terminal; a run "
+        "shows one only --unpaced)",
+    )
+
+
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+def _add_log_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--log-level",
+        choices=LOG_LEVELS,
+        help="what the log on stderr shows (default info: faults, device events, control "
+        "changes; debug adds what the run was built from)",
+    )
+    parser.add_argument(
+        "-v", "--verbose", action="store_true", help="the same as --log-level debug"
+    )
+
+
+def _log_level(args: argparse.Namespace) -> int:
+    """The logging level ``args`` ask for (INFO unless -v or --log-level say otherwise)."""
+    if getattr(args, "verbose", False):
+        return logging.DEBUG
+    name = getattr(args, "log_level", None)
+    return getattr(logging, name.upper()) if name else logging.INFO
+
+
+def _add_schema(sub: Any) -> None:
+    sch = sub.add_parser(
+        "schema",
+        help="print the profile's JSON Schema (for editors: docs/profiles.md)",
+        description="Print the JSON Schema of a profile (keys, types, bounds, defaults, "
+        "descriptions). hapticd check remains the authority: some checks are not in it.",
+    )
+    sch.add_argument("--out", type=Path, metavar="PATH", help="write it here (default: stdout)")
+    sch.set_defaults(func=cmd_schema)
+
+
+def cmd_schema(args: argparse.Namespace) -> int:
+    from hapticd.profile import json_schema
+
+    text = json.dumps(json_schema(), indent=2) + "\n"
+    if args.out is None:
+        sys.stdout.write(text)
+        return EXIT_OK
+    try:
+        args.out.write_text(text)
+    except OSError as exc:
+        print(f"hapticd: cannot write the schema: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    print(f"{args.out}: the profile's JSON Schema")
+    return EXIT_OK
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="hapticd: %(message)s", stream=sys.stderr)
+    logging.getLogger("hapticd").setLevel(_log_level(args))
     return int(args.func(args))
 
 

@@ -9,11 +9,19 @@ A device that fails is *lost*: without reconnect mode the error ends the run;
 with it, a fault is latched (forces zero on every device), the device is
 closed, and it is looked for again every ``RECONNECT_PERIOD_S`` with forces
 left off until someone re-enables them. Every way out zeroes and disables.
+
+A sample no hand can make (a non-finite position or velocity, or a speed above
+``max_speed_m_per_s`` or a position beyond ``MAX_DEVICE_DISTANCE_M``, in the device's
+own frame) is a glitch: it latches a fault
+(``device_state``; forces zero) and never enters the frame, which keeps the finger's
+last good position at rest. The contact damping and the free object's dynamics would
+otherwise turn one such velocity into an unbounded force on the object.
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -24,13 +32,16 @@ from hapticd.mount import Mount
 
 # How often a lost device is looked for again (reconnect mode), s of loop time.
 RECONNECT_PERIOD_S = 0.5
+# No device's handle is this far from its origin (its own frame), m: farther is a glitch.
+MAX_DEVICE_DISTANCE_M = 100.0
 
 
 class DeviceBank:
     """The F devices of a run, finger i on ``devices[i]``.
 
-    ``on_fault(tick, t, cause)`` latches a fault; ``on_event(t, what)`` records a
-    device event (lost, reconnected).
+    ``on_fault(tick, t, cause, kind)`` latches a fault (kind: a name of
+    hapticd.events.FAULT_CAUSES); ``on_event(t, what)`` records a device event (lost,
+    reconnected). ``max_speed_m_per_s``: the fastest plausible device speed, m/s.
     """
 
     def __init__(
@@ -38,10 +49,12 @@ class DeviceBank:
         devices: Sequence[Device],
         *,
         reconnect: bool,
-        on_fault: Callable[[int, float, str], None],
+        on_fault: Callable[[int, float, str, str], None],
         on_event: Callable[[float, str], None],
+        max_speed_m_per_s: float = math.inf,
     ) -> None:
         self.devices = list(devices)
+        self.max_speed_m_per_s = max_speed_m_per_s
         self.reconnect = reconnect
         self._on_fault = on_fault
         self._on_event = on_event
@@ -90,11 +103,24 @@ class DeviceBank:
         for dev in self.devices:
             dev.enable_forces(on)
 
+    @property
+    def max_speed_m_per_s(self) -> float:
+        """The fastest speed a device may report (its own frame), m/s; faster is a glitch."""
+        return self._max_speed
+
+    @max_speed_m_per_s.setter
+    def max_speed_m_per_s(self, v: float) -> None:
+        if not v > 0:
+            raise ValueError(f"the largest device speed must be positive, got {v}")
+        self._max_speed = float(v)
+
     def read(self, frame: Frame, k: int, t: float) -> None:
         """Fill ``device_pos``, ``device_vel`` and ``buttons``; a lost device keeps its last
-        position, at rest."""
+        position, at rest, and so does a device whose sample is implausible (a fault)."""
         pos, vel, buttons = frame.device_pos, frame.device_vel, frame.buttons
         lost = self.lost
+        lim = self._max_speed
+        hypot = math.hypot
         for i, dev in enumerate(self.devices):
             if lost[i] is not None:
                 continue
@@ -103,6 +129,12 @@ class DeviceBank:
                 dev.read_state(st)
             except DeviceError as exc:
                 self._lose(frame, i, k, t, exc)
+                continue
+            # NaN fails the comparisons (hypot neither overflows nor hides a NaN).
+            px, py, pz = st.position.tolist()
+            vx, vy, vz = st.velocity.tolist()
+            if not (hypot(vx, vy, vz) <= lim and hypot(px, py, pz) <= MAX_DEVICE_DISTANCE_M):
+                self._implausible(frame, i, k, t, st)
                 continue
             if self._mounted[i]:
                 tmp = self._tmp
@@ -155,10 +187,41 @@ class DeviceBank:
                 errors.append(f"{_name(dev)}: close: {exc}")
         return errors
 
+    def _implausible(self, frame: Frame, i: int, k: int, t: float, st: DeviceState) -> None:
+        """A sample no hand makes: latch a fault; the frame keeps the finger's last good
+        position, at rest (its buttons still count: a deadman follows them)."""
+        p, v = np.asarray(st.position, dtype=float), np.asarray(st.velocity, dtype=float)
+        fmt = ", ".join
+        if not np.all(np.isfinite(p)):
+            what = f"a non-finite position ({fmt(f'{c:g}' for c in p.tolist())}) m"
+        elif not math.hypot(*p.tolist()) <= MAX_DEVICE_DISTANCE_M:
+            what = (
+                f"a position {math.hypot(*p.tolist()):.3g} m from its origin, beyond any "
+                f"workspace ({MAX_DEVICE_DISTANCE_M:g} m)"
+            )
+        elif not np.all(np.isfinite(v)):
+            what = f"a non-finite velocity ({fmt(f'{c:g}' for c in v.tolist())}) m/s"
+        else:
+            speed = math.hypot(*v.tolist())
+            what = (
+                f"a speed of {speed:.4g} m/s (velocity ({fmt(f'{c:.4g}' for c in v.tolist())}) "
+                f"m/s), above the plausible {self._max_speed:g} m/s "
+                "(safety.max_device_speed_m_per_s)"
+            )
+        self._on_fault(
+            k,
+            t,
+            f"device {_name(self.devices[i])} (finger {i}) reported {what}: a glitched sample; "
+            "forces zeroed, its last good position kept",
+            "device_state",
+        )
+        frame.device_vel[i] = 0.0
+        frame.buttons[i] = st.buttons
+
     def _lose(self, frame: Frame, i: int, k: int, t: float, exc: DeviceError) -> None:
         if not self.reconnect:
             raise exc
-        self._on_fault(k, t, f"{type(exc).__name__}: {exc}")
+        self._on_fault(k, t, f"{type(exc).__name__}: {exc}", "device")
         frame.device_force[:] = 0.0
         self.zero()
         dev = self.devices[i]

@@ -94,6 +94,10 @@ FAULT_CAUSES: dict[str, str] = {
     "watchdog": "too long between two ticks (a stalled loop)",
     "overrun": "too many late ticks in a row (`loop.max_consecutive_overruns`)",
     "device": "a device failed (read or write error, unplugged)",
+    "device_state": "a device reported a non-finite position or velocity, or a speed above "
+    "`safety.max_device_speed_m_per_s` (a glitched sample)",
+    "object_state": "the free object's position, velocity or spin became non-finite or absurd "
+    "(the scene's dynamics diverged)",
     "exception": "a stage raised an exception",
     "setup": "the devices could not be opened",
     "realtime": "a required real-time setting could not be applied",

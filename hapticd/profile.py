@@ -11,7 +11,9 @@ import difflib
 import functools
 import math
 import os
+import re
 import stat
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar, Union, get_args
 
@@ -507,6 +509,13 @@ class SafetyConfig(_Strict):
     watchdog_s: Float | None = Field(
         default=0.1, gt=0, le=10, description="longest wall time between ticks, s; none: off"
     )
+    max_device_speed_m_per_s: Float = Field(
+        default=5.0,
+        gt=0,
+        le=100,
+        description="a device reporting a faster speed (its own frame), or a non-finite "
+        "position or velocity, latches a fault: a glitched sample, not a hand, m/s",
+    )
     reconnect: Bool = Field(
         default=False,
         description="on a device error keep running (forces off) and reopen the device when "
@@ -802,14 +811,21 @@ def _shown(value: object) -> str:
     return text if len(text) <= _SHOWN_CHARS else text[: _SHOWN_CHARS - 3] + "..."
 
 
-def _line_note(path: Path_, lines: dict[Path_, int], missing: bool) -> str:
-    """`` (line N)`` for the key at ``path``; for a missing key, the mapping that lacks it."""
+def _line_note(path: Path_, lines: dict[Path_, int | str], missing: bool) -> str:
+    """`` (line N)`` for the key at ``path``; for a missing key, the mapping that lacks it.
+    A line that is a string says where the value came from instead (``from --set``)."""
+
+    def note(line: int | str) -> str:
+        return f" ({line})" if isinstance(line, str) else f" (line {line})"
+
     if missing:
         line = lines.get(path[:-1])
-        return f" (in the mapping at line {line})" if line is not None and path[:-1] else ""
+        if line is None or not path[:-1]:
+            return ""
+        return note(line) if isinstance(line, str) else f" (in the mapping at line {line})"
     for n in range(len(path), 0, -1):
         if path[:n] in lines:
-            return f" (line {lines[path[:n]]})"
+            return note(lines[path[:n]])
     return ""
 
 
@@ -817,7 +833,7 @@ def validate_document(
     model: type[M],
     data: object,
     source: str | Path,
-    lines: dict[Path_, int] | None = None,
+    lines: dict[Path_, int | str] | None = None,
     *,
     what: str = "profile",
     docs: str = DOCS,
@@ -842,7 +858,7 @@ def validate_document(
 
 
 def parse_profile(
-    data: object, source: str | Path = "<profile>", lines: dict[Path_, int] | None = None
+    data: object, source: str | Path = "<profile>", lines: dict[Path_, int | str] | None = None
 ) -> Profile:
     """Validate an already-parsed YAML document into a Profile; ``lines`` (from the
     loader) gives each key path's line for the messages."""
@@ -854,7 +870,7 @@ def _format_errors(
     exc: ValidationError,
     data: object,
     source: str | Path,
-    lines: dict[Path_, int],
+    lines: dict[Path_, int | str],
     root: type[BaseModel] | None = None,
     what: str = "profile",
     docs: str = DOCS,
@@ -917,9 +933,136 @@ def read_document(
     return _read_yaml(raw, p, what, error)
 
 
-def load_profile(path: str | Path) -> Profile:
+_KEY_PATH = re.compile(r"[A-Za-z_]\w*(?:\.[A-Za-z_]\w*|\[[^\[\]]+\])*")
+_KEY_PART = re.compile(r"([A-Za-z_]\w*)|\[([^\[\]]+)\]")
+
+
+def parse_override(text: str) -> tuple[str, Path_, object]:
+    """``KEY=VALUE`` (``hapticd run --set``) as (the key as written, its key path, the
+    value). KEY is a dotted key path whose list items are picked in brackets by index or
+    by their ``name`` (``fingers[0].device.max_force_n``, ``fingers[thumb].radius_m``; an
+    error message's ``fingers[0:thumb]`` works too); VALUE is a YAML scalar or list, read
+    by the profile's loader. ProfileError says what is wrong."""
+    key, eq, value = text.partition("=")
+    key = key.strip()
+    if not eq or not key:
+        raise ProfileError(f"--set {text!r}: expected KEY=VALUE, e.g. scene.object.mass_kg=0.1")
+    if not _KEY_PATH.fullmatch(key):
+        raise ProfileError(
+            f"--set {key}: not a key path (dotted keys, list items as [0] or [name]: "
+            "fingers[0].device.max_force_n)"
+        )
+    path: list[int | str] = []
+    for m in _KEY_PART.finditer(key):
+        if m.group(1) is not None:
+            path.append(m.group(1))
+        else:
+            item = m.group(2).strip()
+            index = item.split(":", 1)[0]
+            path.append(int(index) if index.isdigit() else item)
+    data, _ = _read_yaml(value.encode(), Path(f"--set {key}"))
+    if isinstance(data, dict):
+        raise ProfileError(f"--set {key}: give one value (a scalar or a list), not a mapping")
+    return key, tuple(path), data
+
+
+def _named(items: list, name: str) -> int:
+    """The index of the first mapping in ``items`` whose ``name`` is ``name``, else -1."""
+    return next(
+        (i for i, v in enumerate(items) if isinstance(v, dict) and v.get("name") == name), -1
+    )
+
+
+def _override_paths(data: object, overrides: Sequence[str]) -> list[Path_]:
+    """The key paths (list items by index) the ``overrides`` set in ``data``."""
+    out: list[Path_] = []
+    for text in overrides:
+        _, over, _ = parse_override(text)
+        resolved: list[int | str] = []
+        node: Any = data
+        for part in over:
+            if isinstance(part, str) and isinstance(node, list):
+                part = _named(node, part)
+            resolved.append(part)
+            try:
+                node = node[part]
+            except (KeyError, IndexError, TypeError):
+                break
+        out.append(tuple(resolved))
+    return out
+
+
+def apply_overrides(data: object, overrides: Sequence[str], source: str | Path) -> object:
+    """``data`` (a profile document) with each ``KEY=VALUE`` of ``overrides`` set, in order
+    (missing mappings on the way are made); ProfileError naming ``source`` and the key
+    for a path the document cannot hold. The result is validated like any profile."""
+    if not overrides:
+        return data
+    if not isinstance(data, dict):
+        raise ProfileError(f"{source}: expected a mapping of keys at the top level")
+    for text in overrides:
+        key, path, value = parse_override(text)
+        node: Any = data
+        for n, part in enumerate(path):
+            last = n == len(path) - 1
+            here = "".join(f"[{p}]" if not isinstance(p, str) else f".{p}" for p in path[:n])
+            where = f"{source}: --set {key}: {here.lstrip('.') or 'the profile'}"
+            if isinstance(part, str) and isinstance(node, list):
+                name, part = part, _named(node, part)
+                if part < 0:
+                    names = [v.get("name") for v in node if isinstance(v, dict)]
+                    raise ProfileError(f"{where} has no item named {name!r}; names: {names}")
+            if isinstance(part, int):
+                if not isinstance(node, list):
+                    raise ProfileError(f"{where} is not a list")
+                if not 0 <= part < len(node):
+                    raise ProfileError(f"{where} has {len(node)} item(s), no [{part}]")
+            elif not isinstance(node, dict):
+                raise ProfileError(f"{where} is not a mapping of keys")
+            if last:
+                node[part] = value
+            else:
+                if isinstance(node, dict) and not isinstance(node.get(part), dict | list):
+                    node[part] = {}
+                node = node[part]
+    return data
+
+
+def load_profile(path: str | Path, overrides: Sequence[str] = ()) -> Profile:
     """Read and validate the YAML profile at ``path`` (ProfileError naming the file, the
-    key, its line and what was expected)."""
+    key, its line and what was expected), with ``overrides`` (``KEY=VALUE``, as ``hapticd
+    run --set`` gives them: ``parse_override``) set before it is validated."""
     p = Path(path)
-    data, lines = read_document(p)
-    return parse_profile(data, p.resolve(), lines)
+    data, file_lines = read_document(p)
+    lines: dict[Path_, int | str] = dict(file_lines)
+    if overrides:
+        data = apply_overrides(data, overrides, p)
+        # A value from --set has no line in the file: its messages say "from --set".
+        for over in _override_paths(data, overrides):
+            lines = {k: v for k, v in lines.items() if k[: len(over)] != over}
+            lines[over] = "from --set"
+    try:
+        return parse_profile(data, p.resolve(), lines)
+    except ProfileError as exc:
+        if not overrides:
+            raise
+        raise ProfileError(f"{exc}\n  (with --set {' --set '.join(overrides)})") from None
+
+
+JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
+
+
+def json_schema() -> dict[str, Any]:
+    """The profile's JSON Schema (pydantic's, of ``Profile``) for editors and other tools:
+    the keys, their types, bounds, defaults and descriptions; unknown keys are refused
+    (``additionalProperties: false``). Fields that are not profile keys (the loaded file's
+    ``source``) are left out. A profile that passes it can still fail the checks the schema
+    cannot say (a finger's name unique, a free object's mass); ``hapticd check`` is the
+    authority."""
+    schema = Profile.model_json_schema()
+    for name, field in Profile.model_fields.items():
+        if field.exclude:
+            schema["properties"].pop(name, None)
+            if name in schema.get("required", []):
+                schema["required"].remove(name)
+    return {"$schema": JSON_SCHEMA_DIALECT, **schema, "title": "hapticd profile"}

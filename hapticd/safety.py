@@ -50,6 +50,9 @@ class SafetyParams:
       exactly zero is never delayed.
     workspace_center_m, workspace_radius_m: a finger beyond this sphere latches a fault.
     watchdog_s: more wall time than this between two ticks latches a fault (a stalled loop).
+    max_device_speed_m_per_s: a device reporting a faster speed (m/s, its own frame), or a
+      non-finite position or velocity, latches a fault; checked where device state enters
+      the frame (hapticd.device_bank), which keeps the finger's last good state.
     deadman: per finger, its deadman button or None (empty: no finger has one).
     """
 
@@ -58,6 +61,7 @@ class SafetyParams:
     workspace_center_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     workspace_radius_m: float = math.inf
     watchdog_s: float = math.inf
+    max_device_speed_m_per_s: float = math.inf
     deadman: tuple[Deadman | None, ...] = ()
 
 

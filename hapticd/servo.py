@@ -28,6 +28,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
 from hapticd_drivers import Device
 
 from hapticd import realtime
@@ -49,6 +50,11 @@ TRAJECTORY_END = CODES["trajectory_end"]
 RECORDING_STARTED = CODES["recording_started"]
 OTHER_CAUSE = CAUSE_CODES["other"]
 TRAJECTORY_ENDED = "trajectory ended"
+# A free object beyond these has left any scene a hand can reach (a free fall of a day
+# stays below them), and well before float overflow breaks its dynamics: a fault.
+MAX_OBJECT_DISTANCE_M = 1e12
+MAX_OBJECT_SPEED_M_PER_S = 1e7
+MAX_OBJECT_SPIN_RAD_PER_S = 1e7
 
 
 class Applied(threading.Event):
@@ -100,7 +106,11 @@ class ServoLoop:
         F = len(devices)
         self.frame = Frame(F, renderer.actuation.n_actuators)
         self.bank = DeviceBank(
-            devices, reconnect=reconnect, on_fault=self._trip, on_event=self._event
+            devices,
+            reconnect=reconnect,
+            on_fault=self._trip,
+            on_event=self._event,
+            max_speed_m_per_s=safety.params.max_device_speed_m_per_s,
         )
         self.stats: LoopStats = self.pacer.stats
         self.stats.max_force = [0.0] * F
@@ -228,6 +238,7 @@ class ServoLoop:
         safety.clamped_ticks += old.clamped_ticks
         safety.rate_limited_ticks += old.rate_limited_ticks
         safety.start(t)
+        self.bank.max_speed_m_per_s = safety.params.max_device_speed_m_per_s
         self.renderer, self.safety = renderer, safety
 
     # -- the tick ---------------------------------------------------------------------------
@@ -261,6 +272,7 @@ class ServoLoop:
         frame.t_wall[()] = start - self.pacer.t0
         self.bank.read(frame, k, t)
         self.renderer.run(frame)
+        self._check_object(frame, k, t)
         self.safety.run(frame, time.monotonic() if self.wall_watchdog else None)
         self.bank.write(frame, k, t)
         if self.safety.fault is not None and not self.forces_off:
@@ -270,8 +282,43 @@ class ServoLoop:
             self.forces_off = True
             self.bank.zero()
 
-    def _trip(self, k: int, t: float, cause: str) -> None:
-        self.safety.trip(k, t, cause, "device")
+    def _trip(self, k: int, t: float, cause: str, kind: str = "device") -> None:
+        # Literal kinds: a test checks every kind latched is declared (hapticd.events).
+        if kind == "device_state":
+            self.safety.trip(k, t, cause, "device_state")
+        else:
+            self.safety.trip(k, t, cause, "device")
+
+    def _check_object(self, frame: Frame, k: int, t: float) -> None:
+        """Backstop after the renderer: a free object whose state is non-finite or absurd
+        (beyond ``MAX_OBJECT_*``) latches an ``object_state`` fault and ends the run (its
+        dynamics cannot continue from there), instead of a math error on the next tick."""
+        obj = self.renderer.obj
+        if obj.fixed:
+            return
+        p, v, w = frame.object_pos, obj.velocity, obj.omega
+        hypot = math.hypot
+        # NaN fails every comparison; hypot does not overflow.
+        if (
+            hypot(*p.tolist()) <= MAX_OBJECT_DISTANCE_M
+            and hypot(*v.tolist()) <= MAX_OBJECT_SPEED_M_PER_S
+            and hypot(*w.tolist()) <= MAX_OBJECT_SPIN_RAD_PER_S
+        ):
+            return
+
+        def vec(a: Any) -> str:
+            return "(" + ", ".join(f"{c:.3g}" for c in np.asarray(a, dtype=float).tolist()) + ")"
+
+        self.safety.trip(
+            k,
+            t,
+            f"the object's state diverged: position {vec(p)} m, velocity {vec(v)} m/s, spin "
+            f"{vec(w)} rad/s (limits {MAX_OBJECT_DISTANCE_M:g} m, "
+            f"{MAX_OBJECT_SPEED_M_PER_S:g} m/s, {MAX_OBJECT_SPIN_RAD_PER_S:g} rad/s); "
+            "forces zeroed, the run ends",
+            "object_state",
+        )
+        self.request_stop("the object's state diverged", ramp=False)
 
     def _note_fault(self, k: int, t: float) -> None:
         """Push a ``fault_latched`` event for a fault not reported yet (a fault cleared by

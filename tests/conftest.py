@@ -7,6 +7,7 @@ import ctypes
 import os
 import shutil
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -115,6 +116,15 @@ def _rings() -> set[str]:
 def private_socket(tmp_path, monkeypatch):
     """A daemon started without --socket serves here, never in the user's runtime dir."""
     monkeypatch.setenv("HAPTICD_SOCKET", str(tmp_path / "default.sock"))
+
+
+@pytest.fixture(autouse=True)
+def no_real_usb_libraries(monkeypatch):
+    """No test opens the machine's libusb or hidapi (there is no hardware here, and their
+    contexts keep a netlink socket for the life of the process): the usb and hid backends
+    run on their emulated library seams, and discovery reports the libraries as missing."""
+    monkeypatch.setitem(sys.modules, "libusb_package", None)
+    monkeypatch.setitem(sys.modules, "hid", None)
 
 
 @pytest.fixture(autouse=True)

@@ -7,7 +7,9 @@ get too few or too many items; every mapping gets a duplicate key; and at every 
 go deep nesting, anchors and aliases (an alias bomb among them), YAML tags, numbers
 beyond range and odd strings. Whole-file mutations add non-UTF-8 bytes, other
 encodings, NUL bytes, truncation, size and node-count bombs, documents that are not a
-mapping. A case is ``must_fail`` when the value is invalid for its key by
+mapping. Every finger's trajectory is pointed at recordings that no device can play
+(NaN and infinite positions, NaN, repeated and decreasing times, one sample, none). A case
+is ``must_fail`` when the value is invalid for its key by
 construction; the others may be accepted but must not crash or hang.
 
 ``python -m tests.hostile`` is the worker: it reads profile paths on stdin, runs
@@ -43,6 +45,7 @@ class Case:
     data: bytes
     must_fail: bool
     key: str | None = None
+    files: tuple[tuple[str, bytes], ...] = ()  # (name, bytes) written next to the profile
 
 
 # -- the schema, walked alongside a profile's data --------------------------------------
@@ -293,7 +296,69 @@ def generate(profiles: list[Path] = BUNDLED) -> Iterator[Case]:
             if path:
                 merged = _dump(_with(data, (*path, "<<"), dict(mapping))).replace("'<<'", "<<")
                 yield Case(f"{base}: a merge key in {_path_text(path)}", merged.encode(), True)
+        yield from _trajectory_cases(base, data)
         yield from _file_mutations(base, text)
+
+
+BAD_TRAJECTORY = "bad-trajectory.hrec"
+
+
+def _bad_trajectories(fingers: list[str]) -> Iterator[tuple[str, bytes]]:
+    """(label, recording bytes) of trajectories wrong for ``fingers[0]`` in one way each."""
+    import tempfile
+
+    import numpy as np
+
+    from hapticd import recording
+
+    n = 6
+    for label in (
+        "a NaN position",
+        "an infinite position",
+        "a NaN time",
+        "a repeated time",
+        "a decreasing time",
+        "one sample",
+        "no sample",
+    ):
+        t, x = np.arange(n) * 0.01, np.zeros((n, len(fingers), 3))
+        if label == "a NaN position":
+            x[3, 0, 0] = np.nan
+        elif label == "an infinite position":
+            x[2, 0, 2] = np.inf
+        elif label == "a NaN time":
+            t[4] = np.nan
+        elif label == "a repeated time":
+            t[2] = t[1]
+        elif label == "a decreasing time":
+            t[5] = 0.0
+        elif label == "one sample":
+            t, x = t[:1], x[:1]
+        else:
+            t, x = t[:0], x[:0]
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / BAD_TRAJECTORY
+            fields = recording.trajectory_fields(len(fingers))
+            recording.write(path, {"t": t, "device_pos": x}, fields, fingers)
+            yield label, path.read_bytes()
+
+
+def _trajectory_cases(base: str, data: dict) -> Iterator[Case]:
+    """Each finger's trajectory replaced by one no device can play (``run`` refuses it,
+    so ``check`` must)."""
+    for i, finger in enumerate(data.get("fingers") or []):
+        if not isinstance(finger.get("device"), dict) or "trajectory" not in finger["device"]:
+            continue
+        doc = _with(data, ("fingers", i, "device", "trajectory"), BAD_TRAJECTORY)
+        doc["fingers"][i]["device"]["finger"] = "played"
+        for label, blob in _bad_trajectories(["played"]):
+            yield Case(
+                f"{base}: fingers[{i}].device.trajectory: {label}",
+                _dump(doc).encode(),
+                True,
+                "trajectory",
+                ((BAD_TRAJECTORY, blob),),
+            )
 
 
 def _file_mutations(base: str, text: str) -> Iterator[Case]:

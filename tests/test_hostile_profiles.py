@@ -95,6 +95,8 @@ def test_hostile_profiles_give_clear_errors(tmp_path):
         for n, case in enumerate(cases):
             path = tmp_path / f"case-{n}.yaml"
             path.write_bytes(case.data)
+            for name, blob in case.files:
+                (tmp_path / name).write_bytes(blob)
             res = worker.check(path)
             outcome, detail = _judge(case, path, res)
             if res is None:  # hung or died: a fresh worker for the rest

@@ -70,7 +70,7 @@ def test_the_daemon_refuses_a_planted_socket_directory(own_dir, tmp_path, kind, 
     server.close()
     assert not landed.exists()
     # The same through the command line: a clear message, no traceback, exit 1.
-    assert main(["run", str(GRASP_PROFILE), "--unpaced", "--duration", "0.01", "-q"]) == 1
+    assert main(["run", str(GRASP_PROFILE), "--duration", "0.01", "-q"]) == 1
     err = capsys.readouterr().err
     assert f"unsafe socket directory {own_dir}" in err and says in err
     assert "Traceback" not in err

@@ -80,6 +80,8 @@ class Session:
     recorder: Recorder | None
     emulators: list[DeltaEmulator] = field(default_factory=list)
     record_dir: Path = field(default_factory=lambda: files.state_directory().absolute())
+    # `hapticd run --set KEY=VALUE` values: a reload of the running file keeps them.
+    overrides: list[str] = field(default_factory=list)
 
     def run(self) -> dict[str, Any]:
         """Run the loop to its end; then flush and close whatever recording is open."""
@@ -148,7 +150,7 @@ class Session:
         if source is None:
             raise ProfileError("the running profile has no file to reload")
         check_profile_file(source)
-        new = load_profile(source)
+        new = load_profile(source, self.overrides if path is None else ())
         where = str(source)
         old = self.profile
         if new.loop != old.loop:

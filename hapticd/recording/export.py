@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -48,8 +49,15 @@ def csv_columns(rec: Recording) -> list[str]:
     return cols
 
 
-def export_csv(rec: Recording, out: str | Path) -> int:
-    """Write ``rec`` as CSV (a header row, then one row per tick); returns the rows written."""
+# Ticks written between two calls of an export's ``progress``.
+PROGRESS_CHUNK = 10_000
+
+Progress = Callable[[int, int], None]  # (ticks done, ticks in all)
+
+
+def export_csv(rec: Recording, out: str | Path, progress: Progress | None = None) -> int:
+    """Write ``rec`` as CSV (a header row, then one row per tick); returns the rows written.
+    ``progress(done, total)`` is called after each chunk of ticks."""
     cols = csv_columns(rec)
     # Explicit widths: with 0 ticks (a run killed right after it began) -1 is ambiguous.
     flat = np.concatenate(
@@ -62,7 +70,10 @@ def export_csv(rec: Recording, out: str | Path) -> int:
     assert flat.shape[1] == len(cols)
     with open(out, "w", encoding="utf-8") as fh:
         fh.write(",".join(cols) + "\n")
-        np.savetxt(fh, flat, delimiter=",", fmt="%.17g")
+        for start in range(0, rec.ticks, PROGRESS_CHUNK):
+            np.savetxt(fh, flat[start : start + PROGRESS_CHUNK], delimiter=",", fmt="%.17g")
+            if progress is not None:
+                progress(min(start + PROGRESS_CHUNK, rec.ticks), rec.ticks)
     return rec.ticks
 
 
@@ -88,10 +99,16 @@ def _jsonable(v: np.ndarray | np.generic) -> Any:
     return a.tolist()
 
 
-def export_mcap(rec: Recording, out: str | Path, topic: str = "/hapticd/tick") -> int:
+def export_mcap(
+    rec: Recording,
+    out: str | Path,
+    topic: str = "/hapticd/tick",
+    progress: Progress | None = None,
+) -> int:
     """Write ``rec`` as MCAP: one JSON message per tick on ``topic``, stamped with the
     tick's nominal time, for viewing and plotting in Foxglove. Needs ``pip install mcap``
-    (the ``mcap`` extra). Returns the messages written."""
+    (the ``mcap`` extra). Returns the messages written; ``progress(done, total)`` is
+    called after each chunk of ticks."""
     try:
         from mcap.writer import Writer
     except ImportError as exc:
@@ -129,5 +146,7 @@ def export_mcap(rec: Recording, out: str | Path, topic: str = "/hapticd/tick") -
                 sequence=i,
                 data=json.dumps(_tick_message(rec, i), separators=(",", ":")).encode(),
             )
+            if progress is not None and ((i + 1) % PROGRESS_CHUNK == 0 or i + 1 == rec.ticks):
+                progress(i + 1, rec.ticks)
         w.finish()
     return rec.ticks
