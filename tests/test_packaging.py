@@ -40,3 +40,14 @@ def test_the_readme_says_how_its_commands_find_hapticd():
     commands = [c for ln in first.splitlines() if (c := ln.split("#")[0].strip())]
     assert commands[0] == ". .venv/bin/activate", commands[:2]
     assert all(c.startswith("hapticd ") for c in commands[1:])
+
+
+def test_every_package_folder_is_in_the_wheel():
+    """setuptools puts only the listed packages in a wheel: a subpackage missing from the
+    list works in the editable install and breaks `pip install .` (it did, for six)."""
+    tool = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    listed = set(tool["packages"])
+    on_disk = {"hapticd_drivers"} | {
+        ".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "hapticd").rglob("__init__.py")
+    }
+    assert listed == on_disk
