@@ -392,8 +392,12 @@ def test_a_page_in_headless_chromium_shows_advancing_ticks(daemon, view, tmp_pat
         # Every pixel inside a convex box's outline is under one far face and one near face
         # (view.js: rgba(120,160,220) at 0.40 then 0.28), on the background #f4f5f7 or on
         # the object's shadow (rgba(20,30,50) at 0.12) over it.
-        colours = canvas_colours(browser)
-        assert len(colours) > 1, f"the scene canvas is one colour: {colours}"
+        colours = wait_for(
+            lambda: canvas_colours(browser),
+            "the scene canvas to hold more than one colour",
+            until=lambda c: len(c) > 1,
+            timeout_s=10,
+        )
         face = (120, 160, 220)
         bg = hex_rgb("#f4f5f7")
         in_box = [
@@ -426,13 +430,18 @@ def test_a_page_in_headless_chromium_shows_advancing_ticks(daemon, view, tmp_pat
         panels = "getComputedStyle(document.getElementById('panels')).display"
         assert browser.evaluate(panels) == "none"
         # Drawn too: the object (rgba(120,160,220) at 0.55, twice) on the dark background.
-        colours = canvas_colours(browser)
+        # (It is one colour until the first status and telemetry come: wait for them.)
+        colours = wait_for(
+            lambda: canvas_colours(browser),
+            "the subject's canvas to hold more than one colour",
+            until=lambda c: len(c) > 1,
+            timeout_s=10,
+        )
         bg = hex_rgb("#20242c")
         in_box = [
             blend(blend(under, face, 0.55), face, 0.55)
             for under in (bg, blend(bg, (0, 0, 0), 0.35))
         ]
-        assert len(colours) > 1
         assert sum(pixels_near(colours, c) for c in in_box) > 0.01 * sum(colours.values())
         # Nothing in the subject's document reveals the condition: not hidden, absent.
         text = browser.evaluate("document.documentElement.textContent")
