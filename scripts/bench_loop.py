@@ -6,13 +6,18 @@ the emulator, optionally with control load (another process sending status
 requests as fast as it can plus a 100 Hz telemetry subscriber) and with every
 tick recorded, with or without real-time settings (SCHED_FIFO, mlockall, timer
 slack; needs root or LimitRTPRIO), beside a bare deadline wait with no work
-(the machine's floor). Every case runs ``--rounds`` times,
+(the machine's floor), and at 1 kHz with ``hapticd view`` open and two pages
+reading its stream (the experimenter's and the subject's: by default a process
+reading both Server-Sent Event streams over HTTP as a page's EventSource does;
+with ``--browser chromium`` two headless Chromium pages, which also parse and
+draw every frame). Every case runs ``--rounds`` times,
 interleaved, and the table gives the median over rounds of each figure and the
 p99 ratio to the idle real-time replay case at the same rate (the machines are
 shared and noisy: compare within one run).
 
     python scripts/bench_loop.py --rounds 3 --seconds 5
     python scripts/bench_loop.py --quick          # 1 and 4 kHz, replay only
+    python scripts/bench_loop.py --view --rounds 2 --seconds 4   # the view's cost alone
 
 Prints a Markdown table and saves a histogram plot, in the system temp dir unless
 --plot PATH names a file (the docs' figure: --plot docs/img/bench-loop.png).
@@ -58,6 +63,38 @@ except (OSError, ValueError):
 print(n)
 """
 
+# Two pages on ``hapticd view``: each reads its event stream as a browser's EventSource
+# does (line by line, every event parsed as JSON). Prints the telemetry frames read.
+PAGES_SCRIPT = r"""
+import json, signal, sys, threading, urllib.request
+stop = threading.Event()
+signal.signal(signal.SIGTERM, lambda *a: stop.set())
+opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
+counts = []
+def page(url, i):
+    try:
+        with opener.open(url, timeout=10) as r:
+            event = None
+            for line in r:
+                if stop.is_set():
+                    return
+                if line.startswith(b"event: "):
+                    event = line[7:].strip()
+                elif line.startswith(b"data: "):
+                    json.loads(line[6:])
+                    if event == b"telemetry":
+                        counts[i] += 1
+    except (OSError, ValueError):
+        pass  # the view ended first
+urls = sys.argv[1:]
+counts.extend([0] * len(urls))
+threads = [threading.Thread(target=page, args=(u, i), daemon=True) for i, u in enumerate(urls)]
+for t in threads:
+    t.start()
+stop.wait()
+print(sum(counts))
+"""
+
 
 # The machine's floor: the same deadline wait (sleep, then spin the last 200 us or half a
 # period) with no work at all, under SCHED_FIFO when permitted.
@@ -97,11 +134,14 @@ print(json.dumps({
 """
 
 
+VIEW_LOAD = "view + 2 pages"
+
+
 @dataclass(frozen=True)
 class Case:
     rate_hz: int
     device: str  # "replay", "emulated" or "bare"
-    load: str  # "idle", "recording" or "control + recording"
+    load: str  # "idle", "recording", "control + recording" or VIEW_LOAD
     realtime: bool
 
     @property
@@ -126,7 +166,65 @@ def _wait_socket(path: Path, proc: subprocess.Popen, timeout_s: float = 20.0) ->
     return False
 
 
-def run_case(case: Case, seconds: float, work: Path) -> dict:
+class ViewLoad:
+    """``hapticd view`` on the daemon's socket and two pages on it (the experimenter's and
+    the subject's): HTTP stream readers, or headless Chromium pages (``browser``)."""
+
+    def __init__(self, sock: Path, work: Path, browser: str) -> None:
+        self.view = subprocess.Popen(
+            [sys.executable, "-m", "hapticd", "view", "--socket", str(sock), "-q"],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
+        self.pages: subprocess.Popen | None = None
+        self.chromium = None
+        url = self.view.stdout.readline().strip()  # the URL comes first, flushed at once
+        if not url.startswith("http://"):
+            self.close()
+            raise RuntimeError(f"hapticd view printed no URL: {url!r}")
+        base, _, query = url.partition("/?")
+        if browser == "chromium":
+            sys.path.insert(0, str(ROOT))
+            from tests import cdp
+
+            exe = cdp.find_chromium()
+            if exe is None:
+                self.close()
+                raise RuntimeError("--browser chromium: no chromium found")
+            self.chromium = cdp.Browser(exe, work / "chromium")
+            self.chromium.open(url)
+            self.chromium.open(url + "&mode=subject")
+        else:
+            streams = [f"{base}/events?{query}", f"{base}/events?{query}&mode=subject"]
+            self.pages = subprocess.Popen(
+                [sys.executable, "-c", PAGES_SCRIPT, *streams],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+                text=True,
+            )
+
+    def close(self) -> int | None:
+        """Stop the pages and the view; the telemetry frames the stream readers read."""
+        frames = None
+        if self.pages is not None:
+            self.pages.send_signal(signal.SIGTERM)
+            out, _ = self.pages.communicate(timeout=10)
+            with contextlib.suppress(ValueError):
+                frames = int(out.strip() or 0)
+        if self.chromium is not None:
+            self.chromium.close()
+        self.view.send_signal(signal.SIGTERM)
+        try:
+            self.view.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            self.view.kill()
+            self.view.communicate(timeout=10)
+        return frames
+
+
+def run_case(case: Case, seconds: float, work: Path, browser: str = "http") -> dict:
     if case.device == "bare":
         out = subprocess.run(
             [sys.executable, "-c", BARE_SCRIPT, str(case.rate_hz), str(seconds)],
@@ -134,7 +232,7 @@ def run_case(case: Case, seconds: float, work: Path) -> dict:
             text=True,
             check=True,
         ).stdout
-        return {**json.loads(out), "requests_per_s": None}
+        return {**json.loads(out), "requests_per_s": None, "page_frames_per_s": None}
     data = yaml.safe_load(PROFILE.read_text())
     data["loop"] = {**data.get("loop", {}), "rate_hz": float(case.rate_hz)}
     profile = work / f"bench-{case.rate_hz}.yaml"
@@ -159,10 +257,13 @@ def run_case(case: Case, seconds: float, work: Path) -> dict:
         cmd += ["--device", "hid", "--emulate"]
     if not case.realtime:
         cmd.append("--no-realtime")
-    if case.load != "idle":
+    if case.load in ("recording", "control + recording"):
         cmd += ["--record", str(work / "bench.hrec")]
     proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True)
     load = None
+    view = None
+    if case.load == VIEW_LOAD and _wait_socket(sock, proc):
+        view = ViewLoad(sock, work, browser)
     if case.load == "control + recording" and _wait_socket(sock, proc):
         load = subprocess.Popen(
             [sys.executable, "-c", LOAD_SCRIPT, str(sock)],
@@ -178,11 +279,13 @@ def run_case(case: Case, seconds: float, work: Path) -> dict:
         out, _ = load.communicate(timeout=10)
         with contextlib.suppress(ValueError):
             requests = int(out.strip() or 0)
+    frames = None if view is None else view.close()
     if proc.returncode not in (0, 3) or not summary.exists():
         raise RuntimeError(f"{case.label}: hapticd exited {proc.returncode}: {err[-2000:]}")
     s = json.loads(summary.read_text())
     summary.unlink()
     s["requests_per_s"] = None if requests is None else requests / seconds
+    s["page_frames_per_s"] = None if frames is None else frames / seconds
     return s
 
 
@@ -192,6 +295,17 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=5.0, help="length of each run, s (<= 7.8)")
     ap.add_argument("--quick", action="store_true", help="1 and 4 kHz, replay only")
     ap.add_argument(
+        "--view",
+        action="store_true",
+        help=f"only 1 kHz: the bare wait, replay idle and replay with {VIEW_LOAD}",
+    )
+    ap.add_argument(
+        "--browser",
+        choices=("http", "chromium"),
+        default="http",
+        help="the view's two pages: HTTP stream readers (default) or headless Chromium",
+    )
+    ap.add_argument(
         "--plot",
         type=Path,
         default=DEFAULT_PLOT,
@@ -199,13 +313,19 @@ def main() -> None:
         help=f"save the plot here (default {DEFAULT_PLOT})",
     )
     args = ap.parse_args()
-    rates = [1000, 4000] if args.quick else [1000, 2000, 4000, 8000]
+    rates = [1000] if args.view else [1000, 4000] if args.quick else [1000, 2000, 4000, 8000]
     devices = ["replay"] if args.quick else ["replay", "emulated"]
     cases = []
     for r in rates:
         cases.append(Case(r, "bare", "idle", True))
+        if args.view:
+            cases.append(Case(r, "replay", "idle", True))
+            cases.append(Case(r, "replay", VIEW_LOAD, True))
+            continue
         for rt in (True, False):
             cases.append(Case(r, "replay", "idle", rt))
+        if r == 1000:
+            cases.append(Case(r, "replay", VIEW_LOAD, True))
         cases.append(Case(r, "replay", "recording", True))
         for rt in (True, False):
             cases.append(Case(r, "replay", "control + recording", rt))
@@ -217,7 +337,7 @@ def main() -> None:
         work = Path(tmp)
         for rnd in range(args.rounds):
             for case in cases:
-                results[case].append(run_case(case, args.seconds, work))
+                results[case].append(run_case(case, args.seconds, work, args.browser))
                 print(f"round {rnd + 1}/{args.rounds}: {case.label}", file=sys.stderr)
     fifo = any(
         r["realtime"]["fifo_priority"] for rs in results.values() for r in rs if r.get("realtime")
@@ -237,7 +357,7 @@ def main() -> None:
     cols = [
         "rate", "device", "load", "policy", "period error p50 us", "p99 us", "p99.9 us",
         "max us", "overruns /10k", "compute p50 us", "compute p99 us", "p99 x idle FIFO",
-        "requests/s",
+        "requests/s", "page frames/s",
     ]  # fmt: skip
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
@@ -247,6 +367,7 @@ def main() -> None:
         p99 = med(rs, "period_error_us", "p99")
         ratio = p99 / med(base, "period_error_us", "p99") if base else float("nan")
         req = [r["requests_per_s"] for r in rs if r["requests_per_s"] is not None]
+        pf = [r["page_frames_per_s"] for r in rs if r["page_frames_per_s"] is not None]
         cells = [
             case.label,
             f"{med(rs, 'period_error_us', 'p50'):.2f}",
@@ -258,8 +379,16 @@ def main() -> None:
             f"{med(rs, 'tick_compute_us', 'p99'):.1f}",
             f"{ratio:.2f}",
             f"{statistics.median(req):.0f}" if req else "-",
+            f"{statistics.median(pf):.0f}" if pf else "-",
         ]
         print("| " + " | ".join(cells) + " |")
+    if any(c.load == VIEW_LOAD for c in cases):
+        pages = (
+            "two headless Chromium pages (page frames/s not counted)"
+            if args.browser == "chromium"
+            else "two HTTP stream readers (page frames/s: telemetry frames both read)"
+        )
+        print(f"\n{VIEW_LOAD}: hapticd view at its default 60 Hz telemetry, {pages}")
     plot(results, rates, args.plot)
 
 

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from hapticd import params
 from hapticd.cli import build_parser, main
 from hapticd.control import ControlClient
 from hapticd.daemon.server import ControlServer
@@ -320,6 +321,40 @@ def test_without_a_daemon_the_page_says_so(tmp_path, view):
     assert state["connected"] is False and "is hapticd running?" in state["message"]
 
 
+# The scene canvas's pixels: {(r, g, b): count} (JSON keys "r,g,b").
+CANVAS_COLOURS = """(() => {
+  const c = document.querySelector('[data-testid=scene]');
+  const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  const n = {};
+  for (let i = 0; i < d.length; i += 4) {
+    const k = d[i] + ',' + d[i + 1] + ',' + d[i + 2];
+    n[k] = (n[k] || 0) + 1;
+  }
+  return n;
+})()"""
+
+
+def canvas_colours(browser) -> dict[tuple[int, int, int], int]:
+    raw = browser.evaluate(CANVAS_COLOURS)
+    return {tuple(int(x) for x in k.split(",")): n for k, n in raw.items()}
+
+
+def blend(under: tuple[float, ...], over: tuple[int, int, int], alpha: float) -> tuple[float, ...]:
+    """``over`` painted at ``alpha`` on ``under`` (sRGB, as the 2D canvas composites)."""
+    return tuple(alpha * o + (1 - alpha) * u for u, o in zip(under, over, strict=True))
+
+
+def pixels_near(colours, rgb, tol: float = 3.0) -> int:
+    """How many pixels are within ``tol`` (per channel) of ``rgb``."""
+    return sum(
+        n for c, n in colours.items() if all(abs(a - b) <= tol for a, b in zip(c, rgb, strict=True))
+    )
+
+
+def hex_rgb(h: str) -> tuple[int, int, int]:
+    return int(h[1:3], 16), int(h[3:5], 16), int(h[5:7], 16)
+
+
 def test_a_page_in_headless_chromium_shows_advancing_ticks(daemon, view, tmp_path):
     exe = cdp.find_chromium()
     if exe is None:
@@ -330,6 +365,7 @@ def test_a_page_in_headless_chromium_shows_advancing_ticks(daemon, view, tmp_pat
     v = view(daemon)
     tick = "document.querySelector('[data-testid=tick]').textContent"
     frames = "Number(document.querySelector('[data-testid=scene]').dataset.frames)"
+    stiffness = "document.querySelector('[data-testid=stiffness]').textContent"
     with cdp.Browser(exe, tmp_path / "chromium") as browser:
         browser.open(v.url)
         first = wait_for(
@@ -352,8 +388,40 @@ def test_a_page_in_headless_chromium_shows_advancing_ticks(daemon, view, tmp_pat
             == "if"
         )
         assert browser.evaluate("document.getElementById('control').hidden") is True
+        # The canvas is drawn, not blank: the background and more; and the object is there.
+        # Every pixel inside a convex box's outline is under one far face and one near face
+        # (view.js: rgba(120,160,220) at 0.40 then 0.28), on the background #f4f5f7 or on
+        # the object's shadow (rgba(20,30,50) at 0.12) over it.
+        colours = wait_for(
+            lambda: canvas_colours(browser),
+            "the scene canvas to hold more than one colour",
+            until=lambda c: len(c) > 1,
+            timeout_s=10,
+        )
+        face = (120, 160, 220)
+        bg = hex_rgb("#f4f5f7")
+        in_box = [
+            blend(blend(under, face, 0.40), face, 0.28)
+            for under in (bg, blend(bg, (20, 30, 50), 0.12))
+        ]
+        box_px = sum(pixels_near(colours, c) for c in in_box)
+        total = sum(colours.values())
+        assert box_px > 0.01 * total, (
+            f"the object's colour {[tuple(round(x) for x in c) for c in in_box]} covers "
+            f"{box_px} of {total} pixels"
+        )
         shot = browser.screenshot(tmp_path / "experimenter.png")
         assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        # A change made over the control socket (not by the page) shows on the page.
+        assert browser.evaluate(stiffness) == "60 N/m"
+        with ControlClient(daemon) as c:
+            c.set("stiffness_n_per_m", 90)
+        wait_for(
+            lambda: browser.evaluate(stiffness),
+            "the page to show the new stiffness",
+            until=lambda s: s == "90 N/m",
+            timeout_s=5,
+        )
         # The subject's page: the scene alone, still drawn; the panels are not shown.
         browser.open(v.subject_url)
         wait_for(
@@ -361,6 +429,27 @@ def test_a_page_in_headless_chromium_shows_advancing_ticks(daemon, view, tmp_pat
         )
         panels = "getComputedStyle(document.getElementById('panels')).display"
         assert browser.evaluate(panels) == "none"
+        # Drawn too: the object (rgba(120,160,220) at 0.55, twice) on the dark background.
+        # (It is one colour until the first status and telemetry come: wait for them.)
+        colours = wait_for(
+            lambda: canvas_colours(browser),
+            "the subject's canvas to hold more than one colour",
+            until=lambda c: len(c) > 1,
+            timeout_s=10,
+        )
+        bg = hex_rgb("#20242c")
+        in_box = [
+            blend(blend(under, face, 0.55), face, 0.55)
+            for under in (bg, blend(bg, (0, 0, 0), 0.35))
+        ]
+        assert sum(pixels_near(colours, c) for c in in_box) > 0.01 * sum(colours.values())
+        # Nothing in the subject's document reveals the condition: not hidden, absent.
+        text = browser.evaluate("document.documentElement.textContent")
+        shown = browser.evaluate("document.body.innerText")
+        for name in params.ALLOCATORS:
+            assert not re.search(rf"\b{re.escape(name)}\b", text), f"allocator {name!r} in {text!r}"
+        assert not re.search(r"\d\s*N\b|N/m|\b[69]0\b", text), text
+        assert not re.search(r"\d", shown), f"the subject's page shows {shown!r}"
         browser.screenshot(tmp_path / "subject.png")
 
 
