@@ -434,8 +434,8 @@ def pulse_once(
     """Run one pulse; (its first tick, a problem or None)."""
     loop = session.loop
     done = loop.submit(StartPulse(stage, i, d, amp))
-    if not done.wait(START_TIMEOUT_S):
-        return -1, "the loop did not take the pulse (not running)"
+    if not _wait(loop, done.is_set, START_TIMEOUT_S):
+        return -1, "the loop did not take the pulse (it is not running)"
     if done.error is not None:
         return -1, done.error
     # Paced: the pulse's length; unpaced: far less. Margin for a loaded machine.
@@ -458,6 +458,10 @@ def check_directions(
     # Forces ramp up after enabling (safety.ramp_s): the first pulse comes after it.
     ramp_ticks = math.ceil(prof.safety.ramp_s * loop.rate_hz) + 1
     _wait(loop, lambda: loop.stats.ticks > ramp_ticks, START_TIMEOUT_S + prof.safety.ramp_s)
+    if not loop.running:
+        report.say("  skipped: the loop ended")
+        report.fail("the loop ended before the pulses")
+        return False
     results = []
     ok = True
     for i, f in enumerate(prof.fingers):
