@@ -135,13 +135,14 @@ def _report(tmp_path) -> dict:
     return json.loads(path.read_text())
 
 
-def test_bringup_passes_on_replay_devices_and_sends_only_small_smooth_pulses(
-    tmp_path, captured, capsys
-):
+@pytest.mark.parametrize("device", ["replay", "sim"])
+def test_bringup_passes_and_sends_only_small_smooth_pulses(tmp_path, captured, capsys, device):
     """Scripted answers r, y, y: the thumb's direction is pulsed twice (repeat), the index's
     once; each device gets exactly those pulses, each at most 0.5 N, ramped, along the
-    direction announced; the report is saved with the date."""
-    code = main(["bringup", str(GRASP_PROFILE), *FAST, "--answers", "ryy", "--out", str(tmp_path)])
+    direction announced; the report is saved with the date. On replay devices, and on sim
+    fingers that the pulses move."""
+    argv = ["bringup", str(GRASP_PROFILE), *FAST, "--device", device, "--answers", "ryy"]
+    code = main([*argv, "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert code == 0, out
     assert "RESULT: PASS (devices, limits and workspace, 2 of 2 directions)" in out
