@@ -603,6 +603,8 @@ def bringup(args: argparse.Namespace, stdin: IO[str] | None = None) -> int:
                     report.say(f"  (live for {args.live_s:g} s; Enter goes on)")
                 show_live(session, report, args.live_s, stdin, enter)
                 pulses_ok = check_directions(session, stage, report, answers, args.pulse_n)
+                if answers.left:
+                    report.say(f"  ({len(answers.left)} scripted answer(s) left unused)")
         except KeyboardInterrupt:
             report.fail("interrupted")
             loop.request_stop("bring-up interrupted", ramp=False)

@@ -3,11 +3,15 @@ emulated and fake-SDK devices, read back from the forces the devices were actual
 
 from __future__ import annotations
 
+import argparse
 import ctypes
 import datetime
 import io
 import json
 import math
+import os
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -337,3 +341,47 @@ def test_a_device_unplugged_during_the_bringup_ends_it_in_a_fault_at_zero_force(
     assert _report(tmp_path)["fault"]["tick"] == 200
     assert lib.fake_is_enabled(0) == 0 and lib.fake_is_open(0) == 0
     assert not _sent(lib, 0).any()  # no pulse had started
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_on_a_terminal_positions_refresh_until_enter_and_answers_are_typed(tmp_path, monkeypatch):
+    """stdin and stdout terminals (stdin a pseudo-terminal): the position lines are redrawn
+    in place until Enter (long before --live-s), then each answer is a typed line."""
+    out = _Terminal()
+    monkeypatch.setattr("sys.stdout", out)
+    master, slave = os.openpty()
+    stdin = os.fdopen(slave, "r")
+
+    def type_later() -> None:
+        time.sleep(0.5)  # a few refreshes first
+        os.write(master, b"\n")
+        time.sleep(0.2)
+        os.write(master, b"y\nn\n")
+
+    typist = threading.Thread(target=type_later)
+    typist.start()
+    ap = argparse.ArgumentParser()
+    bringup_module.add_arguments(ap)
+    ns = ap.parse_args(
+        [str(GRASP_PROFILE), "--unpaced", "--no-realtime", "--live-s", "60", "--out", str(tmp_path)]
+    )
+    ns.set = None
+    t0 = time.monotonic()
+    try:
+        code = bringup_module.bringup(ns, stdin=stdin)
+    finally:
+        typist.join(timeout=10)
+        stdin.close()
+        os.close(master)
+    assert time.monotonic() - t0 < 30  # Enter ended the live view, not --live-s
+    text = out.getvalue()
+    assert code == 1 and "index direction 1: not felt in that direction" in text
+    assert "(live for 60 s; Enter goes on)" in text
+    assert text.count("\x1b[2F") >= 2  # redrawn in place, two lines up
+    saved = next(tmp_path.glob("*.txt")).read_text()
+    assert "\x1b" not in saved and saved.count("  thumb  world (") == 1
+    assert [r["answers"] for r in _report(tmp_path)["pulses"]] == [["y"], ["n"]]
