@@ -21,6 +21,7 @@ import datetime
 import json
 import math
 import select
+import signal
 import sys
 import threading
 import time
@@ -587,6 +588,10 @@ def bringup(args: argparse.Namespace, stdin: IO[str] | None = None) -> int:
     pulses_ok = False
     out: dict[str, Any] = {}
     if devices_ok:
+        # SIGTERM ends a bring-up as Ctrl-C does: forces to zero, the report saved.
+        old_term = None
+        if threading.current_thread() is threading.main_thread():
+            old_term = signal.signal(signal.SIGTERM, _interrupt)
         runner = threading.Thread(
             target=lambda: out.update(summary=session.run()), name="hapticd-bringup-loop"
         )
@@ -614,6 +619,8 @@ def bringup(args: argparse.Namespace, stdin: IO[str] | None = None) -> int:
             if runner.is_alive():
                 loop.request_stop("bring-up done", ramp=False)
                 runner.join(STOP_TIMEOUT_S)
+            if old_term is not None:
+                signal.signal(signal.SIGTERM, old_term)
     else:
         report.say("3. positions and 4. force pulses: skipped (the devices failed)")
         _close_unused(session.devices)
@@ -643,6 +650,10 @@ def bringup(args: argparse.Namespace, stdin: IO[str] | None = None) -> int:
     if fault is not None:
         return cli.EXIT_FAULT
     return cli.EXIT_OK if passed else cli.EXIT_ERROR
+
+
+def _interrupt(_signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt
 
 
 def _close_unused(devices: list[Device]) -> None:
