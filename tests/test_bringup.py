@@ -206,9 +206,10 @@ def test_a_released_deadman_holds_the_pulse_back_and_fails_without_asking(
     assert not thumb.forces.any() and len(_pulses(index.forces)) == 1
 
 
-def test_bringup_on_emulated_hid_devices(tmp_path, captured, capsys, monkeypatch):
-    """Through the hid backend's reports to the device emulator: the force the emulated
-    motors exert never exceeds 0.5 N (plus the current's quantisation)."""
+@pytest.mark.parametrize("backend", ["hid", "usb"])
+def test_bringup_on_emulated_devices(tmp_path, captured, capsys, monkeypatch, backend):
+    """Through the hid or usb backend's reports to the device emulator: the force the
+    emulated motors exert never exceeds 0.5 N (plus the current's quantisation)."""
     from hapticd_drivers.emulator import DeltaEmulator
 
     felt: dict[int, list] = {}
@@ -219,11 +220,11 @@ def test_bringup_on_emulated_hid_devices(tmp_path, captured, capsys, monkeypatch
         felt.setdefault(id(self), []).append(self.end_effector_force())
 
     monkeypatch.setattr(DeltaEmulator, "output_report", spy)
-    args = ["bringup", str(GRASP_PROFILE), *FAST, "--device", "hid", "--emulate"]
+    args = ["bringup", str(GRASP_PROFILE), *FAST, "--device", backend, "--emulate"]
     code = main([*args, "--answers", "yy", "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert code == 0, out
-    assert "thumb: hid" in out and "EMU-thumb" in out
+    assert f"thumb: {backend}" in out and "EMU-thumb" in out
     assert len(felt) == 2
     for forces in felt.values():
         mags = np.linalg.norm(np.array(forces), axis=1)
