@@ -18,7 +18,7 @@ import numpy as np
 from hapticd_drivers import BackendUnavailableError, DeviceError, registry
 from hapticd_drivers.registry import backend_names, discover
 
-from hapticd import __version__, params
+from hapticd import __version__, bringup, params
 from hapticd import events as event_kinds
 from hapticd.build import build_devices, build_mounts, build_scene, load_trajectories
 from hapticd.control import ControlClient, NoDaemonError, default_socket_path
@@ -301,12 +301,12 @@ def _reach_line(name: str, r: Reach, where: str) -> str:
     )
 
 
-def workspace_report(profile: Any, devices: list[Any]) -> list[str]:
-    """Per finger, how its device's workspace sphere (from the device description, placed
-    by its mount) and the safety section's sphere meet the object at its starting pose."""
+def workspace_reaches(profile: Any, devices: list[Any]) -> list[tuple[str, Reach, str]]:
+    """Per finger, then the safety section's sphere (if set): (name, how the workspace
+    meets the object at its starting pose, where the workspace is)."""
     obj = build_scene(profile.scene, profile).object
     poly, verts = obj.polytope, obj.vertices_world()
-    lines = ["workspaces (the object at its starting pose):"]
+    out = []
     for f, dev, mount in zip(profile.fingers, devices, build_mounts(profile), strict=True):
         r = workspace_reach(
             mount,
@@ -317,15 +317,22 @@ def workspace_report(profile: Any, devices: list[Any]) -> list[str]:
             obj.center,
             f.radius_m,
         )
-        where = f"device workspace about {_mm(mount.position)} (world)"
-        lines.append(_reach_line(f.name, r, where))
+        out.append((f.name, r, f"device workspace about {_mm(mount.position)} (world)"))
     sc = profile.safety
     if sc.workspace_radius_m is not None:
         safety = Mount(position=np.array(sc.workspace_center_m, dtype=float))
         r = workspace_reach(
             safety, sc.workspace_radius_m, poly.normals, poly.offsets, verts, obj.center, 0.0
         )
-        lines.append(_reach_line("safety", r, "workspace (world)"))
+        out.append(("safety", r, "workspace (world)"))
+    return out
+
+
+def workspace_report(profile: Any, devices: list[Any]) -> list[str]:
+    """Per finger, how its device's workspace sphere (from the device description, placed
+    by its mount) and the safety section's sphere meet the object at its starting pose."""
+    lines = ["workspaces (the object at its starting pose):"]
+    lines += [_reach_line(*w) for w in workspace_reaches(profile, devices)]
     return lines
 
 
@@ -1392,6 +1399,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_experiment(sub)
     _add_plot(sub)
     _add_view(sub, sock_help)
+    _add_bringup(sub)
     exp = sub.add_parser("export", help="export a recording to CSV or MCAP (Foxglove)")
     exp.add_argument("recording", type=Path)
     fmt = exp.add_mutually_exclusive_group()
@@ -1420,6 +1428,20 @@ def build_parser() -> argparse.ArgumentParser:
     udev = sub.add_parser("udev-rules", help="print udev rules that let users open the devices")
     udev.set_defaults(func=cmd_udev_rules)
     return ap
+
+
+def _add_bringup(sub: Any) -> None:
+    """``hapticd bringup``: its arguments are hapticd.bringup's, and so is the work."""
+    p = sub.add_parser(
+        "bringup",
+        help="check a rig before a subject touches it: devices, limits, positions, force pulses",
+        description="Check the rig: devices found and calibrated, limits and workspaces, live "
+        "positions, a small force pulse (at most 0.5 N) per actuated direction that you "
+        "confirm (y/n/r), a PASS/FAIL summary saved as JSON and text (docs/hardware.md).",
+    )
+    bringup.add_arguments(p)
+    _add_set_option(p)
+    p.set_defaults(func=bringup.bringup)
 
 
 def _add_progress_option(parser: argparse.ArgumentParser) -> None:

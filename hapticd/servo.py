@@ -102,6 +102,8 @@ class ServoLoop:
         # simulation: a machine pausing it endangers no one, so it feeds no watchdog.
         self.wall_watchdog = wall_watchdog
         self.duration_s = duration_s
+        # Whether the run ends when every device's trajectory has (a bring-up goes on).
+        self.end_with_trajectory = True
         self.recorder = recorder
         F = len(devices)
         self.frame = Frame(F, renderer.actuation.n_actuators)
@@ -355,7 +357,7 @@ class ServoLoop:
             return self._stop_reason if self.safety.ramped_down(t) else None
         if self.duration_s is not None and (k + 1) * self.period >= self.duration_s - 1e-12:
             return "duration reached"
-        if self.bank.finished:
+        if self.end_with_trajectory and self.bank.finished:
             return TRAJECTORY_ENDED
         return None
 

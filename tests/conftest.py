@@ -232,6 +232,7 @@ def _build_fake_sdk(out_dir: Path, name: str, *defines: str) -> tuple[str, ctype
     lib.fake_set_buttons.argtypes = [ctypes.c_int, ctypes.c_uint]
     dp = ctypes.POINTER(ctypes.c_double)
     lib.fake_set_path.argtypes = [ctypes.c_int, ctypes.c_int, dp, dp]
+    lib.fake_force_log.argtypes = [ctypes.c_int, dp, ctypes.c_int]
     for name_ in ("fake_max_force", "fake_effector_mass"):
         getattr(lib, name_).restype = ctypes.c_double
     lib.fake_log.restype = ctypes.c_char_p

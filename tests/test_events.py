@@ -7,6 +7,7 @@ import ast
 import json
 import socket
 import threading
+import time
 import tracemalloc
 from pathlib import Path
 
@@ -426,3 +427,54 @@ def test_an_overflowing_ring_is_reported_as_lost_events_in_place(
     seen = [e for e in before + after if e["tick"] in span]
     assert len(seen) + sum(r["count"] for r in reports) == made
     assert {e["event"] for e in seen} == {"button_down", "button_up"}
+
+
+def test_hapticd_events_json_shows_the_grasps_contacts_at_the_recordings_transitions(
+    daemon, tmp_path, capsys
+):
+    """`hapticd events --json`, subscribed before the bundled grasp starts, prints a
+    contact_begin and a contact_end for each finger at exactly the ticks where the run's own
+    recording (from tick 0) changes in_contact, and nothing else of those kinds."""
+    from hapticd.cli import main
+
+    d = daemon(paced=False, record_path=tmp_path / "grasp.hrec")
+
+    def start_when_subscribed() -> None:
+        try:
+            deadline = time.monotonic() + 20
+            while not any(c.event_kinds is not None for c in list(d.server._conns.values())):
+                if time.monotonic() > deadline:
+                    return  # the command fails below: it printed nothing
+                time.sleep(0.005)
+            d.start()
+            d.runner.join(timeout=60)
+        finally:
+            d.server.close()  # as the daemon does when its run ends: the stream ends
+
+    starter = threading.Thread(target=start_when_subscribed, name="test-starter")
+    starter.start()
+    kinds = "contact_begin,contact_end"
+    code = main(["events", "--json", "--kinds", kinds, "--socket", str(d.sock)])
+    starter.join(timeout=70)
+    assert code == 0
+    got = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    summary = d.out["summary"]
+    assert summary["end_reason"] == "trajectory ended" and summary["fault"] is None
+    rec = recording.read(tmp_path / "grasp.hrec")
+    ticks = rec["tick"].astype(np.int64)
+    np.testing.assert_array_equal(ticks, np.arange(rec.ticks))
+    contact = rec["in_contact"].astype(int)
+    assert not contact[0].any()
+    for i, name in enumerate(("thumb", "index")):
+        change = np.diff(contact[:, i])
+        want = sorted(
+            [(int(k), "contact_begin") for k in ticks[1:][change == 1]]
+            + [(int(k), "contact_end") for k in ticks[1:][change == -1]]
+        )
+        assert [e for _, e in want].count("contact_begin") >= 1, f"{name} never touched"
+        assert [e for _, e in want].count("contact_end") >= 1, f"{name} never let go"
+        mine = [(e["tick"], e["event"]) for e in got if e["finger"] == i]
+        assert mine == want, name
+        assert all(e["finger_name"] == name for e in got if e["finger"] == i)
+    assert {e["event"] for e in got} == {"contact_begin", "contact_end"}
+    assert all(e["t"] == pytest.approx(e["tick"] * 1e-3) for e in got)

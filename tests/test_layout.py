@@ -36,6 +36,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.mount",
         "hapticd.passivity",
         "hapticd.psychophysics",
+        "hapticd.pulse",
         "hapticd.render",
         "hapticd.safety",
         "hapticd.scene",
@@ -55,6 +56,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.__main__",
         "hapticd.analysis",  # Pipeline.from_profile reads the profile through hapticd.build
         "hapticd.analysis.report",  # hapticd analyze's tables, JSON and plot
+        "hapticd.bringup",  # hapticd bringup: the rig checked before a subject touches it
         "hapticd.build",
         "hapticd.cli",
         "hapticd.daemon.*",

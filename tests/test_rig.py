@@ -66,6 +66,7 @@ def test_hapticd_run_on_the_fake_sdk_renders_the_grasp_in_world_coordinates(
     world_traj, _ = _trajectories(tmp_path)
     _play_world_motion_on_the_fake(lib, world_traj)
     _, profile = _dhd_profile(tmp_path, lib_path)
+    lib.fake_set_buttons(1, 0b101)  # the index's buttons 0 and 2 held all run
     rec_path = tmp_path / "dhd.hrec"
     common = ["--unpaced", "--duration", str(DURATION_S), "--no-realtime", "--no-socket", "-q"]
     assert main(["run", profile, *common, "--record", str(rec_path)]) == 0, capsys.readouterr()
@@ -85,6 +86,14 @@ def test_hapticd_run_on_the_fake_sdk_renders_the_grasp_in_world_coordinates(
     for name in ("device_pos", "device_vel", "contact_force", "rendered_force", "device_force"):
         np.testing.assert_allclose(a[name], b[name], rtol=0, atol=1e-12, err_msg=name)
     assert np.abs(a["device_force"]).max() > 0.5
+    # The rig in the recording: each device's buttons every tick, its mount and effector mass.
+    assert (a["buttons"][:, 0] == 0).all() and (a["buttons"][:, 1] == 0b101).all()
+    rig = a.meta["devices"]
+    assert [d["finger"] for d in rig] == ["thumb", "index"]
+    for d in rig:
+        assert d["mount"] == {"workspace_scale": 1.0, **MOUNTS[d["finger"]]}
+    assert [d["effector_mass_kg"] for d in rig] == pytest.approx([0.2, 0.21])
+    assert [d["model"] for d in rig] == ["dhd", "dhd"] and rig[1]["serial"] == "dhd#1"
     # What the SDK applied: each device's forces in its own frame, R^T f, summed over the run.
     for j, name in enumerate(a.fingers):
         applied = (ctypes.c_double * 3)()
@@ -206,3 +215,54 @@ def test_the_hardware_guide_mounting_example(tmp_path, libdhd, capsys):
     out = capsys.readouterr().out
     assert out.count("the object is reachable") == 2 and "out of reach" not in out
     assert out.count("nearest object point 35.0 mm") == 2
+
+
+def test_a_device_index_that_does_not_exist_ends_the_run_at_setup_naming_it(
+    tmp_path, libdhd, capsys
+):
+    lib_path, lib = libdhd
+    lib.fake_reset(2)
+    data, _ = _dhd_profile(tmp_path, lib_path)
+    data["fingers"][1]["device"]["index"] = 5
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(data))
+    code = main(["run", str(path), "--unpaced", "--duration", "1", "--no-realtime", "--no-socket"])
+    out = capsys.readouterr().out
+    assert code == 3, out
+    assert "device setup failed: dhd: no device at index 5; 2 present" in out
+    assert "enable 0 1" not in lib.fake_log().decode()  # the thumb's forces never came on
+    assert lib.fake_is_enabled(0) == 0 and lib.fake_is_open(0) == 0
+
+
+def test_a_device_unplugged_mid_run_latches_a_fault_zeroes_and_keeps_the_recording(
+    tmp_path, libdhd
+):
+    """The index's cable pulled at tick 3000 of the grasp (in the pinch): the fault names the
+    device, the thumb's device ends at zero force with its forces off, and the recording
+    holds every tick before the fault, then the zero force the shutdown sent."""
+    from hapticd.daemon.session import build_session
+    from hapticd.profile import load_profile
+    from tests.conftest import AtTick
+
+    lib_path, lib = libdhd
+    lib.fake_reset(2)
+    world_traj, _ = _trajectories(tmp_path)
+    _play_world_motion_on_the_fake(lib, world_traj)
+    _, profile = _dhd_profile(tmp_path, lib_path, serials=True)
+    rec_path = tmp_path / "unplug.hrec"
+    s = build_session(
+        load_profile(profile), paced=False, duration_s=DURATION_S, record_path=rec_path
+    )
+    s.loop.realtime_settings = None
+    s.renderer.insert(AtTick(3000, lambda f: lib.fake_unplug(1)), after="contact")
+    summary = s.run()
+    fault = summary["fault"]
+    assert fault["tick"] == 3000 and "dhd 10002" in fault["cause"] and "unplugged" in fault["cause"]
+    rec = recording.read(rec_path)
+    np.testing.assert_array_equal(rec["tick"], np.arange(rec.ticks))
+    assert rec.ticks == 3001  # ticks 0-2999, then tick 3000: the shutdown's zero force
+    assert np.abs(rec["device_force"][-2]).max() > 0.1 and not rec["device_force"][-1].any()
+    applied = (ctypes.c_double * 3)()
+    lib.fake_get_force(0, applied)
+    assert list(applied) == [0.0, 0.0, 0.0]
+    assert lib.fake_is_enabled(0) == 0 and lib.fake_is_open(0) == 0

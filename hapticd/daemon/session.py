@@ -126,6 +126,7 @@ class Session:
             paced=self.loop.paced,
             overwrite=overwrite,
             root=self.record_dir,
+            devices=self.devices,
         )
         try:
             done = self.apply(RecordStart(rec))
@@ -202,7 +203,9 @@ def build_session(
     safety = build_safety(profile, devices)
     recorder = None
     if record_path is not None:
-        recorder = make_recorder(profile, record_path, renderer, safety, paced=paced)
+        recorder = make_recorder(
+            profile, record_path, renderer, safety, paced=paced, devices=devices
+        )
     loop = ServoLoop(
         devices,
         renderer,
@@ -243,6 +246,26 @@ def on_nominal_clock(profile: Profile, device: str | None, emulate: bool) -> boo
     )
 
 
+def rig_meta(profile: Profile, devices: list[Device]) -> list[dict[str, Any]]:
+    """Per finger, its device in the rig, for a recording's header: model and serial (as
+    configured; a dhd device is named by its serial number or index), rated force (N), its
+    mount (position m, roll/pitch/yaw rad, workspace scale) and its effector mass (kg; None:
+    the backend has none or the SDK's default)."""
+    out = []
+    for f, dev in zip(profile.fingers, devices, strict=True):
+        out.append(
+            {
+                "finger": f.name,
+                "model": dev.info.model,
+                "serial": dev.info.serial,
+                "rated_force_n": dev.info.max_force_n,
+                "mount": f.device.mount.model_dump(mode="json"),
+                "effector_mass_kg": getattr(dev, "effector_mass_kg", None),
+            }
+        )
+    return out
+
+
 def make_recorder(
     profile: Profile,
     path: str | Path,
@@ -252,9 +275,11 @@ def make_recorder(
     paced: bool = True,
     overwrite: bool = True,
     root: Path | None = None,
+    devices: list[Device] | None = None,
 ) -> Recorder:
     """A recorder of every tick to ``path`` (confined to ``root`` when given), its writer
-    process started (RecordingError)."""
+    process started (RecordingError); its header holds the rig (``rig_meta``) when
+    ``devices`` are given."""
     rate = profile.loop.rate_hz
     rec = Recorder(
         path,
@@ -268,6 +293,7 @@ def make_recorder(
             "allocators": list(METHODS),
             "paced": paced,
             "force_limits_n": list(safety.limits),
+            **({"devices": rig_meta(profile, devices)} if devices is not None else {}),
         },
         capacity=max(4096, int(2.0 * rate)),  # 2 s of ticks: the writer may pause that long
         block_when_full=not paced,

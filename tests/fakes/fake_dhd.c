@@ -34,6 +34,11 @@ static int block_autoinit = 0;
 static char last_error[128] = "no error";
 /* Every call that changes a device, in order: "open 0;enable 0 0;force 0 0 0 0;..." */
 static char call_log[8192];
+/* Every force each device applied (after its enable state and its limit), in order:
+ * what a test reads as "sent to the device". */
+#define FORCE_LOG_N 65536
+static double force_log[MAX_DEV][FORCE_LOG_N][3];
+static int force_log_n[MAX_DEV];
 
 static void logf_(const char *fmt, int i, double a, double b, double c) {
     size_t n = strlen(call_log);
@@ -56,6 +61,7 @@ void fake_reset(int n) {
         dev[i].calibrated = 1; dev[i].effector_mass = 0.19;
     }
     current = -1; expert = 0; block_autoinit = 0; call_log[0] = 0;
+    memset(force_log_n, 0, sizeof force_log_n);
 }
 void fake_set_state(int i, double x, double y, double z, double vx, double vy, double vz) {
     dev[i].pos[0] = x; dev[i].pos[1] = y; dev[i].pos[2] = z;
@@ -70,6 +76,12 @@ void fake_set_path(int i, int n, const double *pos, const double *vel) {
     dev[i].path_n = n; dev[i].reads = 0; dev[i].k = 0;
 }
 int fake_reads(int i) { return dev[i].reads; }
+/* Copies at most max of device i's applied forces into out (max, 3); returns how many. */
+int fake_force_log(int i, double *out, int max) {
+    int n = force_log_n[i] < max ? force_log_n[i] : max;
+    memcpy(out, force_log[i], sizeof(double) * 3 * (size_t)n);
+    return n;
+}
 void fake_get_force(int i, double *f) { for (int k = 0; k < 3; k++) f[k] = dev[i].force[k]; }
 /* The sum of every force the device applied since the reset, N. */
 void fake_get_force_sum(int i, double *f) { for (int k = 0; k < 3; k++) f[k] = dev[i].force_sum[k]; }
@@ -159,6 +171,7 @@ int dhdSetForce(double fx, double fy, double fz, char id) {
     double f[3] = {fx, fy, fz}, n = sqrt(fx * fx + fy * fy + fz * fz), s = 1.0; int r = DHD_NO_ERROR;
     if (n > dev[i].max_force) { s = dev[i].max_force / n; r = DHD_MOTOR_SATURATED; }
     for (int k = 0; k < 3; k++) { dev[i].force[k] = dev[i].enabled ? f[k] * s : 0.0; dev[i].force_sum[k] += dev[i].force[k]; }
+    if (force_log_n[i] < FORCE_LOG_N) { memcpy(force_log[i][force_log_n[i]], dev[i].force, sizeof dev[i].force); force_log_n[i]++; }
     /* Only the first commands after opening are logged: enough to check the start sequence. */
     if (strlen(call_log) < 2048) logf_("force %d %g %g %g;", i, fx, fy, fz);
     return r;
