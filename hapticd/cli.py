@@ -1070,7 +1070,7 @@ def cmd_experiment_run(args: argparse.Namespace) -> int:
         exp = rn.reduced(exp, standards=standards, repetitions=args.repetitions)
         opts = rn.RunOptions(
             socket=args.socket,
-            keys_fd=None if args.no_keys else sys.stdin.fileno(),
+            keys_fd=None if args.no_keys else rn.stdin_fd(),
             person=rn.PersonOptions(buttons=rn.parse_buttons(args.buttons)),
         )
         db = args.db or Path(f"{exp.name}-trials.db")

@@ -174,31 +174,42 @@ def profile_hash(exp: Experiment) -> str:
 # -- walking a plan ------------------------------------------------------------------------
 
 
+def check_subject(subject: str) -> None:
+    """ValueError unless ``subject`` can name files (1 to 64 of A-Z a-z 0-9 _ . -)."""
+    if not SUBJECT_PATTERN.fullmatch(subject):
+        raise ValueError(
+            f"subject id {subject!r}: use 1 to 64 letters, digits, '_', '.' or '-' "
+            "(it names the recordings)"
+        )
+
+
 def start_subject(
     store: TrialStore, exp: Experiment, subject: str, seed: int, *, resume: bool
 ) -> list[PlannedTrial]:
     """Store ``subject``'s plan (``make_plan(exp, seed)``), or with ``resume`` check it is
-    the stored one; the trials left to do. RunnerError for a subject that already has a
-    plan without ``resume``, or none to resume; StoreError for another plan."""
-    if not SUBJECT_PATTERN.fullmatch(subject):
-        raise RunnerError(
-            f"subject id {subject!r}: use 1 to 64 letters, digits, '_', '.' or '-' "
-            "(it names the recordings)"
-        )
+    the stored one; the trials left to do. StoreError for a subject that already has a
+    plan without ``resume``, none to resume, or another plan; ValueError for a subject id
+    that cannot name files."""
+    check_start(store, subject, resume=resume)
+    store.ensure_plan(subject, make_plan(exp, seed), seed)
+    return store.remaining(subject)
+
+
+def check_start(store: TrialStore, subject: str, *, resume: bool) -> None:
+    """``start_subject``'s refusals, changing nothing."""
+    check_subject(subject)
     stored = store.plan(subject)
     if stored and not resume:
         done = len(stored) - len(store.remaining(subject))
-        raise RunnerError(
+        raise StoreError(
             f"{store.path}: subject {subject!r} already has a plan ({done} of {len(stored)} "
             "trials answered): continue it with --resume, or use another subject id"
         )
     if not stored and resume:
-        raise RunnerError(
+        raise StoreError(
             f"{store.path}: nothing to resume: subject {subject!r} has no plan here; "
             "run without --resume to start"
         )
-    store.ensure_plan(subject, make_plan(exp, seed), seed)
-    return store.remaining(subject)
 
 
 def run_subject(
@@ -489,8 +500,10 @@ class PersonPresenter:
             for k, value in enumerate(interval_values(exp, trial)):
                 if k == 1:
                     self._drain(exp.interval.gap_s)
-                self._change({**params_, exp.varied.param: value})
+                # Recording first: starting it takes a while (its writer process), and it
+                # must hold the whole touch that follows the change.
                 recordings.append(self._record_start(exp, trial, k + 1))
+                self._change({**params_, exp.varied.param: value})
                 self._explore(exp)
                 with self._talking():
                     self.client.record_stop()
@@ -609,7 +622,7 @@ class PersonPresenter:
                 elif name == "prompt" and prompt_t is not None:
                     raise RunnerError(f"another client replaced the prompt ({ev.get('prompt')})")
                 elif name == "response" and ev.get("prompt") == trial.index:
-                    answer = (ev.get("choice") == "yes", self._rt(ev, prompt_t, asked), "respond")
+                    answer = (ev.get("choice") == "yes", time.monotonic() - asked, "respond")
                 elif name == "button_down" and ev.get("response") and prompt_t is not None:
                     # After the prompt's event: pressed after the question was asked.
                     label = ev["response"]
@@ -627,12 +640,12 @@ class PersonPresenter:
 
     @staticmethod
     def _rt(ev: dict[str, Any], prompt_t: float | None, asked: float) -> float:
-        """Response time of an answer the daemon reports: on its clock (the tick times of
-        the prompt and of the answer) when the prompt's event was seen, else on ours."""
+        """Response time of a button press: on the daemon's clock (from the prompt's tick
+        to the press's, exact to a tick) when the prompt's event was seen, else on ours."""
         t = ev.get("t")
         if prompt_t is not None and isinstance(t, int | float) and t >= prompt_t:
-            return max(float(t) - float(prompt_t), 1e-6)
-        return max(time.monotonic() - asked, 1e-6)
+            return float(t) - float(prompt_t)
+        return time.monotonic() - asked
 
 
 # -- the command ---------------------------------------------------------------------------
@@ -681,6 +694,14 @@ ObserverFactory = Callable[
 OBSERVERS: dict[str, ObserverFactory] = {"person": person_observer}
 
 
+def stdin_fd() -> int | None:
+    """The file descriptor of the keys (standard input), or None without one."""
+    try:
+        return sys.stdin.fileno()
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
 def parse_buttons(text: str | None) -> dict[str, bool]:
     """``--buttons LABEL=yes,LABEL=no`` as {label: answer}; ValueError naming the item."""
     out: dict[str, bool] = {}
@@ -711,31 +732,48 @@ def run_experiment(
     options = options or RunOptions()
     factory = OBSERVERS.get(observer)
     if factory is None:
-        raise RunnerError(f"unknown observer {observer!r}; observers: {', '.join(OBSERVERS)}")
+        raise ValueError(f"unknown observer {observer!r}; observers: {', '.join(OBSERVERS)}")
     seed = exp.subject_seed(subject) if seed is None else seed
     out = options.out
+    check_subject(subject)
     with TrialStore.for_experiment(db, exp) as store:
-        todo = start_subject(store, exp, subject, seed, resume=resume)
-        total = len(store.plan(subject))
-        if not todo:
-            out.write(f"subject {subject!r}: all {total} trials are answered already\n")
-            return 0, 0
+        check_start(store, subject, resume=resume)
+        # The observer before the plan: a plan is stored only when it can be presented.
         with factory(exp, subject, options) as presenter:
-            say = getattr(presenter, "say", None) or (lambda s: out.write(s + "\n"))
-            say(
-                f"experiment {exp.name}: subject {subject}, seed {seed}, {len(todo)} of "
-                f"{total} trials to do; store {db}"
-            )
-            done = run_subject(
-                store,
-                exp,
-                subject,
-                seed,
-                presenter,
-                profile_hash=profile_hash(exp),
-                progress=lambda p: say(p.line()),
-            )
-        return done, len(store.remaining(subject))
+            todo = start_subject(store, exp, subject, seed, resume=resume)
+            return _run(store, exp, subject, seed, presenter, todo, db, out)
+
+
+def _run(
+    store: TrialStore,
+    exp: Experiment,
+    subject: str,
+    seed: int,
+    presenter: Presenter,
+    todo: list[PlannedTrial],
+    db: Path,
+    out: TextIO,
+) -> tuple[int, int]:
+    """``run_subject`` with the opening line and the progress lines."""
+    total = len(store.plan(subject))
+    if not todo:
+        out.write(f"subject {subject!r}: all {total} trials are answered already\n")
+        return 0, 0
+    say = getattr(presenter, "say", None) or (lambda s: out.write(s + "\n"))
+    say(
+        f"experiment {exp.name}: subject {subject}, seed {seed}, {len(todo)} of {total} "
+        f"trials to do; store {db}"
+    )
+    done = run_subject(
+        store,
+        exp,
+        subject,
+        seed,
+        presenter,
+        profile_hash=profile_hash(exp),
+        progress=lambda p: say(p.line()),
+    )
+    return done, len(store.remaining(subject))
 
 
 def float_list(text: str) -> list[float]:
