@@ -10,6 +10,7 @@ import sqlite3
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -458,6 +459,8 @@ def check_recordings(row: dict, plan, exp) -> None:
         last = np.flatnonzero(touching)[-1]
         first = np.flatnonzero(~touching[:last])[-1] + 1
         assert last - first > 100
+        # It ended on the release (interval.ends_on), well before the 1 s limit.
+        assert len(touching) - 1 - last < 200
         assert set(rec["stiffness_n_per_m"][first : last + 1].tolist()) == {value}
         used = {rec.meta["allocators"][k] for k in rec["allocator"][first : last + 1].tolist()}
         assert used == {cond["allocator"]}
@@ -626,3 +629,52 @@ def test_cli_refusals_before_any_trial(tmp_path, capsys):
             assert code == 2 and what in err, err
     assert main([*base[:3], "--subject", "a/b", "--db", str(fresh), *sock]) == 2
     assert "subject id 'a/b'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("ends_on", ["release", "time_limit"])
+def test_an_interval_held_past_its_limit_ends_there(live, ends_on):
+    """The bundled grasp squeezes for seconds: the interval ends at exploration_s and the
+    subject is told to release."""
+    import io
+
+    _, sock, _, _ = live
+    exp = load_experiment(STIFFNESS)
+    exp = exp.model_copy(
+        update={
+            "interval": exp.interval.model_copy(update={"exploration_s": 0.3, "ends_on": ends_on})
+        }
+    )
+    out = io.StringIO()
+    with ControlClient(sock) as c:
+        p = rn.PersonPresenter(c, subject="s1", out=out)
+        p._explore(exp)  # waits for the first touch (about 1.9 s into the run)
+        began = time.monotonic()
+        assert p.contacts == {0, 1}
+        p._explore(exp)  # still touching: the interval begins at once
+        assert time.monotonic() - began >= 0.3
+    assert out.getvalue().count("time: please release the object") == 2
+
+
+def test_keys_on_a_terminal_need_no_enter_and_the_terminal_is_restored():
+    import os
+    import termios
+
+    master, slave = os.openpty()
+    try:
+        before = termios.tcgetattr(slave)
+        keys = rn.KeyReader(slave)
+        try:
+            assert not termios.tcgetattr(slave)[3] & termios.ICANON  # cbreak: key by key
+            os.write(master, b"2")
+            key, when = keys.keys.get(timeout=5)
+            assert key == "2" and when <= time.monotonic()
+            os.write(master, b"y")
+            wait_for(lambda: not keys.keys.empty(), "the second key", timeout_s=5)
+            keys.drain()
+            assert keys.keys.empty()
+        finally:
+            keys.close()
+        assert termios.tcgetattr(slave) == before
+    finally:
+        os.close(master)
+        os.close(slave)
