@@ -1066,6 +1066,65 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_experiment_run(args: argparse.Namespace) -> int:
+    """Run (or resume) one subject on a running daemon (hapticd.experiment.runner)."""
+    from hapticd.experiment import ExperimentError, check_experiment
+    from hapticd.experiment import runner as rn
+
+    try:
+        exp, _ = check_experiment(args.experiment)
+        standards = None if args.standards is None else rn.float_list(args.standards)
+        exp = rn.reduced(exp, standards=standards, repetitions=args.repetitions)
+        opts = rn.RunOptions(
+            socket=args.socket,
+            keys_fd=None if args.no_keys else rn.stdin_fd(),
+            person=rn.PersonOptions(buttons=rn.parse_buttons(args.buttons)),
+        )
+        db = args.db or Path(f"{exp.name}-trials.db")
+        done, left = rn.run_experiment(
+            exp, args.subject, db, seed=args.seed, resume=args.resume,
+            observer=args.observer, options=opts,
+        )  # fmt: skip
+    except (ExperimentError, ProfileError, rn.StoreError, ValueError) as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except rn.TrialAbortedError as exc:
+        why = "interrupted (Ctrl-C)" if exc.interrupted else str(exc)
+        print(
+            f"hapticd: {why}: the trial in progress is stored incomplete, the answered ones "
+            f"are kept; continue with --resume",
+            file=sys.stderr,
+        )
+        return 130 if exc.interrupted else EXIT_ERROR
+    except rn.RunnerError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("hapticd: interrupted between trials; continue with --resume", file=sys.stderr)
+        return 130
+    print(f"hapticd: {done} trial(s) answered; {left} left" + ("" if left else ": done"))
+    return EXIT_OK
+
+
+def _add_experiment_run(esub: Any) -> None:
+    run = esub.add_parser(
+        "run",
+        help="run a subject on a running daemon (answers: keys 1/n or 2/y, buttons, browser)",
+    )
+    run.add_argument("experiment", type=Path)
+    run.add_argument("--subject", required=True, help="the subject's id (names the recordings)")
+    run.add_argument("--db", type=Path, help="the trial store (default: NAME-trials.db here)")
+    run.add_argument("--seed", type=int, help="use this seed instead of the subject's")
+    run.add_argument("--repetitions", type=int, help="a reduced design: repetitions")
+    run.add_argument("--standards", metavar="LIST", help="a reduced design: e.g. 60 or 30,90")
+    run.add_argument("--resume", action="store_true", help="continue the subject's stored plan")
+    run.add_argument("--socket", type=Path, help="the daemon's control socket")
+    run.add_argument("--observer", default="person", help="who answers (default: person)")
+    run.add_argument("--buttons", metavar="MAP", help="response labels as answers: L=yes,L=no")
+    run.add_argument("--no-keys", action="store_true", help="read no answers from the terminal")
+    run.set_defaults(func=cmd_experiment_run)
+
+
 def _add_experiment(sub: Any) -> None:
     """The experiment subcommand: check a design, analyze trial stores."""
     exp = sub.add_parser("experiment", help="JND experiments: check a design, analyze trials")
@@ -1073,6 +1132,7 @@ def _add_experiment(sub: Any) -> None:
     chk = esub.add_parser("check", help="validate an experiment file and its profile")
     chk.add_argument("experiment", type=Path)
     chk.set_defaults(func=cmd_experiment_check)
+    _add_experiment_run(esub)
     pl = esub.add_parser("plan", help="one subject's trial plan as CSV")
     pl.add_argument("experiment", type=Path)
     pl.add_argument("--subject", required=True, help="the subject's id (its seed derives from it)")

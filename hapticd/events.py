@@ -23,6 +23,8 @@ OPTIONAL_FIELDS: dict[str, str] = {
     "cause": "a name from the fault causes below; `message` the fault's text",
     "param": "the parameter's name (hapticd.params)",
     "count": "how many events were lost",
+    "prompt": "the subject prompt's id (`prompt` command; null: the prompt was cleared)",
+    "choice": "the answer chosen, one of the prompt's `choices`",
 }
 
 
@@ -80,6 +82,20 @@ EVENTS: tuple[EventKind, ...] = (
         ("count",),
         "the loop's event ring was full: `count` events were dropped, the last on this tick; "
         "it follows every event made before them",
+        source="server",
+    ),
+    EventKind(
+        "prompt",
+        ("prompt",),
+        "the subject prompt was set (`prompt` = its id) or cleared (`prompt` null); "
+        "`status` shows the whole prompt",
+        source="server",
+    ),
+    EventKind(
+        "response",
+        ("prompt", "choice"),
+        "a `respond` answered the current prompt: `prompt` its id, `choice` the answer; "
+        "the prompt is cleared",
         source="server",
     ),
 )

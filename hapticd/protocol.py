@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from typing import Any
 
 from hapticd import events, params
@@ -53,10 +54,16 @@ COMMANDS = (
     "unsubscribe",
     "events_subscribe",
     "events_unsubscribe",
+    "prompt",
+    "respond",
     "shutdown",
     "stop",
 )
 TELEMETRY_RATE_HZ = (0.1, 1000.0)
+# The subject prompt (docs/control.md, "The subject prompt").
+PROMPT_QUESTION_CHARS = 200
+PROMPT_CHOICES = (2, 4)
+CHOICE_PATTERN = re.compile(r"[a-z0-9_-]{1,16}")
 
 
 def greeting(version: str) -> bytes:
@@ -201,7 +208,63 @@ def check(req: dict[str, Any]) -> dict[str, Any]:
                 f"'kinds' must be a list of event names from {list(events.NAMES)}, "
                 f"got {_short(kinds)}",
             )
+    elif cmd == "prompt":
+        _check_prompt(req)
+    elif cmd == "respond":
+        _prompt_id(req, "respond")
+        choice = req.get("choice")
+        if not (isinstance(choice, str) and CHOICE_PATTERN.fullmatch(choice)):
+            raise ProtocolError(
+                "bad_value",
+                f"respond needs a 'choice': one of the prompt's labels ([a-z0-9_-], 1 to 16 "
+                f"characters), got {_short(choice)}",
+            )
     return req
+
+
+def _prompt_id(req: dict[str, Any], cmd: str) -> int:
+    """The prompt's id of a prompt or respond request: an int >= 0 (``id`` is also the
+    request's id, echoed in the reply)."""
+    if "id" not in req:
+        raise ProtocolError("bad_request", f"{cmd} needs an 'id': the prompt's, an integer >= 0")
+    pid = req["id"]
+    if isinstance(pid, bool) or not isinstance(pid, int) or pid < 0:
+        raise ProtocolError(
+            "bad_value", f"{cmd}'s 'id' must be the prompt's id, an integer >= 0, got {_short(pid)}"
+        )
+    return pid
+
+
+def _check_prompt(req: dict[str, Any]) -> None:
+    """A prompt request: ``id`` null clears; else ``question`` and ``choices`` as the spec
+    (docs/control.md) says."""
+    if "id" in req and req["id"] is None:
+        return
+    _prompt_id(req, "prompt")
+    question = req.get("question")
+    if not (
+        isinstance(question, str)
+        and 1 <= len(question) <= PROMPT_QUESTION_CHARS
+        and question.isprintable()
+    ):
+        raise ProtocolError(
+            "bad_value",
+            f"prompt needs a 'question': printable text of 1 to {PROMPT_QUESTION_CHARS} "
+            f"characters, got {_short(question)}",
+        )
+    choices = req.get("choices")
+    lo, hi = PROMPT_CHOICES
+    if not (
+        isinstance(choices, list)
+        and lo <= len(choices) <= hi
+        and all(isinstance(c, str) and CHOICE_PATTERN.fullmatch(c) for c in choices)
+        and len(set(choices)) == len(choices)
+    ):
+        raise ProtocolError(
+            "bad_value",
+            f"prompt needs 'choices': {lo} to {hi} distinct labels of 1 to 16 characters "
+            f"from a-z, 0-9, _ and -, got {_short(choices)}",
+        )
 
 
 def _short(value: Any) -> str:

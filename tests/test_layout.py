@@ -60,7 +60,9 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.build",
         "hapticd.cli",
         "hapticd.daemon.*",
-        "hapticd.experiment.*",  # experiment files, trial plan, trial store, analysis
+        # Experiment files, trial plan, trial store, analysis; the runner
+        # (hapticd.experiment.runner) is also in SOCKET_CLIENTS below.
+        "hapticd.experiment.*",
         "hapticd.plot",  # hapticd plot's figures (matplotlib inside its functions only)
         "hapticd.profile",
         "hapticd.recording.*",
@@ -101,6 +103,10 @@ IO_STDLIB = {
     "tempfile",
     "threading",
 }
+# Service modules that reach a daemon only through its control socket (hapticd.control):
+# never the loop, the device layer or the daemon's internals.
+SOCKET_CLIENTS = {"hapticd.experiment.runner"}
+LOOP_SIDE = {"hapticd.daemon", "hapticd.build", "hapticd_drivers"}
 # What the servo loop is built from, never what it imports.
 CONFIGURATION = {"pydantic", "yaml", "hapticd.profile", "hapticd.build", "hapticd.daemon"}
 FRONT = {"hapticd.cli", "hapticd.daemon"}
@@ -235,6 +241,19 @@ def test_the_client_side_imports_only_the_standard_library(module):
     assert not bad, (
         f"{module} is loaded by experiment scripts (standard library only) but imports "
         f"{sorted(bad)}"
+    )
+
+
+@pytest.mark.parametrize("module", sorted(SOCKET_CLIENTS))
+def test_socket_clients_talk_to_the_daemon_only_through_its_socket(module):
+    assert module in MODULES, f"no module {module}"
+    bad = {
+        n
+        for n in _imports(module)
+        if _within(n, LOOP_SIDE) or (_ours(n) and _categories(n) == ["runtime"])
+    }
+    assert not bad, (
+        f"{module} is a client of the control socket but imports the loop's side: {sorted(bad)}"
     )
 
 

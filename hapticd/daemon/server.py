@@ -118,6 +118,8 @@ class ControlServer:
         self.slow_event_clients = 0  # event subscribers dropped for falling behind
         self._responses: dict[tuple[int, int], str] = {}
         self._responses_of: object = None  # the profile _responses was made from
+        # The subject prompt (id, question, choices), or None; answered by `respond`.
+        self.prompt: dict[str, Any] | None = None
         self._accept_paused_until: float | None = None  # out of file descriptors
         self.accept_failures = 0  # accept() calls that failed so, since the last success
 
@@ -582,6 +584,7 @@ class ControlServer:
             "profile": self.session.profile.name,
             "fingers": list(self.session.profile.finger_names),
             "reloads": self.reloads,
+            "prompt": self.prompt,
         }
 
     def _get(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
@@ -611,6 +614,52 @@ class ControlServer:
     def _events_unsubscribe(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
         conn.event_kinds = None
         return {"subscribed": False}
+
+    def _prompt(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        pid = req.get("id")
+        if pid is None:
+            self.prompt = None
+        else:
+            self.prompt = {"id": pid, "question": req["question"], "choices": list(req["choices"])}
+        self._server_event("prompt", prompt=pid)
+        return {}
+
+    def _respond(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        now, pid = self.prompt, req["id"]
+        if now is None or now["id"] != pid:
+            current = "no prompt is current" if now is None else f"the prompt is {now['id']}"
+            raise proto.ProtocolError("no_prompt", f"no prompt {pid} to answer: {current}")
+        if req["choice"] not in now["choices"]:
+            raise proto.ProtocolError(
+                "bad_value",
+                f"prompt {pid} offers {now['choices']}, not {req['choice']!r}",
+            )
+        self.prompt = None
+        self._server_event("response", prompt=pid, choice=req["choice"])
+        return {}
+
+    def _server_event(self, name: str, **fields: Any) -> None:
+        """Send the server-made event ``name`` to its subscribers, after the loop's events
+        still in the ring (so every subscriber sees them in order), stamped with the
+        current tick and its time."""
+        self._deliver_events()
+        code = events.CODES[name]
+        tick = self.loop.stats.ticks
+        line = proto.encode({"event": name, "tick": tick, "t": self.loop.now(), **fields})
+        for conn in list(self._conns.values()):
+            kinds = conn.event_kinds
+            if kinds is None or code not in kinds or tick < conn.events_from:
+                continue
+            conn.outbuf += line
+            if len(conn.outbuf) > self.events_backlog_bytes:
+                log.warning(
+                    "dropping an event subscriber %d bytes behind (it stopped reading)",
+                    len(conn.outbuf),
+                )
+                self.slow_event_clients += 1
+                self._drop(conn.sock)
+                continue
+            self._flush(conn)
 
     def _record_start(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
         return self.session.record_start(req["path"], overwrite=req.get("overwrite", False))
@@ -648,6 +697,8 @@ _HANDLERS: dict[str, Callable[[ControlServer, _Conn, dict[str, Any]], dict[str, 
     "unsubscribe": ControlServer._unsubscribe,
     "events_subscribe": ControlServer._events_subscribe,
     "events_unsubscribe": ControlServer._events_unsubscribe,
+    "prompt": ControlServer._prompt,
+    "respond": ControlServer._respond,
     "shutdown": ControlServer._stop,
     "stop": ControlServer._stop,
 }

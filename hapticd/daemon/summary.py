@@ -164,6 +164,8 @@ def status(loop: ServoLoop) -> dict[str, Any]:
             }
             for i, d in enumerate(loop.devices)
         ],
+        # Each finger touching the object now (contact_begin and contact_end follow it).
+        "in_contact": [bool(v) for v in loop.frame.in_contact.tolist()],
         "allocator": loop.renderer.method,
         "stages": loop.renderer.stage_names,
         "passivity": passivity_status(loop),

@@ -1,0 +1,807 @@
+"""``hapticd experiment run``: walk a subject's trial plan on a running daemon.
+
+Two pieces, so that any observer can run the same plan into the same store:
+
+- a **Presenter** presents one planned trial and returns what came of it::
+
+      class Presenter(Protocol):
+          def present(self, exp: Experiment, trial: PlannedTrial,
+                      params: Mapping[str, Any]) -> Presented: ...
+          def rest(self, seconds: float) -> None: ...
+
+  ``params`` is the trial's condition's parameter set (hapticd.params names, SI
+  values; not the varied parameter: ``interval_values(exp, trial)`` gives its value in
+  each interval). ``present`` shows both intervals, asks the question and returns a
+  ``Presented`` (the answer "was the second more?", the response time s, the
+  recording paths, ``complete`` or ``incomplete``, and where the answer came from). It
+  raises ``TrialAbortedError`` (with the recordings made so far) when the trial cannot go
+  on (the daemon went away, Ctrl-C): the trial is stored incomplete and the run ends.
+  ``rest`` takes a break between trials (a simulated observer returns at once).
+  ``PersonPresenter`` is the one for a person at a running daemon.
+
+- ``run_subject(store, exp, subject, seed, presenter, profile_hash=...)`` walks what
+  is left of the subject's plan: breaks, ``present``, and ``TrialStore.record`` of each
+  trial the moment it is answered. ``start_subject`` stores (or, resuming, checks) the
+  plan first.
+
+``OBSERVERS`` maps ``--observer`` names to presenter factories (``person`` here).
+
+The runner is a client of the control socket (hapticd.control): it never imports the
+servo loop or the daemon.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import queue
+import re
+import select
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Protocol, TextIO
+
+from hapticd import protocol as proto
+from hapticd.control import ControlClient
+from hapticd.experiment.plan import PlannedTrial, make_plan
+from hapticd.experiment.spec import Experiment, ExperimentError, file_hash
+from hapticd.experiment.store import StoreError, TrialStore
+
+SUBJECT_PATTERN = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+CHOICES = ("no", "yes")  # the prompt's labels: "was the second more?"
+# Terminal keys: the interval judged more (1 or 2), or the answer to the question.
+KEYS = {"1": False, "n": False, "2": True, "y": True}
+# Response labels of device buttons (docs/control.md) read as answers without --buttons.
+BUTTON_LABELS = {"no": False, "n": False, "first": False, "yes": True, "y": True, "second": True}
+
+
+class RunnerError(RuntimeError):
+    """The run cannot start or go on; the message says why and what to do."""
+
+
+class DaemonGoneError(RunnerError):
+    """The daemon closed the connection or stopped answering."""
+
+
+class TrialAbortedError(RunnerError):
+    """A trial that cannot be finished: ``recordings`` made so far; ``interrupted``: by
+    Ctrl-C (else the message says what happened)."""
+
+    def __init__(
+        self, message: str, recordings: Sequence[str] = (), *, interrupted: bool = False
+    ) -> None:
+        super().__init__(message)
+        self.recordings = tuple(recordings)
+        self.interrupted = interrupted
+
+
+@dataclass(frozen=True)
+class Presented:
+    """What presenting one trial gave: the answer to "was the second more?" (None: no
+    answer), the response time from the question to the answer (s), the recordings (one
+    per interval), the trial's status and where the answer came from (``key``,
+    ``button``, ``respond`` or an observer's own name)."""
+
+    answer_second_more: bool | None
+    response_time_s: float | None
+    recordings: tuple[str, ...] = ()
+    status: Literal["complete", "incomplete"] = "complete"
+    source: str = ""
+
+
+class Presenter(Protocol):
+    """Presents trials to an observer (see the module's docstring)."""
+
+    def present(
+        self, exp: Experiment, trial: PlannedTrial, params: Mapping[str, Any]
+    ) -> Presented: ...
+
+    def rest(self, seconds: float) -> None: ...
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Where a run is: ``done`` of ``total`` trials of the subject's plan, the next
+    trial, and the estimated time left (s)."""
+
+    done: int
+    total: int
+    trial: PlannedTrial | None
+    left_s: float
+
+    def line(self) -> str:
+        if self.trial is None:
+            return f"trial {self.done} of {self.total} done"
+        t = self.trial
+        return (
+            f"trial {self.done + 1} of {self.total} · block {t.block + 1} ({t.condition}, "
+            f"standard {t.standard:g}) · about {_minutes(self.left_s)} left"
+        )
+
+
+def _minutes(s: float) -> str:
+    return f"{s:.0f} s" if s < 90 else f"{s / 60:.0f} min"
+
+
+def interval_values(exp: Experiment, trial: PlannedTrial) -> tuple[float, float]:
+    """The varied parameter's value in the first and the second interval (SI)."""
+    if trial.comparison_first:
+        return trial.comparison, trial.standard
+    return trial.standard, trial.comparison
+
+
+def question_text(exp: Experiment) -> str:
+    """The question asked after the second interval."""
+    q = exp.interval.question
+    if q == "more":
+        return f"Was {exp.varied.param} larger the second time?"
+    return f"Was the second object {q}?"
+
+
+def reduced(
+    exp: Experiment,
+    *,
+    standards: Sequence[float] | None = None,
+    repetitions: int | None = None,
+) -> Experiment:
+    """``exp`` with other standards and/or repetitions (a pilot's or a test's reduced
+    design), validated as the file is (ExperimentError naming what is wrong)."""
+    if standards is None and repetitions is None:
+        return exp
+    data = exp.model_dump()
+    if standards is not None:
+        data["varied"]["standards"] = [float(s) for s in standards]
+    if repetitions is not None:
+        data["repetitions"] = int(repetitions)
+    try:
+        new = Experiment.model_validate(data)
+    except ValueError as exc:
+        raise ExperimentError(f"{exp.source}: the reduced design is not valid: {exc}") from None
+    return new.model_copy(update={"source": exp.source, "file_hash": exp.file_hash})
+
+
+def profile_hash(exp: Experiment) -> str:
+    """sha256 of the experiment's base profile file."""
+    return file_hash(exp.profile_path())
+
+
+# -- walking a plan ------------------------------------------------------------------------
+
+
+def check_subject(subject: str) -> None:
+    """ValueError unless ``subject`` can name files (1 to 64 of A-Z a-z 0-9 _ . -)."""
+    if not SUBJECT_PATTERN.fullmatch(subject):
+        raise ValueError(
+            f"subject id {subject!r}: use 1 to 64 letters, digits, '_', '.' or '-' "
+            "(it names the recordings)"
+        )
+
+
+def start_subject(
+    store: TrialStore, exp: Experiment, subject: str, seed: int, *, resume: bool
+) -> list[PlannedTrial]:
+    """Store ``subject``'s plan (``make_plan(exp, seed)``), or with ``resume`` check it is
+    the stored one; the trials left to do. StoreError for a subject that already has a
+    plan without ``resume``, none to resume, or another plan; ValueError for a subject id
+    that cannot name files."""
+    check_start(store, subject, resume=resume)
+    store.ensure_plan(subject, make_plan(exp, seed), seed)
+    return store.remaining(subject)
+
+
+def check_start(store: TrialStore, subject: str, *, resume: bool) -> None:
+    """``start_subject``'s refusals, changing nothing."""
+    check_subject(subject)
+    stored = store.plan(subject)
+    if stored and not resume:
+        done = len(stored) - len(store.remaining(subject))
+        raise StoreError(
+            f"{store.path}: subject {subject!r} already has a plan ({done} of {len(stored)} "
+            "trials answered): continue it with --resume, or use another subject id"
+        )
+    if not stored and resume:
+        raise StoreError(
+            f"{store.path}: nothing to resume: subject {subject!r} has no plan here; "
+            "run without --resume to start"
+        )
+
+
+def run_subject(
+    store: TrialStore,
+    exp: Experiment,
+    subject: str,
+    seed: int,
+    presenter: Presenter,
+    *,
+    profile_hash: str,
+    progress: Callable[[Progress], None] | None = None,
+) -> int:
+    """Present what is left of ``subject``'s stored plan (``start_subject`` first) and
+    record each trial in ``store`` as soon as it is answered; the number of complete
+    trials recorded. Breaks (``break_before_s``) go to ``presenter.rest``. A trial the
+    presenter returns ``incomplete`` is stored so and the run goes on (it stays in the
+    plan); ``TrialAbortedError`` stores the trial incomplete and is raised again."""
+    total = len(store.plan(subject))
+    todo = store.remaining(subject)
+    if total == 0:
+        raise RunnerError(f"{store.path}: subject {subject!r} has no plan: start_subject first")
+    conditions = {c.name: c.values() for c in exp.conditions}
+    spent: list[float] = []
+    recorded = 0
+    for k, trial in enumerate(todo):
+        if progress is not None:
+            per = sum(spent) / len(spent) if spent else exp.trial_s()
+            breaks = sum(t.break_before_s for t in todo[k:])
+            progress(Progress(total - len(todo) + k, total, trial, per * (len(todo) - k) + breaks))
+        if trial.break_before_s > 0:
+            presenter.rest(trial.break_before_s)
+        began = time.monotonic()
+        try:
+            got = presenter.present(exp, trial, conditions[trial.condition])
+        except TrialAbortedError as exc:
+            store.record(
+                subject,
+                trial,
+                answer_second_more=None,
+                response_time_s=None,
+                profile_hash=profile_hash,
+                seed=seed,
+                recording=_recordings(exc.recordings),
+                status="incomplete",
+            )
+            raise
+        store.record(
+            subject,
+            trial,
+            answer_second_more=got.answer_second_more,
+            response_time_s=got.response_time_s,
+            profile_hash=profile_hash,
+            seed=seed,
+            recording=_recordings(got.recordings),
+            status=got.status,
+        )
+        spent.append(time.monotonic() - began)
+        recorded += got.status == "complete"
+    if progress is not None:
+        left = len(store.remaining(subject))
+        progress(Progress(total - left, total, None, 0.0))
+    return recorded
+
+
+def _recordings(paths: Sequence[str]) -> str | None:
+    """The trial's recordings as the store keeps them: a JSON list of paths."""
+    return json.dumps(list(paths)) if paths else None
+
+
+# -- a person at a running daemon -----------------------------------------------------------
+
+
+class KeyReader:
+    """Keys typed on ``fd`` (a terminal in cbreak mode: no Enter needed; a pipe: each
+    byte), each with the monotonic time it was read, in a thread."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        self.keys: queue.Queue[tuple[str, float]] = queue.Queue()
+        self._stop = threading.Event()
+        self._saved: Any = None
+        if os.isatty(fd):
+            import termios
+            import tty
+
+            self._saved = termios.tcgetattr(fd)
+            tty.setcbreak(fd)
+        self._thread = threading.Thread(target=self._read, name="hapticd-keys", daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        while not self._stop.is_set():
+            try:
+                ready, _, _ = select.select([self.fd], [], [], 0.1)
+                if not ready:
+                    continue
+                data = os.read(self.fd, 64)
+            except OSError:
+                return
+            if not data:
+                return  # end of input: no more keys
+            now = time.monotonic()
+            for ch in data.decode("utf-8", "replace"):
+                self.keys.put((ch, now))
+
+    def drain(self) -> None:
+        """Forget the keys typed so far (typed at the wrong time)."""
+        with contextlib.suppress(queue.Empty):
+            while True:
+                self.keys.get_nowait()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=1.0)
+        if self._saved is not None:
+            import termios
+
+            with contextlib.suppress(OSError):
+                termios.tcsetattr(self.fd, termios.TCSADRAIN, self._saved)
+
+
+@dataclass
+class PersonOptions:
+    """How ``PersonPresenter`` waits: for a release before a change (s), for the first
+    touch of an interval (s), for an answer (s); ``buttons`` maps device buttons'
+    response labels to answers (besides ``BUTTON_LABELS``)."""
+
+    release_wait_s: float = 60.0
+    touch_wait_s: float = 300.0
+    answer_wait_s: float = 600.0
+    buttons: dict[str, bool] = field(default_factory=dict)
+
+
+POLL_S = 0.02  # how often keys are looked at while events are awaited
+APPLY_WAIT_S = 5.0  # for a set's param_changed event to arrive (event delivery: 5 ms)
+MAX_CHANGE_TRIES = 20  # changes touched while applied, retried, before giving up
+
+
+class PersonPresenter:
+    """Presents trials to a person at the daemon behind ``client`` (events subscribed
+    here): the object changes only while nobody touches it; each interval is recorded
+    in the daemon's recording directory; the answer comes from a key (``keys``), a
+    device button mapped to a response, or a ``respond`` on the daemon's prompt (the
+    browser's subject page), whichever is first. Messages to the subject go to
+    ``out``."""
+
+    def __init__(
+        self,
+        client: ControlClient,
+        *,
+        subject: str,
+        keys: KeyReader | None = None,
+        out: TextIO = sys.stderr,
+        options: PersonOptions | None = None,
+    ) -> None:
+        self.client = client
+        self.subject = subject
+        self.keys = keys
+        self.out = out
+        self.opt = options or PersonOptions()
+        self.contacts: set[int] = set()
+        self.fault: str | None = None
+        self._unmapped: set[str] = set()
+        self._prompt_t: float | None = None
+        self._connect()
+
+    # -- the connection ------------------------------------------------------------------
+
+    @contextlib.contextmanager
+    def _talking(self) -> Iterator[None]:
+        """Turn a lost connection (or a daemon that stopped answering) into DaemonGoneError;
+        a refusal (ProtocolError) goes through."""
+        try:
+            yield
+        except proto.ProtocolError:
+            raise
+        except (OSError, ValueError) as exc:
+            raise DaemonGoneError(f"the daemon went away ({exc})") from None
+
+    def _connect(self) -> None:
+        with self._talking():
+            self.client.events_subscribe()
+            st = self.client.status()
+        self.status = st
+        self.contacts = {i for i, c in enumerate(st.get("in_contact") or []) if c}
+        if st.get("fault"):
+            raise RunnerError(
+                f"the daemon has a latched fault ({st['fault']}): clear it (hapticd enable) "
+                "and start again"
+            )
+
+    def check_daemon(self, exp: Experiment, profile_name: str) -> None:
+        """RunnerError unless the daemon runs the experiment's base profile, paced, and
+        records nothing of someone else's; a recording left by a killed runner of this
+        experiment is stopped."""
+        st = self.status
+        if st.get("profile") != profile_name:
+            raise RunnerError(
+                f"the daemon runs profile {st.get('profile')!r}; experiment {exp.name!r} is "
+                f"on {profile_name!r} ({exp.profile_path()}): start hapticd run with it"
+            )
+        rec = st.get("recording")
+        if rec:
+            path = str(rec.get("path", ""))
+            if Path(path).name.startswith(f"{exp.name}-"):
+                with self._talking():
+                    self.client.record_stop()  # left by a runner that was killed
+                self.say(f"stopped the recording a stopped run left: {path}")
+            else:
+                raise RunnerError(
+                    f"the daemon is recording to {path}: stop it (hapticd record stop) first"
+                )
+
+    def say(self, text: str) -> None:
+        self.out.write(f"\r\x1b[K{text}\n" if self.out.isatty() else f"{text}\n")
+        self.out.flush()
+
+    # -- events --------------------------------------------------------------------------
+
+    def _event(self, timeout_s: float) -> dict[str, Any] | None:
+        """The next event within ``timeout_s`` (None at the deadline), contacts and
+        faults followed."""
+        try:
+            ev = self.client.next_event(max(timeout_s, 0.0))
+        except TimeoutError:
+            return None
+        except (OSError, ValueError) as exc:
+            raise DaemonGoneError(f"the daemon went away ({exc})") from None
+        name = ev.get("event")
+        if name == "contact_begin":
+            self.contacts.add(ev.get("finger", -1))
+        elif name == "contact_end":
+            self.contacts.discard(ev.get("finger", -1))
+        elif name == "fault_latched":
+            self.fault = f"{ev.get('cause')}: {ev.get('message', '')}".rstrip(": ")
+        elif name == "trajectory_end":
+            self.say("the daemon's run ends (its trajectories ended)")
+        return ev
+
+    def _check_fault(self) -> None:
+        if self.fault is not None:
+            raise RunnerError(
+                f"a safety fault latched ({self.fault}); forces are off: check the setup, "
+                "hapticd enable, then --resume"
+            )
+
+    def _await(
+        self, until: Callable[[dict[str, Any]], bool], timeout_s: float
+    ) -> dict[str, Any] | None:
+        """Events until one satisfies ``until`` (returned) or ``timeout_s`` passes (None)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            ev = self._event(min(POLL_S, deadline - time.monotonic()))
+            self._check_fault()
+            if ev is not None and until(ev):
+                return ev
+            if time.monotonic() >= deadline:
+                return None
+
+    def _drain(self, seconds: float) -> None:
+        """Follow events for ``seconds``."""
+        self._await(lambda ev: False, seconds)
+
+    def _await_release(self) -> None:
+        if not self.contacts:
+            return
+        self.say("please release the object")
+        if self._await(lambda ev: not self.contacts, self.opt.release_wait_s) is None:
+            raise RunnerError(
+                f"the object was not released within {self.opt.release_wait_s:g} s "
+                f"(fingers {sorted(self.contacts)} still touch it)"
+            )
+
+    # -- one trial -----------------------------------------------------------------------
+
+    def rest(self, seconds: float) -> None:
+        self.say(f"break: {seconds:g} s")
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            self._drain(min(left, 1.0))
+        self.say("the break is over")
+
+    def present(
+        self, exp: Experiment, trial: PlannedTrial, params_: Mapping[str, Any]
+    ) -> Presented:
+        recordings: list[str] = []
+        try:
+            for k, value in enumerate(interval_values(exp, trial)):
+                if k == 1:
+                    self._drain(exp.interval.gap_s)
+                # Recording first: starting it takes a while (its writer process), and it
+                # must hold the whole touch that follows the change.
+                recordings.append(self._record_start(exp, trial, k + 1))
+                self._change({**params_, exp.varied.param: value})
+                self._explore(exp)
+                with self._talking():
+                    self.client.record_stop()
+            answer, rt, source = self._ask(exp, trial)
+        except KeyboardInterrupt:
+            self._tidy(recordings)
+            raise TrialAbortedError("interrupted", recordings, interrupted=True) from None
+        except (RunnerError, proto.ProtocolError) as exc:
+            self._tidy(recordings)
+            raise TrialAbortedError(str(exc), recordings) from None
+        return Presented(answer, rt, tuple(recordings), "complete", source)
+
+    def _tidy(self, recordings: list[str]) -> None:
+        """After an aborted trial: stop its recording and clear the prompt, if the daemon
+        is still there."""
+        for what in ("record_stop", "prompt"):
+            with contextlib.suppress(Exception):
+                if what == "prompt":
+                    self.client.clear_prompt()
+                elif self.client.status().get("recording"):
+                    self.client.record_stop()
+
+    def _change(self, values: Mapping[str, Any]) -> None:
+        """Set ``values`` while nobody touches the object: wait for the release, set, and
+        do it again if a touch began before the change was applied."""
+        for _ in range(MAX_CHANGE_TRIES):
+            self._await_release()
+            last = -1
+            for name, value in values.items():
+                try:
+                    with self._talking():
+                        last = self.client.set(name, value)["applied_at_tick"]
+                except proto.ProtocolError as exc:
+                    raise RunnerError(
+                        f"the daemon refused {name} = {value!r}: {exc.code}: {exc}"
+                    ) from None
+            touched = False
+
+            def applied(ev: dict[str, Any], last: int = last) -> bool:
+                nonlocal touched
+                if ev.get("event") == "contact_begin":
+                    touched = True
+                return ev.get("event") == "param_changed" and ev.get("tick", -1) >= last
+
+            if self._await(applied, APPLY_WAIT_S) is None:
+                raise RunnerError(
+                    f"no param_changed event for tick {last} within {APPLY_WAIT_S:g} s"
+                )
+            if not touched and not self.contacts:
+                return
+            self.say("the object was touched while it changed: please release it")
+        raise RunnerError(
+            f"the object was touched during {MAX_CHANGE_TRIES} changes in a row; giving up"
+        )
+
+    def _record_start(self, exp: Experiment, trial: PlannedTrial, interval: int) -> str:
+        """Start recording interval ``interval`` (1 or 2) in the daemon's recording
+        directory; its path. A name taken (a trial done again) gets a suffix."""
+        base = f"{exp.name}-{self.subject}-{trial.index:04d}-{interval}"
+        for attempt in range(1, 100):
+            name = base + (f"-{attempt}" if attempt > 1 else "") + ".hrec"
+            try:
+                with self._talking():
+                    return str(self.client.record_start(name)["path"])
+            except proto.ProtocolError as exc:
+                if exc.code == "recording" and "exists" in str(exc):
+                    continue
+                raise RunnerError(f"cannot record {name}: {exc.code}: {exc}") from None
+        raise RunnerError(f"cannot record {base}: 99 files of that name exist")
+
+    def _explore(self, exp: Experiment) -> None:
+        """One interval: from the first touch to the release (every finger's contact
+        ended) or the exploration limit, as ``interval.ends_on`` says."""
+        iv = exp.interval
+        self.say("touch the object")
+        if not self.contacts:
+            ev = self._await(lambda e: e.get("event") == "contact_begin", self.opt.touch_wait_s)
+            if ev is None:
+                raise RunnerError(f"nobody touched the object within {self.opt.touch_wait_s:g} s")
+        if iv.ends_on == "release":
+            released = self._await(lambda e: not self.contacts, iv.exploration_s)
+        else:
+            self._drain(iv.exploration_s)
+            released = None
+        if released is None and self.contacts:
+            self.say("time: please release the object")
+
+    def _ask(self, exp: Experiment, trial: PlannedTrial) -> tuple[bool, float, str]:
+        """Ask the question; the first answer (True: the second was more), its response
+        time (s) and source. Answers given before the question are ignored."""
+        if self.keys is not None:
+            self.keys.drain()
+        text = question_text(exp)
+        self.say(f"{text}  [2/y: yes, the second · 1/n: no, the first]")
+        asked = time.monotonic()
+        with self._talking():
+            self.client.prompt(trial.index, text, CHOICES)
+        prompt_t: float | None = None
+        deadline = asked + self.opt.answer_wait_s
+        answer: tuple[bool, float, str] | None = None
+        while answer is None:
+            if self.keys is not None:
+                with contextlib.suppress(queue.Empty):
+                    while answer is None:
+                        key, when = self.keys.keys.get_nowait()
+                        if key.lower() in KEYS:
+                            answer = (KEYS[key.lower()], when - asked, "key")
+                if answer is not None:
+                    break
+            ev = self._event(min(POLL_S, deadline - time.monotonic()))
+            self._check_fault()
+            if ev is not None:
+                name = ev.get("event")
+                if name == "prompt" and ev.get("prompt") == trial.index:
+                    prompt_t = ev.get("t")
+                elif name == "prompt" and prompt_t is not None:
+                    raise RunnerError(f"another client replaced the prompt ({ev.get('prompt')})")
+                elif name == "response" and ev.get("prompt") == trial.index:
+                    answer = (ev.get("choice") == "yes", time.monotonic() - asked, "respond")
+                elif name == "button_down" and ev.get("response") and prompt_t is not None:
+                    # After the prompt's event: pressed after the question was asked.
+                    label = ev["response"]
+                    mapped = self.opt.buttons.get(label, BUTTON_LABELS.get(label))
+                    if mapped is not None:
+                        answer = (mapped, self._rt(ev, prompt_t, asked), "button")
+                    elif label not in self._unmapped:
+                        self._unmapped.add(label)
+                        self.say(f"button {label!r} is not an answer (map it with --buttons)")
+            if answer is None and time.monotonic() >= deadline:
+                raise RunnerError(f"no answer within {self.opt.answer_wait_s:g} s")
+        with self._talking():
+            self.client.clear_prompt()
+        return answer
+
+    @staticmethod
+    def _rt(ev: dict[str, Any], prompt_t: float | None, asked: float) -> float:
+        """Response time of a button press: on the daemon's clock (from the prompt's tick
+        to the press's, exact to a tick) when the prompt's event was seen, else on ours."""
+        t = ev.get("t")
+        if prompt_t is not None and isinstance(t, int | float) and t >= prompt_t:
+            return float(t) - float(prompt_t)
+        return time.monotonic() - asked
+
+
+# -- the command ---------------------------------------------------------------------------
+
+
+@dataclass
+class RunOptions:
+    """What ``hapticd experiment run`` was given besides the experiment and subject."""
+
+    socket: Path | None = None
+    keys_fd: int | None = None  # None: no terminal keys
+    person: PersonOptions = field(default_factory=PersonOptions)
+    out: TextIO = sys.stderr
+
+
+@contextlib.contextmanager
+def person_observer(exp: Experiment, subject: str, options: RunOptions) -> Iterator[Presenter]:
+    """A PersonPresenter on the daemon at ``options.socket`` (checked against ``exp``)."""
+    from hapticd.profile import load_profile
+
+    profile = load_profile(exp.profile_path())
+    try:
+        client = ControlClient(options.socket)
+    except OSError as exc:
+        raise RunnerError(f"cannot reach the daemon: {exc}") from None
+    keys = None
+    try:
+        presenter = PersonPresenter(
+            client, subject=subject, out=options.out, options=options.person
+        )
+        presenter.check_daemon(exp, profile.name)
+        if options.keys_fd is not None:
+            keys = KeyReader(options.keys_fd)
+        presenter.keys = keys
+        yield presenter
+    finally:
+        if keys is not None:
+            keys.close()
+        client.close()
+
+
+ObserverFactory = Callable[
+    [Experiment, str, RunOptions], contextlib.AbstractContextManager[Presenter]
+]
+# --observer NAME -> its presenter (a context manager: the presenter for the run).
+OBSERVERS: dict[str, ObserverFactory] = {"person": person_observer}
+
+
+def stdin_fd() -> int | None:
+    """The file descriptor of the keys (standard input), or None without one."""
+    try:
+        return sys.stdin.fileno()
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def parse_buttons(text: str | None) -> dict[str, bool]:
+    """``--buttons LABEL=yes,LABEL=no`` as {label: answer}; ValueError naming the item."""
+    out: dict[str, bool] = {}
+    for item in (text or "").split(","):
+        if not item.strip():
+            continue
+        label, _, answer = item.partition("=")
+        answer = answer.strip().lower()
+        if not label.strip() or answer not in ("yes", "no"):
+            raise ValueError(f"--buttons: {item!r}: expected LABEL=yes or LABEL=no")
+        out[label.strip()] = answer == "yes"
+    return out
+
+
+def run_experiment(
+    exp: Experiment,
+    subject: str,
+    db: Path,
+    *,
+    seed: int | None = None,
+    resume: bool = False,
+    observer: str = "person",
+    options: RunOptions | None = None,
+) -> tuple[int, int]:
+    """Run (or resume) ``subject`` on ``exp`` into the store ``db`` with the observer
+    named ``observer``; (complete trials recorded now, trials left). RunnerError,
+    StoreError, ExperimentError, TrialAbortedError as the module says."""
+    options = options or RunOptions()
+    factory = OBSERVERS.get(observer)
+    if factory is None:
+        raise ValueError(f"unknown observer {observer!r}; observers: {', '.join(OBSERVERS)}")
+    seed = exp.subject_seed(subject) if seed is None else seed
+    out = options.out
+    check_subject(subject)
+    with TrialStore.for_experiment(db, exp) as store:
+        check_start(store, subject, resume=resume)
+        # The observer before the plan: a plan is stored only when it can be presented.
+        with factory(exp, subject, options) as presenter:
+            todo = start_subject(store, exp, subject, seed, resume=resume)
+            return _run(store, exp, subject, seed, presenter, todo, db, out)
+
+
+def _run(
+    store: TrialStore,
+    exp: Experiment,
+    subject: str,
+    seed: int,
+    presenter: Presenter,
+    todo: list[PlannedTrial],
+    db: Path,
+    out: TextIO,
+) -> tuple[int, int]:
+    """``run_subject`` with the opening line and the progress lines."""
+    total = len(store.plan(subject))
+    if not todo:
+        out.write(f"subject {subject!r}: all {total} trials are answered already\n")
+        return 0, 0
+    say = getattr(presenter, "say", None) or (lambda s: out.write(s + "\n"))
+    say(
+        f"experiment {exp.name}: subject {subject}, seed {seed}, {len(todo)} of {total} "
+        f"trials to do; store {db}"
+    )
+    done = run_subject(
+        store,
+        exp,
+        subject,
+        seed,
+        presenter,
+        profile_hash=profile_hash(exp),
+        progress=lambda p: say(p.line()),
+    )
+    return done, len(store.remaining(subject))
+
+
+def float_list(text: str) -> list[float]:
+    """``60,90`` as [60.0, 90.0]; ValueError for anything else (finite numbers only)."""
+    try:
+        values = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise ValueError(f"expected numbers separated by commas, got {text!r}") from None
+    if not values or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"expected finite numbers separated by commas, got {text!r}")
+    return values
+
+
+__all__ = [
+    "OBSERVERS",
+    "DaemonGoneError",
+    "PersonPresenter",
+    "Presented",
+    "Presenter",
+    "Progress",
+    "RunOptions",
+    "RunnerError",
+    "StoreError",
+    "TrialAbortedError",
+    "interval_values",
+    "question_text",
+    "reduced",
+    "run_experiment",
+    "run_subject",
+    "start_subject",
+]
