@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import json
+import logging
 import os
 import re
 import select
@@ -177,8 +178,12 @@ def view():
 
 
 def ws_connect(port: int, key: str, mode: str | None = None, **kw) -> ClientConnection:
+    """A page's WebSocket. It reads all the view sends as it comes (no flow control,
+    ``max_queue=None``), as a browser's page does, whether or not the test is reading its
+    messages yet: only a page meant to stall does (``_stalled_page``)."""
     query = f"key={key}" + (f"&mode={mode}" if mode else "")
-    return connect(f"ws://127.0.0.1:{port}/ws?{query}", proxy=None, open_timeout=10, **kw)
+    kw = {"proxy": None, "open_timeout": 10, "max_queue": None, **kw}
+    return connect(f"ws://127.0.0.1:{port}/ws?{query}", **kw)
 
 
 def ws_events(ws: ClientConnection, want, timeout_s: float = 20.0, events=None):
@@ -937,3 +942,25 @@ def test_a_daemon_that_closes_before_greeting_leaves_no_socket_open(tmp_path, gr
     finally:
         t.join(timeout=5)
         listener.close()
+
+
+def test_the_libraries_errors_reach_the_views_log_without_the_noise_of_a_page_going():
+    from websockets.exceptions import ConnectionClosedError
+    from websockets.frames import Close
+
+    from hapticd.view.server import _LogBridge
+
+    logs: list[str] = []
+    bridge = _LogBridge(logs.append)
+
+    def record(message: str, exc: BaseException | None) -> logging.LogRecord:
+        info = None if exc is None else (type(exc), exc, None)
+        return logging.LogRecord("ws", logging.ERROR, __file__, 1, message, (), info)
+
+    timed_out = ConnectionClosedError(None, Close(1011, "keepalive ping timeout"))
+    bridge.emit(record("keepalive ping failed", ConnectionClosedError(None, None)))
+    assert logs == []  # a page that went while a ping was out
+    bridge.emit(record("keepalive ping failed", timed_out))
+    assert logs == ["dropped a page that answered no ping for 10 s"]
+    bridge.emit(record("connection handler failed", ValueError("a bug")))
+    assert logs[-1] == "websockets: connection handler failed: ValueError('a bug')"

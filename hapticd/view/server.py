@@ -435,6 +435,12 @@ class _LogBridge(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         exc = record.exc_info[1] if record.exc_info else None
+        if record.getMessage() == "keepalive ping failed" and isinstance(exc, ConnectionClosed):
+            # A page that went (or was dropped) while a ping was out: no news, unless the
+            # library closed it for answering no ping.
+            if exc.sent is not None and exc.sent.reason == "keepalive ping timeout":
+                self._log(f"dropped a page that answered no ping for {PING_TIMEOUT_S:g} s")
+            return
         self._log(f"websockets: {record.getMessage()}" + (f": {exc!r}" if exc else ""))
 
 
