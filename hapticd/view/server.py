@@ -159,7 +159,7 @@ class Page:
     def __init__(self, conn: ServerConnection, subject: bool) -> None:
         self.conn = conn
         self.subject = subject
-        self.peer = conn.remote_address  # now: a closed socket has none
+        self.peer = conn.remote_address  # for the log: once closed, a socket names no peer
         self._cond = threading.Condition()
         self._queue: collections.deque[str] = collections.deque()
         self.closed = False
@@ -208,7 +208,6 @@ class Hub:
         self._latest: dict[str, tuple[Any, str, str | None]] = {}
         self._pages: set[Page] = set()
         self.closed = False
-        self.dropped = 0  # pages dropped for falling behind
         self.log = log or (lambda msg: None)
 
     def publish(self, kind: str, full: Any, subject: Any | None, *, keep: bool = True) -> None:
@@ -226,7 +225,6 @@ class Hub:
             for page in slow:
                 self._pages.discard(page)
                 page.dropped = True
-            self.dropped += len(slow)
         for page in slow:
             page.abort()
             self.log(
@@ -581,7 +579,7 @@ class ViewServer:
         # is not a browser sends no Origin and needs the key alone.
         origin = request.headers.get("Origin")
         host = request.headers.get("Host")
-        if origin is not None and (host is None or origin != f"http://{host}"):
+        if origin is not None and (host is None or origin.lower() != f"http://{host}".lower()):
             return self._json(
                 HTTPStatus.FORBIDDEN,
                 _error("bad_origin", f"a page from {origin[:100]!r} may not open this stream"),

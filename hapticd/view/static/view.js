@@ -85,7 +85,7 @@
       if (r.status === 403) text = "hapticd view does not know this page's key: open the URL it printed";
       else if (r.ok) text = "lost hapticd view; reconnecting";
     } catch (err) {
-      // unreachable: the text above
+      // nothing answers at the view's address: the text above
     }
     if (viewLost) banner(subject ? "waiting" : text);
   }
