@@ -735,45 +735,68 @@ def test_an_answer_on_the_subjects_page_reaches_the_daemon_as_a_response_event(
         assert client.status()["prompt"] is None
 
 
-def test_the_page_says_when_the_view_goes_and_reconnects_when_it_comes_back(
-    daemon, view, tmp_path, chromium
+def test_the_page_says_when_the_daemon_or_the_view_goes_and_follows_them_back(
+    tmp_path, held_profile, view, chromium
 ):
+    sock = tmp_path / "d.sock"
     port = free_port()
-    first = view(daemon, "--port", str(port))
+    first = view(sock, "--port", str(port))
     with cdp.Browser(chromium, tmp_path / "chromium") as browser:
         browser.open(first.url)
-        wait_for(lambda: browser.evaluate(TICK), "ticks", until=lambda s: s.isdigit())
-        assert browser.evaluate(BANNER) is None
-        assert first.close() == 0
-        wait_for(
-            lambda: browser.evaluate(BANNER),
-            "the page to say the view is gone",
-            until=lambda b: b is not None and "cannot reach hapticd view" in b,
-            timeout_s=10,
-        )
-        stopped = browser.evaluate(TICK)
-        # The view again, on the same port and socket: the same key, so the page's URL holds.
-        second = view(daemon, "--port", str(port))
-        assert second.url == first.url
-        wait_for(
-            lambda: browser.evaluate(BANNER),
-            "the page to say it reconnected",
-            until=lambda b: b == "reconnected to hapticd view",
-            timeout_s=15,
-        )
-        wait_for(
-            lambda: browser.evaluate(TICK),
-            "ticks again",
-            until=lambda s: int(s) > int(stopped),
-            timeout_s=10,
-        )
-        # The note goes; nothing is wrong any more.
-        wait_for(
-            lambda: browser.evaluate(BANNER),
-            "the note to go",
-            until=lambda b: b is None,
-            timeout_s=10,
-        )
+        for _run in range(2):  # the daemon comes, goes, and comes again
+            with running_daemon(sock, held_profile):
+                wait_for(
+                    lambda: browser.evaluate(BANNER),
+                    "the page to see the daemon",
+                    until=lambda b: b is None,
+                    timeout_s=15,
+                )
+                first_tick = wait_for(
+                    lambda: browser.evaluate(TICK), "ticks", until=lambda s: s.isdigit()
+                )
+                wait_for(
+                    lambda: browser.evaluate(TICK),
+                    "ticks that advance",
+                    until=lambda s, t0=first_tick: int(s) != int(t0),
+                )
+            wait_for(
+                lambda: browser.evaluate(BANNER),
+                "the page to say the daemon is gone",
+                until=lambda b: b is not None and b.startswith("no daemon:"),
+                timeout_s=15,
+            )
+        with running_daemon(sock, held_profile):
+            wait_for(lambda: browser.evaluate(BANNER), "the daemon", until=lambda b: b is None)
+            assert first.close() == 0
+            wait_for(
+                lambda: browser.evaluate(BANNER),
+                "the page to say the view is gone",
+                until=lambda b: b is not None and "cannot reach hapticd view" in b,
+                timeout_s=10,
+            )
+            stopped = browser.evaluate(TICK)
+            # The view again, on the same port and socket: the same key, so the URL holds.
+            second = view(sock, "--port", str(port))
+            assert second.url == first.url
+            wait_for(
+                lambda: browser.evaluate(BANNER),
+                "the page to say it reconnected",
+                until=lambda b: b == "reconnected to hapticd view",
+                timeout_s=15,
+            )
+            wait_for(
+                lambda: browser.evaluate(TICK),
+                "ticks again",
+                until=lambda s: int(s) > int(stopped),
+                timeout_s=10,
+            )
+            # The note goes; nothing is wrong any more.
+            wait_for(
+                lambda: browser.evaluate(BANNER),
+                "the note to go",
+                until=lambda b: b is None,
+                timeout_s=10,
+            )
 
 
 def test_watch_explains_its_columns_and_its_lines_match(daemon, capsys):
