@@ -774,7 +774,8 @@ def _add_view(sub: Any, sock_help: str) -> None:
     v.add_argument(
         "--control",
         action="store_true",
-        help="let the page change parameters (the same checked set commands as hapticd set)",
+        help="let the page change parameters (the same checked set commands as hapticd set); "
+        "the subject's answers to a prompt need no --control",
     )
     v.add_argument(
         "--rate", type=_rate, default=60.0, help="telemetry frames per second (default 60)"

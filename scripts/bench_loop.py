@@ -8,7 +8,7 @@ tick recorded, with or without real-time settings (SCHED_FIFO, mlockall, timer
 slack; needs root or LimitRTPRIO), beside a bare deadline wait with no work
 (the machine's floor), and at 1 kHz with ``hapticd view`` open and two pages
 reading its stream (the experimenter's and the subject's: by default a process
-reading both Server-Sent Event streams over HTTP as a page's EventSource does;
+holding both pages' WebSockets and parsing every message, as the page's script does;
 with ``--browser chromium`` two headless Chromium pages, which also parse and
 draw every frame). Every case runs ``--rounds`` times,
 interleaved, and the table gives the median over rounds of each figure and the
@@ -63,29 +63,26 @@ except (OSError, ValueError):
 print(n)
 """
 
-# Two pages on ``hapticd view``: each reads its event stream as a browser's EventSource
-# does (line by line, every event parsed as JSON). Prints the telemetry frames read.
+# Two pages on ``hapticd view``: each holds the page's WebSocket and parses every message
+# as JSON, as the page's script does. Prints the telemetry frames read.
 PAGES_SCRIPT = r"""
-import json, signal, sys, threading, urllib.request
+import json, signal, sys, threading
+from websockets.sync.client import connect
 stop = threading.Event()
 signal.signal(signal.SIGTERM, lambda *a: stop.set())
-opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
 counts = []
 def page(url, i):
     try:
-        with opener.open(url, timeout=10) as r:
-            event = None
-            for line in r:
-                if stop.is_set():
-                    return
-                if line.startswith(b"event: "):
-                    event = line[7:].strip()
-                elif line.startswith(b"data: "):
-                    json.loads(line[6:])
-                    if event == b"telemetry":
-                        counts[i] += 1
-    except (OSError, ValueError):
-        pass  # the view ended first
+        with connect(url, proxy=None, open_timeout=10) as ws:
+            while not stop.is_set():
+                try:
+                    msg = json.loads(ws.recv(timeout=0.2))
+                except TimeoutError:
+                    continue
+                if msg["type"] == "telemetry":
+                    counts[i] += 1
+    except Exception:
+        pass  # the view ended first (ConnectionClosed, OSError)
 urls = sys.argv[1:]
 counts.extend([0] * len(urls))
 threads = [threading.Thread(target=page, args=(u, i), daemon=True) for i, u in enumerate(urls)]
@@ -168,7 +165,7 @@ def _wait_socket(path: Path, proc: subprocess.Popen, timeout_s: float = 20.0) ->
 
 class ViewLoad:
     """``hapticd view`` on the daemon's socket and two pages on it (the experimenter's and
-    the subject's): HTTP stream readers, or headless Chromium pages (``browser``)."""
+    the subject's): WebSocket readers, or headless Chromium pages (``browser``)."""
 
     def __init__(self, sock: Path, work: Path, browser: str) -> None:
         self.view = subprocess.Popen(
@@ -197,7 +194,8 @@ class ViewLoad:
             self.chromium.open(url)
             self.chromium.open(url + "&mode=subject")
         else:
-            streams = [f"{base}/events?{query}", f"{base}/events?{query}&mode=subject"]
+            ws = base.replace("http://", "ws://", 1)
+            streams = [f"{ws}/ws?{query}", f"{ws}/ws?{query}&mode=subject"]
             self.pages = subprocess.Popen(
                 [sys.executable, "-c", PAGES_SCRIPT, *streams],
                 stdout=subprocess.PIPE,
@@ -224,7 +222,7 @@ class ViewLoad:
         return frames
 
 
-def run_case(case: Case, seconds: float, work: Path, browser: str = "http") -> dict:
+def run_case(case: Case, seconds: float, work: Path, browser: str = "ws") -> dict:
     if case.device == "bare":
         out = subprocess.run(
             [sys.executable, "-c", BARE_SCRIPT, str(case.rate_hz), str(seconds)],
@@ -301,9 +299,9 @@ def main() -> None:
     )
     ap.add_argument(
         "--browser",
-        choices=("http", "chromium"),
-        default="http",
-        help="the view's two pages: HTTP stream readers (default) or headless Chromium",
+        choices=("ws", "chromium"),
+        default="ws",
+        help="the view's two pages: WebSocket readers (default) or headless Chromium",
     )
     ap.add_argument(
         "--plot",
@@ -386,7 +384,7 @@ def main() -> None:
         pages = (
             "two headless Chromium pages (page frames/s not counted)"
             if args.browser == "chromium"
-            else "two HTTP stream readers (page frames/s: telemetry frames both read)"
+            else "two WebSocket readers (page frames/s: telemetry frames both read)"
         )
         print(f"\n{VIEW_LOAD}: hapticd view at its default 60 Hz telemetry, {pages}")
     plot(results, rates, args.plot)

@@ -162,6 +162,27 @@ class Browser:
             raise CDPError(f"{expression}: {result['exceptionDetails']}")
         return result["result"].get("value")
 
+    def click(self, selector: str) -> None:
+        """A left click (press and release of the mouse, as a user's) at the middle of the
+        element ``selector`` selects; CDPError if there is none or it is not shown."""
+        rect = self.evaluate(
+            f"(() => {{ const e = document.querySelector({json.dumps(selector)}); "
+            "if (!e) return null; const r = e.getBoundingClientRect(); "
+            "return [r.x + r.width / 2, r.y + r.height / 2, r.width * r.height]; })()"
+        )
+        if not rect or rect[2] <= 0:
+            raise CDPError(f"nothing shown to click at {selector!r}")
+        for kind in ("mousePressed", "mouseReleased"):
+            self.call(
+                "Input.dispatchMouseEvent",
+                {"type": kind, "x": rect[0], "y": rect[1], "button": "left", "clickCount": 1},
+            )
+
+    def press(self, key: str) -> None:
+        """A key typed on the page (keydown and keyup of a one-character ``key``)."""
+        for kind in ("keyDown", "keyUp"):
+            self.call("Input.dispatchKeyEvent", {"type": kind, "key": key, "text": key})
+
     def screenshot(self, path: Path) -> Path:
         data = self.call("Page.captureScreenshot", {"format": "png"})["data"]
         path.write_bytes(base64.b64decode(data))

@@ -7,6 +7,8 @@ hapticd_drivers) is one category as a whole:
 - runtime: the servo loop and what it runs on; no configuration (it gets built objects);
 - service: configuration, the daemon, the command line, recordings; anything goes;
 - client: what an experiment script loads to talk to a daemon; the standard library only;
+- view: ``hapticd view``, a separate process and a client of the daemon: the client
+  modules, the standard library and the WebSocket library; nothing the daemon loads;
 - drivers: the device layer; nothing of hapticd.
 """
 
@@ -73,8 +75,9 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.events",
         "hapticd.params",
         "hapticd.protocol",
-        "hapticd.view.*",  # hapticd view: a client of the control socket serving a web page
     },
+    # hapticd view: a client of the control socket serving a web page over WebSocket.
+    "view": {"hapticd.view.*"},
     "drivers": {"hapticd_drivers.*"},
 }
 
@@ -255,6 +258,37 @@ def test_socket_clients_talk_to_the_daemon_only_through_its_socket(module):
     assert not bad, (
         f"{module} is a client of the control socket but imports the loop's side: {sorted(bad)}"
     )
+
+
+# What the view may import besides the standard library and the client modules.
+VIEW_THIRD_PARTY = {"websockets"}
+
+
+@pytest.mark.parametrize("module", _in("view"))
+def test_the_view_imports_the_client_the_standard_library_and_websockets(module):
+    allowed_ours = set(_in("client")) | set(_in("view"))
+    bad = set()
+    for name in _imports(module):
+        if _ours(name):
+            if name not in allowed_ours:
+                bad.add(name)
+        elif _top(name) not in sys.stdlib_module_names | VIEW_THIRD_PARTY:
+            bad.add(name)
+    assert not bad, (
+        f"{module} is hapticd view (a control-socket client: the client modules, the "
+        f"standard library and {sorted(VIEW_THIRD_PARTY)}) but imports {sorted(bad)}"
+    )
+
+
+def test_the_daemon_and_the_command_line_load_no_view_and_no_websockets():
+    code = (
+        "import sys; import hapticd.cli, hapticd.daemon.server, hapticd.daemon.session; "
+        "print('hapticd.view' in sys.modules, 'websockets' in sys.modules)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    assert out.stdout.split() == ["False", "False"], out.stdout + out.stderr
 
 
 @pytest.mark.parametrize("module", _in("drivers"))

@@ -1,37 +1,49 @@
-"""The view process: a link to the daemon's control socket and an HTTP server for the page.
+"""The view process: a link to the daemon's control socket and a WebSocket server for the page.
 
-``DaemonLink`` holds two control connections: one subscribed to telemetry (a
-reader thread), one that polls ``status`` every ``STATUS_PERIOD_S`` and sends the
-page's ``set`` commands (with ``--control``). Both reconnect when the daemon goes
-away or restarts. What they read goes to a ``Hub``: a bounded ring of events
-(telemetry, status, link state), each encoded once as JSON for the experimenter
-and once, stripped of all that could reveal the condition, for the subject.
+``DaemonLink`` holds two control connections: one subscribed to telemetry and events
+(a reader thread), one that polls ``status`` every ``STATUS_PERIOD_S`` (at once after a
+``prompt`` or ``response`` event) and sends the pages' commands: ``set`` (with
+``--control``) and the subject's ``respond``. Both reconnect when the daemon goes away
+or restarts. What they read goes to a ``Hub``, which encodes each message once as JSON
+for the experimenter and once, stripped of all that could reveal the condition, for the
+subject, and hands it to every open page's bounded queue.
 
-``ViewServer`` serves the page and its assets (package data), the event stream
-(``/events``: Server-Sent Events), ``/api/status``, ``/api/params`` and ``/api/set``.
-Everything but the page and its assets needs the key the printed URL carries, so
-another local user who finds the port can neither watch nor change the run.
+``ViewServer`` is one port served by the ``websockets`` library's threaded server: the
+page and its assets, ``/api/status`` and ``/api/params`` as plain HTTP answers to the
+opening request, and ``/ws``, the one WebSocket per page (messages to the page and the
+page's commands back; docs/view.md). Everything but the page and its assets needs the
+key the printed URL carries, so another local user who finds the port can neither watch
+nor change the run; a browser may open the WebSocket only from the page's own origin.
 """
 
 from __future__ import annotations
 
 import collections
 import contextlib
+import email.utils
 import hmac
 import ipaddress
 import json
+import logging
+import os
+import re
 import secrets
 import socket
+import stat
 import sys
 import threading
 import time
 from collections.abc import Callable
 from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
+
+from websockets.datastructures import Headers
+from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
+from websockets.sync.server import Server, ServerConnection, serve
 
 from hapticd import params
 from hapticd import protocol as proto
@@ -39,25 +51,37 @@ from hapticd.control import ControlClient, NoDaemonError, check_socket_dir
 
 STATUS_PERIOD_S = 0.5  # how often the status is polled (the panels' refresh)
 RETRY_S = 0.5  # how soon a lost daemon is looked for again
-KEEPALIVE_S = 2.0  # an idle event stream sends a comment this often
 CLIENT_TIMEOUT_S = 5.0  # a daemon silent this long is taken as gone
-HTTP_TIMEOUT_S = 30.0  # a browser that neither reads nor writes for this long is dropped
-MAX_BODY_BYTES = 64 * 1024
-MAX_STREAMS = 16  # event streams served at once
-RING_EVENTS = 512  # events a slow page may fall behind before it skips some
+OPEN_TIMEOUT_S = 10.0  # a browser that does not finish its request in this long is dropped
+PING_INTERVAL_S = 5.0  # the WebSocket's keepalive: a page that answers no ping ...
+PING_TIMEOUT_S = 10.0  # ... for this long is closed
+CLOSE_TIMEOUT_S = 2.0  # a closing page gets this long to answer the close
+MAX_MESSAGE_BYTES = 64 * 1024  # a command from a page
+MAX_STREAMS = 16  # pages open at once
+PAGE_QUEUE = 256  # messages a page may fall behind before it is dropped (~4 s at 60 Hz)
+PAGE_SNDBUF_BYTES = 256 * 1024  # the kernel's buffer per page: a stalled tab shows soon
+SEND_TIMEOUT_S = 5.0  # a page that takes no byte of a message for this long is dropped
 
 # What the subject's page receives: the scene's geometry and pose, the fingertips' proxies
 # (where the finger is held on the surface) and contact. Not the device positions (their
 # depth inside the object shows the stiffness), the forces, the allocator or any parameter.
 SUBJECT_TELEMETRY = ("tick", "t", "object_pos", "object_rot", "proxy_pos", "in_contact")
 SUBJECT_SCENE = ("bounds_m", "surfaces", "finger_radii_m")
+# Of the status, the subject's page gets the fingers, this much of the scene, and the
+# prompt (the question the subject answers): nothing else.
+SUBJECT_STATUS = ("fingers", "prompt")
+# The daemon's events that change the prompt: the status is polled at once after them.
+PROMPT_EVENTS = frozenset({"prompt", "response"})
+# A prompt's choice as the protocol allows it (a label the page shows on a button).
+CHOICE_RE = re.compile(r"[a-z0-9_-]{1,16}")
 
 STATIC_TYPES = {
     "index.html": "text/html; charset=utf-8",
     "view.js": "text/javascript; charset=utf-8",
     "view.css": "text/css; charset=utf-8",
 }
-# The page loads nothing but its own assets and talks only to this server.
+# The page loads nothing but its own assets and talks only to this server ('self' covers
+# its own ws: origin as well).
 SECURITY_HEADERS = {
     "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; "
     "frame-ancestors 'none'; base-uri 'none'; form-action 'none'",
@@ -65,10 +89,6 @@ SECURITY_HEADERS = {
     "Referrer-Policy": "no-referrer",
     "Cache-Control": "no-store",
 }
-# Replies that say the request was wrong (400); any other is the daemon's state (409).
-BAD_REQUEST_CODES = frozenset(
-    {"malformed", "bad_request", "unknown_param", "bad_value", "out_of_range", "too_large"}
-)
 
 
 def is_loopback(host: str) -> bool:
@@ -81,68 +101,183 @@ def is_loopback(host: str) -> bool:
     return bool(addrs) and all(ipaddress.ip_address(a.split("%")[0]).is_loopback for a in addrs)
 
 
-def _dumps(obj: Any) -> bytes:
-    return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+def _dumps(obj: Any) -> str:
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False)
 
 
-class Hub:
-    """The events the page streams: a bounded ring of (seq, event, experimenter JSON,
-    subject JSON or None), and the latest of each kind for a page that just connected."""
+def _message(kind: str, data: Any) -> str:
+    """A message to a page: ``{"type": kind, "data": data}``."""
+    return _dumps({"type": kind, "data": data})
 
-    def __init__(self, size: int = RING_EVENTS) -> None:
-        self._cond = threading.Condition()
-        self._ring: collections.deque[tuple[int, str, bytes, bytes | None]] = collections.deque(
-            maxlen=size
+
+def key_path(socket_path: Path) -> Path:
+    """Where the view keeps its key: beside the control socket, readable by its user only."""
+    return socket_path.with_name(socket_path.name + ".view-key")
+
+
+def load_or_make_key(path: Path, log: Callable[[str], None]) -> str:
+    """The key in ``path`` (a file this user owns, mode 0600, not a link), else a new one
+    written there, so a restarted view keeps its URL and its open pages reconnect. A file
+    that is not safe to trust or cannot be written leaves a fresh key for this run only."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    except FileNotFoundError:
+        fd = None
+    except OSError as exc:
+        log(f"cannot read the key file {path} ({exc.strerror}): a new key for this run only")
+        return secrets.token_urlsafe(18)
+    if fd is not None:
+        with os.fdopen(fd, "r") as f:
+            st = os.fstat(f.fileno())
+            key = f.read(200).strip()
+        if (
+            stat.S_ISREG(st.st_mode)
+            and st.st_uid == os.getuid()
+            and not st.st_mode & 0o077
+            and re.fullmatch(r"[\w-]{16,100}", key)
+        ):
+            return key
+        log(
+            f"the key file {path} is not a 0600 file of yours holding a key: ignored "
+            "(remove it); a new key for this run only"
         )
-        self._latest: dict[str, tuple[int, str, bytes, bytes | None]] = {}
-        self._seq = 0
+        return secrets.token_urlsafe(18)
+    key = secrets.token_urlsafe(18)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(key + "\n")
+    except OSError as exc:
+        log(f"cannot write the key file {path} ({exc.strerror}): the key lasts this run only")
+    return key
+
+
+class Page:
+    """One open page: its WebSocket, whether it is the subject's, and its bounded queue of
+    messages to send (filled by the hub, emptied by the page's sender thread)."""
+
+    def __init__(self, conn: ServerConnection, subject: bool) -> None:
+        self.conn = conn
+        self.subject = subject
+        self.peer = conn.remote_address  # for the log: once closed, a socket names no peer
+        self._cond = threading.Condition()
+        self._queue: collections.deque[str] = collections.deque()
         self.closed = False
+        self.dropped = False  # by the hub: it fell PAGE_QUEUE messages behind
 
-    def publish(self, event: str, full: Any, subject: Any | None) -> None:
-        """Add an event; ``subject`` None: the subject's page does not get it."""
-        item = (0, event, _dumps(full), None if subject is None else _dumps(subject))
+    def offer(self, message: str) -> bool:
+        """Queue ``message``; False (and nothing queued) if the page is PAGE_QUEUE behind."""
         with self._cond:
-            self._seq += 1
-            item = (self._seq, *item[1:])
-            self._ring.append(item)
-            self._latest[event] = item
-            self._cond.notify_all()
+            if self.closed:
+                return True
+            if len(self._queue) >= PAGE_QUEUE:
+                return False
+            self._queue.append(message)
+            self._cond.notify()
+            return True
 
-    def latest(self, event: str) -> tuple[int, str, bytes, bytes | None] | None:
+    def take(self) -> list[str] | None:
+        """Every queued message, waiting for one; None once the page is closed."""
         with self._cond:
-            return self._latest.get(event)
-
-    def seq(self) -> int:
-        with self._cond:
-            return self._seq
-
-    def since(
-        self, seq: int, timeout_s: float
-    ) -> list[tuple[int, str, bytes, bytes | None]] | None:
-        """Events after ``seq``, waiting up to ``timeout_s`` for one; [] on timeout, None
-        once the hub is closed."""
-        with self._cond:
-            self._cond.wait_for(lambda: self.closed or self._seq > seq, timeout_s)
+            self._cond.wait_for(lambda: self.closed or self._queue)
             if self.closed:
                 return None
-            return [item for item in self._ring if item[0] > seq]
+            out = list(self._queue)
+            self._queue.clear()
+            return out
 
     def close(self) -> None:
         with self._cond:
             self.closed = True
             self._cond.notify_all()
 
+    def abort(self) -> None:
+        """Drop the page at once: a sender blocked writing to it gets an error (shutdown
+        wakes a blocked send; the hub never waits for a page)."""
+        self.close()
+        with contextlib.suppress(OSError):
+            self.conn.socket.shutdown(socket.SHUT_RDWR)
+
+
+class Hub:
+    """The messages the pages receive: the latest of each kind (for a page that just
+    connected) and the open pages, each with its own bounded queue."""
+
+    def __init__(self, log: Callable[[str], None] | None = None) -> None:
+        self._lock = threading.Lock()
+        self._latest: dict[str, tuple[Any, str, str | None]] = {}
+        self._pages: set[Page] = set()
+        self.closed = False
+        self.log = log or (lambda msg: None)
+
+    def publish(self, kind: str, full: Any, subject: Any | None, *, keep: bool = True) -> None:
+        """Send a message to every page; ``subject`` None: the subject's pages do not get
+        it. ``keep``: a page that connects later gets the latest of this kind first."""
+        item = (full, _message(kind, full), None if subject is None else _message(kind, subject))
+        slow: list[Page] = []
+        with self._lock:
+            if keep:
+                self._latest[kind] = item
+            for page in self._pages:
+                text = item[2] if page.subject else item[1]
+                if text is not None and not page.offer(text):
+                    slow.append(page)
+            for page in slow:
+                self._pages.discard(page)
+                page.dropped = True
+        for page in slow:
+            page.abort()
+            self.log(
+                f"dropped a page that stopped reading ({PAGE_QUEUE} messages behind): {page.peer}"
+            )
+
+    def latest(self, kind: str) -> Any | None:
+        """The latest message of ``kind`` as published (the experimenter's), or None."""
+        with self._lock:
+            item = self._latest.get(kind)
+        return None if item is None else item[0]
+
+    def add(self, page: Page) -> bool:
+        """Open a page: False if MAX_STREAMS are open (or the hub is closed). It gets the
+        link state and the status at once."""
+        with self._lock:
+            if self.closed or len(self._pages) >= MAX_STREAMS:
+                return False
+            for kind in ("link", "status"):
+                item = self._latest.get(kind)
+                text = None if item is None else item[2] if page.subject else item[1]
+                if text is not None:
+                    page.offer(text)
+            self._pages.add(page)
+            return True
+
+    def remove(self, page: Page) -> None:
+        with self._lock:
+            self._pages.discard(page)
+        page.close()
+
+    def count(self) -> int:
+        with self._lock:
+            return len(self._pages)
+
+    def close(self) -> None:
+        with self._lock:
+            self.closed = True
+            pages = list(self._pages)
+        for page in pages:
+            page.close()
+
 
 def _subject_status(st: dict[str, Any]) -> dict[str, Any]:
     scene = st.get("scene") or {}
-    return {
-        "fingers": st.get("fingers"),
-        "scene": {k: scene[k] for k in SUBJECT_SCENE if k in scene},
-    }
+    out = {k: st.get(k) for k in SUBJECT_STATUS}
+    out["scene"] = {k: scene[k] for k in SUBJECT_SCENE if k in scene}
+    return out
 
 
 class DaemonLink:
-    """The view's connections to the daemon (telemetry; status and set), reconnecting."""
+    """The view's connections to the daemon (telemetry and events; status and commands),
+    reconnecting."""
 
     def __init__(
         self,
@@ -159,7 +294,8 @@ class DaemonLink:
         self.control = control
         self.log = log
         self._stop = threading.Event()
-        self._lock = threading.Lock()  # the request connection: status polls and sets
+        self._poll_now = threading.Event()  # a prompt came or went: poll the status now
+        self._lock = threading.Lock()  # the request connection: status polls and commands
         self._request: ControlClient | None = None
         self._telemetry: ControlClient | None = None
         self._connected: bool | None = None
@@ -174,12 +310,16 @@ class DaemonLink:
 
     def close(self) -> None:
         self._stop.set()
+        self._poll_now.set()
         for client in (self._telemetry, self._request):
             if client is not None:
                 with contextlib.suppress(OSError):
                     client.sock.shutdown(socket.SHUT_RDWR)  # wakes a blocked read
         for t in self._threads:
             t.join(timeout=CLIENT_TIMEOUT_S + 1.0)
+
+    def poll_status_now(self) -> None:
+        self._poll_now.set()
 
     def _set_link(self, connected: bool, message: str) -> None:
         if connected == self._connected:
@@ -200,11 +340,17 @@ class DaemonLink:
                 if self._stop.is_set():
                     return
                 client.subscribe(self.rate_hz)
+                # Every kind: a daemon that knows prompts sends theirs; one that does not
+                # refuses no subscription for them.
+                client.events_subscribe()
                 self._set_link(True, "")
+                self.poll_status_now()
                 while not self._stop.is_set():
                     sample = client.next_telemetry()
                     subject = {k: sample[k] for k in SUBJECT_TELEMETRY if k in sample}
                     self.hub.publish("telemetry", sample, subject)
+                    while client.pending_events:
+                        self._on_event(client.pending_events.popleft())
             # ProtocolError and JSON errors are ValueErrors; TypeError: a frame not an object.
             except (OSError, ValueError, TypeError) as exc:
                 if not self._stop.is_set():
@@ -215,9 +361,17 @@ class DaemonLink:
                     client.close()
             self._stop.wait(RETRY_S)
 
+    def _on_event(self, ev: dict[str, Any]) -> None:
+        """An event from the daemon: the experimenter's page lists it; a prompt's coming or
+        going is polled at once (the subject's buttons follow it)."""
+        if ev.get("event") in PROMPT_EVENTS:
+            self.poll_status_now()
+        self.hub.publish("event", ev, None, keep=False)
+
     def _status_loop(self) -> None:
         last: tuple[int, float] | None = None
         while not self._stop.is_set():
+            self._poll_now.clear()
             try:
                 with self._lock:
                     if self._request is None:
@@ -229,6 +383,7 @@ class DaemonLink:
                 if last is not None and now > last[1] and st["tick"] >= last[0]:
                     achieved = (st["tick"] - last[0]) / (now - last[1])
                 last = (st["tick"], now)
+                st.setdefault("prompt", None)  # a daemon without prompts has none
                 full = {
                     **st,
                     "view": {
@@ -241,7 +396,7 @@ class DaemonLink:
                 self.hub.publish("status", full, _subject_status(st))
             except (OSError, ValueError, KeyError, TypeError):
                 self._drop_request()
-            self._stop.wait(STATUS_PERIOD_S)
+            self._poll_now.wait(STATUS_PERIOD_S)
         self._drop_request()  # the view is closing: its request connection goes too
 
     def _drop_request(self) -> None:
@@ -250,14 +405,14 @@ class DaemonLink:
                 self._request.close()
                 self._request = None
 
-    def set(self, param: str, value: Any) -> dict[str, Any]:
-        """Send ``set`` on the request connection: the daemon's result, or ProtocolError,
+    def call(self, cmd: str, **args: Any) -> dict[str, Any]:
+        """Send a command on the request connection: the daemon's result, or ProtocolError,
         NoDaemonError, OSError."""
         try:
             with self._lock:
                 if self._request is None:
                     self._request = ControlClient(self.path, timeout_s=CLIENT_TIMEOUT_S)
-                return self._request.set(param, value)
+                return self._request.call(cmd, **args)
         except proto.ProtocolError:
             raise
         except (OSError, ValueError):
@@ -265,167 +420,26 @@ class DaemonLink:
             raise
 
 
-class _HTTPServer(ThreadingHTTPServer):
-    daemon_threads = False  # server_close() joins the handlers: nothing outlives close()
-    block_on_close = True
-    view: ViewServer
+def _error(code: str, message: str) -> dict[str, Any]:
+    return {"ok": False, "error": {"code": code, "message": message}}
 
 
-class _Handler(BaseHTTPRequestHandler):
-    server: _HTTPServer
-    server_version = "hapticd-view"
-    protocol_version = "HTTP/1.0"  # one request per connection; a stream ends by closing
-    timeout = HTTP_TIMEOUT_S
+class _LogBridge(logging.Handler):
+    """The websockets library's errors, one line each, on the view's log."""
 
-    def log_message(self, format: str, *args: Any) -> None:
-        pass  # the browser's requests are no news; errors are answered, not logged
+    def __init__(self, log: Callable[[str], None]) -> None:
+        super().__init__(logging.ERROR)
+        self._log = log
 
-    # -- replies ------------------------------------------------------------------------
-
-    def _head(self, status: int, ctype: str, length: int | None = None) -> None:
-        self.send_response(status)
-        self.send_header("Content-Type", ctype)
-        if length is not None:
-            self.send_header("Content-Length", str(length))
-        for k, v in SECURITY_HEADERS.items():
-            self.send_header(k, v)
-        self.end_headers()
-
-    def _json(self, status: int, body: Any) -> None:
-        data = _dumps(body)
-        self._head(status, "application/json", len(data))
-        self.wfile.write(data)
-
-    def _error(self, status: int, code: str, message: str) -> None:
-        self._json(status, {"ok": False, "error": {"code": code, "message": message}})
-
-    def _authorised(self, query: dict[str, list[str]]) -> bool:
-        key = query.get("key", [""])[0]
-        if hmac.compare_digest(key.encode(), self.server.view.key.encode()):
-            return True
-        self._error(
-            HTTPStatus.FORBIDDEN,
-            "forbidden",
-            "this needs the key in the URL that hapticd view printed (open that URL)",
-        )
-        return False
-
-    # -- requests -----------------------------------------------------------------------
-
-    def do_GET(self) -> None:
-        url = urlsplit(self.path)
-        query = parse_qs(url.query)
-        path = url.path
-        if path in ("/", "/index.html"):
-            self._static("index.html")
-        elif path.startswith("/static/") and path[len("/static/") :] in STATIC_TYPES:
-            self._static(path[len("/static/") :])
-        elif path == "/events":
-            if self._authorised(query):
-                self._events(query.get("mode", ["experimenter"])[0] == "subject")
-        elif path == "/api/status":
-            if self._authorised(query):
-                item = self.server.view.hub.latest("status")
-                link = self.server.view.hub.latest("link")
-                body = {
-                    "status": None if item is None else json.loads(item[2]),
-                    "link": None if link is None else json.loads(link[2]),
-                }
-                self._json(HTTPStatus.OK, body)
-        elif path == "/api/params":
-            if self._authorised(query):
-                self._json(HTTPStatus.OK, self.server.view.params_json())
-        else:
-            self._error(HTTPStatus.NOT_FOUND, "not_found", f"no page {path!r}")
-
-    def do_POST(self) -> None:
-        url = urlsplit(self.path)
-        if url.path != "/api/set":
-            self._error(HTTPStatus.NOT_FOUND, "not_found", f"no page {url.path!r}")
+    def emit(self, record: logging.LogRecord) -> None:
+        exc = record.exc_info[1] if record.exc_info else None
+        if record.getMessage() == "keepalive ping failed" and isinstance(exc, ConnectionClosed):
+            # A page that went (or was dropped) while a ping was out: no news, unless the
+            # library closed it for answering no ping.
+            if exc.sent is not None and exc.sent.reason == "keepalive ping timeout":
+                self._log(f"dropped a page that answered no ping for {PING_TIMEOUT_S:g} s")
             return
-        if not self._authorised(parse_qs(url.query)):
-            return
-        view = self.server.view
-        if not view.control:
-            self._error(
-                HTTPStatus.FORBIDDEN,
-                "read_only",
-                "this view is read-only: start hapticd view with --control to allow changes",
-            )
-            return
-        ctype = self.headers.get("Content-Type", "").split(";")[0].strip()
-        if ctype != "application/json":
-            self._error(HTTPStatus.UNSUPPORTED_MEDIA_TYPE, "bad_request", "send application/json")
-            return
-        try:
-            length = int(self.headers.get("Content-Length", ""))
-        except ValueError:
-            length = -1
-        if not 0 <= length <= MAX_BODY_BYTES:
-            self._error(
-                HTTPStatus.BAD_REQUEST,
-                "bad_request",
-                f"a body of 0 to {MAX_BODY_BYTES} bytes with its Content-Length is needed",
-            )
-            return
-        try:
-            body = json.loads(self.rfile.read(length))
-        except (ValueError, OSError):
-            body = None
-        if not (
-            isinstance(body, dict)
-            and isinstance(body.get("param"), str)
-            and isinstance(body.get("value"), str)
-        ):
-            self._error(
-                HTTPStatus.BAD_REQUEST,
-                "bad_request",
-                'expected {"param": NAME, "value": TEXT}, the value as on the command line',
-            )
-            return
-        status, reply = view.set(body["param"], body["value"])
-        self._json(status, reply)
-
-    def _static(self, name: str) -> None:
-        data = (resources.files("hapticd.view") / "static" / name).read_bytes()
-        self._head(HTTPStatus.OK, STATIC_TYPES[name], len(data))
-        self.wfile.write(data)
-
-    def _events(self, subject: bool) -> None:
-        """Stream the hub's events as Server-Sent Events until the page or the view goes."""
-        view = self.server.view
-        if not view.stream_opened(self.connection):
-            self._error(HTTPStatus.SERVICE_UNAVAILABLE, "busy", "too many pages open")
-            return
-        try:
-            self._head(HTTPStatus.OK, "text/event-stream")
-            hub = view.hub
-            seq = hub.seq()
-            # A page that just connected gets the link state and status at once.
-            first = [i for i in (hub.latest("link"), hub.latest("status")) if i is not None]
-            self.wfile.write(b"retry: 1000\n\n" + self._encode(first, subject))
-            while True:
-                items = hub.since(seq, KEEPALIVE_S)
-                if items is None:
-                    return
-                if items:
-                    seq = items[-1][0]
-                    self.wfile.write(self._encode(items, subject) or b": idle\n\n")
-                else:
-                    self.wfile.write(b": keepalive\n\n")
-        except OSError:
-            return  # the page went away (or the view is closing)
-        finally:
-            view.stream_closed(self.connection)
-
-    @staticmethod
-    def _encode(items: list[tuple[int, str, bytes, bytes | None]], subject: bool) -> bytes:
-        out = []
-        for seq, event, full, subj in items:
-            data = subj if subject else full
-            if data is not None:
-                out.append(b"id: %d\nevent: %s\ndata: %s\n\n" % (seq, event.encode(), data))
-        return b"".join(out)
+        self._log(f"websockets: {record.getMessage()}" + (f": {exc!r}" if exc else ""))
 
 
 class ViewServer:
@@ -447,25 +461,37 @@ class ViewServer:
         check_socket_dir(self.socket_path)
         self.host = host
         self.control = control
-        self.key = secrets.token_urlsafe(18)
         self.log = log or (lambda msg: print(f"hapticd view: {msg}", file=sys.stderr, flush=True))
-        self.hub = Hub()
+        self.key = load_or_make_key(key_path(self.socket_path), self.log)
+        self.hub = Hub(self.log)
         self.link = DaemonLink(
             self.socket_path, self.hub, rate_hz=rate_hz, control=control, log=self.log
         )
+        logger = logging.getLogger(f"hapticd.view.websockets.{id(self)}")
+        logger.propagate = False
+        logger.setLevel(logging.ERROR)
+        logger.addHandler(_LogBridge(self.log))
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        server_cls = type("_HTTPServerFamily", (_HTTPServer,), {"address_family": family})
-        self.httpd: _HTTPServer = server_cls((host, port), _Handler)
-        self.httpd.view = self
-        self._streams: set[socket.socket] = set()
-        self._streams_lock = threading.Lock()
-        self._thread = threading.Thread(
-            target=self.httpd.serve_forever, kwargs={"poll_interval": 0.1}, name="view-http"
+        self.server: Server = serve(
+            self._page,
+            host,
+            port,
+            family=family,
+            process_request=self._http,
+            server_header="hapticd-view",
+            compression=None,  # loopback: the CPU matters more than the bytes
+            open_timeout=OPEN_TIMEOUT_S,
+            ping_interval=PING_INTERVAL_S,
+            ping_timeout=PING_TIMEOUT_S,
+            close_timeout=CLOSE_TIMEOUT_S,
+            max_size=MAX_MESSAGE_BYTES,
+            logger=logger,
         )
+        self._thread = threading.Thread(target=self.server.serve_forever, name="view-ws")
 
     @property
     def address(self) -> tuple[str, int]:
-        host, port = self.httpd.server_address[:2]
+        host, port = self.server.socket.getsockname()[:2]
         return str(host), int(port)
 
     @property
@@ -489,13 +515,8 @@ class ViewServer:
 
     def close(self) -> None:
         self.hub.close()
-        with self._streams_lock:
-            for conn in self._streams:
-                with contextlib.suppress(OSError):
-                    conn.shutdown(socket.SHUT_RDWR)
-        self.httpd.shutdown()
+        self.server.shutdown()  # closes the pages (each has CLOSE_TIMEOUT_S) and joins them
         self._thread.join()
-        self.httpd.server_close()
         self.link.close()
 
     def __enter__(self) -> ViewServer:
@@ -505,16 +526,146 @@ class ViewServer:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def stream_opened(self, conn: socket.socket) -> bool:
-        with self._streams_lock:
-            if len(self._streams) >= MAX_STREAMS or self.hub.closed:
-                return False
-            self._streams.add(conn)
-            return True
+    # -- HTTP: the page, its assets, the small JSON answers, and the WebSocket's checks -----
 
-    def stream_closed(self, conn: socket.socket) -> None:
-        with self._streams_lock:
-            self._streams.discard(conn)
+    @staticmethod
+    def _response(status: int, ctype: str, body: bytes) -> Response:
+        headers = Headers(
+            [
+                ("Date", email.utils.formatdate(usegmt=True)),
+                ("Connection", "close"),
+                ("Content-Type", ctype),
+                ("Content-Length", str(len(body))),
+                *SECURITY_HEADERS.items(),
+            ]
+        )
+        status = HTTPStatus(status)
+        return Response(status.value, status.phrase, headers, body)
+
+    def _json(self, status: int, body: Any) -> Response:
+        return self._response(status, "application/json", _dumps(body).encode())
+
+    def _authorised(self, query: dict[str, list[str]]) -> bool:
+        key = query.get("key", [""])[0]
+        return hmac.compare_digest(key.encode(), self.key.encode())
+
+    def _http(self, conn: ServerConnection, request: Request) -> Response | None:
+        """Answer a request: the page, an asset, a JSON answer or an error; None lets the
+        WebSocket open (``/ws`` with the key, from the page's origin, while there is room)."""
+        url = urlsplit(request.path)
+        query = parse_qs(url.query)
+        path = url.path
+        if path in ("/", "/index.html"):
+            return self._static("index.html")
+        if path.startswith("/static/") and path[len("/static/") :] in STATIC_TYPES:
+            return self._static(path[len("/static/") :])
+        if path not in ("/ws", "/api/status", "/api/params"):
+            return self._json(HTTPStatus.NOT_FOUND, _error("not_found", f"no page {path!r}"))
+        if not self._authorised(query):
+            return self._json(
+                HTTPStatus.FORBIDDEN,
+                _error(
+                    "forbidden",
+                    "this needs the key in the URL that hapticd view printed (open that URL)",
+                ),
+            )
+        if path == "/api/status":
+            body = {"status": self.hub.latest("status"), "link": self.hub.latest("link")}
+            return self._json(HTTPStatus.OK, body)
+        if path == "/api/params":
+            return self._json(HTTPStatus.OK, self.params_json())
+        # /ws: a browser says where the page that opens it came from; only this server's
+        # own pages may (another site's script in the same browser may not). A client that
+        # is not a browser sends no Origin and needs the key alone.
+        origin = request.headers.get("Origin")
+        host = request.headers.get("Host")
+        if origin is not None and (host is None or origin.lower() != f"http://{host}".lower()):
+            return self._json(
+                HTTPStatus.FORBIDDEN,
+                _error("bad_origin", f"a page from {origin[:100]!r} may not open this stream"),
+            )
+        if self.hub.count() >= MAX_STREAMS:
+            return self._json(HTTPStatus.SERVICE_UNAVAILABLE, _error("busy", "too many pages open"))
+        return None
+
+    def _static(self, name: str) -> Response:
+        data = (resources.files("hapticd.view") / "static" / name).read_bytes()
+        return self._response(HTTPStatus.OK, STATIC_TYPES[name], data)
+
+    # -- the WebSocket: one per page ---------------------------------------------------------
+
+    def _page(self, conn: ServerConnection) -> None:
+        """Serve one page: a sender thread empties its queue into the socket while this
+        thread reads its commands, until either side ends."""
+        query = parse_qs(urlsplit(conn.request.path if conn.request else "").query)
+        page = Page(conn, query.get("mode", ["experimenter"])[0] == "subject")
+        with contextlib.suppress(OSError):
+            conn.socket.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, PAGE_SNDBUF_BYTES)
+        # Bounds every write to the page (the library's reads wait in select, unaffected):
+        # a page that stopped reading can hold its sender, and the view's close, this long.
+        conn.socket.settimeout(SEND_TIMEOUT_S)
+        if not self.hub.add(page):
+            conn.close(1013, "too many pages open")  # 1013: try again later
+            return
+        sender = threading.Thread(target=self._send, args=(page,), name="view-page-send")
+        sender.start()
+        try:
+            for raw in conn:
+                page.offer(_dumps(self.command(raw, subject=page.subject)))
+        except ConnectionClosed:
+            pass
+        finally:
+            self.hub.remove(page)
+            sender.join()
+
+    def _send(self, page: Page) -> None:
+        try:
+            while (batch := page.take()) is not None:
+                for text in batch:
+                    page.conn.send(text)
+        except ConnectionClosed as exc:
+            if isinstance(exc.__cause__, TimeoutError) and not page.closed:
+                page.dropped = True
+                self.log(f"dropped a page that took no data for {SEND_TIMEOUT_S:g} s: {page.peer}")
+        except OSError:
+            pass
+        finally:
+            page.close()
+            if page.dropped:
+                page.conn.close_socket()  # the reader thread then ends too
+
+    def command(self, raw: str | bytes, *, subject: bool) -> dict[str, Any]:
+        """A command from a page, answered: ``{"type": "reply", "ref": REF, "ok": ...}``
+        (``ref`` as the page sent it, so it can tell its replies apart)."""
+        try:
+            msg = json.loads(raw)
+        except ValueError:
+            msg = None
+        if not isinstance(msg, dict):
+            return {"type": "reply", "ref": None, **_error("bad_request", "a JSON object")}
+        ref = msg.get("ref") if isinstance(msg.get("ref"), int | str) else None
+        kind = msg.get("type")
+        if kind == "set":
+            if subject:
+                reply = _error("read_only", "the subject's page changes nothing")
+            elif not self.control:
+                reply = _error(
+                    "read_only",
+                    "this view is read-only: start hapticd view with --control to allow changes",
+                )
+            elif not (isinstance(msg.get("param"), str) and isinstance(msg.get("value"), str)):
+                reply = _error(
+                    "bad_request",
+                    'expected {"type": "set", "param": NAME, "value": TEXT}, the value as on '
+                    "the command line",
+                )
+            else:
+                reply = self.set(msg["param"], msg["value"])
+        elif kind == "respond":
+            reply = self.respond(msg.get("id"), msg.get("choice"))
+        else:
+            reply = _error("bad_request", f"unknown message type {str(kind)[:32]!r}")
+        return {"type": "reply", "ref": ref, **reply}
 
     def params_json(self) -> dict[str, Any]:
         """The settable parameters, for the page's form."""
@@ -534,37 +685,48 @@ class ViewServer:
             ],
         }
 
-    def set(self, name: str, text: str) -> tuple[int, dict[str, Any]]:
+    def _daemon(self, cmd: str, **args: Any) -> dict[str, Any]:
+        """Send a command to the daemon: ``{"ok": True, "result": ...}`` or an error reply
+        with the daemon's code (``no_daemon`` when it cannot be reached)."""
+        try:
+            return {"ok": True, "result": self.link.call(cmd, **args)}
+        except proto.ProtocolError as exc:
+            return _error(exc.code, str(exc))
+        except NoDaemonError as exc:
+            return _error("no_daemon", str(exc))
+        except (OSError, ValueError) as exc:
+            return _error("no_daemon", f"cannot talk to {self.socket_path}: {exc}")
+
+    def set(self, name: str, text: str) -> dict[str, Any]:
         """A change from the page, checked as ``hapticd set NAME TEXT`` checks it and sent
-        as the same ``set`` command: (HTTP status, reply)."""
+        as the same ``set`` command."""
         try:
             spec = params.lookup(name)
             spec.check(spec.parse(text))
         except params.ParamError as exc:
-            return HTTPStatus.BAD_REQUEST, {
-                "ok": False,
-                "error": {"code": exc.code, "message": str(exc)},
-            }
+            return _error(exc.code, str(exc))
         # The value goes as parsed (JSON-able), not as checked (tuples): the daemon checks it.
-        try:
-            result = self.link.set(spec.name, spec.parse(text))
-        except proto.ProtocolError as exc:
-            status = (
-                HTTPStatus.BAD_REQUEST if exc.code in BAD_REQUEST_CODES else HTTPStatus.CONFLICT
+        reply = self._daemon("set", param=spec.name, value=spec.parse(text))
+        if reply["ok"]:
+            tick = reply["result"].get("applied_at_tick")
+            self.log(f"set {spec.name} {text} (applied at tick {tick})")
+        return reply
+
+    def respond(self, prompt_id: Any, choice: Any) -> dict[str, Any]:
+        """The subject's answer to the current prompt, sent as the daemon's ``respond``
+        command (which checks it against the prompt). It changes no parameter, so every
+        page may send it, read-only or not."""
+        if not (isinstance(prompt_id, int) and not isinstance(prompt_id, bool) and prompt_id >= 0):
+            return _error("bad_request", "'id' must be the prompt's id (an int >= 0)")
+        if not (isinstance(choice, str) and CHOICE_RE.fullmatch(choice)):
+            return _error("bad_value", "'choice' must be one of the prompt's choices")
+        reply = self._daemon("respond", id=prompt_id, choice=choice)
+        if reply["ok"]:
+            self.log(f"the subject answered prompt {prompt_id}: {choice}")
+            self.link.poll_status_now()  # the prompt is gone: the buttons go too
+        elif reply["error"]["code"] == "unknown_command":
+            reply = _error(
+                "unsupported",
+                "this hapticd takes no answers (it has no respond command): update it",
             )
-            return status, {"ok": False, "error": {"code": exc.code, "message": str(exc)}}
-        except NoDaemonError as exc:
-            return HTTPStatus.SERVICE_UNAVAILABLE, {
-                "ok": False,
-                "error": {"code": "no_daemon", "message": str(exc)},
-            }
-        except (OSError, ValueError) as exc:
-            return HTTPStatus.SERVICE_UNAVAILABLE, {
-                "ok": False,
-                "error": {
-                    "code": "no_daemon",
-                    "message": f"cannot talk to {self.socket_path}: {exc}",
-                },
-            }
-        self.log(f"set {spec.name} {text} (applied at tick {result.get('applied_at_tick')})")
-        return HTTPStatus.OK, {"ok": True, "result": result}
+        return reply

@@ -1,5 +1,5 @@
 // hapticd view: the scene drawn on a canvas from the daemon's telemetry, and the
-// experimenter's panels. Events arrive over Server-Sent Events at the telemetry rate;
+// experimenter's panels. Messages arrive over one WebSocket at the telemetry rate;
 // drawing runs on requestAnimationFrame at the display's rate whatever the loop's.
 // Units as in the daemon: positions m, forces N; shown in mm and N.
 "use strict";
@@ -33,15 +33,86 @@
   const DEFAULT_CAM = { az: -2.05, el: 0.42, dist: subject ? 0.24 : 0.3 };
   const cam = { ...DEFAULT_CAM };
 
-  // -- the stream ------------------------------------------------------------------------
+  // -- the stream: one WebSocket, the view's messages in, the page's commands out ---------
 
   const mode = subject ? "subject" : "experimenter";
-  const events = new EventSource(`/events?key=${encodeURIComponent(key)}&mode=${mode}`);
-  events.addEventListener("telemetry", (e) => onTelemetry(JSON.parse(e.data)));
-  events.addEventListener("status", (e) => onStatus(JSON.parse(e.data)));
-  events.addEventListener("link", (e) => onLink(JSON.parse(e.data)));
-  events.onerror = () => banner(subject ? "waiting" : "cannot reach hapticd view; retrying");
-  events.onopen = () => onLink(state.link);
+  let ws = null;
+  let viewLost = false; // the WebSocket closed: the view stopped, or restarts
+  let noteTimer = null;
+  let nextRef = 1;
+  const pending = new Map(); // ref -> the callback of a command awaiting its reply
+
+  function connect() {
+    const scheme = location.protocol === "https:" ? "wss:" : "ws:";
+    const sock = new WebSocket(`${scheme}//${location.host}/ws?key=${encodeURIComponent(key)}&mode=${mode}`);
+    ws = sock;
+    sock.onopen = () => {
+      if (viewLost) {
+        viewLost = false;
+        note(subject ? null : "reconnected to hapticd view");
+      }
+      if (noteTimer === null) onLink(state.link);
+    };
+    sock.onmessage = (e) => {
+      const m = JSON.parse(e.data);
+      if (m.type === "telemetry") onTelemetry(m.data);
+      else if (m.type === "status") onStatus(m.data);
+      else if (m.type === "link") onLink(m.data);
+      else if (m.type === "event") onEvent(m.data);
+      else if (m.type === "reply") {
+        const done = pending.get(m.ref);
+        pending.delete(m.ref);
+        if (done) done(m);
+      }
+    };
+    sock.onclose = () => {
+      if (ws !== sock) return;
+      viewLost = true;
+      for (const done of pending.values()) {
+        done({ ok: false, error: { code: "no_view", message: "the view went away" } });
+      }
+      pending.clear();
+      whyClosed();
+      setTimeout(connect, 1000);
+    };
+  }
+
+  // The WebSocket API does not say why a connection failed: ask the view over HTTP.
+  async function whyClosed() {
+    let text = "cannot reach hapticd view (stopped?); reconnecting";
+    try {
+      const r = await fetch(`/api/status?key=${encodeURIComponent(key)}`);
+      if (r.status === 403) text = "hapticd view does not know this page's key: open the URL it printed";
+      else if (r.ok) text = "lost hapticd view; reconnecting";
+    } catch (err) {
+      // nothing answers at the view's address: the text above
+    }
+    if (viewLost) banner(subject ? "waiting" : text);
+  }
+
+  // Send a command; ``done`` gets its reply (``{ok, result}`` or ``{ok: false, error}``).
+  function send(msg, done) {
+    if (!ws || ws.readyState !== WebSocket.OPEN) {
+      done({ ok: false, error: { code: "no_view", message: "not connected to hapticd view" } });
+      return;
+    }
+    const ref = nextRef++;
+    pending.set(ref, done);
+    ws.send(JSON.stringify({ ...msg, ref }));
+  }
+
+  // A short note in the banner (a reconnection), cleared after a few seconds.
+  function note(text) {
+    clearTimeout(noteTimer);
+    noteTimer = null;
+    if (text !== null) {
+      banner(text);
+      noteTimer = setTimeout(() => {
+        noteTimer = null;
+        onLink(state.link);
+      }, 3000);
+    }
+  }
 
   function norm(v) {
     return Math.hypot(v[0], v[1], v[2]);
@@ -71,8 +142,10 @@
 
   function onLink(link) {
     state.link = link;
+    if (viewLost) return; // the view's own banner stands
+    if (link && !link.connected) banner(subject ? "waiting" : `no daemon: ${link.message}`);
+    else if (noteTimer === null) banner(null);
     if (!link) return;
-    banner(link.connected ? null : subject ? "waiting" : `no daemon: ${link.message}`);
     if (subject) return;
     const el = $("link");
     el.textContent = link.connected ? `connected (${link.socket})` : `not connected: ${link.message}`;
@@ -94,6 +167,7 @@
 
   function onStatus(st) {
     state.status = st;
+    onPrompt(st.prompt || null);
     if (subject) return;
     const v = st.view || {};
     const achieved = v.achieved_hz === null || v.achieved_hz === undefined
@@ -158,27 +232,107 @@
     hint();
   }
 
-  $("set-form").addEventListener("submit", async (e) => {
+  $("set-form").addEventListener("submit", (e) => {
     e.preventDefault();
     const out = $("set-result");
     const param = $("set-param").value;
     const value = $("set-value").value.trim();
-    try {
-      const reply = await fetch(`/api/set?key=${encodeURIComponent(key)}`, {
-        method: "POST",
-        headers: { "Content-Type": "application/json" },
-        body: JSON.stringify({ param, value }),
-      });
-      const body = await reply.json();
-      out.className = body.ok ? "good" : "bad";
-      out.textContent = body.ok
-        ? `${param} = ${value}: applied at tick ${body.result.applied_at_tick}`
-        : `${body.error.code}: ${body.error.message}`;
-    } catch (err) {
-      out.className = "bad";
-      out.textContent = `cannot reach hapticd view: ${err}`;
+    send({ type: "set", param, value }, (r) => {
+      out.className = r.ok ? "good" : "bad";
+      out.textContent = r.ok
+        ? `${param} = ${value}: applied at tick ${r.result.applied_at_tick}`
+        : `${r.error.code}: ${r.error.message}`;
+    });
+  });
+
+  // -- the prompt: the subject's answer buttons, the experimenter's panel -------------------
+
+  let promptShown = null; // the id of the prompt the buttons are for
+  const keys = new Map(); // key -> choice, while a prompt is shown
+
+  // Keys for the choices: each one's first letter where no other choice shares it, and
+  // 1..n always.
+  function keysFor(choices) {
+    const out = new Map();
+    const first = choices.map((c) => c[0]);
+    choices.forEach((c, i) => {
+      out.set(String(i + 1), c);
+      if (first.filter((f) => f === c[0]).length === 1) out.set(c[0], c);
+    });
+    return out;
+  }
+
+  function onPrompt(p) {
+    const box = $("prompt");
+    if (!subject) {
+      $("prompt-state").textContent = p
+        ? `${p.id}: "${p.question}" (${p.choices.join(" / ")}), waiting for the answer`
+        : "none";
+      return;
+    }
+    if (p === null) {
+      box.hidden = true;
+      promptShown = null;
+      keys.clear();
+      return;
+    }
+    if (promptShown === p.id) return;
+    promptShown = p.id;
+    keys.clear();
+    for (const [k, c] of keysFor(p.choices)) keys.set(k, c);
+    $("prompt-question").textContent = p.question;
+    $("prompt-result").textContent = "";
+    $("prompt-choices").replaceChildren(...p.choices.map((c, i) => {
+      const b = document.createElement("button");
+      b.type = "button";
+      b.className = "answer";
+      b.dataset.testid = `answer-${c}`;
+      b.dataset.choice = c;
+      const hint = [...keys].filter(([, v]) => v === c).map(([k]) => k).reverse().join(" or ");
+      const label = document.createElement("span");
+      label.textContent = c;
+      const small = document.createElement("small");
+      small.textContent = `key ${hint}`;
+      b.append(label, small);
+      b.onclick = () => answer(p.id, c);
+      return b;
+    }));
+    box.hidden = false;
+  }
+
+  function answer(id, choice) {
+    if (promptShown !== id) return;
+    const buttons = [...document.querySelectorAll("#prompt-choices button")];
+    buttons.forEach((b) => { b.disabled = true; });
+    const out = $("prompt-result");
+    send({ type: "respond", id, choice }, (r) => {
+      if (r.ok) {
+        out.textContent = `answered: ${choice}`;
+        out.className = "good";
+      } else {
+        out.textContent = `not recorded: ${r.error.message}`;
+        out.className = "bad";
+        buttons.forEach((b) => { b.disabled = false; });
+      }
+    });
+  }
+
+  document.addEventListener("keydown", (e) => {
+    if (!subject || promptShown === null || e.ctrlKey || e.altKey || e.metaKey) return;
+    const choice = keys.get(e.key.toLowerCase());
+    if (choice !== undefined) {
+      e.preventDefault();
+      answer(promptShown, choice);
     }
   });
+
+  // The daemon's events: the experimenter's page shows the last answer.
+  function onEvent(ev) {
+    if (subject) return;
+    if (ev.event === "response") {
+      $("prompt-last").textContent = `${ev.prompt}: ${ev.choice} (tick ${ev.tick})`;
+    }
+  }
 
   // -- the camera and projection ------------------------------------------------------------
 
@@ -595,4 +749,5 @@
     requestAnimationFrame(frame);
   }
   requestAnimationFrame(frame);
+  connect();
 })();
