@@ -299,17 +299,17 @@ class ControlClient:
         """Set the daemon's subject prompt (replacing any): ``prompt_id`` an int >= 0,
         ``question`` 1 to 200 printable characters, 2 to 4 distinct ``choices``
         ([a-z0-9_-]{1,16}). Subscribers get a ``prompt`` event; a ``respond`` answers it."""
-        return self.call("prompt", id=prompt_id, question=question, choices=list(choices))
+        return self.call("prompt", prompt=prompt_id, question=question, choices=list(choices))
 
     def clear_prompt(self) -> dict[str, Any]:
         """Clear the daemon's subject prompt (a ``prompt`` event with ``prompt`` null)."""
-        return self.call("prompt", id=None)
+        return self.call("prompt", prompt=None)
 
     def respond(self, prompt_id: int, choice: str) -> dict[str, Any]:
         """Answer the current prompt ``prompt_id`` with ``choice``; ProtocolError
         ``no_prompt`` when another or none is current, ``bad_value`` for a choice it does
         not offer."""
-        return self.call("respond", id=prompt_id, choice=choice)
+        return self.call("respond", prompt=prompt_id, choice=choice)
 
     def stop(self) -> dict[str, Any]:
         return self.call("shutdown")

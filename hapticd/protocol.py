@@ -223,22 +223,25 @@ def check(req: dict[str, Any]) -> dict[str, Any]:
 
 
 def _prompt_id(req: dict[str, Any], cmd: str) -> int:
-    """The prompt's id of a prompt or respond request: an int >= 0 (``id`` is also the
-    request's id, echoed in the reply)."""
-    if "id" not in req:
-        raise ProtocolError("bad_request", f"{cmd} needs an 'id': the prompt's, an integer >= 0")
-    pid = req["id"]
+    """The prompt's id of a prompt or respond request (its ``prompt`` key): an int >= 0.
+    Not the request's ``id``, which stays the client's to match replies."""
+    if "prompt" not in req:
+        raise ProtocolError(
+            "bad_request", f"{cmd} needs a 'prompt': the prompt's id, an integer >= 0"
+        )
+    pid = req["prompt"]
     if isinstance(pid, bool) or not isinstance(pid, int) or pid < 0:
         raise ProtocolError(
-            "bad_value", f"{cmd}'s 'id' must be the prompt's id, an integer >= 0, got {_short(pid)}"
+            "bad_value",
+            f"{cmd}'s 'prompt' must be the prompt's id, an integer >= 0, got {_short(pid)}",
         )
     return pid
 
 
 def _check_prompt(req: dict[str, Any]) -> None:
-    """A prompt request: ``id`` null clears; else ``question`` and ``choices`` as the spec
+    """A prompt request: ``prompt`` null clears; else ``question`` and ``choices`` as the spec
     (docs/control.md) says."""
-    if "id" in req and req["id"] is None:
+    if "prompt" in req and req["prompt"] is None:
         return
     _prompt_id(req, "prompt")
     question = req.get("question")

@@ -144,7 +144,7 @@ class FakeDaemon:
         if cmd == "respond" and self.knows_prompt:
             with self._lock:
                 p = self.prompt
-                if p is None or req.get("id") != p["id"]:
+                if p is None or req.get("prompt") != p["id"]:
                     return {"ok": False, "error": {"code": "no_prompt", "message": "no such"}}
                 if req.get("choice") not in p["choices"]:
                     return {"ok": False, "error": {"code": "bad_value", "message": "not offered"}}

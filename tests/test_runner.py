@@ -88,28 +88,29 @@ def test_a_prompt_is_shown_answered_once_and_cleared(server):
     with ControlClient(server.path) as watcher, ControlClient(server.path) as c:
         watcher.events_subscribe(["prompt", "response"])
         assert c.status()["prompt"] is None
-        assert _error(c, cmd="respond", id=3, choice="yes")["code"] == "no_prompt"
+        assert _error(c, cmd="respond", prompt=3, choice="yes")["code"] == "no_prompt"
         reply = c.request(
-            "prompt", id=3, question="Was the second cube stiffer?", choices=["no", "yes"]
+            "prompt", prompt=3, question="Was the second cube stiffer?", choices=["no", "yes"]
         )
-        assert reply == {"id": 3, "ok": True, "result": {}}
+        # The request's own id stays the client's (replies are matched by it).
+        assert reply == {"id": c._next, "ok": True, "result": {}}
         want = {"id": 3, "question": "Was the second cube stiffer?", "choices": ["no", "yes"]}
         assert c.status()["prompt"] == want
         assert watcher.next_event(5)["prompt"] == 3
         # Another id, or a choice the prompt does not offer: refused, the prompt stays.
-        assert _error(c, cmd="respond", id=4, choice="yes")["code"] == "no_prompt"
-        assert _error(c, cmd="respond", id=3, choice="maybe")["code"] == "bad_value"
+        assert _error(c, cmd="respond", prompt=4, choice="yes")["code"] == "no_prompt"
+        assert _error(c, cmd="respond", prompt=3, choice="maybe")["code"] == "bad_value"
         assert c.status()["prompt"] == want
         c.respond(3, "yes")
         ev = watcher.next_event(5)
         assert (ev["event"], ev["prompt"], ev["choice"]) == ("response", 3, "yes")
         assert c.status()["prompt"] is None
-        assert _error(c, cmd="respond", id=3, choice="yes")["code"] == "no_prompt"
+        assert _error(c, cmd="respond", prompt=3, choice="yes")["code"] == "no_prompt"
         # A new prompt replaces the current one; clearing emits a prompt event with null.
         c.prompt(5, "Heavier?", ["a", "b", "c"])
         c.prompt(6, "Heavier?", ["no", "yes"])
         assert [watcher.next_event(5)["prompt"] for _ in range(2)] == [5, 6]
-        assert _error(c, cmd="respond", id=5, choice="a")["code"] == "no_prompt"
+        assert _error(c, cmd="respond", prompt=5, choice="a")["code"] == "no_prompt"
         c.clear_prompt()
         ev = watcher.next_event(5)
         assert ev["event"] == "prompt" and ev["prompt"] is None and "tick" in ev and "t" in ev
@@ -118,16 +119,16 @@ def test_a_prompt_is_shown_answered_once_and_cleared(server):
             watcher.next_event(0.2)  # the refused requests made no event
 
 
-GOOD = {"cmd": "prompt", "id": 1, "question": "Stiffer?", "choices": ["no", "yes"]}
+GOOD = {"cmd": "prompt", "prompt": 1, "question": "Stiffer?", "choices": ["no", "yes"]}
 
 
 @pytest.mark.parametrize(
     "change, code",
     [
-        ({"id": "7"}, "bad_value"),
-        ({"id": -1}, "bad_value"),
-        ({"id": True}, "bad_value"),
-        ({"id": 1.5}, "bad_value"),
+        ({"prompt": "7"}, "bad_value"),
+        ({"prompt": -1}, "bad_value"),
+        ({"prompt": True}, "bad_value"),
+        ({"prompt": 1.5}, "bad_value"),
         ({"question": ""}, "bad_value"),
         ({"question": "x" * 201}, "bad_value"),
         ({"question": "two\nlines"}, "bad_value"),
@@ -149,7 +150,7 @@ def test_malformed_prompts_are_refused_naming_the_argument(change, code):
         proto.check({**GOOD, **change})
     assert err.value.code == code
     key = next(iter(change))
-    assert (key if key != "id" else "'id'") in str(err.value)
+    assert (key if key != "prompt" else "'prompt'") in str(err.value)
 
 
 @pytest.mark.parametrize(
@@ -157,11 +158,11 @@ def test_malformed_prompts_are_refused_naming_the_argument(change, code):
     [
         ({"cmd": "prompt", "question": "Stiffer?", "choices": ["no", "yes"]}, "bad_request"),
         ({"cmd": "respond", "choice": "yes"}, "bad_request"),
-        ({"cmd": "respond", "id": None, "choice": "yes"}, "bad_value"),
-        ({"cmd": "respond", "id": 1}, "bad_value"),
-        ({"cmd": "respond", "id": 1, "choice": "YES"}, "bad_value"),
-        ({"cmd": "respond", "id": 1, "choice": ["yes"]}, "bad_value"),
-        ({"cmd": "respond", "id": "1", "choice": "yes"}, "bad_value"),
+        ({"cmd": "respond", "prompt": None, "choice": "yes"}, "bad_value"),
+        ({"cmd": "respond", "prompt": 1}, "bad_value"),
+        ({"cmd": "respond", "prompt": 1, "choice": "YES"}, "bad_value"),
+        ({"cmd": "respond", "prompt": 1, "choice": ["yes"]}, "bad_value"),
+        ({"cmd": "respond", "prompt": "1", "choice": "yes"}, "bad_value"),
     ],
 )
 def test_malformed_responses_and_prompts_without_an_id(req, code):
@@ -174,10 +175,10 @@ def test_malformed_prompt_lines_get_error_replies_and_change_nothing(server):
     with ControlClient(server.path) as c:
         c.prompt(2, "Stiffer?", ["no", "yes"])
         for line in (
-            b'{"cmd":"prompt","id":3,"question":"","choices":["no","yes"]}\n',
-            b'{"cmd":"prompt","id":3,"question":"q","choices":[[[["x"]]]]}\n',
-            b'{"cmd":"respond","id":2,"choice":null}\n',
-            b'{"cmd":"respond","id":2,"choice":"yes","extra":NaN}\n',
+            b'{"cmd":"prompt","prompt":3,"question":"","choices":["no","yes"]}\n',
+            b'{"cmd":"prompt","prompt":3,"question":"q","choices":[[[["x"]]]]}\n',
+            b'{"cmd":"respond","prompt":2,"choice":null}\n',
+            b'{"cmd":"respond","prompt":2,"choice":"yes","extra":NaN}\n',
         ):
             c.sock.sendall(line)
             reply = c._line()
@@ -476,7 +477,7 @@ def test_a_person_answers_by_respond_and_by_keys(tmp_path, daemons):
     proc.stdin.write("2")
     proc.stdin.flush()
     with ControlClient(sock) as c:
-        assert c.request("respond", id=0, choice="yes")["error"]["code"] == "no_prompt"
+        assert c.request("respond", prompt=0, choice="yes")["error"]["code"] == "no_prompt"
     script = {0: ("respond", "no"), 1: ("key", "y"), 2: ("key", "1"), 3: ("respond", "yes")}
     answers = Answerer(sock, lambda pid: script.get(pid, ("key", "n")), stdin=proc.stdin)
     try:

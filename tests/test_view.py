@@ -26,7 +26,6 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 
 from hapticd import params
-from hapticd import protocol as proto
 from hapticd.cli import build_parser, main
 from hapticd.control import ControlClient
 from hapticd.daemon.server import ControlServer
@@ -175,6 +174,11 @@ def view():
     yield start
     codes = [v.close() for v in started]
     assert codes == [0] * len(codes), f"hapticd view exit codes {codes}"
+
+
+def _without_id(requests: list[dict]) -> list[dict]:
+    """Requests as sent, less the request's own ``id`` (the client's counter)."""
+    return [{k: v for k, v in r.items() if k != "id"} for r in requests]
 
 
 def ws_connect(port: int, key: str, mode: str | None = None, **kw) -> ClientConnection:
@@ -660,7 +664,7 @@ def test_the_subjects_page_shows_the_prompt_as_buttons_and_a_click_answers(
         browser.screenshot(tmp_path / "subject-prompt.png")
         browser.click("[data-testid=answer-yes]")
         wait_for(fake.responds, "the answer at the daemon", until=lambda r: len(r) == 1)
-        assert fake.responds() == [{"id": 7, "cmd": "respond", "choice": "yes"}]
+        assert _without_id(fake.responds()) == [{"prompt": 7, "cmd": "respond", "choice": "yes"}]
         wait_for(
             lambda: browser.evaluate(PROMPT_SHOWN),
             "the buttons to go with the prompt",
@@ -672,7 +676,11 @@ def test_the_subjects_page_shows_the_prompt_as_buttons_and_a_click_answers(
         wait_for(lambda: browser.evaluate(PROMPT_SHOWN), "the next prompt")
         browser.press("r")
         wait_for(fake.responds, "the key's answer", until=lambda r: len(r) == 2)
-        assert fake.responds()[-1] == {"id": 8, "cmd": "respond", "choice": "right"}
+        assert _without_id(fake.responds())[-1] == {
+            "prompt": 8,
+            "cmd": "respond",
+            "choice": "right",
+        }
         fake.set_prompt(9, "Again?", ["no", "yes"])
         wait_for(
             lambda: browser.evaluate("document.getElementById('prompt-question').textContent"),
@@ -681,7 +689,7 @@ def test_the_subjects_page_shows_the_prompt_as_buttons_and_a_click_answers(
         )
         browser.press("1")
         wait_for(fake.responds, "the number key's answer", until=lambda r: len(r) == 3)
-        assert fake.responds()[-1] == {"id": 9, "cmd": "respond", "choice": "no"}
+        assert _without_id(fake.responds())[-1] == {"prompt": 9, "cmd": "respond", "choice": "no"}
         wait_for(
             lambda: browser.evaluate(PROMPT_SHOWN),
             "the buttons to go",
@@ -708,16 +716,7 @@ def test_an_answer_on_the_subjects_page_reaches_the_daemon_as_a_response_event(
     """End to end: a client sets the prompt, the subject clicks an answer, the daemon
     emits ``response`` (the experiment runner's way of hearing it)."""
     with ControlClient(daemon) as client, ControlClient(daemon) as runner:
-        try:
-            question = "Was the second cube stiffer?"
-            client.call("prompt", id=3, question=question, choices=["no", "yes"])
-        except proto.ProtocolError as exc:
-            if exc.code != "unknown_command":
-                raise
-            pytest.skip(
-                "this daemon has no prompt command yet (the prompt and respond commands are "
-                "added on their own branch; docs/view.md, the subject's answers)"
-            )
+        client.prompt(3, "Was the second cube stiffer?", ["no", "yes"])
         runner.events_subscribe(["response"])
         v = view(daemon)
         with cdp.Browser(chromium, tmp_path / "chromium") as browser:
@@ -899,24 +898,28 @@ def test_the_prompt_reaches_both_pages_and_the_answer_reaches_the_daemon(fake):
                 assert statuses(events)[-1]["prompt"] == want
             # Answers the view refuses itself, the daemon never sees.
             for bad, code in (
-                ({"id": "7", "choice": "yes"}, "bad_request"),
-                ({"id": -1, "choice": "yes"}, "bad_request"),
-                ({"id": True, "choice": "yes"}, "bad_request"),
-                ({"id": 7, "choice": "YES!"}, "bad_value"),
-                ({"id": 7}, "bad_value"),
+                ({"prompt": "7", "choice": "yes"}, "bad_request"),
+                ({"prompt": -1, "choice": "yes"}, "bad_request"),
+                ({"prompt": True, "choice": "yes"}, "bad_request"),
+                ({"prompt": 7, "choice": "YES!"}, "bad_value"),
+                ({"prompt": 7}, "bad_value"),
             ):
                 reply = reply_to(subj, {"type": "respond", **bad})
                 assert reply["ok"] is False and reply["error"]["code"] == code, (bad, reply)
             assert fake.responds() == []
             # The daemon's refusals come back with its code.
-            reply = reply_to(subj, {"type": "respond", "id": 6, "choice": "yes"})
+            reply = reply_to(subj, {"type": "respond", "prompt": 6, "choice": "yes"})
             assert reply["error"]["code"] == "no_prompt"
-            reply = reply_to(subj, {"type": "respond", "id": 7, "choice": "maybe"})
+            reply = reply_to(subj, {"type": "respond", "prompt": 7, "choice": "maybe"})
             assert reply["error"]["code"] == "bad_value"
             # The answer: the same line a control client sends.
-            reply = reply_to(subj, {"type": "respond", "id": 7, "choice": "yes"})
+            reply = reply_to(subj, {"type": "respond", "prompt": 7, "choice": "yes"})
             assert reply["ok"] is True, reply
-            assert fake.responds()[-1] == {"id": 7, "cmd": "respond", "choice": "yes"}
+            assert _without_id(fake.responds())[-1] == {
+                "prompt": 7,
+                "cmd": "respond",
+                "choice": "yes",
+            }
             # The prompt is gone at once on both pages; the experimenter hears the answer.
             for ws in (page, subj):
                 ws_events(ws, lambda ev: statuses(ev) and statuses(ev)[-1]["prompt"] is None)
@@ -929,7 +932,7 @@ def test_the_prompt_reaches_both_pages_and_the_answer_reaches_the_daemon(fake):
 def test_a_daemon_without_prompts_says_so_to_the_page(fake):
     fake.knows_prompt = False
     with ViewServer(fake.path, log=lambda m: None) as v, ws_connect(v.address[1], v.key) as ws:
-        reply = reply_to(ws, {"type": "respond", "id": 1, "choice": "yes"})
+        reply = reply_to(ws, {"type": "respond", "prompt": 1, "choice": "yes"})
     assert (
         reply["error"]["code"] == "unsupported"
         and "no respond command" in reply["error"]["message"]

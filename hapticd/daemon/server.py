@@ -616,7 +616,7 @@ class ControlServer:
         return {"subscribed": False}
 
     def _prompt(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
-        pid = req.get("id")
+        pid = req.get("prompt")
         if pid is None:
             self.prompt = None
         else:
@@ -625,7 +625,7 @@ class ControlServer:
         return {}
 
     def _respond(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
-        now, pid = self.prompt, req["id"]
+        now, pid = self.prompt, req["prompt"]
         if now is None or now["id"] != pid:
             current = "no prompt is current" if now is None else f"the prompt is {now['id']}"
             raise proto.ProtocolError("no_prompt", f"no prompt {pid} to answer: {current}")

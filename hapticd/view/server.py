@@ -393,7 +393,10 @@ class DaemonLink:
                         "telemetry_hz": self.rate_hz,
                     },
                 }
-                self.hub.publish("status", full, _subject_status(st))
+                # Pages hear the link come up before any status (the telemetry loop polls
+                # the status at once when it connects).
+                if self._connected:
+                    self.hub.publish("status", full, _subject_status(st))
             except (OSError, ValueError, KeyError, TypeError):
                 self._drop_request()
             self._poll_now.wait(STATUS_PERIOD_S)
@@ -662,7 +665,7 @@ class ViewServer:
             else:
                 reply = self.set(msg["param"], msg["value"])
         elif kind == "respond":
-            reply = self.respond(msg.get("id"), msg.get("choice"))
+            reply = self.respond(msg.get("prompt"), msg.get("choice"))
         else:
             reply = _error("bad_request", f"unknown message type {str(kind)[:32]!r}")
         return {"type": "reply", "ref": ref, **reply}
@@ -717,10 +720,10 @@ class ViewServer:
         command (which checks it against the prompt). It changes no parameter, so every
         page may send it, read-only or not."""
         if not (isinstance(prompt_id, int) and not isinstance(prompt_id, bool) and prompt_id >= 0):
-            return _error("bad_request", "'id' must be the prompt's id (an int >= 0)")
+            return _error("bad_request", "'prompt' must be the prompt's id (an int >= 0)")
         if not (isinstance(choice, str) and CHOICE_RE.fullmatch(choice)):
             return _error("bad_value", "'choice' must be one of the prompt's choices")
-        reply = self._daemon("respond", id=prompt_id, choice=choice)
+        reply = self._daemon("respond", prompt=prompt_id, choice=choice)
         if reply["ok"]:
             self.log(f"the subject answered prompt {prompt_id}: {choice}")
             self.link.poll_status_now()  # the prompt is gone: the buttons go too

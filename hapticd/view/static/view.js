@@ -305,7 +305,7 @@
     const buttons = [...document.querySelectorAll("#prompt-choices button")];
     buttons.forEach((b) => { b.disabled = true; });
     const out = $("prompt-result");
-    send({ type: "respond", id, choice }, (r) => {
+    send({ type: "respond", prompt: id, choice }, (r) => {
       if (r.ok) {
         out.textContent = `answered: ${choice}`;
         out.className = "good";
