@@ -13,6 +13,7 @@ Units: positions m, velocities m/s, forces N, stiffness N/m, damping N s/m.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -30,8 +31,9 @@ from hapticd.dynamics import (
 )
 from hapticd.frame import Frame
 from hapticd.friction import friction_proxy
+from hapticd.kernels import SCRATCH_COLUMNS
 from hapticd.passivity import PassivityParams, control, observe, orthonormal, project
-from hapticd.scene import Scene
+from hapticd.scene import Scene, SceneObject
 
 V3 = tuple[float, float, float]
 ZERO3: V3 = (0.0, 0.0, 0.0)
@@ -468,10 +470,14 @@ class Dynamics:
 
     name = "dynamics"
 
-    def __init__(self, scene: Scene, n_fingers: int, dt: float) -> None:
+    def __init__(
+        self, scene: Scene, n_fingers: int, dt: float, kernel: Callable[..., None] | None = None
+    ) -> None:
         self.scene = scene
         obj = scene.object
         self.dt = dt
+        # hapticd.kernels.free_body_step compiled (hapticd.jit), or None: the code below.
+        self.kernel = kernel
         self.gravity = scene.gravity
         self.surfaces = SurfaceSet(scene.surfaces) if scene.surfaces else None
         self.substeps = scene.substeps
@@ -481,6 +487,9 @@ class Dynamics:
             )
         self.small = len(obj.shape.vertices) <= SMALL_SHAPE
         self._prepared: SmallBody | None = None  # the small step's cache (shape, mass)
+        self._arrays: _BodyArrays | None = None  # the kernel's (shape, mass, surfaces)
+        self._scratch = np.zeros((n_fingers, SCRATCH_COLUMNS))
+        self._gravity = np.zeros(3) if self.gravity is None else np.array(self.gravity, float)
 
     @property
     def effects(self) -> list[str]:
@@ -490,6 +499,9 @@ class Dynamics:
         )
 
     def run(self, frame: Frame) -> None:
+        if self.kernel is not None:
+            self._run_kernel(frame)
+            return
         obj = self.scene.object
         k = obj.material.stiffness
         touching = frame.in_contact.tolist()
@@ -536,6 +548,88 @@ class Dynamics:
                 torsion=torsion,  # type: ignore[arg-type]
                 springs=springs,  # type: ignore[arg-type]
             )
+
+    def _run_kernel(self, frame: Frame) -> None:
+        """The same step as ``run`` by the kernel, on the frame's arrays and the object's
+        own: its pose and velocities are overwritten in place (made its own float arrays
+        first whenever someone has put other arrays there)."""
+        obj = self.scene.object
+        arr = self._arrays
+        if arr is None or not arr.fits(obj, self.surfaces):
+            arr = self._arrays = _BodyArrays(obj, self.surfaces)
+        if not arr.owns(obj):
+            arr.own(obj)
+        mat = obj.material
+        self.kernel(  # type: ignore[misc]
+            frame.in_contact,
+            frame.contact_point,
+            frame.contact_force,
+            frame.contact_normal,
+            mat.stiffness,
+            mat.torsion,
+            obj.position,
+            obj.velocity,
+            obj.omega,
+            obj.rotation,
+            obj.mass,
+            self.dt,
+            self.substeps,
+            self._gravity,
+            arr.Ib,
+            arr.Ib_inv,
+            arr.local,
+            arr.surf_n,
+            arr.surf_d,
+            arr.surf_k,
+            arr.surf_b,
+            arr.surf_mu,
+            arr.reach,
+            self._scratch,
+        )
+        obj.update_world()
+
+
+class _BodyArrays:
+    """What the free-body kernel reads of an object's shape and mass and of the surfaces,
+    as float arrays (``SmallBody``'s numbers): inertia and its inverse (3, 3) kg m^2,
+    vertices (V, 3) m, reach m, and per surface normal (S, 3), offset (S,) m, stiffness
+    (S,) N/m, damping (S,) N s/m, dynamic friction (S,)."""
+
+    def __init__(self, obj: SceneObject, surfaces: SurfaceSet | None) -> None:
+        small = SmallBody(obj, surfaces)
+        self.shape, self.mass, self.surfaces = small.shape, small.mass, surfaces
+        self.Ib = np.array(small.Ib, dtype=float)
+        self.Ib_inv = np.array(small.Ib_inv, dtype=float)
+        self.local = np.array(small.local, dtype=float).reshape(-1, 3)
+        self.reach = float(small.reach)
+        self.surf_n = np.array([n for n, _, _ in small.surf], dtype=float).reshape(-1, 3)
+        self.surf_d = np.array([d for _, d, _ in small.surf], dtype=float)
+        self.surf_k = np.array([m.stiffness for _, _, m in small.surf], dtype=float)
+        self.surf_b = np.array([m.damping for _, _, m in small.surf], dtype=float)
+        self.surf_mu = np.array([m.mu_dynamic for _, _, m in small.surf], dtype=float)
+        self._owned: tuple[np.ndarray, ...] = ()
+
+    def fits(self, obj: SceneObject, surfaces: SurfaceSet | None) -> bool:
+        return obj.shape is self.shape and obj.mass == self.mass and surfaces is self.surfaces
+
+    def owns(self, obj: SceneObject) -> bool:
+        """True while the object's state arrays are the ones ``own`` gave it."""
+        o = self._owned
+        return (
+            len(o) == 4
+            and obj.position is o[0]
+            and obj.velocity is o[1]
+            and obj.omega is o[2]
+            and obj.rotation is o[3]
+        )
+
+    def own(self, obj: SceneObject) -> None:
+        """Give the object fresh float64 arrays of its state (copies: nobody else holds them)."""
+        obj.position = np.array(obj.position, dtype=float).reshape(3)
+        obj.velocity = np.array(obj.velocity, dtype=float).reshape(3)
+        obj.omega = np.array(obj.omega, dtype=float).reshape(3)
+        obj.rotation = np.array(obj.rotation, dtype=float).reshape(3, 3)
+        self._owned = (obj.position, obj.velocity, obj.omega, obj.rotation)
 
 
 class SceneState:
