@@ -31,10 +31,8 @@ MODES = ("python", "compiled", "auto")
 # C-contiguous float64 (uint8 for in_contact), the scalars float64 or int64.
 SIGNATURES = {
     "free_body_step": (
-        "void(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8, f8,"
-        " f8[::1], f8[::1], f8[::1], f8[:, ::1], f8, f8, i8, f8[::1],"
-        " f8[:, ::1], f8[:, ::1], f8[:, ::1],"
-        " f8[:, ::1], f8[::1], f8[::1], f8[::1], f8[::1], f8, f8[:, ::1])"
+        "void(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[:, ::1],"
+        " f8[:, ::1], f8[:, ::1])"
     ),
 }
 

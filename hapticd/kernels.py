@@ -22,6 +22,14 @@ import math
 import numpy as np
 
 SCRATCH_COLUMNS = 13  # per finger: c0 (3), body (3), f0 (3), torsion normal (3), cap (1)
+# free_body_step's params: k, mu_t, m, dt, substeps, reach, gravity (3)
+PARAMS = 9
+# free_body_step's state: x (3), v (3), w (3), R (9, row by row)
+STATE = 18
+# free_body_step's body rows before the vertices: Ib (3), Ib_inv (3)
+BODY_HEAD = 6
+# free_body_step's surface columns: normal (3), offset, stiffness, damping, dynamic friction
+SURFACE_COLUMNS = 7
 
 
 def free_body_step(
@@ -29,47 +37,40 @@ def free_body_step(
     points: np.ndarray,
     forces: np.ndarray,
     normals: np.ndarray,
-    k: float,
-    mu_t: float,
-    x: np.ndarray,
-    v: np.ndarray,
-    w: np.ndarray,
-    R: np.ndarray,
-    m: float,
-    dt: float,
-    substeps: int,
-    gravity: np.ndarray,
-    Ib: np.ndarray,
-    Ib_inv: np.ndarray,
-    local: np.ndarray,
-    surf_n: np.ndarray,
-    surf_d: np.ndarray,
-    surf_k: np.ndarray,
-    surf_b: np.ndarray,
-    surf_mu: np.ndarray,
-    reach: float,
+    params: np.ndarray,
+    state: np.ndarray,
+    body: np.ndarray,
+    surf: np.ndarray,
     scratch: np.ndarray,
 ) -> None:
     """Move a free object one tick (``dt`` in ``substeps``) under the fingers' reactions,
-    gravity and surfaces; writes the pose and velocities in place.
+    gravity and surfaces; writes its state in place.
 
     The tick frame's fields: ``in_contact`` (F,) u1, ``points`` (F, 3) contact points,
-    ``forces`` (F, 3) full contact forces on the fingers, ``normals`` (F, 3). ``k``:
-    the object's stiffness (each finger a spring fixed to the object over the tick);
-    ``mu_t``: torsional friction, m. The object: ``x`` (3,), ``v`` (3,), ``w`` (3,),
-    ``R`` (3, 3), read and overwritten; mass ``m``; ``gravity`` (3,) (zeros: none);
-    body inertia ``Ib`` and its inverse (3, 3); vertices ``local`` (V, 3), body frame;
-    the farthest vertex from the centre ``reach``. Surfaces (S, ...): normal, offset,
-    stiffness, damping, dynamic friction. ``scratch`` (F, SCRATCH_COLUMNS): work space.
+    ``forces`` (F, 3) full contact forces on the fingers, ``normals`` (F, 3).
+    ``params`` (PARAMS,): the object's stiffness k (each finger a spring fixed to the
+    object over the tick), torsional friction mu_t (m), mass m, dt, substeps (a whole
+    number), reach (the farthest vertex from the centre), gravity (3; zeros: none).
+    ``state`` (STATE,): x, v, w and R (row by row), read and overwritten. ``body``
+    (BODY_HEAD + V, 3): body inertia, its inverse, then the vertices (body frame).
+    ``surf`` (S, SURFACE_COLUMNS): per surface normal, offset, stiffness, damping, dynamic
+    friction. ``scratch`` (F, SCRATCH_COLUMNS): work space. Few arguments: each costs the
+    compiled function's caller a type check.
     """
+    k, mu_t, m, dt = params[0], params[1], params[2], params[3]
+    substeps = int(params[4])
+    reach = params[5]
+    x = state[0:3]
+    v = state[3:6]
+    w = state[6:9]
     n_fingers = in_contact.shape[0]
     h = dt / substeps
     x0, x1, x2 = x[0], x[1], x[2]
     v0, v1, v2 = v[0], v[1], v[2]
     w0, w1, w2 = w[0], w[1], w[2]
-    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
-    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
-    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
+    r00, r01, r02 = state[9], state[10], state[11]
+    r10, r11, r12 = state[12], state[13], state[14]
+    r20, r21, r22 = state[15], state[16], state[17]
     # The pose as a unit quaternion (Shepperd's method).
     tr = r00 + r11 + r22
     if tr > 0.0:
@@ -84,7 +85,7 @@ def free_body_step(
     else:
         s = 2.0 * math.sqrt(1.0 + r22 - r00 - r11)
         qw, qx, qy, qz = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
-    gx, gy, gz = gravity[0], gravity[1], gravity[2]
+    gx, gy, gz = params[6], params[7], params[8]
     # The fingers in contact: springs anchored in the body frame, and torsion caps.
     n_springs = 0
     n_tors = 0
@@ -111,8 +112,8 @@ def free_body_step(
                 st[9], st[10], st[11] = normals[i, 0], normals[i, 1], normals[i, 2]
                 st[12] = mu_t * fn
                 n_tors += 1
-    n_surf = surf_d.shape[0]
-    n_local = local.shape[0]
+    n_surf = surf.shape[0]
+    n_local = body.shape[0] - BODY_HEAD
     for _ in range(substeps):
         Fx, Fy, Fz = 0.0 + m * gx, 0.0 + m * gy, 0.0 + m * gz
         Tx, Ty, Tz = 0.0, 0.0, 0.0
@@ -134,15 +135,16 @@ def free_body_step(
             sFx = sFy = sFz = sTx = sTy = sTz = 0.0
             ax = abs(x0) + abs(x1) + abs(x2)
             for js in range(n_surf):
-                n0, n1, n2 = surf_n[js, 0], surf_n[js, 1], surf_n[js, 2]
-                d = surf_d[js]
+                n0, n1, n2 = surf[js, 0], surf[js, 1], surf[js, 2]
+                d = surf[js, 3]
                 nn = abs(n0) + abs(n1) + abs(n2)
                 clear = n0 * x0 + n1 * x1 + n2 * x2 - nn * reach - d
                 if clear > 1e-9 * (nn * (ax + reach) + abs(d)):
                     continue
                 hits = 0
                 for jv in range(n_local):
-                    p0, p1, p2 = local[jv, 0], local[jv, 1], local[jv, 2]
+                    jb = BODY_HEAD + jv
+                    p0, p1, p2 = body[jb, 0], body[jb, 1], body[jb, 2]
                     e0 = r00 * p0 + r01 * p1 + r02 * p2
                     e1 = r10 * p0 + r11 * p1 + r12 * p2
                     e2 = r20 * p0 + r21 * p1 + r22 * p2
@@ -152,9 +154,10 @@ def free_body_step(
                 if hits == 0:
                     continue
                 share = m / hits
-                ks, bs, mus = surf_k[js], surf_b[js], surf_mu[js]
+                ks, bs, mus = surf[js, 4], surf[js, 5], surf[js, 6]
                 for jv in range(n_local):
-                    p0, p1, p2 = local[jv, 0], local[jv, 1], local[jv, 2]
+                    jb = BODY_HEAD + jv
+                    p0, p1, p2 = body[jb, 0], body[jb, 1], body[jb, 2]
                     e0 = r00 * p0 + r01 * p1 + r02 * p2
                     e1 = r10 * p0 + r11 * p1 + r12 * p2
                     e2 = r20 * p0 + r21 * p1 + r22 * p2
@@ -196,9 +199,9 @@ def free_body_step(
                 nb2 = r02 * n0 + r12 * n1 + r22 * n2
                 In = (
                     0.0
-                    + nb0 * (Ib[0, 0] * nb0 + Ib[0, 1] * nb1 + Ib[0, 2] * nb2)
-                    + nb1 * (Ib[1, 0] * nb0 + Ib[1, 1] * nb1 + Ib[1, 2] * nb2)
-                    + nb2 * (Ib[2, 0] * nb0 + Ib[2, 1] * nb1 + Ib[2, 2] * nb2)
+                    + nb0 * (body[0, 0] * nb0 + body[0, 1] * nb1 + body[0, 2] * nb2)
+                    + nb1 * (body[1, 0] * nb0 + body[1, 1] * nb1 + body[1, 2] * nb2)
+                    + nb2 * (body[2, 0] * nb0 + body[2, 1] * nb1 + body[2, 2] * nb2)
                 )
                 stop = In * abs(spin) / h
                 t = math.copysign(stop if stop < cap else cap, spin)
@@ -206,9 +209,9 @@ def free_body_step(
         wb0 = r00 * w0 + r10 * w1 + r20 * w2
         wb1 = r01 * w0 + r11 * w1 + r21 * w2
         wb2 = r02 * w0 + r12 * w1 + r22 * w2
-        a0 = Ib[0, 0] * wb0 + Ib[0, 1] * wb1 + Ib[0, 2] * wb2
-        a1 = Ib[1, 0] * wb0 + Ib[1, 1] * wb1 + Ib[1, 2] * wb2
-        a2 = Ib[2, 0] * wb0 + Ib[2, 1] * wb1 + Ib[2, 2] * wb2
+        a0 = body[0, 0] * wb0 + body[0, 1] * wb1 + body[0, 2] * wb2
+        a1 = body[1, 0] * wb0 + body[1, 1] * wb1 + body[1, 2] * wb2
+        a2 = body[2, 0] * wb0 + body[2, 1] * wb1 + body[2, 2] * wb2
         g0 = wb1 * a2 - wb2 * a1
         g1 = wb2 * a0 - wb0 * a2
         g2 = wb0 * a1 - wb1 * a0
@@ -216,9 +219,9 @@ def free_body_step(
         Tb1 = r01 * Tx + r11 * Ty + r21 * Tz
         Tb2 = r02 * Tx + r12 * Ty + r22 * Tz
         c0, c1, c2 = Tb0 - g0, Tb1 - g1, Tb2 - g2
-        dwb0 = Ib_inv[0, 0] * c0 + Ib_inv[0, 1] * c1 + Ib_inv[0, 2] * c2
-        dwb1 = Ib_inv[1, 0] * c0 + Ib_inv[1, 1] * c1 + Ib_inv[1, 2] * c2
-        dwb2 = Ib_inv[2, 0] * c0 + Ib_inv[2, 1] * c1 + Ib_inv[2, 2] * c2
+        dwb0 = body[3, 0] * c0 + body[3, 1] * c1 + body[3, 2] * c2
+        dwb1 = body[4, 0] * c0 + body[4, 1] * c1 + body[4, 2] * c2
+        dwb2 = body[5, 0] * c0 + body[5, 1] * c1 + body[5, 2] * c2
         dw0 = r00 * dwb0 + r01 * dwb1 + r02 * dwb2
         dw1 = r10 * dwb0 + r11 * dwb1 + r12 * dwb2
         dw2 = r20 * dwb0 + r21 * dwb1 + r22 * dwb2
@@ -249,6 +252,6 @@ def free_body_step(
     x[0], x[1], x[2] = x0, x1, x2
     v[0], v[1], v[2] = v0, v1, v2
     w[0], w[1], w[2] = w0, w1, w2
-    R[0, 0], R[0, 1], R[0, 2] = r00, r01, r02
-    R[1, 0], R[1, 1], R[1, 2] = r10, r11, r12
-    R[2, 0], R[2, 1], R[2, 2] = r20, r21, r22
+    state[9], state[10], state[11] = r00, r01, r02
+    state[12], state[13], state[14] = r10, r11, r12
+    state[15], state[16], state[17] = r20, r21, r22

@@ -18,6 +18,7 @@ from typing import Protocol
 
 import numpy as np
 
+from hapticd import kernels
 from hapticd.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.contact import MultiResult, ObstacleSet, Polytope, proxy_step_multi
@@ -31,7 +32,6 @@ from hapticd.dynamics import (
 )
 from hapticd.frame import Frame
 from hapticd.friction import friction_proxy
-from hapticd.kernels import SCRATCH_COLUMNS
 from hapticd.passivity import PassivityParams, control, observe, orthonormal, project
 from hapticd.scene import Scene, SceneObject
 
@@ -488,7 +488,7 @@ class Dynamics:
         self.small = len(obj.shape.vertices) <= SMALL_SHAPE
         self._prepared: SmallBody | None = None  # the small step's cache (shape, mass)
         self._arrays: _BodyArrays | None = None  # the kernel's (shape, mass, surfaces)
-        self._scratch = np.zeros((n_fingers, SCRATCH_COLUMNS))
+        self._scratch = np.zeros((n_fingers, kernels.SCRATCH_COLUMNS))
         self._gravity = np.zeros(3) if self.gravity is None else np.array(self.gravity, float)
 
     @property
@@ -551,85 +551,76 @@ class Dynamics:
 
     def _run_kernel(self, frame: Frame) -> None:
         """The same step as ``run`` by the kernel, on the frame's arrays and the object's
-        own: its pose and velocities are overwritten in place (made its own float arrays
-        first whenever someone has put other arrays there)."""
+        state, which lives in the kernel's state array (the object's position, velocity,
+        omega and rotation are views of it, put there again whenever someone has put other
+        arrays in their place)."""
         obj = self.scene.object
         arr = self._arrays
         if arr is None or not arr.fits(obj, self.surfaces):
-            arr = self._arrays = _BodyArrays(obj, self.surfaces)
+            arr = self._arrays = _BodyArrays(obj, self.surfaces, self.dt, self.substeps)
+            arr.params[6:9] = self._gravity
         if not arr.owns(obj):
             arr.own(obj)
         mat = obj.material
+        params = arr.params
+        params[0] = mat.stiffness
+        params[1] = mat.torsion
         self.kernel(  # type: ignore[misc]
             frame.in_contact,
             frame.contact_point,
             frame.contact_force,
             frame.contact_normal,
-            mat.stiffness,
-            mat.torsion,
-            obj.position,
-            obj.velocity,
-            obj.omega,
-            obj.rotation,
-            obj.mass,
-            self.dt,
-            self.substeps,
-            self._gravity,
-            arr.Ib,
-            arr.Ib_inv,
-            arr.local,
-            arr.surf_n,
-            arr.surf_d,
-            arr.surf_k,
-            arr.surf_b,
-            arr.surf_mu,
-            arr.reach,
+            params,
+            arr.state,
+            arr.body,
+            arr.surf,
             self._scratch,
         )
         obj.update_world()
 
 
 class _BodyArrays:
-    """What the free-body kernel reads of an object's shape and mass and of the surfaces,
-    as float arrays (``SmallBody``'s numbers): inertia and its inverse (3, 3) kg m^2,
-    vertices (V, 3) m, reach m, and per surface normal (S, 3), offset (S,) m, stiffness
-    (S,) N/m, damping (S,) N s/m, dynamic friction (S,)."""
+    """The free-body kernel's arrays for an object's shape and mass and the surfaces
+    (``SmallBody``'s numbers; hapticd.kernels.free_body_step says the layouts): params,
+    the object's state (the object's own arrays are views of it once ``own`` ran), body
+    (inertia, its inverse and the vertices) and surfaces."""
 
-    def __init__(self, obj: SceneObject, surfaces: SurfaceSet | None) -> None:
+    def __init__(
+        self, obj: SceneObject, surfaces: SurfaceSet | None, dt: float, substeps: int
+    ) -> None:
         small = SmallBody(obj, surfaces)
         self.shape, self.mass, self.surfaces = small.shape, small.mass, surfaces
-        self.Ib = np.array(small.Ib, dtype=float)
-        self.Ib_inv = np.array(small.Ib_inv, dtype=float)
-        self.local = np.array(small.local, dtype=float).reshape(-1, 3)
-        self.reach = float(small.reach)
-        self.surf_n = np.array([n for n, _, _ in small.surf], dtype=float).reshape(-1, 3)
-        self.surf_d = np.array([d for _, d, _ in small.surf], dtype=float)
-        self.surf_k = np.array([m.stiffness for _, _, m in small.surf], dtype=float)
-        self.surf_b = np.array([m.damping for _, _, m in small.surf], dtype=float)
-        self.surf_mu = np.array([m.mu_dynamic for _, _, m in small.surf], dtype=float)
-        self._owned: tuple[np.ndarray, ...] = ()
+        self.params = np.zeros(kernels.PARAMS)
+        self.params[2:6] = (small.mass, dt, substeps, small.reach)
+        self.state = np.zeros(kernels.STATE)
+        self.body = np.array([*small.Ib, *small.Ib_inv, *small.local], dtype=float).reshape(-1, 3)
+        self.surf = np.array(
+            [(*n, d, m.stiffness, m.damping, m.mu_dynamic) for n, d, m in small.surf],
+            dtype=float,
+        ).reshape(-1, kernels.SURFACE_COLUMNS)
+        self._views = (
+            self.state[0:3],
+            self.state[3:6],
+            self.state[6:9],
+            self.state[9:18].reshape(3, 3),
+        )
 
     def fits(self, obj: SceneObject, surfaces: SurfaceSet | None) -> bool:
         return obj.shape is self.shape and obj.mass == self.mass and surfaces is self.surfaces
 
     def owns(self, obj: SceneObject) -> bool:
-        """True while the object's state arrays are the ones ``own`` gave it."""
-        o = self._owned
-        return (
-            len(o) == 4
-            and obj.position is o[0]
-            and obj.velocity is o[1]
-            and obj.omega is o[2]
-            and obj.rotation is o[3]
-        )
+        """True while the object's state arrays are views of ``state``."""
+        x, v, w, R = self._views
+        return obj.position is x and obj.velocity is v and obj.omega is w and obj.rotation is R
 
     def own(self, obj: SceneObject) -> None:
-        """Give the object fresh float64 arrays of its state (copies: nobody else holds them)."""
-        obj.position = np.array(obj.position, dtype=float).reshape(3)
-        obj.velocity = np.array(obj.velocity, dtype=float).reshape(3)
-        obj.omega = np.array(obj.omega, dtype=float).reshape(3)
-        obj.rotation = np.array(obj.rotation, dtype=float).reshape(3, 3)
-        self._owned = (obj.position, obj.velocity, obj.omega, obj.rotation)
+        """Copy the object's state into ``state`` and make its arrays views of it."""
+        x, v, w, R = self._views
+        x[:] = np.asarray(obj.position, dtype=float).reshape(3)
+        v[:] = np.asarray(obj.velocity, dtype=float).reshape(3)
+        w[:] = np.asarray(obj.omega, dtype=float).reshape(3)
+        R[:] = np.asarray(obj.rotation, dtype=float).reshape(3, 3)
+        obj.position, obj.velocity, obj.omega, obj.rotation = x, v, w, R
 
 
 class SceneState:
