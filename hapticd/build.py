@@ -332,6 +332,8 @@ def build_renderer(profile: Profile) -> Renderer:
     choice = jit.choose(rc.kernels, renderer.kernel_names)
     if choice.message is not None:
         log.warning("%s", choice.message)
+    elif choice.note is not None:
+        log.info("%s", choice.note)
     elif choice.used == "compiled":
         log.debug("kernels %s compiled or loaded in %.3f s", list(choice.kernels), choice.seconds)
     renderer.use_kernels(choice.kernels)

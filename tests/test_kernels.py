@@ -13,6 +13,7 @@ import math
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -180,7 +181,7 @@ def test_python_mode_and_a_fixed_object_compile_nothing():
         jit.choose("fast", ["free_body_step"])
 
 
-def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked():
+def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked(compiled):
     profile = load_profile(LIFT)
     assert profile.rendering.kernels == "auto"
     s = build_session(profile, paced=False, duration_s=0.01)
@@ -195,21 +196,46 @@ def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked():
 
 
 NO_NUMBA = "import sys; sys.modules['numba'] = None\n"
-# A numba that imports but cannot compile anything.
+# A numba that imports but cannot compile anything; for auto, the cache's marker says its
+# kernels compiled (else auto would compile them in the background with the real numba).
 BROKEN_NUMBA = """
 import sys, types
 fake = types.ModuleType("numba")
 fake.__version__ = "0.0-broken"
+fake.config = types.SimpleNamespace(CACHE_DIR=None)
 def njit(*a, **k):
     raise RuntimeError("LLVM is not there")
 fake.njit = njit
 sys.modules["numba"] = fake
+from hapticd import jit
+keys = jit._keys(["free_body_step"], "0.0-broken")
+jit._write_marker(jit.COMPILED, {k: "compiled" for k in keys.values()})
 """
 RUN = """
 from hapticd.cli import main
-sys.exit(main(["run", {profile!r}, "--unpaced", "--no-socket", "--no-realtime",
-               "--duration", "0.3", "--summary-json", {summary!r}{extra}]))
+code = main(["run", {profile!r}, "--unpaced", "--no-socket", "--no-realtime",
+             "--duration", "0.3", "--summary-json", {summary!r}, "--log-level", "debug"{extra}])
 """
+
+
+def _run_lift(tmp_path: Path, setup: str, mode: str, cache: Path) -> tuple[str, dict]:
+    """Run the lift for 0.3 s in a subprocess after ``setup``; its stderr and summary."""
+    summary = tmp_path / "s.json"
+    extra = f", '--set', 'rendering.kernels={mode}'"
+    code = setup + "import sys\n" + RUN.format(profile=str(LIFT), summary=str(summary), extra=extra)
+    out = subprocess.run(
+        [sys.executable, "-c", code + "sys.exit(code)\n"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+        env={**os.environ, "NUMBA_CACHE_DIR": str(cache)},
+    )
+    assert out.returncode == 0, out.stderr
+    s = json.loads(summary.read_text())
+    assert s["fault"] is None and s["ticks"] == 300
+    summary.unlink()
+    return out.stderr, s
 
 
 @pytest.mark.parametrize(
@@ -221,17 +247,42 @@ sys.exit(main(["run", {profile!r}, "--unpaced", "--no-socket", "--no-realtime",
 )
 @pytest.mark.parametrize("mode", ["auto", "compiled"])
 def test_without_a_working_jit_the_python_code_renders_with_a_message(tmp_path, setup, why, mode):
-    summary = tmp_path / "s.json"
-    extra = f", '--set', 'rendering.kernels={mode}'"
-    code = setup + "import sys\n" + RUN.format(profile=str(LIFT), summary=str(summary), extra=extra)
-    out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT
+    err, _ = _run_lift(tmp_path, setup, mode, tmp_path / "cache")
+    assert f"rendering.kernels is {mode}, but {why}" in err, err
+    assert "the Python kernels render instead" in err
+    assert "compiled or loaded" not in err
+
+
+def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp_path):
+    """A first auto run does not wait for the compiler: it renders with Python and leaves
+    the compiling to a process of its own; a later run loads the compiled kernel."""
+    cache = tmp_path / "cache"
+    err, _ = _run_lift(tmp_path, "", "auto", cache)
+    assert "compiling free_body_step in the background" in err, err
+    assert "compiled or loaded" not in err
+    marker = cache / jit.COMPILED
+    deadline = time.monotonic() + 120.0
+    while not marker.exists():
+        assert time.monotonic() < deadline, "the background compiler wrote no marker in 120 s"
+        time.sleep(0.2)
+    err, _ = _run_lift(tmp_path, "", "auto", cache)
+    assert "kernels ['free_body_step'] compiled or loaded" in err, err
+    assert "background" not in err and "render instead" not in err
+
+
+def test_auto_says_why_when_the_kernels_failed_to_compile_before(tmp_path):
+    """A failure of the background compiler is kept: the next auto run says why it renders
+    with Python instead of starting the compiler again."""
+    cache = tmp_path / "cache"
+    setup = (
+        "import os, numba\n"
+        "from hapticd import jit\n"
+        "jit._write_marker(jit.FAILED, {k: 'numba could not compile it (a test)' for k in "
+        "jit._keys(['free_body_step'], numba.__version__).values()})\n"
     )
-    assert out.returncode == 0, out.stderr
-    assert f"rendering.kernels is {mode}, but {why}" in out.stderr, out.stderr
-    assert "the Python kernels render instead" in out.stderr
-    s = json.loads(summary.read_text())
-    assert s["fault"] is None and s["ticks"] == 300
+    err, _ = _run_lift(tmp_path, setup, "auto", cache)
+    assert "but numba could not compile it (a test) (when it was last tried)" in err, err
+    assert not (cache / jit.COMPILED).exists()
 
 
 def test_python_mode_never_imports_numba():
