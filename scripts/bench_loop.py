@@ -399,7 +399,7 @@ def main() -> None:
             f"{med(rs, 'overruns_per_10k'):.1f}",
             f"{med(rs, 'tick_compute_us', 'p50'):.1f}",
             f"{med(rs, 'tick_compute_us', 'p99'):.1f}",
-            f"{ratio:.2f}",
+            f"{ratio:.2f}" if base else "-",
             f"{statistics.median(req):.0f}" if req else "-",
             f"{statistics.median(pf):.0f}" if pf else "-",
         ]
