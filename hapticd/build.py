@@ -6,6 +6,7 @@ daemon's session), so the physics and allocation modules never see it.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from importlib import resources
@@ -18,7 +19,7 @@ from hapticd_drivers.delta import load_description
 from hapticd_drivers.emulator import DeltaEmulator, FakeHidModule
 from hapticd_drivers.trajectory import Trajectory, check_samples
 
-from hapticd import recording
+from hapticd import jit, recording
 from hapticd.actuation import Actuation
 from hapticd.allocation import AdaptiveState, Robustness
 from hapticd.mount import Mount
@@ -36,6 +37,8 @@ from hapticd.recording import RecordingError
 from hapticd.render import Renderer
 from hapticd.safety import Deadman, SafetyChain, SafetyParams
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface, rpy_matrix
+
+log = logging.getLogger("hapticd")
 
 BUILTIN = "builtin:"
 
@@ -306,7 +309,7 @@ def build_renderer(profile: Profile) -> Renderer:
         [list(f.actuated_directions) for f in profile.fingers], profile.rendering.actuation_frame
     )
     rc = profile.rendering
-    return Renderer(
+    renderer = Renderer(
         scene,
         [f.radius_m for f in profile.fingers],
         actuation,
@@ -326,6 +329,15 @@ def build_renderer(profile: Profile) -> Renderer:
             else None
         ),
     )
+    choice = jit.choose(rc.kernels, renderer.kernel_names)
+    if choice.message is not None:
+        log.warning("%s", choice.message)
+    elif choice.note is not None:
+        log.info("%s", choice.note)
+    elif choice.used == "compiled":
+        log.debug("kernels %s compiled or loaded in %.3f s", list(choice.kernels), choice.seconds)
+    renderer.use_kernels(choice.kernels)
+    return renderer
 
 
 def build_safety(profile: Profile, devices: list[Device]) -> SafetyChain:

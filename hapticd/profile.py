@@ -476,6 +476,13 @@ class RenderingConfig(_Strict):
         description="frame of actuated_directions: world, or the grasp frame "
         "(x from the first finger to the second, z up)",
     )
+    kernels: Literal["python", "compiled", "auto"] = Field(
+        default="auto",
+        description="per-tick physics kernels: python (the readable reference code), "
+        "compiled (numba, compiled before the first tick and cached on disk) or auto "
+        "(compiled); without a working numba the Python code renders, with a message "
+        "(docs/daemon.md)",
+    )
 
 
 class RecordingConfig(_Strict):

@@ -5,7 +5,9 @@ device state is filled: contact, friction, forces, allocation, environment,
 passivity, dynamics, scene. Stages the scene does not need are not in the plan
 and never run (a fixed cube has no dynamics stage, a frictionless one no
 friction stage, a renderer without ``passivity`` parameters no passivity stage).
-``insert`` adds a stage after a named one; ``set_param`` changes a scene or
+``use_kernels`` hands it compiled kernels (hapticd.kernels, compiled by hapticd.jit)
+for the stages that have one; without them every stage runs its Python code, the
+readable reference. ``insert`` adds a stage after a named one; ``set_param`` changes a scene or
 rendering parameter (those of hapticd.params the renderer owns) and re-plans.
 The same object renders off-line: ``step(device_pos, device_vel)`` runs one
 tick on the renderer's own frame, with no devices, timing or safety.
@@ -78,6 +80,7 @@ class Renderer:
             None if passivity is None else Passivity(self.allocator, passivity, self.n_fingers, dt)
         )
         self._inserted: list[tuple[str, Stage]] = []
+        self.kernels: dict[str, Callable[..., None]] = {}
         self.frame = Frame(self.n_fingers, actuation.n_actuators)
         self.plan()
 
@@ -96,12 +99,24 @@ class Renderer:
         if self._passivity is not None:  # after the last stage that writes rendered_force
             stages.append(self._passivity)
         if not obj.fixed:
-            stages.append(Dynamics(sc, self.n_fingers, self.dt))
+            stages.append(Dynamics(sc, self.n_fingers, self.dt, self.kernels.get("free_body_step")))
         stages.append(SceneState(sc, self.allocator, METHODS))
         for after, stage in self._inserted:
             names = [s.name for s in stages]
             stages.insert(names.index(after) + 1, stage)
         self.stages: list[Stage] = stages
+
+    @property
+    def kernel_names(self) -> list[str]:
+        """The kernels (names in hapticd.kernels) this scene's stages can use: the free-body
+        step when the object is free."""
+        return [] if self.scene.object.fixed else ["free_body_step"]
+
+    def use_kernels(self, kernels: dict[str, Callable[..., None]]) -> None:
+        """Run the stages that have a kernel in ``kernels`` (name -> compiled function)
+        with it from the next tick on; an empty dict: the Python code everywhere."""
+        self.kernels = dict(kernels)
+        self.plan()
 
     @property
     def passivity(self) -> Passivity | None:

@@ -13,10 +13,12 @@ Units: positions m, velocities m/s, forces N, stiffness N/m, damping N s/m.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
 
+from hapticd import kernels
 from hapticd.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.contact import MultiResult, ObstacleSet, Polytope, proxy_step_multi
@@ -31,7 +33,7 @@ from hapticd.dynamics import (
 from hapticd.frame import Frame
 from hapticd.friction import friction_proxy
 from hapticd.passivity import PassivityParams, control, observe, orthonormal, project
-from hapticd.scene import Scene
+from hapticd.scene import Scene, SceneObject
 
 V3 = tuple[float, float, float]
 ZERO3: V3 = (0.0, 0.0, 0.0)
@@ -468,10 +470,14 @@ class Dynamics:
 
     name = "dynamics"
 
-    def __init__(self, scene: Scene, n_fingers: int, dt: float) -> None:
+    def __init__(
+        self, scene: Scene, n_fingers: int, dt: float, kernel: Callable[..., None] | None = None
+    ) -> None:
         self.scene = scene
         obj = scene.object
         self.dt = dt
+        # hapticd.kernels.free_body_step compiled (hapticd.jit), or None: the code below.
+        self.kernel = kernel
         self.gravity = scene.gravity
         self.surfaces = SurfaceSet(scene.surfaces) if scene.surfaces else None
         self.substeps = scene.substeps
@@ -481,6 +487,9 @@ class Dynamics:
             )
         self.small = len(obj.shape.vertices) <= SMALL_SHAPE
         self._prepared: SmallBody | None = None  # the small step's cache (shape, mass)
+        self._arrays: _BodyArrays | None = None  # the kernel's (shape, mass, surfaces)
+        self._scratch = np.zeros((n_fingers, kernels.SCRATCH_COLUMNS))
+        self._gravity = np.zeros(3) if self.gravity is None else np.array(self.gravity, float)
 
     @property
     def effects(self) -> list[str]:
@@ -490,6 +499,9 @@ class Dynamics:
         )
 
     def run(self, frame: Frame) -> None:
+        if self.kernel is not None:
+            self._run_kernel(frame)
+            return
         obj = self.scene.object
         k = obj.material.stiffness
         touching = frame.in_contact.tolist()
@@ -536,6 +548,79 @@ class Dynamics:
                 torsion=torsion,  # type: ignore[arg-type]
                 springs=springs,  # type: ignore[arg-type]
             )
+
+    def _run_kernel(self, frame: Frame) -> None:
+        """The same step as ``run`` by the kernel, on the frame's arrays and the object's
+        state, which lives in the kernel's state array (the object's position, velocity,
+        omega and rotation are views of it, put there again whenever someone has put other
+        arrays in their place)."""
+        obj = self.scene.object
+        arr = self._arrays
+        if arr is None or not arr.fits(obj, self.surfaces):
+            arr = self._arrays = _BodyArrays(obj, self.surfaces, self.dt, self.substeps)
+            arr.params[6:9] = self._gravity
+        if not arr.owns(obj):
+            arr.own(obj)
+        mat = obj.material
+        params = arr.params
+        params[0] = mat.stiffness
+        params[1] = mat.torsion
+        self.kernel(  # type: ignore[misc]
+            frame.in_contact,
+            frame.contact_point,
+            frame.contact_force,
+            frame.contact_normal,
+            params,
+            arr.state,
+            arr.body,
+            arr.surf,
+            self._scratch,
+        )
+        obj.update_world()
+
+
+class _BodyArrays:
+    """The free-body kernel's arrays for an object's shape and mass and the surfaces
+    (``SmallBody``'s numbers; hapticd.kernels.free_body_step says the layouts): params,
+    the object's state (the object's own arrays are views of it once ``own`` ran), body
+    (inertia, its inverse and the vertices) and surfaces."""
+
+    def __init__(
+        self, obj: SceneObject, surfaces: SurfaceSet | None, dt: float, substeps: int
+    ) -> None:
+        small = SmallBody(obj, surfaces)
+        self.shape, self.mass, self.surfaces = small.shape, small.mass, surfaces
+        self.params = np.zeros(kernels.PARAMS)
+        self.params[2:6] = (small.mass, dt, substeps, small.reach)
+        self.state = np.zeros(kernels.STATE)
+        self.body = np.array([*small.Ib, *small.Ib_inv, *small.local], dtype=float).reshape(-1, 3)
+        self.surf = np.array(
+            [(*n, d, m.stiffness, m.damping, m.mu_dynamic) for n, d, m in small.surf],
+            dtype=float,
+        ).reshape(-1, kernels.SURFACE_COLUMNS)
+        self._views = (
+            self.state[0:3],
+            self.state[3:6],
+            self.state[6:9],
+            self.state[9:18].reshape(3, 3),
+        )
+
+    def fits(self, obj: SceneObject, surfaces: SurfaceSet | None) -> bool:
+        return obj.shape is self.shape and obj.mass == self.mass and surfaces is self.surfaces
+
+    def owns(self, obj: SceneObject) -> bool:
+        """True while the object's state arrays are views of ``state``."""
+        x, v, w, R = self._views
+        return obj.position is x and obj.velocity is v and obj.omega is w and obj.rotation is R
+
+    def own(self, obj: SceneObject) -> None:
+        """Copy the object's state into ``state`` and make its arrays views of it."""
+        x, v, w, R = self._views
+        x[:] = np.asarray(obj.position, dtype=float).reshape(3)
+        v[:] = np.asarray(obj.velocity, dtype=float).reshape(3)
+        w[:] = np.asarray(obj.omega, dtype=float).reshape(3)
+        R[:] = np.asarray(obj.rotation, dtype=float).reshape(3, 3)
+        obj.position, obj.velocity, obj.omega, obj.rotation = x, v, w, R
 
 
 class SceneState:

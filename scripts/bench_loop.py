@@ -18,6 +18,7 @@ shared and noisy: compare within one run).
     python scripts/bench_loop.py --rounds 3 --seconds 5
     python scripts/bench_loop.py --quick          # 1 and 4 kHz, replay only
     python scripts/bench_loop.py --view --rounds 2 --seconds 4   # the view's cost alone
+    python scripts/bench_loop.py --kernels --rounds 3   # rendering.kernels python vs compiled
 
 Prints a Markdown table and saves a histogram plot, in the system temp dir unless
 --plot PATH names a file (the docs' figure: --plot docs/img/bench-loop.png).
@@ -41,7 +42,6 @@ from pathlib import Path
 import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
-PROFILE = ROOT / "configs" / "grasp-stiffness.yaml"
 # Outside the repository: a run never overwrites the docs' figure unless asked to.
 DEFAULT_PLOT = Path(tempfile.gettempdir()) / "hapticd-bench-loop.png"
 
@@ -140,13 +140,18 @@ class Case:
     device: str  # "replay", "emulated" or "bare"
     load: str  # "idle", "recording", "control + recording" or VIEW_LOAD
     realtime: bool
+    profile: str = "grasp-stiffness"  # a bundled profile (configs/NAME.yaml)
+    kernels: str | None = None  # rendering.kernels; None: the profile's
 
     @property
     def label(self) -> str:
         if self.device == "bare":
             return f"{self.rate_hz // 1000} kHz | bare wait, no work | idle | FIFO"
+        device = self.device
+        if self.kernels is not None:
+            device = f"{self.device}, {self.profile}, kernels {self.kernels}"
         return (
-            f"{self.rate_hz // 1000} kHz | {self.device} | {self.load} | "
+            f"{self.rate_hz // 1000} kHz | {device} | {self.load} | "
             f"{'FIFO' if self.realtime else 'normal'}"
         )
 
@@ -231,9 +236,13 @@ def run_case(case: Case, seconds: float, work: Path, browser: str = "ws") -> dic
             check=True,
         ).stdout
         return {**json.loads(out), "requests_per_s": None, "page_frames_per_s": None}
-    data = yaml.safe_load(PROFILE.read_text())
+    source = ROOT / "configs" / f"{case.profile}.yaml"
+    data = yaml.safe_load(source.read_text())
     data["loop"] = {**data.get("loop", {}), "rate_hz": float(case.rate_hz)}
+    if case.kernels is not None:
+        data["rendering"] = {**data.get("rendering", {}), "kernels": case.kernels}
     profile = work / f"bench-{case.rate_hz}.yaml"
+    # (the bundled profiles name builtin trajectories: no relative path to rewrite)
     profile.write_text(yaml.safe_dump(data, sort_keys=False))
     sock = work / "bench.sock"
     summary = work / "summary.json"
@@ -298,6 +307,12 @@ def main() -> None:
         help=f"only 1 kHz: the bare wait, replay idle and replay with {VIEW_LOAD}",
     )
     ap.add_argument(
+        "--kernels",
+        action="store_true",
+        help="1, 4 and 8 kHz, both bundled profiles on replay devices under SCHED_FIFO, "
+        "rendering.kernels python against compiled, beside the bare wait",
+    )
+    ap.add_argument(
         "--browser",
         choices=("ws", "chromium"),
         default="ws",
@@ -312,10 +327,17 @@ def main() -> None:
     )
     args = ap.parse_args()
     rates = [1000] if args.view else [1000, 4000] if args.quick else [1000, 2000, 4000, 8000]
+    if args.kernels:
+        rates = [1000, 4000, 8000]
     devices = ["replay"] if args.quick else ["replay", "emulated"]
     cases = []
     for r in rates:
         cases.append(Case(r, "bare", "idle", True))
+        if args.kernels:
+            for profile in ("grasp-stiffness", "lift-weight"):
+                for kernels in ("python", "compiled"):
+                    cases.append(Case(r, "replay", "idle", True, profile, kernels))
+            continue
         if args.view:
             cases.append(Case(r, "replay", "idle", True))
             cases.append(Case(r, "replay", VIEW_LOAD, True))
@@ -375,7 +397,7 @@ def main() -> None:
             f"{med(rs, 'overruns_per_10k'):.1f}",
             f"{med(rs, 'tick_compute_us', 'p50'):.1f}",
             f"{med(rs, 'tick_compute_us', 'p99'):.1f}",
-            f"{ratio:.2f}",
+            f"{ratio:.2f}" if base else "-",
             f"{statistics.median(req):.0f}" if req else "-",
             f"{statistics.median(pf):.0f}" if pf else "-",
         ]

@@ -3,8 +3,10 @@
 
 1. Effect sets: one renderer tick (contact ... dynamics) over the bundled lift
    trajectory, from a fixed frictionless cube up to a free cube with friction,
-   gravity, ground and walls. Each effect's cost is the difference to the row
-   above; an effect that is off is not in the plan and costs nothing.
+   gravity, ground and walls, with the Python code and with the compiled kernels
+   (rendering.kernels; interleaved, the ratio python / compiled). Each effect's
+   cost is the difference to the row above; an effect that is off is not in the
+   plan and costs nothing.
 2. Mesh resolution: a 25 mm sphere as a box-like coarse hull up to ~20k faces:
    tick time against the surface-distance error (how far the hull's faces lie
    inside the true sphere).
@@ -30,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from hapticd import recording
+from hapticd import jit, recording
 from hapticd.actuation import Actuation
 from hapticd.build import build_scene, builtin_trajectory
 from hapticd.dynamics import SurfaceSet, kinetic_energy, step_body, step_body_small
@@ -44,10 +46,12 @@ DEFAULT_PLOT = Path(tempfile.gettempdir()) / "hapticd-bench-scene.png"
 LIFT = ROOT / "configs" / "lift-weight.yaml"
 
 
-def renderer_for(data: dict) -> Renderer:
+def renderer_for(data: dict, kernels: str = "python") -> Renderer:
+    """The profile ``data``'s renderer, with its compiled kernels when ``kernels`` is
+    "compiled" (hapticd.jit; an error if they do not compile)."""
     prof = parse_profile(data, LIFT)
     scene = build_scene(prof.scene, prof)
-    return Renderer(
+    r = Renderer(
         scene,
         [f.radius_m for f in prof.fingers],
         Actuation(
@@ -56,9 +60,14 @@ def renderer_for(data: dict) -> Renderer:
         prof.rendering.allocator,
         dt=1.0 / prof.loop.rate_hz,
     )
+    if kernels == "compiled":
+        r.use_kernels(jit.compile_kernels(r.kernel_names))
+    return r
 
 
 TIMED_STAGES = ("friction", "allocation", "dynamics")
+# The effect sets run with the Python code and with the compiled kernels (hapticd.kernels).
+KERNELS = ("python", "compiled")
 
 
 def instrument(r: Renderer) -> dict[str, float]:
@@ -135,36 +144,38 @@ def bench_effects(rounds: int) -> list[dict]:
         axis=1,
     )
     sets = effect_sets()
-    times: dict[str, list[float]] = {name: [] for name in sets}
+    keys = [(name, k) for name in sets for k in KERNELS]
+    times: dict[tuple[str, str], list[float]] = {key: [] for key in keys}
     stages: dict[str, list[str]] = {}
-    per_stage: dict[str, dict[str, float]] = {
-        name: dict.fromkeys(TIMED_STAGES, 0.0) for name in sets
+    per_stage: dict[tuple[str, str], dict[str, float]] = {
+        key: dict.fromkeys(TIMED_STAGES, 0.0) for key in keys
     }
-    for data in sets.values():
-        tick_times(renderer_for(data), pos[:200], 1e-3)  # warm-up, not timed
+    for name, k in keys:
+        tick_times(renderer_for(sets[name], k), pos[:200], 1e-3)  # warm-up, not timed
     for _ in range(rounds):
-        for name, data in sets.items():
-            r = renderer_for(data)
+        for name, k in keys:  # interleaved: python and compiled of a set side by side
+            r = renderer_for(sets[name], k)
             stages[name] = r.stage_names
             totals = instrument(r)
-            times[name] += tick_times(r, pos, 1e-3)
-            for k, v in totals.items():
-                per_stage[name][k] += v
+            times[(name, k)] += tick_times(r, pos, 1e-3)
+            for st, v in totals.items():
+                per_stage[(name, k)][st] += v
     rows = []
     base = None
     for name in sets:
-        med, p99 = stats(times[name])
-        base = base or med
-        rows.append(
-            {
-                "set": name,
-                "stages": " ".join(stages[name]),
+        row: dict = {"set": name, "stages": " ".join(stages[name])}
+        for k in KERNELS:
+            med, p99 = stats(times[(name, k)])
+            n = len(times[(name, k)])
+            row[k] = {
                 "median_us": med,
                 "p99_us": p99,
-                "ratio": med / base,
-                **{f"{k}_us": v / len(times[name]) * 1e6 for k, v in per_stage[name].items()},
+                **{f"{st}_us": v / n * 1e6 for st, v in per_stage[(name, k)].items()},
             }
-        )
+        base = base or row["python"]["median_us"]
+        row["ratio"] = row["python"]["median_us"] / base
+        row["speedup"] = row["python"]["median_us"] / row["compiled"]["median_us"]
+        rows.append(row)
     return rows
 
 
@@ -322,21 +333,23 @@ def plot(path: Path, effects: list[dict], meshes: list[dict], subs: list[dict]) 
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.8))
     ax = axes[0]
     names = [r["set"] for r in effects]
-    ax.barh(
-        range(len(names)),
-        [r["median_us"] for r in effects],
-        xerr=None,
-        color="tab:blue",
-        label="median",
-    )
-    ax.scatter(
-        [r["p99_us"] for r in effects],
-        range(len(names)),
-        color="tab:red",
-        marker="|",
-        s=200,
-        label="p99",
-    )
+    y = np.arange(len(names))
+    for off, k, color in ((-0.2, "python", "tab:blue"), (0.2, "compiled", "tab:green")):
+        ax.barh(
+            y + off,
+            [r[k]["median_us"] for r in effects],
+            0.4,
+            color=color,
+            label=f"{k} median",
+        )
+        ax.scatter(
+            [r[k]["p99_us"] for r in effects],
+            y + off,
+            color="tab:red",
+            marker="|",
+            s=100,
+            label="p99" if k == "python" else None,
+        )
     ax.set_yticks(range(len(names)), names, fontsize=8)
     ax.invert_yaxis()
     ax.set_xlabel("renderer tick time (us)")
@@ -383,15 +396,19 @@ def main() -> None:
         meshes = bench_meshes(args.rounds, Path(tmp))
     subs = bench_substeps(args.rounds)
     print(
-        "| effect set | stages in the plan | tick median us | p99 us | x fixed frictionless | "
-        "mean us: friction | allocation | dynamics |"
+        "| effect set | stages in the plan | python median / p99 us | compiled median / p99 us "
+        "| python / compiled | python x fixed frictionless | mean us python / compiled: "
+        "friction | allocation | dynamics |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in effects:
+        py, co = r["python"], r["compiled"]
         print(
-            f"| {r['set']} | {r['stages']} | {r['median_us']:.1f} | {r['p99_us']:.1f} | "
-            f"{r['ratio']:.2f} | {r['friction_us']:.1f} | {r['allocation_us']:.1f} | "
-            f"{r['dynamics_us']:.1f} |"
+            f"| {r['set']} | {r['stages']} | {py['median_us']:.1f} / {py['p99_us']:.1f} | "
+            f"{co['median_us']:.1f} / {co['p99_us']:.1f} | {r['speedup']:.2f} | "
+            f"{r['ratio']:.2f} | "
+            + " | ".join(f"{py[f'{st}_us']:.1f} / {co[f'{st}_us']:.1f}" for st in TIMED_STAGES)
+            + " |"
         )
     print("\n| object | median us | p99 us | x box | surface error mm |")
     print("|---|---|---|---|---|")

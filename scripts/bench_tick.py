@@ -22,10 +22,14 @@ render, safety, write, statistics) of the hapticd package in DIR (e.g. main's,
 ``git archive main | tar -x -C /tmp/hapticd-main``) against this tree's, in
 interleaved rounds, unpaced and paced at 1, 4 and 8 kHz, next to a bare deadline
 wait with no work (the machine's floor for overruns): medians over rounds of the
-runs' p50 and p99, and the ratios old/new.
+runs' p50 and p99, and the ratios old/new. ``--compare-kernels``: the same table for
+this tree's Python code (``rendering.kernels=python``, old) against its compiled
+kernels (``compiled``, new). ``--kernels MODE`` sets rendering.kernels otherwise.
 
     python scripts/bench_tick.py --profile-stages --rounds 3
     python scripts/bench_tick.py --compare /tmp/hapticd-main --rounds 5
+    python scripts/bench_tick.py --compare-kernels --rounds 5
+    python scripts/bench_tick.py --profile-stages --kernels compiled
 
 Prints Markdown tables and saves a plot in the system temp dir unless --plot PATH.
 """
@@ -67,6 +71,8 @@ def child(args: argparse.Namespace) -> dict:
     data = yaml.safe_load(path.read_text())
     data.setdefault("loop", {})["rate_hz"] = args.rate
     data["loop"]["realtime"] = {"enabled": False}
+    if args.kernels is not None:
+        data.setdefault("rendering", {})["kernels"] = args.kernels
     # A loaded machine can stall an unpaced run's recording for 0.1 s: not what is measured.
     data.setdefault("safety", {})["watchdog_s"] = None
     profile = parse_profile(data, path)
@@ -245,6 +251,7 @@ def profile_stages(args: argparse.Namespace) -> list[dict]:
                 instrument=True,
                 wait=wait,
                 margin_us=margin,
+                kernels=args.kernels,
             )
             runs[(profile, label)].append(out)
             print(f"round {r + 1}: {profile} {label}: {out['compute_p50']:.1f} us", file=sys.stderr)
@@ -280,21 +287,29 @@ def profile_stages(args: argparse.Namespace) -> list[dict]:
 
 
 def compare(args: argparse.Namespace) -> list[dict]:
-    old = Path(args.compare).resolve()
-    if not (old / "hapticd" / "__init__.py").is_file():
-        raise SystemExit(f"--compare {old}: no hapticd package there")
-    # hapticd_drivers lives in drivers/: give the old tree an importable name for it.
-    shim = old / "drivers_root"
-    if not (shim / "hapticd_drivers").exists():
-        shim.mkdir(exist_ok=True)
-        (shim / "hapticd_drivers").symlink_to(old / "drivers")
-    trees = {"old": old, "new": None}
+    """Old against new: another tree's package against this one's (``--compare DIR``), or
+    this tree's Python code against its compiled kernels (``--compare-kernels``)."""
+    trees: dict[str, tuple[Path | None, str | None]]
+    if args.compare_kernels:
+        trees = {"old": (None, "python"), "new": (None, "compiled")}
+        what = "old: rendering.kernels=python, new: rendering.kernels=compiled"
+    else:
+        old = Path(args.compare).resolve()
+        if not (old / "hapticd" / "__init__.py").is_file():
+            raise SystemExit(f"--compare {old}: no hapticd package there")
+        # hapticd_drivers lives in drivers/: give the old tree an importable name for it.
+        shim = old / "drivers_root"
+        if not (shim / "hapticd_drivers").exists():
+            shim.mkdir(exist_ok=True)
+            (shim / "hapticd_drivers").symlink_to(old / "drivers")
+        trees = {"old": (old, args.kernels), "new": (None, args.kernels)}
+        what = f"old: {old}, new: this tree"
     modes = [("unpaced", False, 1000)] + [(f"paced {r // 1000} kHz", True, r) for r in args.rates]
     results: dict[tuple, list[dict]] = {}
     for rnd in range(args.rounds):
         for profile in PROFILES:
             for label, paced, rate in modes:
-                for name, tree in trees.items():
+                for name, (tree, kernels) in trees.items():
                     out = run_child(
                         tree,
                         profile=profile,
@@ -302,6 +317,7 @@ def compare(args: argparse.Namespace) -> list[dict]:
                         paced=paced,
                         seconds=args.seconds,
                         record=True,
+                        kernels=kernels,
                     )
                     results.setdefault((profile, label, name), []).append(out)
                     print(
@@ -314,7 +330,10 @@ def compare(args: argparse.Namespace) -> list[dict]:
                     results.setdefault(("bare", label, "bare"), []).append(
                         run_bare(rate, args.seconds)
                     )
-    print(f"\n### tick compute, us (median over {args.rounds} rounds of each run's p50 / p99)\n")
+    print(
+        f"\n### tick compute, us (median over {args.rounds} rounds of each run's p50 / p99; "
+        f"{what})\n"
+    )
     print(
         "| profile | mode | old p50 | new p50 | old/new p50 | old p99 | new p99 | old/new p99 "
         "| overruns old / new / bare |"
@@ -364,6 +383,17 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--profile-stages", action="store_true", help="the per-part breakdown")
     ap.add_argument("--compare", metavar="DIR", help="a tree with another hapticd package")
+    ap.add_argument(
+        "--compare-kernels",
+        action="store_true",
+        help="rendering.kernels python (old) against compiled (new), this tree",
+    )
+    ap.add_argument(
+        "--kernels",
+        choices=("python", "compiled", "auto"),
+        default=None,
+        help="rendering.kernels for --profile-stages and --compare (default: the profile's)",
+    )
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--seconds", type=float, default=5.0, help="length of a paced run, s")
     ap.add_argument("--rates", type=int, nargs="+", default=[1000, 4000, 8000])
@@ -383,10 +413,10 @@ def main() -> None:
         return
     if args.profile_stages:
         profile_stages(args)
-    if args.compare:
+    if args.compare or args.compare_kernels:
         plot(args.plot, compare(args))
-    if not (args.profile_stages or args.compare):
-        ap.error("give --profile-stages or --compare DIR")
+    if not (args.profile_stages or args.compare or args.compare_kernels):
+        ap.error("give --profile-stages, --compare DIR or --compare-kernels")
 
 
 if __name__ == "__main__":

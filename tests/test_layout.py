@@ -35,6 +35,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.frame",
         "hapticd.friction",
         "hapticd.grasp",
+        "hapticd.kernels",
         "hapticd.mount",
         "hapticd.passivity",
         "hapticd.psychophysics",
@@ -49,6 +50,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.commands",
         "hapticd.device_bank",
         "hapticd.event_ring",
+        "hapticd.jit",  # compiles hapticd.kernels (numba) and finds its cache folder
         "hapticd.pacing",
         "hapticd.realtime",
         "hapticd.servo",

@@ -1,4 +1,5 @@
-"""The bundled profiles reproduce stored physics to 1e-12 on replay and sim devices.
+"""The bundled profiles reproduce stored physics to 1e-12 on replay and sim devices, with
+the Python code and with the compiled kernels.
 
 ``tests/data/reference_physics.npz`` holds what each bundled profile produced
 unpaced (every 5th tick of the recording's physics fields). A refactoring must
@@ -32,6 +33,9 @@ REFERENCE = Path(__file__).with_name("data") / "reference_physics.npz"
 STRIDE = 5
 PROFILES = ("grasp-stiffness", "lift-weight")
 DEVICES = ("replay", "sim")
+# The Python code (the reference, which regenerates the file) and the compiled kernels
+# (hapticd.kernels): both must reproduce it. Measured: the same bits on both.
+KERNELS = ("python", "compiled")
 PHYSICS = (
     "device_pos",
     "device_vel",
@@ -68,23 +72,36 @@ needs_avx2 = pytest.mark.skipif(
 )
 
 
-def physics(profile: str, device: str, out: Path) -> dict[str, np.ndarray]:
-    """Run a bundled profile unpaced on ``device`` and return its physics fields."""
+def physics(profile: str, device: str, out: Path, kernels: str = "python") -> dict[str, np.ndarray]:
+    """Run a bundled profile unpaced on ``device`` with ``kernels`` (rendering.kernels) and
+    return its physics fields."""
     path = out / f"{profile}-{device}.hrec"
     cmd = [sys.executable, "-m", "hapticd", "run", str(ROOT / "configs" / f"{profile}.yaml")]
     cmd += ["--unpaced", "--no-socket", "--no-realtime", "-q", "--device", device]
-    cmd += ["--record", str(path)]
-    subprocess.run(cmd, check=True, timeout=300, env={**os.environ, **PINNED_ENV})
+    cmd += ["--record", str(path), "--set", f"rendering.kernels={kernels}"]
+    run = subprocess.run(
+        cmd,
+        check=True,
+        timeout=300,
+        env={**os.environ, **PINNED_ENV},
+        capture_output=True,
+        text=True,
+    )
+    # A compiled run that fell back to Python would prove nothing about the kernels.
+    assert "kernels render instead" not in run.stderr, run.stderr
     rec = recording.read(path)
     return {f"{profile}/{device}/{name}": rec[name][::STRIDE] for name in PHYSICS}
 
 
 @needs_avx2
+@pytest.mark.parametrize("kernels", KERNELS)
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("profile", PROFILES)
-def test_bundled_profile_reproduces_reference(profile: str, device: str, tmp_path: Path) -> None:
+def test_bundled_profile_reproduces_reference(
+    profile: str, device: str, kernels: str, tmp_path: Path
+) -> None:
     ref = np.load(REFERENCE)
-    got = physics(profile, device, tmp_path)
+    got = physics(profile, device, tmp_path, kernels)
     for key, value in got.items():
         want = ref[key]
         assert value.shape == want.shape, f"{key}: shape {value.shape}, reference {want.shape}"

@@ -1,0 +1,278 @@
+"""Compiles the kernels of ``hapticd.kernels`` with numba, before the first tick, cached on disk.
+
+``choose(mode, names)`` is what a renderer is built with: ``mode`` is the profile's
+``rendering.kernels``, ``names`` the kernels the renderer's plan uses (none for a
+fixed object: then numba is not even imported).
+
+- ``python``: never compile.
+- ``compiled``: compile now (a first run on a machine waits for it: 2-8 s a kernel
+  on this loaded 2-core machine), or load from the cache (0.3-0.6 s).
+- ``auto`` (the default): load from the cache when the kernels are in it;
+  otherwise render this run with the Python code and compile them in a background
+  process at the lowest priority, for the next run. No run waits for a compiler.
+
+Any failure (numba missing or broken, a kernel that does not compile) falls back to
+the Python code with a message saying why; both paths give the same forces (tests
+prove it). Kernels are compiled eagerly for one signature (``SIGNATURES``: the
+frame's and the object's arrays), so no call in the loop can trigger a compilation.
+The cache sits in ``__pycache__`` beside ``hapticd/kernels.py`` when that folder is
+writable (a source tree, an editable install); otherwise (a system-wide install, a
+service) in ``$NUMBA_CACHE_DIR`` if set, else ``$CACHE_DIRECTORY`` (systemd's
+``CacheDirectory=``), ``$XDG_CACHE_HOME/hapticd/numba`` or
+``~/.cache/hapticd/numba``; with none writable the kernels compile on every run.
+Two small JSON files there say which kernels compiled (``COMPILED``) and which
+failed and why (``FAILED``), keyed by numba, Python, machine and the kernels' source.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+MODES = ("python", "compiled", "auto")
+
+# numba's signature of each kernel: the frame's fields and the object's state are
+# C-contiguous float64 (uint8 for in_contact), the scalars float64 or int64.
+SIGNATURES = {
+    "free_body_step": (
+        "void(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[:, ::1],"
+        " f8[:, ::1], f8[:, ::1])"
+    ),
+}
+
+# Compiled kernels of this process, by name: a reload compiles nothing again.
+_COMPILED: dict[str, Callable[..., None]] = {}
+
+
+class JitUnavailableError(RuntimeError):
+    """The kernels cannot be compiled here (the message says why)."""
+
+
+@dataclass(frozen=True)
+class KernelChoice:
+    """What a renderer renders with: ``used`` is "compiled" or "python"; ``kernels`` maps
+    a kernel's name to its compiled function (empty: Python); ``message`` says why the
+    Python code renders although ``mode`` asked for compiled kernels (None otherwise);
+    ``note``: what happens instead, when that is expected (auto, compiling in the
+    background); ``seconds``: how long compiling or loading the cache took."""
+
+    mode: str
+    used: str
+    kernels: dict[str, Callable[..., None]] = field(default_factory=dict)
+    message: str | None = None
+    note: str | None = None
+    seconds: float = 0.0
+
+
+def cache_dir(
+    package_dir: Path, env: Mapping[str, str], writable: Callable[[Path], bool] | None = None
+) -> Path | None:
+    """Where compiled kernels are cached, or None to leave it to numba (``__pycache__``
+    beside the kernels' source, which is writable here, or ``$NUMBA_CACHE_DIR``).
+    ``writable(folder)``: whether this process may create files there."""
+    writable = writable or _writable
+    if env.get("NUMBA_CACHE_DIR"):
+        return None
+    pycache = package_dir / "__pycache__"
+    if writable(pycache if pycache.exists() else package_dir):
+        return None
+    candidates = []
+    if env.get("CACHE_DIRECTORY"):  # systemd's CacheDirectory=: the first of its list
+        candidates.append(Path(env["CACHE_DIRECTORY"].split(":")[0]) / "numba")
+    if env.get("XDG_CACHE_HOME"):
+        candidates.append(Path(env["XDG_CACHE_HOME"]) / "hapticd" / "numba")
+    if env.get("HOME"):
+        candidates.append(Path(env["HOME"]) / ".cache" / "hapticd" / "numba")
+    for path in candidates:
+        try:
+            path.mkdir(parents=True, exist_ok=True, mode=0o700)
+        except OSError:
+            continue
+        if writable(path):
+            return path
+    return None
+
+
+def _writable(path: Path) -> bool:
+    return path.is_dir() and os.access(path, os.W_OK | os.X_OK)
+
+
+def _import_numba():
+    """numba, imported with its cache folder chosen first (JitUnavailableError if it cannot
+    be imported)."""
+    from hapticd import kernels
+
+    where = cache_dir(Path(kernels.__file__).parent, os.environ)
+    if where is not None:
+        # Read by numba when it is imported; set on its config too if it already was.
+        os.environ["NUMBA_CACHE_DIR"] = str(where)
+    try:
+        import numba
+    except Exception as e:  # ImportError, or a broken install failing on import
+        raise JitUnavailableError(f"numba cannot be imported ({type(e).__name__}: {e})") from e
+    if where is not None:
+        numba.config.CACHE_DIR = str(where)
+    return numba
+
+
+def _cache_folder() -> Path:
+    """The folder numba caches the kernels in (set by ``_import_numba``)."""
+    from hapticd import kernels
+
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return Path(os.environ["NUMBA_CACHE_DIR"])
+    return Path(kernels.__file__).parent / "__pycache__"
+
+
+def _keys(names: Sequence[str], version: str) -> dict[str, str]:
+    """What numba's cache of each kernel depends on: numba, Python, the machine, the
+    kernels' source file (numba's own stamp: its modification time and size), the
+    signature."""
+    from hapticd import kernels
+
+    st = os.stat(kernels.__file__)
+    base = f"numba {version}; {sys.version}; {platform.machine()}; {st.st_mtime_ns} {st.st_size}"
+    return {n: f"{base}; {SIGNATURES.get(n)}" for n in names}
+
+
+def _read_marker(name: str) -> dict[str, str]:
+    try:
+        data = json.loads((_cache_folder() / name).read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _write_marker(name: str, entries: dict[str, str]) -> None:
+    """Add ``entries`` to the marker file ``name`` in the cache folder (atomically; a
+    folder that is not writable leaves it as it was)."""
+    folder = _cache_folder()
+    data = {**_read_marker(name), **entries}
+    tmp = folder / f".{name}.{os.getpid()}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp.write_text(json.dumps(data, indent=1))
+        os.replace(tmp, folder / name)
+    except OSError:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+
+
+def compile_kernels(names: Sequence[str]) -> dict[str, Callable[..., None]]:
+    """The kernels ``names`` compiled (or loaded from the cache); JitUnavailableError if not.
+    Marks them compiled in the cache folder (``is_cached``), or records why they failed."""
+    missing = [n for n in names if n not in _COMPILED]
+    if missing:
+        from hapticd import kernels
+
+        numba = _import_numba()
+        keys = _keys(missing, numba.__version__)
+        for name in missing:
+            if name not in SIGNATURES:
+                raise JitUnavailableError(f"no kernel {name!r}; known: {sorted(SIGNATURES)}")
+            try:
+                fn = numba.njit(SIGNATURES[name], cache=True, nogil=True)(getattr(kernels, name))
+            except Exception as e:  # numba's errors, or no locator for the cache
+                why = (
+                    f"numba {numba.__version__} could not compile {name} "
+                    f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+                )
+                _write_marker(FAILED, {keys[name]: why})
+                raise JitUnavailableError(why) from e
+            _COMPILED[name] = fn
+        _write_marker(COMPILED, {keys[n]: "compiled" for n in missing})
+    return {n: _COMPILED[n] for n in names}
+
+
+# Marker files in the cache folder: kernels compiled (so loading them is quick), and
+# kernels that failed to compile (and why), each under its ``_keys`` key.
+COMPILED = "hapticd-kernels.json"
+FAILED = "hapticd-kernels-failed.json"
+
+
+def cached(names: Sequence[str], version: str) -> tuple[bool, str | None]:
+    """Whether the kernels ``names`` are compiled in the cache folder for numba ``version``,
+    and, if one failed to compile with the same numba, source and machine, why."""
+    keys = _keys(names, version)
+    done = _read_marker(COMPILED)
+    failed = _read_marker(FAILED)
+    for k in keys.values():
+        if k in failed and k not in done:
+            return False, failed[k]
+    return all(k in done for k in keys.values()), None
+
+
+def compile_in_background(names: Sequence[str]) -> None:
+    """Compile ``names`` into the cache in a process of its own at the lowest priority
+    (``python -m hapticd.jit NAME...``), started through a shell that exits at once: the
+    compiler belongs to no one here and outlives a short run."""
+    cmd = [sys.executable, "-m", "hapticd.jit", *names]
+    script = 'nice -n 19 "$@" </dev/null >/dev/null 2>&1 &'
+    subprocess.run(["/bin/sh", "-c", script, "sh", *cmd], check=False, timeout=30)
+
+
+def choose(mode: str, names: Sequence[str]) -> KernelChoice:
+    """The kernels for a renderer whose plan uses ``names``, as ``mode`` asks (one of MODES).
+
+    ``compiled`` compiles them now if they are not in the cache (a first run waits for
+    it). ``auto`` uses them if they are in the cache; otherwise this run renders with
+    the Python code while a background process compiles them for the next run.
+    """
+    if mode not in MODES:
+        raise ValueError(f"unknown kernels mode {mode!r}; expected one of {list(MODES)}")
+    if mode == "python" or not names:
+        return KernelChoice(mode, "python")
+    t0 = time.perf_counter()
+    try:
+        if mode == "auto" and any(n not in _COMPILED for n in names):
+            ready, failed = cached(names, _import_numba().__version__)
+            if failed is not None:
+                raise JitUnavailableError(f"{failed} (when it was last tried)")
+            if not ready:
+                compile_in_background(names)
+                return KernelChoice(
+                    mode,
+                    "python",
+                    note=(
+                        f"rendering.kernels is auto: compiling {', '.join(names)} in the "
+                        f"background (once, into {_cache_folder()}); this run renders with "
+                        "the Python kernels (the same forces; a slower tick)"
+                    ),
+                    seconds=time.perf_counter() - t0,
+                )
+        compiled = compile_kernels(names)
+    except JitUnavailableError as e:
+        return KernelChoice(
+            mode,
+            "python",
+            message=(
+                f"rendering.kernels is {mode}, but {e}: the Python kernels render instead "
+                "(the same forces; a slower tick). Install numba (pip install numba) or set "
+                "rendering.kernels: python to silence this"
+            ),
+        )
+    return KernelChoice(mode, "compiled", compiled, seconds=time.perf_counter() - t0)
+
+
+def main(argv: Sequence[str]) -> int:
+    """``python -m hapticd.jit NAME...``: compile kernels into the cache, at low priority."""
+    with contextlib.suppress(OSError):
+        os.nice(19)
+    try:
+        compile_kernels(list(argv))
+    except JitUnavailableError as e:
+        print(f"hapticd.jit: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,393 @@
+"""The compiled kernels (hapticd.kernels, compiled by hapticd.jit) against the Python code
+they replace: the same numbers for generated states; a run without a working JIT falls
+back to Python with a message; the cache folder; hostile values through the compiled path
+end in zero force like through the Python one.
+
+Whole runs of the bundled profiles on both paths are compared with the stored reference
+in tests/test_reference_output.py (1e-12; measured: bit-identical recordings)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from hapticd import jit, kernels
+from hapticd.daemon.session import build_session
+from hapticd.frame import Frame
+from hapticd.profile import load_profile
+from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
+from hapticd.stages import Dynamics
+from tests.conftest import ROOT
+from tests.strategies import unit_vectors
+from tests.test_dynamics import floats, materials, rotations, vec
+
+LIFT = ROOT / "configs" / "lift-weight.yaml"
+DT = 1e-3
+
+
+@pytest.fixture(scope="module")
+def compiled():
+    """The compiled free-body kernel (numba is a dependency: no skip without it)."""
+    return jit.compile_kernels(["free_body_step"])["free_body_step"]
+
+
+@st.composite
+def stage_cases(draw) -> dict:
+    """A free box (principal axes turned), its fingers' contacts as the frame has them,
+    surfaces near it, gravity or none, substeps."""
+    size = draw(vec(0.01, 0.1))
+    box = ConvexShape.box(size)
+    Q = draw(rotations())
+    shape = ConvexShape(
+        box.normals, box.offsets, box.vertices, box.volume, Q @ box.inertia_unit_mass @ Q.T
+    )
+    material = Material(
+        draw(floats(50.0, 1000.0)),
+        draw(floats(0.0, 5.0)),
+        torsion=draw(st.just(0.0) | floats(1e-4, 0.05)),
+    )
+    position = draw(vec(-0.05, 0.05))
+    obj = {
+        "shape": shape,
+        "material": material,
+        "position": position,
+        "rotation": draw(rotations()),
+        "mass": draw(floats(0.05, 2.0)),
+        "velocity": draw(vec(-1.0, 1.0)),
+        "omega": draw(vec(-10.0, 10.0)),
+    }
+    surfaces = []
+    for i in range(draw(st.integers(0, 3))):
+        n = draw(unit_vectors())
+        offset = float(n @ position) + draw(floats(-0.06, 0.03))
+        surfaces.append(Surface(f"surface {i}", tuple(n), offset, draw(materials())))
+    n_fingers = draw(st.integers(1, 3))
+    frame = {
+        "in_contact": [draw(st.booleans()) for _ in range(n_fingers)],
+        "contact_point": [position + draw(vec(-0.05, 0.05)) for _ in range(n_fingers)],
+        "contact_force": [draw(vec(-5.0, 5.0)) for _ in range(n_fingers)],
+        "contact_normal": [draw(unit_vectors()) for _ in range(n_fingers)],
+    }
+    return {
+        "object": obj,
+        "surfaces": surfaces,
+        "gravity": draw(st.none() | vec(-10.0, 10.0)),
+        "substeps": draw(st.integers(1, 8)),
+        "frame": frame,
+        "ticks": draw(st.integers(1, 3)),
+    }
+
+
+def _stage(case: dict, kernel) -> tuple[Dynamics, Frame]:
+    o = case["object"]
+    obj = SceneObject(
+        o["shape"],
+        o["material"],
+        o["position"].copy(),
+        o["rotation"].copy(),
+        fixed=False,
+        mass=o["mass"],
+        velocity=o["velocity"].copy(),
+        omega=o["omega"].copy(),
+    )
+    gravity = None if case["gravity"] is None else case["gravity"].copy()
+    scene = Scene(obj, list(case["surfaces"]), gravity, case["substeps"])
+    f = case["frame"]
+    frame = Frame(len(f["in_contact"]), 3)
+    for name, value in f.items():
+        getattr(frame, name)[...] = value
+    return Dynamics(scene, frame.n_fingers, DT, kernel), frame
+
+
+def _run(case: dict, kernel) -> SceneObject:
+    stage, frame = _stage(case, kernel)
+    for _ in range(case["ticks"]):
+        stage.run(frame)
+    return stage.scene.object
+
+
+STATE = ("position", "velocity", "omega", "rotation")
+
+
+@given(stage_cases())
+def test_the_compiled_free_body_step_equals_the_python_stage(compiled, case):
+    """The kernel evaluates the Python stage's sums in the same order, and numba neither
+    fuses multiply-adds nor reorders without fastmath; sin, cos and sqrt are the same C
+    library's: the same bits."""
+    ref, got = _run(case, None), _run(case, compiled)
+    for name in STATE:
+        np.testing.assert_array_equal(getattr(ref, name), getattr(got, name), err_msg=name)
+    np.testing.assert_array_equal(ref.polytope.offsets, got.polytope.offsets)
+    np.testing.assert_array_equal(ref.polytope.normals, got.polytope.normals)
+
+
+@given(stage_cases())
+def test_the_kernel_as_plain_python_is_the_stage_bit_for_bit(case):
+    """The kernel's source, run by the interpreter: the very same floating-point sums."""
+    ref, got = _run(case, None), _run(case, kernels.free_body_step)
+    for name in STATE:
+        np.testing.assert_array_equal(getattr(ref, name), getattr(got, name), err_msg=name)
+
+
+def test_the_kernel_stage_keeps_its_own_state_arrays_and_follows_replaced_ones(compiled):
+    """The kernel writes the object's state in place, into arrays the stage gave the object;
+    state put there from outside (a reset) is taken on the next tick, not overwritten."""
+    case = {
+        "object": {
+            "shape": ConvexShape.box(np.array([0.05, 0.05, 0.05])),
+            "material": Material(100.0),
+            "position": np.zeros(3),
+            "rotation": np.eye(3),
+            "mass": 0.1,
+            "velocity": np.zeros(3),
+            "omega": np.zeros(3),
+        },
+        "surfaces": [],
+        "gravity": np.array([0.0, 0.0, -9.81]),
+        "substeps": 2,
+        "frame": {"in_contact": [False], "contact_point": [np.zeros(3)]},
+        "ticks": 1,
+    }
+    stage, frame = _stage(case, compiled)
+    obj = stage.scene.object
+    given_velocity = obj.velocity
+    stage.run(frame)
+    assert obj.velocity is not given_velocity and given_velocity[2] == 0.0  # not written
+    assert obj.velocity[2] == pytest.approx(-9.81 * DT)
+    obj.velocity = np.array([1, 0, 0])  # ints, from outside
+    obj.position = np.zeros(3)
+    stage.run(frame)
+    assert obj.velocity.dtype == float and obj.velocity[0] == 1.0
+    assert obj.position[0] == pytest.approx(1.0 * DT)
+
+
+# -- choosing, falling back, caching -----------------------------------------------------
+
+
+def test_python_mode_and_a_fixed_object_compile_nothing():
+    assert jit.choose("python", ["free_body_step"]).kernels == {}
+    assert jit.choose("auto", []).used == "python"
+    with pytest.raises(ValueError, match="expected one of"):
+        jit.choose("fast", ["free_body_step"])
+
+
+def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked(compiled):
+    profile = load_profile(LIFT)
+    assert profile.rendering.kernels == "auto"
+    s = build_session(profile, paced=False, duration_s=0.01)
+    assert s.renderer.kernels.keys() == {"free_body_step"}
+    assert s.renderer.stages[s.renderer.stage_names.index("dynamics")].kernel is not None
+    s.run()
+    s = build_session(
+        load_profile(LIFT, ["rendering.kernels=python"]), paced=False, duration_s=0.01
+    )
+    assert s.renderer.kernels == {}
+    s.run()
+
+
+NO_NUMBA = "import sys; sys.modules['numba'] = None\n"
+# A numba that imports but cannot compile anything; for auto, the cache's marker says its
+# kernels compiled (else auto would compile them in the background with the real numba).
+BROKEN_NUMBA = """
+import sys, types
+fake = types.ModuleType("numba")
+fake.__version__ = "0.0-broken"
+fake.config = types.SimpleNamespace(CACHE_DIR=None)
+def njit(*a, **k):
+    raise RuntimeError("LLVM is not there")
+fake.njit = njit
+sys.modules["numba"] = fake
+from hapticd import jit
+keys = jit._keys(["free_body_step"], "0.0-broken")
+jit._write_marker(jit.COMPILED, {k: "compiled" for k in keys.values()})
+"""
+RUN = """
+from hapticd.cli import main
+code = main(["run", {profile!r}, "--unpaced", "--no-socket", "--no-realtime",
+             "--duration", "0.3", "--summary-json", {summary!r}, "--log-level", "debug"{extra}])
+"""
+
+
+def _run_lift(tmp_path: Path, setup: str, mode: str, cache: Path) -> tuple[str, dict]:
+    """Run the lift for 0.3 s in a subprocess after ``setup``; its stderr and summary."""
+    summary = tmp_path / "s.json"
+    extra = f", '--set', 'rendering.kernels={mode}'"
+    code = setup + "import sys\n" + RUN.format(profile=str(LIFT), summary=str(summary), extra=extra)
+    out = subprocess.run(
+        [sys.executable, "-c", code + "sys.exit(code)\n"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+        env={**os.environ, "NUMBA_CACHE_DIR": str(cache)},
+    )
+    assert out.returncode == 0, out.stderr
+    s = json.loads(summary.read_text())
+    assert s["fault"] is None and s["ticks"] == 300
+    summary.unlink()
+    return out.stderr, s
+
+
+@pytest.mark.parametrize(
+    ("setup", "why"),
+    [
+        (NO_NUMBA, "numba cannot be imported (ModuleNotFoundError"),
+        (BROKEN_NUMBA, "numba 0.0-broken could not compile free_body_step (RuntimeError: LLVM"),
+    ],
+)
+@pytest.mark.parametrize("mode", ["auto", "compiled"])
+def test_without_a_working_jit_the_python_code_renders_with_a_message(tmp_path, setup, why, mode):
+    err, _ = _run_lift(tmp_path, setup, mode, tmp_path / "cache")
+    assert f"rendering.kernels is {mode}, but {why}" in err, err
+    assert "the Python kernels render instead" in err
+    assert "compiled or loaded" not in err
+
+
+def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp_path):
+    """A first auto run does not wait for the compiler: it renders with Python and leaves
+    the compiling to a process of its own; a later run loads the compiled kernel."""
+    cache = tmp_path / "cache"
+    err, _ = _run_lift(tmp_path, "", "auto", cache)
+    assert "compiling free_body_step in the background" in err, err
+    assert "compiled or loaded" not in err
+    marker = cache / jit.COMPILED
+    deadline = time.monotonic() + 120.0
+    while not marker.exists():
+        assert time.monotonic() < deadline, "the background compiler wrote no marker in 120 s"
+        time.sleep(0.2)
+    err, _ = _run_lift(tmp_path, "", "auto", cache)
+    assert "kernels ['free_body_step'] compiled or loaded" in err, err
+    assert "background" not in err and "render instead" not in err
+
+
+def test_auto_says_why_when_the_kernels_failed_to_compile_before(tmp_path):
+    """A failure of the background compiler is kept: the next auto run says why it renders
+    with Python instead of starting the compiler again."""
+    cache = tmp_path / "cache"
+    setup = (
+        "import os, numba\n"
+        "from hapticd import jit\n"
+        "jit._write_marker(jit.FAILED, {k: 'numba could not compile it (a test)' for k in "
+        "jit._keys(['free_body_step'], numba.__version__).values()})\n"
+    )
+    err, _ = _run_lift(tmp_path, setup, "auto", cache)
+    assert "but numba could not compile it (a test) (when it was last tried)" in err, err
+    assert not (cache / jit.COMPILED).exists()
+
+
+def test_python_mode_never_imports_numba():
+    code = (
+        "import sys\n"
+        "from hapticd.build import build_renderer\n"
+        "from hapticd.profile import load_profile\n"
+        f"r = build_renderer(load_profile({str(LIFT)!r}, ['rendering.kernels=python']))\n"
+        "print('numba' in sys.modules, r.kernels)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT
+    )
+    assert out.stdout.split() == ["False", "{}"], out.stdout + out.stderr
+
+
+def test_compiled_kernels_are_cached_across_runs(tmp_path):
+    """A second process loads the first one's machine code (numba's cache hits), from the
+    folder NUMBA_CACHE_DIR names."""
+    code = (
+        "from hapticd import jit\n"
+        "f = jit.compile_kernels(['free_body_step'])['free_body_step']\n"
+        "print(sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values()))\n"
+    )
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    runs = []
+    for _ in range(2):
+        out = subprocess.run(
+            [sys.executable, "-c", code],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            cwd=ROOT,
+            env=env,
+        )
+        assert out.returncode == 0, out.stderr
+        runs.append([int(x) for x in out.stdout.split()])
+    assert any((tmp_path / "cache").rglob("*.nbi")), "no index file in the cache folder"
+    assert runs[1][0] >= 1, runs  # the second run loaded from the cache
+
+
+def test_the_cache_folder_is_the_users_when_the_package_folder_is_not_writable(tmp_path):
+    pkg = tmp_path / "site-packages" / "hapticd"
+    (pkg / "__pycache__").mkdir(parents=True)
+    home = tmp_path / "home"
+    xdg = tmp_path / "xdg"
+    read_only = {pkg, pkg / "__pycache__"}
+
+    def writable(p: Path) -> bool:
+        return p.is_dir() and p not in read_only
+
+    env = {"HOME": str(home)}
+    assert jit.cache_dir(pkg, env, writable) == home / ".cache" / "hapticd" / "numba"
+    assert (home / ".cache" / "hapticd" / "numba").is_dir()
+    env["XDG_CACHE_HOME"] = str(xdg)
+    assert jit.cache_dir(pkg, env, writable) == xdg / "hapticd" / "numba"
+    env["CACHE_DIRECTORY"] = str(tmp_path / "svc")
+    assert jit.cache_dir(pkg, env, writable) == tmp_path / "svc" / "numba"
+    # The user's own choice, or a writable package folder: numba's defaults.
+    assert jit.cache_dir(pkg, {**env, "NUMBA_CACHE_DIR": "/x"}, writable) is None
+    assert jit.cache_dir(pkg, env, lambda p: p.is_dir()) is None
+    # Nothing writable: None (numba then compiles on every run or fails over to Python).
+    assert jit.cache_dir(pkg, env, lambda p: False) is None
+
+
+# -- hostile values through both paths ------------------------------------------------
+
+
+class Poison:
+    """A stage after ``forces`` that puts ``value`` into finger 0's contact force from
+    ``at`` (s) on: what a broken contact model could hand to allocation and dynamics."""
+
+    name = "poison"
+
+    def __init__(self, loop, value: float, at: float) -> None:
+        self.loop, self.value, self.at = loop, value, at
+
+    def run(self, frame) -> None:
+        if self.loop.now() >= self.at:
+            frame.contact_force[0] = self.value
+            frame.in_contact[0] = 1
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -1e300, 1e6])
+@pytest.mark.parametrize("mode", ["python", "compiled"])
+def test_hostile_forces_never_reach_a_device_from_either_path(mode, value):
+    profile = load_profile(LIFT, [f"rendering.kernels={mode}"])
+    session = build_session(profile, paced=False, duration_s=3.2)
+    loop = session.loop
+    assert bool(session.renderer.kernels) == (mode == "compiled")
+    session.renderer.insert(Poison(loop, value, 3.0), after="forces")
+    written = []
+    for dev in session.devices:
+        write = dev.write_force
+
+        def write_force(f, _write=write):
+            written.append(np.array(f, dtype=float))
+            _write(f)
+
+        dev.write_force = write_force
+    summary = session.run()
+    forces = np.array(written)
+    limit = max(session.safety.limits)
+    assert np.all(np.isfinite(forces))
+    assert np.all(np.linalg.norm(forces, axis=1) <= limit + 1e-12)
+    # The object flung or poisoned: a latched fault, zero force from then on.
+    assert summary["fault"] is not None, summary
+    assert np.all(forces[-len(session.devices) :] == 0.0)
