@@ -243,6 +243,16 @@ def test_bad_input_is_named(tmp_path, capsys):
         == 2
     )
     assert "must be one of the file's standards" in capsys.readouterr().err
+    data = yaml.safe_load(STIFFNESS.read_text())
+    data["profile"] = str(ROOT / "configs" / "grasp-stiffness.yaml")
+    data["varied"]["param"] = "damping_n_s_per_m"
+    data["varied"]["standards"] = [1.0, 2.0]
+    damping = tmp_path / "damping.yaml"
+    damping.write_text(yaml.safe_dump(data))
+    assert main(["study", str(damping), "--observers", "1", "--db", str(tmp_path / "d.db")]) == 2
+    err = capsys.readouterr().err
+    assert "damping.yaml: varied.param" in err and "not damping_n_s_per_m" in err
+    assert not (tmp_path / "d.db").exists()
     with pytest.raises(StoreError):
         TrialStore.for_experiment(other, check_experiment(STIFFNESS)[0])
 

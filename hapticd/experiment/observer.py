@@ -43,7 +43,7 @@ from hapticd.actuation import Actuation
 from hapticd.allocation import allocate_many
 from hapticd.build import build_mounts, build_renderer, build_safety
 from hapticd.experiment.plan import PlannedTrial
-from hapticd.experiment.spec import Experiment
+from hapticd.experiment.spec import Experiment, ExperimentError
 from hapticd.frame import Frame
 from hapticd.grasp import grasp_matrix
 from hapticd.profile import (
@@ -143,11 +143,29 @@ def default_config(exp: Experiment) -> ObserverConfig:
     return ObserverConfig(WEIGHT_SENSE if exploration_kind(exp) == "lift" else STIFFNESS_SENSE)
 
 
+CUES = {"stiffness_n_per_m": "squeeze", "mass_kg": "lift"}
+
+
+def check_observable(profile: Profile, exp: Experiment | None = None) -> None:
+    """ExperimentError unless the model observer can explore ``profile`` (a box held by
+    two fingers) and judge ``exp``'s varied parameter (stiffness or mass)."""
+    obj = profile.scene.object
+    if obj.shape != "box" or obj.size_m is None or len(profile.fingers) != 2:
+        what = f"a {obj.shape}" if obj.shape != "box" else f"{len(profile.fingers)} fingers"
+        raise ExperimentError(
+            f"{profile.source}: the model observer explores a box with two fingers; this "
+            f"profile has {what}"
+        )
+    if exp is not None and exp.varied.param not in CUES:
+        raise ExperimentError(
+            f"{exp.source}: varied.param: the model observer judges "
+            f"{' or '.join(CUES)}, not {exp.varied.param}"
+        )
+
+
 def exploration_kind(exp: Experiment) -> str:
-    """``lift`` when the experiment varies the mass or asks "heavier", else ``squeeze``."""
-    if exp.varied.param == "mass_kg" or exp.interval.question == "heavier":
-        return "lift"
-    return "squeeze"
+    """``lift`` when the experiment varies the mass, ``squeeze`` for the stiffness."""
+    return CUES.get(exp.varied.param, "squeeze")
 
 
 # -- the hand's path ------------------------------------------------------------------
@@ -163,18 +181,15 @@ def plan_path(
 ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
     """The planned hand path of one interval: times (N,) s, positions (N, 2, 3) m (thumb
     on -x, index on +x of the profile's cube), and the phase times (s) the cue reads."""
+    check_observable(profile)
     obj = profile.scene.object
-    if obj.shape != "box" or obj.size_m is None or len(profile.fingers) != 2:
-        raise ValueError(
-            f"{profile.source}: the model observer explores a box with two fingers; this "
-            "profile has "
-            + (f"a {obj.shape}" if obj.shape != "box" else f"{len(profile.fingers)} fingers")
-        )
+    assert obj.size_m is not None
     centre = np.array(obj.position_m, dtype=float)
     half = 0.5 * float(obj.size_m[0])
     radii = [f.radius_m for f in profile.fingers]
     dy, dz = rng.normal(0.0, motor.offset_sd_m, 2)
-    starts, plans = [], []
+    starts: list[np.ndarray] = []
+    plans: list[list[Segment]] = []
     if kind == "squeeze":
         depth = _normal(rng, motor.squeeze_depth_m, 0.002)
         t_in = _normal(rng, motor.squeeze_in_s, 0.1)
@@ -213,8 +228,7 @@ def plan_path(
             "judge_from": hold_start + motor.settle_s,
             "end": hold_start + motor.hold_s,
         }
-    segments: list[list[Segment]] = plans  # type: ignore[assignment]
-    t, x = two_finger(starts, segments, PATH_RATE_HZ)
+    t, x = two_finger(starts, plans, PATH_RATE_HZ)
     return t, x, phases
 
 
@@ -400,7 +414,8 @@ def profile_document(exp: Experiment, config: ObserverConfig) -> tuple[str, str]
     """The observer's profile as (JSON of the validated document, the file's path): a
     picklable form for other processes (a loaded Profile is not picklable), parsed back
     with ``profile_from_document``. The profile is validated here first."""
-    observer_profile(exp, config)  # ProfileError now, in the caller, not in a worker
+    # ProfileError or ExperimentError now, in the caller, not in a worker.
+    check_observable(observer_profile(exp, config), exp)
     path = exp.profile_path()
     data, _ = read_document(path)
     data = apply_overrides(data, [f"loop.rate_hz={config.rate_hz:g}"], path)

@@ -347,6 +347,14 @@ def cmd_study(args: Any) -> int:
     except OSError as exc:  # a scheduler that cannot be reached, a db that cannot be made
         print(f"hapticd: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        # Every answered trial is committed; the plans are stored: a re-run continues.
+        print(
+            f"\nhapticd: interrupted; the answered trials are in {db}; run the same command "
+            "again to continue",
+            file=sys.stderr,
+        )
+        return 130
     print(
         f"{db}: {len(result.subjects)} model observers ({result.subjects[0]}.."
         f"{result.subjects[-1]}), {result.total} trials, {result.answered} computed now in "
