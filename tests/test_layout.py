@@ -58,7 +58,9 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.build",
         "hapticd.cli",
         "hapticd.daemon.*",
-        "hapticd.experiment.*",  # experiment files, trial plan, trial store, analysis
+        # experiment files, trial plan, trial store, analysis, the model observer (it builds
+        # a run from the profile) and hapticd study (process pool, Dask)
+        "hapticd.experiment.*",
         "hapticd.plot",  # hapticd plot's figures (matplotlib inside its functions only)
         "hapticd.profile",
         "hapticd.recording.*",

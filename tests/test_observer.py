@@ -179,9 +179,9 @@ def test_an_interrupted_subject_resumes(tmp_path, stiff):
     assert stored(whole) == rows
 
 
-def test_pool_one_worker_and_dask_store_the_same_answers(tmp_path, weight):
-    exp = weight[0]
-    design = dict(seed=9, standards=[0.06], repetitions=2)
+def test_pool_one_worker_and_dask_store_the_same_answers(tmp_path, stiff):
+    exp = stiff[0]
+    design = dict(seed=9, standards=[90.0], repetitions=2)
     run_study(exp, 2, tmp_path / "one.sqlite", workers=1, **design)
     run_study(exp, 2, tmp_path / "pool.sqlite", workers=2, **design)
     one, pool = stored(tmp_path / "one.sqlite"), stored(tmp_path / "pool.sqlite")
@@ -191,7 +191,7 @@ def test_pool_one_worker_and_dask_store_the_same_answers(tmp_path, weight):
     )
     # In a child process: a Dask cluster leaves threads and processes of its own behind
     # in whatever process ran it. Bounded by the timeout.
-    script = DASK_SCRIPT.format(exp=str(WEIGHT), db=str(tmp_path / "dask.sqlite"))
+    script = DASK_SCRIPT.format(exp=str(STIFFNESS), db=str(tmp_path / "dask.sqlite"))
     proc = subprocess.run(
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=240
     )
@@ -207,7 +207,7 @@ if __name__ == "__main__":
     with distributed.LocalCluster(
         processes=True, n_workers=2, threads_per_worker=1, dashboard_address=None
     ) as cluster, distributed.Client(cluster) as client:
-        run_study({exp!r}, 2, {db!r}, scheduler=client, seed=9, standards=[0.06], repetitions=2)
+        run_study({exp!r}, 2, {db!r}, scheduler=client, seed=9, standards=[90.0], repetitions=2)
 """
 
 

@@ -179,12 +179,15 @@ class ProgressBar:
         self.tty = self.stream.isatty()
         self.t0 = time.monotonic()
         self._last_decile = -1
+        self._first: int | None = None  # trials done before this run (a resumed study)
 
     def __call__(self, done: int, total: int | None = None) -> None:
         total = self.total if total is None else total
         frac = done / total if total else 1.0
+        if self._first is None:
+            self._first = done
         elapsed = time.monotonic() - self.t0
-        rate = done / elapsed if elapsed > 0 else 0.0
+        rate = (done - self._first) / elapsed if elapsed > 0 else 0.0
         left = (total - done) / rate if rate > 0 else float("nan")
         n = int(frac * self.width)
         eta = f"{left / 60:.1f} min left" if left == left else "estimating"
