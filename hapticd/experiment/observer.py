@@ -12,11 +12,14 @@ tick's frame in memory.
 
 From the frames it reads a cue, the one a person could read at the fingertips:
 
-- stiffness: the slope of the rendered force's magnitude (N, both fingers' mean) over
+- stiffness: the slope of the force's magnitude (N, both fingers' mean) over
   the finger closure (m, half the decrease of the fingers' distance since both
   touched), fitted by least squares over the ticks in contact: N/m;
-- weight: the mean vertical load the rendered forces put on the fingers (N, summed over
-  the fingers, downward positive) over the hold.
+- weight: the mean vertical load the forces put on the fingers (N, summed over the
+  fingers, downward positive) over the hold;
+
+both from the force the devices were sent (``device_force``: the rendered force after
+the safety chain), the force that reached the fingertips.
 
 The sensory model (``SensoryModel``) adds Gaussian noise of sd sqrt((w c)^2 + floor^2)
 to each interval's cue c (Weber's law with an absolute floor) and answers "was the
@@ -276,7 +279,8 @@ def run_interval(
 ) -> np.ndarray:
     """Run the servo loop, unpaced, with sim fingers on ``path`` (times (N,) s, positions
     (N, 2, 3) m) and ``settings`` set as the control socket sets them; every tick's
-    recorded frame (structured array). RuntimeError if a safety fault latched."""
+    recorded frame (structured array), the shutdown's zero left out. RuntimeError if a
+    safety fault latched."""
     times, pos = path
     clock_box: list[ServoLoop] = []
     devices = [
@@ -314,14 +318,17 @@ def run_interval(
     loop.run()
     if safety.fault is not None:
         raise RuntimeError(f"the observer's interval latched a fault: {safety.fault.cause}")
-    return log.data
+    rows = log.data
+    # Without the row the loop adds for the zero force of its shutdown: no exploration.
+    return rows[rows["tick"] < n_ticks]
 
 
 # -- the cues --------------------------------------------------------------------------
 
 
 def stiffness_cue(rows: np.ndarray) -> float:
-    """Slope (N/m) of the fingers' mean rendered force magnitude over the finger closure
+    """Slope (N/m) of the fingers' mean force magnitude (the force the devices were sent,
+    ``device_force``: after the safety chain, what reached the fingertips) over the finger closure
     (half the decrease of the fingertips' distance since both touched), least squares
     over the ticks with both fingers in contact. 0 without enough contact."""
     both = rows["in_contact"].all(axis=1)
@@ -331,7 +338,7 @@ def stiffness_cue(rows: np.ndarray) -> float:
     aperture = np.linalg.norm(pos[:, 1] - pos[:, 0], axis=1)
     first = int(np.argmax(both))
     closure = 0.5 * (aperture[first] - aperture[both])
-    force = np.linalg.norm(rows["rendered_force"][both], axis=2).mean(axis=1)
+    force = np.linalg.norm(rows["device_force"][both], axis=2).mean(axis=1)
     if np.ptp(closure) <= 0:
         return 0.0
     slope = np.polyfit(closure, force, 1)[0]
@@ -339,12 +346,12 @@ def stiffness_cue(rows: np.ndarray) -> float:
 
 
 def weight_cue(rows: np.ndarray, judge_from_s: float) -> float:
-    """Mean vertical load (N, downward positive) of the rendered forces on both fingers
-    over the hold (ticks from ``judge_from_s``)."""
+    """Mean vertical load (N, downward positive) of the forces sent to both fingers'
+    devices (``device_force``) over the hold (ticks from ``judge_from_s``)."""
     held = rows["t"] >= judge_from_s
     if not held.any():
         return 0.0
-    return float(-rows["rendered_force"][held][:, :, 2].sum(axis=1).mean())
+    return float(-rows["device_force"][held][:, :, 2].sum(axis=1).mean())
 
 
 def allocator_forces(rows: np.ndarray, actuation: Actuation, method: str) -> np.ndarray:
@@ -405,9 +412,17 @@ def trial_rng(seed: int, subject: str, index: int) -> np.random.Generator:
     )
 
 
+def observer_overrides(config: ObserverConfig) -> list[str]:
+    """What the observer changes in the base profile: the loop rate, and no force ramp
+    (``safety.ramp_s``: the ramp after the daemon enables forces is long over when a
+    subject's trial starts; each simulated interval is a fresh loop, and would otherwise
+    start inside it)."""
+    return [f"loop.rate_hz={config.rate_hz:g}", "safety.ramp_s=0"]
+
+
 def observer_profile(exp: Experiment, config: ObserverConfig) -> Profile:
-    """The experiment's base profile at the observer's loop rate."""
-    return load_profile(exp.profile_path(), [f"loop.rate_hz={config.rate_hz:g}"])
+    """The experiment's base profile as the observer runs it (``observer_overrides``)."""
+    return load_profile(exp.profile_path(), observer_overrides(config))
 
 
 def profile_document(exp: Experiment, config: ObserverConfig) -> tuple[str, str]:
@@ -418,7 +433,7 @@ def profile_document(exp: Experiment, config: ObserverConfig) -> tuple[str, str]
     check_observable(observer_profile(exp, config), exp)
     path = exp.profile_path()
     data, _ = read_document(path)
-    data = apply_overrides(data, [f"loop.rate_hz={config.rate_hz:g}"], path)
+    data = apply_overrides(data, observer_overrides(config), path)
     return json.dumps(data, sort_keys=True), str(Path(path).resolve())
 
 
