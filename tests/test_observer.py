@@ -84,6 +84,9 @@ def test_the_cues_are_what_the_allocators_render(stiff, weight):
     rows_pinv, _ = interval_rows(stiff, {"allocator": "pinv", "stiffness_n_per_m": k})
     assert ob.stiffness_cue(rows_if) == pytest.approx(k / COS30, rel=0.05)
     assert ob.stiffness_cue(rows_pinv) == pytest.approx(k * COS30, rel=0.05)
+    # The fingertips got what was rendered: no start-up force ramp inside the exploration.
+    np.testing.assert_array_equal(rows_if["device_force"], rows_if["rendered_force"])
+    assert np.abs(rows_if["device_force"]).max() > 0.2
     # Lifted and held: EF renders the weight, m g, whatever the grip.
     m = 0.06
     rows, ph = interval_rows(weight, {"allocator": "ef", "mass_kg": m})
