@@ -1156,6 +1156,27 @@ def _add_experiment(sub: Any) -> None:
     ana.set_defaults(func=cmd_experiment_analyze)
 
 
+def _add_study(sub: Any) -> None:
+    """hapticd study: model-observer subjects in parallel (hapticd.experiment.study)."""
+
+    def run(args: argparse.Namespace) -> int:
+        from hapticd.experiment.study import cmd_study
+
+        return cmd_study(args)
+
+    st = sub.add_parser("study", help="run simulated subjects (the model observer) in parallel")
+    st.add_argument("experiment", type=Path)
+    st.add_argument("--observers", type=int, required=True, metavar="N", help="subjects s01..")
+    st.add_argument("--db", type=Path, help="trial store (default: study-EXPERIMENT.sqlite)")
+    st.add_argument("--seed", type=int, help="derive each subject's seed from this")
+    st.add_argument("--workers", type=int, metavar="K", help="processes (default: the cores)")
+    st.add_argument("--standards", type=lambda s: [float(x) for x in s.split(",")], metavar="A,B")
+    st.add_argument("--repetitions", type=int, metavar="N", help="per comparison (reduced)")
+    st.add_argument("--scheduler", metavar="ADDRESS", help="a Dask scheduler (pip: hapticd[dask])")
+    st.add_argument("--quiet", action="store_true", help="no progress bar")
+    st.set_defaults(func=run)
+
+
 def _wants_progress(args: argparse.Namespace) -> bool:
     """A progress line on stderr: with --progress, or when stderr is a terminal."""
     return bool(getattr(args, "progress", False)) or sys.stderr.isatty()
@@ -1458,6 +1479,7 @@ def build_parser() -> argparse.ArgumentParser:
             p.set_defaults(func=cmd_events)
     _add_analyze(sub)
     _add_experiment(sub)
+    _add_study(sub)
     _add_plot(sub)
     _add_view(sub, sock_help)
     _add_bringup(sub)

@@ -64,8 +64,9 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.build",
         "hapticd.cli",
         "hapticd.daemon.*",
-        # Experiment files, trial plan, trial store, analysis; the runner
-        # (hapticd.experiment.runner) is also in SOCKET_CLIENTS below.
+        # Experiment files, trial plan, trial store, analysis, the model observer (it
+        # builds a run from the profile) and hapticd study (process pool, Dask); the
+        # runner (hapticd.experiment.runner) is also in SOCKET_CLIENTS below.
         "hapticd.experiment.*",
         "hapticd.plot",  # hapticd plot's figures (matplotlib inside its functions only)
         "hapticd.profile",

@@ -1,0 +1,474 @@
+"""The model observer: a simulated subject that feels only what the devices render.
+
+Its hand is the ``sim`` device (hapticd_drivers.sim: each fingertip a mass pulled along
+a planned path by a spring-damper, pushed back by the rendered force). For each
+interval of a trial it plans an exploration with trial-to-trial motor variability
+(``squeeze``: close on the fixed cube to a depth and back; ``lift``: pinch the free cube,
+lift it and hold it), runs the servo loop on the base profile, unpaced and in process
+(the renderer, safety chain, device bank and loop the daemon runs, built by
+hapticd.build), with the condition's parameters and the interval's value of the varied
+parameter set through the same parameter path the control socket uses, and keeps every
+tick's frame in memory.
+
+From the frames it reads a cue, the one a person could read at the fingertips:
+
+- stiffness: the slope of the force's magnitude (N, both fingers' mean) over
+  the finger closure (m, half the decrease of the fingers' distance since both
+  touched), fitted by least squares over the ticks in contact: N/m;
+- weight: the mean vertical load the forces put on the fingers (N, summed over the
+  fingers, downward positive) over the hold;
+
+both from the force the devices were sent (``device_force``: the rendered force after
+the safety chain), the force that reached the fingertips.
+
+The sensory model (``SensoryModel``) adds Gaussian noise of sd sqrt((w c)^2 + floor^2)
+to each interval's cue c (Weber's law with an absolute floor) and answers "was the
+second more?" by comparing the two noisy cues. Everything is drawn from one generator
+seeded per trial: the same seed gives the same answers. It is a model, not subjects:
+docs/experiments.md says what it assumes and what it predicts.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import zlib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from hapticd_drivers import registry
+
+from hapticd import params
+from hapticd.actuation import Actuation
+from hapticd.allocation import allocate_many
+from hapticd.build import build_mounts, build_renderer, build_safety
+from hapticd.experiment.plan import PlannedTrial
+from hapticd.experiment.spec import Experiment, ExperimentError
+from hapticd.frame import Frame
+from hapticd.grasp import grasp_matrix
+from hapticd.profile import (
+    Profile,
+    apply_overrides,
+    load_profile,
+    parse_profile,
+    read_document,
+)
+from hapticd.servo import ServoLoop
+from hapticd.trajectory import Hold, MinJerk, Segment, two_finger
+
+# 2 x 0.6745: a cue difference with noise sd s on each interval gives a psychometric
+# function of sigma sqrt(2) s, whose JND is 0.6745 sigma.
+JND_PER_NOISE_SD = math.sqrt(2.0) * 0.6744897501960817
+PATH_RATE_HZ = 1000.0  # samples of the planned hand path (the device interpolates)
+
+
+@dataclass(frozen=True)
+class SensoryModel:
+    """Noise on a cue c: Gaussian, sd = sqrt((weber_noise c)^2 + floor^2), in the cue's
+    unit (N/m for stiffness, N for weight). ``weber`` is the Weber fraction (JND /
+    standard) the model gives when the cue is proportional to the stimulus and the floor
+    negligible: weber_noise = weber / (sqrt(2) 0.6745)."""
+
+    cue: str  # "stiffness" or "weight"
+    weber: float
+    floor: float
+    unit: str
+    source: str
+
+    @property
+    def weber_noise(self) -> float:
+        return self.weber / JND_PER_NOISE_SD
+
+    def sd(self, cue: float) -> float:
+        return math.hypot(self.weber_noise * cue, self.floor)
+
+
+# Weber fractions from the notes' literature (docs/experiments.md says why these).
+STIFFNESS_SENSE = SensoryModel(
+    "stiffness",
+    weber=0.15,
+    floor=2.0,
+    unit="N/m",
+    source="pinched compliance, Bergmann Tiest & Kappers 2009 (~15 %)",
+)
+WEIGHT_SENSE = SensoryModel(
+    "weight",
+    weber=0.08,
+    floor=0.01,
+    unit="N",
+    source="actively lifted weight, ~5-10 % (mid value)",
+)
+
+
+@dataclass(frozen=True)
+class Motor:
+    """The hand's exploration and its trial-to-trial variability (each a mean and an sd;
+    lengths m, times s). Drawn anew for every interval."""
+
+    start_gap_m: float = 0.002  # fingertips this far from the faces at the start
+    squeeze_depth_m: tuple[float, float] = (0.008, 0.0012)
+    squeeze_in_s: tuple[float, float] = (0.30, 0.05)
+    squeeze_hold_s: float = 0.10
+    squeeze_out_s: float = 0.20
+    grip_depth_m: tuple[float, float] = (0.008, 0.001)
+    grip_s: float = 0.15
+    lift_height_m: tuple[float, float] = (0.030, 0.005)
+    lift_s: tuple[float, float] = (0.25, 0.04)
+    hold_s: float = 0.45
+    settle_s: float = 0.15  # the first part of the hold is not judged (the lift's transient)
+    # Finger offsets (m) across the grasp line, as real fingers are not exactly opposite.
+    offset_sd_m: float = 0.0008
+
+
+@dataclass(frozen=True)
+class ObserverConfig:
+    """What the observer needs beyond the experiment: its sensory model, its motor
+    model, its hand (the sim device's keys) and the loop rate (Hz) it simulates at."""
+
+    sense: SensoryModel
+    motor: Motor = field(default_factory=Motor)
+    rate_hz: float = 500.0
+    hand: Mapping[str, float] = field(
+        default_factory=lambda: {
+            "mass_kg": 0.05,
+            "hand_stiffness_n_per_m": 300.0,
+            "hand_damping_n_s_per_m": 3.0,
+            "max_step_s": 5e-4,
+        }
+    )
+
+
+def default_config(exp: Experiment) -> ObserverConfig:
+    """The observer for ``exp``'s question: stiffness (squeeze) or weight (lift)."""
+    return ObserverConfig(WEIGHT_SENSE if exploration_kind(exp) == "lift" else STIFFNESS_SENSE)
+
+
+CUES = {"stiffness_n_per_m": "squeeze", "mass_kg": "lift"}
+
+
+def check_observable(profile: Profile, exp: Experiment | None = None) -> None:
+    """ExperimentError unless the model observer can explore ``profile`` (a box held by
+    two fingers) and judge ``exp``'s varied parameter (stiffness or mass)."""
+    obj = profile.scene.object
+    if obj.shape != "box" or obj.size_m is None or len(profile.fingers) != 2:
+        what = f"a {obj.shape}" if obj.shape != "box" else f"{len(profile.fingers)} fingers"
+        raise ExperimentError(
+            f"{profile.source}: the model observer explores a box with two fingers; this "
+            f"profile has {what}"
+        )
+    if exp is not None and exp.varied.param not in CUES:
+        raise ExperimentError(
+            f"{exp.source}: varied.param: the model observer judges "
+            f"{' or '.join(CUES)}, not {exp.varied.param}"
+        )
+
+
+def exploration_kind(exp: Experiment) -> str:
+    """``lift`` when the experiment varies the mass, ``squeeze`` for the stiffness."""
+    return CUES.get(exp.varied.param, "squeeze")
+
+
+# -- the hand's path ------------------------------------------------------------------
+
+
+def _normal(rng: np.random.Generator, spec: tuple[float, float], lo: float) -> float:
+    mean, sd = spec
+    return max(lo, float(rng.normal(mean, sd)))
+
+
+def plan_path(
+    kind: str, profile: Profile, motor: Motor, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+    """The planned hand path of one interval: times (N,) s, positions (N, 2, 3) m (thumb
+    on -x, index on +x of the profile's cube), and the phase times (s) the cue reads."""
+    check_observable(profile)
+    obj = profile.scene.object
+    assert obj.size_m is not None
+    centre = np.array(obj.position_m, dtype=float)
+    half = 0.5 * float(obj.size_m[0])
+    radii = [f.radius_m for f in profile.fingers]
+    dy, dz = rng.normal(0.0, motor.offset_sd_m, 2)
+    starts: list[np.ndarray] = []
+    plans: list[list[Segment]] = []
+    if kind == "squeeze":
+        depth = _normal(rng, motor.squeeze_depth_m, 0.002)
+        t_in = _normal(rng, motor.squeeze_in_s, 0.1)
+        for sign, r, off in ((-1.0, radii[0], (0.0, 0.0)), (1.0, radii[1], (dy, dz))):
+            x_touch = half + r
+            start = centre + np.array([sign * (x_touch + motor.start_gap_m), off[0], off[1]])
+            pinch = centre + np.array([sign * (x_touch - depth), off[0], off[1]])
+            starts.append(start)
+            plans.append(
+                [
+                    MinJerk(t_in, tuple(pinch)),
+                    Hold(motor.squeeze_hold_s),
+                    MinJerk(motor.squeeze_out_s, tuple(start)),
+                ]
+            )
+        phases = {"end": t_in + motor.squeeze_hold_s + motor.squeeze_out_s}
+    else:
+        depth = _normal(rng, motor.grip_depth_m, 0.002)
+        height = _normal(rng, motor.lift_height_m, 0.005)
+        t_lift = _normal(rng, motor.lift_s, 0.1)
+        for sign, r, off in ((-1.0, radii[0], (0.0, 0.0)), (1.0, radii[1], (dy, dz))):
+            x_touch = half + r
+            start = centre + np.array([sign * (x_touch + motor.start_gap_m), off[0], off[1]])
+            pinch = centre + np.array([sign * (x_touch - depth), off[0], off[1]])
+            up = pinch + np.array([0.0, 0.0, height])
+            starts.append(start)
+            plans.append(
+                [
+                    MinJerk(motor.grip_s, tuple(pinch)),
+                    MinJerk(t_lift, tuple(up)),
+                    Hold(motor.hold_s),
+                ]
+            )
+        hold_start = motor.grip_s + t_lift
+        phases = {
+            "judge_from": hold_start + motor.settle_s,
+            "end": hold_start + motor.hold_s,
+        }
+    t, x = two_finger(starts, plans, PATH_RATE_HZ)
+    return t, x, phases
+
+
+# -- one interval in the loop ----------------------------------------------------------
+
+
+class FrameLog:
+    """Every tick's recorded frame, in memory: what the servo loop hands a recorder
+    (``append`` of the frame's recorded bytes), kept as a structured array."""
+
+    def __init__(self, frame: Frame, capacity: int) -> None:
+        self.rows = np.zeros(capacity, dtype=frame.recorded_dtype)
+        self._bytes = self.rows.view(np.uint8).reshape(capacity, frame.recorded_dtype.itemsize)
+        self.ticks = 0
+        self.path = "<memory>"
+
+    def append(self, record: np.ndarray) -> None:
+        if self.ticks < len(self.rows):
+            self._bytes[self.ticks] = record
+            self.ticks += 1
+
+    def close(self) -> dict[str, Any]:
+        return {"ticks": self.ticks}
+
+    @property
+    def data(self) -> np.ndarray:
+        return self.rows[: self.ticks]
+
+
+def interval_settings(exp: Experiment, trial: PlannedTrial, second: bool) -> dict[str, Any]:
+    """The parameters of one interval: the condition's, and the varied parameter at the
+    standard or the comparison (``second``: the second interval)."""
+    cond = {c.name: c for c in exp.conditions}[trial.condition]
+    values = dict(cond.values())
+    comparison = second != trial.comparison_first
+    values[exp.varied.param] = trial.comparison if comparison else trial.standard
+    return values
+
+
+def run_interval(
+    profile: Profile,
+    settings: Mapping[str, Any],
+    path: tuple[np.ndarray, np.ndarray],
+    config: ObserverConfig,
+) -> np.ndarray:
+    """Run the servo loop, unpaced, with sim fingers on ``path`` (times (N,) s, positions
+    (N, 2, 3) m) and ``settings`` set as the control socket sets them; every tick's
+    recorded frame (structured array), the shutdown's zero left out. RuntimeError if a
+    safety fault latched."""
+    times, pos = path
+    clock_box: list[ServoLoop] = []
+    devices = [
+        registry.open_device(
+            "sim",
+            times=times,
+            positions=pos[:, i, :],
+            clock=lambda: clock_box[0].now(),
+            serial=f"observer-{f.name}",
+            max_force_n=float(getattr(f.device, "max_force_n", 12.0)),
+            **config.hand,
+        )
+        for i, f in enumerate(profile.fingers)
+    ]
+    renderer = build_renderer(profile)
+    safety = build_safety(profile, devices)
+    rate = profile.loop.rate_hz
+    n_ticks = math.floor(float(times[-1]) * rate + 1e-9)
+    log = FrameLog(Frame(len(devices), renderer.actuation.n_actuators), n_ticks + 2)
+    loop = ServoLoop(
+        devices,
+        renderer,
+        safety,
+        rate,
+        paced=False,
+        duration_s=n_ticks / rate,
+        recorder=log,  # type: ignore[arg-type]
+        stop_ramp_s=0.0,
+        wall_watchdog=False,
+    )
+    loop.bank.set_mounts(build_mounts(profile))
+    clock_box.append(loop)
+    for name, value in settings.items():
+        loop.set_param(name, params.PARAMS[name].check(value))
+    loop.run()
+    if safety.fault is not None:
+        raise RuntimeError(f"the observer's interval latched a fault: {safety.fault.cause}")
+    rows = log.data
+    # Without the row the loop adds for the zero force of its shutdown: no exploration.
+    return rows[rows["tick"] < n_ticks]
+
+
+# -- the cues --------------------------------------------------------------------------
+
+
+def stiffness_cue(rows: np.ndarray) -> float:
+    """Slope (N/m) of the fingers' mean force magnitude (the force the devices were sent,
+    ``device_force``: after the safety chain, what reached the fingertips) over the finger closure
+    (half the decrease of the fingertips' distance since both touched), least squares
+    over the ticks with both fingers in contact. 0 without enough contact."""
+    both = rows["in_contact"].all(axis=1)
+    if both.sum() < 5:
+        return 0.0
+    pos = rows["device_pos"]
+    aperture = np.linalg.norm(pos[:, 1] - pos[:, 0], axis=1)
+    first = int(np.argmax(both))
+    closure = 0.5 * (aperture[first] - aperture[both])
+    force = np.linalg.norm(rows["device_force"][both], axis=2).mean(axis=1)
+    if np.ptp(closure) <= 0:
+        return 0.0
+    slope = np.polyfit(closure, force, 1)[0]
+    return float(slope)
+
+
+def weight_cue(rows: np.ndarray, judge_from_s: float) -> float:
+    """Mean vertical load (N, downward positive) of the forces sent to both fingers'
+    devices (``device_force``) over the hold (ticks from ``judge_from_s``)."""
+    held = rows["t"] >= judge_from_s
+    if not held.any():
+        return 0.0
+    return float(-rows["device_force"][held][:, :, 2].sum(axis=1).mean())
+
+
+def allocator_forces(rows: np.ndarray, actuation: Actuation, method: str) -> np.ndarray:
+    """What allocator ``method`` would have rendered on each tick of a recorded interval
+    with both fingers in contact: M_a lam_a per finger (n, 2, 3) N, with lam_a from
+    ``hapticd.allocation.allocate_many`` on the recorded contact points, contact forces
+    and object position, and M_a the actuated directions (``actuation``) where the fingers
+    were. Ground and walls are left out. Compares allocators on one and the same
+    exploration (docs/experiments.md)."""
+    both = rows["in_contact"].all(axis=1)
+    sel = rows[both]
+    n = len(sel)
+    if n == 0:
+        return np.zeros((0, 2, 3))
+    G = np.stack(
+        [grasp_matrix(p, c) for p, c in zip(sel["contact_point"], sel["object_pos"], strict=True)]
+    )
+    M = np.stack([actuation.matrix(p) for p in sel["device_pos"]])
+    lam_a = allocate_many(method, G, M, sel["contact_force"].reshape(n, 6))
+    return np.einsum("nij,nj->ni", M, lam_a).reshape(n, 2, 3)
+
+
+# -- a trial -----------------------------------------------------------------------------
+
+
+def interval_cue(
+    kind: str,
+    profile: Profile,
+    settings: Mapping[str, Any],
+    config: ObserverConfig,
+    rng: np.random.Generator,
+) -> float:
+    """One interval: plan the hand's path, run the loop, read the cue."""
+    t, x, phases = plan_path(kind, profile, config.motor, rng)
+    rows = run_interval(profile, settings, (t, x), config)
+    if kind == "squeeze":
+        return stiffness_cue(rows)
+    return weight_cue(rows, phases["judge_from"])
+
+
+@dataclass(frozen=True)
+class TrialResult:
+    """One answered trial: the answer to "was the second more?", both intervals' cues
+    (the sensory model's unit) and their noisy percepts."""
+
+    index: int
+    answer_second_more: bool
+    cues: tuple[float, float]
+    percepts: tuple[float, float]
+
+
+def trial_rng(seed: int, subject: str, index: int) -> np.random.Generator:
+    """The generator of one trial: from the subject's seed, the subject's id and the
+    trial's plan index only, so a trial's answer does not depend on which process runs
+    it or in which order."""
+    return np.random.default_rng(
+        np.random.SeedSequence([int(seed), zlib.crc32(subject.encode()), int(index)])
+    )
+
+
+def observer_overrides(config: ObserverConfig) -> list[str]:
+    """What the observer changes in the base profile: the loop rate, and no force ramp
+    (``safety.ramp_s``: the ramp after the daemon enables forces is long over when a
+    subject's trial starts; each simulated interval is a fresh loop, and would otherwise
+    start inside it)."""
+    return [f"loop.rate_hz={config.rate_hz:g}", "safety.ramp_s=0"]
+
+
+def observer_profile(exp: Experiment, config: ObserverConfig) -> Profile:
+    """The experiment's base profile as the observer runs it (``observer_overrides``)."""
+    return load_profile(exp.profile_path(), observer_overrides(config))
+
+
+def profile_document(exp: Experiment, config: ObserverConfig) -> tuple[str, str]:
+    """The observer's profile as (JSON of the validated document, the file's path): a
+    picklable form for other processes (a loaded Profile is not picklable), parsed back
+    with ``profile_from_document``. The profile is validated here first."""
+    # ProfileError or ExperimentError now, in the caller, not in a worker.
+    check_observable(observer_profile(exp, config), exp)
+    path = exp.profile_path()
+    data, _ = read_document(path)
+    data = apply_overrides(data, observer_overrides(config), path)
+    return json.dumps(data, sort_keys=True), str(Path(path).resolve())
+
+
+_PARSED: dict[tuple[str, str], Profile] = {}
+
+
+def profile_from_document(doc: tuple[str, str]) -> Profile:
+    """The Profile of ``profile_document``'s output (parsed once per process)."""
+    prof = _PARSED.get(doc)
+    if prof is None:
+        prof = _PARSED[doc] = parse_profile(json.loads(doc[0]), Path(doc[1]))
+    return prof
+
+
+def answer_trial(
+    exp: Experiment,
+    profile: Profile,
+    config: ObserverConfig,
+    trial: PlannedTrial,
+    subject: str,
+    seed: int,
+) -> TrialResult:
+    """The observer's answer to one planned trial (no I/O): two explorations, two cues,
+    two noisy percepts; "yes" when the second percept is the larger. Deterministic for
+    (seed, subject, trial.index)."""
+    rng = trial_rng(seed, subject, trial.index)
+    kind = exploration_kind(exp)
+    cues = [
+        interval_cue(kind, profile, interval_settings(exp, trial, second), config, rng)
+        for second in (False, True)
+    ]
+    percepts = [c + float(rng.normal(0.0, config.sense.sd(c))) for c in cues]
+    return TrialResult(
+        trial.index,
+        bool(percepts[1] > percepts[0]),
+        (cues[0], cues[1]),
+        (percepts[0], percepts[1]),
+    )
