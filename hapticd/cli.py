@@ -1120,7 +1120,12 @@ def _add_experiment_run(esub: Any) -> None:
     run.add_argument("--standards", metavar="LIST", help="a reduced design: e.g. 60 or 30,90")
     run.add_argument("--resume", action="store_true", help="continue the subject's stored plan")
     run.add_argument("--socket", type=Path, help="the daemon's control socket")
-    run.add_argument("--observer", default="person", help="who answers (default: person)")
+    run.add_argument(
+        "--observer",
+        default="person",
+        help="who answers: person (at a running daemon; the default) or model (the simulated "
+        "subject, in this process, no daemon)",
+    )
     run.add_argument("--buttons", metavar="MAP", help="response labels as answers: L=yes,L=no")
     run.add_argument("--no-keys", action="store_true", help="read no answers from the terminal")
     run.set_defaults(func=cmd_experiment_run)

@@ -182,6 +182,28 @@ def test_an_interrupted_subject_resumes(tmp_path, stiff):
     assert stored(whole) == rows
 
 
+def test_experiment_run_with_the_model_observer_is_the_same_subject(tmp_path, stiff, capsys):
+    """``hapticd experiment run --observer model`` walks the plan through the runner's
+    run_subject with no daemon, and stores what run_model_subject stores."""
+    db = tmp_path / "run.sqlite"
+    base = ["experiment", "run", str(STIFFNESS), "--subject", "s01", "--observer", "model"]
+    base += ["--standards", "30", "--repetitions", "2", "--no-keys", "--db", str(db)]
+    assert main(base) == 0
+    out, err = capsys.readouterr()
+    assert "24 trial(s) answered; 0 left: done" in out, out + err
+    assert "trial 1 of 24" in err
+    exp = reduce_design(stiff[0], standards=[30.0], repetitions=2)
+    with TrialStore.for_experiment(tmp_path / "walk.sqlite", exp) as store:
+        assert run_model_subject(exp, "s01", store, None) == 24
+    rows = stored(db)
+    assert len(rows) == 24 and rows == stored(tmp_path / "walk.sqlite")
+    assert len({r[6] for r in rows}) == 2  # both answers occur: not a constant
+    # Resumed when it is done: nothing added.
+    assert main([*base, "--resume"]) == 0
+    assert "all 24 trials are answered already" in capsys.readouterr().err
+    assert stored(db) == rows
+
+
 def test_pool_one_worker_and_dask_store_the_same_answers(tmp_path, stiff):
     exp = stiff[0]
     design = dict(seed=9, standards=[90.0], repetitions=2)

@@ -616,7 +616,7 @@ def test_cli_refusals_before_any_trial(tmp_path, capsys):
     with TrialStore.for_experiment(fresh, load_experiment(STIFFNESS)) as store:
         assert store.plan("s1") == []  # no plan stored without a daemon to present it
     for extra, what in (
-        (["--observer", "robot"], "unknown observer 'robot'; observers: person"),
+        (["--observer", "robot"], "unknown observer 'robot'; observers: person, model"),
         (["--standards", "60,x"], "expected numbers separated by commas"),
         (["--standards", "1e9"], "the reduced design is not valid"),
         (["--repetitions", "3", "--standards", "60"], None),

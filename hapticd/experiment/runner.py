@@ -24,15 +24,19 @@ Two pieces, so that any observer can run the same plan into the same store:
   trial the moment it is answered. ``start_subject`` stores (or, resuming, checks) the
   plan first.
 
-``OBSERVERS`` maps ``--observer`` names to presenter factories (``person`` here).
+``OBSERVERS`` maps ``--observer`` names to presenter factories: ``person`` here,
+``model`` (``hapticd.experiment.study.model_observer``: the simulated subject, which
+runs the servo loop in its own process, unpaced, and needs no daemon).
 
 The runner is a client of the control socket (hapticd.control): it never imports the
-servo loop or the daemon.
+servo loop or the daemon (the model observer is imported only when chosen).
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import importlib
 import json
 import math
 import os
@@ -658,7 +662,8 @@ class RunOptions:
     socket: Path | None = None
     keys_fd: int | None = None  # None: no terminal keys
     person: PersonOptions = field(default_factory=PersonOptions)
-    out: TextIO = sys.stderr
+    out: TextIO = field(default_factory=lambda: sys.stderr)  # the stream at run time
+    seed: int | None = None  # the subject's seed (run_experiment sets it)
 
 
 @contextlib.contextmanager
@@ -690,8 +695,23 @@ def person_observer(exp: Experiment, subject: str, options: RunOptions) -> Itera
 ObserverFactory = Callable[
     [Experiment, str, RunOptions], contextlib.AbstractContextManager[Presenter]
 ]
-# --observer NAME -> its presenter (a context manager: the presenter for the run).
-OBSERVERS: dict[str, ObserverFactory] = {"person": person_observer}
+# --observer NAME -> its presenter factory (a context manager: the presenter for the run),
+# as "module:function", imported only when chosen: the model observer runs the servo loop
+# in this process, which a person's run (a client of the daemon's socket) never loads.
+OBSERVERS: dict[str, str] = {
+    "person": "hapticd.experiment.runner:person_observer",
+    "model": "hapticd.experiment.study:model_observer",
+}
+
+
+def observer_factory(name: str) -> ObserverFactory:
+    """The presenter factory of the observer called ``name``; ValueError naming the
+    observers there are."""
+    entry = OBSERVERS.get(name)
+    if entry is None:
+        raise ValueError(f"unknown observer {name!r}; observers: {', '.join(OBSERVERS)}")
+    module, _, attr = entry.partition(":")
+    return getattr(importlib.import_module(module), attr)
 
 
 def stdin_fd() -> int | None:
@@ -729,11 +749,9 @@ def run_experiment(
     """Run (or resume) ``subject`` on ``exp`` into the store ``db`` with the observer
     named ``observer``; (complete trials recorded now, trials left). RunnerError,
     StoreError, ExperimentError, TrialAbortedError as the module says."""
-    options = options or RunOptions()
-    factory = OBSERVERS.get(observer)
-    if factory is None:
-        raise ValueError(f"unknown observer {observer!r}; observers: {', '.join(OBSERVERS)}")
+    factory = observer_factory(observer)
     seed = exp.subject_seed(subject) if seed is None else seed
+    options = dataclasses.replace(options or RunOptions(), seed=seed)
     out = options.out
     check_subject(subject)
     with TrialStore.for_experiment(db, exp) as store:

@@ -6,18 +6,19 @@ that only the calling process writes."""
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import os
 import sys
 import time
 import zlib
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
 
-from hapticd.experiment import observer
+from hapticd.experiment import observer, runner
 from hapticd.experiment.plan import PlannedTrial, make_plan
 from hapticd.experiment.spec import Experiment, ExperimentError, check_experiment, file_hash
 from hapticd.experiment.store import TrialStore
@@ -135,6 +136,38 @@ def _record(store: TrialStore, a: Answer, profile_hash: str) -> None:
     )
 
 
+class ModelPresenter:
+    """The model observer as a runner's Presenter (hapticd.experiment.runner): each trial
+    is answered by ``observer.answer_trial`` in this process (two simulated explorations,
+    the sensory model); no recording, no response time, no breaks."""
+
+    def __init__(
+        self, exp: Experiment, subject: str, seed: int, config: observer.ObserverConfig
+    ) -> None:
+        self.subject, self.seed, self.config = subject, seed, config
+        # Checked here (ProfileError, ExperimentError), before a plan is stored.
+        self.profile = observer.profile_from_document(observer.profile_document(exp, config))
+
+    def present(
+        self, exp: Experiment, trial: PlannedTrial, params: Mapping[str, Any]
+    ) -> runner.Presented:
+        r = observer.answer_trial(exp, self.profile, self.config, trial, self.subject, self.seed)
+        return runner.Presented(r.answer_second_more, None, source="model")
+
+    def rest(self, seconds: float) -> None:
+        """A simulated subject needs no break."""
+
+
+@contextlib.contextmanager
+def model_observer(
+    exp: Experiment, subject: str, options: runner.RunOptions
+) -> Iterator[ModelPresenter]:
+    """``hapticd experiment run --observer model``: the model observer for ``subject``
+    with the run's seed (the experiment's per-subject seed unless ``--seed``)."""
+    seed = exp.subject_seed(subject) if options.seed is None else options.seed
+    yield ModelPresenter(exp, subject, seed, observer.default_config(exp))
+
+
 def run_model_subject(
     exp_path_or_exp: Experiment | str | Path,
     subject: str,
@@ -152,21 +185,20 @@ def run_model_subject(
     subject already in the store. ``seed`` None: the experiment's per-subject seed.
     ``progress(done, total)`` after each trial. Returns the trials answered now."""
     exp = _load(exp_path_or_exp, standards, repetitions)
-    config = config or observer.default_config(exp)
-    profile = observer.profile_document(exp, config)
-    profile_hash = file_hash(exp.profile_path())
     s = study_seed(exp, subject, seed)
-    plan = make_plan(exp, s)
-    store.ensure_plan(subject, plan, s)
-    rest = store.remaining(subject)
-    done = len(plan) - len(rest)
-    for trial in rest:
-        for a in answer_task(Task(exp, profile, config, subject, s, (trial,))):
-            _record(store, a, profile_hash)
-        done += 1
-        if progress is not None:
-            progress(done, len(plan))
-    return len(rest)
+    presenter = ModelPresenter(exp, subject, s, config or observer.default_config(exp))
+    store.ensure_plan(subject, make_plan(exp, s), s)
+    left = len(store.remaining(subject))
+    runner.run_subject(
+        store,
+        exp,
+        subject,
+        s,
+        presenter,
+        profile_hash=file_hash(exp.profile_path()),
+        progress=None if progress is None else lambda p: progress(p.done, p.total),
+    )
+    return left
 
 
 class ProgressBar:
