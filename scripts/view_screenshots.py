@@ -34,7 +34,11 @@ from tests import cdp  # noqa: E402
 PROFILE = ROOT / "configs" / "lift-weight.yaml"
 RUN = [sys.executable, "-m", "hapticd", "run", str(PROFILE), "--device", "sim"]
 RUN += ["--no-realtime", "-q"]
-PROMPT = {"id": 1, "question": "Was this cube heavier than the first?", "choices": ["no", "yes"]}
+PROMPT = {
+    "prompt": 1,
+    "question": "Was this cube heavier than the first?",
+    "choices": ["no", "yes"],
+}
 
 
 def wait(read, what: str, until=bool, timeout_s: float = 30.0, poll_s: float = 0.02):
