@@ -25,6 +25,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
@@ -66,28 +67,28 @@ def parse_answers(text: str) -> str:
     return ans
 
 
-def parse_pulse_n(text: str) -> float:
-    """``--pulse-n``: the pulse's amplitude, N, in (0, MAX_PULSE_N]."""
+def _number(text: str, ok: Callable[[float], bool], expected: str) -> float:
+    """``text`` as a number for which ``ok`` holds; ArgumentTypeError saying ``expected``
+    (NaN and text that is not a number fail every check)."""
     try:
         v = float(text)
     except ValueError:
         v = math.nan
-    if not 0.0 < v <= MAX_PULSE_N:
-        raise argparse.ArgumentTypeError(
-            f"a pulse's amplitude is in (0, {MAX_PULSE_N:g}] N, got {text}"
-        )
+    if not ok(v):
+        raise argparse.ArgumentTypeError(f"{expected}, got {text}")
     return v
+
+
+def parse_pulse_n(text: str) -> float:
+    """``--pulse-n``: the pulse's amplitude, N, in (0, MAX_PULSE_N]."""
+    return _number(
+        text, lambda v: 0.0 < v <= MAX_PULSE_N, f"a pulse's amplitude is in (0, {MAX_PULSE_N:g}] N"
+    )
 
 
 def parse_live_s(text: str) -> float:
     """``--live-s``: how long positions are shown live, s (0: one snapshot)."""
-    try:
-        v = float(text)
-    except ValueError:
-        v = math.nan
-    if not 0.0 <= v <= 3600.0:
-        raise argparse.ArgumentTypeError(f"expected 0 to 3600 s, got {text}")
-    return v
+    return _number(text, lambda v: 0.0 <= v <= 3600.0, "expected 0 to 3600 s")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -531,18 +531,22 @@ class ControlServer:
             kinds, first = conn.event_kinds, conn.events_from
             assert kinds is not None
             data = b"".join(line for code, tick, line in out if tick >= first and code in kinds)
-            if not data or conn.sock not in self._conns:
-                continue
-            conn.outbuf += data
-            if len(conn.outbuf) > self.events_backlog_bytes:
-                log.warning(
-                    "dropping an event subscriber %d bytes behind (it stopped reading)",
-                    len(conn.outbuf),
-                )
-                self.slow_event_clients += 1
-                self._drop(conn.sock)
-                continue
-            self._flush(conn)
+            if data and conn.sock in self._conns:
+                self._send_events(conn, data)
+
+    def _send_events(self, conn: _Conn, data: bytes) -> None:
+        """Queue event lines for ``conn``; a subscriber more than ``events_backlog_bytes``
+        behind is dropped (it stopped reading), never waited for."""
+        conn.outbuf += data
+        if len(conn.outbuf) > self.events_backlog_bytes:
+            log.warning(
+                "dropping an event subscriber %d bytes behind (it stopped reading)",
+                len(conn.outbuf),
+            )
+            self.slow_event_clients += 1
+            self._drop(conn.sock)
+            return
+        self._flush(conn)
 
     # -- requests ----------------------------------------------------------------------
 
@@ -648,18 +652,8 @@ class ControlServer:
         line = proto.encode({"event": name, "tick": tick, "t": self.loop.now(), **fields})
         for conn in list(self._conns.values()):
             kinds = conn.event_kinds
-            if kinds is None or code not in kinds or tick < conn.events_from:
-                continue
-            conn.outbuf += line
-            if len(conn.outbuf) > self.events_backlog_bytes:
-                log.warning(
-                    "dropping an event subscriber %d bytes behind (it stopped reading)",
-                    len(conn.outbuf),
-                )
-                self.slow_event_clients += 1
-                self._drop(conn.sock)
-                continue
-            self._flush(conn)
+            if kinds is not None and code in kinds and tick >= conn.events_from:
+                self._send_events(conn, line)
 
     def _record_start(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
         return self.session.record_start(req["path"], overwrite=req.get("overwrite", False))
