@@ -20,6 +20,7 @@ from hapticd_drivers.registry import backend_names, discover
 
 from hapticd import __version__, bringup, params
 from hapticd import events as event_kinds
+from hapticd import protocol as proto
 from hapticd.build import build_devices, build_mounts, build_scene, load_trajectories
 from hapticd.control import ControlClient, NoDaemonError, default_socket_path
 from hapticd.daemon.sdnotify import ServiceNotifier
@@ -504,27 +505,12 @@ def format_status(st: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-# Replies that say the request itself was wrong (exit 2); any other error is about the
-# daemon's state (not recording, the file exists, not running: exit 1).
-BAD_INPUT_CODES = frozenset(
-    {
-        "malformed",
-        "bad_request",
-        "too_large",
-        "unknown_command",
-        "unknown_param",
-        "bad_value",
-        "out_of_range",
-        "bad_profile",
-    }
-)
-
-
 def _client_failed(args: argparse.Namespace, exc: Exception) -> int:
     """Report a failed client command; the exit code says whose fault it was."""
     if isinstance(exc, ProtocolError):
         print(f"hapticd: {exc.code}: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT if exc.code in BAD_INPUT_CODES else EXIT_ERROR
+        # The request was wrong (exit 2), or the daemon's state (exit 1): hapticd.protocol.
+        return EXIT_BAD_INPUT if exc.code in proto.BAD_REQUEST else EXIT_ERROR
     if isinstance(exc, NoDaemonError):
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_ERROR

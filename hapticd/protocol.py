@@ -21,6 +21,32 @@ from typing import Any
 from hapticd import events, params
 
 PROTOCOL_VERSION = 1
+
+# Every error code a reply (or the client, for a greeting) can carry: what it means, and
+# whether the request itself was at fault (True: a command line exits 2) or the state of
+# the daemon or the connection (False: exit 1). docs/control.md lists them (a test checks).
+ERRORS: dict[str, tuple[str, bool]] = {
+    "malformed": ("not a JSON object", True),
+    "bad_request": (
+        "nested too deeply; an `id`, `cmd` or `param` of the wrong JSON type; a missing argument",
+        True,
+    ),
+    "too_large": ("a line over 64 KiB: one reply, the line discarded up to its newline", True),
+    "unknown_command": ("no such command", True),
+    "unknown_param": ("no such parameter (hapticd.params)", True),
+    "bad_value": ("a value of the wrong type or form, NaN or Infinity anywhere", True),
+    "out_of_range": ("a number outside the parameter's range", True),
+    "bad_profile": ("reload: the profile is not valid (the message names file and key)", True),
+    "rejected": ("the loop refused (already recording, not recording, ...)", False),
+    "recording": ("the recording file exists, is outside the directory, or failed", False),
+    "timeout": ("the loop is not running", False),
+    "too_many_clients": ("sent once, unasked, to a connection beyond those served", False),
+    "no_prompt": ("`respond` to a prompt that is not the current one", False),
+    "internal": ("a bug in the daemon", False),
+    "version": ("the daemon speaks another protocol version (the client's check)", False),
+}
+# The codes that say the request itself was wrong.
+BAD_REQUEST = frozenset(code for code, (_, bad) in ERRORS.items() if bad)
 MAX_LINE_BYTES = 64 * 1024
 MAX_DEPTH = 8  # JSON nesting of a request (actuated_directions needs 4)
 MAX_ID_CHARS = 256
@@ -290,4 +316,5 @@ def ok(req_id: Any, result: Any) -> bytes:
 
 
 def error(req_id: Any, code: str, message: str) -> bytes:
+    """An error reply; ``code`` one of ERRORS (a test checks every code the sources use)."""
     return encode({"id": req_id, "ok": False, "error": {"code": code, "message": message}})

@@ -5,15 +5,18 @@ import itertools
 import json
 import os
 import random
+import re
 import shutil
 import socket
 import stat
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from hapticd import protocol as proto
 from hapticd import recording
 from hapticd.control import ControlClient
 from hapticd.daemon.session import build_session
@@ -494,3 +497,20 @@ def test_the_readme_python_example_runs(live, tmp_path, monkeypatch):
         assert c.status()["recording"]["path"] == str(tmp_path / "s01-trial-01.hrec")
         assert c.record_stop()["written"] > 0
     assert recording.read(tmp_path / "s01-trial-01.hrec").ticks > 0
+
+
+def test_every_error_code_the_sources_use_is_declared_once_and_documented():
+    """Error codes live in hapticd.protocol.ERRORS: every code a reply or a ProtocolError
+    names in the sources is there, and docs/control.md lists every one of them."""
+    root = Path(__file__).resolve().parents[1]
+    used: set[str] = set()
+    for path in (root / "hapticd").rglob("*.py"):
+        text = path.read_text()
+        used |= set(re.findall(r'ProtocolError\(\s*"([a-z_]+)"', text))
+        used |= set(re.findall(r'proto\.error\(\s*[a-z_]+,\s*"([a-z_]+)"', text))
+    assert {"malformed", "bad_value", "no_prompt", "rejected", "internal"} <= used
+    assert used <= set(proto.ERRORS), sorted(used - set(proto.ERRORS))
+    docs = (root / "docs" / "control.md").read_text()
+    missing = [code for code in proto.ERRORS if f"`{code}`" not in docs]
+    assert not missing, f"docs/control.md does not name {missing}"
+    assert "unknown_command" in proto.BAD_REQUEST and "timeout" not in proto.BAD_REQUEST
