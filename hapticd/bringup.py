@@ -31,10 +31,12 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
-from hapticd_drivers import BackendUnavailableError, Device
+from hapticd_drivers import BackendUnavailableError, Device, registry
 
-from hapticd import __version__, cli
+from hapticd import __version__
 from hapticd.build import build_mounts
+from hapticd.cli import common as cli_common
+from hapticd.cli import run as cli_run
 from hapticd.commands import Command
 from hapticd.daemon.session import Session, build_session, record_directory
 from hapticd.profile import ProfileError, load_profile
@@ -124,7 +126,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="save the report here (default: the profile's recording.directory, else "
         "$STATE_DIRECTORY, $XDG_STATE_HOME/hapticd or ~/.local/state/hapticd)",
     )
-    p.add_argument("--device", choices=cli.backend_names(), help="as hapticd run --device")
+    p.add_argument("--device", choices=registry.backend_names(), help="as hapticd run --device")
     p.add_argument("--emulate", action="store_true", help="as hapticd run --emulate")
     p.add_argument(
         "--unpaced",
@@ -264,7 +266,7 @@ def check_devices(args: argparse.Namespace, session: Session, report: Report) ->
             calibrated=cal,
             effector_mass_kg=mass,
         )
-        needs_cal = cli.registry.backend(row["backend"]).calibrate is not None
+        needs_cal = registry.backend(row["backend"]).calibrate is not None
         if not needs_cal:
             cal_text = "no calibration needed"
         elif cal is None:
@@ -315,11 +317,11 @@ def show_limits(session: Session, report: Report) -> bool:
             f"  {f.name} mount: position {_v(m.position, 1e3)} mm, roll/pitch/yaw "
             f"{_v(cfg.orientation_rpy_rad, 1.0, '{:+.4f}')} rad, workspace scale {m.scale:g}"
         )
-    reaches = cli.workspace_reaches(prof, session.devices)
+    reaches = cli_run.workspace_reaches(prof, session.devices)
     ok = True
-    report.say("  " + cli.workspace_report(prof, session.devices)[0])
+    report.say("  " + cli_run.workspace_report(prof, session.devices)[0])
     for name, r, where in reaches:
-        report.say("  " + cli._reach_line(name, r, where).replace("\n", "\n  "))
+        report.say("  " + cli_run._reach_line(name, r, where).replace("\n", "\n  "))
         if not r.reachable:
             ok = False
             report.fail(f"{name}: the object is out of reach of the workspace")
@@ -549,7 +551,7 @@ def bringup(args: argparse.Namespace, stdin: IO[str] | None = None) -> int:
     stdin = stdin if stdin is not None else sys.stdin
     report = Report(sys.stdout)
     try:
-        profile = load_profile(args.profile, cli._overrides(args))
+        profile = load_profile(args.profile, cli_common._overrides(args))
         session = build_session(
             profile,
             paced=not args.unpaced,
@@ -558,7 +560,7 @@ def bringup(args: argparse.Namespace, stdin: IO[str] | None = None) -> int:
         )
     except (ProfileError, BackendUnavailableError, RecordingError) as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
-        return cli.EXIT_BAD_INPUT
+        return cli_common.EXIT_BAD_INPUT
     stamp = datetime.datetime.now(datetime.UTC).replace(microsecond=0)
     loop = session.loop
     loop.duration_s = None  # ended by the bring-up (an emulated run would end with its path)
@@ -646,11 +648,11 @@ def bringup(args: argparse.Namespace, stdin: IO[str] | None = None) -> int:
         paths = _save(report, profile, Path(where), stamp)
     except OSError as exc:
         print(f"hapticd: cannot save the bring-up report in {where}: {exc}", file=sys.stderr)
-        return cli.EXIT_ERROR
+        return cli_common.EXIT_ERROR
     print(f"saved: {paths[0]} and {paths[1].name}", file=report.stream, flush=True)
     if fault is not None:
-        return cli.EXIT_FAULT
-    return cli.EXIT_OK if passed else cli.EXIT_ERROR
+        return cli_common.EXIT_FAULT
+    return cli_common.EXIT_OK if passed else cli_common.EXIT_ERROR
 
 
 def _interrupt(_signum: int, _frame: object) -> None:

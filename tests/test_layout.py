@@ -62,7 +62,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.analysis.report",  # hapticd analyze's tables, JSON and plot
         "hapticd.bringup",  # hapticd bringup: the rig checked before a subject touches it
         "hapticd.build",
-        "hapticd.cli",
+        "hapticd.cli.*",
         "hapticd.daemon.*",
         # Experiment files, trial plan, trial store, analysis, the model observer (it
         # builds a run from the profile) and hapticd study (process pool, Dask); the

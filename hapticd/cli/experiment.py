@@ -1,0 +1,252 @@
+"""hapticd experiment (check, plan, run, analyze) and hapticd study."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+from hapticd import params
+from hapticd.build import build_devices, build_scene, load_trajectories
+from hapticd.cli.common import EXIT_BAD_INPUT, EXIT_ERROR, EXIT_OK
+from hapticd.profile import ProfileError
+
+log = logging.getLogger("hapticd")
+
+
+def cmd_experiment_check(args: argparse.Namespace) -> int:
+    """Validate an experiment file and its base profile; print the design."""
+    from hapticd.experiment import ExperimentError, check_experiment, make_plan
+
+    try:
+        exp, profile = check_experiment(args.experiment)
+        load_trajectories(profile)
+        build_scene(profile.scene, profile)
+        build_devices(profile, clock=lambda: 0.0)
+    except (ExperimentError, ProfileError) as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    v, spec = exp.varied, params.PARAMS[exp.varied.param]
+    plan = make_plan(exp, exp.subject_seed("example"))
+    total = len(plan)
+    dur = exp.duration_s()
+    conds = ", ".join(
+        f"{c.name} ({', '.join(f'{k}={val}' for k, val in c.values().items())})"
+        for c in exp.conditions
+    )
+    print(
+        f"{args.experiment}: OK: experiment {exp.name!r} on profile {profile.name!r} "
+        f"({exp.profile_path()})\n"
+        f"  varied       {v.param} ({spec.unit}): standards "
+        f"{', '.join(f'{s:g}' for s in v.standards)}; ratios "
+        f"{', '.join(f'{r:g}' for r in v.ratios)}\n"
+        f"  conditions   {conds}\n"
+        f"  trials       {exp.comparisons} comparisons x {exp.repetitions} repetitions per "
+        f"standard and condition; {exp.trials_per_block} per block, {exp.n_blocks} blocks, "
+        f"{total} per subject\n"
+        f"  interval     {exp.interval.order}, 'was the second {exp.interval.question}?', "
+        f"at most {exp.interval.exploration_s:g} s, ends on {exp.interval.ends_on}\n"
+        f"  breaks       {exp.n_breaks()} of {exp.breaks.duration_s:g} s\n"
+        f"  duration     about {dur / 60:.0f} min per subject ({exp.trial_s():g} s per trial "
+        "with every interval at its limit, and the breaks)"
+    )
+    return EXIT_OK
+
+
+def cmd_experiment_plan(args: argparse.Namespace) -> int:
+    """One subject's trial plan as CSV (stdout or --csv)."""
+    import csv
+    import io
+
+    from hapticd.experiment import ExperimentError, load_experiment, make_plan
+
+    try:
+        exp = load_experiment(args.experiment)
+    except ExperimentError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    seed = exp.subject_seed(args.subject) if args.seed is None else args.seed
+    plan = make_plan(exp, seed)
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(plan[0].as_dict()), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(t.as_dict() for t in plan)
+    if args.csv is None:
+        sys.stdout.write(buf.getvalue())
+        return EXIT_OK
+    try:
+        args.csv.write_text(buf.getvalue())
+    except OSError as exc:
+        print(f"hapticd: cannot write: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    print(f"{args.csv}: {len(plan)} trials of subject {args.subject!r} (seed {seed})")
+    return EXIT_OK
+
+
+def cmd_experiment_analyze(args: argparse.Namespace) -> int:
+    """Fits, group means and paired t-tests from trial stores."""
+    from hapticd.experiment import analyze as ana
+    from hapticd.experiment.store import StoreError, open_for_analysis
+
+    trials: list[dict[str, Any]] = []
+    first: dict[str, Any] | None = None
+    try:
+        for db in args.db:
+            meta, rows = open_for_analysis(db)
+            if first is not None and meta.get("experiment_hash") != first.get("experiment_hash"):
+                raise StoreError(
+                    f"{db}: holds experiment {meta.get('experiment')!r} with another file hash "
+                    f"than {args.db[0]} ({first.get('experiment')!r}): not analysed together"
+                )
+            first = first or meta
+            trials += rows
+    except StoreError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if not trials:
+        print(f"hapticd: {', '.join(map(str, args.db))}: no complete trials", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    assert first is not None
+    design = first.get("design") or {}
+    result = ana.analyze(
+        trials, conditions=design.get("conditions"), n_boot=args.boot, seed=args.seed
+    )
+    param = args.param or design.get("param", "stimulus")
+    unit = args.unit or design.get("unit", "SI units")
+    print(
+        f"hapticd experiment analyze: experiment {first.get('experiment')!r}, varied {param} "
+        f"({unit}), {len(trials)} complete trials"
+    )
+    print(ana.format_report(result, unit), end="")
+    try:
+        if args.json is not None:
+            args.json.write_text(json.dumps(ana.to_json(result), indent=1, allow_nan=False) + "\n")
+        if args.plots is not None:
+            try:
+                for path in ana.plot(result, args.plots, param=param, unit=unit):
+                    print(f"plot: {path}")
+            except ImportError:
+                print("hapticd: --plots needs matplotlib: pip install matplotlib", file=sys.stderr)
+                return EXIT_ERROR
+    except OSError as exc:
+        print(f"hapticd: cannot write: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    return EXIT_OK
+
+
+def cmd_experiment_run(args: argparse.Namespace) -> int:
+    """Run (or resume) one subject on a running daemon (hapticd.experiment.runner)."""
+    from hapticd.experiment import ExperimentError, check_experiment
+    from hapticd.experiment import runner as rn
+
+    try:
+        exp, _ = check_experiment(args.experiment)
+        standards = None if args.standards is None else rn.float_list(args.standards)
+        exp = rn.reduced(exp, standards=standards, repetitions=args.repetitions)
+        opts = rn.RunOptions(
+            socket=args.socket,
+            keys_fd=None if args.no_keys else rn.stdin_fd(),
+            person=rn.PersonOptions(buttons=rn.parse_buttons(args.buttons)),
+        )
+        db = args.db or Path(f"{exp.name}-trials.db")
+        done, left = rn.run_experiment(
+            exp, args.subject, db, seed=args.seed, resume=args.resume,
+            observer=args.observer, options=opts,
+        )  # fmt: skip
+    except (ExperimentError, ProfileError, rn.StoreError, ValueError) as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except rn.TrialAbortedError as exc:
+        why = "interrupted (Ctrl-C)" if exc.interrupted else str(exc)
+        print(
+            f"hapticd: {why}: the trial in progress is stored incomplete, the answered ones "
+            f"are kept; continue with --resume",
+            file=sys.stderr,
+        )
+        return 130 if exc.interrupted else EXIT_ERROR
+    except rn.RunnerError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("hapticd: interrupted between trials; continue with --resume", file=sys.stderr)
+        return 130
+    print(f"hapticd: {done} trial(s) answered; {left} left" + ("" if left else ": done"))
+    return EXIT_OK
+
+
+def _add_experiment_run(esub: Any) -> None:
+    run = esub.add_parser(
+        "run",
+        help="run a subject on a running daemon (answers: keys 1/n or 2/y, buttons, browser)",
+    )
+    run.add_argument("experiment", type=Path)
+    run.add_argument("--subject", required=True, help="the subject's id (names the recordings)")
+    run.add_argument("--db", type=Path, help="the trial store (default: NAME-trials.db here)")
+    run.add_argument("--seed", type=int, help="use this seed instead of the subject's")
+    run.add_argument("--repetitions", type=int, help="a reduced design: repetitions")
+    run.add_argument("--standards", metavar="LIST", help="a reduced design: e.g. 60 or 30,90")
+    run.add_argument("--resume", action="store_true", help="continue the subject's stored plan")
+    run.add_argument("--socket", type=Path, help="the daemon's control socket")
+    run.add_argument(
+        "--observer",
+        default="person",
+        help="who answers: person (at a running daemon; the default) or model (the simulated "
+        "subject, in this process, no daemon)",
+    )
+    run.add_argument("--buttons", metavar="MAP", help="response labels as answers: L=yes,L=no")
+    run.add_argument("--no-keys", action="store_true", help="read no answers from the terminal")
+    run.set_defaults(func=cmd_experiment_run)
+
+
+def _add_experiment(sub: Any) -> None:
+    """The experiment subcommand: check a design, analyze trial stores."""
+    exp = sub.add_parser("experiment", help="JND experiments: check a design, analyze trials")
+    esub = exp.add_subparsers(dest="experiment_command", required=True)
+    chk = esub.add_parser("check", help="validate an experiment file and its profile")
+    chk.add_argument("experiment", type=Path)
+    chk.set_defaults(func=cmd_experiment_check)
+    _add_experiment_run(esub)
+    pl = esub.add_parser("plan", help="one subject's trial plan as CSV")
+    pl.add_argument("experiment", type=Path)
+    pl.add_argument("--subject", required=True, help="the subject's id (its seed derives from it)")
+    pl.add_argument("--seed", type=int, help="use this seed instead of the subject's")
+    pl.add_argument("--csv", type=Path, metavar="OUT", help="write here (default: stdout)")
+    pl.set_defaults(func=cmd_experiment_plan)
+    ana = esub.add_parser(
+        "analyze",
+        help="psychometric fits, Weber fractions and paired t-tests from trial stores",
+    )
+    ana.add_argument("db", type=Path, nargs="+", help="trial store(s) of one experiment")
+    ana.add_argument("--json", type=Path, metavar="OUT", help="write the results as JSON")
+    ana.add_argument("--plots", type=Path, metavar="DIR", help="write the plots here")
+    ana.add_argument("--boot", type=int, default=1000, help="bootstrap refits per fit")
+    ana.add_argument("--seed", type=int, default=0, help="bootstrap seed")
+    ana.add_argument(
+        "--param", help="the varied parameter, for labels (default: the store's design)"
+    )
+    ana.add_argument("--unit", help="its unit, for labels (default: the store's design)")
+    ana.set_defaults(func=cmd_experiment_analyze)
+
+
+def _add_study(sub: Any) -> None:
+    """hapticd study: model-observer subjects in parallel (hapticd.experiment.study)."""
+
+    def run(args: argparse.Namespace) -> int:
+        from hapticd.experiment.study import cmd_study
+
+        return cmd_study(args)
+
+    st = sub.add_parser("study", help="run simulated subjects (the model observer) in parallel")
+    st.add_argument("experiment", type=Path)
+    st.add_argument("--observers", type=int, required=True, metavar="N", help="subjects s01..")
+    st.add_argument("--db", type=Path, help="trial store (default: study-EXPERIMENT.sqlite)")
+    st.add_argument("--seed", type=int, help="derive each subject's seed from this")
+    st.add_argument("--workers", type=int, metavar="K", help="processes (default: the cores)")
+    st.add_argument("--standards", type=lambda s: [float(x) for x in s.split(",")], metavar="A,B")
+    st.add_argument("--repetitions", type=int, metavar="N", help="per comparison (reduced)")
+    st.add_argument("--scheduler", metavar="ADDRESS", help="a Dask scheduler (pip: hapticd[dask])")
+    st.add_argument("--quiet", action="store_true", help="no progress bar")
+    st.set_defaults(func=run)
