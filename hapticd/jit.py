@@ -46,6 +46,10 @@ SIGNATURES = {
         "void(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[:, ::1],"
         " f8[:, ::1], f8[:, ::1])"
     ),
+    "allocation_step": (
+        "i8(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1],"
+        " f8[:, ::1], f8[::1])"
+    ),
 }
 
 # Compiled kernels of this process, by name: a reload compiles nothing again.

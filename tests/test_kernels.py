@@ -185,7 +185,7 @@ def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked(compiled)
     profile = load_profile(LIFT)
     assert profile.rendering.kernels == "auto"
     s = build_session(profile, paced=False, duration_s=0.01)
-    assert s.renderer.kernels.keys() == {"free_body_step"}
+    assert s.renderer.kernels.keys() == {"free_body_step", "allocation_step"}
     assert s.renderer.stages[s.renderer.stage_names.index("dynamics")].kernel is not None
     s.run()
     s = build_session(
@@ -208,7 +208,7 @@ def njit(*a, **k):
 fake.njit = njit
 sys.modules["numba"] = fake
 from hapticd import jit
-keys = jit._keys(["free_body_step"], "0.0-broken")
+keys = jit._keys(list(jit.SIGNATURES), "0.0-broken")
 jit._write_marker(jit.COMPILED, {k: "compiled" for k in keys.values()})
 """
 RUN = """
@@ -258,7 +258,7 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
     the compiling to a process of its own; a later run loads the compiled kernel."""
     cache = tmp_path / "cache"
     err, _ = _run_lift(tmp_path, "", "auto", cache)
-    assert "compiling free_body_step in the background" in err, err
+    assert "compiling free_body_step, allocation_step in the background" in err, err
     assert "compiled or loaded" not in err
     marker = cache / jit.COMPILED
     deadline = time.monotonic() + 120.0
@@ -266,7 +266,7 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
         assert time.monotonic() < deadline, "the background compiler wrote no marker in 120 s"
         time.sleep(0.2)
     err, _ = _run_lift(tmp_path, "", "auto", cache)
-    assert "kernels ['free_body_step'] compiled or loaded" in err, err
+    assert "kernels ['free_body_step', 'allocation_step'] compiled or loaded" in err, err
     assert "background" not in err and "render instead" not in err
 
 
@@ -278,7 +278,7 @@ def test_auto_says_why_when_the_kernels_failed_to_compile_before(tmp_path):
         "import os, numba\n"
         "from hapticd import jit\n"
         "jit._write_marker(jit.FAILED, {k: 'numba could not compile it (a test)' for k in "
-        "jit._keys(['free_body_step'], numba.__version__).values()})\n"
+        "jit._keys(list(jit.SIGNATURES), numba.__version__).values()})\n"
     )
     err, _ = _run_lift(tmp_path, setup, "auto", cache)
     assert "but numba could not compile it (a test) (when it was last tried)" in err, err
