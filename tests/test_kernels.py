@@ -32,6 +32,7 @@ from tests.strategies import unit_vectors
 from tests.test_dynamics import floats, materials, rotations, vec
 
 LIFT = ROOT / "configs" / "lift-weight.yaml"
+GRASP = ROOT / "configs" / "grasp-stiffness.yaml"
 DT = 1e-3
 
 
@@ -370,11 +371,15 @@ class Poison:
 
 @pytest.mark.parametrize("value", [math.nan, math.inf, -1e300, 1e6])
 @pytest.mark.parametrize("mode", ["python", "compiled"])
-def test_hostile_forces_never_reach_a_device_from_either_path(mode, value):
-    profile = load_profile(LIFT, [f"rendering.kernels={mode}"])
+@pytest.mark.parametrize("path", [LIFT, GRASP], ids=["lift", "grasp"])
+def test_hostile_forces_never_reach_a_device_from_either_path(path, mode, value):
+    """Through the compiled allocation (both profiles) and free-body step (the lift)."""
+    profile = load_profile(path, [f"rendering.kernels={mode}"])
     session = build_session(profile, paced=False, duration_s=3.2)
     loop = session.loop
     assert bool(session.renderer.kernels) == (mode == "compiled")
+    if mode == "compiled":
+        assert "allocation_step" in session.renderer.kernels
     session.renderer.insert(Poison(loop, value, 3.0), after="forces")
     written = []
     for dev in session.devices:
@@ -390,6 +395,10 @@ def test_hostile_forces_never_reach_a_device_from_either_path(mode, value):
     limit = max(session.safety.limits)
     assert np.all(np.isfinite(forces))
     assert np.all(np.linalg.norm(forces, axis=1) <= limit + 1e-12)
+    if path == GRASP and math.isfinite(value):
+        # A fixed cube cannot be flung: a finite over-limit force is limited (above).
+        assert np.any(np.linalg.norm(forces, axis=1) > 0.99 * limit)
+        return
     # The object flung or poisoned: a latched fault, zero force from then on.
     assert summary["fault"] is not None, summary
     assert np.all(forces[-len(session.devices) :] == 0.0)
