@@ -1,8 +1,8 @@
 """Compiles the kernels of ``hapticd.kernels`` with numba, before the first tick, cached on disk.
 
 ``choose(mode, names)`` is what a renderer is built with: ``mode`` is the profile's
-``rendering.kernels``, ``names`` the kernels the renderer's plan uses (none for a
-fixed object: then numba is not even imported).
+``rendering.kernels``, ``names`` the kernels the renderer's plan uses (none: then
+numba is not even imported; ``Renderer.kernel_names`` says which).
 
 - ``python``: never compile.
 - ``compiled``: compile now (a first run on a machine waits for it: 2-8 s a kernel
