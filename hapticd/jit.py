@@ -1,15 +1,18 @@
 """Compiles the kernels of ``hapticd.kernels`` with numba, before the first tick, cached on disk.
 
 ``choose(mode, names)`` is what a renderer is built with: ``mode`` is the profile's
-``rendering.kernels``, ``names`` the kernels the renderer's plan uses (none for a
-fixed object: then numba is not even imported).
+``rendering.kernels``, ``names`` the kernels the renderer's plan uses (none: then
+numba is not even imported; ``Renderer.kernel_names`` says which).
 
 - ``python``: never compile.
 - ``compiled``: compile now (a first run on a machine waits for it: 2-8 s a kernel
   on this loaded 2-core machine), or load from the cache (0.3-0.6 s).
 - ``auto`` (the default): load from the cache when the kernels are in it;
   otherwise render this run with the Python code and compile them in a background
-  process at the lowest priority, for the next run. No run waits for a compiler.
+  process at the lowest priority, for the next run. No run waits for a compiler,
+  and runs started while one works start none of their own: it holds a marker in
+  the cache folder (``COMPILING``) until it is done; a marker older than
+  ``COMPILING_MAX_AGE_S`` (a compiler that died) counts for nothing.
 
 Any failure (numba missing or broken, a kernel that does not compile) falls back to
 the Python code with a message saying why; both paths give the same forces (tests
@@ -45,6 +48,10 @@ SIGNATURES = {
     "free_body_step": (
         "void(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[:, ::1],"
         " f8[:, ::1], f8[:, ::1])"
+    ),
+    "allocation_step": (
+        "i8(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1],"
+        " f8[:, ::1], f8[::1])"
     ),
 }
 
@@ -210,13 +217,85 @@ def cached(names: Sequence[str], version: str) -> tuple[bool, str | None]:
     return all(k in done for k in keys.values()), None
 
 
-def compile_in_background(names: Sequence[str]) -> None:
-    """Compile ``names`` into the cache in a process of its own at the lowest priority
-    (``python -m hapticd.jit NAME...``), started through a shell that exits at once: the
-    compiler belongs to no one here and outlives a short run."""
-    cmd = [sys.executable, "-m", "hapticd.jit", *names]
+# The marker of a background compiler at work, in the cache folder: runs started while it
+# works (a lab script starting runs, the test suite) start no compiler of their own. One
+# that died leaves it behind: older than COMPILING_MAX_AGE_S (s), it counts for nothing.
+COMPILING = "hapticd-kernels.compiling"
+COMPILING_MAX_AGE_S = 600.0
+
+
+def _claim_compiling(now: float) -> str | None:
+    """Create the compiling marker (atomically: of several runs at once, one succeeds) and
+    return the token written in it; None if a compiler younger than COMPILING_MAX_AGE_S
+    holds it. A stale marker is replaced (two runs that find the same stale marker at the
+    same moment may both start a compiler: harmless, numba writes its cache atomically).
+    An empty token: the folder cannot hold a marker (compile anyway)."""
+    folder = _cache_folder()
+    path = folder / COMPILING
+    token = f"{os.getpid()} {time.time_ns()}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return ""
+    for _ in range(3):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
+        except FileExistsError:
+            try:
+                age = now - path.stat().st_mtime
+            except FileNotFoundError:
+                continue  # released meanwhile: try again
+            if age < COMPILING_MAX_AGE_S:
+                return None
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()  # a compiler that died: its marker expired
+            continue
+        except OSError:
+            return ""
+        with os.fdopen(fd, "w") as f:
+            f.write(token)
+        return token
+    return None
+
+
+def release_compiling(token: str) -> None:
+    """Remove the compiling marker if it is still ``token``'s (a compiler that finished)."""
+    path = _cache_folder() / COMPILING
+    with contextlib.suppress(OSError):
+        if token and path.read_text() == token:
+            path.unlink()
+
+
+def compiling_elsewhere(now: float | None = None) -> bool:
+    """Whether a background compiler's marker younger than COMPILING_MAX_AGE_S is there."""
+    try:
+        age = (time.time() if now is None else now) - (_cache_folder() / COMPILING).stat().st_mtime
+    except OSError:
+        return False
+    return age < COMPILING_MAX_AGE_S
+
+
+def _spawn(cmd: list[str]) -> None:
+    """Start ``cmd`` at the lowest priority through a shell that exits at once: the process
+    belongs to no one here and outlives a short run."""
     script = 'nice -n 19 "$@" </dev/null >/dev/null 2>&1 &'
     subprocess.run(["/bin/sh", "-c", script, "sh", *cmd], check=False, timeout=30)
+
+
+def compile_in_background(names: Sequence[str]) -> bool:
+    """Compile ``names`` into the cache in a process of its own at the lowest priority
+    (``python -m hapticd.jit --marker TOKEN NAME...``), unless another run's compiler is
+    at work (its marker, see COMPILING); True if this call started one."""
+    token = _claim_compiling(time.time())
+    if token is None:
+        return False
+    cmd = [sys.executable, "-m", "hapticd.jit", *(["--marker", token] if token else []), *names]
+    try:
+        _spawn(cmd)
+    except BaseException:
+        release_compiling(token)
+        raise
+    return True
 
 
 def choose(mode: str, names: Sequence[str]) -> KernelChoice:
@@ -237,13 +316,17 @@ def choose(mode: str, names: Sequence[str]) -> KernelChoice:
             if failed is not None:
                 raise JitUnavailableError(f"{failed} (when it was last tried)")
             if not ready:
-                compile_in_background(names)
+                started = compile_in_background(names)
+                what = (
+                    f"compiling {', '.join(names)} in the background (once, into {_cache_folder()})"
+                    if started
+                    else f"another run's compiler is compiling the kernels into {_cache_folder()}"
+                )
                 return KernelChoice(
                     mode,
                     "python",
                     note=(
-                        f"rendering.kernels is auto: compiling {', '.join(names)} in the "
-                        f"background (once, into {_cache_folder()}); this run renders with "
+                        f"rendering.kernels is auto: {what}; this run renders with "
                         "the Python kernels (the same forces; a slower tick)"
                     ),
                     seconds=time.perf_counter() - t0,
@@ -263,14 +346,21 @@ def choose(mode: str, names: Sequence[str]) -> KernelChoice:
 
 
 def main(argv: Sequence[str]) -> int:
-    """``python -m hapticd.jit NAME...``: compile kernels into the cache, at low priority."""
+    """``python -m hapticd.jit [--marker TOKEN] NAME...``: compile kernels into the cache, at
+    low priority; then remove the compiling marker ``TOKEN`` (see COMPILING) if given."""
     with contextlib.suppress(OSError):
         os.nice(19)
+    names = list(argv)
+    token = ""
+    if names[:1] == ["--marker"] and len(names) >= 2:
+        token, names = names[1], names[2:]
     try:
-        compile_kernels(list(argv))
+        compile_kernels(names)
     except JitUnavailableError as e:
         print(f"hapticd.jit: {e}", file=sys.stderr)
         return 1
+    finally:
+        release_compiling(token)
     return 0
 
 

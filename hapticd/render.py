@@ -93,6 +93,7 @@ class Renderer:
         stages: list[Stage] = [self._contact]
         if obj.material.has_friction:
             stages.append(self._friction)
+        self._allocation.kernel = self.kernels.get("allocation_step")
         stages += [Forces(sc), self._allocation]
         if sc.surfaces:
             stages.append(Environment(self.allocator.actuation))
@@ -109,8 +110,12 @@ class Renderer:
     @property
     def kernel_names(self) -> list[str]:
         """The kernels (names in hapticd.kernels) this scene's stages can use: the free-body
-        step when the object is free."""
-        return [] if self.scene.object.fixed else ["free_body_step"]
+        step when the object is free; the allocation with one actuated direction per finger
+        (the number of directions stays fixed while the renderer lives)."""
+        names = [] if self.scene.object.fixed else ["free_body_step"]
+        if all(c == 1 for c in self.actuation.counts):
+            names.append("allocation_step")
+        return names
 
     def use_kernels(self, kernels: dict[str, Callable[..., None]]) -> None:
         """Run the stages that have a kernel in ``kernels`` (name -> compiled function)

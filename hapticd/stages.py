@@ -21,6 +21,7 @@ import numpy as np
 from hapticd import kernels
 from hapticd.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
+from hapticd.allocation.robust import AllocationError
 from hapticd.contact import MultiResult, ObstacleSet, Polytope, proxy_step_multi
 from hapticd.dynamics import (
     SMALL_SHAPE,
@@ -327,15 +328,27 @@ class Allocation:
 
     name = "allocation"
 
-    def __init__(self, scene: Scene, allocator: ContactAllocator) -> None:
+    def __init__(
+        self, scene: Scene, allocator: ContactAllocator, kernel: Callable[..., int] | None = None
+    ) -> None:
         self.scene = scene
         self.allocator = allocator
+        # hapticd.kernels.allocation_step compiled (hapticd.jit), or None: the code below.
+        # It takes the robust allocators with one direction per finger and at most two
+        # contacts (every tick of the bundled profiles); anything else runs the code below.
+        self.kernel = kernel
+        self._params = np.zeros(kernels.ALLOCATION_PARAMS)
+        self._accuracy = np.zeros(kernels.ACCURACY)
+        self._local: np.ndarray | None = None  # the kernel's directions, for _local_for
+        self._local_for: tuple[Actuation, object] | None = None
 
     @property
     def actuation(self) -> Actuation:
         return self.allocator.actuation
 
     def run(self, frame: Frame) -> None:
+        if self.kernel is not None and self._run_kernel(frame):
+            return
         touching = frame.in_contact.tolist()
         contacts = [i for i, on in enumerate(touching) if on]
         act = self.allocator.actuation
@@ -368,6 +381,55 @@ class Allocation:
                 f[2] += x * d[2]
             rows[i] = (f[0], f[1], f[2])
         frame.rendered_force[...] = rows
+
+    def _run_kernel(self, frame: Frame) -> bool:
+        """The same allocation as ``run`` by the kernel, on the frame's arrays; False (and
+        nothing written) for a case the kernel does not take (``run`` then takes it)."""
+        alloc = self.allocator
+        act = alloc.actuation
+        method = alloc.method
+        if method not in kernels.ALLOCATION_METHODS:
+            return False
+        params = self._params
+        made_for = self._local_for
+        if made_for is None or made_for[0] is not act or made_for[1] is not alloc.robust:
+            if any(c != 1 for c in act.counts):
+                return False
+            self._local = np.array([ds[0] for ds in act.local], dtype=float).reshape(-1, 3)
+            rb = alloc.robust
+            params[1:5] = (
+                rb.eps,
+                rb.min_separation_m,
+                rb.contact_onset_n,
+                1.0 if act.frame == "grasp" else 0.0,
+            )
+            self._local_for = (act, rb)
+        params[0] = kernels.ALLOCATION_METHODS.index(method)
+        params[5:8] = self.scene.object.position
+        acc = self._accuracy
+        outcome = self.kernel(  # type: ignore[misc]
+            frame.in_contact,
+            frame.device_pos,
+            frame.contact_point,
+            frame.contact_force,
+            self._local,
+            params,
+            frame.lam_a,
+            frame.rendered_force,
+            acc,
+        )
+        if outcome == kernels.MANY_CONTACTS:
+            return False
+        if outcome == kernels.NON_FINITE_INPUT:
+            raise AllocationError("non-finite contact geometry or force; refusing to allocate")
+        if outcome == kernels.NON_FINITE_OUTPUT:
+            raise AllocationError(f"allocator {method!r} produced a non-finite force")
+        frame.alpha[()] = alloc.alpha
+        frame.residual_internal[()] = acc[0]
+        frame.residual_external[()] = acc[1]
+        frame.residual_total[()] = acc[2]
+        frame.amplification[()] = acc[3]
+        return True
 
 
 class Environment:

@@ -8,6 +8,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -48,6 +49,30 @@ def pytest_collection_modifyitems(config, items):
 
 
 # Deterministic generated cases in CI; more examples on demand (HYPOTHESIS_PROFILE=thorough).
+# The session's own numba cache: compiled kernels (hapticd.jit) neither come from nor go
+# into the source tree's or the user's cache, and a background compiler that a test's auto
+# run starts writes here; the session waits for it at its end (pytest_sessionfinish).
+NUMBA_CACHE = Path(tempfile.mkdtemp(prefix="hapticd-tests-numba-"))
+os.environ["NUMBA_CACHE_DIR"] = str(NUMBA_CACHE)
+COMPILER_WAIT_S = 180.0
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """No background compiler outlives the session: wait (bounded) for its marker to go,
+    fail the session if it does not, then remove the session's cache."""
+    from hapticd import jit
+
+    marker = NUMBA_CACHE / jit.COMPILING
+    deadline = time.monotonic() + COMPILER_WAIT_S
+    while marker.exists() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    if marker.exists():
+        print(f"\na background kernel compiler still runs after {COMPILER_WAIT_S:.0f} s")
+        session.exitstatus = 1
+        return
+    shutil.rmtree(NUMBA_CACHE, ignore_errors=True)
+
+
 settings.register_profile(
     "ci",
     derandomize=True,

@@ -32,6 +32,7 @@ from tests.strategies import unit_vectors
 from tests.test_dynamics import floats, materials, rotations, vec
 
 LIFT = ROOT / "configs" / "lift-weight.yaml"
+GRASP = ROOT / "configs" / "grasp-stiffness.yaml"
 DT = 1e-3
 
 
@@ -182,11 +183,13 @@ def test_python_mode_and_a_fixed_object_compile_nothing():
 
 
 def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked(compiled):
+    jit.compile_kernels(list(jit.SIGNATURES))  # in this process: auto takes them
     profile = load_profile(LIFT)
     assert profile.rendering.kernels == "auto"
     s = build_session(profile, paced=False, duration_s=0.01)
-    assert s.renderer.kernels.keys() == {"free_body_step"}
+    assert s.renderer.kernels.keys() == {"free_body_step", "allocation_step"}
     assert s.renderer.stages[s.renderer.stage_names.index("dynamics")].kernel is not None
+    assert s.renderer.stages[s.renderer.stage_names.index("allocation")].kernel is not None
     s.run()
     s = build_session(
         load_profile(LIFT, ["rendering.kernels=python"]), paced=False, duration_s=0.01
@@ -208,7 +211,7 @@ def njit(*a, **k):
 fake.njit = njit
 sys.modules["numba"] = fake
 from hapticd import jit
-keys = jit._keys(["free_body_step"], "0.0-broken")
+keys = jit._keys(list(jit.SIGNATURES), "0.0-broken")
 jit._write_marker(jit.COMPILED, {k: "compiled" for k in keys.values()})
 """
 RUN = """
@@ -258,15 +261,15 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
     the compiling to a process of its own; a later run loads the compiled kernel."""
     cache = tmp_path / "cache"
     err, _ = _run_lift(tmp_path, "", "auto", cache)
-    assert "compiling free_body_step in the background" in err, err
+    assert "compiling free_body_step, allocation_step in the background" in err, err
     assert "compiled or loaded" not in err
     marker = cache / jit.COMPILED
     deadline = time.monotonic() + 120.0
-    while not marker.exists():
-        assert time.monotonic() < deadline, "the background compiler wrote no marker in 120 s"
+    while not marker.exists() or (cache / jit.COMPILING).exists():
+        assert time.monotonic() < deadline, "the background compiler did not finish in 120 s"
         time.sleep(0.2)
     err, _ = _run_lift(tmp_path, "", "auto", cache)
-    assert "kernels ['free_body_step'] compiled or loaded" in err, err
+    assert "kernels ['free_body_step', 'allocation_step'] compiled or loaded" in err, err
     assert "background" not in err and "render instead" not in err
 
 
@@ -278,7 +281,7 @@ def test_auto_says_why_when_the_kernels_failed_to_compile_before(tmp_path):
         "import os, numba\n"
         "from hapticd import jit\n"
         "jit._write_marker(jit.FAILED, {k: 'numba could not compile it (a test)' for k in "
-        "jit._keys(['free_body_step'], numba.__version__).values()})\n"
+        "jit._keys(list(jit.SIGNATURES), numba.__version__).values()})\n"
     )
     err, _ = _run_lift(tmp_path, setup, "auto", cache)
     assert "but numba could not compile it (a test) (when it was last tried)" in err, err
@@ -368,11 +371,15 @@ class Poison:
 
 @pytest.mark.parametrize("value", [math.nan, math.inf, -1e300, 1e6])
 @pytest.mark.parametrize("mode", ["python", "compiled"])
-def test_hostile_forces_never_reach_a_device_from_either_path(mode, value):
-    profile = load_profile(LIFT, [f"rendering.kernels={mode}"])
+@pytest.mark.parametrize("path", [LIFT, GRASP], ids=["lift", "grasp"])
+def test_hostile_forces_never_reach_a_device_from_either_path(path, mode, value):
+    """Through the compiled allocation (both profiles) and free-body step (the lift)."""
+    profile = load_profile(path, [f"rendering.kernels={mode}"])
     session = build_session(profile, paced=False, duration_s=3.2)
     loop = session.loop
     assert bool(session.renderer.kernels) == (mode == "compiled")
+    if mode == "compiled":
+        assert "allocation_step" in session.renderer.kernels
     session.renderer.insert(Poison(loop, value, 3.0), after="forces")
     written = []
     for dev in session.devices:
@@ -388,6 +395,96 @@ def test_hostile_forces_never_reach_a_device_from_either_path(mode, value):
     limit = max(session.safety.limits)
     assert np.all(np.isfinite(forces))
     assert np.all(np.linalg.norm(forces, axis=1) <= limit + 1e-12)
+    if path == GRASP and math.isfinite(value):
+        # A fixed cube cannot be flung: a finite over-limit force is limited (above).
+        assert np.any(np.linalg.norm(forces, axis=1) > 0.99 * limit)
+        return
     # The object flung or poisoned: a latched fault, zero force from then on.
     assert summary["fault"] is not None, summary
     assert np.all(forces[-len(session.devices) :] == 0.0)
+
+
+# -- one background compiler at a time -------------------------------------------------
+
+
+@pytest.fixture
+def empty_cache(tmp_path, monkeypatch):
+    """An empty cache folder of this test's own and no kernel compiled in this process, so
+    that auto asks for a background compiler; starting one is recorded, not done."""
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
+    monkeypatch.setattr(jit, "_COMPILED", {})
+    started: list[list[str]] = []
+    monkeypatch.setattr(jit, "_spawn", started.append)
+    return cache, started
+
+
+NAMES = ["free_body_step", "allocation_step"]
+
+
+def test_runs_started_while_a_compiler_works_start_none_of_their_own(empty_cache):
+    cache, started = empty_cache
+    first = jit.choose("auto", NAMES)
+    assert first.used == "python" and "compiling free_body_step" in first.note
+    assert len(started) == 1 and (cache / jit.COMPILING).exists()
+    for _ in range(3):
+        again = jit.choose("auto", NAMES)
+        assert again.used == "python" and "another run's compiler" in again.note
+    assert len(started) == 1
+    # The compiler finishes: it removes its marker (only its own), and a run after it whose
+    # kernels are still not in the cache (say it failed silently) may start one again.
+    token = started[0][started[0].index("--marker") + 1]
+    jit.release_compiling("someone else")
+    assert (cache / jit.COMPILING).exists()
+    jit.release_compiling(token)
+    assert not (cache / jit.COMPILING).exists()
+    jit.choose("auto", NAMES)
+    assert len(started) == 2
+
+
+def test_a_dead_compilers_marker_expires(empty_cache):
+    cache, started = empty_cache
+    cache.mkdir()
+    marker = cache / jit.COMPILING
+    marker.write_text("12345 0")
+    young = time.time() - jit.COMPILING_MAX_AGE_S + 60.0
+    os.utime(marker, (young, young))
+    assert jit.compiling_elsewhere()
+    jit.choose("auto", NAMES)
+    assert started == []
+    old = time.time() - jit.COMPILING_MAX_AGE_S - 1.0
+    os.utime(marker, (old, old))
+    assert not jit.compiling_elsewhere()
+    jit.choose("auto", NAMES)
+    assert len(started) == 1 and marker.read_text() != "12345 0"
+
+
+CHOOSE = """
+import sys
+from hapticd import jit
+print(jit.choose("auto", {names!r}).note)
+"""
+
+
+def test_several_runs_at_once_start_one_compiler_that_leaves_no_marker(tmp_path):
+    """Four processes ask for the kernels at the same moment (no cache): one compiler
+    starts; when it is done the kernels are in the cache and its marker is gone."""
+    cache = tmp_path / "cache"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+    code = CHOOSE.format(names=NAMES)
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=ROOT, env=env
+        )
+        for _ in range(4)
+    ]
+    notes = [p.communicate(timeout=120)[0] for p in procs]
+    assert all(p.returncode == 0 for p in procs), notes
+    assert sum("compiling free_body_step" in n for n in notes) == 1, notes
+    assert sum("another run's compiler" in n for n in notes) == 3, notes
+    deadline = time.monotonic() + 180.0
+    while (cache / jit.COMPILING).exists() or not (cache / jit.COMPILED).exists():
+        assert time.monotonic() < deadline, "the background compiler did not finish in 180 s"
+        time.sleep(0.2)
+    keys = jit._keys(NAMES, __import__("numba").__version__)
+    assert set(keys.values()) <= set(json.loads((cache / jit.COMPILED).read_text()))
