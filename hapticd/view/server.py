@@ -343,7 +343,11 @@ class DaemonLink:
                 # Every kind: a daemon that knows prompts sends theirs; one that does not
                 # refuses no subscription for them.
                 client.events_subscribe()
+                # Pages get the link, then a status, then telemetry: the page draws the
+                # scene the status describes.
+                first = client.status()
                 self._set_link(True, "")
+                self._publish_status(first, None)
                 self.poll_status_now()
                 while not self._stop.is_set():
                     sample = client.next_telemetry()
@@ -383,24 +387,27 @@ class DaemonLink:
                 if last is not None and now > last[1] and st["tick"] >= last[0]:
                     achieved = (st["tick"] - last[0]) / (now - last[1])
                 last = (st["tick"], now)
-                st.setdefault("prompt", None)  # a daemon without prompts has none
-                full = {
-                    **st,
-                    "view": {
-                        "achieved_hz": achieved,
-                        "control": self.control,
-                        "socket": str(self.path),
-                        "telemetry_hz": self.rate_hz,
-                    },
-                }
-                # Pages hear the link come up before any status (the telemetry loop polls
-                # the status at once when it connects).
+                # Pages hear the link come up before any status (the telemetry loop
+                # publishes the first status itself when it connects).
                 if self._connected:
-                    self.hub.publish("status", full, _subject_status(st))
+                    self._publish_status(st, achieved)
             except (OSError, ValueError, KeyError, TypeError):
                 self._drop_request()
             self._poll_now.wait(STATUS_PERIOD_S)
         self._drop_request()  # the view is closing: its request connection goes too
+
+    def _publish_status(self, st: dict[str, Any], achieved: float | None) -> None:
+        """Publish a status to the pages: the daemon's, with the view's own state."""
+        if not isinstance(st, dict):  # a lost link to the caller, not a dead thread
+            raise TypeError(f"the daemon's status is not an object: {type(st).__name__}")
+        st.setdefault("prompt", None)  # a daemon without prompts has none
+        view = {
+            "achieved_hz": achieved,
+            "control": self.control,
+            "socket": str(self.path),
+            "telemetry_hz": self.rate_hz,
+        }
+        self.hub.publish("status", {**st, "view": view}, _subject_status(st))
 
     def _drop_request(self) -> None:
         with self._lock:
