@@ -292,6 +292,39 @@ def test_a_store_of_another_experiment_or_plan_is_refused(tmp_path, stiffness_da
         TrialStore(junk, experiment=exp.name, experiment_hash=exp.file_hash)
 
 
+def test_a_store_of_the_first_schema_is_read_and_brought_up_to_date(tmp_path):
+    """A store written before answers had a source (schema 1) is analysed as it is, and a
+    writer adds the column, keeping every row."""
+    db = tmp_path / "old.db"
+    exp = load_experiment(STIFFNESS)
+    seed = exp.subject_seed("s01")
+    with TrialStore.for_experiment(db, exp) as store:
+        store.ensure_plan("s01", make_plan(exp, seed), seed)
+        t = store.next_trial("s01")
+        store.record(
+            "s01", t, answer_second_more=True, response_time_s=1.0, profile_hash="x", seed=seed
+        )
+    with sqlite3.connect(db) as con:  # as schema 1 wrote it
+        con.execute("ALTER TABLE trials DROP COLUMN source")
+        con.execute("UPDATE meta SET value = '1' WHERE key = 'schema'")
+    meta, rows = open_for_analysis(db)
+    assert meta["schema"] == "1" and len(rows) == 1 and "source" not in rows[0]
+    with TrialStore.for_experiment(db, exp) as store:
+        t = store.next_trial("s01")
+        store.record(
+            "s01", t, answer_second_more=False, response_time_s=2.0, profile_hash="x", seed=seed,
+            source="key",
+        )  # fmt: skip
+        got = store.trials()
+    assert [(r["plan_index"], r["source"]) for r in got] == [(0, None), (1, "key")]
+    meta, _ = open_for_analysis(db)
+    assert meta["schema"] == "2"
+    with sqlite3.connect(db) as con:
+        con.execute("UPDATE meta SET value = '99' WHERE key = 'schema'")
+    with pytest.raises(StoreError, match="schema '99', this hapticd reads 1, 2"):
+        open_for_analysis(db)
+
+
 # Five simulated subjects: the comparison is judged more with probability
 # Phi((c - s) / sigma), sigma = Weber x standard / 0.6745; IF (or EF) twice as sharp.
 TRUE_WEBER = {"if": 0.08, "pinv": 0.16}

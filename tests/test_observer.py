@@ -198,6 +198,8 @@ def test_experiment_run_with_the_model_observer_is_the_same_subject(tmp_path, st
     rows = stored(db)
     assert len(rows) == 24 and rows == stored(tmp_path / "walk.sqlite")
     assert len({r[6] for r in rows}) == 2  # both answers occur: not a constant
+    with sqlite3.connect(db) as con:
+        assert con.execute("SELECT DISTINCT source FROM trials").fetchall() == [("model",)]
     # Resumed when it is done: nothing added.
     assert main([*base, "--resume"]) == 0
     assert "all 24 trials are answered already" in capsys.readouterr().err

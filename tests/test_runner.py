@@ -496,6 +496,7 @@ def test_a_person_answers_by_respond_and_by_keys(tmp_path, daemons):
     for r in got:
         assert r["status"] == "complete"
         assert r["answer_second_more"] == yes[answers.answered[r["plan_index"]]]
+        assert r["source"] == script.get(r["plan_index"], ("key", "n"))[0]
         assert 0 < r["response_time_s"] < 30
         assert (r["condition"], r["comparison"]) == (
             plan[r["plan_index"]].condition,
@@ -568,6 +569,7 @@ def test_the_daemon_going_away_mid_trial_stores_it_incomplete(tmp_path, daemons)
     assert [(r["plan_index"], r["status"]) for r in got] == [(0, "complete"), (1, "incomplete")]
     first = got[0]
     assert first["answer_second_more"] == 1  # the button is labelled yes
+    assert (first["source"], got[1]["source"]) == ("button", None)
     assert 0 <= first["response_time_s"] < PERIOD_S + 0.05  # it comes once a cycle
     assert all(Path(p).exists() for p in json.loads(first["recording"]))
     # Its recordings so far (the second's reply may have been lost with the daemon).

@@ -269,6 +269,7 @@ def run_subject(
             seed=seed,
             recording=_recordings(got.recordings),
             status=got.status,
+            source=got.source or None,
         )
         spent.append(time.monotonic() - began)
         recorded += got.status == "complete"

@@ -15,7 +15,13 @@ from hapticd import params
 from hapticd.experiment.plan import PlannedTrial
 from hapticd.experiment.spec import Experiment
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+# Stores this hapticd reads; a writer brings an older one up to SCHEMA_VERSION (MIGRATIONS).
+READABLE_SCHEMAS = (1, 2)
+# schema n -> the statements that make it n + 1.
+MIGRATIONS: dict[int, tuple[str, ...]] = {
+    1: ("ALTER TABLE trials ADD COLUMN source TEXT",),  # where the answer came from
+}
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -51,6 +57,7 @@ CREATE TABLE IF NOT EXISTS trials (
     seed INTEGER NOT NULL,
     time_unix_s REAL NOT NULL,
     status TEXT NOT NULL CHECK (status IN ('complete', 'incomplete')),
+    source TEXT,                       -- key, button, respond, model (None: not answered)
     FOREIGN KEY (subject, plan_index) REFERENCES plan (subject, "index")
 );
 CREATE UNIQUE INDEX IF NOT EXISTS one_answer_per_planned_trial
@@ -111,6 +118,7 @@ class TrialStore:
                 )
                 return
         _check_schema(self.path, meta)
+        self._migrate(int(meta["schema"]))
         if meta.get("experiment_hash") != self.experiment_hash:
             same = meta.get("experiment") == self.experiment
             why = (
@@ -123,6 +131,18 @@ class TrialStore:
                 f"{meta.get('experiment')!r} (file sha256 {meta.get('experiment_hash', '')[:12]}), "
                 f"this is {self.experiment!r} (sha256 {self.experiment_hash[:12]}); "
                 "use another database file (or restore the experiment file it was started with)"
+            )
+
+    def _migrate(self, schema: int) -> None:
+        """Bring a store of an older schema up to SCHEMA_VERSION, in one transaction."""
+        if schema == SCHEMA_VERSION:
+            return
+        with self._db:
+            for n in range(schema, SCHEMA_VERSION):
+                for statement in MIGRATIONS[n]:
+                    self._db.execute(statement)
+            self._db.execute(
+                "UPDATE meta SET value = ? WHERE key = 'schema'", (str(SCHEMA_VERSION),)
             )
 
     @classmethod
@@ -200,9 +220,11 @@ class TrialStore:
         recording: str | None = None,
         status: Literal["complete", "incomplete"] = "complete",
         time_unix_s: float | None = None,
+        source: str | None = None,
     ) -> int:
         """Store one trial and commit it before returning; its row id. A complete trial
-        needs an answer; a planned trial is answered (completed) once only."""
+        needs an answer; a planned trial is answered (completed) once only. ``source``:
+        where the answer came from (``key``, ``button``, ``respond``, ``model``)."""
         if status == "complete" and answer_second_more is None:
             raise ValueError("a complete trial needs an answer")
         more = None
@@ -216,8 +238,8 @@ class TrialStore:
                     """INSERT INTO trials (subject, plan_index, experiment, experiment_hash,
                         condition, standard, comparison, comparison_first, answer_second_more,
                         comparison_more, response_time_s, recording, profile_hash, seed,
-                        time_unix_s, status) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?,
-                        ?, ?)""",
+                        time_unix_s, status, source) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?,
+                        ?, ?, ?, ?, ?)""",
                     (
                         subject,
                         trial.index,
@@ -235,6 +257,7 @@ class TrialStore:
                         seed,
                         time.time() if time_unix_s is None else time_unix_s,
                         status,
+                        source,
                     ),
                 )
         except sqlite3.IntegrityError as exc:
@@ -282,10 +305,10 @@ def _has_tables(db: sqlite3.Connection) -> bool:
 
 
 def _check_schema(path: Path, meta: dict[str, str]) -> None:
-    if meta.get("schema") != str(SCHEMA_VERSION):
+    if meta.get("schema") not in {str(n) for n in READABLE_SCHEMAS}:
         raise StoreError(
             f"{path}: trial store schema {meta.get('schema')!r}, this hapticd reads "
-            f"{SCHEMA_VERSION}"
+            f"{', '.join(map(str, READABLE_SCHEMAS))}"
         )
 
 

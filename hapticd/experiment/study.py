@@ -133,6 +133,7 @@ def _record(store: TrialStore, a: Answer, profile_hash: str) -> None:
         seed=a.seed,
         recording=None,
         status="complete",
+        source="model",
     )
 
 
