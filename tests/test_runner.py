@@ -405,8 +405,8 @@ def rows(db: Path, status: str | None = None) -> list[dict]:
 
 class Answerer:
     """Answers each prompt the daemon shows: ``how(prompt_id)`` gives ("respond", choice)
-    (a respond from this client, as the browser's page sends it) or ("key", KEY) (typed
-    into the runner's stdin); keeps what it answered."""
+    (a respond from this client, as the browser's page sends it), ("key", KEY) (typed
+    into the runner's stdin) or None (no answer); keeps what it answered."""
 
     def __init__(self, sock: Path, how, stdin=None) -> None:
         self.client = ControlClient(sock, timeout_s=5.0)
@@ -429,7 +429,10 @@ class Answerer:
             pid = ev.get("prompt")
             if pid is None or pid in self.answered:
                 continue
-            kind, what = self.how(pid)
+            planned = self.how(pid)
+            if planned is None:  # this prompt is left unanswered
+                continue
+            kind, what = planned
             self.answered[pid] = what
             try:
                 if kind == "respond":
@@ -503,6 +506,33 @@ def test_a_person_answers_by_respond_and_by_keys(tmp_path, daemons):
             plan[r["plan_index"]].comparison,
         )
         check_recordings(r, plan, exp)
+
+
+def test_no_answer_in_time_stops_the_run_with_the_trial_incomplete(tmp_path, daemons):
+    """``--answer-wait-s``: a question nobody answers ends the run (exit 1, a message),
+    the trial stored incomplete with both intervals' recordings, the prompt cleared, no
+    recording left running; the answered trials before it kept."""
+    profile, exp_path = setup_files(tmp_path, one_condition=True)
+    sock = tmp_path / "d.sock"
+    daemons(profile, sock)
+    db = tmp_path / "t.db"
+    answers = Answerer(sock, lambda pid: ("respond", "yes") if pid == 0 else None)
+    try:
+        code, _, err = finish(runner(exp_path, db, sock, "--answer-wait-s", "1.5"))
+    finally:
+        answers.close()
+    assert code == 1, err
+    assert "no answer within 1.5 s" in err and "--resume" in err and "Traceback" not in err
+    got = rows(db)
+    assert [(r["plan_index"], r["status"], r["source"]) for r in got] == [
+        (0, "complete", "respond"),
+        (1, "incomplete", None),
+    ]
+    made = json.loads(got[1]["recording"])
+    assert len(made) == 2 and all(Path(p).exists() for p in made)
+    with ControlClient(sock) as c:
+        st = c.status()
+    assert st["prompt"] is None and st["recording"] is None
 
 
 def test_kill_9_mid_experiment_then_resume_finishes_the_plan_once(tmp_path, daemons):

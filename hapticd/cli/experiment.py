@@ -11,7 +11,7 @@ from typing import Any
 
 from hapticd import params
 from hapticd.build import build_devices, build_scene, load_trajectories
-from hapticd.cli.common import EXIT_BAD_INPUT, EXIT_ERROR, EXIT_OK
+from hapticd.cli.common import EXIT_BAD_INPUT, EXIT_ERROR, EXIT_OK, _positive
 from hapticd.profile import ProfileError
 
 log = logging.getLogger("hapticd")
@@ -149,7 +149,12 @@ def cmd_experiment_run(args: argparse.Namespace) -> int:
         opts = rn.RunOptions(
             socket=args.socket,
             keys_fd=None if args.no_keys else rn.stdin_fd(),
-            person=rn.PersonOptions(buttons=rn.parse_buttons(args.buttons)),
+            person=rn.PersonOptions(
+                release_wait_s=args.release_wait_s,
+                touch_wait_s=args.touch_wait_s,
+                answer_wait_s=args.answer_wait_s,
+                buttons=rn.parse_buttons(args.buttons),
+            ),
         )
         db = args.db or Path(f"{exp.name}-trials.db")
         done, left = rn.run_experiment(
@@ -198,6 +203,22 @@ def _add_experiment_run(esub: Any) -> None:
     )
     run.add_argument("--buttons", metavar="MAP", help="response labels as answers: L=yes,L=no")
     run.add_argument("--no-keys", action="store_true", help="read no answers from the terminal")
+    from hapticd.experiment.runner import PersonOptions
+
+    waits = PersonOptions()
+    for flag, default, what in (
+        ("--release-wait-s", waits.release_wait_s, "for the object to be released before a change"),
+        ("--touch-wait-s", waits.touch_wait_s, "for the first touch of an interval"),
+        ("--answer-wait-s", waits.answer_wait_s, "for an answer"),
+    ):
+        run.add_argument(
+            flag,
+            type=_positive,
+            default=default,
+            metavar="S",
+            help=f"how long a person's run waits {what} before it stops, the trial stored "
+            f"incomplete (default {default:g} s)",
+        )
     run.set_defaults(func=cmd_experiment_run)
 
 
