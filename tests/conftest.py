@@ -277,3 +277,16 @@ def libdhd(tmp_path_factory):
 def libdhd_only(tmp_path_factory):
     """A fake libdhd without the DRD calls: (path, ctypes handle)."""
     return _build_fake_sdk(tmp_path_factory.mktemp("dhd"), "fakedhd")
+
+
+@pytest.fixture
+def idle_server(tmp_path):
+    """A control server on a grasp session whose loop does not run (for requests that need
+    no ticks: reload, the subject prompt, connection limits)."""
+    session = build_session(load_profile(GRASP_PROFILE), paced=False)
+    srv = ControlServer(session, tmp_path / "hapticd.sock")
+    srv.start()
+    try:
+        yield srv
+    finally:
+        srv.close()

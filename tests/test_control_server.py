@@ -8,35 +8,16 @@ import socket
 import subprocess
 import sys
 import textwrap
-import time
 
 import pytest
 
 from hapticd.control import ControlClient
-from hapticd.daemon.server import ControlServer
-from hapticd.daemon.session import build_session
-from hapticd.profile import load_profile
-from tests.conftest import GRASP_PROFILE, ROOT
+from tests.conftest import GRASP_PROFILE, ROOT, wait_for
 
 
 @pytest.fixture
-def server(tmp_path):
-    """A control server on a grasp session whose loop does not run (nothing here needs it)."""
-    session = build_session(load_profile(GRASP_PROFILE), paced=False)
-    srv = ControlServer(session, tmp_path / "hapticd.sock")
-    srv.start()
-    try:
-        yield srv
-    finally:
-        srv.close()
-
-
-def _until(cond, what: str, timeout_s: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out waiting for {what}")
-        time.sleep(0.01)
+def server(idle_server):
+    return idle_server
 
 
 @pytest.mark.parametrize("exc", [RuntimeError("boom"), RecursionError("too deep")])
@@ -46,7 +27,7 @@ def test_an_unexpected_error_in_a_sighup_reload_is_reported_and_serving_goes_on(
 
     server.session.reload = reload
     server.request_reload()
-    _until(lambda: server.reloads, "the reload's outcome")
+    wait_for(lambda: server.reloads, "the reload's outcome", timeout_s=5.0)
     assert server.reloads[0].startswith("reload rejected, the running profile stays:")
     assert type(exc).__name__ in server.reloads[0]
     assert server._thread.is_alive()
@@ -68,7 +49,9 @@ def test_one_client_beyond_the_limit_is_told_so_and_closed(server):
             assert extra.recv(1) == b""  # and closed
         assert clients[0].status()["tick"] == 0  # the others are served
         clients.pop().close()
-        _until(lambda: len(server._conns) < limit, "the server to see the client go")
+        wait_for(
+            lambda: len(server._conns) < limit, "the server to see the client go", timeout_s=5.0
+        )
         with ControlClient(server.path, timeout_s=2.0) as again:
             assert again.status()["tick"] == 0
     finally:

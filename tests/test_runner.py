@@ -63,19 +63,8 @@ def periodic_grasp(path: Path, cycles: int, *, button_at: float | None = None) -
 
 
 @pytest.fixture
-def server(tmp_path):
-    """A control server on a grasp session whose loop does not run (the prompt needs none)."""
-    from hapticd.daemon.server import ControlServer
-    from hapticd.daemon.session import build_session
-    from hapticd.profile import load_profile
-
-    session = build_session(load_profile(GRASP_PROFILE), paced=False)
-    srv = ControlServer(session, tmp_path / "hapticd.sock")
-    srv.start()
-    try:
-        yield srv
-    finally:
-        srv.close()
+def server(idle_server):
+    return idle_server
 
 
 def _error(client: ControlClient, **req) -> dict:
