@@ -23,12 +23,15 @@ render, safety, write, statistics) of the hapticd package in DIR (e.g. main's,
 interleaved rounds, unpaced and paced at 1, 4 and 8 kHz, next to a bare deadline
 wait with no work (the machine's floor for overruns): medians over rounds of the
 runs' p50 and p99, and the ratios old/new. ``--compare-kernels``: the same table for
-this tree's Python code (``rendering.kernels=python``, old) against its compiled
-kernels (``compiled``, new). ``--kernels MODE`` sets rendering.kernels otherwise.
+this tree's Python code (``rendering.kernels=python``) against its compiled
+kernels (``compiled``); with ``--compare DIR`` too, three variants in one run
+(DIR's tree, python, compiled: before and after in one table). ``--kernels MODE``
+sets this tree's rendering.kernels otherwise; DIR's tree runs its own defaults.
 
     python scripts/bench_tick.py --profile-stages --rounds 3
     python scripts/bench_tick.py --compare /tmp/hapticd-main --rounds 5
     python scripts/bench_tick.py --compare-kernels --rounds 5
+    python scripts/bench_tick.py --compare /tmp/hapticd-before --compare-kernels --rounds 3
     python scripts/bench_tick.py --profile-stages --kernels compiled
 
 Prints Markdown tables and saves a plot in the system temp dir unless --plot PATH.
@@ -204,7 +207,9 @@ def run_child(tree: Path | None, **kw: object) -> dict:
             cmd.append(f"--{k.replace('_', '-')}")
         elif v is not False and v is not None:
             cmd += [f"--{k.replace('_', '-')}", str(v)]
-    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    # In the tree's folder: the recorder's writer (python -m) imports from its cwd first.
+    cwd = tree if tree is not None else ROOT
+    res = subprocess.run(cmd, env=env, cwd=cwd, capture_output=True, text=True, timeout=600)
     if res.returncode != 0:
         raise RuntimeError(f"{cmd} failed:\n{res.stderr[-2000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -287,29 +292,38 @@ def profile_stages(args: argparse.Namespace) -> list[dict]:
 
 
 def compare(args: argparse.Namespace) -> list[dict]:
-    """Old against new: another tree's package against this one's (``--compare DIR``), or
-    this tree's Python code against its compiled kernels (``--compare-kernels``)."""
-    trees: dict[str, tuple[Path | None, str | None]]
-    if args.compare_kernels:
-        trees = {"old": (None, "python"), "new": (None, "compiled")}
-        what = "old: rendering.kernels=python, new: rendering.kernels=compiled"
-    else:
+    """Variants of the tick side by side, in interleaved rounds: another tree's package
+    (``--compare DIR``, with its own defaults) against this tree's, and/or this tree's
+    Python code against its compiled kernels (``--compare-kernels``); with both, three
+    variants (before, python, compiled) in one run. Ratios are against the first."""
+    variants: dict[str, tuple[Path | None, str | None]] = {}
+    if args.compare:
         old = Path(args.compare).resolve()
         if not (old / "hapticd" / "__init__.py").is_file():
             raise SystemExit(f"--compare {old}: no hapticd package there")
-        # hapticd_drivers lives in drivers/: give the old tree an importable name for it.
-        shim = old / "drivers_root"
-        if not (shim / "hapticd_drivers").exists():
-            shim.mkdir(exist_ok=True)
-            (shim / "hapticd_drivers").symlink_to(old / "drivers")
-        trees = {"old": (old, args.kernels), "new": (None, args.kernels)}
-        what = f"old: {old}, new: this tree"
+        # hapticd_drivers lived in drivers/ in older trees: give it an importable name.
+        if (old / "drivers").is_dir():
+            shim = old / "drivers_root"
+            if not (shim / "hapticd_drivers").exists():
+                shim.mkdir(exist_ok=True)
+                (shim / "hapticd_drivers").symlink_to(old / "drivers")
+        variants["old"] = (old, None)  # an older tree may not know rendering.kernels
+    if args.compare_kernels:
+        variants["python"] = (None, "python")
+        variants["compiled"] = (None, "compiled")
+    else:
+        variants["new"] = (None, args.kernels)
+    names = list(variants)
+    what = "; ".join(
+        f"{n}: {tree or 'this tree'}" + (f", rendering.kernels={k}" if k else "")
+        for n, (tree, k) in variants.items()
+    )
     modes = [("unpaced", False, 1000)] + [(f"paced {r // 1000} kHz", True, r) for r in args.rates]
     results: dict[tuple, list[dict]] = {}
     for rnd in range(args.rounds):
         for profile in PROFILES:
             for label, paced, rate in modes:
-                for name, (tree, kernels) in trees.items():
+                for name, (tree, kernels) in variants.items():
                     out = run_child(
                         tree,
                         profile=profile,
@@ -330,30 +344,36 @@ def compare(args: argparse.Namespace) -> list[dict]:
                     results.setdefault(("bare", label, "bare"), []).append(
                         run_bare(rate, args.seconds)
                     )
+    first = names[0]
     print(
         f"\n### tick compute, us (median over {args.rounds} rounds of each run's p50 / p99; "
         f"{what})\n"
     )
-    print(
-        "| profile | mode | old p50 | new p50 | old/new p50 | old p99 | new p99 | old/new p99 "
-        "| overruns old / new / bare |"
-    )
-    print("|---" * 9 + "|")
+    head = ["profile", "mode"]
+    head += [f"{n} p50" for n in names] + [f"{first}/{n} p50" for n in names[1:]]
+    head += [f"{n} p99" for n in names] + [f"{first}/{n} p99" for n in names[1:]]
+    head += ["overruns " + " / ".join([*names, "bare"])]
+    print("| " + " | ".join(head) + " |")
+    print("|---" * len(head) + "|")
     rows = []
     for profile in PROFILES:
         for label, paced, _ in modes:
-            o, n = results[(profile, label, "old")], results[(profile, label, "new")]
-            o50, n50 = med([x["compute_p50"] for x in o]), med([x["compute_p50"] for x in n])
-            o99, n99 = med([x["compute_p99"] for x in o]), med([x["compute_p99"] for x in n])
+            runs = {n: results[(profile, label, n)] for n in names}
+            p50 = {n: med([x["compute_p50"] for x in r]) for n, r in runs.items()}
+            p99 = {n: med([x["compute_p99"] for x in r]) for n, r in runs.items()}
             ov = "-"  # unpaced: no deadlines
             if paced:
-                ov = f"{med([x['overruns'] for x in o]):g} / {med([x['overruns'] for x in n]):g}"
-                ov += f" / {med([x['overruns'] for x in results[('bare', label, 'bare')]]):g}"
-            print(
-                f"| {profile} | {label} | {o50:.1f} | {n50:.1f} | {o50 / n50:.2f} | {o99:.1f} "
-                f"| {n99:.1f} | {o99 / n99:.2f} | {ov} |"
-            )
-            rows.append({"profile": profile, "mode": label, "old": (o50, o99), "new": (n50, n99)})
+                counts = [med([x["overruns"] for x in runs[n]]) for n in names]
+                counts.append(med([x["overruns"] for x in results[("bare", label, "bare")]]))
+                ov = " / ".join(f"{c:g}" for c in counts)
+            cells = [profile, label]
+            cells += [f"{p50[n]:.1f}" for n in names]
+            cells += [f"{p50[first] / p50[n]:.2f}" for n in names[1:]]
+            cells += [f"{p99[n]:.1f}" for n in names]
+            cells += [f"{p99[first] / p99[n]:.2f}" for n in names[1:]]
+            cells.append(ov)
+            print("| " + " | ".join(cells) + " |")
+            rows.append({"profile": profile, "mode": label, "p50": p50, "p99": p99})
     return rows
 
 
@@ -365,15 +385,17 @@ def plot(path: Path, rows: list[dict]) -> None:
 
     fig, ax = plt.subplots(figsize=(9, 4))
     labels = [f"{r['profile']}\n{r['mode']}" for r in rows]
+    names = list(rows[0]["p50"])
     x = range(len(rows))
-    w = 0.2
-    ax.bar([i - 1.5 * w for i in x], [r["old"][0] for r in rows], w, label="old p50")
-    ax.bar([i - 0.5 * w for i in x], [r["new"][0] for r in rows], w, label="new p50")
-    ax.bar([i + 0.5 * w for i in x], [r["old"][1] for r in rows], w, label="old p99")
-    ax.bar([i + 1.5 * w for i in x], [r["new"][1] for r in rows], w, label="new p99")
+    w = 0.8 / (2 * len(names))
+    bars = [(n, q) for q in ("p50", "p99") for n in names]
+    for j, (n, q) in enumerate(bars):
+        off = (j - (len(bars) - 1) / 2) * w
+        ax.bar([i + off for i in x], [r[q][n] for r in rows], w, label=f"{n} {q}")
     ax.set_xticks(list(x), labels, fontsize=7)
     ax.set_ylabel("tick compute, us")
-    ax.legend()
+    ax.set_yscale("log")
+    ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     print(f"\nplot: {path}")
@@ -386,7 +408,8 @@ def main() -> None:
     ap.add_argument(
         "--compare-kernels",
         action="store_true",
-        help="rendering.kernels python (old) against compiled (new), this tree",
+        help="this tree's rendering.kernels python against compiled (with --compare DIR: "
+        "three variants, DIR's tree first)",
     )
     ap.add_argument(
         "--kernels",
