@@ -586,3 +586,11 @@ def allocation_step(
         rendered[c1, 1] = 0.0 + x1 * d21
         rendered[c1, 2] = 0.0 + x1 * d22
     return ALLOCATED
+
+
+# The Friction stage's per-finger array (F, FRICTION_COLUMNS), shared by its Python code
+# and friction_step: the anchor in the object's body frame (3, m), whether it is set (1.0)
+# or not (0.0), the fingertip's radius (m).
+FRICTION_COLUMNS = 5
+ANCHOR_SET = 3
+FINGER_RADIUS = 4

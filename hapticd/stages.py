@@ -201,6 +201,9 @@ class Friction:
     Keeps one anchor per finger in the object's body frame (so a sticking finger
     moves with the object); moves ``proxy_pos`` (the god-object proxy as contact
     wrote it) with the fingertip's point and updates ``contact_point`` to match.
+    The anchors live in ``anchors`` (F, kernels.FRICTION_COLUMNS: the anchor (3, m, body
+    frame), 1.0 if it is set, the fingertip's radius (m)), which this code and the
+    compiled kernel (hapticd.kernels.friction_step) both read and write.
     """
 
     name = "friction"
@@ -208,20 +211,23 @@ class Friction:
     def __init__(self, scene: Scene, radii: list[float]) -> None:
         self.scene = scene
         self.radii = radii
-        self._anchor: list[np.ndarray | None] = [None] * len(radii)
-        self._holding = False  # any anchor set
+        self.anchors = np.zeros((len(radii), kernels.FRICTION_COLUMNS))
+        self.anchors[:, kernels.FINGER_RADIUS] = radii
+        self._holding = False  # an anchor may be set
 
     def run(self, frame: Frame) -> None:
-        obj = self.scene.object
-        R, x0 = obj.rotation, obj.position
-        mat = obj.material
         touching = frame.in_contact.tolist()
         if not any(touching):
             if self._holding:
-                self._anchor = [None] * len(self._anchor)
+                self.anchors[:, kernels.ANCHOR_SET] = 0.0
                 self._holding = False
             return
         self._holding = True
+        obj = self.scene.object
+        mat = obj.material
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = obj.rotation.tolist()
+        x0, x1, x2 = obj.position.tolist()
+        anchors = self.anchors.tolist()
         pos = frame.device_pos.tolist()
         plain = frame.surface_point.tolist()  # frictionless, as contact wrote them
         held = list(plain)
@@ -230,22 +236,34 @@ class Friction:
         shown = list(god)
         points = frame.contact_point.tolist()
         for i, on in enumerate(touching):
+            a = anchors[i]
             if not on:
-                self._anchor[i] = None
+                a[3] = 0.0
                 continue
-            anchor = self._anchor[i]
             aw = None
-            if anchor is not None:
-                aw = (R @ anchor + x0).tolist()
+            if a[3] != 0.0:
+                # R a + x in plain sums (each row's products left to right, then x), not
+                # numpy's R @ a, whose BLAS rounds differently: the kernel's sums, bit for bit.
+                aw = (
+                    r00 * a[0] + r01 * a[1] + r02 * a[2] + x0,
+                    r10 * a[0] + r11 * a[1] + r12 * a[2] + x1,
+                    r20 * a[0] + r21 * a[1] + r22 * a[2] + x2,
+                )
             dev, n = pos[i], normals[i]
             pf, _ = friction_proxy(held[i], dev, n, aw, mat.mu_static, mat.mu_dynamic)  # type: ignore[arg-type]
-            # Kept as the array numpy made (body frame, m): the next tick's product takes it.
-            self._anchor[i] = R.T @ (np.array(pf) - x0)
+            # The new anchor in the body frame: R^T (pf - x), each column's products left
+            # to right.
+            d0, d1, d2 = pf[0] - x0, pf[1] - x1, pf[2] - x2
+            a[0] = r00 * d0 + r10 * d1 + r20 * d2
+            a[1] = r01 * d0 + r11 * d1 + r21 * d2
+            a[2] = r02 * d0 + r12 * d1 + r22 * d2
+            a[3] = 1.0
             held[i] = pf
             p, po = god[i], plain[i]
             shown[i] = _shown(p, pf, po)
             r = self.radii[i]
             points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
+        self.anchors[...] = anchors
         frame.surface_point[...] = held
         frame.proxy_pos[...] = shown
         frame.contact_point[...] = points
