@@ -53,6 +53,14 @@ SIGNATURES = {
         "i8(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1],"
         " f8[:, ::1], f8[::1])"
     ),
+    "friction_step": (
+        "void(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1],"
+        " f8[::1], f8[::1])"
+    ),
+    "forces_step": (
+        "void(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1],"
+        " f8[::1])"
+    ),
 }
 
 # Compiled kernels of this process, by name: a reload compiles nothing again.

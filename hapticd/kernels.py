@@ -13,7 +13,9 @@ in the same order (so, without fused multiply-adds, the same bits):
 ``hapticd.dynamics.step_body_small``; ``allocation_step`` is
 ``hapticd.stages.Allocation`` with ``ContactAllocator`` for one actuated
 direction per finger and at most two contacts (the closed forms of
-``hapticd.allocation.closed`` and ``accuracy``; pinv, if, ef).
+``hapticd.allocation.closed`` and ``accuracy``; pinv, if, ef); ``friction_step``
+is ``hapticd.stages.Friction`` with ``hapticd.friction.friction_proxy``;
+``forces_step`` is ``hapticd.stages.Forces``.
 
 Units: positions m, velocities m/s, angular velocities rad/s, forces N, torques
 N m, stiffness N/m, damping N s/m, mass kg, inertia kg m^2, times s.
@@ -586,3 +588,139 @@ def allocation_step(
         rendered[c1, 1] = 0.0 + x1 * d21
         rendered[c1, 2] = 0.0 + x1 * d22
     return ALLOCATED
+
+
+# The Friction stage's per-finger array (F, FRICTION_COLUMNS), shared by its Python code
+# and friction_step: the anchor in the object's body frame (3, m), whether it is set (1.0)
+# or not (0.0), the fingertip's radius (m).
+FRICTION_COLUMNS = 5
+ANCHOR_SET = 3
+FINGER_RADIUS = 4
+
+
+# friction_step's params: static and dynamic friction coefficients
+FRICTION_PARAMS = 2
+
+
+def friction_step(
+    in_contact: np.ndarray,
+    device_pos: np.ndarray,
+    surface_point: np.ndarray,
+    normals: np.ndarray,
+    proxy_pos: np.ndarray,
+    contact_point: np.ndarray,
+    fingers: np.ndarray,
+    state: np.ndarray,
+    params: np.ndarray,
+) -> None:
+    """Coulomb stick/slip at each fingertip in contact (``hapticd.stages.Friction`` with
+    ``hapticd.friction.friction_proxy``): moves the frictionless ``surface_point`` (F, 3)
+    m to the friction proxy, ``proxy_pos`` (F, 3) m with it, and ``contact_point`` (F, 3)
+    m to match, in place; rows of fingers out of contact are left as they are.
+
+    ``in_contact`` (F,) u1, ``device_pos`` (F, 3) m and ``normals`` (F, 3) (unit) are the
+    frame's. ``fingers`` (F, FRICTION_COLUMNS): the stage's anchors (body frame, m), read
+    and written, their set flags (1.0 or 0.0; cleared out of contact) and the radii (m).
+    ``state`` (STATE,): the object's pose, x (m) and R (row by row) as free_body_step has
+    them (velocities unread). ``params`` (FRICTION_PARAMS,): mu_static, mu_dynamic.
+    """
+    mu_s, mu_d = params[0], params[1]
+    x0, x1, x2 = state[0], state[1], state[2]
+    r00, r01, r02 = state[9], state[10], state[11]
+    r10, r11, r12 = state[12], state[13], state[14]
+    r20, r21, r22 = state[15], state[16], state[17]
+    for i in range(in_contact.shape[0]):
+        if in_contact[i] == 0:
+            fingers[i, ANCHOR_SET] = 0.0
+            continue
+        p0, p1, p2 = surface_point[i, 0], surface_point[i, 1], surface_point[i, 2]
+        n0, n1, n2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        # The friction proxy: p stays where contact put it (a new contact sticks there)
+        # unless an anchor held from the last tick moves it.
+        q0, q1, q2 = p0, p1, p2
+        if fingers[i, ANCHOR_SET] != 0.0:
+            a0, a1, a2 = fingers[i, 0], fingers[i, 1], fingers[i, 2]
+            w0 = r00 * a0 + r01 * a1 + r02 * a2 + x0
+            w1 = r10 * a0 + r11 * a1 + r12 * a2 + x1
+            w2 = r20 * a0 + r21 * a1 + r22 * a2 + x2
+            depth = (
+                (p0 - device_pos[i, 0]) * n0
+                + (p1 - device_pos[i, 1]) * n1
+                + (p2 - device_pos[i, 2]) * n2
+            )
+            if not depth <= 0.0:
+                o0, o1, o2 = w0 - p0, w1 - p1, w2 - p2
+                s = o0 * n0 + o1 * n1 + o2 * n2
+                t0, t1, t2 = o0 - s * n0, o1 - s * n1, o2 - s * n2
+                tn = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+                if tn <= mu_s * depth:  # within the static cone: stick at the anchor
+                    q0, q1, q2 = p0 + t0, p1 + t1, p2 + t2
+                else:  # slip to the dynamic cone's edge, toward the anchor
+                    k = mu_d * depth / tn
+                    q0, q1, q2 = p0 + k * t0, p1 + k * t1, p2 + k * t2
+        d0, d1, d2 = q0 - x0, q1 - x1, q2 - x2
+        fingers[i, 0] = r00 * d0 + r10 * d1 + r20 * d2
+        fingers[i, 1] = r01 * d0 + r11 * d1 + r21 * d2
+        fingers[i, 2] = r02 * d0 + r12 * d1 + r22 * d2
+        fingers[i, ANCHOR_SET] = 1.0
+        surface_point[i, 0], surface_point[i, 1], surface_point[i, 2] = q0, q1, q2
+        proxy_pos[i, 0] = proxy_pos[i, 0] + q0 - p0
+        proxy_pos[i, 1] = proxy_pos[i, 1] + q1 - p1
+        proxy_pos[i, 2] = proxy_pos[i, 2] + q2 - p2
+        r = fingers[i, FINGER_RADIUS]
+        contact_point[i, 0] = q0 - r * n0
+        contact_point[i, 1] = q1 - r * n1
+        contact_point[i, 2] = q2 - r * n2
+
+
+# forces_step's params: stiffness k (N/m), damping b (N s/m), 1.0 if the object moves
+# (free: the relative velocity takes its motion from ``state``) else 0.0
+FORCES_PARAMS = 3
+
+
+def forces_step(
+    in_contact: np.ndarray,
+    device_pos: np.ndarray,
+    device_vel: np.ndarray,
+    surface_point: np.ndarray,
+    normals: np.ndarray,
+    contact_force: np.ndarray,
+    state: np.ndarray,
+    params: np.ndarray,
+) -> None:
+    """The full contact force on each finger (``hapticd.stages.Forces``): k (surface point
+    - device) - b v_rel, less any normal part that would pull the finger in; writes
+    ``contact_force`` (F, 3) N, zero out of contact.
+
+    ``in_contact`` (F,) u1, ``device_pos`` (F, 3) m, ``device_vel`` (F, 3) m/s,
+    ``surface_point`` (F, 3) m and ``normals`` (F, 3) are the frame's. ``state``
+    (STATE,): the object's x (m), v (m/s) and w (rad/s), read when it moves and b != 0.
+    ``params`` (FORCES_PARAMS,) as declared above.
+    """
+    k, b = params[0], params[1]
+    moving = params[2] != 0.0
+    x0, x1, x2 = state[0], state[1], state[2]
+    u0, u1, u2 = state[3], state[4], state[5]
+    w0, w1, w2 = state[6], state[7], state[8]
+    for i in range(in_contact.shape[0]):
+        if in_contact[i] == 0:
+            contact_force[i, 0], contact_force[i, 1], contact_force[i, 2] = 0.0, 0.0, 0.0
+            continue
+        p0, p1, p2 = surface_point[i, 0], surface_point[i, 1], surface_point[i, 2]
+        f0 = k * (p0 - device_pos[i, 0])
+        f1 = k * (p1 - device_pos[i, 1])
+        f2 = k * (p2 - device_pos[i, 2])
+        if b != 0.0:  # the Python code's ``if b``: NaN damps too
+            v0, v1, v2 = device_vel[i, 0], device_vel[i, 1], device_vel[i, 2]
+            if moving:  # relative to the object's material at the surface point
+                e0, e1, e2 = p0 - x0, p1 - x1, p2 - x2
+                s0 = w1 * e2 - w2 * e1
+                s1 = w2 * e0 - w0 * e2
+                s2 = w0 * e1 - w1 * e0
+                v0, v1, v2 = v0 - u0 - s0, v1 - u1 - s1, v2 - u2 - s2
+            f0, f1, f2 = f0 - b * v0, f1 - b * v1, f2 - b * v2
+            n0, n1, n2 = normals[i, 0], normals[i, 1], normals[i, 2]
+            fn = f0 * n0 + f1 * n1 + f2 * n2
+            if fn < 0.0:  # damping may slow the finger, never pull it in
+                f0, f1, f2 = f0 - fn * n0, f1 - fn * n1, f2 - fn * n2
+        contact_force[i, 0], contact_force[i, 1], contact_force[i, 2] = f0, f1, f2

@@ -93,8 +93,9 @@ class Renderer:
         stages: list[Stage] = [self._contact]
         if obj.material.has_friction:
             stages.append(self._friction)
+        self._friction.kernel = self.kernels.get("friction_step")
         self._allocation.kernel = self.kernels.get("allocation_step")
-        stages += [Forces(sc), self._allocation]
+        stages += [Forces(sc, self.kernels.get("forces_step")), self._allocation]
         if sc.surfaces:
             stages.append(Environment(self.allocator.actuation))
         if self._passivity is not None:  # after the last stage that writes rendered_force
@@ -111,10 +112,16 @@ class Renderer:
     def kernel_names(self) -> list[str]:
         """The kernels (names in hapticd.kernels) this scene's stages can use: the free-body
         step when the object is free; the allocation with one actuated direction per finger
-        (the number of directions stays fixed while the renderer lives)."""
-        names = [] if self.scene.object.fixed else ["free_body_step"]
+        (the number of directions stays fixed while the renderer lives); friction when the
+        object's material has it (friction turned on later, by ``set_param``, runs the
+        Python code); the contact forces always."""
+        obj = self.scene.object
+        names = [] if obj.fixed else ["free_body_step"]
         if all(c == 1 for c in self.actuation.counts):
             names.append("allocation_step")
+        if obj.material.has_friction:
+            names.append("friction_step")
+        names.append("forces_step")
         return names
 
     def use_kernels(self, kernels: dict[str, Callable[..., None]]) -> None:

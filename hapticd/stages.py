@@ -34,7 +34,7 @@ from hapticd.dynamics import (
 from hapticd.frame import Frame
 from hapticd.friction import friction_proxy
 from hapticd.passivity import PassivityParams, control, observe, orthonormal, project
-from hapticd.scene import Scene, SceneObject
+from hapticd.scene import Material, Scene, SceneObject
 
 V3 = tuple[float, float, float]
 ZERO3: V3 = (0.0, 0.0, 0.0)
@@ -201,27 +201,44 @@ class Friction:
     Keeps one anchor per finger in the object's body frame (so a sticking finger
     moves with the object); moves ``proxy_pos`` (the god-object proxy as contact
     wrote it) with the fingertip's point and updates ``contact_point`` to match.
+    The anchors live in ``anchors`` (F, kernels.FRICTION_COLUMNS: the anchor (3, m, body
+    frame), 1.0 if it is set, the fingertip's radius (m)), which this code and the
+    compiled kernel (hapticd.kernels.friction_step) both read and write.
     """
 
     name = "friction"
 
-    def __init__(self, scene: Scene, radii: list[float]) -> None:
+    def __init__(
+        self, scene: Scene, radii: list[float], kernel: Callable[..., None] | None = None
+    ) -> None:
         self.scene = scene
         self.radii = radii
-        self._anchor: list[np.ndarray | None] = [None] * len(radii)
-        self._holding = False  # any anchor set
+        # hapticd.kernels.friction_step compiled (hapticd.jit), or None: the code below.
+        self.kernel = kernel
+        self.anchors = np.zeros((len(radii), kernels.FRICTION_COLUMNS))
+        self.anchors[:, kernels.FINGER_RADIUS] = radii
+        self._holding = False  # an anchor may be set
+        self._params = np.zeros(kernels.FRICTION_PARAMS)
+        self._params_for: Material | None = None
+        self._object = ObjectState()
 
     def run(self, frame: Frame) -> None:
-        obj = self.scene.object
-        R, x0 = obj.rotation, obj.position
-        mat = obj.material
+        # Out of contact both paths return here: cheaper than a call to the kernel.
         touching = frame.in_contact.tolist()
         if not any(touching):
             if self._holding:
-                self._anchor = [None] * len(self._anchor)
+                self.anchors[:, kernels.ANCHOR_SET] = 0.0
                 self._holding = False
             return
         self._holding = True
+        obj = self.scene.object
+        if self.kernel is not None:
+            self._run_kernel(frame, obj)
+            return
+        mat = obj.material
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = obj.rotation.tolist()
+        x0, x1, x2 = obj.position.tolist()
+        anchors = self.anchors.tolist()
         pos = frame.device_pos.tolist()
         plain = frame.surface_point.tolist()  # frictionless, as contact wrote them
         held = list(plain)
@@ -230,25 +247,58 @@ class Friction:
         shown = list(god)
         points = frame.contact_point.tolist()
         for i, on in enumerate(touching):
+            a = anchors[i]
             if not on:
-                self._anchor[i] = None
+                a[3] = 0.0
                 continue
-            anchor = self._anchor[i]
             aw = None
-            if anchor is not None:
-                aw = (R @ anchor + x0).tolist()
+            if a[3] != 0.0:
+                # R a + x in plain sums (each row's products left to right, then x), not
+                # numpy's R @ a, whose BLAS rounds differently: the kernel's sums, bit for bit.
+                aw = (
+                    r00 * a[0] + r01 * a[1] + r02 * a[2] + x0,
+                    r10 * a[0] + r11 * a[1] + r12 * a[2] + x1,
+                    r20 * a[0] + r21 * a[1] + r22 * a[2] + x2,
+                )
             dev, n = pos[i], normals[i]
             pf, _ = friction_proxy(held[i], dev, n, aw, mat.mu_static, mat.mu_dynamic)  # type: ignore[arg-type]
-            # Kept as the array numpy made (body frame, m): the next tick's product takes it.
-            self._anchor[i] = R.T @ (np.array(pf) - x0)
+            # The new anchor in the body frame: R^T (pf - x), each column's products left
+            # to right.
+            d0, d1, d2 = pf[0] - x0, pf[1] - x1, pf[2] - x2
+            a[0] = r00 * d0 + r10 * d1 + r20 * d2
+            a[1] = r01 * d0 + r11 * d1 + r21 * d2
+            a[2] = r02 * d0 + r12 * d1 + r22 * d2
+            a[3] = 1.0
             held[i] = pf
             p, po = god[i], plain[i]
             shown[i] = _shown(p, pf, po)
             r = self.radii[i]
             points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
+        self.anchors[...] = anchors
         frame.surface_point[...] = held
         frame.proxy_pos[...] = shown
         frame.contact_point[...] = points
+
+    def _run_kernel(self, frame: Frame, obj: SceneObject) -> None:
+        """The same tick as ``run`` by the kernel, on the frame's arrays, the anchors and
+        the object's state array (``ObjectState``)."""
+        mat = obj.material
+        params = self._params
+        if mat is not self._params_for:  # a Material is frozen: a change is a new one
+            params[0] = mat.mu_static
+            params[1] = mat.mu_dynamic
+            self._params_for = mat
+        self.kernel(  # type: ignore[misc]
+            frame.in_contact,
+            frame.device_pos,
+            frame.surface_point,
+            frame.contact_normal,
+            frame.proxy_pos,
+            frame.contact_point,
+            self.anchors,
+            self._object.of(obj),
+            params,
+        )
 
 
 class Forces:
@@ -260,16 +310,26 @@ class Forces:
 
     name = "forces"
 
-    def __init__(self, scene: Scene) -> None:
+    def __init__(self, scene: Scene, kernel: Callable[..., None] | None = None) -> None:
         self.scene = scene
+        # hapticd.kernels.forces_step compiled (hapticd.jit), or None: the code below.
+        self.kernel = kernel
+        self._params = np.zeros(kernels.FORCES_PARAMS)
+        self._params_for: tuple[Material, bool] | None = None
+        self._object = ObjectState()
+        self._still = np.zeros(kernels.STATE)  # a fixed object's motion: none is read
 
     def run(self, frame: Frame) -> None:
-        obj = self.scene.object
-        k, b = obj.material.stiffness, obj.material.damping
+        # Out of contact both paths return here: cheaper than a call to the kernel.
         touching = frame.in_contact.tolist()
         if not any(touching):
             frame.contact_force.fill(0.0)
             return
+        obj = self.scene.object
+        if self.kernel is not None:
+            self._run_kernel(frame, obj)
+            return
+        k, b = obj.material.stiffness, obj.material.damping
         pos = frame.device_pos.tolist()
         held = frame.surface_point.tolist()
         normals = frame.contact_normal.tolist()
@@ -289,6 +349,27 @@ class Forces:
                     f = (f[0] - fn * n[0], f[1] - fn * n[1], f[2] - fn * n[2])
             forces[i] = f
         frame.contact_force[...] = forces
+
+    def _run_kernel(self, frame: Frame, obj: SceneObject) -> None:
+        """The same forces as ``run`` by the kernel, on the frame's arrays and (a free
+        object) the object's state array (``ObjectState``)."""
+        mat, fixed = obj.material, obj.fixed
+        made = self._params_for
+        if made is None or made[0] is not mat or made[1] != fixed:
+            self._params[0] = mat.stiffness
+            self._params[1] = mat.damping
+            self._params[2] = 0.0 if fixed else 1.0
+            self._params_for = (mat, fixed)
+        self.kernel(  # type: ignore[misc]
+            frame.in_contact,
+            frame.device_pos,
+            frame.device_vel,
+            frame.surface_point,
+            frame.contact_normal,
+            frame.contact_force,
+            self._still if fixed else self._object.of(obj),
+            self._params,
+        )
 
     def _motion(self) -> tuple[list[float], list[float], list[float]]:
         """The object's position (m), velocity (m/s) and angular velocity (rad/s)."""
@@ -550,6 +631,7 @@ class Dynamics:
         self.small = len(obj.shape.vertices) <= SMALL_SHAPE
         self._prepared: SmallBody | None = None  # the small step's cache (shape, mass)
         self._arrays: _BodyArrays | None = None  # the kernel's (shape, mass, surfaces)
+        self._object = ObjectState()
         self._scratch = np.zeros((n_fingers, kernels.SCRATCH_COLUMNS))
         self._gravity = np.zeros(3) if self.gravity is None else np.array(self.gravity, float)
 
@@ -613,16 +695,15 @@ class Dynamics:
 
     def _run_kernel(self, frame: Frame) -> None:
         """The same step as ``run`` by the kernel, on the frame's arrays and the object's
-        state, which lives in the kernel's state array (the object's position, velocity,
-        omega and rotation are views of it, put there again whenever someone has put other
-        arrays in their place)."""
+        state, which lives in a state array (``ObjectState``: the object's position,
+        velocity, omega and rotation are views of it, put there again whenever someone has
+        put other arrays in their place)."""
         obj = self.scene.object
         arr = self._arrays
         if arr is None or not arr.fits(obj, self.surfaces):
             arr = self._arrays = _BodyArrays(obj, self.surfaces, self.dt, self.substeps)
             arr.params[6:9] = self._gravity
-        if not arr.owns(obj):
-            arr.own(obj)
+        state = self._object.of(obj)
         mat = obj.material
         params = arr.params
         params[0] = mat.stiffness
@@ -633,7 +714,7 @@ class Dynamics:
             frame.contact_force,
             frame.contact_normal,
             params,
-            arr.state,
+            state,
             arr.body,
             arr.surf,
             self._scratch,
@@ -644,8 +725,8 @@ class Dynamics:
 class _BodyArrays:
     """The free-body kernel's arrays for an object's shape and mass and the surfaces
     (``SmallBody``'s numbers; hapticd.kernels.free_body_step says the layouts): params,
-    the object's state (the object's own arrays are views of it once ``own`` ran), body
-    (inertia, its inverse and the vertices) and surfaces."""
+    body (inertia, its inverse and the vertices) and surfaces. The object's state is its
+    ``ObjectState``."""
 
     def __init__(
         self, obj: SceneObject, surfaces: SurfaceSet | None, dt: float, substeps: int
@@ -654,35 +735,78 @@ class _BodyArrays:
         self.shape, self.mass, self.surfaces = small.shape, small.mass, surfaces
         self.params = np.zeros(kernels.PARAMS)
         self.params[2:6] = (small.mass, dt, substeps, small.reach)
-        self.state = np.zeros(kernels.STATE)
         self.body = np.array([*small.Ib, *small.Ib_inv, *small.local], dtype=float).reshape(-1, 3)
         self.surf = np.array(
             [(*n, d, m.stiffness, m.damping, m.mu_dynamic) for n, d, m in small.surf],
             dtype=float,
         ).reshape(-1, kernels.SURFACE_COLUMNS)
-        self._views = (
-            self.state[0:3],
-            self.state[3:6],
-            self.state[6:9],
-            self.state[9:18].reshape(3, 3),
-        )
 
     def fits(self, obj: SceneObject, surfaces: SurfaceSet | None) -> bool:
         return obj.shape is self.shape and obj.mass == self.mass and surfaces is self.surfaces
 
-    def owns(self, obj: SceneObject) -> bool:
-        """True while the object's state arrays are views of ``state``."""
-        x, v, w, R = self._views
-        return obj.position is x and obj.velocity is v and obj.omega is w and obj.rotation is R
 
-    def own(self, obj: SceneObject) -> None:
-        """Copy the object's state into ``state`` and make its arrays views of it."""
-        x, v, w, R = self._views
-        x[:] = np.asarray(obj.position, dtype=float).reshape(3)
-        v[:] = np.asarray(obj.velocity, dtype=float).reshape(3)
-        w[:] = np.asarray(obj.omega, dtype=float).reshape(3)
-        R[:] = np.asarray(obj.rotation, dtype=float).reshape(3, 3)
-        obj.position, obj.velocity, obj.omega, obj.rotation = x, v, w, R
+def _state_views(state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """x, v, w (3,) and R (3, 3) as views of a state array (kernels.STATE)."""
+    return state[0:3], state[3:6], state[6:9], state[9:18].reshape(3, 3)
+
+
+def _same_view(a: object, b: np.ndarray) -> bool:
+    """Whether ``a`` is an array looking at the very memory ``b`` does, as ``b`` does."""
+    return (
+        isinstance(a, np.ndarray)
+        and a.dtype == b.dtype
+        and a.shape == b.shape
+        and a.strides == b.strides
+        and a.__array_interface__["data"][0] == b.__array_interface__["data"][0]
+    )
+
+
+class ObjectState:
+    """The object's state as one array for the kernels (hapticd.kernels.STATE: x (3, m),
+    v (3, m/s), w (3, rad/s), R (9, row by row)) whose views are the object's
+    ``position``, ``velocity``, ``omega`` and ``rotation``.
+
+    Every stage with a kernel that reads or writes the object holds one; they share the
+    array: ``of`` finds the one the object's arrays are views of, or, when someone has put
+    other arrays in their place (a reset, the Python dynamics), makes a new one with the
+    object's state copied in and makes the object's arrays views of it.
+    """
+
+    def __init__(self) -> None:
+        self.state = np.zeros(kernels.STATE)
+        self._views: tuple[np.ndarray, ...] = ()
+
+    def of(self, obj: SceneObject) -> np.ndarray:
+        """The object's state array (kernels.STATE,), read and written in place."""
+        v = self._views
+        if (
+            v
+            and obj.position is v[0]
+            and obj.velocity is v[1]
+            and obj.omega is v[2]
+            and obj.rotation is v[3]
+        ):
+            return self.state
+        arrays = (obj.position, obj.velocity, obj.omega, obj.rotation)
+        state = getattr(arrays[0], "base", None)
+        if not (
+            isinstance(state, np.ndarray)
+            and state.shape == (kernels.STATE,)
+            and state.dtype == np.float64
+            and state.flags.c_contiguous
+            and state.flags.writeable
+            and all(_same_view(a, b) for a, b in zip(arrays, _state_views(state), strict=True))
+        ):
+            state = np.zeros(kernels.STATE)
+            x, u, w, R = _state_views(state)
+            x[:] = np.asarray(obj.position, dtype=float).reshape(3)
+            u[:] = np.asarray(obj.velocity, dtype=float).reshape(3)
+            w[:] = np.asarray(obj.omega, dtype=float).reshape(3)
+            R[:] = np.asarray(obj.rotation, dtype=float).reshape(3, 3)
+            obj.position, obj.velocity, obj.omega, obj.rotation = x, u, w, R
+        self.state = state
+        self._views = (obj.position, obj.velocity, obj.omega, obj.rotation)
+        return state
 
 
 class SceneState:

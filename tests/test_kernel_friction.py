@@ -1,0 +1,394 @@
+"""The compiled Friction and Forces kernels (hapticd.kernels.friction_step, forces_step)
+against the stages' Python code: the same bits for generated contacts (sticking, slipping,
+new contacts, fingers pulled out of the face), normals, anchors, fixed and free objects,
+damping on and off, over several ticks; the anchors are one state both paths share, so a
+run may switch paths between ticks; the object's state array is shared with the Dynamics
+kernel; hostile values through the compiled path end in zero force and a latched fault.
+
+Whole runs of the bundled profiles on both paths are compared with the stored reference
+in tests/test_reference_output.py (the compiled runs use these kernels: checked below)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import assume, given
+from hypothesis import strategies as st
+
+from hapticd import jit, kernels
+from hapticd.daemon.session import build_session
+from hapticd.frame import Frame
+from hapticd.profile import load_profile
+from hapticd.render import Renderer
+from hapticd.scene import ConvexShape, Material, Scene, SceneObject
+from hapticd.stages import Dynamics, Forces, Friction
+from tests.conftest import ROOT
+from tests.strategies import unit_vectors
+from tests.test_dynamics import floats, rotations, vec
+
+LIFT = ROOT / "configs" / "lift-weight.yaml"
+GRASP = ROOT / "configs" / "grasp-stiffness.yaml"
+NAMES = ("friction_step", "forces_step")
+# What the two stages write (the frame's fields), and the anchors friction keeps.
+OUTPUTS = ("surface_point", "proxy_pos", "contact_point", "contact_force")
+
+
+@pytest.fixture(scope="module")
+def compiled() -> dict:
+    """The compiled friction and forces kernels (numba is a dependency: no skip without it)."""
+    return jit.compile_kernels(list(NAMES))
+
+
+@st.composite
+def contacts(draw, n_fingers: int, mu_s: float, R: np.ndarray, x: np.ndarray) -> dict:
+    """One tick's frame fields as contact writes them, and the anchors friction holds."""
+    fields: dict[str, list] = {
+        name: []
+        for name in (
+            "in_contact",
+            "device_pos",
+            "device_vel",
+            "surface_point",
+            "contact_normal",
+            "proxy_pos",
+            "contact_point",
+        )
+    }
+    anchors = np.zeros((n_fingers, kernels.FRICTION_COLUMNS))
+    for i in range(n_fingers):
+        n = draw(unit_vectors())
+        p = x + draw(vec(-0.05, 0.05))
+        # The device below the face (a contact), on it, or above it (depth <= 0: the
+        # friction proxy does not move).
+        depth = draw(st.sampled_from([0.0, -1e-3]) | floats(0.0, 0.01))
+        dev = p - depth * n + draw(st.just(0.0) | floats(0.0, 1e-3)) * draw(unit_vectors())
+        fields["in_contact"].append(draw(st.booleans()))
+        fields["device_pos"].append(dev)
+        fields["device_vel"].append(draw(vec(-0.5, 0.5)))
+        fields["surface_point"].append(p)
+        fields["contact_normal"].append(n)
+        fields["proxy_pos"].append(p + draw(vec(-1e-3, 1e-3)))
+        fields["contact_point"].append(p - 0.008 * n)
+        if draw(st.booleans()):  # an anchor from the last tick: within the cone or beyond
+            t = draw(unit_vectors())
+            t = t - (t @ n) * n
+            reach = draw(
+                st.sampled_from([0.0, 1.0])
+                | floats(0.0, 0.999 * mu_s)
+                | floats(1.001 * mu_s, 3.0 * mu_s)
+            ) * max(depth, 0.0)
+            world = p + reach * t + draw(st.just(0.0) | floats(-1e-3, 1e-3)) * n
+            anchors[i, :3] = R.T @ (world - x)
+            anchors[i, kernels.ANCHOR_SET] = 1.0
+        else:
+            anchors[i, :3] = draw(vec(-0.05, 0.05))  # stale numbers behind a cleared flag
+    return {"fields": fields, "anchors": anchors}
+
+
+@st.composite
+def cases(draw) -> dict:
+    """A fixed or free box in any pose, its material (damping on or off), 1-3 fingers and a
+    few ticks of contacts, the object moving between them when it is free."""
+    n_fingers = draw(st.integers(1, 3))
+    mu_d = draw(floats(0.05, 1.2))
+    material = Material(
+        draw(floats(50.0, 2000.0)),
+        draw(st.just(0.0) | floats(0.01, 10.0)),
+        mu_static=mu_d * draw(st.just(1.0) | floats(1.0, 1.5)),
+        mu_dynamic=mu_d,
+    )
+    fixed = draw(st.booleans())
+    obj = {
+        "fixed": fixed,
+        "position": draw(vec(-0.05, 0.05)),
+        "rotation": draw(rotations()),
+        "velocity": np.zeros(3) if fixed else draw(vec(-1.0, 1.0)),
+        "omega": np.zeros(3) if fixed else draw(vec(-10.0, 10.0)),
+    }
+    ticks = []
+    R, x = obj["rotation"], obj["position"]
+    for _ in range(draw(st.integers(1, 3))):
+        ticks.append(draw(contacts(n_fingers, material.mu_static, R, x)))
+        if not fixed:  # the object moved (as Dynamics would move it) before the next tick
+            x = x + draw(vec(-1e-3, 1e-3))
+            R = draw(rotations()) if draw(st.booleans()) else R
+        ticks[-1]["pose"] = (x, R)
+    return {"n": n_fingers, "material": material, "object": obj, "ticks": ticks}
+
+
+def _scene(case: dict) -> Scene:
+    o = case["object"]
+    obj = SceneObject(
+        ConvexShape.box(np.full(3, 0.05)),
+        case["material"],
+        o["position"].copy(),
+        o["rotation"].copy(),
+        fixed=o["fixed"],
+        mass=0.0 if o["fixed"] else 0.1,
+        velocity=o["velocity"].copy(),
+        omega=o["omega"].copy(),
+    )
+    return Scene(obj, [], None)
+
+
+def _run(case: dict, paths: list) -> list[dict[str, np.ndarray]]:
+    """Run Friction then Forces on each tick of ``case``, tick k with ``paths[k]`` (None: the
+    Python code, else the two kernels by name); what they wrote, tick by tick."""
+    scene = _scene(case)
+    n = case["n"]
+    radii = [0.008 + 0.001 * i for i in range(n)]
+    friction = Friction(scene, radii)
+    forces = Forces(scene)
+    frame = Frame(n, n)
+    friction.anchors[:, :4] = case["ticks"][0]["anchors"][:, :4]
+    friction._holding = True  # the anchors above were set on a tick before these
+    out = []
+    for tick, path in zip(case["ticks"], paths, strict=True):
+        for name, value in tick["fields"].items():
+            getattr(frame, name)[...] = value
+        frame.contact_force[...] = 7.0  # yesterday's numbers: a path that forgets to write
+        friction.kernel = None if path is None else path["friction_step"]
+        forces.kernel = None if path is None else path["forces_step"]
+        friction.run(frame)
+        forces.run(frame)
+        got = {name: getattr(frame, name).copy() for name in OUTPUTS}
+        got["anchors"] = friction.anchors.copy()
+        obj = scene.object
+        got["state"] = np.concatenate(
+            [obj.position, obj.velocity, obj.omega, np.ravel(obj.rotation)]
+        )
+        out.append(got)
+        # The object moves between ticks: in place or by new arrays, as others move it.
+        x, R = tick["pose"]
+        if len(out) % 2:
+            obj.position[:] = x
+            obj.rotation[:] = R
+        else:
+            obj.position, obj.rotation = x.copy(), R.copy()
+    return out
+
+
+def _assert_same(ref: list, got: list) -> None:
+    assert len(ref) == len(got)
+    for k, (a, b) in enumerate(zip(ref, got, strict=True)):
+        for name in a:
+            np.testing.assert_array_equal(a[name], b[name], err_msg=f"tick {k}: {name}")
+
+
+@given(cases())
+def test_the_compiled_friction_and_forces_equal_the_python_stages_bit_for_bit(compiled, case):
+    """The kernels evaluate the stages' sums in the same order (numba neither fuses
+    multiply-adds nor reorders without fastmath; sqrt is correctly rounded): the same bits
+    on every output, the anchors and the object's state."""
+    ticks = len(case["ticks"])
+    _assert_same(_run(case, [None] * ticks), _run(case, [compiled] * ticks))
+
+
+@given(cases())
+def test_the_kernels_as_plain_python_are_the_stages_bit_for_bit(case):
+    plain = {name: getattr(kernels, name) for name in NAMES}
+    ticks = len(case["ticks"])
+    _assert_same(_run(case, [None] * ticks), _run(case, [plain] * ticks))
+
+
+@given(cases(), st.data())
+def test_switching_paths_between_ticks_keeps_the_anchors(compiled, case, data):
+    """The anchors are one array both paths read and write: any mix of paths over a run
+    gives the all-Python run's numbers."""
+    ticks = len(case["ticks"])
+    assume(ticks >= 2)
+    paths = [data.draw(st.sampled_from([None, compiled])) for _ in range(ticks)]
+    assume(any(p is None for p in paths) and any(p is not None for p in paths))
+    _assert_same(_run(case, [None] * ticks), _run(case, paths))
+
+
+@pytest.mark.parametrize("path", ["python", "compiled"])
+@pytest.mark.parametrize(("reach", "expected"), [(0.5, 0.5), (1.0, 1.0), (2.0, 0.8)])
+def test_an_anchor_within_the_static_cone_sticks_and_one_beyond_slips(
+    compiled, path, reach, expected
+):
+    """mu_s 0.5, mu_d 0.4, 15.625 mm deep: an anchor ``reach`` x mu_s depth along the face
+    holds the friction proxy there (on the cone's edge too: the numbers are exact in binary);
+    beyond, the proxy slips to the dynamic cone's edge (0.8 x mu_s depth), toward the
+    anchor. The force's tangential part follows."""
+    depth, mu_s, top = 0.015625, 0.5, 0.03125
+    obj = SceneObject(
+        ConvexShape.box(np.full(3, 0.05)), Material(100.0, 0.0, mu_s, 0.4), np.zeros(3), np.eye(3)
+    )
+    scene = Scene(obj, [], None)
+    kernel = compiled if path == "compiled" else {}
+    friction = Friction(scene, [0.008], kernel.get("friction_step"))
+    forces = Forces(scene, kernel.get("forces_step"))
+    frame = Frame(1, 1)
+    frame.in_contact[0] = 1
+    frame.surface_point[0] = (0.0, 0.0, top)
+    frame.proxy_pos[0] = (0.0, 0.0, top)
+    frame.device_pos[0] = (0.0, 0.0, top - depth)
+    frame.contact_normal[0] = (0.0, 0.0, 1.0)
+    friction.anchors[0, :4] = (-reach * mu_s * depth, 0.0, top, 1.0)
+    friction._holding = True
+    friction.run(frame)
+    forces.run(frame)
+    x = -expected * mu_s * depth
+    np.testing.assert_allclose(frame.surface_point[0], (x, 0.0, top), atol=1e-15)
+    np.testing.assert_allclose(frame.proxy_pos[0], (x, 0.0, top), atol=1e-15)
+    np.testing.assert_allclose(frame.contact_point[0], (x, 0.0, top - 0.008), atol=1e-15)
+    np.testing.assert_allclose(frame.contact_force[0], (100.0 * x, 0.0, 100.0 * depth), atol=1e-12)
+    # The new anchor is the proxy, in the body frame; a finger that leaves clears it.
+    np.testing.assert_allclose(friction.anchors[0], (x, 0.0, top, 1.0, 0.008), atol=1e-15)
+    frame.in_contact[0] = 0
+    friction.run(frame)
+    forces.run(frame)
+    assert friction.anchors[0, kernels.ANCHOR_SET] == 0.0
+    assert np.all(frame.contact_force == 0.0)
+
+
+def test_a_free_objects_damping_is_relative_to_its_motion(compiled):
+    """A finger resting on a face that moves and spins: the damping sees the finger's
+    velocity less the material's at the surface point (v + w x r), on both paths."""
+    obj = SceneObject(
+        ConvexShape.box(np.full(3, 0.05)),
+        Material(100.0, 2.0),
+        np.zeros(3),
+        np.eye(3),
+        fixed=False,
+        mass=0.1,
+        velocity=np.array([0.1, 0.0, 0.0]),
+        omega=np.array([0.0, 0.0, 1.0]),
+    )
+    out = []
+    for kernel in (None, compiled["forces_step"]):
+        frame = Frame(1, 1)
+        frame.in_contact[0] = 1
+        frame.surface_point[0] = (0.0, 0.025, 0.0)
+        frame.device_pos[0] = (0.0, 0.025, 0.0)
+        frame.device_vel[0] = (0.0, 0.0, 0.0)
+        frame.contact_normal[0] = (0.0, 1.0, 0.0)
+        Forces(Scene(obj, [], None), kernel).run(frame)
+        out.append(frame.contact_force[0].copy())
+    # The material at (0, 0.025, 0) moves at v + w x r = (0.1 - 0.025, 0, 0) m/s.
+    np.testing.assert_allclose(out[0], (2.0 * 0.075, 0.0, 0.0), atol=1e-15)
+    np.testing.assert_array_equal(out[0], out[1])
+
+
+def test_the_kernels_share_one_object_state_with_the_dynamics_kernel(compiled):
+    """Friction, Forces and Dynamics read (and Dynamics writes) one state array whose
+    views are the object's arrays; arrays put in their place from outside are taken."""
+    free = jit.compile_kernels(["free_body_step"])["free_body_step"]
+    obj = SceneObject(
+        ConvexShape.box(np.full(3, 0.05)),
+        Material(100.0, 0.5, 1.0, 0.8),
+        np.zeros(3),
+        np.eye(3),
+        fixed=False,
+        mass=0.1,
+    )
+    scene = Scene(obj, [], np.array([0.0, 0.0, -9.81]))
+    friction = Friction(scene, [0.008], compiled["friction_step"])
+    forces = Forces(scene, compiled["forces_step"])
+    dynamics = Dynamics(scene, 1, 1e-3, free)
+    frame = Frame(1, 1)
+    frame.in_contact[0] = 1
+    frame.surface_point[0] = (0.0, 0.0, 0.025)
+    frame.device_pos[0] = (0.0, 0.0, 0.02)
+    frame.contact_normal[0] = (0.0, 0.0, 1.0)
+    for _ in range(2):
+        for stage in (friction, forces, dynamics):
+            stage.run(frame)
+    state = obj.position.base
+    assert state is friction._object.state is forces._object.state is dynamics._object.state
+    assert obj.velocity.base is state and obj.rotation.base is state
+    assert obj.velocity[2] < 0.0  # pushed down by the finger and gravity, written in place
+    obj.position = np.array([0.0, 0.0, 0.5])  # a reset from outside
+    friction.run(frame)
+    assert friction._object.state[2] == 0.5 and obj.position.base is friction._object.state
+    # A fixed object's arrays are left alone by Forces (its motion is not read).
+    fixed = SceneObject(
+        ConvexShape.box(np.full(3, 0.05)), Material(100.0, 0.5), np.zeros(3), np.eye(3)
+    )
+    position = fixed.position
+    Forces(Scene(fixed, [], None), compiled["forces_step"]).run(frame)
+    assert fixed.position is position and position.base is None
+
+
+@pytest.mark.parametrize("path", [LIFT, GRASP], ids=["lift", "grasp"])
+def test_compiled_runs_of_the_bundled_profiles_use_these_kernels(compiled, path):
+    """tests/test_reference_output.py's compiled runs (rendering.kernels=compiled) go
+    through friction_step (the lift has friction) and forces_step (both)."""
+    s = build_session(
+        load_profile(path, ["rendering.kernels=compiled"]), paced=False, duration_s=0.01
+    )
+    r: Renderer = s.renderer
+    stages = dict(zip(r.stage_names, r.stages, strict=True))
+    assert stages["forces"].kernel is r.kernels["forces_step"]
+    if path == LIFT:
+        assert stages["friction"].kernel is r.kernels["friction_step"]
+    else:
+        assert "friction" not in stages and "friction_step" not in r.kernel_names
+    s.run()
+
+
+class Poison:
+    """A stage after ``contact`` that puts ``value`` into finger 0's ``field`` from ``at`` (s)
+    on: what a broken contact model (surface_point) or device (device_vel, which the
+    damping reads) could hand to friction and forces."""
+
+    name = "poison"
+
+    def __init__(self, loop, field: str, value: float, at: float) -> None:
+        self.loop, self.field, self.value, self.at = loop, field, value, at
+
+    def run(self, frame) -> None:
+        if self.loop.now() >= self.at:
+            getattr(frame, self.field)[0] = self.value
+            frame.in_contact[0] = 1
+
+
+def _poisoned_run(mode: str, field: str, value: float) -> tuple[np.ndarray, dict, float]:
+    """The lift for 3.2 s, poisoned from 3.0 s: the forces written to the devices (ticks x
+    fingers, 3), the summary and the force limit."""
+    profile = load_profile(LIFT, [f"rendering.kernels={mode}"])
+    session = build_session(profile, paced=False, duration_s=3.2)
+    renderer = session.renderer
+    stages = dict(zip(renderer.stage_names, renderer.stages, strict=True))
+    assert (stages["friction"].kernel is not None) == (mode == "compiled")
+    assert (stages["forces"].kernel is not None) == (mode == "compiled")
+    renderer.insert(Poison(session.loop, field, value, 3.0), after="contact")
+    written = []
+    for dev in session.devices:
+        write = dev.write_force
+
+        def write_force(f, _write=write):
+            written.append(np.array(f, dtype=float))
+            _write(f)
+
+        dev.write_force = write_force
+    summary = session.run()
+    return np.array(written), summary, max(session.safety.limits)
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf, 1e300])
+@pytest.mark.parametrize("field", ["surface_point", "device_vel"])
+def test_a_poisoned_contact_ends_in_zero_force_and_a_latched_fault(field, value):
+    """Through friction_step (its anchor takes a poisoned surface point) and forces_step, on
+    the lift: every force written is finite and within the limit, the run latches a fault
+    and writes only zero force from that tick on; the compiled run latches it on the same
+    tick as the Python run, having written the same forces before it, bit for bit.
+
+    The cause may differ: with a finite but huge velocity (1e300) the Python free-body step
+    raises (math.cos of an infinite angle: ValueError) where the compiled one returns
+    non-finite numbers that the object-state backstop catches, on the same tick."""
+    forces, summary, limit = _poisoned_run("compiled", field, value)
+    assert np.all(np.isfinite(forces))
+    assert np.all(np.linalg.norm(forces, axis=1) <= limit + 1e-12)
+    assert summary["fault"] is not None, summary
+    tick = summary["fault"]["tick"]
+    assert np.all(forces[2 * tick :] == 0.0) and len(forces) > 2 * tick
+    ref, ref_summary, _ = _poisoned_run("python", field, value)
+    assert ref_summary["fault"] is not None and ref_summary["fault"]["tick"] == tick
+    np.testing.assert_array_equal(forces[: 2 * tick], ref[: 2 * tick])
+    if math.isfinite(value) and field == "device_vel":
+        return
+    assert summary["fault"] == ref_summary["fault"]
