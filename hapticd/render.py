@@ -90,6 +90,7 @@ class Renderer:
         """Choose the stages this scene needs, in tick order."""
         sc = self.scene
         obj = sc.object
+        self._contact.kernel = self.kernels.get("contact_step")
         stages: list[Stage] = [self._contact]
         if obj.material.has_friction:
             stages.append(self._friction)
@@ -111,10 +112,12 @@ class Renderer:
     def kernel_names(self) -> list[str]:
         """The kernels (names in hapticd.kernels) this scene's stages can use: the free-body
         step when the object is free; the allocation with one actuated direction per finger
-        (the number of directions stays fixed while the renderer lives)."""
+        (the number of directions stays fixed while the renderer lives); the contact (every
+        scene: the stage runs the Python code for what the kernel does not take)."""
         names = [] if self.scene.object.fixed else ["free_body_step"]
         if all(c == 1 for c in self.actuation.counts):
             names.append("allocation_step")
+        names.append("contact_step")
         return names
 
     def use_kernels(self, kernels: dict[str, Callable[..., None]]) -> None:

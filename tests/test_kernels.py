@@ -187,7 +187,7 @@ def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked(compiled)
     profile = load_profile(LIFT)
     assert profile.rendering.kernels == "auto"
     s = build_session(profile, paced=False, duration_s=0.01)
-    assert s.renderer.kernels.keys() == {"free_body_step", "allocation_step"}
+    assert s.renderer.kernels.keys() == {"free_body_step", "allocation_step", "contact_step"}
     assert s.renderer.stages[s.renderer.stage_names.index("dynamics")].kernel is not None
     assert s.renderer.stages[s.renderer.stage_names.index("allocation")].kernel is not None
     s.run()
@@ -261,7 +261,7 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
     the compiling to a process of its own; a later run loads the compiled kernel."""
     cache = tmp_path / "cache"
     err, _ = _run_lift(tmp_path, "", "auto", cache)
-    assert "compiling free_body_step, allocation_step in the background" in err, err
+    assert "compiling free_body_step, allocation_step, contact_step in the background" in err, err
     assert "compiled or loaded" not in err
     marker = cache / jit.COMPILED
     deadline = time.monotonic() + 120.0
@@ -269,7 +269,9 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
         assert time.monotonic() < deadline, "the background compiler did not finish in 120 s"
         time.sleep(0.2)
     err, _ = _run_lift(tmp_path, "", "auto", cache)
-    assert "kernels ['free_body_step', 'allocation_step'] compiled or loaded" in err, err
+    assert (
+        "kernels ['free_body_step', 'allocation_step', 'contact_step'] compiled or loaded" in err
+    ), err
     assert "background" not in err and "render instead" not in err
 
 
