@@ -13,7 +13,8 @@ in the same order (so, without fused multiply-adds, the same bits):
 ``hapticd.dynamics.step_body_small``; ``allocation_step`` is
 ``hapticd.stages.Allocation`` with ``ContactAllocator`` for one actuated
 direction per finger and at most two contacts (the closed forms of
-``hapticd.allocation.closed`` and ``accuracy``; pinv, if, ef).
+``hapticd.allocation.closed`` and ``accuracy``; pinv, if, ef); ``contact_step`` is
+``hapticd.stages.Contact`` with ``hapticd.contact.proxy_step_multi`` on flat obstacles.
 
 Units: positions m, velocities m/s, angular velocities rad/s, forces N, torques
 N m, stiffness N/m, damping N s/m, mass kg, inertia kg m^2, times s.
