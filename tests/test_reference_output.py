@@ -34,7 +34,7 @@ STRIDE = 5
 PROFILES = ("grasp-stiffness", "lift-weight")
 DEVICES = ("replay", "sim")
 # The Python code (the reference, which regenerates the file) and the compiled kernels
-# (hapticd.kernels: the free-body step and the allocation): both must reproduce it.
+# (hapticd.kernels: the free-body step, the allocation, the contact): both must reproduce it.
 # Measured: the same bits on both.
 KERNELS = ("python", "compiled")
 PHYSICS = (
