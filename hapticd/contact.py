@@ -131,9 +131,101 @@ def _first_entry(
     return t_enter, plane
 
 
-# Below this Gram determinant, sin^2 of the angle between two planes (within 3e-5 rad of
-# parallel), a crease's projection takes lstsq.
+# Below this Gram determinant (two planes: sin^2 of their angle, within 3e-5 rad of
+# parallel; three: the squared volume their normals span) the Gram system counts as
+# singular and ``_gram_solve`` takes its minimum-norm rule instead of the inverse.
 _GRAM_MIN = 1e-9
+
+
+def _gram_solve(ns: list[Vec], rhs: list[float]) -> list[float]:
+    """mu (k,) solving G mu = rhs for the Gram matrix G = N N^T of k = 1-3 unit normals.
+
+    Plain float sums in a fixed order (``hapticd.kernels.contact_step`` repeats them
+    bit for bit): the 2 x 2 and 3 x 3 systems by their adjugates (Cramer's rule), the
+    unit diagonal taken as exactly 1. A singular system (determinant <= ``_GRAM_MIN``)
+    takes a closed-form minimum-norm rule instead of an inverse that would throw the
+    proxy far away:
+
+    - two (nearly) parallel or antiparallel planes (cosine c, s its sign): G's
+      pseudo-inverse with its small eigenvalue 1 - |c| dropped, mu = (m, s m) with
+      m = (r0 + s r1) / (2 (1 + |c|)) (numpy's ``lstsq`` for exactly parallel planes).
+      Parallel planes share the push; antiparallel ones (a finger between two faces
+      that face each other) get multipliers of opposite signs, so one is released;
+    - three planes of which two, u and v, are (nearly) parallel: those two act as one
+      plane (normal n_u, right-hand side (r_u + s r_v) / 2), solved with the third;
+      their multiplier a is split evenly, (a / 2, s a / 2). All three parallel: the
+      rank-one pseudo-inverse, mu_i = s_i (sum_j s_j r_j) / 9;
+    - three pairwise distinct normals in (nearly) one plane: the best-conditioned
+      pair (the largest 2 x 2 determinant, the first on a tie), the third's multiplier 0.
+
+    Multipliers keep their meaning: mu_i > 0 where plane i pushes outward.
+    """
+    if len(ns) == 1:
+        return [rhs[0]]
+    if len(ns) == 2:
+        r0, r1 = rhs[0], rhs[1]
+        c = _dot(ns[0], ns[1])
+        det = 1.0 - c * c
+        if det > _GRAM_MIN:
+            return [(r0 - c * r1) / det, (r1 - c * r0) / det]
+        s = 1.0 if c >= 0.0 else -1.0
+        m = (r0 + s * r1) / (2.0 * (1.0 + abs(c)))
+        return [m, s * m]
+    a = _dot(ns[0], ns[1])
+    b = _dot(ns[0], ns[2])
+    c = _dot(ns[1], ns[2])
+    # The adjugate of [[1, a, b], [a, 1, c], [b, c, 1]] and its determinant.
+    a00 = 1.0 - c * c
+    a11 = 1.0 - b * b
+    a22 = 1.0 - a * a
+    a01 = b * c - a
+    a02 = a * c - b
+    a12 = a * b - c
+    det = a00 + a * a01 + b * a02
+    r0, r1, r2 = rhs[0], rhs[1], rhs[2]
+    if det > _GRAM_MIN:
+        return [
+            (a00 * r0 + a01 * r1 + a02 * r2) / det,
+            (a01 * r0 + a11 * r1 + a12 * r2) / det,
+            (a02 * r0 + a12 * r1 + a22 * r2) / det,
+        ]
+    mu = [0.0, 0.0, 0.0]
+    # The pairs' 2 x 2 determinants: 1 - a^2 (planes 0, 1), 1 - b^2 (0, 2), 1 - c^2 (1, 2).
+    if a22 <= _GRAM_MIN or a11 <= _GRAM_MIN or a00 <= _GRAM_MIN:
+        # A (nearly) parallel pair u, v (the most parallel), w the third; cuw = n_u . n_w.
+        if a22 <= a11 and a22 <= a00:
+            u, v, w, cuv, cuw, ru, rv, rw = 0, 1, 2, a, b, r0, r1, r2
+        elif a11 <= a00:
+            u, v, w, cuv, cuw, ru, rv, rw = 0, 2, 1, b, a, r0, r2, r1
+        else:
+            u, v, w, cuv, cuw, ru, rv, rw = 1, 2, 0, c, a, r1, r2, r0
+        s = 1.0 if cuv >= 0.0 else -1.0
+        rm = (ru + s * rv) / 2.0
+        d2 = 1.0 - cuw * cuw
+        if d2 > _GRAM_MIN:
+            am = (rm - cuw * rw) / d2
+            mu[w] = (rw - cuw * rm) / d2
+        else:  # all three (anti)parallel
+            t = 1.0 if cuw >= 0.0 else -1.0
+            m = (ru + s * rv + t * rw) / 9.0
+            mu[u] = m
+            mu[v] = s * m
+            mu[w] = t * m
+            return mu
+        mu[u] = am / 2.0
+        mu[v] = s * am / 2.0
+        return mu
+    # Three distinct normals in (nearly) one plane: the best-conditioned pair.
+    if a22 >= a11 and a22 >= a00:
+        u, v, cc, ru, rv = 0, 1, a, r0, r1
+    elif a11 >= a00:
+        u, v, cc, ru, rv = 0, 2, b, r0, r2
+    else:
+        u, v, cc, ru, rv = 1, 2, c, r1, r2
+    d2 = 1.0 - cc * cc
+    mu[u] = (ru - cc * rv) / d2
+    mu[v] = (rv - cc * ru) / d2
+    return mu
 
 
 def _project_on_planes(
@@ -143,34 +235,20 @@ def _project_on_planes(
 
     Returns (x, mu) with x - dev = sum_i mu_i n_i; mu_i >= 0 means plane i pushes
     outward (a true contact), mu_i < 0 means it would pull and must be released.
+    Singular systems (near-parallel planes) take ``_gram_solve``'s minimum-norm rule.
     """
     if len(active) == 1:
         n = normals[active[0]]
         mu = offsets[active[0]] - _dot(n, dev)
         return (dev[0] + mu * n[0], dev[1] + mu * n[1], dev[2] + mu * n[2]), [mu]
-    if len(active) == 2:
-        # A crease: the 2 x 2 Gram system [[1, c], [c, 1]] mu = r in closed form (a numpy
-        # solve costs more than the rest of the update) unless the planes are near parallel.
-        n, m = normals[active[0]], normals[active[1]]
-        r0 = offsets[active[0]] - _dot(n, dev)
-        r1 = offsets[active[1]] - _dot(m, dev)
-        c = _dot(n, m)
-        det = 1.0 - c * c
-        if det > _GRAM_MIN:
-            mu0 = (r0 - c * r1) / det
-            mu1 = (r1 - c * r0) / det
-            x = (
-                dev[0] + mu0 * n[0] + mu1 * m[0],
-                dev[1] + mu0 * n[1] + mu1 * m[1],
-                dev[2] + mu0 * n[2] + mu1 * m[2],
-            )
-            return x, [mu0, mu1]
-    N = np.array([normals[i] for i in active])
-    r = np.array([offsets[i] for i in active]) - N @ np.array(dev)
-    # Minimum-norm solution of N N^T mu = r; lstsq tolerates near-parallel planes.
-    mu, *_ = np.linalg.lstsq(N @ N.T, r, rcond=1e-12)
-    x = np.array(dev) + N.T @ mu
-    return (float(x[0]), float(x[1]), float(x[2])), mu.tolist()
+    ns = [normals[i] for i in active]
+    mus = _gram_solve(ns, [offsets[i] - _dot(normals[i], dev) for i in active])
+    x0, x1, x2 = dev
+    for m, n in zip(mus, ns, strict=True):
+        x0 += m * n[0]
+        x1 += m * n[1]
+        x2 += m * n[2]
+    return (x0, x1, x2), mus
 
 
 def _signed_distance(normals: list[Vec], offsets: list[float], x: Vec) -> tuple[float, int]:
@@ -294,13 +372,11 @@ def _first_entry_any(
 def _multipliers(
     obstacles: list[Obstacle], active: list[tuple[int, int]], p: Vec, dev: Vec
 ) -> list[float]:
-    if len(active) == 1:
-        j, i = active[0]
-        n = obstacles[j][0][i]
-        return [(p[0] - dev[0]) * n[0] + (p[1] - dev[1]) * n[1] + (p[2] - dev[2]) * n[2]]
-    N = np.array([obstacles[j][0][i] for j, i in active])
-    mu, *_ = np.linalg.lstsq(N.T, np.array(p) - np.array(dev), rcond=1e-12)
-    return mu.tolist()
+    """mu with p - dev = sum mu_i n_i over the ``active`` planes, in the least-squares
+    sense (G mu = N (p - dev), ``_gram_solve``)."""
+    diff = (p[0] - dev[0], p[1] - dev[1], p[2] - dev[2])
+    ns = [obstacles[j][0][i] for j, i in active]
+    return _gram_solve(ns, [_dot(diff, n) for n in ns])
 
 
 class ObstacleSet:

@@ -61,6 +61,10 @@ SIGNATURES = {
         "void(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1],"
         " f8[::1])"
     ),
+    "contact_step": (
+        "i8(f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], u1[::1], f8[:, ::1],"
+        " f8[:, ::1], f8[:, ::1], f8[:, ::1])"
+    ),
 }
 
 # Compiled kernels of this process, by name: a reload compiles nothing again.

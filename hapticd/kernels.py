@@ -13,9 +13,10 @@ in the same order (so, without fused multiply-adds, the same bits):
 ``hapticd.dynamics.step_body_small``; ``allocation_step`` is
 ``hapticd.stages.Allocation`` with ``ContactAllocator`` for one actuated
 direction per finger and at most two contacts (the closed forms of
-``hapticd.allocation.closed`` and ``accuracy``; pinv, if, ef); ``friction_step``
-is ``hapticd.stages.Friction`` with ``hapticd.friction.friction_proxy``;
-``forces_step`` is ``hapticd.stages.Forces``.
+``hapticd.allocation.closed`` and ``accuracy``; pinv, if, ef); ``contact_step`` is
+``hapticd.stages.Contact`` with ``hapticd.contact.proxy_step_multi`` on flat obstacles;
+``friction_step`` is ``hapticd.stages.Friction`` with
+``hapticd.friction.friction_proxy``; ``forces_step`` is ``hapticd.stages.Forces``.
 
 Units: positions m, velocities m/s, angular velocities rad/s, forces N, torques
 N m, stiffness N/m, damping N s/m, mass kg, inertia kg m^2, times s.
@@ -26,6 +27,16 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from hapticd.contact import (
+    _FREE_TOL,
+    _GRAM_MIN,
+    _MAX_CONSTRAINTS,
+    _MAX_ITER,
+    _ON_PLANE,
+    _T_EPS,
+    _VECTOR_PLANES,
+)
 
 SCRATCH_COLUMNS = 13  # per finger: c0 (3), body (3), f0 (3), torsion normal (3), cap (1)
 # free_body_step's params: k, mu_t, m, dt, substeps, reach, gravity (3)
@@ -724,3 +735,541 @@ def forces_step(
             if fn < 0.0:  # damping may slow the finger, never pull it in
                 f0, f1, f2 = f0 - fn * n0, f1 - fn * n1, f2 - fn * n2
         contact_force[i, 0], contact_force[i, 1], contact_force[i, 2] = f0, f1, f2
+
+
+# contact_step's plane columns: unit normal (3), offset (m, not inflated), obstacle (0: the
+# object, 1...: the surfaces in order), its first and past-last rows, and a surface's
+# stiffness (N/m) and damping (N s/m) (zeros for the object's rows)
+PLANE_COLUMNS = 9
+# contact_step's state columns per finger: the proxy (3, m; the stage's one copy), the
+# fingertip radius (m), then work space: active planes (3), multipliers (3), planes pushed
+# through (3), right-hand sides (3)
+CONTACT_STATE = 16
+_C_RADIUS, _C_ACTIVE, _C_MU, _C_PUSHED, _C_RHS = 3, 4, 7, 10, 13
+# contact_step's outcomes: done; not taken (an obstacle of more than _VECTOR_PLANES planes
+# or a non-finite input: the stage runs its Python code; nothing written).
+CONTACT_DONE, CONTACT_NOT_TAKEN = 0, 1
+
+
+def contact_step(
+    device_pos: np.ndarray,
+    device_vel: np.ndarray,
+    planes: np.ndarray,
+    state: np.ndarray,
+    proxy_pos: np.ndarray,
+    in_contact: np.ndarray,
+    surface_point: np.ndarray,
+    contact_point: np.ndarray,
+    contact_normal: np.ndarray,
+    env_force: np.ndarray,
+) -> int:
+    """One tick of the Contact stage for F fingers: ``hapticd.stages.Contact.run`` with
+    ``hapticd.contact.proxy_step_multi`` (push-out, first entry, sliding on up to three
+    planes, ``_gram_solve``'s closed forms) on flat, non-vectorised obstacles, the same
+    sums in the same order.
+
+    ``device_pos``, ``device_vel`` (F, 3) m, m/s. ``planes`` (P, PLANE_COLUMNS): the
+    object's planes then each surface's, as declared above; each finger inflates the
+    offsets by its radius. ``state`` (F, CONTACT_STATE): the proxies (read, overwritten),
+    the radii, work space. Writes the frame's ``proxy_pos``, ``in_contact`` (u1),
+    ``surface_point``, ``contact_point``, ``contact_normal`` and, with surfaces,
+    ``env_force`` (N); returns CONTACT_DONE, or CONTACT_NOT_TAKEN having written nothing.
+    """
+    n_fingers = device_pos.shape[0]
+    n_planes = planes.shape[0]
+    for kk in range(n_planes):
+        if int(planes[kk, 6]) - int(planes[kk, 5]) > _VECTOR_PLANES:
+            return CONTACT_NOT_TAKEN
+        for col in range(4):
+            if not math.isfinite(planes[kk, col]):
+                return CONTACT_NOT_TAKEN
+    for i in range(n_fingers):
+        for col in range(3):
+            if not (
+                math.isfinite(device_pos[i, col])
+                and math.isfinite(device_vel[i, col])
+                and math.isfinite(state[i, col])
+            ):
+                return CONTACT_NOT_TAKEN
+        if not math.isfinite(state[i, _C_RADIUS]):
+            return CONTACT_NOT_TAKEN
+    n_obst = int(planes[n_planes - 1, 4]) + 1
+    surfaces = n_obst > 1
+    for i in range(n_fingers):
+        sc = state[i]
+        r = sc[_C_RADIUS]
+        d0, d1, d2 = device_pos[i, 0], device_pos[i, 1], device_pos[i, 2]
+        p0, p1, p2 = sc[0], sc[1], sc[2]
+        # -- out of every obstacle the proxy is inside (hapticd.contact._push_out_of)
+        s0, s1, s2 = p0, p1, p2
+        npushed = 0
+        for _ in range(n_obst + 1):
+            moved = False
+            lo = 0
+            while lo < n_planes:
+                hi = int(planes[lo, 6])
+                best = -math.inf
+                arg = 0
+                for kk in range(lo, hi):
+                    v = (planes[kk, 0] * p0 + planes[kk, 1] * p1 + planes[kk, 2] * p2) - (
+                        planes[kk, 3] + r
+                    )
+                    if v > best:
+                        best = v
+                        arg = kk - lo
+                if best < 0.0:
+                    moved = True
+                    kk = lo + arg
+                    found = False
+                    for q in range(npushed):
+                        if int(sc[_C_PUSHED + q]) == kk:
+                            found = True
+                    if not found and npushed < _MAX_CONSTRAINTS:
+                        sc[_C_PUSHED + npushed] = kk
+                        npushed += 1
+                    projected = False
+                    if npushed > 1:
+                        k = npushed
+                        for q in range(k):
+                            qq = int(sc[_C_PUSHED + q])
+                            sc[_C_RHS + q] = (planes[qq, 3] + r) - (
+                                planes[qq, 0] * s0 + planes[qq, 1] * s1 + planes[qq, 2] * s2
+                            )
+                        # hapticd.contact._gram_solve, inlined
+                        q0 = int(sc[_C_PUSHED])
+                        q1 = int(sc[_C_PUSHED + 1])
+                        n0x, n0y, n0z = planes[q0, 0], planes[q0, 1], planes[q0, 2]
+                        n1x, n1y, n1z = planes[q1, 0], planes[q1, 1], planes[q1, 2]
+                        r0 = sc[_C_RHS]
+                        r1 = sc[_C_RHS + 1]
+                        if k == 2:
+                            c = n0x * n1x + n0y * n1y + n0z * n1z
+                            det = 1.0 - c * c
+                            if det > _GRAM_MIN:
+                                sc[_C_MU] = (r0 - c * r1) / det
+                                sc[_C_MU + 1] = (r1 - c * r0) / det
+                            else:
+                                s = 1.0 if c >= 0.0 else -1.0
+                                m = (r0 + s * r1) / (2.0 * (1.0 + abs(c)))
+                                sc[_C_MU] = m
+                                sc[_C_MU + 1] = s * m
+                        else:
+                            q2 = int(sc[_C_PUSHED + 2])
+                            n2x, n2y, n2z = planes[q2, 0], planes[q2, 1], planes[q2, 2]
+                            r2 = sc[_C_RHS + 2]
+                            a = n0x * n1x + n0y * n1y + n0z * n1z
+                            b = n0x * n2x + n0y * n2y + n0z * n2z
+                            c = n1x * n2x + n1y * n2y + n1z * n2z
+                            a00 = 1.0 - c * c
+                            a11 = 1.0 - b * b
+                            a22 = 1.0 - a * a
+                            a01 = b * c - a
+                            a02 = a * c - b
+                            a12 = a * b - c
+                            det = a00 + a * a01 + b * a02
+                            if det > _GRAM_MIN:
+                                sc[_C_MU] = (a00 * r0 + a01 * r1 + a02 * r2) / det
+                                sc[_C_MU + 1] = (a01 * r0 + a11 * r1 + a12 * r2) / det
+                                sc[_C_MU + 2] = (a02 * r0 + a12 * r1 + a22 * r2) / det
+                            else:
+                                sc[_C_MU] = 0.0
+                                sc[_C_MU + 1] = 0.0
+                                sc[_C_MU + 2] = 0.0
+                                if a22 <= _GRAM_MIN or a11 <= _GRAM_MIN or a00 <= _GRAM_MIN:
+                                    if a22 <= a11 and a22 <= a00:
+                                        iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 1, 2, a, b, r0, r1, r2
+                                    elif a11 <= a00:
+                                        iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 2, 1, b, a, r0, r2, r1
+                                    else:
+                                        iu, iv, iw, cuv, cuw, ru, rv, rw = 1, 2, 0, c, a, r1, r2, r0
+                                    s = 1.0 if cuv >= 0.0 else -1.0
+                                    rm = (ru + s * rv) / 2.0
+                                    dp = 1.0 - cuw * cuw
+                                    if dp > _GRAM_MIN:
+                                        am = (rm - cuw * rw) / dp
+                                        sc[_C_MU + iw] = (rw - cuw * rm) / dp
+                                        sc[_C_MU + iu] = am / 2.0
+                                        sc[_C_MU + iv] = s * am / 2.0
+                                    else:
+                                        t = 1.0 if cuw >= 0.0 else -1.0
+                                        m = (ru + s * rv + t * rw) / 9.0
+                                        sc[_C_MU + iu] = m
+                                        sc[_C_MU + iv] = s * m
+                                        sc[_C_MU + iw] = t * m
+                                else:
+                                    if a22 >= a11 and a22 >= a00:
+                                        iu, iv, cc, ru, rv = 0, 1, a, r0, r1
+                                    elif a11 >= a00:
+                                        iu, iv, cc, ru, rv = 0, 2, b, r0, r2
+                                    else:
+                                        iu, iv, cc, ru, rv = 1, 2, c, r1, r2
+                                    dp = 1.0 - cc * cc
+                                    sc[_C_MU + iu] = (ru - cc * rv) / dp
+                                    sc[_C_MU + iv] = (rv - cc * ru) / dp
+                        mn = sc[_C_MU]
+                        for q in range(1, k):
+                            if sc[_C_MU + q] < mn:
+                                mn = sc[_C_MU + q]
+                        if mn >= 0.0:
+                            x0, x1, x2 = s0, s1, s2
+                            for q in range(k):
+                                qq = int(sc[_C_PUSHED + q])
+                                m = sc[_C_MU + q]
+                                x0 += m * planes[qq, 0]
+                                x1 += m * planes[qq, 1]
+                                x2 += m * planes[qq, 2]
+                            p0, p1, p2 = x0, x1, x2
+                            projected = True
+                    if not projected:
+                        p0 = p0 - best * planes[kk, 0]
+                        p1 = p1 - best * planes[kk, 1]
+                        p2 = p2 - best * planes[kk, 2]
+                lo = hi
+            if not moved:
+                break
+        # -- toward the device, sliding on up to three planes (proxy_step_multi)
+        nact = 0
+        held = False
+        for _ in range(_MAX_ITER):
+            if nact == 0:
+                t0, t1, t2 = d0, d1, d2
+            elif nact == 1:
+                qq = int(sc[_C_ACTIVE])
+                m = (planes[qq, 3] + r) - (
+                    planes[qq, 0] * d0 + planes[qq, 1] * d1 + planes[qq, 2] * d2
+                )
+                sc[_C_MU] = m
+                t0 = d0 + m * planes[qq, 0]
+                t1 = d1 + m * planes[qq, 1]
+                t2 = d2 + m * planes[qq, 2]
+            else:
+                k = nact
+                for q in range(k):
+                    qq = int(sc[_C_ACTIVE + q])
+                    sc[_C_RHS + q] = (planes[qq, 3] + r) - (
+                        planes[qq, 0] * d0 + planes[qq, 1] * d1 + planes[qq, 2] * d2
+                    )
+                # hapticd.contact._gram_solve, inlined
+                q0 = int(sc[_C_ACTIVE])
+                q1 = int(sc[_C_ACTIVE + 1])
+                n0x, n0y, n0z = planes[q0, 0], planes[q0, 1], planes[q0, 2]
+                n1x, n1y, n1z = planes[q1, 0], planes[q1, 1], planes[q1, 2]
+                r0 = sc[_C_RHS]
+                r1 = sc[_C_RHS + 1]
+                if k == 2:
+                    c = n0x * n1x + n0y * n1y + n0z * n1z
+                    det = 1.0 - c * c
+                    if det > _GRAM_MIN:
+                        sc[_C_MU] = (r0 - c * r1) / det
+                        sc[_C_MU + 1] = (r1 - c * r0) / det
+                    else:
+                        s = 1.0 if c >= 0.0 else -1.0
+                        m = (r0 + s * r1) / (2.0 * (1.0 + abs(c)))
+                        sc[_C_MU] = m
+                        sc[_C_MU + 1] = s * m
+                else:
+                    q2 = int(sc[_C_ACTIVE + 2])
+                    n2x, n2y, n2z = planes[q2, 0], planes[q2, 1], planes[q2, 2]
+                    r2 = sc[_C_RHS + 2]
+                    a = n0x * n1x + n0y * n1y + n0z * n1z
+                    b = n0x * n2x + n0y * n2y + n0z * n2z
+                    c = n1x * n2x + n1y * n2y + n1z * n2z
+                    a00 = 1.0 - c * c
+                    a11 = 1.0 - b * b
+                    a22 = 1.0 - a * a
+                    a01 = b * c - a
+                    a02 = a * c - b
+                    a12 = a * b - c
+                    det = a00 + a * a01 + b * a02
+                    if det > _GRAM_MIN:
+                        sc[_C_MU] = (a00 * r0 + a01 * r1 + a02 * r2) / det
+                        sc[_C_MU + 1] = (a01 * r0 + a11 * r1 + a12 * r2) / det
+                        sc[_C_MU + 2] = (a02 * r0 + a12 * r1 + a22 * r2) / det
+                    else:
+                        sc[_C_MU] = 0.0
+                        sc[_C_MU + 1] = 0.0
+                        sc[_C_MU + 2] = 0.0
+                        if a22 <= _GRAM_MIN or a11 <= _GRAM_MIN or a00 <= _GRAM_MIN:
+                            if a22 <= a11 and a22 <= a00:
+                                iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 1, 2, a, b, r0, r1, r2
+                            elif a11 <= a00:
+                                iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 2, 1, b, a, r0, r2, r1
+                            else:
+                                iu, iv, iw, cuv, cuw, ru, rv, rw = 1, 2, 0, c, a, r1, r2, r0
+                            s = 1.0 if cuv >= 0.0 else -1.0
+                            rm = (ru + s * rv) / 2.0
+                            dp = 1.0 - cuw * cuw
+                            if dp > _GRAM_MIN:
+                                am = (rm - cuw * rw) / dp
+                                sc[_C_MU + iw] = (rw - cuw * rm) / dp
+                                sc[_C_MU + iu] = am / 2.0
+                                sc[_C_MU + iv] = s * am / 2.0
+                            else:
+                                t = 1.0 if cuw >= 0.0 else -1.0
+                                m = (ru + s * rv + t * rw) / 9.0
+                                sc[_C_MU + iu] = m
+                                sc[_C_MU + iv] = s * m
+                                sc[_C_MU + iw] = t * m
+                        else:
+                            if a22 >= a11 and a22 >= a00:
+                                iu, iv, cc, ru, rv = 0, 1, a, r0, r1
+                            elif a11 >= a00:
+                                iu, iv, cc, ru, rv = 0, 2, b, r0, r2
+                            else:
+                                iu, iv, cc, ru, rv = 1, 2, c, r1, r2
+                            dp = 1.0 - cc * cc
+                            sc[_C_MU + iu] = (ru - cc * rv) / dp
+                            sc[_C_MU + iv] = (rv - cc * ru) / dp
+                t0, t1, t2 = d0, d1, d2
+                for q in range(k):
+                    qq = int(sc[_C_ACTIVE + q])
+                    m = sc[_C_MU + q]
+                    t0 += m * planes[qq, 0]
+                    t1 += m * planes[qq, 1]
+                    t2 += m * planes[qq, 2]
+            e0, e1, e2 = t0 - p0, t1 - p1, t2 - p2
+            # The first obstacle the path p + t e enters (_first_entry_any, _first_entry).
+            hit = False
+            bt = 0.0
+            bk = -1
+            lo = 0
+            while lo < n_planes:
+                hi = int(planes[lo, 6])
+                t_enter = 0.0
+                t_exit = math.inf
+                plane = -1
+                never = False
+                for kk in range(lo, hi):
+                    nx, ny, nz = planes[kk, 0], planes[kk, 1], planes[kk, 2]
+                    num = (planes[kk, 3] + r) - (nx * p0 + ny * p1 + nz * p2)
+                    denom = nx * e0 + ny * e1 + nz * e2
+                    if num <= _ON_PLANE:
+                        if num - denom <= _ON_PLANE:
+                            never = True
+                            break
+                        if num < 0.0:
+                            tt = num / denom
+                            if tt > t_enter:
+                                t_enter = tt
+                                plane = kk - lo
+                        elif plane < 0:
+                            plane = kk - lo
+                    elif denom > num:
+                        tt = num / denom
+                        if tt < t_exit:
+                            t_exit = tt
+                if not never:
+                    ok = True
+                    te = t_enter
+                    pl = plane
+                    if plane < 0:
+                        te = 0.0
+                        best = -math.inf
+                        pl = 0
+                        for kk in range(lo, hi):
+                            v = (planes[kk, 0] * p0 + planes[kk, 1] * p1 + planes[kk, 2] * p2) - (
+                                planes[kk, 3] + r
+                            )
+                            if v > best:
+                                best = v
+                                pl = kk - lo
+                    elif t_exit <= t_enter + _T_EPS:
+                        ok = False
+                    if ok and (not hit or te < bt):
+                        hit = True
+                        bt = te
+                        bk = lo + pl
+                lo = hi
+            if hit:
+                p0 = p0 + bt * e0
+                p1 = p1 + bt * e1
+                p2 = p2 + bt * e2
+                again = False
+                for q in range(nact):
+                    if int(sc[_C_ACTIVE + q]) == bk:
+                        again = True
+                if again or nact == _MAX_CONSTRAINTS:
+                    break  # numerically stuck in a corner: stay at the contact point
+                sc[_C_ACTIVE + nact] = bk
+                nact += 1
+                continue
+            p0, p1, p2 = t0, t1, t2
+            if nact == 0:
+                break
+            # Slid off an obstacle into free space: its planes no longer hold the proxy.
+            w = 0
+            for q in range(nact):
+                qq = int(sc[_C_ACTIVE + q])
+                dist = -math.inf
+                for kk in range(int(planes[qq, 5]), int(planes[qq, 6])):
+                    v = (planes[kk, 0] * p0 + planes[kk, 1] * p1 + planes[kk, 2] * p2) - (
+                        planes[kk, 3] + r
+                    )
+                    if v > dist:
+                        dist = v
+                m = sc[_C_MU + q]
+                if dist <= _FREE_TOL and m >= 0.0:
+                    sc[_C_ACTIVE + w] = qq
+                    sc[_C_MU + w] = m
+                    w += 1
+            if w == nact:
+                held = True
+                break
+            nact = w
+        if held:
+            # The planes that push (mu > 0).
+            w = 0
+            for q in range(nact):
+                m = sc[_C_MU + q]
+                if m > 0.0:
+                    sc[_C_ACTIVE + w] = sc[_C_ACTIVE + q]
+                    sc[_C_MU + w] = m
+                    w += 1
+            nact = w
+        else:
+            # Stopped short of a projection: a plane the device is outside of does not push.
+            w = 0
+            for q in range(nact):
+                qq = int(sc[_C_ACTIVE + q])
+                if planes[qq, 0] * d0 + planes[qq, 1] * d1 + planes[qq, 2] * d2 < (
+                    planes[qq, 3] + r
+                ):
+                    sc[_C_ACTIVE + w] = qq
+                    w += 1
+            nact = w
+            f0, f1, f2 = p0 - d0, p1 - d1, p2 - d2
+            if nact == 1:
+                qq = int(sc[_C_ACTIVE])
+                sc[_C_MU] = f0 * planes[qq, 0] + f1 * planes[qq, 1] + f2 * planes[qq, 2]
+            elif nact > 1:
+                k = nact
+                for q in range(k):
+                    qq = int(sc[_C_ACTIVE + q])
+                    sc[_C_RHS + q] = f0 * planes[qq, 0] + f1 * planes[qq, 1] + f2 * planes[qq, 2]
+                # hapticd.contact._gram_solve, inlined
+                q0 = int(sc[_C_ACTIVE])
+                q1 = int(sc[_C_ACTIVE + 1])
+                n0x, n0y, n0z = planes[q0, 0], planes[q0, 1], planes[q0, 2]
+                n1x, n1y, n1z = planes[q1, 0], planes[q1, 1], planes[q1, 2]
+                r0 = sc[_C_RHS]
+                r1 = sc[_C_RHS + 1]
+                if k == 2:
+                    c = n0x * n1x + n0y * n1y + n0z * n1z
+                    det = 1.0 - c * c
+                    if det > _GRAM_MIN:
+                        sc[_C_MU] = (r0 - c * r1) / det
+                        sc[_C_MU + 1] = (r1 - c * r0) / det
+                    else:
+                        s = 1.0 if c >= 0.0 else -1.0
+                        m = (r0 + s * r1) / (2.0 * (1.0 + abs(c)))
+                        sc[_C_MU] = m
+                        sc[_C_MU + 1] = s * m
+                else:
+                    q2 = int(sc[_C_ACTIVE + 2])
+                    n2x, n2y, n2z = planes[q2, 0], planes[q2, 1], planes[q2, 2]
+                    r2 = sc[_C_RHS + 2]
+                    a = n0x * n1x + n0y * n1y + n0z * n1z
+                    b = n0x * n2x + n0y * n2y + n0z * n2z
+                    c = n1x * n2x + n1y * n2y + n1z * n2z
+                    a00 = 1.0 - c * c
+                    a11 = 1.0 - b * b
+                    a22 = 1.0 - a * a
+                    a01 = b * c - a
+                    a02 = a * c - b
+                    a12 = a * b - c
+                    det = a00 + a * a01 + b * a02
+                    if det > _GRAM_MIN:
+                        sc[_C_MU] = (a00 * r0 + a01 * r1 + a02 * r2) / det
+                        sc[_C_MU + 1] = (a01 * r0 + a11 * r1 + a12 * r2) / det
+                        sc[_C_MU + 2] = (a02 * r0 + a12 * r1 + a22 * r2) / det
+                    else:
+                        sc[_C_MU] = 0.0
+                        sc[_C_MU + 1] = 0.0
+                        sc[_C_MU + 2] = 0.0
+                        if a22 <= _GRAM_MIN or a11 <= _GRAM_MIN or a00 <= _GRAM_MIN:
+                            if a22 <= a11 and a22 <= a00:
+                                iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 1, 2, a, b, r0, r1, r2
+                            elif a11 <= a00:
+                                iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 2, 1, b, a, r0, r2, r1
+                            else:
+                                iu, iv, iw, cuv, cuw, ru, rv, rw = 1, 2, 0, c, a, r1, r2, r0
+                            s = 1.0 if cuv >= 0.0 else -1.0
+                            rm = (ru + s * rv) / 2.0
+                            dp = 1.0 - cuw * cuw
+                            if dp > _GRAM_MIN:
+                                am = (rm - cuw * rw) / dp
+                                sc[_C_MU + iw] = (rw - cuw * rm) / dp
+                                sc[_C_MU + iu] = am / 2.0
+                                sc[_C_MU + iv] = s * am / 2.0
+                            else:
+                                t = 1.0 if cuw >= 0.0 else -1.0
+                                m = (ru + s * rv + t * rw) / 9.0
+                                sc[_C_MU + iu] = m
+                                sc[_C_MU + iv] = s * m
+                                sc[_C_MU + iw] = t * m
+                        else:
+                            if a22 >= a11 and a22 >= a00:
+                                iu, iv, cc, ru, rv = 0, 1, a, r0, r1
+                            elif a11 >= a00:
+                                iu, iv, cc, ru, rv = 0, 2, b, r0, r2
+                            else:
+                                iu, iv, cc, ru, rv = 1, 2, c, r1, r2
+                            dp = 1.0 - cc * cc
+                            sc[_C_MU + iu] = (ru - cc * rv) / dp
+                            sc[_C_MU + iv] = (rv - cc * ru) / dp
+        # -- the stage's outputs for this finger (Contact.run, Contact._env_force)
+        sc[0], sc[1], sc[2] = p0, p1, p2
+        proxy_pos[i, 0], proxy_pos[i, 1], proxy_pos[i, 2] = p0, p1, p2
+        n_obj = 0
+        first = -1
+        for q in range(nact):
+            qq = int(sc[_C_ACTIVE + q])
+            if planes[qq, 4] == 0.0:
+                if n_obj == 0:
+                    first = qq
+                n_obj += 1
+        if surfaces:
+            g0, g1, g2 = 0.0, 0.0, 0.0
+            if n_obj < nact:
+                v0, v1, v2 = device_vel[i, 0], device_vel[i, 1], device_vel[i, 2]
+                for q in range(nact):
+                    qq = int(sc[_C_ACTIVE + q])
+                    if planes[qq, 4] == 0.0:
+                        continue
+                    nx, ny, nz = planes[qq, 0], planes[qq, 1], planes[qq, 2]
+                    vn = v0 * nx + v1 * ny + v2 * nz
+                    mag = planes[qq, 7] * sc[_C_MU + q] - planes[qq, 8] * vn
+                    if mag < 0.0:  # max(mag, 0.0): NaN stays, as with Python's max
+                        mag = 0.0
+                    g0 += mag * nx
+                    g1 += mag * ny
+                    g2 += mag * nz
+            env_force[i, 0], env_force[i, 1], env_force[i, 2] = g0, g1, g2
+        if n_obj == 0:
+            in_contact[i] = 0
+            surface_point[i, 0], surface_point[i, 1], surface_point[i, 2] = p0, p1, p2
+            contact_point[i, 0], contact_point[i, 1], contact_point[i, 2] = p0, p1, p2
+            contact_normal[i, 0], contact_normal[i, 1], contact_normal[i, 2] = 0.0, 0.0, 0.0
+            continue
+        # The proxy's displacement due to the object's planes alone.
+        x0, x1, x2 = d0, d1, d2
+        for q in range(nact):
+            qq = int(sc[_C_ACTIVE + q])
+            if planes[qq, 4] == 0.0:
+                m = sc[_C_MU + q]
+                x0 += m * planes[qq, 0]
+                x1 += m * planes[qq, 1]
+                x2 += m * planes[qq, 2]
+        nx, ny, nz = planes[first, 0], planes[first, 1], planes[first, 2]
+        if n_obj > 1:
+            u0, u1, u2 = x0 - d0, x1 - d1, x2 - d2
+            norm = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+            if norm > 1e-15:
+                nx, ny, nz = u0 / norm, u1 / norm, u2 / norm
+        in_contact[i] = 1
+        surface_point[i, 0], surface_point[i, 1], surface_point[i, 2] = x0, x1, x2
+        contact_normal[i, 0], contact_normal[i, 1], contact_normal[i, 2] = nx, ny, nz
+        contact_point[i, 0] = x0 - r * nx
+        contact_point[i, 1] = x1 - r * ny
+        contact_point[i, 2] = x2 - r * nz
+    return CONTACT_DONE

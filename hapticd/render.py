@@ -90,6 +90,7 @@ class Renderer:
         """Choose the stages this scene needs, in tick order."""
         sc = self.scene
         obj = sc.object
+        self._contact.kernel = self.kernels.get("contact_step")
         stages: list[Stage] = [self._contact]
         if obj.material.has_friction:
             stages.append(self._friction)
@@ -112,13 +113,15 @@ class Renderer:
     def kernel_names(self) -> list[str]:
         """The kernels (names in hapticd.kernels) this scene's stages can use: the free-body
         step when the object is free; the allocation with one actuated direction per finger
-        (the number of directions stays fixed while the renderer lives); friction when the
-        object's material has it (friction turned on later, by ``set_param``, runs the
-        Python code); the contact forces always."""
+        (the number of directions stays fixed while the renderer lives); the contact (every
+        scene: the stage runs the Python code for what the kernel does not take); friction
+        when the object's material has it (friction turned on later, by ``set_param``, runs
+        the Python code); the contact forces always."""
         obj = self.scene.object
         names = [] if obj.fixed else ["free_body_step"]
         if all(c == 1 for c in self.actuation.counts):
             names.append("allocation_step")
+        names.append("contact_step")
         if obj.material.has_friction:
             names.append("friction_step")
         names.append("forces_step")

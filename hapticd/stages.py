@@ -22,7 +22,13 @@ from hapticd import kernels
 from hapticd.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.allocation.robust import AllocationError
-from hapticd.contact import MultiResult, ObstacleSet, Polytope, proxy_step_multi
+from hapticd.contact import (
+    _VECTOR_PLANES,
+    MultiResult,
+    ObstacleSet,
+    Polytope,
+    proxy_step_multi,
+)
 from hapticd.dynamics import (
     SMALL_SHAPE,
     SmallBody,
@@ -79,11 +85,24 @@ class Contact:
 
     name = "contact"
 
-    def __init__(self, scene: Scene, radii: list[float]) -> None:
+    def __init__(
+        self, scene: Scene, radii: list[float], kernel: Callable[..., int] | None = None
+    ) -> None:
         self.scene = scene
         self.radii = radii
+        # hapticd.kernels.contact_step compiled (hapticd.jit), or None: the code below. It
+        # takes flat obstacles (up to _VECTOR_PLANES planes each) with finite inputs;
+        # anything else runs the code below, on the same proxies.
+        self.kernel = kernel
         self._surfaces = [[s.polytope.inflated(r) for s in scene.surfaces] for r in radii]
-        self._proxy: list[V3] | None = None
+        # The proxies (m) and radii, and the kernel's work space: one copy both paths
+        # read and write (the proxies are the first three columns).
+        self._state = np.zeros((len(radii), kernels.CONTACT_STATE))
+        self._state[:, kernels._C_RADIUS] = radii
+        self._proxies = self._state[:, :3]
+        self._started = False  # the first tick: every proxy starts at its device
+        self._planes: np.ndarray | None = None  # the kernel's planes (PLANE_COLUMNS)
+        self._planes_for: Polytope | None = None
         self._built_for: Polytope | None = None
         self._sets: list[ObstacleSet] = []
         self._untouched: Frame | None = None  # the frame whose contact normals are all zero
@@ -111,11 +130,14 @@ class Contact:
         return self._sets
 
     def run(self, frame: Frame) -> None:
+        if not self._started:
+            self._proxies[...] = frame.device_pos
+            self._started = True
+        if self.kernel is not None and self._run_kernel(frame):
+            return
         pos: list[V3] = [tuple(p) for p in frame.device_pos.tolist()]  # type: ignore[misc]
-        if self._proxy is None:
-            self._proxy = list(pos)  # the first tick: every proxy starts at its device
         sets = self._obstacles()
-        proxies = self._proxy
+        proxies = self._proxies.tolist()
         n_fingers = len(pos)
         points = list(pos)
         held = list(pos)
@@ -157,7 +179,8 @@ class Contact:
             r = self.radii[i]
             points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
         # Assignment through [...] is the cheapest way numpy takes a list of tuples.
-        frame.proxy_pos[...] = proxies
+        self._proxies[...] = proxies
+        frame.proxy_pos[...] = self._proxies
         frame.in_contact[...] = touching
         if any(touching):
             frame.surface_point[...] = held
@@ -178,6 +201,64 @@ class Contact:
         elif self._surfaces[0] and frame is not self._off_surfaces:
             frame.env_force.fill(0.0)  # zero until a finger touches the ground or a wall
             self._off_surfaces = frame
+
+    def _run_kernel(self, frame: Frame) -> bool:
+        """The same tick as ``run`` by the kernel, on the frame's arrays and the proxies'
+        state; False (and nothing written) for a case the kernel does not take."""
+        planes = self._kernel_planes()
+        if planes is None:
+            return False
+        outcome = self.kernel(  # type: ignore[misc]
+            frame.device_pos,
+            frame.device_vel,
+            planes,
+            self._state,
+            frame.proxy_pos,
+            frame.in_contact,
+            frame.surface_point,
+            frame.contact_point,
+            frame.contact_normal,
+            frame.env_force,
+        )
+        if outcome != kernels.CONTACT_DONE:
+            return False
+        # The kernel wrote every field: the Python path's "already zero" marks are stale.
+        self._untouched = None
+        self._off_surfaces = None
+        return True
+
+    def _kernel_planes(self) -> np.ndarray | None:
+        """The kernel's planes (hapticd.kernels.PLANE_COLUMNS): the object's, copied again
+        only when its polytope changed, then the surfaces'; None with an obstacle too
+        large for the kernel."""
+        poly = self.scene.object.polytope
+        planes = self._planes
+        if poly is self._planes_for and planes is not None:
+            return planes
+        m = len(poly.offsets)
+        if m > _VECTOR_PLANES:
+            return None
+        if planes is None or int(planes[0, 6]) != m:
+            rows = [
+                (*n, d, 0, 0, m, 0.0, 0.0)
+                for n, d in zip(poly.normals_list, poly.offsets_list, strict=True)
+            ]
+            lo = m
+            for j, surface in enumerate(self.scene.surfaces, start=1):
+                sp = surface.polytope
+                hi = lo + len(sp.offsets)
+                mat = surface.material
+                rows += [
+                    (*n, d, j, lo, hi, mat.stiffness, mat.damping)
+                    for n, d in zip(sp.normals_list, sp.offsets_list, strict=True)
+                ]
+                lo = hi
+            planes = self._planes = np.array(rows, dtype=float).reshape(-1, kernels.PLANE_COLUMNS)
+        else:
+            planes[:m, 0:3] = poly.normals
+            planes[:m, 3] = poly.offsets
+        self._planes_for = poly
+        return planes
 
     def _env_force(self, oset: ObstacleSet, res: MultiResult, v_dev: np.ndarray) -> V3:
         """Force on a finger from the ground and walls it touches, N."""

@@ -1,8 +1,9 @@
+import math
 import warnings
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import assume, given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
@@ -210,3 +211,142 @@ def test_a_fast_finger_over_a_fine_mesh_ends_on_the_projection():
         n = np.array(normals[i])
         want = dev + (offsets[i] - n @ dev) * n
         np.testing.assert_allclose(p, want, rtol=0, atol=1e-15)
+
+
+# -- the Gram systems' closed forms (plain sums, the compiled kernel's too) ---------------
+
+
+@st.composite
+def plane_sets(draw, singular: bool) -> tuple[list, list, tuple]:
+    """2 or 3 unit normals, offsets (m) and a device point. ``singular``: two of them
+    (nearly) parallel or antiparallel, or three (nearly) in one plane; else well apart."""
+    from tests.strategies import unit_vectors
+
+    k = draw(st.integers(2, 3))
+    ns = [draw(unit_vectors()) for _ in range(k)]
+    if singular:
+        tilt = draw(st.sampled_from([0.0, 1e-15, 1e-9]) | st.floats(0.0, 1e-5))
+        if k == 2 or draw(st.booleans()):
+            sign = draw(st.sampled_from([1.0, -1.0]))
+            ns[1] = sign * ns[0] + tilt * draw(unit_vectors())
+        else:  # the third in the plane of the first two
+            a, b = draw(st.floats(-1.0, 1.0)), draw(st.floats(-1.0, 1.0))
+            ns[2] = a * ns[0] + b * ns[1] + tilt * draw(unit_vectors())
+            assume(np.linalg.norm(ns[2]) > 0.1)
+        ns = [n / np.linalg.norm(n) for n in ns]
+    else:
+        N = np.array(ns)
+        assume(np.linalg.det(N @ N.T) > 0.05)
+    offsets = [draw(st.floats(-0.05, 0.05)) for _ in range(k)]
+    dev = tuple(draw(st.floats(-0.05, 0.05)) for _ in range(3))
+    return [tuple(map(float, n)) for n in ns], offsets, dev
+
+
+@given(plane_sets(singular=False))
+def test_the_closed_form_projection_is_lstsqs_on_well_conditioned_planes(case):
+    from hapticd.contact import _multipliers, _project_on_planes
+
+    ns, offsets, dev = case
+    active = list(range(len(ns)))
+    x, mu = _project_on_planes(dev, ns, offsets, active)
+    N = np.array(ns)
+    r = np.array(offsets) - N @ np.array(dev)
+    want, *_ = np.linalg.lstsq(N @ N.T, r, rcond=1e-12)
+    np.testing.assert_allclose(mu, want, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(x, np.array(dev) + N.T @ want, rtol=0, atol=1e-12)
+    # On every plane, and the multipliers decompose x - dev (least squares, the same
+    # solution for a point on the planes).
+    np.testing.assert_allclose(N @ np.array(x), offsets, rtol=0, atol=1e-12)
+    got = _multipliers([(ns, offsets)], [(0, i) for i in active], x, dev)
+    lsq, *_ = np.linalg.lstsq(N.T, np.array(x) - np.array(dev), rcond=1e-12)
+    np.testing.assert_allclose(got, lsq, rtol=1e-9, atol=1e-12)
+
+
+@given(plane_sets(singular=True))
+def test_singular_plane_sets_take_a_finite_rule_on_the_planes_they_keep(case):
+    """(Nearly) parallel or coplanar normals: finite multipliers, at most two planes kept
+    (multiplier not zero) and the projection on those; two near-parallel planes keep the
+    one with the larger right-hand side."""
+    from hapticd.contact import _GRAM_MIN, _dot, _gram_solve, _project_on_planes
+
+    ns, offsets, dev = case
+    active = list(range(len(ns)))
+    x, mu = _project_on_planes(dev, ns, offsets, active)
+    assert np.all(np.isfinite(x)) and np.all(np.isfinite(mu))
+    r = [offsets[i] - _dot(ns[i], dev) for i in active]
+    assert _gram_solve(ns, r) == mu
+    N = np.array(ns)
+    G = N @ N.T
+    if len(ns) == 2 and 1.0 - _dot(ns[0], ns[1]) ** 2 <= _GRAM_MIN:
+        # G's pseudo-inverse without its small eigenvalue: lstsq's for parallel planes.
+        assert mu[1] == math.copysign(1.0, _dot(ns[0], ns[1])) * mu[0]
+        if abs(_dot(ns[0], ns[1])) == 1.0:
+            want, *_ = np.linalg.lstsq(G, r, rcond=1e-9)
+            np.testing.assert_allclose(mu, want, rtol=1e-9, atol=1e-15)
+    if np.linalg.det(G) <= 0.5 * _GRAM_MIN:
+        # No inverse of the singular system: multipliers bounded by the right-hand sides
+        # over the determinant of the pair the rule solves (> _GRAM_MIN).
+        assert np.max(np.abs(mu)) <= 2.0 * np.max(np.abs(r)) / _GRAM_MIN
+
+
+@st.composite
+def near_degenerate_scenes(draw) -> tuple[list, list]:
+    """A box (half size 2-4 cm, turned) and one to three half-space obstacles (a ground, a
+    wall) whose planes are nearly parallel or antiparallel (0 to 1e-5 rad) to the box's
+    faces, some flush with them: a box sunk to its top in the ground, a finger squeezed
+    between the box's bottom and the ground; and a device path around the box's edges and
+    corners, in and out."""
+    from tests.strategies import unit_vectors
+
+    half = draw(st.floats(0.02, 0.04))
+    rot = rpy_matrix(tuple(draw(st.floats(-3.0, 3.0)) for _ in range(3)))
+    box = box_polytope(np.zeros(3), rot, np.full(3, 2 * half))
+    obstacles = [(box.normals_list, list(box.offsets_list))]
+    for _ in range(draw(st.integers(1, 3))):
+        base = np.array(box.normals_list[draw(st.integers(0, 5))])
+        sign = draw(st.sampled_from([1.0, -1.0]))
+        tilt = draw(st.sampled_from([0.0, 1e-12]) | st.floats(0.0, 1e-5))
+        n = sign * base + tilt * draw(unit_vectors())
+        n = n / np.linalg.norm(n)
+        # Flush with the face (sign +1), or just past it (the gap under the box: -1).
+        offset = sign * half + draw(st.sampled_from([0.0]) | st.floats(-0.002, 0.002))
+        obstacles.append(([tuple(map(float, n))], [float(offset)]))
+    path = []
+    for _ in range(draw(st.integers(2, 12))):
+        signs = np.array([draw(st.sampled_from([-1.0, 0.0, 1.0])) for _ in range(3)])
+        scale = draw(st.floats(0.6, 1.2))
+        noise = np.array([draw(st.floats(-0.003, 0.003)) for _ in range(3)])
+        path.append(tuple(map(float, rot @ (signs * half * scale) + noise)))
+    return obstacles, path
+
+
+@given(near_degenerate_scenes())
+def test_near_degenerate_creases_keep_the_proxy_finite_and_outside(case):
+    obstacles, path = case
+    oset = ObstacleSet(obstacles)
+    p = path[0]
+    outside = False  # a start inside nested obstacles may take more than one push-out
+    for dev in path:
+        res = proxy_step_multi(oset, p, dev)
+        p = res.proxy
+        assert np.all(np.isfinite(p)) and np.all(np.isfinite(res.mu))
+        assert len(res.active) <= 3
+        depth = min(
+            float(np.max(np.array(normals) @ np.array(p) - offsets))
+            for normals, offsets in obstacles
+        )
+        # Once outside every obstacle, the proxy stays outside.
+        assert not outside or depth >= -1e-12
+        outside = outside or depth >= 0.0
+
+
+def test_a_finger_between_two_faces_that_face_each_other_is_pushed_by_one():
+    """The box's bottom (solid above z = 0) and the ground (solid below z = -1 mm),
+    antiparallel: the device 0.2 mm inside the box gets opposite multipliers (the
+    ground's negative: released), not a blown-up inverse."""
+    from hapticd.contact import _project_on_planes
+
+    planes = [(0.0, 0.0, -1.0), (0.0, 0.0, 1.0)]
+    x, mu = _project_on_planes((0.0, 0.0, 0.0002), planes, [0.0, -0.001], [0, 1])
+    assert mu[0] == pytest.approx(0.00035, abs=1e-15) and mu[1] == -mu[0]
+    assert x == pytest.approx((0.0, 0.0, -0.0005), abs=1e-18)  # the gap's middle

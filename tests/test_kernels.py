@@ -190,10 +190,11 @@ def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked(compiled)
     assert s.renderer.kernels.keys() == {
         "free_body_step",
         "allocation_step",
+        "contact_step",
         "friction_step",
         "forces_step",
     }
-    for name in ("dynamics", "allocation", "friction", "forces"):
+    for name in ("dynamics", "allocation", "contact", "friction", "forces"):
         assert s.renderer.stages[s.renderer.stage_names.index(name)].kernel is not None, name
     s.run()
     s = build_session(
@@ -267,8 +268,8 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
     cache = tmp_path / "cache"
     err, _ = _run_lift(tmp_path, "", "auto", cache)
     assert (
-        "compiling free_body_step, allocation_step, friction_step, forces_step in the background"
-        in err
+        "compiling free_body_step, allocation_step, contact_step, friction_step, forces_step "
+        "in the background" in err
     ), err
     assert "compiled or loaded" not in err
     marker = cache / jit.COMPILED
@@ -278,8 +279,8 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
         time.sleep(0.2)
     err, _ = _run_lift(tmp_path, "", "auto", cache)
     assert (
-        "kernels ['free_body_step', 'allocation_step', 'friction_step', 'forces_step'] "
-        "compiled or loaded" in err
+        "kernels ['free_body_step', 'allocation_step', 'contact_step', 'friction_step', "
+        "'forces_step'] compiled or loaded" in err
     ), err
     assert "background" not in err and "render instead" not in err
 
