@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from hapticd.frame import Frame
+from hapticd.kernels import SAFETY_CLAMPED, SAFETY_DEFER, SAFETY_LIMITED, SAFETY_PARAMS
 from hapticd.params import PARAMS, ParamError
 
 
@@ -74,7 +75,13 @@ class SafetyChain:
     limit, so the output never exceeds the limit and is never NaN. ``rated_n`` are the
     devices' own limits (N, per finger), which a new ``force_limit_n`` never exceeds;
     without them, the starting ``limits_n``.
+
+    ``use_kernels`` gives it the compiled ``safety_step`` (hapticd.kernels) for the
+    normal path; whatever may trip (a non-finite force, the watchdog, a finger at the
+    workspace's edge) runs the Python code below, the reference, with its messages.
     """
+
+    kernel_names = ("safety_step",)
 
     def __init__(
         self,
@@ -86,6 +93,7 @@ class SafetyChain:
     ) -> None:
         if not limits_n or any(not (math.isfinite(v) and v > 0) for v in limits_n):
             raise ValueError(f"force limits must be positive and finite, got {limits_n}")
+        self._limits_a = np.zeros(len(limits_n))
         self.limits = [float(v) for v in limits_n]
         self.rated = [float(v) for v in (rated_n if rated_n is not None else limits_n)]
         if len(self.rated) != len(self.limits):
@@ -107,6 +115,11 @@ class SafetyChain:
         self._held_since = [math.inf] * F
         self.gate = [0.0 if d is not None else 1.0 for d in self._deadman]
         self.dt = float(dt)
+        # The compiled normal path (None: Python) and its preallocated inputs.
+        self._step: Callable[..., int] | None = None
+        self._step_params = np.zeros(SAFETY_PARAMS)
+        self._gate_a = np.array(self.gate, dtype=float)
+        self._fit: tuple[Any, Any] = (None, None)  # the last arrays found fit for it
         self.fault: Fault | None = None
         self.clamped_ticks = 0
         self.rate_limited_ticks = 0
@@ -120,6 +133,21 @@ class SafetyChain:
     @property
     def latched(self) -> bool:
         return self.fault is not None
+
+    @property
+    def limits(self) -> list[float]:
+        """Per-finger force limits, N."""
+        return self._limits
+
+    @limits.setter
+    def limits(self, limits_n: list[float]) -> None:
+        self._limits = limits_n
+        self._limits_a[:] = limits_n  # the compiled path's copy
+
+    def use_kernels(self, kernels: dict[str, Callable[..., int]]) -> None:
+        """Run the normal path with ``kernels["safety_step"]`` (compiled by hapticd.jit)
+        from the next tick on; without it (an empty dict), the Python code."""
+        self._step = kernels.get("safety_step")
 
     def start(self, t: float) -> None:
         """Forces were (re-)enabled at nominal time ``t`` (s): begin the ramp."""
@@ -239,6 +267,73 @@ class SafetyChain:
         if self.fault is not None:
             out[:] = 0.0
             return out
+        if self._step is not None and self._compiled(forces, t, positions, t_wall):
+            return out
+        return self._apply(forces, tick, t, positions, t_wall)
+
+    def _ramp(self, t: float) -> float:
+        """The factor of the enable ramp and the ramp-down at nominal time ``t`` (s), 0 to 1."""
+        prm = self.params
+        ramp = 1.0
+        if prm.ramp_s > 0.0:
+            ramp = min(1.0, max(0.0, (t - self._t_enabled) / prm.ramp_s))
+        if t >= self._t_down:
+            ramp = min(ramp, self._down_factor(t))
+        return ramp
+
+    def _compiled(self, forces: Any, t: float, positions: Any, t_wall: float | None) -> bool:
+        """The normal path through the compiled ``safety_step``; False (nothing changed) when
+        the Python code must run this tick: something may trip, or the arrays are not the
+        kernel's (a frame's are)."""
+        prm = self.params
+        if t_wall is not None:
+            last = self._last_wall
+            if last is not None and t_wall - last > prm.watchdog_s:
+                return False
+        out = self.output
+        p = self._step_params
+        p[0] = self._ramp(t)
+        p[1] = prm.max_rate_n_per_s * self.dt
+        if positions is None or not math.isfinite(prm.workspace_radius_m):
+            p[2] = math.inf
+            positions = out  # never read
+        else:
+            p[2] = prm.workspace_radius_m
+            p[3:6] = prm.workspace_center_m
+        if forces is not self._fit[0] or positions is not self._fit[1]:
+            # The kernel's types, checked once per pair of arrays (a frame's are the same
+            # arrays every tick).
+            if not all(
+                type(a) is np.ndarray
+                and a.dtype == np.float64
+                and a.shape == out.shape
+                and a.flags.c_contiguous
+                for a in (forces, positions)
+            ):
+                return False
+            self._fit = (forces, positions)
+        if self._has_deadman:
+            self._gate_a[:] = self.gate
+        flags = self._step(forces, positions, self._limits_a, self._gate_a, p, self._prev, out)
+        if flags & SAFETY_DEFER:
+            return False
+        if t_wall is not None:
+            self._last_wall = t_wall
+        self.clamped_ticks += (flags & SAFETY_CLAMPED) != 0
+        self.rate_limited_ticks += (flags & SAFETY_LIMITED) != 0
+        return True
+
+    def _apply(
+        self,
+        forces: Any,
+        tick: int,
+        t: float,
+        positions: Any,
+        t_wall: float | None,
+    ) -> np.ndarray:
+        """``apply`` in Python from the finite check on: the reference, and the path of every
+        trip."""
+        out = self.output
         prm = self.params
         # Plain floats: per-element numpy access would cost more than the checks themselves.
         rows = np.asarray(forces, dtype=float).tolist()
@@ -273,11 +368,7 @@ class SafetyChain:
                     return out
         clamped = limited = False
         step = prm.max_rate_n_per_s * self.dt
-        ramp = 1.0
-        if prm.ramp_s > 0.0:
-            ramp = min(1.0, max(0.0, (t - self._t_enabled) / prm.ramp_s))
-        if t >= self._t_down:
-            ramp = min(ramp, self._down_factor(t))
+        ramp = self._ramp(t)
         prevs = self._prev.tolist() if step < math.inf else None
         gate = self.gate
         for i, limit in enumerate(self.limits):

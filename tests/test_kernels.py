@@ -261,7 +261,7 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
     the compiling to a process of its own; a later run loads the compiled kernel."""
     cache = tmp_path / "cache"
     err, _ = _run_lift(tmp_path, "", "auto", cache)
-    assert "compiling free_body_step, allocation_step in the background" in err, err
+    assert "compiling free_body_step, allocation_step, safety_step in the background" in err, err
     assert "compiled or loaded" not in err
     marker = cache / jit.COMPILED
     deadline = time.monotonic() + 120.0
@@ -269,7 +269,7 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
         assert time.monotonic() < deadline, "the background compiler did not finish in 120 s"
         time.sleep(0.2)
     err, _ = _run_lift(tmp_path, "", "auto", cache)
-    assert "kernels ['free_body_step', 'allocation_step'] compiled or loaded" in err, err
+    assert "kernels ['free_body_step', 'allocation_step', 'safety_step'] compiled or loaded" in err, err
     assert "background" not in err and "render instead" not in err
 
 
