@@ -269,7 +269,9 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
         assert time.monotonic() < deadline, "the background compiler did not finish in 120 s"
         time.sleep(0.2)
     err, _ = _run_lift(tmp_path, "", "auto", cache)
-    assert "kernels ['free_body_step', 'allocation_step', 'safety_step'] compiled or loaded" in err, err
+    assert (
+        "kernels ['free_body_step', 'allocation_step', 'safety_step'] compiled or loaded" in err
+    ), err
     assert "background" not in err and "render instead" not in err
 
 
