@@ -117,7 +117,9 @@ class SafetyChain:
         self.dt = float(dt)
         # The compiled normal path (None: Python) and its preallocated inputs.
         self._step: Callable[..., int] | None = None
-        self._step_params = np.zeros(SAFETY_PARAMS)
+        self._step_params = np.zeros(SAFETY_PARAMS)  # with the workspace check
+        self._step_params_free = np.zeros(SAFETY_PARAMS)  # without it
+        self._params_of: SafetyParams | None = None  # the params those hold
         self._gate_a = np.array(self.gate, dtype=float)
         self._fit: tuple[Any, Any] = (None, None)  # the last arrays found fit for it
         self.fault: Fault | None = None
@@ -291,15 +293,18 @@ class SafetyChain:
             if last is not None and t_wall - last > prm.watchdog_s:
                 return False
         out = self.output
-        p = self._step_params
-        p[0] = self._ramp(t)
-        p[1] = prm.max_rate_n_per_s * self.dt
+        if prm is not self._params_of:
+            # The workspace's radius and centre (a radius of inf: no workspace check).
+            self._params_of = prm
+            self._step_params[2:] = (prm.workspace_radius_m, *prm.workspace_center_m)
+            self._step_params_free[2:] = (math.inf, 0.0, 0.0, 0.0)
         if positions is None or not math.isfinite(prm.workspace_radius_m):
-            p[2] = math.inf
+            p = self._step_params_free
             positions = out  # never read
         else:
-            p[2] = prm.workspace_radius_m
-            p[3:6] = prm.workspace_center_m
+            p = self._step_params
+        p[0] = self._ramp(t)
+        p[1] = prm.max_rate_n_per_s * self.dt
         if forces is not self._fit[0] or positions is not self._fit[1]:
             # The kernel's types, checked once per pair of arrays (a frame's are the same
             # arrays every tick).

@@ -456,7 +456,7 @@ class ServoLoop:
     def _loop(self) -> None:
         pacer, st = self.pacer, self.stats
         T = self.period
-        F = len(self.devices)
+        hypot = math.hypot
         pacer.start()
         k = 0
         if self.recorder is not None:
@@ -486,15 +486,16 @@ class ServoLoop:
             self._frame_events.after_tick(frame, k, t)
             if safety.fault is not None and safety.fault is not self._fault_seen:
                 self._note_fault(k, t)
-            out = frame.device_force
-            touching = frame.in_contact
-            for i in range(F):
-                f = out[i]
-                mag = math.hypot(f[0], f[1], f[2])
-                if mag > st.max_force[i]:
-                    st.max_force[i] = mag
-                if touching[i]:
-                    st.contact_ticks[i] += 1
+            # Plain floats: numpy item access per finger would cost several times this.
+            max_force = st.max_force
+            for i, (f0, f1, f2) in enumerate(frame.device_force.tolist()):
+                mag = hypot(f0, f1, f2)
+                if mag > max_force[i]:
+                    max_force[i] = mag
+            contact_ticks = st.contact_ticks
+            for i, touching in enumerate(frame.in_contact.tolist()):
+                if touching:
+                    contact_ticks[i] += 1
             frame.fault[()] = safety.fault is not None
             frame.control_seq[()] = self.control_seq
             compute = pacer.end(k, start)
