@@ -27,7 +27,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from hapticd_drivers import Device, DeviceError, DeviceState
 
-from hapticd.frame import Frame
+from hapticd.frame import Frame, item_view
 from hapticd.mount import Mount
 
 # How often a lost device is looked for again (reconnect mode), s of loop time.
@@ -83,7 +83,11 @@ class DeviceBank:
     @property
     def finished(self) -> bool:
         """True when every device plays a trajectory that has ended."""
-        return bool(self.devices) and all(d.finished for d in self.devices)
+        # A loop, not all(generator): the loop asks after every tick.
+        for d in self.devices:
+            if not d.finished:
+                return False
+        return bool(self.devices)
 
     def open(self) -> None:
         """Open every device and enable its forces; on failure, close what was opened."""
@@ -123,9 +127,9 @@ class DeviceBank:
         assignment). The devices themselves are looked up on every tick: a test or a
         bring-up may swap one."""
         self._frame = frame
-        self._pos_mv = memoryview(frame.device_pos)
-        self._vel_mv = memoryview(frame.device_vel)
-        self._buttons_mv = memoryview(frame.buttons)
+        self._pos_mv = item_view(frame.device_pos)
+        self._vel_mv = item_view(frame.device_vel)
+        self._buttons_mv = item_view(frame.buttons)
         self._force_rows = [frame.device_force[i] for i in range(len(self.devices))]
         self._any_mounted = any(self._mounted)
 

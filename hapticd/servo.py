@@ -36,7 +36,7 @@ from hapticd.commands import Command
 from hapticd.device_bank import DeviceBank
 from hapticd.event_ring import DEFAULT_CAPACITY, EventRing, FrameEvents
 from hapticd.events import CAUSE_CODES, CODES
-from hapticd.frame import Frame
+from hapticd.frame import Frame, item_view
 from hapticd.pacing import LoopStats, Pacer
 from hapticd.params import PARAMS, ParamError
 from hapticd.recording import Recorder
@@ -107,6 +107,7 @@ class ServoLoop:
         self.recorder = recorder
         F = len(devices)
         self.frame = Frame(F, renderer.actuation.n_actuators)
+        self._bind_scalars(self.frame)
         self.bank = DeviceBank(
             devices,
             reconnect=reconnect,
@@ -269,9 +270,11 @@ class ServoLoop:
         if self._inbox:
             self._apply_inbox(k, t)
             frame = self.frame  # a reload may have changed its layout
+        if frame is not self._scalars_of:
+            self._bind_scalars(frame)
         frame.tick[()] = k
-        frame.t[()] = t
-        frame.t_wall[()] = start - self.pacer.t0
+        self._t_view[()] = t
+        self._t_wall_view[()] = start - self.pacer.t0
         self.bank.read(frame, k, t)
         self.renderer.run(frame)
         self._check_object(frame, k, t)
@@ -283,6 +286,15 @@ class ServoLoop:
             # raising; `enable` turns them on again.
             self.forces_off = True
             self.bank.zero()
+
+    def _bind_scalars(self, frame: Frame) -> None:
+        """Item views (hapticd.frame.item_view) of the frame's per-tick scalars the loop
+        writes: a store through one costs a tenth of a numpy 0-d assignment."""
+        self._scalars_of = frame
+        self._t_view = item_view(frame.t)
+        self._t_wall_view = item_view(frame.t_wall)
+        self._fault_view = item_view(frame.fault)
+        self._compute_view = item_view(frame.compute_s)
 
     def _trip(self, k: int, t: float, cause: str, kind: str = "device") -> None:
         # Literal kinds: a test checks every kind latched is declared (hapticd.events).
@@ -496,12 +508,14 @@ class ServoLoop:
             for i, touching in enumerate(frame.in_contact.tolist()):
                 if touching:
                     contact_ticks[i] += 1
-            frame.fault[()] = safety.fault is not None
+            if frame is not self._scalars_of:
+                self._bind_scalars(frame)
+            self._fault_view[()] = safety.fault is not None
             frame.control_seq[()] = self.control_seq
             compute = pacer.end(k, start)
             rec = self.recorder
             if rec is not None:
-                frame.compute_s[()] = compute
+                self._compute_view[()] = compute
                 rec.append(frame.recorded)
                 self._last_recorded = k
             reason = self._finished(k)
