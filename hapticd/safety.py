@@ -209,10 +209,20 @@ class SafetyChain:
         """The safety stage: ``device_force`` from the frame's ``rendered_force``, checked
         against its tick, nominal time and device positions; ``t_wall`` (monotonic s)
         feeds the watchdog."""
+        t = float(frame.t)
+        if (
+            self._step is not None
+            and not self._has_deadman
+            and self.fault is None
+            and self._compiled(frame.rendered_force, t, frame.device_pos, t_wall)
+        ):
+            # The normal tick, compiled: ``apply``'s path without its generic steps.
+            frame.device_force[...] = self.output
+            return
         out = self.apply(
             frame.rendered_force,
             int(frame.tick),
-            float(frame.t),
+            t,
             frame.device_pos,
             t_wall,
             frame.buttons if self._has_deadman else None,
@@ -303,7 +313,12 @@ class SafetyChain:
             positions = out  # never read
         else:
             p = self._step_params
-        p[0] = self._ramp(t)
+        # Past the enable ramp and before any ramp-down the factor is exactly 1 (the
+        # division in ``_ramp`` cannot fall below 1 there); otherwise ``_ramp`` says.
+        if t < self._t_down and (prm.ramp_s <= 0.0 or t - self._t_enabled >= prm.ramp_s):
+            p[0] = 1.0
+        else:
+            p[0] = self._ramp(t)
         p[1] = prm.max_rate_n_per_s * self.dt
         if forces is not self._fit[0] or positions is not self._fit[1]:
             # The kernel's types, checked once per pair of arrays (a frame's are the same

@@ -17,6 +17,7 @@ from hypothesis.extra.numpy import arrays
 
 from hapticd import jit, kernels
 from hapticd.daemon.session import build_session
+from hapticd.frame import Frame
 from hapticd.profile import load_profile
 from hapticd.safety import Deadman, SafetyChain, SafetyParams
 from tests.conftest import ROOT
@@ -280,3 +281,36 @@ def test_hostile_forces_through_the_compiled_safety_path(compiled, path, value):
     assert fault.tick == 1000
     assert np.all(forces[-len(session.devices) :] == 0.0)
     assert all(not dev.enabled for dev in session.devices)
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
+@given(case=cases())
+def test_the_stage_on_a_frame_is_the_python_chain(compiled, case):
+    """``run`` (the loop's call: the compiled normal path straight from the frame) against
+    the Python chain's ``apply``, tick by tick."""
+    n = len(case["limits"])
+    dt = 1e-3
+    ref = SafetyChain(case["limits"], case["params"], dt=dt)
+    stage = SafetyChain(case["limits"], case["params"], dt=dt)
+    stage.use_kernels(compiled)
+    frame = Frame(n, n)
+    wall = 100.0
+    for c in (ref, stage):
+        c.start(0.0)
+    for k, forces in enumerate(case["forces"]):
+        t = k * dt
+        wall += case["walls"][k]
+        if case["ramp_down_at"] == k:
+            for c in (ref, stage):
+                c.ramp_down(t, 0.01)
+        frame.tick[()] = k
+        frame.t[()] = t
+        frame.rendered_force[...] = forces
+        frame.device_pos[...] = case["positions"][k]
+        frame.buttons[...] = case["buttons"][k]
+        want = ref.apply(forces, k, t, case["positions"][k], wall, case["buttons"][k])
+        stage.run(frame, wall)
+        assert frame.device_force.tobytes() == want.tobytes(), k
+        assert stage.fault == ref.fault
+        assert stage.clamped_ticks == ref.clamped_ticks
+        assert stage.rate_limited_ticks == ref.rate_limited_ticks
