@@ -592,7 +592,7 @@ def allocation_step(
 
 # safety_step's params: the ramp factor (enable ramp and ramp-down, 0 to 1), the rate
 # limit's largest change this tick (N; inf: off), the workspace radius (m; inf: off) and
-# its centre (3, m).
+# its centre (3, m); then each finger's force limit (F, N) and deadman gate (F, 0 to 1).
 SAFETY_PARAMS = 6
 # safety_step's outcomes: bit flags of a tick made safe (a force clamped, a force rate
 # limited), or DEFER: something may trip (a non-finite force, a finger at or beyond the
@@ -603,22 +603,16 @@ _SPLIT = 134217729.0
 
 
 def safety_step(
-    forces: np.ndarray,
-    positions: np.ndarray,
-    limits: np.ndarray,
-    gate: np.ndarray,
-    params: np.ndarray,
-    prev: np.ndarray,
-    out: np.ndarray,
+    forces: np.ndarray, positions: np.ndarray, params: np.ndarray, out_prev: np.ndarray
 ) -> int:
     """The normal path of ``hapticd.safety.SafetyChain.apply`` for F fingers: the finite
     check, the workspace check, the magnitude clamp (direction kept), the ramp and deadman
     gate, the rate limit; the same operations in the same order.
 
     ``forces`` (F, 3) N, ``positions`` (F, 3) m (read only with a finite workspace
-    radius), ``limits`` (F,) N, ``gate`` (F,) deadman factors 0 to 1, ``params``
-    (SAFETY_PARAMS,) as declared above; ``prev`` (F, 3) N, last tick's output, becomes
-    this tick's. Writes ``out`` (F, 3) N and returns the SAFETY_CLAMPED and
+    radius), ``params`` (SAFETY_PARAMS + 2 F,) as declared above; ``out_prev`` (2, F, 3)
+    N: this tick's output, then last tick's, which becomes this tick's. Writes the
+    output and returns the SAFETY_CLAMPED and
     SAFETY_LIMITED flags, or returns SAFETY_DEFER having written nothing: the caller then
     runs the Python chain, which trips with its message (or, a finger within rounding of
     the workspace's edge, decides). Magnitudes are CPython's ``math.hypot`` (Python 3.11,
@@ -629,6 +623,8 @@ def safety_step(
         for j in range(3):
             if not math.isfinite(forces[i, j]):
                 return SAFETY_DEFER
+    out = out_prev[0]
+    prev = out_prev[1]
     radius = params[2]
     if math.isfinite(radius):
         c0, c1, c2 = params[3], params[4], params[5]
@@ -700,12 +696,12 @@ def safety_step(
                     csum += x
                     frac1 += (old - csum) + x
                 mag = top * math.sqrt(csum - 1.0 + frac1)
-        limit = limits[i]
+        limit = params[SAFETY_PARAMS + i]
         if mag > limit:
             s = limit / mag
             f0, f1, f2 = f0 * s, f1 * s, f2 * s
             flags |= SAFETY_CLAMPED
-        g = gate[i]
+        g = params[SAFETY_PARAMS + n_fingers + i]
         scale_i = ramp if ramp <= g else g
         if scale_i <= 0.0:
             # Exactly zero, never -0.0; the rate limit never delays a drop to zero.

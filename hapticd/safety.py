@@ -93,7 +93,11 @@ class SafetyChain:
     ) -> None:
         if not limits_n or any(not (math.isfinite(v) and v > 0) for v in limits_n):
             raise ValueError(f"force limits must be positive and finite, got {limits_n}")
-        self._limits_a = np.zeros(len(limits_n))
+        F = len(limits_n)
+        # The compiled path's inputs in one array (each argument of a compiled call costs a
+        # type check): SAFETY_PARAMS parameters, then the F limits, then the F gates.
+        self._step_params = np.zeros(SAFETY_PARAMS + 2 * F)
+        self._limits_a = self._step_params[SAFETY_PARAMS : SAFETY_PARAMS + F]
         self.limits = [float(v) for v in limits_n]
         self.rated = [float(v) for v in (rated_n if rated_n is not None else limits_n)]
         if len(self.rated) != len(self.limits):
@@ -117,16 +121,17 @@ class SafetyChain:
         self.dt = float(dt)
         # The compiled normal path (None: Python) and its preallocated inputs.
         self._step: Callable[..., int] | None = None
-        self._step_params = np.zeros(SAFETY_PARAMS)  # with the workspace check
-        self._step_params_free = np.zeros(SAFETY_PARAMS)  # without it
-        self._params_of: SafetyParams | None = None  # the params those hold
-        self._gate_a = np.array(self.gate, dtype=float)
+        self._params_of: SafetyParams | None = None  # the params _step_params holds
+        self._gate_a = self._step_params[SAFETY_PARAMS + F :]
+        self._gate_a[:] = self.gate
         self._fit: tuple[Any, Any] = (None, None)  # the last arrays found fit for it
         self.fault: Fault | None = None
         self.clamped_ticks = 0
         self.rate_limited_ticks = 0
-        self.output = np.zeros((len(limits_n), 3))
-        self._prev = np.zeros((len(limits_n), 3))
+        # This tick's output and the last one's, in one array for the compiled path.
+        self._out_prev = np.zeros((2, F, 3))
+        self.output = self._out_prev[0]
+        self._prev = self._out_prev[1]
         self._t_enabled = 0.0
         self._t_down = math.inf
         self._down_s = 0.0
@@ -303,16 +308,15 @@ class SafetyChain:
             if last is not None and t_wall - last > prm.watchdog_s:
                 return False
         out = self.output
+        p = self._step_params
         if prm is not self._params_of:
-            # The workspace's radius and centre (a radius of inf: no workspace check).
             self._params_of = prm
-            self._step_params[2:] = (prm.workspace_radius_m, *prm.workspace_center_m)
-            self._step_params_free[2:] = (math.inf, 0.0, 0.0, 0.0)
+            p[3:6] = prm.workspace_center_m
         if positions is None or not math.isfinite(prm.workspace_radius_m):
-            p = self._step_params_free
+            p[2] = math.inf  # no workspace check
             positions = out  # never read
         else:
-            p = self._step_params
+            p[2] = prm.workspace_radius_m
         # Past the enable ramp and before any ramp-down the factor is exactly 1 (the
         # division in ``_ramp`` cannot fall below 1 there); otherwise ``_ramp`` says.
         if t < self._t_down and (prm.ramp_s <= 0.0 or t - self._t_enabled >= prm.ramp_s):
@@ -334,7 +338,7 @@ class SafetyChain:
             self._fit = (forces, positions)
         if self._has_deadman:
             self._gate_a[:] = self.gate
-        flags = self._step(forces, positions, self._limits_a, self._gate_a, p, self._prev, out)
+        flags = self._step(forces, positions, p, self._out_prev)
         if flags & SAFETY_DEFER:
             return False
         if t_wall is not None:
