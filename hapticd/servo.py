@@ -272,7 +272,7 @@ class ServoLoop:
             frame = self.frame  # a reload may have changed its layout
         if frame is not self._scalars_of:
             self._bind_scalars(frame)
-        frame.tick[()] = k
+        self._tick_view[()] = k
         self._t_view[()] = t
         self._t_wall_view[()] = start - self.pacer.t0
         self.bank.read(frame, k, t)
@@ -291,6 +291,8 @@ class ServoLoop:
         """Item views (hapticd.frame.item_view) of the frame's per-tick scalars the loop
         writes: a store through one costs a tenth of a numpy 0-d assignment."""
         self._scalars_of = frame
+        self._control_seq_written = -1  # a new frame: write it on the next tick
+        self._tick_view = item_view(frame.tick)
         self._t_view = item_view(frame.t)
         self._t_wall_view = item_view(frame.t_wall)
         self._fault_view = item_view(frame.fault)
@@ -511,7 +513,9 @@ class ServoLoop:
             if frame is not self._scalars_of:
                 self._bind_scalars(frame)
             self._fault_view[()] = safety.fault is not None
-            frame.control_seq[()] = self.control_seq
+            if self.control_seq != self._control_seq_written:
+                # It changes only when a command lands (its field stays between ticks).
+                frame.control_seq[()] = self._control_seq_written = self.control_seq
             compute = pacer.end(k, start)
             rec = self.recorder
             if rec is not None:
