@@ -127,8 +127,11 @@ class DeviceBank:
         assignment). The devices themselves are looked up on every tick: a test or a
         bring-up may swap one."""
         self._frame = frame
-        self._pos_mv = item_view(frame.device_pos)
-        self._vel_mv = item_view(frame.device_vel)
+        # Per finger, its position and velocity rows (a 1-d view: no index tuple to build).
+        self._state_rows = [
+            (item_view(frame.device_pos[i]), item_view(frame.device_vel[i]))
+            for i in range(len(self.devices))
+        ]
         self._buttons_mv = item_view(frame.buttons)
         self._force_rows = [frame.device_force[i] for i in range(len(self.devices))]
         self._any_mounted = any(self._mounted)
@@ -138,7 +141,7 @@ class DeviceBank:
         position, at rest, and so does a device whose sample is implausible (a fault)."""
         if frame is not self._frame:
             self._bind(frame)
-        pos, vel, buttons = self._pos_mv, self._vel_mv, self._buttons_mv
+        state_rows, buttons = self._state_rows, self._buttons_mv
         lost = self.lost if self._n_lost else None
         lim = self._max_speed
         hypot = math.hypot
@@ -165,8 +168,9 @@ class DeviceBank:
                 np.add(tmp, self._t[i], out=frame.device_pos[i])
                 np.matmul(self._sR[i], st.velocity, out=frame.device_vel[i])
             else:
-                pos[i, 0], pos[i, 1], pos[i, 2] = px, py, pz
-                vel[i, 0], vel[i, 1], vel[i, 2] = vx, vy, vz
+                pos, vel = state_rows[i]
+                pos[0], pos[1], pos[2] = px, py, pz
+                vel[0], vel[1], vel[2] = vx, vy, vz
             buttons[i] = st.buttons
 
     def write(self, frame: Frame, k: int, t: float) -> None:
