@@ -143,13 +143,14 @@ class SafetyChain:
 
     @property
     def limits(self) -> list[float]:
-        """Per-finger force limits, N."""
-        return self._limits
+        """Per-finger force limits, N (a copy: ``set_limits`` changes them, so that both
+        paths see the change)."""
+        return list(self._limits)
 
     @limits.setter
     def limits(self, limits_n: list[float]) -> None:
-        self._limits = limits_n
-        self._limits_a[:] = limits_n  # the compiled path's copy
+        self._limits = [float(v) for v in limits_n]
+        self._limits_a[:] = self._limits  # the compiled path's copy
 
     def use_kernels(self, kernels: dict[str, Callable[..., int]]) -> None:
         """Run the normal path with ``kernels["safety_step"]`` (compiled by hapticd.jit)
@@ -395,7 +396,7 @@ class SafetyChain:
         ramp = self._ramp(t)
         prevs = self._prev.tolist() if step < math.inf else None
         gate = self.gate
-        for i, limit in enumerate(self.limits):
+        for i, limit in enumerate(self._limits):
             f0, f1, f2 = rows[i]
             mag = math.hypot(f0, f1, f2)
             if mag > limit:

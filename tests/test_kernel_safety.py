@@ -314,3 +314,15 @@ def test_the_stage_on_a_frame_is_the_python_chain(compiled, case):
         assert stage.fault == ref.fault
         assert stage.clamped_ticks == ref.clamped_ticks
         assert stage.rate_limited_ticks == ref.rate_limited_ticks
+
+
+@pytest.mark.parametrize("path", ["python", "compiled"])
+def test_new_limits_reach_both_paths_and_a_copy_changes_nothing(compiled, path):
+    chain = SafetyChain([5.0, 5.0])
+    chain.use_kernels(compiled if path == "compiled" else {})
+    push = np.array([[10.0, 0.0, 0.0], [0.0, 0.0, -10.0]])
+    chain.limits[0] = 100.0  # a copy of the limits: nothing changes
+    assert chain.apply(push, 0, 0.0).tolist() == [[5.0, 0.0, 0.0], [0.0, 0.0, -5.0]]
+    chain.set_param("force_limit_n", 2.0)
+    assert chain.limits == [2.0, 2.0]
+    assert chain.apply(push, 1, 0.001).tolist() == [[2.0, 0.0, 0.0], [0.0, 0.0, -2.0]]
