@@ -369,7 +369,7 @@ def build_safety(profile: Profile, devices: list[Device]) -> SafetyChain:
     # the normal path compiled, every trip through the Python chain. build_renderer asked
     # for it with its own and said how that went: here it is in this process already, or
     # Python runs (auto: being compiled; or no working JIT).
-    choice = jit.choose(profile.rendering.kernels, SafetyChain.kernel_names)
+    choice = jit.choose(profile.rendering.kernels, list(SafetyChain.kernel_names))
     if choice.message is not None or choice.note is not None:
         log.debug("safety chain: %s", choice.message or choice.note)
     chain.use_kernels(choice.kernels)

@@ -17,6 +17,8 @@ def safety_path(request):
     if request.param == "python":
         yield request.param
         return
+    if not SafetyChain.kernel_names:
+        pytest.skip("safety_step is Python 3.11's hypot: no compiled path here")
     kernels = jit.compile_kernels(["safety_step"])
     init = SafetyChain.__init__
 
