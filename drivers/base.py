@@ -89,7 +89,10 @@ def check_force(force: np.ndarray, limit_n: float, who: str) -> None:
             force = np.asarray(force, dtype=float)  # a list or tuple: the rare path
         if force.shape != (3,):
             raise ValueError
-        x, y, z = float(force[0]), float(force[1]), float(force[2])
+        # One tolist, then float() of each (a float is itself: cheap), as float(force[i])
+        # would convert.
+        x, y, z = force.tolist()
+        x, y, z = float(x), float(y), float(z)
     except (TypeError, ValueError):
         x = y = z = math.nan
     if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):

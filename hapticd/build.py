@@ -329,22 +329,26 @@ def build_renderer(profile: Profile) -> Renderer:
             else None
         ),
     )
-    choice = jit.choose(rc.kernels, renderer.kernel_names)
+    # The safety chain's kernel (build_safety) is chosen with the renderer's: one message,
+    # and one background compiler for all of them.
+    names = renderer.kernel_names
+    choice = jit.choose(rc.kernels, [*names, *SafetyChain.kernel_names] if names else [])
     if choice.message is not None:
         log.warning("%s", choice.message)
     elif choice.note is not None:
         log.info("%s", choice.note)
     elif choice.used == "compiled":
         log.debug("kernels %s compiled or loaded in %.3f s", list(choice.kernels), choice.seconds)
-    renderer.use_kernels(choice.kernels)
+    renderer.use_kernels({n: k for n, k in choice.kernels.items() if n in names})
     return renderer
 
 
 def build_safety(profile: Profile, devices: list[Device]) -> SafetyChain:
-    """The safety chain of ``profile`` for ``devices`` (limit: the smaller of both)."""
+    """The safety chain of ``profile`` for ``devices`` (limit: the smaller of both), with
+    its compiled normal path as ``rendering.kernels`` asks (hapticd.jit.choose)."""
     limits = [min(d.info.max_force_n, profile.safety.max_force_n) for d in devices]
     sc = profile.safety
-    return SafetyChain(
+    chain = SafetyChain(
         limits,
         SafetyParams(
             ramp_s=sc.ramp_s,
@@ -361,3 +365,12 @@ def build_safety(profile: Profile, devices: list[Device]) -> SafetyChain:
         dt=1.0 / profile.loop.rate_hz,
         rated_n=[d.info.max_force_n for d in devices],
     )
+    # Not a renderer stage, but compiled as the renderer's kernels are (rendering.kernels):
+    # the normal path compiled, every trip through the Python chain. build_renderer asked
+    # for it with its own and said how that went: here it is in this process already, or
+    # Python runs (auto: being compiled; or no working JIT).
+    choice = jit.choose(profile.rendering.kernels, list(SafetyChain.kernel_names))
+    if choice.message is not None or choice.note is not None:
+        log.debug("safety chain: %s", choice.message or choice.note)
+    chain.use_kernels(choice.kernels)
+    return chain

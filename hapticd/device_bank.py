@@ -27,7 +27,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from hapticd_drivers import Device, DeviceError, DeviceState
 
-from hapticd.frame import Frame
+from hapticd.frame import Frame, item_view
 from hapticd.mount import Mount
 
 # How often a lost device is looked for again (reconnect mode), s of loop time.
@@ -62,6 +62,7 @@ class DeviceBank:
         self.lost: list[float | None] = [None] * len(self.devices)
         self._n_lost = 0
         self._zero = np.zeros(3)
+        self._frame: Frame | None = None  # the frame ``_bind`` looked up
         self.set_mounts([Mount() for _ in self.devices])
 
     def set_mounts(self, mounts: Sequence[Mount]) -> None:
@@ -77,11 +78,16 @@ class DeviceBank:
         self._mounted = [not m.is_identity for m in self.mounts]
         self._tmp = np.zeros(3)
         self._f_dev = [np.zeros(3) for _ in self.mounts]
+        self._frame = None  # look the per-finger slots up again
 
     @property
     def finished(self) -> bool:
         """True when every device plays a trajectory that has ended."""
-        return bool(self.devices) and all(d.finished for d in self.devices)
+        # A loop, not all(generator): the loop asks after every tick.
+        for d in self.devices:
+            if not d.finished:
+                return False
+        return bool(self.devices)
 
     def open(self) -> None:
         """Open every device and enable its forces; on failure, close what was opened."""
@@ -114,21 +120,41 @@ class DeviceBank:
             raise ValueError(f"the largest device speed must be positive, got {v}")
         self._max_speed = float(v)
 
+    def _bind(self, frame: Frame) -> None:
+        """What a tick needs of ``frame``, looked up once per frame (a reload brings a new
+        one): each finger's force row, and memoryviews of the device state (a float stored
+        through one is that float, bit for bit, for a fraction of a numpy item
+        assignment). The devices themselves are looked up on every tick: a test or a
+        bring-up may swap one."""
+        self._frame = frame
+        # Per finger, its position and velocity rows (a 1-d view: no index tuple to build).
+        self._state_rows = [
+            (item_view(frame.device_pos[i]), item_view(frame.device_vel[i]))
+            for i in range(len(self.devices))
+        ]
+        self._buttons_mv = item_view(frame.buttons)
+        self._force_rows = [frame.device_force[i] for i in range(len(self.devices))]
+        self._any_mounted = any(self._mounted)
+
     def read(self, frame: Frame, k: int, t: float) -> None:
         """Fill ``device_pos``, ``device_vel`` and ``buttons``; a lost device keeps its last
         position, at rest, and so does a device whose sample is implausible (a fault)."""
-        pos, vel, buttons = frame.device_pos, frame.device_vel, frame.buttons
-        lost = self.lost
+        if frame is not self._frame:
+            self._bind(frame)
+        state_rows, buttons = self._state_rows, self._buttons_mv
+        lost = self.lost if self._n_lost else None
         lim = self._max_speed
         hypot = math.hypot
+        states = self._states
         for i, dev in enumerate(self.devices):
-            if lost[i] is not None:
+            if lost is not None and lost[i] is not None:
                 continue
-            st = self._states[i]
+            st = states[i]
             try:
                 dev.read_state(st)
             except DeviceError as exc:
                 self._lose(frame, i, k, t, exc)
+                lost = self.lost
                 continue
             # NaN fails the comparisons (hypot neither overflows nor hides a NaN).
             px, py, pz = st.position.tolist()
@@ -136,30 +162,35 @@ class DeviceBank:
             if not (hypot(vx, vy, vz) <= lim and hypot(px, py, pz) <= MAX_DEVICE_DISTANCE_M):
                 self._implausible(frame, i, k, t, st)
                 continue
-            if self._mounted[i]:
+            if self._any_mounted and self._mounted[i]:
                 tmp = self._tmp
                 np.matmul(self._sR[i], st.position, out=tmp)
-                np.add(tmp, self._t[i], out=pos[i])
-                np.matmul(self._sR[i], st.velocity, out=vel[i])
+                np.add(tmp, self._t[i], out=frame.device_pos[i])
+                np.matmul(self._sR[i], st.velocity, out=frame.device_vel[i])
             else:
-                pos[i] = st.position
-                vel[i] = st.velocity
+                pos, vel = state_rows[i]
+                pos[0], pos[1], pos[2] = px, py, pz
+                vel[0], vel[1], vel[2] = vx, vy, vz
             buttons[i] = st.buttons
 
     def write(self, frame: Frame, k: int, t: float) -> None:
         """Command ``device_force`` (world frame) on every connected device, each in its own
         frame (R^T f), then look for lost ones."""
-        out = frame.device_force
-        lost = self.lost
+        if frame is not self._frame:
+            self._bind(frame)
+        lost = self.lost if self._n_lost else None
+        rows = self._force_rows
         for i, dev in enumerate(self.devices):
-            if lost[i] is None:
-                f = out[i]
-                if self._mounted[i]:
-                    f = np.matmul(self._Rt[i], f, out=self._f_dev[i])
-                try:
-                    dev.write_force(f)
-                except DeviceError as exc:
-                    self._lose(frame, i, k, t, exc)
+            if lost is not None and lost[i] is not None:
+                continue
+            f = rows[i]
+            if self._any_mounted and self._mounted[i]:
+                f = np.matmul(self._Rt[i], f, out=self._f_dev[i])
+            try:
+                dev.write_force(f)
+            except DeviceError as exc:
+                self._lose(frame, i, k, t, exc)
+                lost = self.lost
         if self._n_lost:
             self._look_for_lost(t)
 

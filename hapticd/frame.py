@@ -191,3 +191,14 @@ def markdown_table() -> str:
         doc = f.doc.replace("|", "\\|")
         lines.append(f"| `{f.name}` | {shape} | {f.unit} | {doc} |")
     return "\n".join(lines) + "\n"
+
+
+def item_view(a: np.ndarray) -> memoryview | np.ndarray:
+    """``a`` for storing single items (``v[i] = x``, ``v[i, j] = x``): a memoryview when
+    Python's memoryview takes its item format (native, aligned), else ``a`` itself (a
+    field the record leaves unaligned for some finger counts)."""
+    view = memoryview(a)
+    return view if view.format in _NATIVE_FORMATS else a
+
+
+_NATIVE_FORMATS = frozenset("dBIL")

@@ -65,6 +65,7 @@ SIGNATURES = {
         "i8(f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], u1[::1], f8[:, ::1],"
         " f8[:, ::1], f8[:, ::1], f8[:, ::1])"
     ),
+    "safety_step": "i8(f8[:, ::1], f8[:, ::1], f8[::1], f8[:, :, ::1])",
 }
 
 # Compiled kernels of this process, by name: a reload compiles nothing again.

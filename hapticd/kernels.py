@@ -1273,3 +1273,187 @@ def contact_step(
         contact_point[i, 1] = x1 - r * ny
         contact_point[i, 2] = x2 - r * nz
     return CONTACT_DONE
+
+
+# -- the safety chain's normal path -------------------------------------------------------
+
+# safety_step's params: the ramp factor (enable ramp and ramp-down, 0 to 1), the rate
+# limit's largest change this tick (N; inf: off), the workspace radius (m; inf: off) and
+# its centre (3, m); then each finger's force limit (F, N) and deadman gate (F, 0 to 1).
+SAFETY_PARAMS = 6
+# safety_step's outcomes: bit flags of a tick made safe (a force clamped, a force rate
+# limited), or DEFER: something may trip (a non-finite force, a finger at or beyond the
+# workspace's edge), nothing written, the Python chain runs this tick.
+SAFETY_CLAMPED, SAFETY_LIMITED, SAFETY_DEFER = 1, 2, 4
+# Python's math.hypot splits each scaled square with Veltkamp's constant 2**27 + 1.
+_SPLIT = 134217729.0
+
+
+def safety_step(
+    forces: np.ndarray, positions: np.ndarray, params: np.ndarray, out_prev: np.ndarray
+) -> int:
+    """The normal path of ``hapticd.safety.SafetyChain.apply`` for F fingers: the finite
+    check, the workspace check, the magnitude clamp (direction kept), the ramp and deadman
+    gate, the rate limit; the same operations in the same order.
+
+    ``forces`` (F, 3) N, ``positions`` (F, 3) m (read only with a finite workspace
+    radius), ``params`` (SAFETY_PARAMS + 2 F,) as declared above; ``out_prev`` (2, F, 3)
+    N: this tick's output, then last tick's, which becomes this tick's. Writes the
+    output and returns the SAFETY_CLAMPED and
+    SAFETY_LIMITED flags, or returns SAFETY_DEFER having written nothing: the caller then
+    runs the Python chain, which trips with its message (or, a finger within rounding of
+    the workspace's edge, decides). Magnitudes are CPython's ``math.hypot`` (Python 3.11,
+    ``vector_norm``: scaled, split squares with compensated sums), inlined twice.
+    """
+    n_fingers = forces.shape[0]
+    for i in range(n_fingers):
+        for j in range(3):
+            if not math.isfinite(forces[i, j]):
+                return SAFETY_DEFER
+    out = out_prev[0]
+    prev = out_prev[1]
+    radius = params[2]
+    if math.isfinite(radius):
+        c0, c1, c2 = params[3], params[4], params[5]
+        # Python squares with ``** 2`` (the C library's pow, which differs from x * x in
+        # the last bit now and then): near the edge the Python chain decides.
+        edge = radius * (1.0 - 1e-9)
+        for i in range(n_fingers):
+            d0 = positions[i, 0] - c0
+            d1 = positions[i, 1] - c1
+            d2 = positions[i, 2] - c2
+            r = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            if not r <= edge:
+                return SAFETY_DEFER
+    ramp = params[0]
+    step = params[1]
+    rate_limited = step < math.inf
+    flags = 0
+    for i in range(n_fingers):
+        f0, f1, f2 = forces[i, 0], forces[i, 1], forces[i, 2]
+        # mag = math.hypot(f0, f1, f2)
+        a0, a1, a2 = abs(f0), abs(f1), abs(f2)
+        top = a0
+        if a1 > top:
+            top = a1
+        if a2 > top:
+            top = a2
+        if top == 0.0:
+            mag = top
+        else:
+            e = math.frexp(top)[1]
+            csum, frac1, frac2, frac3 = 1.0, 0.0, 0.0, 0.0
+            if e >= -1023:
+                scale = math.ldexp(1.0, -e)
+                for x in (a0 * scale, a1 * scale, a2 * scale):
+                    t = x * _SPLIT
+                    hi = t - (t - x)
+                    lo = x - hi
+                    x = hi * hi
+                    old = csum
+                    csum += x
+                    frac1 += (old - csum) + x
+                    x = 2.0 * hi * lo
+                    old = csum
+                    csum += x
+                    frac2 += (old - csum) + x
+                    frac3 += lo * lo
+                h = math.sqrt(csum - 1.0 + (frac1 + frac2 + frac3))
+                t = h * _SPLIT
+                hi = t - (t - h)
+                lo = h - hi
+                x = -hi * hi
+                old = csum
+                csum += x
+                frac1 += (old - csum) + x
+                x = -2.0 * hi * lo
+                old = csum
+                csum += x
+                frac2 += (old - csum) + x
+                x = -lo * lo
+                old = csum
+                csum += x
+                frac3 += (old - csum) + x
+                x = csum - 1.0 + (frac1 + frac2 + frac3)
+                mag = (h + x / (2.0 * h)) / scale
+            else:
+                for x in (a0 / top, a1 / top, a2 / top):
+                    x = x * x
+                    old = csum
+                    csum += x
+                    frac1 += (old - csum) + x
+                mag = top * math.sqrt(csum - 1.0 + frac1)
+        limit = params[SAFETY_PARAMS + i]
+        if mag > limit:
+            s = limit / mag
+            f0, f1, f2 = f0 * s, f1 * s, f2 * s
+            flags |= SAFETY_CLAMPED
+        g = params[SAFETY_PARAMS + n_fingers + i]
+        scale_i = ramp if ramp <= g else g
+        if scale_i <= 0.0:
+            # Exactly zero, never -0.0; the rate limit never delays a drop to zero.
+            f0, f1, f2 = 0.0, 0.0, 0.0
+        elif scale_i < 1.0:
+            f0, f1, f2 = f0 * scale_i, f1 * scale_i, f2 * scale_i
+        if rate_limited and (f0 != 0.0 or f1 != 0.0 or f2 != 0.0):
+            p0, p1, p2 = prev[i, 0], prev[i, 1], prev[i, 2]
+            d0, d1, d2 = f0 - p0, f1 - p1, f2 - p2
+            # change = math.hypot(d0, d1, d2)
+            a0, a1, a2 = abs(d0), abs(d1), abs(d2)
+            top = a0
+            if a1 > top:
+                top = a1
+            if a2 > top:
+                top = a2
+            if math.isinf(top) or top == 0.0:
+                change = top
+            else:
+                e = math.frexp(top)[1]
+                csum, frac1, frac2, frac3 = 1.0, 0.0, 0.0, 0.0
+                if e >= -1023:
+                    scale = math.ldexp(1.0, -e)
+                    for x in (a0 * scale, a1 * scale, a2 * scale):
+                        t = x * _SPLIT
+                        hi = t - (t - x)
+                        lo = x - hi
+                        x = hi * hi
+                        old = csum
+                        csum += x
+                        frac1 += (old - csum) + x
+                        x = 2.0 * hi * lo
+                        old = csum
+                        csum += x
+                        frac2 += (old - csum) + x
+                        frac3 += lo * lo
+                    h = math.sqrt(csum - 1.0 + (frac1 + frac2 + frac3))
+                    t = h * _SPLIT
+                    hi = t - (t - h)
+                    lo = h - hi
+                    x = -hi * hi
+                    old = csum
+                    csum += x
+                    frac1 += (old - csum) + x
+                    x = -2.0 * hi * lo
+                    old = csum
+                    csum += x
+                    frac2 += (old - csum) + x
+                    x = -lo * lo
+                    old = csum
+                    csum += x
+                    frac3 += (old - csum) + x
+                    x = csum - 1.0 + (frac1 + frac2 + frac3)
+                    change = (h + x / (2.0 * h)) / scale
+                else:
+                    for x in (a0 / top, a1 / top, a2 / top):
+                        x = x * x
+                        old = csum
+                        csum += x
+                        frac1 += (old - csum) + x
+                    change = top * math.sqrt(csum - 1.0 + frac1)
+            if change > step:
+                k = step / change
+                f0, f1, f2 = p0 + k * d0, p1 + k * d1, p2 + k * d2
+                flags |= SAFETY_LIMITED
+        out[i, 0], out[i, 1], out[i, 2] = f0, f1, f2
+        prev[i, 0], prev[i, 1], prev[i, 2] = f0, f1, f2
+    return flags

@@ -10,6 +10,7 @@ gets force only while that button is held. Forces in N, shape (F, 3).
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -17,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from hapticd.frame import Frame
+from hapticd.kernels import SAFETY_CLAMPED, SAFETY_DEFER, SAFETY_LIMITED, SAFETY_PARAMS
 from hapticd.params import PARAMS, ParamError
 
 
@@ -74,7 +76,16 @@ class SafetyChain:
     limit, so the output never exceeds the limit and is never NaN. ``rated_n`` are the
     devices' own limits (N, per finger), which a new ``force_limit_n`` never exceeds;
     without them, the starting ``limits_n``.
+
+    ``use_kernels`` gives it the compiled ``safety_step`` (hapticd.kernels) for the
+    normal path; whatever may trip (a non-finite force, the watchdog, a finger at the
+    workspace's edge) runs the Python code below, the reference, with its messages.
     """
+
+    # safety_step inlines Python 3.11's math.hypot (CPython's own algorithm); 3.12 changed
+    # that algorithm, so under another Python the Python chain runs (the same limits, not
+    # always the same last bit).
+    kernel_names = ("safety_step",) if sys.version_info[:2] == (3, 11) else ()
 
     def __init__(
         self,
@@ -86,6 +97,11 @@ class SafetyChain:
     ) -> None:
         if not limits_n or any(not (math.isfinite(v) and v > 0) for v in limits_n):
             raise ValueError(f"force limits must be positive and finite, got {limits_n}")
+        F = len(limits_n)
+        # The compiled path's inputs in one array (each argument of a compiled call costs a
+        # type check): SAFETY_PARAMS parameters, then the F limits, then the F gates.
+        self._step_params = np.zeros(SAFETY_PARAMS + 2 * F)
+        self._limits_a = self._step_params[SAFETY_PARAMS : SAFETY_PARAMS + F]
         self.limits = [float(v) for v in limits_n]
         self.rated = [float(v) for v in (rated_n if rated_n is not None else limits_n)]
         if len(self.rated) != len(self.limits):
@@ -107,11 +123,19 @@ class SafetyChain:
         self._held_since = [math.inf] * F
         self.gate = [0.0 if d is not None else 1.0 for d in self._deadman]
         self.dt = float(dt)
+        # The compiled normal path (None: Python) and its preallocated inputs.
+        self._step: Callable[..., int] | None = None
+        self._params_of: SafetyParams | None = None  # the params _step_params holds
+        self._gate_a = self._step_params[SAFETY_PARAMS + F :]
+        self._gate_a[:] = self.gate
+        self._fit: tuple[Any, Any] = (None, None)  # the last arrays found fit for it
         self.fault: Fault | None = None
         self.clamped_ticks = 0
         self.rate_limited_ticks = 0
-        self.output = np.zeros((len(limits_n), 3))
-        self._prev = np.zeros((len(limits_n), 3))
+        # This tick's output and the last one's, in one array for the compiled path.
+        self._out_prev = np.zeros((2, F, 3))
+        self.output = self._out_prev[0]
+        self._prev = self._out_prev[1]
         self._t_enabled = 0.0
         self._t_down = math.inf
         self._down_s = 0.0
@@ -120,6 +144,22 @@ class SafetyChain:
     @property
     def latched(self) -> bool:
         return self.fault is not None
+
+    @property
+    def limits(self) -> list[float]:
+        """Per-finger force limits, N (a copy: ``set_limits`` changes them, so that both
+        paths see the change)."""
+        return list(self._limits)
+
+    @limits.setter
+    def limits(self, limits_n: list[float]) -> None:
+        self._limits = [float(v) for v in limits_n]
+        self._limits_a[:] = self._limits  # the compiled path's copy
+
+    def use_kernels(self, kernels: dict[str, Callable[..., int]]) -> None:
+        """Run the normal path with ``kernels["safety_step"]`` (compiled by hapticd.jit)
+        from the next tick on; without it (an empty dict), the Python code."""
+        self._step = kernels.get("safety_step")
 
     def start(self, t: float) -> None:
         """Forces were (re-)enabled at nominal time ``t`` (s): begin the ramp."""
@@ -179,10 +219,20 @@ class SafetyChain:
         """The safety stage: ``device_force`` from the frame's ``rendered_force``, checked
         against its tick, nominal time and device positions; ``t_wall`` (monotonic s)
         feeds the watchdog."""
+        t = float(frame.t)
+        if (
+            self._step is not None
+            and not self._has_deadman
+            and self.fault is None
+            and self._compiled(frame.rendered_force, t, frame.device_pos, t_wall)
+        ):
+            # The normal tick, compiled: ``apply``'s path without its generic steps.
+            frame.device_force[...] = self.output
+            return
         out = self.apply(
             frame.rendered_force,
             int(frame.tick),
-            float(frame.t),
+            t,
             frame.device_pos,
             t_wall,
             frame.buttons if self._has_deadman else None,
@@ -239,6 +289,80 @@ class SafetyChain:
         if self.fault is not None:
             out[:] = 0.0
             return out
+        if self._step is not None and self._compiled(forces, t, positions, t_wall):
+            return out
+        return self._apply(forces, tick, t, positions, t_wall)
+
+    def _ramp(self, t: float) -> float:
+        """The factor of the enable ramp and the ramp-down at nominal time ``t`` (s), 0 to 1."""
+        prm = self.params
+        ramp = 1.0
+        if prm.ramp_s > 0.0:
+            ramp = min(1.0, max(0.0, (t - self._t_enabled) / prm.ramp_s))
+        if t >= self._t_down:
+            ramp = min(ramp, self._down_factor(t))
+        return ramp
+
+    def _compiled(self, forces: Any, t: float, positions: Any, t_wall: float | None) -> bool:
+        """The normal path through the compiled ``safety_step``; False (nothing changed) when
+        the Python code must run this tick: something may trip, or the arrays are not the
+        kernel's (a frame's are)."""
+        prm = self.params
+        if t_wall is not None:
+            last = self._last_wall
+            if last is not None and t_wall - last > prm.watchdog_s:
+                return False
+        out = self.output
+        p = self._step_params
+        if prm is not self._params_of:
+            self._params_of = prm
+            p[3:6] = prm.workspace_center_m
+        if positions is None or not math.isfinite(prm.workspace_radius_m):
+            p[2] = math.inf  # no workspace check
+            positions = out  # never read
+        else:
+            p[2] = prm.workspace_radius_m
+        # Past the enable ramp and before any ramp-down the factor is exactly 1 (the
+        # division in ``_ramp`` cannot fall below 1 there); otherwise ``_ramp`` says.
+        if t < self._t_down and (prm.ramp_s <= 0.0 or t - self._t_enabled >= prm.ramp_s):
+            p[0] = 1.0
+        else:
+            p[0] = self._ramp(t)
+        p[1] = prm.max_rate_n_per_s * self.dt
+        if forces is not self._fit[0] or positions is not self._fit[1]:
+            # The kernel's types, checked once per pair of arrays (a frame's are the same
+            # arrays every tick).
+            if not all(
+                type(a) is np.ndarray
+                and a.dtype == np.float64
+                and a.shape == out.shape
+                and a.flags.c_contiguous
+                for a in (forces, positions)
+            ):
+                return False
+            self._fit = (forces, positions)
+        if self._has_deadman:
+            self._gate_a[:] = self.gate
+        flags = self._step(forces, positions, p, self._out_prev)
+        if flags & SAFETY_DEFER:
+            return False
+        if t_wall is not None:
+            self._last_wall = t_wall
+        self.clamped_ticks += (flags & SAFETY_CLAMPED) != 0
+        self.rate_limited_ticks += (flags & SAFETY_LIMITED) != 0
+        return True
+
+    def _apply(
+        self,
+        forces: Any,
+        tick: int,
+        t: float,
+        positions: Any,
+        t_wall: float | None,
+    ) -> np.ndarray:
+        """``apply`` in Python from the finite check on: the reference, and the path of every
+        trip."""
+        out = self.output
         prm = self.params
         # Plain floats: per-element numpy access would cost more than the checks themselves.
         rows = np.asarray(forces, dtype=float).tolist()
@@ -273,14 +397,10 @@ class SafetyChain:
                     return out
         clamped = limited = False
         step = prm.max_rate_n_per_s * self.dt
-        ramp = 1.0
-        if prm.ramp_s > 0.0:
-            ramp = min(1.0, max(0.0, (t - self._t_enabled) / prm.ramp_s))
-        if t >= self._t_down:
-            ramp = min(ramp, self._down_factor(t))
+        ramp = self._ramp(t)
         prevs = self._prev.tolist() if step < math.inf else None
         gate = self.gate
-        for i, limit in enumerate(self.limits):
+        for i, limit in enumerate(self._limits):
             f0, f1, f2 = rows[i]
             mag = math.hypot(f0, f1, f2)
             if mag > limit:

@@ -36,7 +36,7 @@ from hapticd.commands import Command
 from hapticd.device_bank import DeviceBank
 from hapticd.event_ring import DEFAULT_CAPACITY, EventRing, FrameEvents
 from hapticd.events import CAUSE_CODES, CODES
-from hapticd.frame import Frame
+from hapticd.frame import Frame, item_view
 from hapticd.pacing import LoopStats, Pacer
 from hapticd.params import PARAMS, ParamError
 from hapticd.recording import Recorder
@@ -107,6 +107,7 @@ class ServoLoop:
         self.recorder = recorder
         F = len(devices)
         self.frame = Frame(F, renderer.actuation.n_actuators)
+        self._bind_scalars(self.frame)
         self.bank = DeviceBank(
             devices,
             reconnect=reconnect,
@@ -269,9 +270,11 @@ class ServoLoop:
         if self._inbox:
             self._apply_inbox(k, t)
             frame = self.frame  # a reload may have changed its layout
-        frame.tick[()] = k
-        frame.t[()] = t
-        frame.t_wall[()] = start - self.pacer.t0
+        if frame is not self._scalars_of:
+            self._bind_scalars(frame)
+        self._tick_view[()] = k
+        self._t_view[()] = t
+        self._t_wall_view[()] = start - self.pacer.t0
         self.bank.read(frame, k, t)
         self.renderer.run(frame)
         self._check_object(frame, k, t)
@@ -283,6 +286,17 @@ class ServoLoop:
             # raising; `enable` turns them on again.
             self.forces_off = True
             self.bank.zero()
+
+    def _bind_scalars(self, frame: Frame) -> None:
+        """Item views (hapticd.frame.item_view) of the frame's per-tick scalars the loop
+        writes: a store through one costs a tenth of a numpy 0-d assignment."""
+        self._scalars_of = frame
+        self._control_seq_written = -1  # a new frame: write it on the next tick
+        self._tick_view = item_view(frame.tick)
+        self._t_view = item_view(frame.t)
+        self._t_wall_view = item_view(frame.t_wall)
+        self._fault_view = item_view(frame.fault)
+        self._compute_view = item_view(frame.compute_s)
 
     def _trip(self, k: int, t: float, cause: str, kind: str = "device") -> None:
         # Literal kinds: a test checks every kind latched is declared (hapticd.events).
@@ -456,7 +470,7 @@ class ServoLoop:
     def _loop(self) -> None:
         pacer, st = self.pacer, self.stats
         T = self.period
-        F = len(self.devices)
+        hypot = math.hypot
         pacer.start()
         k = 0
         if self.recorder is not None:
@@ -486,21 +500,26 @@ class ServoLoop:
             self._frame_events.after_tick(frame, k, t)
             if safety.fault is not None and safety.fault is not self._fault_seen:
                 self._note_fault(k, t)
-            out = frame.device_force
-            touching = frame.in_contact
-            for i in range(F):
-                f = out[i]
-                mag = math.hypot(f[0], f[1], f[2])
-                if mag > st.max_force[i]:
-                    st.max_force[i] = mag
-                if touching[i]:
-                    st.contact_ticks[i] += 1
-            frame.fault[()] = safety.fault is not None
-            frame.control_seq[()] = self.control_seq
+            # Plain floats: numpy item access per finger would cost several times this.
+            max_force = st.max_force
+            for i, (f0, f1, f2) in enumerate(frame.device_force.tolist()):
+                mag = hypot(f0, f1, f2)
+                if mag > max_force[i]:
+                    max_force[i] = mag
+            contact_ticks = st.contact_ticks
+            for i, touching in enumerate(frame.in_contact.tolist()):
+                if touching:
+                    contact_ticks[i] += 1
+            if frame is not self._scalars_of:
+                self._bind_scalars(frame)
+            self._fault_view[()] = safety.fault is not None
+            if self.control_seq != self._control_seq_written:
+                # It changes only when a command lands (its field stays between ticks).
+                frame.control_seq[()] = self._control_seq_written = self.control_seq
             compute = pacer.end(k, start)
             rec = self.recorder
             if rec is not None:
-                frame.compute_s[()] = compute
+                self._compute_view[()] = compute
                 rec.append(frame.recorded)
                 self._last_recorded = k
             reason = self._finished(k)

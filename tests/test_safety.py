@@ -6,7 +6,30 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from hapticd import jit
 from hapticd.safety import SafetyChain
+
+
+@pytest.fixture(scope="module", autouse=True, params=["python", "compiled"])
+def safety_path(request):
+    """Every test here on both paths: the Python chain, and the chain with its compiled
+    normal path (hapticd.kernels.safety_step; tests/test_kernel_safety.py compares them)."""
+    if request.param == "python":
+        yield request.param
+        return
+    if not SafetyChain.kernel_names:
+        pytest.skip("safety_step is Python 3.11's hypot: no compiled path here")
+    kernels = jit.compile_kernels(["safety_step"])
+    init = SafetyChain.__init__
+
+    def compiled_init(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        self.use_kernels(kernels)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(SafetyChain, "__init__", compiled_init)
+        yield request.param
+
 
 wild = st.one_of(
     st.floats(-1e6, 1e6),
@@ -174,3 +197,7 @@ def test_an_unpaced_simulation_paused_by_the_machine_is_not_a_stalled_loop():
     assert out["ticks"] == 7801
     # A paced run, or any run with a device that is not simulated, keeps the watchdog.
     assert build_session(load_profile(GRASP_PROFILE), paced=True).loop.wall_watchdog
+
+
+def test_each_path_is_the_one_tested(safety_path):
+    assert (SafetyChain([1.0])._step is not None) == (safety_path == "compiled")

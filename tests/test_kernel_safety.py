@@ -1,0 +1,334 @@
+"""The safety chain's compiled normal path (hapticd.kernels.safety_step) against the Python
+chain: the same output bits, faults, causes and counters for generated streams, limits,
+ramps, rate limits, workspaces and deadman buttons; hostile forces through a whole run on
+the compiled path end in zero force, a latched fault and the devices disabled.
+
+tests/test_safety.py runs every one of its tests on both paths as well."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import assume, event, given
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from hapticd import jit, kernels
+from hapticd.daemon.session import build_session
+from hapticd.frame import Frame
+from hapticd.profile import load_profile
+from hapticd.safety import Deadman, SafetyChain, SafetyParams
+from tests.conftest import ROOT
+
+# The kernel inlines Python 3.11's math.hypot: elsewhere the chain runs in Python.
+pytestmark = pytest.mark.skipif(
+    sys.version_info[:2] != (3, 11), reason="safety_step is Python 3.11's hypot"
+)
+
+LIFT = ROOT / "configs" / "lift-weight.yaml"
+GRASP = ROOT / "configs" / "grasp-stiffness.yaml"
+
+
+@pytest.fixture(scope="module")
+def compiled():
+    """The compiled kernel (numba is a dependency: no skip without it)."""
+    return jit.compile_kernels(["safety_step"])
+
+
+# The kernel compiled, and the same function run as plain Python (what the compiler is given).
+PATHS = ["compiled", "plain"]
+
+
+def kernel_for(path: str, compiled) -> dict:
+    return compiled if path == "compiled" else {"safety_step": kernels.safety_step}
+
+
+# Every scale a force can have: tiny (subnormal), ordinary, huge but finite, and the
+# poison: the magnitude's inlined hypot must be Python's to the last bit at each.
+magnitudes = st.one_of(
+    st.floats(-20.0, 20.0),
+    st.floats(-1e-300, 1e-300),
+    st.floats(-1e300, 1e300),
+    st.sampled_from([0.0, -0.0, 5e-324, -5e-324, 1.7e308, -1.7e308]),
+)
+poison = st.sampled_from([math.nan, math.inf, -math.inf])
+
+
+@st.composite
+def cases(draw) -> dict:
+    n = draw(st.integers(1, 3))
+    ticks = draw(st.integers(1, 40))
+    force = magnitudes | poison if draw(st.booleans()) else magnitudes
+    deadman = None
+    if draw(st.booleans()):
+        deadman = tuple(
+            draw(st.none() | st.builds(Deadman, st.integers(0, 3), st.floats(0.0, 0.01)))
+            for _ in range(n)
+        )
+    radius = draw(st.none() | st.floats(0.05, 0.2))
+    params = SafetyParams(
+        ramp_s=draw(st.sampled_from([0.0, 0.005, 0.02])),
+        max_rate_n_per_s=draw(st.sampled_from([math.inf, 500.0, 5000.0])),
+        workspace_center_m=draw(st.tuples(*[st.floats(-0.02, 0.02)] * 3)),
+        workspace_radius_m=math.inf if radius is None else radius,
+        watchdog_s=draw(st.sampled_from([math.inf, 0.05])),
+        deadman=deadman or (),
+    )
+    return {
+        "limits": [draw(st.floats(0.5, 12.0)) for _ in range(n)],
+        "params": params,
+        "forces": [draw(arrays(float, (n, 3), elements=force)) for _ in range(ticks)],
+        "positions": [
+            draw(arrays(float, (n, 3), elements=st.floats(-0.15, 0.15))) for _ in range(ticks)
+        ],
+        "buttons": [
+            draw(arrays(np.uint32, (n,), elements=st.integers(0, 15))) for _ in range(ticks)
+        ],
+        "walls": [draw(st.sampled_from([1e-3, 1e-3, 1e-3, 0.2])) for _ in range(ticks)],
+        "ramp_down_at": draw(st.none() | st.integers(0, ticks)),
+        "reset_at": draw(st.none() | st.integers(0, ticks)),
+    }
+
+
+def run_both(case: dict, kernel: dict) -> tuple[SafetyChain, SafetyChain, int]:
+    """Feed both chains the case's ticks; every output compared bit for bit. Returns the
+    chains and how many ticks the kernel made safe itself."""
+    dt = 1e-3
+    chains = [SafetyChain(case["limits"], case["params"], dt=dt) for _ in range(2)]
+    chains[1].use_kernels(kernel)
+    for c in chains:
+        c.start(0.0)
+    by_kernel = 0
+    step = chains[1]._step
+    calls = []
+
+    def counting(*a):
+        out = step(*a)
+        calls.append(out)
+        return out
+
+    chains[1]._step = counting
+    wall = 100.0
+    for k, forces in enumerate(case["forces"]):
+        t = k * dt
+        wall += case["walls"][k]
+        if case["ramp_down_at"] == k:
+            for c in chains:
+                c.ramp_down(t, 0.01)
+        if case["reset_at"] == k:
+            for c in chains:
+                c.reset(t)
+        outs = [
+            c.apply(forces, k, t, case["positions"][k], wall, case["buttons"][k]).copy()
+            for c in chains
+        ]
+        assert outs[0].tobytes() == outs[1].tobytes(), (k, outs)
+        assert np.all(np.isfinite(outs[1]))
+        for row, limit in zip(outs[1].tolist(), case["limits"], strict=True):
+            assert math.hypot(*row) <= limit * (1 + 1e-12)
+        a, b = chains
+        assert a.fault == b.fault
+        assert (a.clamped_ticks, a.rate_limited_ticks) == (b.clamped_ticks, b.rate_limited_ticks)
+        assert a.gate == b.gate and a._prev.tobytes() == b._prev.tobytes()
+    by_kernel = sum(1 for f in calls if not f & kernels.SAFETY_DEFER)
+    return chains[0], chains[1], by_kernel
+
+
+# The plain kernel computes on numpy scalars, which warn where C overflows quietly to inf
+# (a magnitude beyond the largest float: Python's hypot gives inf too).
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
+@pytest.mark.parametrize("path", PATHS)
+@given(case=cases())
+def test_the_compiled_chain_gives_the_python_chains_bits(compiled, path, case):
+    _, b, by_kernel = run_both(case, kernel_for(path, compiled))
+    event(f"ticks made safe by the kernel: {min(by_kernel, 3)}+")
+    event(f"fault: {b.fault.kind if b.fault else None}")
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
+@pytest.mark.parametrize("path", PATHS)
+@given(
+    forces=arrays(float, (2, 3), elements=magnitudes.filter(lambda x: x != 0.0)),
+    # From 0.01 N: below it, a force near the largest float scales by a subnormal factor,
+    # and the Python chain's own clamp overshoots the limit by more than 1e-12 (both
+    # paths alike; no device's limit is that small).
+    limit=st.floats(0.01, 1e300),
+)
+def test_clamped_forces_keep_pythons_hypot_to_the_last_bit(compiled, path, forces, limit):
+    """Every force above its limit is scaled by limit / math.hypot(f): any difference in the
+    inlined norm shows in the output's bits."""
+    assume(all(math.hypot(*row) > limit for row in forces.tolist()))
+    case = {
+        "limits": [limit, limit],
+        "params": SafetyParams(),
+        "forces": [forces],
+        "positions": [np.zeros((2, 3))],
+        "buttons": [np.zeros(2, dtype=np.uint32)],
+        "walls": [1e-3],
+        "ramp_down_at": None,
+        "reset_at": None,
+    }
+    _, b, by_kernel = run_both(case, kernel_for(path, compiled))
+    assert by_kernel == 1 and b.clamped_ticks == 1
+    for row, out in zip(forces.tolist(), b.output.tolist(), strict=True):
+        s = limit / math.hypot(*row)
+        assert out == [row[0] * s, row[1] * s, row[2] * s]
+
+
+def test_the_kernel_makes_the_normal_tick_safe_and_defers_every_trip(compiled):
+    """Ordinary ticks never reach the Python chain; a non-finite force, the watchdog and a
+    finger at (within rounding of) the workspace's edge do, and trip with its message."""
+    chain = SafetyChain(
+        [2.0, 2.0],
+        SafetyParams(max_rate_n_per_s=500.0, workspace_radius_m=0.1, watchdog_s=0.05),
+    )
+    chain.use_kernels(compiled)
+    python_ticks = []
+    reference = chain._apply
+
+    def spy(*a):
+        python_ticks.append(a[1])
+        return reference(*a)
+
+    chain._apply = spy
+    pos = np.array([[0.05, 0.0, 0.0], [-0.05, 0.0, 0.0]])
+    f = np.array([[3.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    for k in range(20):
+        chain.apply(f, k, k * 1e-3, pos, 1.0 + k * 1e-3)
+    assert python_ticks == [] and chain.clamped_ticks == 20 and chain.rate_limited_ticks > 0
+    edge = pos.copy()
+    edge[1, 0] = -0.1  # exactly at the radius: inside, decided by the Python chain
+    chain.apply(f, 20, 0.02, edge, 1.02)
+    assert python_ticks == [20] and chain.fault is None
+    chain.apply(f, 21, 0.021, pos, 1.2)  # 179 ms since the last tick
+    assert python_ticks == [20, 21] and chain.fault.kind == "watchdog"
+    assert np.all(chain.output == 0.0)
+    chain.reset(0.03)
+    chain._last_wall = None
+    chain.apply(np.array([[0.0, 0.0, 0.0], [math.nan, 0.0, 0.0]]), 22, 0.03, pos, 2.0)
+    assert python_ticks[-1] == 22 and chain.fault.kind == "nonfinite_force"
+    assert chain.fault.cause == "non-finite force for finger(s) [1]"
+
+
+def test_arrays_the_kernel_cannot_take_run_the_python_chain(compiled):
+    """A list, another dtype, a non-contiguous view: the same output, from Python."""
+    chain = SafetyChain([2.0, 2.0])
+    chain.use_kernels(compiled)
+    called = []
+    step = chain._step
+    chain._step = lambda *a: called.append(1) or step(*a)
+    want = [[2.0, 0.0, 0.0], [0.0, 2.0, 0.0]]
+    strided = np.zeros((2, 6))
+    strided[:, ::2] = [[3.0, 0.0, 0.0], [0.0, 2.0, 0.0]]
+    for forces in (
+        [[3.0, 0.0, 0.0], [0.0, 2.0, 0.0]],
+        np.array([[3, 0, 0], [0, 2, 0]], dtype=np.float32),
+        strided[:, ::2],
+    ):
+        assert chain.apply(forces, 0, 0.0).tolist() == want
+    assert called == []
+    chain.apply(np.array([[3.0, 0.0, 0.0], [0.0, 2.0, 0.0]]), 1, 0.001)
+    assert called == [1]
+
+
+class Poison:
+    """A last stage that puts ``value`` into finger 0's rendered force from ``at`` (s) on:
+    what a broken renderer could hand to the safety chain."""
+
+    name = "poison"
+
+    def __init__(self, loop, value: float, at: float) -> None:
+        self.loop, self.value, self.at = loop, value, at
+
+    def run(self, frame) -> None:
+        if self.loop.now() >= self.at:
+            frame.rendered_force[0] = self.value
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf, 1e300, -1e6])
+@pytest.mark.parametrize("path", [LIFT, GRASP], ids=["lift", "grasp"])
+def test_hostile_forces_through_the_compiled_safety_path(compiled, path, value):
+    """Non-finite forces: zero force, a latched nonfinite_force fault with its message, the
+    devices disabled. Huge finite ones: clamped to the limit, direction kept, no fault."""
+    profile = load_profile(path, ["rendering.kernels=compiled"])
+    session = build_session(profile, paced=False, duration_s=1.2)
+    loop = session.loop
+    assert session.safety._step is not None
+    last = session.renderer.stage_names[-1]
+    session.renderer.insert(Poison(loop, value, 1.0), after=last)
+    written = []
+    for dev in session.devices:
+        write = dev.write_force
+
+        def write_force(f, _write=write):
+            written.append(np.array(f, dtype=float))
+            _write(f)
+
+        dev.write_force = write_force
+    summary = session.run()
+    forces = np.array(written)
+    limit = max(session.safety.limits)
+    assert np.all(np.isfinite(forces))
+    assert np.all(np.linalg.norm(forces, axis=1) <= limit * (1 + 1e-12))
+    if math.isfinite(value):
+        assert summary["fault"] is None, summary
+        # Finger 0 pushed at its limit along (1, 1, 1) * sign once the rate limit let it
+        # (the last tick's, before the shutdown's zeros).
+        f0 = forces[-2 * len(session.devices)]
+        assert np.linalg.norm(f0) == pytest.approx(session.safety.limits[0], rel=1e-9)
+        np.testing.assert_allclose(f0 / np.linalg.norm(f0), np.sign(value) / math.sqrt(3))
+        return
+    fault = session.safety.fault
+    assert fault is not None and fault.kind == "nonfinite_force", summary
+    assert fault.cause == "non-finite force for finger(s) [0]"
+    assert fault.tick == 1000
+    assert np.all(forces[-len(session.devices) :] == 0.0)
+    assert all(not dev.enabled for dev in session.devices)
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
+@given(case=cases())
+def test_the_stage_on_a_frame_is_the_python_chain(compiled, case):
+    """``run`` (the loop's call: the compiled normal path straight from the frame) against
+    the Python chain's ``apply``, tick by tick."""
+    n = len(case["limits"])
+    dt = 1e-3
+    ref = SafetyChain(case["limits"], case["params"], dt=dt)
+    stage = SafetyChain(case["limits"], case["params"], dt=dt)
+    stage.use_kernels(compiled)
+    frame = Frame(n, n)
+    wall = 100.0
+    for c in (ref, stage):
+        c.start(0.0)
+    for k, forces in enumerate(case["forces"]):
+        t = k * dt
+        wall += case["walls"][k]
+        if case["ramp_down_at"] == k:
+            for c in (ref, stage):
+                c.ramp_down(t, 0.01)
+        frame.tick[()] = k
+        frame.t[()] = t
+        frame.rendered_force[...] = forces
+        frame.device_pos[...] = case["positions"][k]
+        frame.buttons[...] = case["buttons"][k]
+        want = ref.apply(forces, k, t, case["positions"][k], wall, case["buttons"][k])
+        stage.run(frame, wall)
+        assert frame.device_force.tobytes() == want.tobytes(), k
+        assert stage.fault == ref.fault
+        assert stage.clamped_ticks == ref.clamped_ticks
+        assert stage.rate_limited_ticks == ref.rate_limited_ticks
+
+
+@pytest.mark.parametrize("path", ["python", "compiled"])
+def test_new_limits_reach_both_paths_and_a_copy_changes_nothing(compiled, path):
+    chain = SafetyChain([5.0, 5.0])
+    chain.use_kernels(compiled if path == "compiled" else {})
+    push = np.array([[10.0, 0.0, 0.0], [0.0, 0.0, -10.0]])
+    chain.limits[0] = 100.0  # a copy of the limits: nothing changes
+    assert chain.apply(push, 0, 0.0).tolist() == [[5.0, 0.0, 0.0], [0.0, 0.0, -5.0]]
+    chain.set_param("force_limit_n", 2.0)
+    assert chain.limits == [2.0, 2.0]
+    assert chain.apply(push, 1, 0.001).tolist() == [[2.0, 0.0, 0.0], [0.0, 0.0, -2.0]]
