@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -42,11 +43,20 @@ class Polytope:
     center: np.ndarray
 
     def __post_init__(self) -> None:
-        # Plain-float copies: the proxy update runs per finger per tick, and numpy's
-        # per-call overhead on 3-vectors would dominate it.
-        object.__setattr__(self, "normals_list", [tuple(n) for n in self.normals.tolist()])
-        object.__setattr__(self, "offsets_list", self.offsets.tolist())
         object.__setattr__(self, "obstacle_set", None)
+
+    # Plain-float copies for the Python proxy update, which runs per finger per tick (numpy's
+    # per-call overhead on 3-vectors would dominate it); made on first use, so that a free
+    # object's polytope, new every tick, costs them only when the Python code reads them.
+    @cached_property
+    def normals_list(self) -> list[tuple[float, float, float]]:
+        """The unit normals as tuples of floats (m, 3)."""
+        return [tuple(n) for n in self.normals.tolist()]
+
+    @cached_property
+    def offsets_list(self) -> list[float]:
+        """The offsets as floats (m,), m."""
+        return self.offsets.tolist()
 
     def inflated(self, radius: float) -> Polytope:
         """The polytope grown by ``radius`` (m) along every face normal."""
