@@ -66,6 +66,7 @@ SIGNATURES = {
         " f8[:, ::1], f8[:, ::1], f8[:, ::1])"
     ),
     "safety_step": "i8(f8[:, ::1], f8[:, ::1], f8[::1], f8[:, :, ::1])",
+    "world_planes": "void(f8[:, ::1], f8[::1], f8[:, ::1], f8[::1], f8[:, ::1])",
 }
 
 # Compiled kernels of this process, by name: a reload compiles nothing again.

@@ -1457,3 +1457,36 @@ def safety_step(
         out[i, 0], out[i, 1], out[i, 2] = f0, f1, f2
         prev[i, 0], prev[i, 1], prev[i, 2] = f0, f1, f2
     return flags
+
+
+# -- the object's planes in the world ------------------------------------------------------
+
+
+def world_planes(
+    rotation: np.ndarray,
+    position: np.ndarray,
+    body_normals: np.ndarray,
+    body_offsets: np.ndarray,
+    planes: np.ndarray,
+) -> None:
+    """The object's face planes in the world at its pose, into the first M rows of
+    ``planes`` (columns 0-2: the unit normal R n, column 3: the offset d + (R n) . x, m):
+    ``hapticd.scene.SceneObject.polytope``'s sums in its order.
+
+    ``rotation`` (3, 3), ``position`` (3,) m, ``body_normals`` (M, 3) and
+    ``body_offsets`` (M,) m (the body frame); ``planes`` (>= M, >= 4), other columns
+    left as they are.
+    """
+    x0, x1, x2 = position[0], position[1], position[2]
+    r00, r01, r02 = rotation[0, 0], rotation[0, 1], rotation[0, 2]
+    r10, r11, r12 = rotation[1, 0], rotation[1, 1], rotation[1, 2]
+    r20, r21, r22 = rotation[2, 0], rotation[2, 1], rotation[2, 2]
+    for i in range(body_offsets.shape[0]):
+        a, b, c = body_normals[i, 0], body_normals[i, 1], body_normals[i, 2]
+        n0 = a * r00 + b * r01 + c * r02
+        n1 = a * r10 + b * r11 + c * r12
+        n2 = a * r20 + b * r21 + c * r22
+        planes[i, 0] = n0
+        planes[i, 1] = n1
+        planes[i, 2] = n2
+        planes[i, 3] = body_offsets[i] + (n0 * x0 + n1 * x1 + n2 * x2)

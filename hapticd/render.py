@@ -91,6 +91,7 @@ class Renderer:
         sc = self.scene
         obj = sc.object
         self._contact.kernel = self.kernels.get("contact_step")
+        self._contact.planes_kernel = self.kernels.get("world_planes")
         stages: list[Stage] = [self._contact]
         if obj.material.has_friction:
             stages.append(self._friction)
@@ -116,7 +117,8 @@ class Renderer:
         (the number of directions stays fixed while the renderer lives); the contact (every
         scene: the stage runs the Python code for what the kernel does not take); friction
         when the object's material has it (friction turned on later, by ``set_param``, runs
-        the Python code); the contact forces always."""
+        the Python code); the contact forces always; a free object's planes in the world
+        (for the contact kernel, from its pose each tick)."""
         obj = self.scene.object
         names = [] if obj.fixed else ["free_body_step"]
         if all(c == 1 for c in self.actuation.counts):
@@ -125,6 +127,8 @@ class Renderer:
         if obj.material.has_friction:
             names.append("friction_step")
         names.append("forces_step")
+        if not obj.fixed:
+            names.append("world_planes")
         return names
 
     def use_kernels(self, kernels: dict[str, Callable[..., None]]) -> None:

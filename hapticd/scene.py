@@ -76,7 +76,7 @@ class SceneObject:
     mass: float = 0.0
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    polytope: Polytope = field(init=False)
+    _polytope: Polytope | None = field(init=False, default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.position = np.asarray(self.position, dtype=float).copy()
@@ -84,10 +84,26 @@ class SceneObject:
         self.update_world()
 
     def update_world(self) -> None:
-        """Recompute the world-frame polytope after the pose changed."""
-        normals = self.shape.normals @ self.rotation.T
-        offsets = self.shape.offsets + normals @ self.position
-        self.polytope = Polytope(normals, offsets, self.position.copy())
+        """Say the pose changed: the world-frame polytope is made again on its next use (a
+        free object moves every tick; its polytope is read only by the Python contact)."""
+        self._polytope = None
+
+    @property
+    def polytope(self) -> Polytope:
+        """The world-frame polytope at the object's pose, made on its first use after
+        ``update_world`` (a pose changed in place without it keeps the one made before).
+
+        Normals R n and offsets d + (R n) . x in plain sums, each product rounded, in a
+        fixed order (hapticd.kernels.world_planes computes the same bits)."""
+        poly = self._polytope
+        if poly is None:
+            N, R, x = self.shape.normals, self.rotation, self.position
+            normals = N[:, 0:1] * R[:, 0] + N[:, 1:2] * R[:, 1] + N[:, 2:3] * R[:, 2]
+            offsets = self.shape.offsets + (
+                normals[:, 0] * x[0] + normals[:, 1] * x[1] + normals[:, 2] * x[2]
+            )
+            poly = self._polytope = Polytope(normals, offsets, self.position.copy())
+        return poly
 
     @property
     def center(self) -> np.ndarray:

@@ -94,6 +94,10 @@ class Contact:
         # takes flat obstacles (up to _VECTOR_PLANES planes each) with finite inputs;
         # anything else runs the code below, on the same proxies.
         self.kernel = kernel
+        # hapticd.kernels.world_planes compiled, or None: a free object's planes for the
+        # kernel each tick from its pose, without making its polytope.
+        self.planes_kernel: Callable[..., None] | None = None
+        self._body: tuple[object, np.ndarray, np.ndarray] | None = None  # shape, N, d
         self._surfaces = [[s.polytope.inflated(r) for s in scene.surfaces] for r in radii]
         # The proxies (m) and radii, and the kernel's work space: one copy both paths
         # read and write (the proxies are the first three columns).
@@ -229,10 +233,21 @@ class Contact:
 
     def _kernel_planes(self) -> np.ndarray | None:
         """The kernel's planes (hapticd.kernels.PLANE_COLUMNS): the object's, copied again
-        only when its polytope changed, then the surfaces'; None with an obstacle too
-        large for the kernel."""
-        poly = self.scene.object.polytope
+        only when its polytope changed (a free object's: from its pose, by the planes
+        kernel, when there is one), then the surfaces'; None with an obstacle too large for
+        the kernel."""
+        obj = self.scene.object
         planes = self._planes
+        body = self._body
+        move = self.planes_kernel
+        if move is not None and not obj.fixed and planes is not None and body is not None:
+            try:
+                if body[0] is obj.shape:
+                    move(obj.rotation, obj.position, body[1], body[2], planes)
+                    return planes
+            except TypeError:  # a pose the signature does not take: the polytope's way
+                pass
+        poly = obj.polytope
         if poly is self._planes_for and planes is not None:
             return planes
         m = len(poly.offsets)
@@ -258,6 +273,13 @@ class Contact:
             planes[:m, 0:3] = poly.normals
             planes[:m, 3] = poly.offsets
         self._planes_for = poly
+        shape = obj.shape
+        if body is None or body[0] is not shape:
+            self._body = (
+                shape,
+                np.ascontiguousarray(shape.normals, dtype=float),
+                np.ascontiguousarray(shape.offsets, dtype=float),
+            )
         return planes
 
     def _env_force(self, oset: ObstacleSet, res: MultiResult, v_dev: np.ndarray) -> V3:

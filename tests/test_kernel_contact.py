@@ -7,6 +7,7 @@ latched fault on the compiled path."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -15,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hapticd import jit, kernels
-from hapticd.contact import _VECTOR_PLANES, Polytope
+from hapticd.contact import _VECTOR_PLANES
 from hapticd.daemon.session import build_session
 from hapticd.frame import Frame
 from hapticd.profile import load_profile
@@ -237,7 +238,8 @@ def test_what_the_kernel_does_not_take_runs_the_python_code_on_the_same_proxies(
     k = _VECTOR_PLANES + 1
     angles = np.linspace(0.0, 2.0 * np.pi, k, endpoint=False)
     normals = np.stack([np.cos(angles), np.sin(angles), np.zeros(k)], axis=1)
-    obj.polytope = Polytope(normals, np.full(k, 0.02), np.zeros(3))
+    obj.shape = dataclasses.replace(obj.shape, normals=normals, offsets=np.full(k, 0.02))
+    obj.update_world()
     assert stage._kernel_planes() is None
     frame.device_pos[0] = (0.015, 0.0, 0.0)
     stage.run(frame)

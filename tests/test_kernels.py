@@ -194,9 +194,11 @@ def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked(compiled)
         "contact_step",
         "friction_step",
         "forces_step",
+        "world_planes",
     }
     for name in ("dynamics", "allocation", "contact", "friction", "forces"):
         assert s.renderer.stages[s.renderer.stage_names.index(name)].kernel is not None, name
+    assert s.renderer.stages[s.renderer.stage_names.index("contact")].planes_kernel is not None
     s.run()
     s = build_session(
         load_profile(LIFT, ["rendering.kernels=python"]), paced=False, duration_s=0.01
@@ -274,6 +276,7 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
         "contact_step",
         "friction_step",
         "forces_step",
+        "world_planes",
         *SafetyChain.kernel_names,
     ]
     assert f"compiling {', '.join(names)} in the background" in err, err
@@ -503,3 +506,50 @@ def test_several_runs_at_once_start_one_compiler_that_leaves_no_marker(tmp_path)
         time.sleep(0.2)
     keys = jit._keys(NAMES, __import__("numba").__version__)
     assert set(keys.values()) <= set(json.loads((cache / jit.COMPILED).read_text()))
+
+
+@pytest.fixture(scope="module")
+def world_planes():
+    return jit.compile_kernels(["world_planes"])["world_planes"]
+
+
+@given(
+    size=vec(0.01, 0.1),
+    Q=rotations(),
+    R=rotations(),
+    position=vec(-0.1, 0.1),
+    extra=st.lists(unit_vectors(), max_size=4),
+)
+def test_world_planes_are_the_polytope_bit_for_bit(world_planes, size, Q, R, position, extra):
+    """The contact kernel's planes of a free object (hapticd.kernels.world_planes, compiled
+    and as plain Python) are its polytope's normals and offsets, every bit: a box turned
+    in its body frame, with extra faces, at any pose."""
+    box = ConvexShape.box(size)
+    normals = np.vstack([box.normals @ Q.T, np.array(extra).reshape(-1, 3)])
+    offsets = np.concatenate([box.offsets, np.full(len(extra), 0.01)])
+    shape = ConvexShape(normals, offsets, box.vertices, box.volume, box.inertia_unit_mass)
+    obj = SceneObject(shape, Material(200.0, 0.0), position, R, fixed=False, mass=0.05)
+    poly = obj.polytope
+    for fn in (world_planes, kernels.world_planes):
+        planes = np.full((len(offsets) + 2, kernels.PLANE_COLUMNS), -7.0)
+        fn(obj.rotation, obj.position, np.ascontiguousarray(normals), offsets, planes)
+        np.testing.assert_array_equal(planes[: len(offsets), 0:3], poly.normals)
+        np.testing.assert_array_equal(planes[: len(offsets), 3], poly.offsets)
+        assert (planes[len(offsets) :] == -7.0).all() and (planes[:, 4:] == -7.0).all()
+
+
+def test_a_moved_object_makes_its_polytope_again():
+    """update_world marks the polytope stale; the next use makes it at the new pose."""
+    obj = SceneObject(
+        ConvexShape.box(np.full(3, 0.05)), Material(200.0, 0.0), np.zeros(3), np.eye(3)
+    )
+    first = obj.polytope
+    assert obj.polytope is first
+    obj.position[:] = (0.01, 0.0, 0.0)
+    obj.update_world()
+    moved = obj.polytope
+    assert moved is not first
+    np.testing.assert_allclose(
+        moved.offsets - first.offsets, moved.normals[:, 0] * 0.01, atol=1e-15
+    )
+    np.testing.assert_array_equal(moved.center, (0.01, 0.0, 0.0))
