@@ -13,6 +13,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from hypothesis import HealthCheck, settings
@@ -25,6 +26,21 @@ ROOT = Path(__file__).resolve().parent.parent
 GRASP_PROFILE = ROOT / "configs" / "grasp-stiffness.yaml"
 
 pytest_plugins = ["pytester"]
+
+
+def capture_writes(session) -> list[np.ndarray]:
+    """The forces (3,) N each device of ``session`` is sent, in the order sent: a list the
+    run fills (the devices' ``write_force`` wrapped, still writing)."""
+    written: list[np.ndarray] = []
+    for dev in session.devices:
+        write = dev.write_force
+
+        def write_force(f, _write=write):
+            written.append(np.array(f, dtype=float))
+            _write(f)
+
+        dev.write_force = write_force
+    return written
 
 
 def timing_mark_problems(items) -> list[str]:

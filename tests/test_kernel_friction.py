@@ -24,7 +24,7 @@ from hapticd.profile import load_profile
 from hapticd.render import Renderer
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject
 from hapticd.stages import Dynamics, Forces, Friction
-from tests.conftest import ROOT
+from tests.conftest import ROOT, capture_writes
 from tests.strategies import unit_vectors
 from tests.test_dynamics import floats, rotations, vec
 
@@ -356,15 +356,7 @@ def _poisoned_run(mode: str, field: str, value: float) -> tuple[np.ndarray, dict
     assert (stages["friction"].kernel is not None) == (mode == "compiled")
     assert (stages["forces"].kernel is not None) == (mode == "compiled")
     renderer.insert(Poison(session.loop, field, value, 3.0), after="contact")
-    written = []
-    for dev in session.devices:
-        write = dev.write_force
-
-        def write_force(f, _write=write):
-            written.append(np.array(f, dtype=float))
-            _write(f)
-
-        dev.write_force = write_force
+    written = capture_writes(session)
     summary = session.run()
     return np.array(written), summary, max(session.safety.limits)
 

@@ -21,7 +21,7 @@ from hapticd.daemon.session import build_session
 from hapticd.frame import Frame
 from hapticd.profile import load_profile
 from hapticd.safety import Deadman, SafetyChain, SafetyParams
-from tests.conftest import ROOT
+from tests.conftest import ROOT, capture_writes
 
 # The kernel inlines Python 3.11's math.hypot: elsewhere the chain runs in Python.
 pytestmark = pytest.mark.skipif(
@@ -259,15 +259,7 @@ def test_hostile_forces_through_the_compiled_safety_path(compiled, path, value):
     assert session.safety._step is not None
     last = session.renderer.stage_names[-1]
     session.renderer.insert(Poison(loop, value, 1.0), after=last)
-    written = []
-    for dev in session.devices:
-        write = dev.write_force
-
-        def write_force(f, _write=write):
-            written.append(np.array(f, dtype=float))
-            _write(f)
-
-        dev.write_force = write_force
+    written = capture_writes(session)
     summary = session.run()
     forces = np.array(written)
     limit = max(session.safety.limits)

@@ -28,13 +28,22 @@ from hapticd.profile import load_profile
 from hapticd.safety import SafetyChain
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
 from hapticd.stages import Dynamics
-from tests.conftest import ROOT
+from tests.conftest import ROOT, capture_writes
 from tests.strategies import unit_vectors
 from tests.test_dynamics import floats, materials, rotations, vec
 
 LIFT = ROOT / "configs" / "lift-weight.yaml"
 GRASP = ROOT / "configs" / "grasp-stiffness.yaml"
 DT = 1e-3
+# The kernels the lift's renderer names (Renderer.kernel_names), in order.
+LIFT_KERNELS = (
+    "free_body_step",
+    "allocation_step",
+    "contact_step",
+    "friction_step",
+    "forces_step",
+    "world_planes",
+)
 
 
 @pytest.fixture(scope="module")
@@ -188,14 +197,7 @@ def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked(compiled)
     profile = load_profile(LIFT)
     assert profile.rendering.kernels == "auto"
     s = build_session(profile, paced=False, duration_s=0.01)
-    assert s.renderer.kernels.keys() == {
-        "free_body_step",
-        "allocation_step",
-        "contact_step",
-        "friction_step",
-        "forces_step",
-        "world_planes",
-    }
+    assert list(s.renderer.kernels) == list(LIFT_KERNELS)
     for name in ("dynamics", "allocation", "contact", "friction", "forces"):
         assert s.renderer.stages[s.renderer.stage_names.index(name)].kernel is not None, name
     assert s.renderer.stages[s.renderer.stage_names.index("contact")].planes_kernel is not None
@@ -270,15 +272,7 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
     the compiling to a process of its own; a later run loads the compiled kernel."""
     cache = tmp_path / "cache"
     err, _ = _run_lift(tmp_path, "", "auto", cache)
-    names = [
-        "free_body_step",
-        "allocation_step",
-        "contact_step",
-        "friction_step",
-        "forces_step",
-        "world_planes",
-        *SafetyChain.kernel_names,
-    ]
+    names = [*LIFT_KERNELS, *SafetyChain.kernel_names]
     assert f"compiling {', '.join(names)} in the background" in err, err
     assert "compiled or loaded" not in err
     marker = cache / jit.COMPILED
@@ -399,15 +393,7 @@ def test_hostile_forces_never_reach_a_device_from_either_path(path, mode, value)
     if mode == "compiled":
         assert "allocation_step" in session.renderer.kernels
     session.renderer.insert(Poison(loop, value, 3.0), after="forces")
-    written = []
-    for dev in session.devices:
-        write = dev.write_force
-
-        def write_force(f, _write=write):
-            written.append(np.array(f, dtype=float))
-            _write(f)
-
-        dev.write_force = write_force
+    written = capture_writes(session)
     summary = session.run()
     forces = np.array(written)
     limit = max(session.safety.limits)
