@@ -187,6 +187,23 @@ def _write_marker(name: str, entries: dict[str, str]) -> None:
             tmp.unlink()
 
 
+def _register_helpers(numba, kernels) -> None:
+    """Make the kernels' helpers (``kernels.KERNEL_HELPERS``) callable from compiled code:
+    numba compiles each into the kernels that call it, and leaves the function itself
+    plain Python (the module is not changed)."""
+    from numba.extending import register_jitable
+
+    for name in kernels.KERNEL_HELPERS:
+        fn = getattr(kernels, name)
+        if fn not in _HELPERS:
+            register_jitable(fn)
+            _HELPERS.add(fn)
+
+
+# Helpers registered with numba in this process.
+_HELPERS: set[Callable[..., None]] = set()
+
+
 def compile_kernels(names: Sequence[str]) -> dict[str, Callable[..., None]]:
     """The kernels ``names`` compiled (or loaded from the cache); JitUnavailableError if not.
     Marks them compiled in the cache folder (``is_cached``), or records why they failed."""
@@ -195,6 +212,7 @@ def compile_kernels(names: Sequence[str]) -> dict[str, Callable[..., None]]:
         from hapticd import kernels
 
         numba = _import_numba()
+        _register_helpers(numba, kernels)
         keys = _keys(missing, numba.__version__)
         for name in missing:
             if name not in SIGNATURES:

@@ -1,8 +1,8 @@
 """Per-tick physics as kernels: plain loops over numpy arrays, written to be compiled.
 
-Each kernel is one self-contained function (it calls no other function of ours)
-in the subset of Python that numba compiles: float arithmetic, ``math``, loops
-and indexing of preallocated numpy arrays, no objects and no allocation.
+Each kernel is one function (it calls no other function of ours but the helpers
+named in ``KERNEL_HELPERS``) in the subset of Python that numba compiles: float
+arithmetic, ``math``, loops and indexing of preallocated numpy arrays, no objects and no allocation.
 ``hapticd.jit`` compiles them; the renderer (hapticd.render) takes the compiled
 functions when ``rendering.kernels`` asks for them. Run as plain Python they give
 the same numbers, only slower.
@@ -751,6 +751,89 @@ _C_RADIUS, _C_ACTIVE, _C_MU, _C_PUSHED, _C_RHS = 3, 4, 7, 10, 13
 CONTACT_DONE, CONTACT_NOT_TAKEN = 0, 1
 
 
+# Functions of this module the kernels call (everything else a kernel does is inline):
+# hapticd.jit compiles them into the kernels that call them.
+KERNEL_HELPERS = ("_gram_mu",)
+
+
+def _gram_mu(planes: np.ndarray, sc: np.ndarray, k: int, base: int) -> None:
+    """``hapticd.contact._gram_solve`` on contact_step's work row ``sc``: the multipliers
+    sc[_C_MU:_C_MU + k] of the k (2 or 3) planes whose rows in ``planes`` are
+    sc[base:base + k], for the right-hand sides sc[_C_RHS:_C_RHS + k] (m). The one
+    function a kernel calls: hapticd.jit compiles it into contact_step
+    (``KERNEL_HELPERS``); as plain Python it is called as it is."""
+    q0 = int(sc[base])
+    q1 = int(sc[base + 1])
+    n0x, n0y, n0z = planes[q0, 0], planes[q0, 1], planes[q0, 2]
+    n1x, n1y, n1z = planes[q1, 0], planes[q1, 1], planes[q1, 2]
+    r0 = sc[_C_RHS]
+    r1 = sc[_C_RHS + 1]
+    if k == 2:
+        c = n0x * n1x + n0y * n1y + n0z * n1z
+        det = 1.0 - c * c
+        if det > _GRAM_MIN:
+            sc[_C_MU] = (r0 - c * r1) / det
+            sc[_C_MU + 1] = (r1 - c * r0) / det
+        else:
+            s = 1.0 if c >= 0.0 else -1.0
+            m = (r0 + s * r1) / (2.0 * (1.0 + abs(c)))
+            sc[_C_MU] = m
+            sc[_C_MU + 1] = s * m
+    else:
+        q2 = int(sc[base + 2])
+        n2x, n2y, n2z = planes[q2, 0], planes[q2, 1], planes[q2, 2]
+        r2 = sc[_C_RHS + 2]
+        a = n0x * n1x + n0y * n1y + n0z * n1z
+        b = n0x * n2x + n0y * n2y + n0z * n2z
+        c = n1x * n2x + n1y * n2y + n1z * n2z
+        a00 = 1.0 - c * c
+        a11 = 1.0 - b * b
+        a22 = 1.0 - a * a
+        a01 = b * c - a
+        a02 = a * c - b
+        a12 = a * b - c
+        det = a00 + a * a01 + b * a02
+        if det > _GRAM_MIN:
+            sc[_C_MU] = (a00 * r0 + a01 * r1 + a02 * r2) / det
+            sc[_C_MU + 1] = (a01 * r0 + a11 * r1 + a12 * r2) / det
+            sc[_C_MU + 2] = (a02 * r0 + a12 * r1 + a22 * r2) / det
+        else:
+            sc[_C_MU] = 0.0
+            sc[_C_MU + 1] = 0.0
+            sc[_C_MU + 2] = 0.0
+            if a22 <= _GRAM_MIN or a11 <= _GRAM_MIN or a00 <= _GRAM_MIN:
+                if a22 <= a11 and a22 <= a00:
+                    iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 1, 2, a, b, r0, r1, r2
+                elif a11 <= a00:
+                    iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 2, 1, b, a, r0, r2, r1
+                else:
+                    iu, iv, iw, cuv, cuw, ru, rv, rw = 1, 2, 0, c, a, r1, r2, r0
+                s = 1.0 if cuv >= 0.0 else -1.0
+                rm = (ru + s * rv) / 2.0
+                dp = 1.0 - cuw * cuw
+                if dp > _GRAM_MIN:
+                    am = (rm - cuw * rw) / dp
+                    sc[_C_MU + iw] = (rw - cuw * rm) / dp
+                    sc[_C_MU + iu] = am / 2.0
+                    sc[_C_MU + iv] = s * am / 2.0
+                else:
+                    t = 1.0 if cuw >= 0.0 else -1.0
+                    m = (ru + s * rv + t * rw) / 9.0
+                    sc[_C_MU + iu] = m
+                    sc[_C_MU + iv] = s * m
+                    sc[_C_MU + iw] = t * m
+            else:
+                if a22 >= a11 and a22 >= a00:
+                    iu, iv, cc, ru, rv = 0, 1, a, r0, r1
+                elif a11 >= a00:
+                    iu, iv, cc, ru, rv = 0, 2, b, r0, r2
+                else:
+                    iu, iv, cc, ru, rv = 1, 2, c, r1, r2
+                dp = 1.0 - cc * cc
+                sc[_C_MU + iu] = (ru - cc * rv) / dp
+                sc[_C_MU + iv] = (rv - cc * ru) / dp
+
+
 def contact_step(
     device_pos: np.ndarray,
     device_vel: np.ndarray,
@@ -835,77 +918,7 @@ def contact_step(
                             sc[_C_RHS + q] = (planes[qq, 3] + r) - (
                                 planes[qq, 0] * s0 + planes[qq, 1] * s1 + planes[qq, 2] * s2
                             )
-                        # hapticd.contact._gram_solve, inlined
-                        q0 = int(sc[_C_PUSHED])
-                        q1 = int(sc[_C_PUSHED + 1])
-                        n0x, n0y, n0z = planes[q0, 0], planes[q0, 1], planes[q0, 2]
-                        n1x, n1y, n1z = planes[q1, 0], planes[q1, 1], planes[q1, 2]
-                        r0 = sc[_C_RHS]
-                        r1 = sc[_C_RHS + 1]
-                        if k == 2:
-                            c = n0x * n1x + n0y * n1y + n0z * n1z
-                            det = 1.0 - c * c
-                            if det > _GRAM_MIN:
-                                sc[_C_MU] = (r0 - c * r1) / det
-                                sc[_C_MU + 1] = (r1 - c * r0) / det
-                            else:
-                                s = 1.0 if c >= 0.0 else -1.0
-                                m = (r0 + s * r1) / (2.0 * (1.0 + abs(c)))
-                                sc[_C_MU] = m
-                                sc[_C_MU + 1] = s * m
-                        else:
-                            q2 = int(sc[_C_PUSHED + 2])
-                            n2x, n2y, n2z = planes[q2, 0], planes[q2, 1], planes[q2, 2]
-                            r2 = sc[_C_RHS + 2]
-                            a = n0x * n1x + n0y * n1y + n0z * n1z
-                            b = n0x * n2x + n0y * n2y + n0z * n2z
-                            c = n1x * n2x + n1y * n2y + n1z * n2z
-                            a00 = 1.0 - c * c
-                            a11 = 1.0 - b * b
-                            a22 = 1.0 - a * a
-                            a01 = b * c - a
-                            a02 = a * c - b
-                            a12 = a * b - c
-                            det = a00 + a * a01 + b * a02
-                            if det > _GRAM_MIN:
-                                sc[_C_MU] = (a00 * r0 + a01 * r1 + a02 * r2) / det
-                                sc[_C_MU + 1] = (a01 * r0 + a11 * r1 + a12 * r2) / det
-                                sc[_C_MU + 2] = (a02 * r0 + a12 * r1 + a22 * r2) / det
-                            else:
-                                sc[_C_MU] = 0.0
-                                sc[_C_MU + 1] = 0.0
-                                sc[_C_MU + 2] = 0.0
-                                if a22 <= _GRAM_MIN or a11 <= _GRAM_MIN or a00 <= _GRAM_MIN:
-                                    if a22 <= a11 and a22 <= a00:
-                                        iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 1, 2, a, b, r0, r1, r2
-                                    elif a11 <= a00:
-                                        iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 2, 1, b, a, r0, r2, r1
-                                    else:
-                                        iu, iv, iw, cuv, cuw, ru, rv, rw = 1, 2, 0, c, a, r1, r2, r0
-                                    s = 1.0 if cuv >= 0.0 else -1.0
-                                    rm = (ru + s * rv) / 2.0
-                                    dp = 1.0 - cuw * cuw
-                                    if dp > _GRAM_MIN:
-                                        am = (rm - cuw * rw) / dp
-                                        sc[_C_MU + iw] = (rw - cuw * rm) / dp
-                                        sc[_C_MU + iu] = am / 2.0
-                                        sc[_C_MU + iv] = s * am / 2.0
-                                    else:
-                                        t = 1.0 if cuw >= 0.0 else -1.0
-                                        m = (ru + s * rv + t * rw) / 9.0
-                                        sc[_C_MU + iu] = m
-                                        sc[_C_MU + iv] = s * m
-                                        sc[_C_MU + iw] = t * m
-                                else:
-                                    if a22 >= a11 and a22 >= a00:
-                                        iu, iv, cc, ru, rv = 0, 1, a, r0, r1
-                                    elif a11 >= a00:
-                                        iu, iv, cc, ru, rv = 0, 2, b, r0, r2
-                                    else:
-                                        iu, iv, cc, ru, rv = 1, 2, c, r1, r2
-                                    dp = 1.0 - cc * cc
-                                    sc[_C_MU + iu] = (ru - cc * rv) / dp
-                                    sc[_C_MU + iv] = (rv - cc * ru) / dp
+                        _gram_mu(planes, sc, k, _C_PUSHED)
                         mn = sc[_C_MU]
                         for q in range(1, k):
                             if sc[_C_MU + q] < mn:
@@ -949,77 +962,7 @@ def contact_step(
                     sc[_C_RHS + q] = (planes[qq, 3] + r) - (
                         planes[qq, 0] * d0 + planes[qq, 1] * d1 + planes[qq, 2] * d2
                     )
-                # hapticd.contact._gram_solve, inlined
-                q0 = int(sc[_C_ACTIVE])
-                q1 = int(sc[_C_ACTIVE + 1])
-                n0x, n0y, n0z = planes[q0, 0], planes[q0, 1], planes[q0, 2]
-                n1x, n1y, n1z = planes[q1, 0], planes[q1, 1], planes[q1, 2]
-                r0 = sc[_C_RHS]
-                r1 = sc[_C_RHS + 1]
-                if k == 2:
-                    c = n0x * n1x + n0y * n1y + n0z * n1z
-                    det = 1.0 - c * c
-                    if det > _GRAM_MIN:
-                        sc[_C_MU] = (r0 - c * r1) / det
-                        sc[_C_MU + 1] = (r1 - c * r0) / det
-                    else:
-                        s = 1.0 if c >= 0.0 else -1.0
-                        m = (r0 + s * r1) / (2.0 * (1.0 + abs(c)))
-                        sc[_C_MU] = m
-                        sc[_C_MU + 1] = s * m
-                else:
-                    q2 = int(sc[_C_ACTIVE + 2])
-                    n2x, n2y, n2z = planes[q2, 0], planes[q2, 1], planes[q2, 2]
-                    r2 = sc[_C_RHS + 2]
-                    a = n0x * n1x + n0y * n1y + n0z * n1z
-                    b = n0x * n2x + n0y * n2y + n0z * n2z
-                    c = n1x * n2x + n1y * n2y + n1z * n2z
-                    a00 = 1.0 - c * c
-                    a11 = 1.0 - b * b
-                    a22 = 1.0 - a * a
-                    a01 = b * c - a
-                    a02 = a * c - b
-                    a12 = a * b - c
-                    det = a00 + a * a01 + b * a02
-                    if det > _GRAM_MIN:
-                        sc[_C_MU] = (a00 * r0 + a01 * r1 + a02 * r2) / det
-                        sc[_C_MU + 1] = (a01 * r0 + a11 * r1 + a12 * r2) / det
-                        sc[_C_MU + 2] = (a02 * r0 + a12 * r1 + a22 * r2) / det
-                    else:
-                        sc[_C_MU] = 0.0
-                        sc[_C_MU + 1] = 0.0
-                        sc[_C_MU + 2] = 0.0
-                        if a22 <= _GRAM_MIN or a11 <= _GRAM_MIN or a00 <= _GRAM_MIN:
-                            if a22 <= a11 and a22 <= a00:
-                                iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 1, 2, a, b, r0, r1, r2
-                            elif a11 <= a00:
-                                iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 2, 1, b, a, r0, r2, r1
-                            else:
-                                iu, iv, iw, cuv, cuw, ru, rv, rw = 1, 2, 0, c, a, r1, r2, r0
-                            s = 1.0 if cuv >= 0.0 else -1.0
-                            rm = (ru + s * rv) / 2.0
-                            dp = 1.0 - cuw * cuw
-                            if dp > _GRAM_MIN:
-                                am = (rm - cuw * rw) / dp
-                                sc[_C_MU + iw] = (rw - cuw * rm) / dp
-                                sc[_C_MU + iu] = am / 2.0
-                                sc[_C_MU + iv] = s * am / 2.0
-                            else:
-                                t = 1.0 if cuw >= 0.0 else -1.0
-                                m = (ru + s * rv + t * rw) / 9.0
-                                sc[_C_MU + iu] = m
-                                sc[_C_MU + iv] = s * m
-                                sc[_C_MU + iw] = t * m
-                        else:
-                            if a22 >= a11 and a22 >= a00:
-                                iu, iv, cc, ru, rv = 0, 1, a, r0, r1
-                            elif a11 >= a00:
-                                iu, iv, cc, ru, rv = 0, 2, b, r0, r2
-                            else:
-                                iu, iv, cc, ru, rv = 1, 2, c, r1, r2
-                            dp = 1.0 - cc * cc
-                            sc[_C_MU + iu] = (ru - cc * rv) / dp
-                            sc[_C_MU + iv] = (rv - cc * ru) / dp
+                _gram_mu(planes, sc, k, _C_ACTIVE)
                 t0, t1, t2 = d0, d1, d2
                 for q in range(k):
                     qq = int(sc[_C_ACTIVE + q])
@@ -1146,77 +1089,7 @@ def contact_step(
                 for q in range(k):
                     qq = int(sc[_C_ACTIVE + q])
                     sc[_C_RHS + q] = f0 * planes[qq, 0] + f1 * planes[qq, 1] + f2 * planes[qq, 2]
-                # hapticd.contact._gram_solve, inlined
-                q0 = int(sc[_C_ACTIVE])
-                q1 = int(sc[_C_ACTIVE + 1])
-                n0x, n0y, n0z = planes[q0, 0], planes[q0, 1], planes[q0, 2]
-                n1x, n1y, n1z = planes[q1, 0], planes[q1, 1], planes[q1, 2]
-                r0 = sc[_C_RHS]
-                r1 = sc[_C_RHS + 1]
-                if k == 2:
-                    c = n0x * n1x + n0y * n1y + n0z * n1z
-                    det = 1.0 - c * c
-                    if det > _GRAM_MIN:
-                        sc[_C_MU] = (r0 - c * r1) / det
-                        sc[_C_MU + 1] = (r1 - c * r0) / det
-                    else:
-                        s = 1.0 if c >= 0.0 else -1.0
-                        m = (r0 + s * r1) / (2.0 * (1.0 + abs(c)))
-                        sc[_C_MU] = m
-                        sc[_C_MU + 1] = s * m
-                else:
-                    q2 = int(sc[_C_ACTIVE + 2])
-                    n2x, n2y, n2z = planes[q2, 0], planes[q2, 1], planes[q2, 2]
-                    r2 = sc[_C_RHS + 2]
-                    a = n0x * n1x + n0y * n1y + n0z * n1z
-                    b = n0x * n2x + n0y * n2y + n0z * n2z
-                    c = n1x * n2x + n1y * n2y + n1z * n2z
-                    a00 = 1.0 - c * c
-                    a11 = 1.0 - b * b
-                    a22 = 1.0 - a * a
-                    a01 = b * c - a
-                    a02 = a * c - b
-                    a12 = a * b - c
-                    det = a00 + a * a01 + b * a02
-                    if det > _GRAM_MIN:
-                        sc[_C_MU] = (a00 * r0 + a01 * r1 + a02 * r2) / det
-                        sc[_C_MU + 1] = (a01 * r0 + a11 * r1 + a12 * r2) / det
-                        sc[_C_MU + 2] = (a02 * r0 + a12 * r1 + a22 * r2) / det
-                    else:
-                        sc[_C_MU] = 0.0
-                        sc[_C_MU + 1] = 0.0
-                        sc[_C_MU + 2] = 0.0
-                        if a22 <= _GRAM_MIN or a11 <= _GRAM_MIN or a00 <= _GRAM_MIN:
-                            if a22 <= a11 and a22 <= a00:
-                                iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 1, 2, a, b, r0, r1, r2
-                            elif a11 <= a00:
-                                iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 2, 1, b, a, r0, r2, r1
-                            else:
-                                iu, iv, iw, cuv, cuw, ru, rv, rw = 1, 2, 0, c, a, r1, r2, r0
-                            s = 1.0 if cuv >= 0.0 else -1.0
-                            rm = (ru + s * rv) / 2.0
-                            dp = 1.0 - cuw * cuw
-                            if dp > _GRAM_MIN:
-                                am = (rm - cuw * rw) / dp
-                                sc[_C_MU + iw] = (rw - cuw * rm) / dp
-                                sc[_C_MU + iu] = am / 2.0
-                                sc[_C_MU + iv] = s * am / 2.0
-                            else:
-                                t = 1.0 if cuw >= 0.0 else -1.0
-                                m = (ru + s * rv + t * rw) / 9.0
-                                sc[_C_MU + iu] = m
-                                sc[_C_MU + iv] = s * m
-                                sc[_C_MU + iw] = t * m
-                        else:
-                            if a22 >= a11 and a22 >= a00:
-                                iu, iv, cc, ru, rv = 0, 1, a, r0, r1
-                            elif a11 >= a00:
-                                iu, iv, cc, ru, rv = 0, 2, b, r0, r2
-                            else:
-                                iu, iv, cc, ru, rv = 1, 2, c, r1, r2
-                            dp = 1.0 - cc * cc
-                            sc[_C_MU + iu] = (ru - cc * rv) / dp
-                            sc[_C_MU + iv] = (rv - cc * ru) / dp
+                _gram_mu(planes, sc, k, _C_ACTIVE)
         # -- the stage's outputs for this finger (Contact.run, Contact._env_force)
         sc[0], sc[1], sc[2] = p0, p1, p2
         proxy_pos[i, 0], proxy_pos[i, 1], proxy_pos[i, 2] = p0, p1, p2
