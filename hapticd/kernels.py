@@ -753,7 +753,7 @@ CONTACT_DONE, CONTACT_NOT_TAKEN = 0, 1
 
 # Functions of this module the kernels call (everything else a kernel does is inline):
 # hapticd.jit compiles them into the kernels that call them.
-KERNEL_HELPERS = ("_gram_mu",)
+KERNEL_HELPERS = ("_gram_mu", "_hypot3")
 
 
 def _gram_mu(planes: np.ndarray, sc: np.ndarray, k: int, base: int) -> None:
@@ -1162,6 +1162,63 @@ SAFETY_CLAMPED, SAFETY_LIMITED, SAFETY_DEFER = 1, 2, 4
 _SPLIT = 134217729.0
 
 
+def _hypot3(x0: float, x1: float, x2: float) -> float:
+    """``math.hypot(x0, x1, x2)`` as CPython 3.11 computes it (``vector_norm``: scaled by
+    the largest magnitude, squares split with Veltkamp's constant, compensated sums, one
+    correction step), bit for bit; inf for an infinite argument."""
+    a0, a1, a2 = abs(x0), abs(x1), abs(x2)
+    top = a0
+    if a1 > top:
+        top = a1
+    if a2 > top:
+        top = a2
+    if math.isinf(top) or top == 0.0:
+        return top
+    else:
+        e = math.frexp(top)[1]
+        csum, frac1, frac2, frac3 = 1.0, 0.0, 0.0, 0.0
+        if e >= -1023:
+            scale = math.ldexp(1.0, -e)
+            for x in (a0 * scale, a1 * scale, a2 * scale):
+                t = x * _SPLIT
+                hi = t - (t - x)
+                lo = x - hi
+                x = hi * hi
+                old = csum
+                csum += x
+                frac1 += (old - csum) + x
+                x = 2.0 * hi * lo
+                old = csum
+                csum += x
+                frac2 += (old - csum) + x
+                frac3 += lo * lo
+            h = math.sqrt(csum - 1.0 + (frac1 + frac2 + frac3))
+            t = h * _SPLIT
+            hi = t - (t - h)
+            lo = h - hi
+            x = -hi * hi
+            old = csum
+            csum += x
+            frac1 += (old - csum) + x
+            x = -2.0 * hi * lo
+            old = csum
+            csum += x
+            frac2 += (old - csum) + x
+            x = -lo * lo
+            old = csum
+            csum += x
+            frac3 += (old - csum) + x
+            x = csum - 1.0 + (frac1 + frac2 + frac3)
+            return (h + x / (2.0 * h)) / scale
+        else:
+            for x in (a0 / top, a1 / top, a2 / top):
+                x = x * x
+                old = csum
+                csum += x
+                frac1 += (old - csum) + x
+            return top * math.sqrt(csum - 1.0 + frac1)
+
+
 def safety_step(
     forces: np.ndarray, positions: np.ndarray, params: np.ndarray, out_prev: np.ndarray
 ) -> int:
@@ -1204,58 +1261,7 @@ def safety_step(
     flags = 0
     for i in range(n_fingers):
         f0, f1, f2 = forces[i, 0], forces[i, 1], forces[i, 2]
-        # mag = math.hypot(f0, f1, f2)
-        a0, a1, a2 = abs(f0), abs(f1), abs(f2)
-        top = a0
-        if a1 > top:
-            top = a1
-        if a2 > top:
-            top = a2
-        if top == 0.0:
-            mag = top
-        else:
-            e = math.frexp(top)[1]
-            csum, frac1, frac2, frac3 = 1.0, 0.0, 0.0, 0.0
-            if e >= -1023:
-                scale = math.ldexp(1.0, -e)
-                for x in (a0 * scale, a1 * scale, a2 * scale):
-                    t = x * _SPLIT
-                    hi = t - (t - x)
-                    lo = x - hi
-                    x = hi * hi
-                    old = csum
-                    csum += x
-                    frac1 += (old - csum) + x
-                    x = 2.0 * hi * lo
-                    old = csum
-                    csum += x
-                    frac2 += (old - csum) + x
-                    frac3 += lo * lo
-                h = math.sqrt(csum - 1.0 + (frac1 + frac2 + frac3))
-                t = h * _SPLIT
-                hi = t - (t - h)
-                lo = h - hi
-                x = -hi * hi
-                old = csum
-                csum += x
-                frac1 += (old - csum) + x
-                x = -2.0 * hi * lo
-                old = csum
-                csum += x
-                frac2 += (old - csum) + x
-                x = -lo * lo
-                old = csum
-                csum += x
-                frac3 += (old - csum) + x
-                x = csum - 1.0 + (frac1 + frac2 + frac3)
-                mag = (h + x / (2.0 * h)) / scale
-            else:
-                for x in (a0 / top, a1 / top, a2 / top):
-                    x = x * x
-                    old = csum
-                    csum += x
-                    frac1 += (old - csum) + x
-                mag = top * math.sqrt(csum - 1.0 + frac1)
+        mag = _hypot3(f0, f1, f2)
         limit = params[SAFETY_PARAMS + i]
         if mag > limit:
             s = limit / mag
@@ -1271,58 +1277,7 @@ def safety_step(
         if rate_limited and (f0 != 0.0 or f1 != 0.0 or f2 != 0.0):
             p0, p1, p2 = prev[i, 0], prev[i, 1], prev[i, 2]
             d0, d1, d2 = f0 - p0, f1 - p1, f2 - p2
-            # change = math.hypot(d0, d1, d2)
-            a0, a1, a2 = abs(d0), abs(d1), abs(d2)
-            top = a0
-            if a1 > top:
-                top = a1
-            if a2 > top:
-                top = a2
-            if math.isinf(top) or top == 0.0:
-                change = top
-            else:
-                e = math.frexp(top)[1]
-                csum, frac1, frac2, frac3 = 1.0, 0.0, 0.0, 0.0
-                if e >= -1023:
-                    scale = math.ldexp(1.0, -e)
-                    for x in (a0 * scale, a1 * scale, a2 * scale):
-                        t = x * _SPLIT
-                        hi = t - (t - x)
-                        lo = x - hi
-                        x = hi * hi
-                        old = csum
-                        csum += x
-                        frac1 += (old - csum) + x
-                        x = 2.0 * hi * lo
-                        old = csum
-                        csum += x
-                        frac2 += (old - csum) + x
-                        frac3 += lo * lo
-                    h = math.sqrt(csum - 1.0 + (frac1 + frac2 + frac3))
-                    t = h * _SPLIT
-                    hi = t - (t - h)
-                    lo = h - hi
-                    x = -hi * hi
-                    old = csum
-                    csum += x
-                    frac1 += (old - csum) + x
-                    x = -2.0 * hi * lo
-                    old = csum
-                    csum += x
-                    frac2 += (old - csum) + x
-                    x = -lo * lo
-                    old = csum
-                    csum += x
-                    frac3 += (old - csum) + x
-                    x = csum - 1.0 + (frac1 + frac2 + frac3)
-                    change = (h + x / (2.0 * h)) / scale
-                else:
-                    for x in (a0 / top, a1 / top, a2 / top):
-                        x = x * x
-                        old = csum
-                        csum += x
-                        frac1 += (old - csum) + x
-                    change = top * math.sqrt(csum - 1.0 + frac1)
+            change = _hypot3(d0, d1, d2)
             if change > step:
                 k = step / change
                 f0, f1, f2 = p0 + k * d0, p1 + k * d1, p2 + k * d2
