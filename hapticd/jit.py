@@ -191,13 +191,18 @@ def _register_helpers(numba, kernels) -> None:
     """Make the kernels' helpers (``kernels.KERNEL_HELPERS``) callable from compiled code:
     numba compiles each into the kernels that call it, and leaves the function itself
     plain Python (the module is not changed)."""
-    from numba.extending import register_jitable
+    try:
+        from numba.extending import register_jitable
 
-    for name in kernels.KERNEL_HELPERS:
-        fn = getattr(kernels, name)
-        if fn not in _HELPERS:
-            register_jitable(fn)
-            _HELPERS.add(fn)
+        for name in kernels.KERNEL_HELPERS:
+            fn = getattr(kernels, name)
+            if fn not in _HELPERS:
+                register_jitable(fn)
+                _HELPERS.add(fn)
+    except Exception:
+        # A broken numba: a kernel that calls a helper then fails to compile, and the
+        # failure is reported under that kernel's name like any other.
+        return
 
 
 # Helpers registered with numba in this process.
