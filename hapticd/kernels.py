@@ -286,6 +286,34 @@ ALLOCATED, MANY_CONTACTS, NON_FINITE_INPUT, NON_FINITE_OUTPUT = 0, 1, 2, 3
 ACCURACY = 4  # allocation_step's accuracy: internal, external, total, amplification
 
 
+# Functions of this module the kernels call (everything else a kernel does is inline):
+# hapticd.jit compiles them into the kernels that call them.
+KERNEL_HELPERS = ("_finv2", "_gram_mu", "_hypot3")
+
+
+def _finv2(ka: float, kb: float, kc: float, eps2: float) -> tuple[float, float, float]:
+    """``hapticd.allocation.closed._finv2``: the filtered inverse (fa, fb, fc) of the
+    symmetric [[ka, kb], [kb, kc]], eigenvalues below ``eps2`` lifted to it (a kernel
+    helper, ``KERNEL_HELPERS``)."""
+    mean = 0.5 * (ka + kc)
+    half = 0.5 * (ka - kc)
+    rad = math.sqrt(half * half + kb * kb)
+    e2 = mean - rad
+    if e2 >= eps2:
+        det = ka * kc - kb * kb
+        fa, fb, fc = kc / det, -kb / det, ka / det
+    else:
+        e1 = mean + rad
+        h2 = 1.0 / eps2
+        h1 = 1.0 / e1 if e1 >= eps2 else h2
+        if h1 == h2:
+            fa, fb, fc = h2, 0.0, h2
+        else:
+            sp = (h1 - h2) / (e1 - e2)
+            fa, fb, fc = h2 + sp * (ka - e2), sp * kb, h2 + sp * (kc - e2)
+    return fa, fb, fc
+
+
 def allocation_step(
     in_contact: np.ndarray,
     device_pos: np.ndarray,
@@ -414,22 +442,7 @@ def allocation_step(
         y0 = (d10 * f0 + d11 * f1 + d12 * f2) + (m10 * t0 + m11 * t1 + m12 * t2)
         y1 = (d20 * f0 + d21 * f1 + d22 * f2) + (m20 * t0 + m21 * t1 + m22 * t2)
         # The filtered inverse of [[ka, kb], [kb, kc]] (closed._finv2).
-        mean = 0.5 * (ka + kc)
-        half = 0.5 * (ka - kc)
-        rad = math.sqrt(half * half + kb * kb)
-        e2 = mean - rad
-        if e2 >= eps2:
-            det = ka * kc - kb * kb
-            fa, fb, fc = kc / det, -kb / det, ka / det
-        else:
-            e1 = mean + rad
-            h2 = 1.0 / eps2
-            h1 = 1.0 / e1 if e1 >= eps2 else h2
-            if h1 == h2:
-                fa, fb, fc = h2, 0.0, h2
-            else:
-                sp = (h1 - h2) / (e1 - e2)
-                fa, fb, fc = h2 + sp * (ka - e2), sp * kb, h2 + sp * (kc - e2)
+        fa, fb, fc = _finv2(ka, kb, kc, eps2)
         x0, x1 = fa * y0 + fb * y1, fb * y0 + fc * y1
     elif n == 2:  # if: closed.two_contact_if
         # The grasp line e and the blend w toward all opposing pairs (closed._grasp_line).
@@ -452,22 +465,7 @@ def allocation_step(
         kb = -0.5 * (a10 * a20 + a11 * a21 + a12 * a22)
         kc = 0.5 * (a20 * a20 + a21 * a21 + a22 * a22)
         # FB: the filtered inverse of K_B (closed._finv2).
-        mean = 0.5 * (ka + kc)
-        half = 0.5 * (ka - kc)
-        rad = math.sqrt(half * half + kb * kb)
-        e2 = mean - rad
-        if e2 >= eps2:
-            det = ka * kc - kb * kb
-            fa, fb, fc = kc / det, -kb / det, ka / det
-        else:
-            e1 = mean + rad
-            h2 = 1.0 / eps2
-            h1 = 1.0 / e1 if e1 >= eps2 else h2
-            if h1 == h2:
-                fa, fb, fc = h2, 0.0, h2
-            else:
-                sp = (h1 - h2) / (e1 - e2)
-                fa, fb, fc = h2 + sp * (ka - e2), sp * kb, h2 + sp * (kc - e2)
+        fa, fb, fc = _finv2(ka, kb, kc, eps2)
         u0 = 0.5 * (a10 * s0 + a11 * s1 + a12 * s2)
         u1 = -0.5 * (a20 * s0 + a21 * s1 + a22 * s2)
         x0, x1 = fa * u0 + fb * u1, fb * u0 + fc * u1
@@ -487,22 +485,7 @@ def allocation_step(
         ka = q00 * pa + q01 * pb
         kb = q00 * pb + q01 * pc
         kc = q10 * pb + q11 * pc
-        mean = 0.5 * (ka + kc)
-        half = 0.5 * (ka - kc)
-        rad = math.sqrt(half * half + kb * kb)
-        e2 = mean - rad
-        if e2 >= eps2:
-            det = ka * kc - kb * kb
-            fa, fb, fc = kc / det, -kb / det, ka / det
-        else:
-            e1 = mean + rad
-            h2 = 1.0 / eps2
-            h1 = 1.0 / e1 if e1 >= eps2 else h2
-            if h1 == h2:
-                fa, fb, fc = h2, 0.0, h2
-            else:
-                sp = (h1 - h2) / (e1 - e2)
-                fa, fb, fc = h2 + sp * (ka - e2), sp * kb, h2 + sp * (kc - e2)
+        fa, fb, fc = _finv2(ka, kb, kc, eps2)
         v0, v1 = pa * v0 + pb * v1, pb * v0 + pc * v1
         v0, v1 = fa * v0 + fb * v1, fb * v0 + fc * v1
         v0, v1 = pa * v0 + pb * v1, pb * v0 + pc * v1
@@ -749,11 +732,6 @@ _C_RADIUS, _C_ACTIVE, _C_MU, _C_PUSHED, _C_RHS = 3, 4, 7, 10, 13
 # contact_step's outcomes: done; not taken (an obstacle of more than _VECTOR_PLANES planes
 # or a non-finite input: the stage runs its Python code; nothing written).
 CONTACT_DONE, CONTACT_NOT_TAKEN = 0, 1
-
-
-# Functions of this module the kernels call (everything else a kernel does is inline):
-# hapticd.jit compiles them into the kernels that call them.
-KERNEL_HELPERS = ("_gram_mu", "_hypot3")
 
 
 def _gram_mu(planes: np.ndarray, sc: np.ndarray, k: int, base: int) -> None:
