@@ -187,7 +187,14 @@ class ControlClient:
             if cut >= 0:
                 line = bytes(self._buf[:cut])
                 del self._buf[: cut + 1]
-                return json.loads(line)
+                try:
+                    return json.loads(line)
+                except ValueError:
+                    shown = line[:60].decode("utf-8", "replace")
+                    raise proto.ProtocolError(
+                        "malformed",
+                        f"{self.path}: the daemon sent a line that is not JSON: {shown!r}",
+                    ) from None
             left = None if deadline is None else deadline - time.monotonic()
             if left is not None and left <= 0:
                 raise TimeoutError(f"{self.path}: nothing from the daemon in {timeout_s:g} s")
