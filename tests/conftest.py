@@ -68,14 +68,20 @@ def pytest_collection_modifyitems(config, items):
 # The session's own numba cache: compiled kernels (hapticd.jit) neither come from nor go
 # into the source tree's or the user's cache, and a background compiler that a test's auto
 # run starts writes here; the session waits for it at its end (pytest_sessionfinish).
-NUMBA_CACHE = Path(tempfile.mkdtemp(prefix="hapticd-tests-numba-"))
+# One cache for the whole run: the first process to compile a kernel (pytest-xdist runs the
+# tests in several worker processes) leaves it for the others to load. The main process
+# makes it before the workers start, and they inherit it through the environment.
+_SHARED_CACHE = "HAPTICD_TEST_NUMBA_CACHE"
+if _SHARED_CACHE not in os.environ:
+    os.environ[_SHARED_CACHE] = tempfile.mkdtemp(prefix="hapticd-tests-numba-")
+NUMBA_CACHE = Path(os.environ[_SHARED_CACHE])
 os.environ["NUMBA_CACHE_DIR"] = str(NUMBA_CACHE)
 COMPILER_WAIT_S = 180.0
 
 
 def pytest_sessionfinish(session, exitstatus):
     """No background compiler outlives the session: wait (bounded) for its marker to go,
-    fail the session if it does not, then remove the session's cache."""
+    fail the session if it does not; then the main process removes the run's cache."""
     from hapticd import jit
 
     marker = NUMBA_CACHE / jit.COMPILING
@@ -86,7 +92,8 @@ def pytest_sessionfinish(session, exitstatus):
         print(f"\na background kernel compiler still runs after {COMPILER_WAIT_S:.0f} s")
         session.exitstatus = 1
         return
-    shutil.rmtree(NUMBA_CACHE, ignore_errors=True)
+    if not hasattr(session.config, "workerinput"):  # the main process, after every worker
+        shutil.rmtree(NUMBA_CACHE, ignore_errors=True)
 
 
 settings.register_profile(
@@ -97,7 +104,10 @@ settings.register_profile(
     suppress_health_check=[HealthCheck.too_slow],
 )
 settings.register_profile("thorough", max_examples=5000, deadline=None)
-settings.load_profile("ci")
+# HYPOTHESIS_PROFILE=thorough (or pytest's --hypothesis-profile thorough) for a deliberate
+# search: random cases, 5000 each. The ci profile: 300 derandomized cases per property,
+# the same every run.
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
 class AtTick:
