@@ -71,8 +71,11 @@ def pytest_collection_modifyitems(config, items):
 # One cache for the whole run: the first process to compile a kernel (pytest-xdist runs the
 # tests in several worker processes) leaves it for the others to load. The main process
 # makes it before the workers start, and they inherit it through the environment.
+# A developer may name a lasting one (HAPTICD_TEST_NUMBA_CACHE=DIR): kept across runs, so
+# repeated runs load the kernels instead of compiling them (numba recompiles what changed).
 _SHARED_CACHE = "HAPTICD_TEST_NUMBA_CACHE"
-if _SHARED_CACHE not in os.environ:
+_CACHE_MADE_HERE = _SHARED_CACHE not in os.environ
+if _CACHE_MADE_HERE:
     os.environ[_SHARED_CACHE] = tempfile.mkdtemp(prefix="hapticd-tests-numba-")
 NUMBA_CACHE = Path(os.environ[_SHARED_CACHE])
 os.environ["NUMBA_CACHE_DIR"] = str(NUMBA_CACHE)
@@ -81,7 +84,7 @@ COMPILER_WAIT_S = 180.0
 
 def pytest_sessionfinish(session, exitstatus):
     """No background compiler outlives the session: wait (bounded) for its marker to go,
-    fail the session if it does not; then the main process removes the run's cache."""
+    fail the session if it does not; then the process that made the run's cache removes it."""
     from hapticd import jit
 
     marker = NUMBA_CACHE / jit.COMPILING
@@ -92,7 +95,7 @@ def pytest_sessionfinish(session, exitstatus):
         print(f"\na background kernel compiler still runs after {COMPILER_WAIT_S:.0f} s")
         session.exitstatus = 1
         return
-    if not hasattr(session.config, "workerinput"):  # the main process, after every worker
+    if _CACHE_MADE_HERE:  # the main process (xdist's workers inherit the folder), last
         shutil.rmtree(NUMBA_CACHE, ignore_errors=True)
 
 
