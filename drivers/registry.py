@@ -243,7 +243,8 @@ BACKENDS: dict[str, Backend] = {
             discover="hapticd_drivers.dhd_backend:discover",
             preflight="hapticd_drivers.dhd_backend:preflight",
             calibrate="hapticd_drivers.dhd_backend:calibrate",
-            status="done, tested through a fake libdhd compiled by the tests",
+            status="done, tested through a fake SDK compiled by the tests, as the SDK's "
+            "documentation describes it and with its older behaviours",
         ),
     )
 }

@@ -484,7 +484,9 @@ def cmd_devices(args: argparse.Namespace) -> int:
         if "problem" in entry:
             print(f"{entry['backend']:<4} cannot look: {entry['problem']}")
         elif entry["found"]:
-            print(f"{entry['backend']:<4} {entry['model']}: {', '.join(map(str, entry['found']))}")
+            sdk = f" (SDK {entry['sdk']})" if entry.get("sdk") else ""
+            found = ", ".join(map(str, entry["found"]))
+            print(f"{entry['backend']:<4} {entry['model']}{sdk}: {found}")
         else:
             print(f"{entry['backend']:<4} {entry['model']}: none found (plugged in? udev rules?)")
     return EXIT_OK
