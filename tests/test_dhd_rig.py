@@ -233,3 +233,51 @@ def test_the_fake_sdk_from_a_shell_walks_devices_calibrate_bringup_and_run(tmp_p
     )
     run = json.loads(summary.read_text())
     assert run["fault"] is None and run["ticks"] >= 1000
+
+
+def test_check_uses_the_named_model_and_says_when_the_workspace_is_not_known(
+    tmp_path, libdhd, capsys
+):
+    lib_path, _ = libdhd
+    data = yaml.safe_load(_rig(tmp_path, lib_path).read_text())
+    data["fingers"][0]["device"].update(model="Falcon")  # 8 N, 40 mm, at most 3000 N/m
+    del data["fingers"][1]["device"]["model"]
+    data["scene"]["object"]["stiffness_n_per_m"] = 4000.0
+    path = tmp_path / "falcon.yaml"
+    path.write_text(yaml.safe_dump(data))
+    assert main(["check", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "thumb: device workspace about (-60.0, 0.0, 0.0) mm (world), radius 40.0 mm" in out
+    assert "index: device workspace about (60.0, 0.0, 0.0) mm (world); its workspace is not " in out
+    assert (
+        "thumb: the Falcon renders at most 3000 N/m and 20 N s/m; the scene asks 4000 N/m "
+        "(object) and 0 N s/m (object): WARNING: above" in out
+    )
+    assert "index: the" not in out  # its model is not known before it opens
+
+
+def test_bringup_fails_a_scene_stiffer_than_the_device_model_renders(tmp_path, libdhd, capsys):
+    lib_path, lib = libdhd
+    _pressing_without_serial_numbers(lib)
+    data = yaml.safe_load(_rig(tmp_path, lib_path).read_text())
+    data["scene"]["object"]["stiffness_n_per_m"] = 6000.0  # an omega.3: at most 5000 N/m
+    path = tmp_path / "stiff.yaml"
+    path.write_text(yaml.safe_dump(data))
+    code = main(
+        [
+            "bringup",
+            str(path),
+            "--answers",
+            "yy",
+            "--live-s",
+            "0",
+            "--no-realtime",
+            "--unpaced",
+            "--out",
+            str(tmp_path),
+        ]
+    )
+    out = capsys.readouterr().out
+    assert code == 1, out
+    assert "index: the omega.3 renders at most 5000 N/m and 30 N s/m; the scene asks 6000" in out
+    assert "RESULT: FAIL" in out
