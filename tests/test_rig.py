@@ -178,7 +178,10 @@ def test_calibrate_reports_a_failure_and_a_profile_with_nothing_to_calibrate(
     lib.fake_block_autoinit(1)
     _, profile = _dhd_profile(tmp_path, lib_path)
     assert main(["calibrate", profile, "--yes"]) == 1
-    assert "automatic initialisation failed" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "thumb: dhd omega.3 index 0, serial 10001: automatic initialisation failed" in err
+    assert [lib.fake_is_open(i) for i in range(2)] == [0, 0]
+    assert [lib.fake_is_enabled(i) for i in range(2)] == [0, 0]
     assert main(["calibrate", str(GRASP_PROFILE), "--yes"]) == 2
     assert "nothing to calibrate" in capsys.readouterr().err
 
