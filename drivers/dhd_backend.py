@@ -233,6 +233,11 @@ def sdk_error(lib: ctypes.CDLL, who: str, what: str) -> DeviceError:
     return DeviceError(f"{who}: {what}: {text}")
 
 
+def _unsupported(lib: ctypes.CDLL) -> bool:
+    """Whether the call that just failed is one the device does not have (not an error)."""
+    return int(lib.dhdErrorGetLast()) in (DHD_ERROR_NOT_AVAILABLE, DHD_ERROR_NOT_IMPLEMENTED)
+
+
 def _held(lib: ctypes.CDLL, dev_id: int) -> bool:
     return (lib._handle, dev_id) in _HELD
 
@@ -462,7 +467,7 @@ class DhdDevice(Device):
                 )
         name = serial or (str(serial_number) if serial_number is not None else f"dhd#{index}")
         self._who = (
-            f"dhd serial {serial_number}" if serial_number is not None else (f"dhd index {index}")
+            f"dhd serial {serial_number}" if serial_number is not None else f"dhd index {index}"
         )
         self.info = self._info(self.model, name, float(max_force_n))
         self._lib: ctypes.CDLL | None = None
@@ -580,10 +585,9 @@ class DhdDevice(Device):
         if rc == 0:
             return
         if rc < 0:
-            code, text = last_error(lib)
-            if code in (DHD_ERROR_NOT_AVAILABLE, DHD_ERROR_NOT_IMPLEMENTED):
+            if _unsupported(lib):
                 return  # a device type without the check
-            raise DeviceError(f"{self._who}: the controller's memory check failed: {text}")
+            raise sdk_error(lib, self._who, "the controller's memory check failed")
         raise DeviceError(
             f"{self._who}: the controller's memory check failed ({error_name(rc)}: the "
             "firmware or internal configuration health check failed); do not use the "
@@ -674,9 +678,11 @@ class DhdDevice(Device):
                 f"{self._who}: not calibrated, so its forces stay off; empty its workspace "
                 "and run: hapticd calibrate PROFILE"
             )
-        # The DRD leaves a device it stopped in brake mode (drdStop(false)).
-        if hasattr(lib, "dhdSetBrakes"):
-            self._check(lib.dhdSetBrakes(_OFF, self._id), "cannot release the brakes")
+        # The DRD leaves a device it stopped in brake mode (drdStop(false)); a device
+        # without brakes has none to release.
+        released = not hasattr(lib, "dhdSetBrakes") or lib.dhdSetBrakes(_OFF, self._id) >= 0
+        if not released and not _unsupported(lib):
+            raise sdk_error(lib, self._who, "cannot release the brakes")
         self._prime()  # the last calls before the loop's first read
         self._check(lib.dhdEnableForce(_ON, self._id), "cannot enable forces")
         self._enabled = True

@@ -197,6 +197,21 @@ def test_brakes_are_released_before_forces_after_a_calibration(libdhd):
     dev.close()
 
 
+def test_a_device_without_brakes_or_memory_check_opens_and_renders(libdhd):
+    """DHD_ERROR_NOT_AVAILABLE from dhdSetBrakes or dhdCheckControllerMemory: a device
+    without them, not a failure."""
+    path, lib = libdhd
+    lib.fake_reset(1)
+    lib.fake_set_basic(0, 1)
+    dev = _opened(path)
+    dev.enable_forces(True)
+    dev.write_force(np.array([0.0, 0.0, 2.0]))
+    buf = (ctypes.c_double * 3)()
+    lib.fake_get_force(0, buf)
+    assert list(buf) == [0.0, 0.0, 2.0]
+    dev.close()
+
+
 def test_an_sdk_older_than_the_minimum_is_refused_naming_both_versions(libdhd):
     path, lib = libdhd
     lib.fake_reset(1)

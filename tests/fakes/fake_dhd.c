@@ -48,7 +48,7 @@
 
 static struct {
     int present, open, enabled, plugged, calibrated, gravity, memory_fault, drd_open;
-    int has_serial, in_use, brakes, type, velocity_stuck;
+    int has_serial, in_use, brakes, type, velocity_stuck, without_brakes_and_memory_check;
     unsigned short serial;
     unsigned int buttons;
     double pos[3], vel[3], force[3], force_sum[3], max_force, effector_mass;
@@ -168,6 +168,9 @@ void fake_set_serial(int i, int has) { dev[i].has_serial = has; }
 void fake_set_type(int i, int type) { dev[i].type = type; }
 void fake_set_in_use(int i, int on) { dev[i].in_use = on; }
 void fake_set_velocity_stuck(int i, int on) { dev[i].velocity_stuck = on; }
+/* A model without brakes and without the controller memory check: both calls fail with
+ * DHD_ERROR_NOT_AVAILABLE. */
+void fake_set_basic(int i, int on) { dev[i].without_brakes_and_memory_check = on; }
 void fake_set_velocity_window(double s) { window_s = s; }
 void fake_set_sdk_version(int major, int minor, int release, int revision) {
     sdk_version[0] = major; sdk_version[1] = minor; sdk_version[2] = release; sdk_version[3] = revision;
@@ -282,6 +285,7 @@ const char *dhdGetSystemName(char id) {
 int dhdGetSystemType(char id) { int i; if (pick_live(id, &i) < 0) return -1; return dev[i].type; }
 int dhdCheckControllerMemory(char id) {
     int i; if (pick_live(id, &i) < 0) return -1;
+    if (dev[i].without_brakes_and_memory_check) return fail(DHD_ERROR_NOT_AVAILABLE, "not available on this device");
     if (!dev[i].memory_fault) return DHD_NO_ERROR;
     if (legacy & FAKE_LEGACY_NO_CODES) return fail(DHD_ERROR, "controller memory: configuration corrupt");
     return DHD_ERROR_CONFIGURATION;
@@ -292,6 +296,7 @@ int dhdEnableForce(unsigned char on, char id) {
 }
 int dhdSetBrakes(int on, char id) {
     int i; if (pick_live(id, &i) < 0) return -1;
+    if (dev[i].without_brakes_and_memory_check) return fail(DHD_ERROR_NOT_AVAILABLE, "not available on this device");
     dev[i].brakes = on ? 1 : 0; logf_("brakes %d %g;", i, on ? 1.0 : 0.0, 0, 0); return DHD_NO_ERROR;
 }
 int dhdSetWatchdog(unsigned char val, char id) {
