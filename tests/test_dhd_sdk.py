@@ -291,3 +291,23 @@ def test_error_codes_are_named_as_the_sdk_names_them():
     assert dhd.error_name(14) == "DHD_ERROR_CONFIGURATION"
     assert dhd.error_name(2) == "DHD_ERROR_COM" and dhd.error_name(5) == "DHD_ERROR_NO_DEVICE_FOUND"
     assert dhd.error_name(99) == "error code 99"
+
+
+def test_discover_lists_devices_without_serial_numbers_and_of_unknown_types(libdhd, monkeypatch):
+    path, lib = libdhd
+    monkeypatch.setenv("HAPTICD_LIBDHD", path)
+    lib.fake_reset(3)
+    lib.fake_set_serial(0, 0)
+    lib.fake_set_type(2, 91)
+    lib.fake_set_calibrated(2, 0)
+    entries = {e["model"]: e for e in dhd.discover()}
+    assert entries["omega.3"]["found"] == [
+        "index 0 (no serial, calibrated)",
+        "10002 (index 1, calibrated)",
+    ]
+    assert entries["omega.3"]["sdk"] == "3.17.5-0"
+    assert entries["type 91 custom"]["found"] == [
+        "10003 (index 2, NOT calibrated, NOT in hapticd's model table: refused)"
+    ]
+    assert [d["serial"] for d in entries["omega.3"]["devices"]] == [None, "10002"]
+    assert [lib.fake_is_open(i) for i in range(3)] == [0, 0, 0]
