@@ -5,8 +5,10 @@ Builds the fake SDK (tests/fakes/fake_dhd.c), opens one device and times
 ``--ticks`` reads and writes, ``--rounds`` times, interleaving the variants in each
 round: this tree's backend against the SDK as documented (velocity window, error
 codes) and with the fake's older behaviours; with ``--before REV``, the backend of
-git revision REV too (on the older behaviours, the only ones it survives). Prints a
-Markdown table of the medians and maxima over rounds, in us per tick. The fake's own
+git revision REV too (on the older behaviours, the only ones it survives). Each tick
+is timed on its own (perf_counter_ns): prints a Markdown table of the median and p99
+per tick over all rounds and the spread of the rounds' medians, in us, and saves a
+box plot of the ticks (``--plot PATH``, else in the system temp dir). The fake's own
 cost is in every figure: this compares backends, not devices.
 
     python scripts/bench_dhd.py --before 93e3008 --rounds 7
@@ -17,7 +19,6 @@ from __future__ import annotations
 import argparse
 import ctypes
 import importlib.util
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -49,7 +50,10 @@ def _backend_at(rev: str, where: Path) -> ModuleType:
     return module
 
 
-def _time(module: ModuleType, lib_path: str, lib: ctypes.CDLL, legacy: int, ticks: int) -> float:
+def _time(
+    module: ModuleType, lib_path: str, lib: ctypes.CDLL, legacy: int, ticks: int
+) -> np.ndarray:
+    """Each tick's read_state + write_force, us: (ticks,)."""
     lib.fake_set_legacy(legacy)
     lib.fake_reset(1)
     dhd_backend._HELD.clear()
@@ -57,13 +61,33 @@ def _time(module: ModuleType, lib_path: str, lib: ctypes.CDLL, legacy: int, tick
     dev.open()
     dev.enable_forces(True)
     st, f = DeviceState(), np.array([0.1, 0.2, 0.3])
-    t0 = time.perf_counter()
-    for _ in range(ticks):
+    out = np.empty(ticks)
+    clock = time.perf_counter_ns
+    for k in range(ticks):
+        t0 = clock()
         dev.read_state(st)
         dev.write_force(f)
-    us = (time.perf_counter() - t0) / ticks * 1e6
+        out[k] = clock() - t0
     dev.close()
-    return us
+    return out / 1e3
+
+
+def _plot(times: dict[str, list[np.ndarray]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 3.0))
+    names = list(times)
+    ax.boxplot(
+        [np.concatenate(times[n]) for n in names], orientation="horizontal", showfliers=False
+    )
+    ax.set_yticks(range(1, len(names) + 1), names)
+    ax.set_xlabel("read_state + write_force per tick, us (whiskers 1.5 IQR, no outliers)")
+    ax.set_title("dhd backend on the fake SDK")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
 
 
 def main() -> int:
@@ -71,6 +95,12 @@ def main() -> int:
     p.add_argument("--ticks", type=int, default=20000)
     p.add_argument("--rounds", type=int, default=7)
     p.add_argument("--before", metavar="REV", help="also time the backend of this revision")
+    p.add_argument(
+        "--plot",
+        type=Path,
+        default=Path(tempfile.gettempdir()) / "hapticd-bench-dhd.png",
+        help="where to save the plot",
+    )
     args = p.parse_args()
     sys.path.insert(0, str(ROOT))
     from tests.fakes.fake_sdk import build
@@ -83,23 +113,24 @@ def main() -> int:
             ("this tree, older behaviours", dhd_backend, LEGACY_ALL),
         ]
         if args.before:
-            variants.append(
-                (
-                    f"{args.before}, older behaviours",
-                    _backend_at(args.before, Path(tmp)),
-                    LEGACY_ALL,
-                )
-            )
-        times: dict[str, list[float]] = {name: [] for name, _, _ in variants}
+            before = _backend_at(args.before, Path(tmp))
+            variants.append((f"{args.before}, older behaviours", before, LEGACY_ALL))
+        times: dict[str, list[np.ndarray]] = {name: [] for name, _, _ in variants}
         for _ in range(args.rounds):
             for name, module, legacy in variants:
                 times[name].append(_time(module, lib_path, lib, legacy, args.ticks))
-    print(
-        f"| backend and fake ({args.rounds} rounds x {args.ticks} ticks) | median us/tick | max |"
-    )
-    print("|---|---|---|")
+    runs_of = f"{args.rounds} rounds x {args.ticks} ticks"
+    print(f"| backend and fake ({runs_of}) | median us | p99 us | rounds' medians us |")
+    print("|---|---|---|---|")
     for name, runs in times.items():
-        print(f"| {name} | {statistics.median(runs):.2f} | {max(runs):.2f} |")
+        every = np.concatenate(runs)
+        medians = [float(np.median(r)) for r in runs]
+        print(
+            f"| {name} | {np.median(every):.2f} | {np.percentile(every, 99):.2f} | "
+            f"{min(medians):.2f}-{max(medians):.2f} |"
+        )
+    _plot(times, args.plot)
+    print(f"plot: {args.plot}")
     return 0
 
 
