@@ -193,7 +193,8 @@ def test_devices_lists_the_sdk_devices_with_model_and_serial(libdhd, capsys, mon
     monkeypatch.setenv("HAPTICD_LIBDHD", lib_path)
     assert main(["devices"]) == 0
     out = capsys.readouterr().out
-    assert "dhd  omega.3: 10001 (index 0, calibrated), 10002 (index 1, NOT calibrated)" in out
+    want = "dhd  omega.3 (SDK 3.17.5-0): 10001 (index 0, calibrated), 10002 (index 1, NOT "
+    assert want + "calibrated)" in out
 
 
 def test_the_hardware_guide_mounting_example(tmp_path, libdhd, capsys):
