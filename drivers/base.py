@@ -58,6 +58,10 @@ class Device(abc.ABC):
     """
 
     info: DeviceInfo
+    # True for a backend whose driver documents which errors are a lost device: it raises
+    # DeviceLostError for those, so any other DeviceError is a device that still answers
+    # (reconnect mode does not close and look for it again: the run ends with the fault).
+    reports_lost: bool = False
 
     @abc.abstractmethod
     def open(self) -> None: ...

@@ -435,6 +435,8 @@ class DhdDevice(Device):
     before the device is opened, and a device of another model is refused).
     """
 
+    reports_lost = True  # DHD_ERROR_COM and DHD_ERROR_NO_DEVICE_FOUND only
+
     def __init__(
         self,
         serial_number: int | None = None,

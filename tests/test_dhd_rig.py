@@ -281,3 +281,45 @@ def test_bringup_fails_a_scene_stiffer_than_the_device_model_renders(tmp_path, l
     assert code == 1, out
     assert "index: the omega.3 renders at most 5000 N/m and 30 N s/m; the scene asks 6000" in out
     assert "RESULT: FAIL" in out
+
+
+def _reconnecting_session(tmp_path, lib_path: str):
+    from hapticd.daemon.session import build_session
+    from hapticd.profile import load_profile
+
+    data = yaml.safe_load(_rig(tmp_path, lib_path).read_text())
+    data["safety"]["reconnect"] = True
+    path = tmp_path / "reconnect.yaml"
+    path.write_text(yaml.safe_dump(data))
+    s = build_session(load_profile(path), paced=False, duration_s=2.0)
+    s.loop.realtime_settings = None
+    return s
+
+
+def test_in_reconnect_mode_only_a_lost_device_is_looked_for_again(tmp_path, libdhd):
+    """A cable pulled and plugged back: lost, then reconnected with its forces off, the
+    run going on. A velocity estimator that never answers is no lost device: the run ends
+    with the fault, and nothing was closed and looked for again."""
+    lib_path, lib = libdhd
+    _pressing_without_serial_numbers(lib)
+    s = _reconnecting_session(tmp_path, lib_path)
+    s.renderer.insert(AtTick(500, lambda f: lib.fake_unplug(1)), after="contact")
+    s.renderer.insert(AtTick(900, lambda f: lib.fake_replug(1)), after="contact")
+    out = s.run()
+    assert out["end_reason"] == "duration reached"
+    events = [e["event"] for e in out["events"]]
+    assert any(e.startswith("device index 1 lost: dhd omega.3 index 1") for e in events), events
+    assert any(e == "device index 1 reconnected; forces stay off" for e in events), events
+    for i in range(2):
+        assert lib.fake_is_enabled(i) == 0 and lib.fake_is_open(i) == 0
+
+    _pressing_without_serial_numbers(lib)
+    s = _reconnecting_session(tmp_path, lib_path)
+    s.renderer.insert(AtTick(500, lambda f: lib.fake_set_velocity_stuck(1, 1)), after="contact")
+    out = s.run()
+    assert out["end_reason"] == "fault"
+    assert "velocity estimator timed out" in out["fault"]["cause"]
+    assert not any("lost" in e["event"] for e in out["events"])
+    for i in range(2):
+        assert _applied(lib, i)[-1].tolist() == [0.0, 0.0, 0.0]
+        assert lib.fake_is_enabled(i) == 0 and lib.fake_is_open(i) == 0

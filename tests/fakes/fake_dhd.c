@@ -177,6 +177,7 @@ void fake_set_sdk_version(int major, int minor, int release, int revision) {
 }
 void fake_block_autoinit(int on) { block_autoinit = on; }
 const char *fake_log(void) { return call_log; }
+void fake_replug(int i) { dev[i].plugged = 1; dev[i].open = 0; dev[i].drd_open = 0; }
 void fake_unplug(int i) { dev[i].plugged = 0; dev[i].enabled = 0; for (int k = 0; k < 3; k++) dev[i].force[k] = 0; }
 
 /* -- from the environment, when the library loads (a person's shell, not the tests) -- */
