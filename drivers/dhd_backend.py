@@ -467,6 +467,11 @@ class DhdDevice(Device):
                 raise DeviceError(
                     f"dhd: unknown model {model!r}; hapticd knows {', '.join(models.model_names())}"
                 )
+            if max_force_n > self.model.max_force_n:
+                raise DeviceError(
+                    f"dhd: max_force_n {max_force_n:g} N is above the {self.model.name}'s force "
+                    f"limit, {self.model.max_force_n:g} N: set it to at most that"
+                )
         name = serial or (str(serial_number) if serial_number is not None else f"dhd#{index}")
         self._who = (
             f"dhd serial {serial_number}" if serial_number is not None else f"dhd index {index}"

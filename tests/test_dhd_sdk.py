@@ -278,6 +278,8 @@ def test_a_named_model_is_known_before_opening_and_checked_on_opening(libdhd):
     assert lib.fake_is_open(0) == 0
     with pytest.raises(DeviceError, match=r"unknown model 'omega\.9'; hapticd knows delta\.3"):
         open_device("dhd", library=path, model="omega.9")
+    with pytest.raises(DeviceError, match=r"max_force_n 12 N is above the Falcon's force limit"):
+        open_device("dhd", library=path, model="Falcon")  # the default 12 N
 
 
 def test_the_docs_carry_the_model_table():
