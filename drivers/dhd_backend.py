@@ -290,28 +290,30 @@ def find_serial(lib: ctypes.CDLL, serial_number: int, who: str) -> tuple[int, in
     DeviceError naming what it saw when none matches."""
     open_, close = _opener(lib)
     count = lib.dhdGetDeviceCount()
-    unreadable: list[int] = []
+    unreadable: list[str] = []
+    unopened: list[str] = []
     for i in range(count):
         dev_id = int(open_(i))
         if dev_id < 0:
+            unopened.append(f"index {i} ({last_error(lib)[1]})")
             continue
         held = _held(lib, dev_id)
         sn = _read_serial(lib, dev_id)
         if sn == serial_number and not held:
             return dev_id, i
         if sn is None:
-            unreadable.append(i)
+            unreadable.append(str(i))
         if not held:
             close(dev_id)
         elif sn == serial_number:
             raise DeviceError(f"{who}: already open in this process (index {i})")
-    extra = (
-        "; devices without a readable serial number, to be picked by 'index': index "
-        + ", ".join(map(str, unreadable))
-        if unreadable
-        else ""
-    )
-    raise DeviceError(f"{who}: no device with serial number {serial_number} among {count}{extra}")
+    notes = ""
+    if unreadable:
+        notes += "; without a readable serial number, to be picked by 'index': index "
+        notes += ", ".join(unreadable)
+    if unopened:
+        notes += "; could not be opened to ask: " + ", ".join(unopened)
+    raise DeviceError(f"{who}: no device with serial number {serial_number} among {count}{notes}")
 
 
 def _describe(model: str, index: int, serial: int | None) -> str:

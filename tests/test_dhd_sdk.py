@@ -103,6 +103,11 @@ def test_a_device_without_a_serial_number_opens_by_index_and_says_so(libdhd, how
         msg = str(info.value)
         assert "no device with serial number 10002 among 2" in msg
         assert "without a readable serial number, to be picked by 'index': index 0, 1" in msg
+        lib.fake_set_in_use(0, 1)
+        with pytest.raises(
+            DeviceError, match=r"could not be opened to ask: index 0 \(DHD_ERROR_DEVICE_IN_USE"
+        ):
+            _opened(path, serial_number=10002)
         assert [lib.fake_is_open(i) for i in range(2)] == [0, 0]
         return
     dev = _opened(path, index=1)
