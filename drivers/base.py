@@ -17,19 +17,28 @@ class DeviceError(RuntimeError):
     """A device failed: read or write error, unplug, bad report, rejected command."""
 
 
+class DeviceLostError(DeviceError):
+    """A device that is gone (unplugged, its connection failed), as its driver documents
+    a lost device; any other DeviceError is a device that still answers but failed."""
+
+
 class BackendUnavailableError(DeviceError):
     """A backend that is unknown, or whose optional dependency is not installed."""
 
 
 @dataclass(frozen=True)
 class DeviceInfo:
-    """Identity and limits: model, serial, rated force (N), workspace radius (m)."""
+    """Identity and limits: model, serial, rated force (N), workspace radius (m; NaN: not
+    known until the device is opened), and the largest stiffness (N/m) and damping
+    (N s/m) a rendering should ask of the model (inf: no recommendation)."""
 
     model: str
     serial: str
     max_force_n: float
     workspace_radius_m: float
     n_dof: int = 3
+    max_stiffness_n_per_m: float = math.inf
+    max_damping_n_s_per_m: float = math.inf
 
 
 @dataclass
@@ -49,6 +58,10 @@ class Device(abc.ABC):
     """
 
     info: DeviceInfo
+    # True for a backend whose driver documents which errors are a lost device: it raises
+    # DeviceLostError for those, so any other DeviceError is a device that still answers
+    # (reconnect mode does not close and look for it again: the run ends with the fault).
+    reports_lost: bool = False
 
     @abc.abstractmethod
     def open(self) -> None: ...

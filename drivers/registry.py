@@ -183,6 +183,15 @@ BACKENDS: dict[str, Backend] = {
             "a Force Dimension device (omega.3, ...) through its SDK, libdhd",
             (
                 Key(
+                    "model",
+                    str,
+                    None,
+                    "the model the profile expects, a row of the model table (omega.3, "
+                    "...): its workspace is known before the device opens (hapticd check), "
+                    "and a device of another model is refused; none: read from the device",
+                    True,
+                ),
+                Key(
                     "library",
                     str,
                     None,
@@ -215,7 +224,7 @@ BACKENDS: dict[str, Backend] = {
                     float,
                     12.0,
                     "the device's rated force, and the SDK's own force limit (dhdSetMaxForce, "
-                    "independent of the safety chain), N",
+                    "independent of the safety chain), at most its model's, N",
                     gt=0.0,
                     le=100.0,
                 ),
@@ -234,7 +243,8 @@ BACKENDS: dict[str, Backend] = {
             discover="hapticd_drivers.dhd_backend:discover",
             preflight="hapticd_drivers.dhd_backend:preflight",
             calibrate="hapticd_drivers.dhd_backend:calibrate",
-            status="done, tested through a fake libdhd compiled by the tests",
+            status="done, tested through a fake SDK compiled by the tests, as the SDK's "
+            "documentation describes it and with its older behaviours",
         ),
     )
 }

@@ -6,7 +6,6 @@ import contextlib
 import ctypes
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import threading
@@ -271,19 +270,19 @@ def wait_for_tick(client, tick, limit_s=5.0):
     )
 
 
-def _build_fake_sdk(out_dir: Path, name: str, *defines: str) -> tuple[str, ctypes.CDLL]:
-    cc = shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
-        pytest.skip("no C compiler to build the fake Force Dimension SDK")
-    out = out_dir / f"lib{name}.so"
-    src = Path(__file__).with_name("fakes") / "fake_dhd.c"
-    cmd = [cc, "-shared", "-fPIC", "-O1", *defines, "-o", str(out), str(src), "-lm"]
-    subprocess.run(cmd, check=True)
+def _build_fake_sdk(out_dir: Path, drd: bool) -> tuple[str, ctypes.CDLL]:
+    from tests.fakes.fake_sdk import build
+
+    try:
+        out = build(out_dir, drd)
+    except RuntimeError as exc:
+        pytest.skip(str(exc))
     lib = ctypes.CDLL(str(out))
     lib.fake_set_state.argtypes = [ctypes.c_int] + [ctypes.c_double] * 6
     lib.fake_get_force.argtypes = [ctypes.c_int, ctypes.POINTER(ctypes.c_double)]
     lib.fake_get_force_sum.argtypes = [ctypes.c_int, ctypes.POINTER(ctypes.c_double)]
     lib.fake_set_buttons.argtypes = [ctypes.c_int, ctypes.c_uint]
+    lib.fake_set_velocity_window.argtypes = [ctypes.c_double]
     dp = ctypes.POINTER(ctypes.c_double)
     lib.fake_set_path.argtypes = [ctypes.c_int, ctypes.c_int, dp, dp]
     lib.fake_force_log.argtypes = [ctypes.c_int, dp, ctypes.c_int]
@@ -293,19 +292,58 @@ def _build_fake_sdk(out_dir: Path, name: str, *defines: str) -> tuple[str, ctype
     return str(out), lib
 
 
+# The fake SDK's switches back to older behaviours (tests/fakes/fake_dhd.c, FAKE_LEGACY_*).
+FAKE_LEGACY = {"drd_any_handle": 1, "no_velocity_window": 2, "open_twice_fails": 4, "no_codes": 8}
+FAKE_LEGACY_ALL = sum(FAKE_LEGACY.values())
+
+
 @pytest.fixture(scope="session")
-def libdhd(tmp_path_factory):
+def _fake_libdrd(tmp_path_factory):
+    return _build_fake_sdk(tmp_path_factory.mktemp("drd"), True)
+
+
+@pytest.fixture(scope="session")
+def _fake_libdhd(tmp_path_factory):
+    return _build_fake_sdk(tmp_path_factory.mktemp("dhd"), False)
+
+
+def _fresh(lib) -> None:
+    """No device left open in the fake, and none in the backend's list of devices this
+    process holds (a test that ends with a device open leaves it there)."""
+    from hapticd_drivers import dhd_backend
+
+    lib.fake_reset(0)
+    dhd_backend._HELD.clear()
+
+
+@pytest.fixture
+def libdhd(_fake_libdrd):
     """The fake Force Dimension SDK a profile's ``library`` points at, as the real libdrd:
-    the DHD calls and the DRD ones (initialisation state, automatic initialisation),
-    compiled from tests/fakes/fake_dhd.c: (path, ctypes handle with the fake's own
-    controls). Skips when there is no C compiler."""
-    return _build_fake_sdk(tmp_path_factory.mktemp("drd"), "fakedrd", "-DFAKE_DRD")
+    the DHD calls and the DRD ones (opening, initialisation state, automatic
+    initialisation), compiled from tests/fakes/fake_dhd.c, behaving as the SDK documents:
+    (path, ctypes handle with the fake's own controls). Skips when there is no C
+    compiler."""
+    _fake_libdrd[1].fake_set_legacy(0)
+    _fresh(_fake_libdrd[1])
+    return _fake_libdrd
 
 
-@pytest.fixture(scope="session")
-def libdhd_only(tmp_path_factory):
+@pytest.fixture(params=["documented", "legacy"])
+def libdhd_both(request, _fake_libdrd):
+    """``libdhd``, once as the SDK documents it and once with every older behaviour the
+    fake can switch back to (FAKE_LEGACY): what the backend must survive either way."""
+    _fake_libdrd[1].fake_set_legacy(FAKE_LEGACY_ALL if request.param == "legacy" else 0)
+    _fresh(_fake_libdrd[1])
+    yield _fake_libdrd
+    _fake_libdrd[1].fake_set_legacy(0)
+
+
+@pytest.fixture
+def libdhd_only(_fake_libdhd):
     """A fake libdhd without the DRD calls: (path, ctypes handle)."""
-    return _build_fake_sdk(tmp_path_factory.mktemp("dhd"), "fakedhd")
+    _fake_libdhd[1].fake_set_legacy(0)
+    _fresh(_fake_libdhd[1])
+    return _fake_libdhd
 
 
 @pytest.fixture

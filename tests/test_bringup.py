@@ -337,7 +337,8 @@ def test_a_device_unplugged_during_the_bringup_ends_it_in_a_fault_at_zero_force(
     code = main(["bringup", profile, *FAST, "--answers", "yy", "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert code == 3, out
-    assert "FAULT at tick 200" in out and "dhd 10002" in out and "unplugged" in out
+    assert "FAULT at tick 200" in out and "unplugged" in out
+    assert "dhd omega.3 index 1, serial 10002: lost" in out
     assert "RESULT: FAIL" in out and "felt in that direction" not in out
     assert _report(tmp_path)["fault"]["tick"] == 200
     assert lib.fake_is_enabled(0) == 0 and lib.fake_is_open(0) == 0

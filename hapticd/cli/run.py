@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import signal
 import sys
 import tempfile
@@ -267,6 +268,11 @@ def _mm(v: Any) -> str:
 
 
 def _reach_line(name: str, r: Reach, where: str) -> str:
+    if not math.isfinite(r.workspace_radius_m):
+        return (
+            f"  {name}: {where}; its workspace is not known until the device is opened and "
+            "identified (name its model in the device key 'model' to check it here)"
+        )
     if r.contained:
         verdict = "the whole object is inside"
     elif r.reachable:
@@ -309,6 +315,35 @@ def workspace_reaches(profile: Any, devices: list[Any]) -> list[tuple[str, Reach
     return out
 
 
+def rendering_limits(profile: Any, devices: list[Any]) -> list[tuple[str, bool]]:
+    """Per finger whose device model recommends a largest stiffness and damping
+    (hapticd_drivers.models): the scene's stiffest surface and largest damping as the
+    hand feels them (times the mount's workspace scale) against them: (line, within)."""
+    scene = profile.scene
+    surfaces = [("object", scene.object)] + [
+        (name, s) for name in ("ground", "walls") if (s := getattr(scene, name)) is not None
+    ]
+    k_at, k = max(((n, s.stiffness_n_per_m) for n, s in surfaces), key=lambda x: x[1])
+    c_at, c = max(((n, s.damping_n_s_per_m) for n, s in surfaces), key=lambda x: x[1])
+    out = []
+    for f, dev in zip(profile.fingers, devices, strict=True):
+        info = dev.info
+        k_max, c_max = info.max_stiffness_n_per_m, info.max_damping_n_s_per_m
+        if not (math.isfinite(k_max) or math.isfinite(c_max)):
+            continue
+        scale = f.device.mount.workspace_scale
+        ok = k * scale <= k_max and c * scale <= c_max
+        out.append(
+            (
+                f"  {f.name}: the {info.model} renders at most {k_max:g} N/m and {c_max:g} "
+                f"N s/m; the scene asks {k * scale:g} N/m ({k_at}) and {c * scale:g} N s/m "
+                f"({c_at}): {'within' if ok else 'WARNING: above what the device renders stably'}",
+                ok,
+            )
+        )
+    return out
+
+
 def workspace_report(profile: Any, devices: list[Any]) -> list[str]:
     """Per finger, how its device's workspace sphere (from the device description, placed
     by its mount) and the safety section's sphere meet the object at its starting pose."""
@@ -336,6 +371,10 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"allocator {profile.rendering.allocator}, fingers: {fingers}"
     )
     print("\n".join(workspace_report(profile, devices)))
+    limits = rendering_limits(profile, devices)
+    if limits:
+        print("stiffness and damping (the device models' recommended maxima):")
+        print("\n".join(line for line, _ in limits))
     return EXIT_OK
 
 
@@ -445,7 +484,9 @@ def cmd_devices(args: argparse.Namespace) -> int:
         if "problem" in entry:
             print(f"{entry['backend']:<4} cannot look: {entry['problem']}")
         elif entry["found"]:
-            print(f"{entry['backend']:<4} {entry['model']}: {', '.join(map(str, entry['found']))}")
+            sdk = f" (SDK {entry['sdk']})" if entry.get("sdk") else ""
+            found = ", ".join(map(str, entry["found"]))
+            print(f"{entry['backend']:<4} {entry['model']}{sdk}: {found}")
         else:
             print(f"{entry['backend']:<4} {entry['model']}: none found (plugged in? udev rules?)")
     return EXIT_OK
