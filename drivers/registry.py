@@ -23,7 +23,7 @@ REQUIRED: Any = object()  # a key without a default: the profile must give it
 
 @dataclass(frozen=True)
 class Key:
-    """One profile key of a backend: ``type`` is float, int, str, or that or None
+    """One profile key of a backend: ``type`` is float, int, bool, str, or that or None
     (``optional``); ``gt``/``ge``/``le`` bound a number; ``doc`` names the unit."""
 
     name: str
@@ -83,6 +83,13 @@ _HOLD = Key(
     "hold_s", float, 0.0, "keep running this long after the trajectory ends, s", ge=0.0, le=86400.0
 )
 _INDEX = Key("index", int, 0, "pick the n-th matching device", ge=0, le=255)
+_REPEAT = Key(
+    "repeat",
+    bool,
+    False,
+    "play the trajectory again from its start each time it ends, for as long as the run "
+    "lasts (it must end where it starts; hold_s is then unused)",
+)
 
 # The protocol devices (hid, usb) share their keys: the same device on two transports.
 _REPORT_KEYS = (
@@ -119,6 +126,7 @@ BACKENDS: dict[str, Backend] = {
                 _FINGER,
                 _MAX_FORCE,
                 _HOLD,
+                _REPEAT,
             ),
             plays_trajectory=True,
             status="done",
@@ -133,6 +141,7 @@ BACKENDS: dict[str, Backend] = {
                 _FINGER,
                 _MAX_FORCE,
                 _HOLD,
+                _REPEAT,
                 Key("mass_kg", float, 0.05, "fingertip and device mass, kg", gt=0.0, le=5.0),
                 Key(
                     "hand_stiffness_n_per_m",

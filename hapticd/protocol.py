@@ -40,6 +40,7 @@ ERRORS: dict[str, tuple[str, bool]] = {
     "rejected": ("the loop refused (already recording, not recording, ...)", False),
     "recording": ("the recording file exists, is outside the directory, or failed", False),
     "timeout": ("the loop is not running", False),
+    "stopped": ("the loop has ended (the message says why: its trajectory ended, ...)", False),
     "too_many_clients": ("sent once, unasked, to a connection beyond those served", False),
     "no_prompt": ("`respond` to a prompt that is not the current one", False),
     "internal": ("a bug in the daemon", False),

@@ -117,7 +117,85 @@ def lift_weight() -> tuple[np.ndarray, np.ndarray, dict]:
     return t, x, metadata(lift_weight.__doc__, phases)
 
 
-TRAJECTORIES = {"grasp-stiffness": grasp_stiffness, "lift-weight": lift_weight}
+def grasp_cycle() -> tuple[np.ndarray, np.ndarray, dict]:
+    """A rehearsal hand's grasp, one cycle of a loop: pinch the fixed cube, hold, let go, rest.
+
+    Each fingertip starts and ends 12 mm out of contact (the cycle closes, so a device
+    with ``repeat: true`` plays it again seamlessly for as long as the run lasts),
+    pinches 15 mm in (0.9 N at 60 N/m) in 0.35 s, holds 0.8 s with a small squeeze
+    (+/-2 mm at 2 Hz), lets go in 0.35 s and rests 0.5 s: a touch every 2 s, released
+    long enough between touches for an experiment to change the object.
+    """
+    plans = []
+    starts = []
+    for sign, dy, dz in ((-1.0, 0.0, 0.0), (1.0, -0.001, 0.002)):
+        out = (sign * (CONTACT_X + 0.012), dy, dz)
+        pinch = (sign * (CONTACT_X - 0.015), dy, dz)
+        starts.append(np.array(out))
+        plans.append(
+            [
+                MinJerk(0.35, pinch),
+                Squeeze(0.8, (-sign, 0.0, 0.0), 0.002, 2.0, ramp_s=0.2),
+                MinJerk(0.35, out),
+                Hold(0.5),
+            ]
+        )
+    t, x = two_finger(starts, plans, RATE_HZ)
+    phases = {
+        "pinch": [0.0, 0.35],
+        "hold": [0.35, 1.15],
+        "release": [1.15, 1.5],
+        "rest": [1.5, 2.0],
+    }
+    return t, x, metadata(grasp_cycle.__doc__, phases)
+
+
+def lift_cycle() -> tuple[np.ndarray, np.ndarray, dict]:
+    """A rehearsal hand's lift, one cycle of a loop: pinch the resting cube, lift, hold, set
+    it down, let go, rest.
+
+    Each fingertip starts and ends 12 mm out of contact (a closed cycle, for ``repeat:
+    true``), pinches 10 mm in (2 N at 200 N/m) in 0.4 s, lifts 30 mm in 0.5 s, holds
+    0.6 s with a small bounce (+/-3 mm at 2 Hz, to feel the weight), sets the cube down
+    in 0.5 s, lets go in 0.4 s and rests 0.6 s: a lift every 3.2 s.
+    """
+    lift = 0.030
+    plans = []
+    starts = []
+    for sign, dy in ((-1.0, 0.0), (1.0, -0.001)):
+        out = (sign * (CONTACT_X + 0.012), dy, 0.0)
+        pinch = (sign * (CONTACT_X - 0.010), dy, 0.0)
+        up = (pinch[0], dy, lift)
+        starts.append(np.array(out))
+        plans.append(
+            [
+                MinJerk(0.4, pinch),
+                MinJerk(0.5, up),
+                Squeeze(0.6, (0.0, 0.0, 1.0), 0.003, 2.0, ramp_s=0.2),
+                MinJerk(0.5, pinch),
+                Hold(0.2),
+                MinJerk(0.4, out),
+                Hold(0.6),
+            ]
+        )
+    t, x = two_finger(starts, plans, RATE_HZ)
+    phases = {
+        "pinch": [0.0, 0.4],
+        "lift": [0.4, 0.9],
+        "hold": [0.9, 1.5],
+        "put_down": [1.5, 2.0],
+        "release": [2.2, 2.6],
+        "rest": [2.6, 3.2],
+    }
+    return t, x, metadata(lift_cycle.__doc__, phases)
+
+
+TRAJECTORIES = {
+    "grasp-stiffness": grasp_stiffness,
+    "lift-weight": lift_weight,
+    "grasp-cycle": grasp_cycle,
+    "lift-cycle": lift_cycle,
+}
 
 
 def main() -> None:
