@@ -406,6 +406,12 @@ class ControlClient:
         not offer."""
         return self.call("respond", prompt=prompt_id, choice=choice)
 
+    def move(self, finger: str | int, position_m: Sequence[float]) -> dict[str, Any]:
+        """Send finger ``finger``'s (name or index) virtual device towards ``position_m``
+        (3 numbers, m, world frame); the result's ``target_m`` is where it goes (inside its
+        workspace). ProtocolError ``rejected`` for a device that is not virtual."""
+        return self.call("move", finger=finger, position_m=[float(c) for c in position_m])
+
     def stop(self) -> dict[str, Any]:
         return self.call("shutdown")
 

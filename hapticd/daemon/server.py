@@ -703,6 +703,7 @@ _HANDLERS: dict[str, Callable[[ControlServer, _Conn, dict[str, Any]], dict[str, 
     "events_unsubscribe": ControlServer._events_unsubscribe,
     "prompt": ControlServer._prompt,
     "respond": ControlServer._respond,
+    "move": lambda server, conn, req: server.session.move(req["finger"], req["position_m"]),
     "shutdown": ControlServer._stop,
     "stop": ControlServer._stop,
 }

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from hapticd_drivers import Device, registry
 from hapticd_drivers.emulator import DeltaEmulator
 
@@ -122,6 +123,29 @@ class Session:
         if done.error is not None:
             raise ValueError(done.error)
         return done
+
+    def move(self, finger: str | int, position_m: list[float]) -> dict[str, Any]:
+        """Send finger ``finger``'s virtual device (backend virtual) towards ``position_m``
+        (3,) m in the world; the reply names the finger and the target taken (in the world,
+        brought inside the device's workspace). ProtocolError for an unknown finger or one
+        whose device is not virtual. It needs no tick boundary: the device follows its
+        latest target when the loop reads it."""
+        names = self.profile.finger_names
+        i = finger if isinstance(finger, int) else names.index(finger) if finger in names else -1
+        if not 0 <= i < len(names):
+            raise ProtocolError("bad_value", f"no finger {finger!r}; fingers: {list(names)}")
+        dev = self.devices[i]
+        move_to = getattr(dev, "move_to", None)
+        if move_to is None:
+            raise ProtocolError(
+                "rejected",
+                f"finger {names[i]}'s device ({dev.info.model} {dev.info.serial}) is not "
+                "virtual: only a virtual device (backend: virtual) is moved over the socket",
+            )
+        mount = self.loop.bank.mounts[i]
+        taken = move_to(mount.point_to_device(np.asarray(position_m, dtype=float)))
+        world = mount.point_to_world(np.asarray(taken, dtype=float))
+        return {"finger": names[i], "target_m": [float(c) for c in world]}
 
     def _check_running(self) -> None:
         """ProtocolError ``stopped`` if the loop has ended: no command will apply any more."""
