@@ -11,9 +11,9 @@ the subject's page with its buttons (skipped, with a note, when the daemon has n
 ``prompt`` command).
 
 The virtual devices' page (view-virtual.png): ``hapticd run configs/rehearse-virtual.yaml``
-and ``hapticd view --control`` (no wall-clock faults: a shared machine's stalls are not the
-rig's); both fingers brought into the cube with the squeeze key (s), lifted 5 mm
-(Shift+Up), and the thumb dragged deeper with the mouse, as a person does it.
+and ``hapticd view --control``; both fingers brought into the cube with the squeeze key
+(s), lifted 5 mm (Shift+Up), and the thumb dragged deeper with the mouse, as a person
+does it.
 
     python scripts/view_screenshots.py                  # into a temp dir (printed)
     python scripts/view_screenshots.py --out docs/img   # the docs' figures
@@ -115,10 +115,8 @@ def virtual_shot(exe: str, out: Path) -> None:
         work = Path(tmp)
         sock = work / "d.sock"
         hapticd = [sys.executable, "-m", "hapticd"]
-        # A shared machine's stalls are not the rig's: no wall-clock faults in a figure.
-        calm = ["--set", "safety.watchdog_s=null", "--set", "loop.max_consecutive_overruns=0"]
         run = subprocess.Popen(
-            [*hapticd, "run", str(VIRTUAL), "--no-realtime", "-q", "--socket", str(sock), *calm],
+            [*hapticd, "run", str(VIRTUAL), "--no-realtime", "-q", "--socket", str(sock)],
             cwd=ROOT,
         )
         view = None

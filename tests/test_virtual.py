@@ -78,12 +78,9 @@ def test_forces_are_checked_as_firmware_would_and_kept_while_enabled():
 
 @contextlib.contextmanager
 def virtual_daemon(sock: Path, record_dir: Path) -> Iterator[ControlServer]:
-    """A paced run of the virtual rehearsal profile serving ``sock`` in a thread; no
-    wall-clock faults (a loaded shared machine may stall a paced loop)."""
-    profile = load_profile(
-        VIRTUAL,
-        ["safety.watchdog_s=null", "loop.max_consecutive_overruns=0", "rendering.kernels=python"],
-    )
+    """A paced run of the virtual rehearsal profile serving ``sock`` in a thread (it has no
+    wall-clock faults: no hardware)."""
+    profile = load_profile(VIRTUAL, ["rendering.kernels=python"])
     session = build_session(profile, paced=True, duration_s=120.0, record_dir=record_dir)
     session.loop.realtime_settings = None
     server = ControlServer(session, sock)
