@@ -142,7 +142,8 @@ def check_socket_dir(
 
     For hapticd's own directories ($XDG_RUNTIME_DIR/hapticd, /tmp/hapticd-UID), as
     ssh-agent and tmux check theirs: not a symbolic link, a directory, owned by ``uid``
-    (default: this process's), no access for group or others. ``create`` (the daemon)
+    (default: this process's), no access for others and no writing for the group (0700,
+    or 0750 when a daemon shares it with ``--socket-group``). ``create`` (the daemon)
     makes it with mode 0700 when absent. Any other directory was chosen by the user
     (--socket, $HAPTICD_SOCKET, systemd's RuntimeDirectory=) and is only created; the
     installed service's (SERVICE_SOCKET's) must be one nobody else can add to. With
@@ -181,8 +182,12 @@ def check_socket_dir(
         problem = "is not a directory"
     elif st.st_uid != uid:
         problem = f"belongs to uid {st.st_uid}, not to uid {uid}"
-    elif st.st_mode & 0o077:
-        problem = f"has mode {stat.S_IMODE(st.st_mode):04o}; it must be 0700 (only you)"
+    elif st.st_mode & 0o027:
+        # Group r-x (0750) is a daemon's --socket-group share: the group can enter, not write.
+        problem = (
+            f"has mode {stat.S_IMODE(st.st_mode):04o}; it must be 0700 (only you) or 0750 "
+            "(a group may enter, not write)"
+        )
         fix = f"chmod 700 {d}, or remove it"
     else:
         return

@@ -149,6 +149,25 @@ def test_a_socket_shared_with_a_group_is_0660_in_a_0750_directory_of_that_group(
         server.close()
 
 
+def test_the_users_own_directory_shared_with_a_group_still_serves_the_user(tmp_path, monkeypatch):
+    """`hapticd run --socket-group G` on the default path: $XDG_RUNTIME_DIR/hapticd becomes
+    0750 of G, and the user's own clients (which check that directory) still talk."""
+    for var in ("HAPTICD_SOCKET", "RUNTIME_DIRECTORY"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    path = control.default_socket_path()
+    server = _server(path, os.getgid())
+    try:
+        assert stat.S_IMODE(os.lstat(path.parent).st_mode) == 0o750
+        with ControlClient() as c:
+            assert c.status()["profile"] == "grasp-stiffness"
+    finally:
+        server.close()
+    path.parent.chmod(0o770)  # a group that may write could plant a socket: refused
+    with pytest.raises(UnsafeSocketDirError, match="has mode 0770"):
+        check_socket_dir(path)
+
+
 def test_a_shared_directory_open_to_others_is_closed_to_them(tmp_path):
     """systemd or a person may have made it 0777: the daemon owns it, so it sets it to
     0750 for its group before the socket goes in."""
