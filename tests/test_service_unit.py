@@ -6,7 +6,9 @@ ownership and symlink checks), and clients that find the service's socket by the
 from __future__ import annotations
 
 import configparser
+import grp
 import os
+import shlex
 import shutil
 import socket
 import stat
@@ -23,7 +25,7 @@ from hapticd.control import ControlClient, UnsafeSocketDirError, check_socket_di
 from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
-from tests.conftest import GRASP_PROFILE, ROOT
+from tests.conftest import GRASP_PROFILE, ROOT, wait_for
 
 REHEARSE = ROOT / "configs" / "rehearse-grasp.yaml"
 
@@ -98,6 +100,43 @@ def test_systemd_analyze_verifies_the_unit_without_a_word(tmp_path):
     )
     got = subprocess.run([analyze, "verify", str(bad)], capture_output=True, text=True, timeout=60)
     assert "NoSuchKey" in got.stdout + got.stderr
+
+
+@pytest.mark.slow
+def test_the_units_command_serves_the_group_where_systemd_would_put_it(tmp_path):
+    """The unit's ExecStart= as systemd would run it (its runtime and state directories in
+    the environment; the group this user's own, as the service user's is): the daemon
+    serves $RUNTIME_DIRECTORY/control.sock, 0660 in a 0750 directory of that group, and a
+    client reaches it there."""
+    group = grp.getgrgid(os.getgid()).gr_name
+    code, text = _unit(tmp_path, "--profile", str(REHEARSE), "--group", group)
+    assert code == 0
+    command = shlex.split(_parse(text)["Service"]["ExecStart"])
+    run, state = tmp_path / "run" / "hapticd", tmp_path / "state"
+    run.mkdir(parents=True, mode=0o755)  # as RuntimeDirectoryMode= would not leave it
+    state.mkdir()
+    env = {**os.environ, "RUNTIME_DIRECTORY": str(run), "STATE_DIRECTORY": str(state)}
+    env.pop("HAPTICD_SOCKET", None)
+    proc = subprocess.Popen(
+        [*command, "--duration", "30", "--no-realtime", "-q"],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    sock = run / "control.sock"
+    try:
+        wait_for(lambda: proc.poll() is not None or sock.exists(), "the socket", timeout_s=30)
+        assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+        st_d, st_s = os.lstat(run), os.lstat(sock)
+        assert stat.S_IMODE(st_d.st_mode) == 0o750 and st_d.st_gid == os.getgid()
+        assert stat.S_IMODE(st_s.st_mode) == 0o660 and st_s.st_gid == os.getgid()
+        with ControlClient(sock) as c:
+            assert c.status()["profile"] == "grasp-stiffness"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+    assert proc.returncode == 0
 
 
 @pytest.mark.parametrize(
