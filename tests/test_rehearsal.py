@@ -77,6 +77,25 @@ def test_a_repeated_path_must_close():
     ReplayDevice(t, x)  # played once, it may end anywhere
 
 
+def test_check_names_the_finger_whose_repeated_path_does_not_close(tmp_path, capsys):
+    from hapticd.cli import main
+
+    path = periodic_grasp(tmp_path / "open.hrec", 3)
+    rec = recording.read(path)
+    pos = rec["device_pos"].copy()
+    pos[:, :, 2] += np.linspace(0.0, 0.004, len(pos))[:, None]  # drifts 4 mm up
+    recording.write(path, {"t": rec["t"], "device_pos": pos}, rec.fields, rec.fingers)
+    data = yaml.safe_load(REHEARSE_GRASP.read_text())
+    for f in data["fingers"]:
+        f["device"]["trajectory"] = str(path)
+    profile = tmp_path / "open.yaml"
+    profile.write_text(yaml.safe_dump(data))
+    assert main(["check", str(profile)]) == 2
+    err = capsys.readouterr().err
+    assert "fingers[0:thumb].device" in err and "must end where it starts" in err
+    assert "4 mm away" in err
+
+
 def test_a_device_on_a_repeated_path_keeps_a_bounded_history_of_forces():
     t, x = _closed_path()
     now = [0.0]
