@@ -14,6 +14,7 @@ import socket
 import stat
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -239,6 +240,65 @@ def test_a_shared_socket_directory_of_another_user_is_refused(tmp_path):
     os.chown(d, 65534, -1)  # nobody's
     with pytest.raises(UnsafeSocketDirError, match="belongs to uid 65534"):
         check_socket_dir(d / "control.sock", create=True, group=os.getgid())
+
+
+NOBODY = 65534
+CLIENT = (
+    "import sys; from hapticd.control import ControlClient\n"
+    "try:\n"
+    "    with ControlClient(sys.argv[1], timeout_s=10) as c: print(c.status()['profile'])\n"
+    "except PermissionError as exc: print('refused', exc.errno)\n"
+)
+
+
+def _system_python() -> str | None:
+    """An interpreter another user may run (this one may live in root's home), new
+    enough for the client, which needs nothing but the standard library."""
+    for exe in ("/usr/bin/python3", "/usr/local/bin/python3"):
+        if os.access(exe, os.X_OK):
+            got = subprocess.run(
+                [exe, "-c", "import sys; print(sys.version_info >= (3, 11))"],
+                capture_output=True,
+                text=True,
+            )
+            if got.stdout.strip() == "True":
+                return exe
+    return None
+
+
+@pytest.mark.skipif(os.getuid() != 0, reason="needs root to run a client as another user")
+def test_another_user_reaches_the_daemon_only_through_the_group(tmp_path):
+    """The daemon (here root, as the service user) shares its socket with a group; a client
+    run as another user connects when it is in that group, and is refused when not."""
+    python = _system_python()
+    if python is None:
+        pytest.skip("no system python3 >= 3.11 that another user may run")
+    base = Path(tempfile.mkdtemp(prefix="hapticd-group-", dir="/tmp"))
+    try:
+        base.chmod(0o755)  # as /run: anyone may look for the socket's directory
+        group = 54321  # a group of its own, as the experimenters' is
+        sock = base / "hapticd" / "control.sock"
+        server = _server(sock, group)
+        try:
+            results = {}
+            for name, extra in (("member", [group]), ("stranger", [])):
+                got = subprocess.run(
+                    [python, "-c", CLIENT, str(sock)],
+                    user=NOBODY,
+                    group=NOBODY,
+                    extra_groups=extra,
+                    env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
+                    capture_output=True,
+                    text=True,
+                    timeout=60,
+                )
+                results[name] = (got.stdout.strip(), got.stderr.strip()[-500:])
+        finally:
+            server.close()
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
+    assert results["member"][0] == "grasp-stiffness", results
+    assert results["stranger"][0] == "refused 13", results  # EACCES: not in the group
 
 
 def test_run_names_an_unknown_socket_group(capsys):
