@@ -23,7 +23,7 @@ REQUIRED: Any = object()  # a key without a default: the profile must give it
 
 @dataclass(frozen=True)
 class Key:
-    """One profile key of a backend: ``type`` is float, int, str, or that or None
+    """One profile key of a backend: ``type`` is float, int, bool, str, or that or None
     (``optional``); ``gt``/``ge``/``le`` bound a number; ``doc`` names the unit."""
 
     name: str
@@ -48,6 +48,9 @@ class Backend:
     what a run needs (a library, a driver) and raises DeviceError saying how to fix it.
     ``calibrate`` ("module:function") runs the device's own calibration (it moves the
     device) and returns what it did; backends without one need none from hapticd.
+    ``takes_clock``: the device gets ``clock``, the loop's nominal time (s), without
+    playing a trajectory (the virtual device moves at its speed per tick, not per
+    wall-clock second, so a late tick is no jump).
     """
 
     name: str
@@ -61,6 +64,7 @@ class Backend:
     discover: str | None = None
     preflight: str | None = None
     calibrate: str | None = None
+    takes_clock: bool = False
     status: str = ""
     defaults: dict[str, Any] = field(default_factory=dict, init=False, compare=False)
 
@@ -83,6 +87,13 @@ _HOLD = Key(
     "hold_s", float, 0.0, "keep running this long after the trajectory ends, s", ge=0.0, le=86400.0
 )
 _INDEX = Key("index", int, 0, "pick the n-th matching device", ge=0, le=255)
+_REPEAT = Key(
+    "repeat",
+    bool,
+    False,
+    "play the trajectory again from its start each time it ends, for as long as the run "
+    "lasts (it must end where it starts; hold_s is then unused)",
+)
 
 # The protocol devices (hid, usb) share their keys: the same device on two transports.
 _REPORT_KEYS = (
@@ -119,6 +130,7 @@ BACKENDS: dict[str, Backend] = {
                 _FINGER,
                 _MAX_FORCE,
                 _HOLD,
+                _REPEAT,
             ),
             plays_trajectory=True,
             status="done",
@@ -133,6 +145,7 @@ BACKENDS: dict[str, Backend] = {
                 _FINGER,
                 _MAX_FORCE,
                 _HOLD,
+                _REPEAT,
                 Key("mass_kg", float, 0.05, "fingertip and device mass, kg", gt=0.0, le=5.0),
                 Key(
                     "hand_stiffness_n_per_m",
@@ -153,6 +166,35 @@ BACKENDS: dict[str, Backend] = {
             ),
             plays_trajectory=True,
             status="done",
+        ),
+        Backend(
+            "virtual",
+            "hapticd_drivers.virtual",
+            "VirtualDevice",
+            "a handle with no hardware, moved from the view page (mouse and keys) over the "
+            "control protocol",
+            (
+                Key("serial", str, "virtual", "its name in the status and recordings"),
+                _MAX_FORCE,
+                Key(
+                    "max_speed_m_per_s",
+                    float,
+                    0.25,
+                    "how fast the handle follows the mouse, m/s",
+                    gt=0.0,
+                    le=2.0,
+                ),
+                Key(
+                    "workspace_radius_m",
+                    float,
+                    0.075,
+                    "the handle stays this close to the device's origin, m",
+                    gt=0.0,
+                    le=1.0,
+                ),
+            ),
+            takes_clock=True,
+            status="done, tested in headless Chromium",
         ),
         Backend(
             "hid",

@@ -189,6 +189,8 @@ def build_devices(
                 kwargs.update(serial_number=serial, index=0, **_emulated_seam(name, emulators))
             else:
                 registry.preflight(name, **kwargs)
+                if entry.takes_clock:
+                    kwargs["clock"] = clock
             devices.append(registry.open_device(name, **kwargs))
         except DeviceError as exc:
             raise ProfileError(f"{loc}: {exc}") from None

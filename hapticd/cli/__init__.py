@@ -49,6 +49,7 @@ from hapticd.cli.run import (
     workspace_reaches,
     workspace_report,
 )
+from hapticd.cli.service import _add_service
 
 # Used by other modules and tests as hapticd.cli.NAME.
 __all__ = [
@@ -102,6 +103,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="serve the control protocol on this Unix socket (default: $HAPTICD_SOCKET, "
         "$RUNTIME_DIRECTORY/control.sock, $XDG_RUNTIME_DIR/hapticd/control.sock; an "
         "--unpaced run serves one only when given)",
+    )
+    run.add_argument(
+        "--socket-group",
+        metavar="GROUP",
+        help="let this group's members connect too: the socket 0660 and its directory 0750 "
+        "for that group only (the installed service's experimenters; docs/daemon.md)",
     )
     run.add_argument(
         "--device",
@@ -202,6 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_plot(sub)
     _add_view(sub, sock_help)
     _add_bringup(sub)
+    _add_service(sub)
     exp = sub.add_parser("export", help="export a recording to CSV or MCAP (Foxglove)")
     exp.add_argument("recording", type=Path)
     fmt = exp.add_mutually_exclusive_group()

@@ -4,6 +4,7 @@ build a run from a profile."""
 from __future__ import annotations
 
 import argparse
+import grp
 import json
 import logging
 import math
@@ -94,12 +95,27 @@ def _run_socket(args: argparse.Namespace) -> Path | None:
     return args.socket or default_socket_path()
 
 
+def _socket_group(args: argparse.Namespace) -> int | None:
+    """The gid of ``--socket-group`` (a name or a number), or None."""
+    name = getattr(args, "socket_group", None)
+    if name is None:
+        return None
+    try:
+        return int(name) if name.isdigit() else grp.getgrnam(name).gr_gid
+    except KeyError:
+        raise ProfileError(
+            f"--socket-group {name}: no such group (getent group lists them)"
+        ) from None
+
+
 def _run_total_s(session: Any) -> float | None:
     """How long a run lasts on its nominal clock, s: --duration, else where its
     trajectories end (with their hold_s); None when nothing says (devices in the loop)."""
     loop = session.loop
     if loop.duration_s is not None:
         return float(loop.duration_s)
+    if any(getattr(getattr(d, "path", None), "repeat", False) for d in loop.devices):
+        return None  # a repeated path has no end
     ends = [getattr(d, "duration", None) for d in loop.devices if getattr(d, "duration", None)]
     if not ends or len(ends) != len(loop.devices):
         return None
@@ -178,6 +194,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, record_path: Path | None) -> int:
     try:
+        group = _socket_group(args)
         profile = load_profile(args.profile, _overrides(args))
         session = build_session(
             profile,
@@ -200,7 +217,7 @@ def _run(args: argparse.Namespace, record_path: Path | None) -> int:
     loop = session.loop
     notifier = ServiceNotifier(lambda: loop.stats.ticks, lambda: _service_status(loop))
     socket_path = _run_socket(args)
-    server = ControlServer(session, socket_path, periodic=[notifier.poll])
+    server = ControlServer(session, socket_path, periodic=[notifier.poll], socket_group=group)
     try:
         server.start()
     except OSError as exc:
