@@ -46,6 +46,13 @@ def make(backend, clock, request=None, **kw):
         dev = open_device(backend, serial_number="EMU-1", **seam, **kw)
         dev.emulator = emu
         return dev
+    if backend == "virtual":
+        # A person's hand, here the test: the target follows the path each tick (slower
+        # than the handle's top speed, so the handle is where the path is).
+        traj = Trajectory(TIMES, POS, "mouse")
+        dev = open_device("virtual", serial="V-1", clock=clock, **kw)
+        dev.move = lambda: dev.move_to(traj.at(clock.t)[0])
+        return dev
     return open_device(backend, times=TIMES, positions=POS, clock=clock, **kw)
 
 
