@@ -161,12 +161,12 @@ def _cache_folder() -> Path:
 
 def _keys(names: Sequence[str], version: str) -> dict[str, str]:
     """What numba's cache of each kernel depends on: numba, Python, the machine, the
-    kernels' source file (numba's own stamp: its modification time and size), the
-    signature."""
+    kernels' sources (``kernels.SOURCES``, numba's own stamp of each: modification time
+    and size), the signature."""
     from hapticd import kernels
 
-    st = os.stat(kernels.__file__)
-    base = f"numba {version}; {sys.version}; {platform.machine()}; {st.st_mtime_ns} {st.st_size}"
+    stamps = " ".join(f"{st.st_mtime_ns} {st.st_size}" for st in map(os.stat, kernels.SOURCES))
+    base = f"numba {version}; {sys.version}; {platform.machine()}; {stamps}"
     return {n: f"{base}; {SIGNATURES.get(n)}" for n in names}
 
 
@@ -198,13 +198,21 @@ def _register_helpers(numba, kernels) -> None:
     numba compiles each into the kernels that call it, and leaves the function itself
     plain Python (the module is not changed)."""
     try:
-        from numba.extending import register_jitable
+        from numba.extending import overload, register_jitable
 
-        for name in kernels.KERNEL_HELPERS:
-            fn = getattr(kernels, name)
-            if fn not in _HELPERS:
+        from hapticd.allocation.closed import FLOAT_FORMS
+
+        for helper in kernels.KERNEL_HELPERS:
+            fn = getattr(kernels, helper) if isinstance(helper, str) else helper
+            if fn in _HELPERS:
+                continue
+            if fn in FLOAT_FORMS:
+                # Chooses its form by the argument's type: compiled code runs the float one.
+                floats = register_jitable(FLOAT_FORMS[fn])
+                overload(fn, strict=False)(lambda *args, _f=floats, **kw: _f)
+            else:
                 register_jitable(fn)
-                _HELPERS.add(fn)
+            _HELPERS.add(fn)
     except Exception:
         # A broken numba: a kernel that calls a helper then fails to compile, and the
         # failure is reported under that kernel's name like any other.
@@ -259,15 +267,25 @@ def _mismatch(numba, disp, name: str) -> str | None:
     return f"held another kernel's code ({what})"
 
 
-def _load(numba, kernels, name: str, may_compile: bool, notes: list[str]) -> Callable[..., None]:
+def _load(
+    numba, kernels, name: str, may_compile: bool, notes: list[str], stale: bool
+) -> Callable[..., None]:
     """Kernel ``name`` compiled with numba, or loaded from its cache. A cache that cannot be
     read or holds another kernel is removed; then it is compiled again (``may_compile``,
-    adding what happened to ``notes``) or DamagedCacheError says so."""
+    adding what happened to ``notes``) or DamagedCacheError says so. ``stale``: the
+    record of compiled kernels (``COMPILED``) does not have it for the present sources,
+    so whatever numba has cached is removed first (numba's cache knows only
+    ``kernels.py``'s stamp, not that of the closed forms the kernel compiles in)."""
     kernel = getattr(kernels, name)
     try:
         folder, files = _cache_files(numba, kernel)
     except Exception:  # a numba without this layout: nothing to check or remove
         folder, files = None, []
+    if stale and may_compile:
+        for f in files:
+            with contextlib.suppress(OSError):
+                f.unlink()
+        files = []
     bad: str | None = None
     try:
         fn = numba.njit(SIGNATURES[name], cache=True, nogil=True)(kernel)
@@ -307,11 +325,12 @@ def compile_kernels(
         numba = _import_numba()
         _register_helpers(numba, kernels)
         keys = _keys(missing, numba.__version__)
+        done = _read_marker(COMPILED)
         for name in missing:
             if name not in SIGNATURES:
                 raise JitUnavailableError(f"no kernel {name!r}; known: {sorted(SIGNATURES)}")
             try:
-                fn = _load(numba, kernels, name, may_compile, notes)
+                fn = _load(numba, kernels, name, may_compile, notes, keys[name] not in done)
             except JitUnavailableError:
                 raise
             except Exception as e:  # numba's errors, or no locator for the cache

@@ -185,7 +185,9 @@ def test_three_contacts_and_several_directions_run_the_general_path(compiled):
         getattr(frame, name)[...] = getattr(three, name)
     frame.in_contact[2] = 0
     stage.run(frame)
-    assert calls == [] and np.count_nonzero(frame.lam_a) == 3
+    # The Python code wrote the squeeze on the two x directions (the thumb's y direction
+    # renders nothing, to rounding: no count of non-zeros).
+    assert calls == [] and frame.lam_a[0] > 0.5 and frame.lam_a[2] < -0.5
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
