@@ -233,20 +233,27 @@ code = main(["run", {profile!r}, "--unpaced", "--no-socket", "--no-realtime",
 """
 
 
+def _python(code: str, cache: Path, timeout: float) -> subprocess.CompletedProcess:
+    """Run ``code`` in a Python process of its own with numba's cache in ``cache``; it must
+    succeed."""
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+        env={**os.environ, "NUMBA_CACHE_DIR": str(cache)},
+    )
+    assert out.returncode == 0, out.stderr
+    return out
+
+
 def _run_lift(tmp_path: Path, setup: str, mode: str, cache: Path) -> tuple[str, dict]:
     """Run the lift for 0.3 s in a subprocess after ``setup``; its stderr and summary."""
     summary = tmp_path / "s.json"
     extra = f", '--set', 'rendering.kernels={mode}'"
     code = setup + "import sys\n" + RUN.format(profile=str(LIFT), summary=str(summary), extra=extra)
-    out = subprocess.run(
-        [sys.executable, "-c", code + "sys.exit(code)\n"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        cwd=ROOT,
-        env={**os.environ, "NUMBA_CACHE_DIR": str(cache)},
-    )
-    assert out.returncode == 0, out.stderr
+    out = _python(code + "sys.exit(code)\n", cache, 120)
     s = json.loads(summary.read_text())
     assert s["fault"] is None and s["ticks"] == 300
     summary.unlink()
@@ -566,15 +573,7 @@ print(json.dumps({{"used": c.used, "message": c.message, "note": c.note, "starte
 
 
 def _choose_in(cache: Path, mode: str) -> dict:
-    out = subprocess.run(
-        [sys.executable, "-c", DAMAGED.format(mode=mode, names=SMALL)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=ROOT,
-        env={**os.environ, "NUMBA_CACHE_DIR": str(cache)},
-    )
-    assert out.returncode == 0, out.stderr
+    out = _python(DAMAGED.format(mode=mode, names=SMALL), cache, 300)
     return json.loads(out.stdout.splitlines()[-1])
 
 
