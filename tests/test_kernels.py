@@ -643,3 +643,29 @@ def test_auto_takes_an_index_without_its_code_for_not_cached(small_cache, tmp_pa
     got = _choose_in(cache, "auto")
     assert got["used"] == "python" and got["started"] == 1, got
     assert "compiling world_planes, forces_step in the background" in got["note"]
+
+
+STAMPED = """
+import json
+from hapticd import jit, kernels
+kernels.SOURCES = (*kernels.SOURCES, *{extra!r})
+f = jit.compile_kernels(["world_planes"])["world_planes"]
+print(json.dumps([sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]))
+"""
+
+
+def test_a_kernel_whose_helpers_changed_is_compiled_again(small_cache, tmp_path):
+    """numba's cache knows only kernels.py's stamp; a kernel compiles in code from other
+    files too (the allocation's closed forms), so a change to any of ``kernels.SOURCES``
+    must not load the old machine code."""
+    cache, _ = _copy(small_cache, tmp_path)
+    helper = tmp_path / "helper.py"
+    helper.write_text("x = 1\n")
+
+    def hits_and_misses(extra: list[str]) -> list[int]:
+        out = _python(STAMPED.format(extra=extra), cache, 300)
+        return json.loads(out.stdout.splitlines()[-1])
+
+    assert hits_and_misses([]) == [1, 0]  # unchanged: loaded
+    assert hits_and_misses([str(helper)]) == [0, 1]  # a source it depends on: compiled
+    assert hits_and_misses([str(helper)]) == [1, 0]  # and cached for that source
