@@ -23,10 +23,11 @@ _DECLARED = {f.name: f.shape for f in FIELDS}
 
 
 def _labels(symbol: int | str, n: int, last: bool, fingers: list[str]) -> list[str]:
-    """Labels of an axis of ``n`` entries declared as ``symbol`` ("F", "r" or a size)."""
+    """Labels of an axis of ``n`` entries declared as ``symbol`` ("F", "r" or a size); an
+    axis whose size is not what the declaration says (a file from elsewhere) by index."""
     if symbol == "F" and n == len(fingers):
         return list(fingers)
-    if symbol == 3 and last:
+    if symbol == 3 and n == 3 and last:
         return ["x", "y", "z"]
     return [str(j) for j in range(n)]
 
