@@ -24,7 +24,8 @@ service) in ``$NUMBA_CACHE_DIR`` if set, else ``$CACHE_DIRECTORY`` (systemd's
 ``CacheDirectory=``), ``$XDG_CACHE_HOME/hapticd/numba`` or
 ``~/.cache/hapticd/numba``; with none writable the kernels compile on every run.
 Two small JSON files there say which kernels compiled (``COMPILED``) and which
-failed and why (``FAILED``), keyed by numba, Python, machine and the kernels' source.
+failed and why (``FAILED``), keyed by numba, Python, machine and the kernels' sources
+(``kernels.SOURCES``: numba's own cache knows only kernels.py's stamp).
 
 A cache numba cannot read (damaged), or whose files hold another kernel than their
 name says (swapped), is removed and compiled again (``compiled``, and the background
