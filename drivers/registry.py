@@ -16,6 +16,7 @@ import importlib
 from dataclasses import dataclass, field
 from typing import Any
 
+from hapticd_drivers import models
 from hapticd_drivers.base import BackendUnavailableError, Device, DeviceError
 
 REQUIRED: Any = object()  # a key without a default: the profile must give it
@@ -83,6 +84,8 @@ _HOLD = Key(
     "hold_s", float, 0.0, "keep running this long after the trajectory ends, s", ge=0.0, le=86400.0
 )
 _INDEX = Key("index", int, 0, "pick the n-th matching device", ge=0, le=255)
+_FALCON = models.by_name("Falcon")
+assert _FALCON is not None
 
 # The protocol devices (hid, usb) share their keys: the same device on two transports.
 _REPORT_KEYS = (
@@ -245,6 +248,39 @@ BACKENDS: dict[str, Backend] = {
             calibrate="hapticd_drivers.dhd_backend:calibrate",
             status="done, tested through a fake SDK compiled by the tests, as the SDK's "
             "documentation describes it and with its older behaviours",
+        ),
+        Backend(
+            "falcon",
+            "hapticd_drivers.falcon_backend",
+            "FalconDevice",
+            "a Novint Falcon, no vendor SDK: its FTDI chip through pyftdi on pyusb",
+            (
+                Key(
+                    "firmware",
+                    str,
+                    None,
+                    "path of the Falcon firmware image to load after power-on (not shipped: "
+                    "docs/devices.md says where to find it); none: the Falcon must run it already",
+                    True,
+                ),
+                Key("serial_number", str, None, "pick the Falcon by its USB serial number", True),
+                _INDEX,
+                Key(
+                    "max_force_n",
+                    float,
+                    _FALCON.max_force_n,
+                    "the device's rated force, at most the Falcon's (the model table), N",
+                    gt=0.0,
+                    le=_FALCON.max_force_n,
+                ),
+                _trajectory(False, "path for the emulator (--emulate) to move the Falcon along"),
+                _FINGER,
+            ),
+            emulated=True,
+            discover="hapticd_drivers.falcon_backend:discover",
+            calibrate="hapticd_drivers.falcon_backend:calibrate",
+            status="protocol, kinematics and firmware load from libnifalcon; tested through "
+            "an emulated FTDI chip under pyusb, not yet on a real Falcon",
         ),
     )
 }

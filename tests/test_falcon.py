@@ -1,0 +1,388 @@
+"""The falcon backend: its packet codec and kinematics, and the backend through the
+emulated FTDI chip under pyusb (firmware load, homing, LEDs, grip, faults)."""
+
+import numpy as np
+import pytest
+from hapticd_drivers import DeviceError, DeviceState, models, open_device, registry
+from hapticd_drivers import falcon_model as fm
+from hapticd_drivers.falcon_emulator import EmulatedFalconBackend, FalconEmulator
+from hapticd_drivers.trajectory import Trajectory
+from hypothesis import assume, given
+from hypothesis import strategies as st
+
+from tests.conftest import GRASP_PROFILE, AtTick, capture_writes
+
+RADIUS = models.by_name("Falcon").workspace_radius_m
+TIMES = np.array([0.0, 0.5, 1.0])
+POS = np.array([[0.0, 0.0, 0.0], [0.02, 0.01, -0.01], [0.03, -0.01, 0.02]])
+
+coord = st.floats(-RADIUS, RADIUS, allow_nan=False)
+
+
+def in_workspace(p) -> bool:
+    return float(np.linalg.norm(p)) <= RADIUS
+
+
+# -- kinematics -------------------------------------------------------------------------------
+
+
+@given(coord, coord, coord)
+def test_forward_inverts_inverse_across_the_workspace(x, y, z):
+    p = np.array([x, y, z])
+    assume(in_workspace(p))
+    theta = fm.inverse(p)
+    np.testing.assert_allclose(fm.forward(theta), p, atol=1e-9)
+    # from a far start too, as after a glitch
+    np.testing.assert_allclose(fm.forward(theta, guess=-p), p, atol=1e-9)
+
+
+@given(coord, coord, coord)
+def test_each_leg_satisfies_stampers_loop_equations(x, y, z):
+    p = np.array([x, y, z])
+    assume(in_workspace(p))
+    leg = fm.leg_coordinates(p)
+    ang = fm.leg_angles(p)
+    th1, th2, th3 = ang[:, 0], ang[:, 1], ang[:, 2]
+    length = fm.D + fm.E + fm.B * np.sin(th3)
+    np.testing.assert_allclose(
+        leg[:, 0], fm.A * np.cos(th1) - fm.C + length * np.cos(th2), atol=1e-12
+    )
+    np.testing.assert_allclose(leg[:, 1], fm.B * np.cos(th3) - fm.F, atol=1e-12)
+    np.testing.assert_allclose(leg[:, 2], fm.A * np.sin(th1) + length * np.sin(th2), atol=1e-12)
+
+
+@given(coord, coord, coord)
+def test_the_jacobian_is_the_derivative_of_the_inverse_kinematics(x, y, z):
+    p = np.array([x, y, z])
+    assume(in_workspace(p))
+    h = 1e-7
+    numeric = np.column_stack(
+        [(fm.inverse(p + h * e) - fm.inverse(p - h * e)) / (2 * h) for e in np.eye(3)]
+    )
+    np.testing.assert_allclose(fm.joint_jacobian(p), numeric, rtol=1e-5, atol=1e-4)
+
+
+def test_the_legs_are_symmetric_on_the_axis():
+    # libnifalcon's three legs 120 degrees apart: on the z axis all thighs agree, and
+    # further out (z toward the user) the thighs turn one way.
+    a = fm.inverse(np.array([0.0, 0.0, -0.02]))
+    b = fm.inverse(np.array([0.0, 0.0, 0.02]))
+    np.testing.assert_allclose(a, a[0], atol=1e-12)
+    np.testing.assert_allclose(b, b[0], atol=1e-12)
+    assert b[0] > a[0]
+
+
+@given(coord, coord, coord, st.floats(0.01, 8.0), st.integers(0, 2))
+def test_motor_values_render_the_force_within_their_limit(x, y, z, magnitude, axis):
+    p = np.array([x, y, z])
+    assume(in_workspace(p))
+    f = np.zeros(3)
+    f[axis] = magnitude
+    motor = fm.motor_values(p, f)
+    assert np.abs(motor).max() <= fm.MOTOR_LIMIT
+    produced = fm.force_from_motor(p, motor)
+    if np.abs(motor).max() < fm.MOTOR_LIMIT:
+        np.testing.assert_allclose(produced, f, atol=0.01)  # one motor unit is 1e-4 N m
+    else:  # saturated: scaled down together, the direction kept
+        assert np.dot(produced, f) / (np.linalg.norm(produced) * magnitude) > 0.999
+
+
+def test_encoder_counts_round_trip_within_one_count():
+    theta = np.array([-0.3, 0.2, 1.1])
+    back = fm.angles_from_counts(fm.counts_from_angles(theta))
+    assert np.abs(back - theta).max() <= fm.RAD_PER_COUNT / 2 + 1e-15
+
+
+def test_a_position_out_of_reach_is_refused():
+    with pytest.raises(fm.FalconKinematicsError, match="reach"):
+        fm.inverse(np.array([0.0, 0.0, 0.2]))
+
+
+# -- the codec --------------------------------------------------------------------------------
+
+words = st.integers(-32768, 32767)
+motors = st.integers(-fm.MOTOR_LIMIT, fm.MOTOR_LIMIT)
+
+
+@given(st.tuples(motors, motors, motors), st.integers(0, 15), st.booleans())
+def test_command_packets_round_trip(motor, leds, homing):
+    raw = fm.encode_command(motor, leds, homing)
+    assert len(raw) == 16 and raw[:1] == b"<" and raw[-1:] == b">"
+    assert all(0x41 <= b <= 0x50 for b in raw[1:13])
+    assert fm.decode_command(raw) == (motor, leds & 0xE, homing)
+
+
+@given(st.tuples(words, words, words), st.integers(0, 7), st.integers(0, 15))
+def test_state_packets_round_trip(encoders, homed, grip):
+    assert fm.decode_state(fm.encode_state(encoders, homed, grip)) == (encoders, homed, grip)
+
+
+def test_the_nibbles_are_offset_by_0x41_least_significant_first():
+    raw = fm.encode_state((0x1234, -1, 0), 0b101, 0b0011)
+    assert raw[1:5] == bytes([0x41 + 4, 0x41 + 3, 0x41 + 2, 0x41 + 1])
+    assert raw[5:9] == bytes([0x41 + 0xF] * 4)
+    assert raw[13] == 0x41 + 0x53
+
+
+BROKEN = {
+    "short": (lambda raw: raw[:15], "15 bytes"),
+    "no start": (lambda raw: b"x" + raw[1:], "frame"),
+    "no end": (lambda raw: raw[:15] + b"<", "frame"),
+    "not a nibble": (lambda raw: raw[:3] + b"\x00" + raw[4:], "byte 3"),
+}
+
+
+@pytest.mark.parametrize("case", list(BROKEN))
+def test_broken_packets_are_refused_saying_what_is_wrong(case):
+    breaking, message = BROKEN[case]
+    raw = fm.encode_state((10, -20, 30), 7, 0)
+    with pytest.raises(fm.FalconPacketError, match=message):
+        fm.decode_state(breaking(raw))
+
+
+def test_a_motor_value_beyond_the_limit_never_becomes_a_packet():
+    with pytest.raises(ValueError, match="4096"):
+        fm.encode_command((fm.MOTOR_LIMIT + 1, 0, 0), 0, False)
+
+
+# -- the backend through the emulated chip ---------------------------------------------------
+
+
+class Clock:
+    t = 0.0
+
+    def __call__(self):
+        return self.t
+
+
+def falcon(clock, firmware_loaded=True, homed=True, **kw):
+    emu = FalconEmulator(
+        Trajectory(TIMES, POS, "emu"),
+        clock,
+        serial="EMU-1",
+        firmware_loaded=firmware_loaded,
+        homed=homed,
+    )
+    dev = open_device(
+        "falcon", serial_number="EMU-1", usb_backend=EmulatedFalconBackend([emu]), clock=clock, **kw
+    )
+    return dev, emu
+
+
+def run(dev, clock, ticks, force=(1.0, -2.0, 3.0), start=0):
+    st_ = DeviceState()
+    for k in range(start, start + ticks):
+        clock.t = k * 1e-3
+        dev.read_state(st_)
+        dev.write_force(np.array(force))
+    return st_
+
+
+def test_renders_the_force_and_follows_the_path():
+    clock = Clock()
+    dev, emu = falcon(clock)
+    dev.open()
+    try:
+        assert emu.leds == fm.LED_BLUE  # homed, forces off
+        dev.enable_forces(True)
+        st_ = run(dev, clock, 600)
+        assert emu.leds == fm.LED_GREEN
+        np.testing.assert_allclose(emu.end_effector_force(), [1.0, -2.0, 3.0], atol=0.01)
+        want, vel = Trajectory(TIMES, POS, "p").at(clock.t)
+        np.testing.assert_allclose(st_.position, want, atol=1e-4)  # ~40 um per count
+        np.testing.assert_allclose(st_.velocity, vel, atol=0.05)
+        dev.enable_forces(False)
+        run(dev, clock, 1, start=600)
+        np.testing.assert_array_equal(emu.motor, 0)
+    finally:
+        dev.close()
+    np.testing.assert_array_equal(emu.motor, 0)
+    assert emu.leds == 0
+
+
+def test_the_grip_buttons_are_the_device_buttons():
+    clock = Clock()
+    dev, emu = falcon(clock)
+    dev.open()
+    emu.grip = 0b1010
+    assert run(dev, clock, 2).buttons == 0b1010
+    dev.close()
+
+
+FAULTS = {
+    "broken frame": (lambda emu: setattr(emu, "corrupt_next", 1), "broken packet"),
+    "encoder jump": (lambda emu: setattr(emu, "jump_next", 1), "impossible encoder jump"),
+    "silence": (lambda emu: setattr(emu, "silent", True), "stopped answering"),
+    "unplug": (lambda emu: emu.unplug(), "unplugged"),
+}
+
+
+@pytest.mark.parametrize("fault", list(FAULTS))
+def test_a_device_fault_is_a_clear_error_naming_the_falcon(fault):
+    clock = Clock()
+    dev, emu = falcon(clock)
+    dev.open()
+    dev.enable_forces(True)
+    run(dev, clock, 20)
+    inject, message = FAULTS[fault]
+    inject(emu)
+    with pytest.raises(DeviceError, match=rf"falcon EMU-1: .*{message}"):
+        run(dev, clock, 3, start=20)
+    dev.close()
+
+
+def test_a_falcon_not_homed_is_refused_and_never_gets_force():
+    clock = Clock()
+    dev, emu = falcon(clock, homed=False)
+    with pytest.raises(DeviceError, match=r"not homed.*hapticd calibrate"):
+        dev.open()
+    assert emu.leds == 0 and not emu.motor.any()
+    assert emu.commands > 0  # it was asked, and answered
+
+
+def test_homing_while_the_user_sweeps_the_grip_then_the_falcon_opens():
+    from hapticd_drivers.falcon_backend import FalconDevice
+
+    clock = Clock()
+    _, emu = falcon(clock, homed=False)
+    dev = FalconDevice(serial_number="EMU-1", usb_backend=EmulatedFalconBackend([emu]), clock=clock)
+    dev._open(require_homed=False)
+    assert emu.leds == fm.LED_RED
+    dev.enable_forces(True)
+    dev.write_force(np.array([1.0, 0.0, 0.0]))  # not homed: zero reaches the motors
+    assert not emu.motor.any()
+
+    def sleep(s):
+        clock.t += s
+
+    assert dev.home(timeout_s=10.0, sleep=sleep) == fm.ALL_HOMED
+    assert clock.t < 3.5  # homed within the user's sweep
+    dev.close()
+    clock.t = 4.0  # the user's sweep is over: the grip follows the path again
+    dev.open()  # now it opens, and the encoders read absolute angles
+    st_ = run(dev, clock, 1, start=4001)
+    want, _ = Trajectory(TIMES, POS, "p").at(clock.t)
+    np.testing.assert_allclose(st_.position, want, atol=1e-4)
+    dev.close()
+
+
+def test_homing_that_never_completes_times_out():
+    clock = Clock()
+    _, emu = falcon(clock, homed=False)
+    emu.HOMING_SWEEP = ((0.0, 0.0), (3.0, 0.0))  # a user who does not move the grip
+    from hapticd_drivers.falcon_backend import FalconDevice
+
+    dev = FalconDevice(serial_number="EMU-1", usb_backend=EmulatedFalconBackend([emu]), clock=clock)
+    dev._open(require_homed=False)
+
+    def sleep(s):
+        clock.t += s
+
+    with pytest.raises(DeviceError, match="not homed after 2 s"):
+        dev.home(timeout_s=2.0, sleep=sleep)
+    dev.close()
+
+
+def firmware_file(tmp_path, size=7324):
+    path = tmp_path / "falcon.bin"
+    path.write_bytes(bytes((i * 7) & 0xFF for i in range(size)))
+    return path
+
+
+def test_the_firmware_is_loaded_through_the_bootloader(tmp_path):
+    clock = Clock()
+    path = firmware_file(tmp_path)
+    dev, emu = falcon(clock, firmware_loaded=False, firmware=str(path))
+    dev.open()
+    assert emu.state == "run" and bytes(emu.image) == path.read_bytes()
+    dev.enable_forces(True)
+    run(dev, clock, 50)
+    np.testing.assert_allclose(emu.end_effector_force(), [1.0, -2.0, 3.0], atol=0.01)
+    dev.close()
+
+
+def test_a_falcon_without_firmware_and_no_file_says_to_name_one():
+    dev, emu = falcon(Clock(), firmware_loaded=False)
+    with pytest.raises(DeviceError, match=r"firmware is not loaded.*'firmware'"):
+        dev.open()
+    assert emu.state == "boot"
+
+
+@pytest.mark.parametrize(
+    ("size", "message"), [(None, "cannot read it"), (100, "100 bytes, expected")]
+)
+def test_a_missing_or_wrong_sized_firmware_file_is_refused_before_the_falcon(
+    tmp_path, size, message
+):
+    path = tmp_path / "missing.bin" if size is None else firmware_file(tmp_path, size)
+    dev, emu = falcon(Clock(), firmware_loaded=False, firmware=str(path))
+    with pytest.raises(DeviceError, match=message):
+        dev.open()
+    assert emu.state == "boot" and not emu.image
+
+
+def test_a_firmware_echo_that_differs_is_a_failed_load(tmp_path):
+    dev, emu = falcon(Clock(), firmware_loaded=False, firmware=str(firmware_file(tmp_path)))
+    emu.corrupt_echo = 1
+    with pytest.raises(DeviceError, match=r"firmware load failed: byte 0 of 7324"):
+        dev.open()
+
+
+def test_max_force_above_the_falcons_is_refused():
+    with pytest.raises(DeviceError, match="at most the Falcon's 8 N"):
+        open_device("falcon", max_force_n=9.0)
+
+
+def test_discovery_says_why_it_cannot_look_without_libusb():
+    # The tests' libusb_package is missing (conftest): discovery says so, no crash.
+    entries = [e for e in registry.discover() if e["backend"] == "falcon"]
+    assert len(entries) == 1 and "libusb" in entries[0]["problem"]
+
+
+def test_the_udev_rules_cover_the_falcon():
+    from hapticd_drivers.udev import rules
+
+    assert 'ATTRS{idVendor}=="0403", ATTRS{idProduct}=="cb48"' in rules()
+
+
+# -- the loop --------------------------------------------------------------------------------
+
+
+def session_forces(device, emulate):
+    from hapticd.daemon.session import build_session
+    from hapticd.profile import load_profile
+
+    s = build_session(load_profile(GRASP_PROFILE), paced=False, device=device, emulate=emulate)
+    written = capture_writes(s)
+    out = s.run()
+    n = len(s.devices)
+    return np.array(written).reshape(-1, n, 3), out, s
+
+
+def test_an_emulated_falcon_run_renders_what_the_replay_run_renders():
+    falcon_f, out, s = session_forces("falcon", True)
+    replay_f, _, _ = session_forces(None, False)
+    assert out["end_reason"] == "duration reached", out.get("fault")
+    n = min(len(falcon_f), len(replay_f))
+    assert n > 7000 and np.abs(replay_f).max() > 1.0  # the pinch happened
+    # After the Falcon's own force limit, as the safety chain applies it to both runs.
+    assert np.abs(falcon_f[:n] - replay_f[:n]).max() < 0.1
+    assert all(isinstance(e, FalconEmulator) for e in s.emulators)
+
+
+def test_a_fault_mid_run_ends_in_zero_force_and_a_latched_fault():
+    from hapticd.daemon.session import build_session
+    from hapticd.profile import load_profile
+
+    s = build_session(load_profile(GRASP_PROFILE), paced=False, device="falcon", emulate=True)
+
+    def fault(frame):  # mid-pinch, both devices pushing
+        assert np.abs(s.emulators[0].motor).max() > 0
+        s.emulators[0].corrupt_next = 1
+
+    s.renderer.insert(AtTick(2999, fault), after="allocation")
+    out = s.run()
+    assert out["end_reason"] == "fault" and "broken packet" in out["fault"]["cause"]
+    for emu in s.emulators:
+        np.testing.assert_array_equal(emu.motor, 0)
+        assert np.isfinite(emu.end_effector_force()).all()
