@@ -405,6 +405,12 @@ class FalconDevice(Device):
             self._motor[:] = 0
         self._send()
 
+    def calibrated(self) -> bool:
+        """Whether all three encoders are homed (an open Falcon always is)."""
+        if self._ftdi is None:
+            raise self._fail("not open")
+        return self.homed == fm.ALL_HOMED
+
     def enable_forces(self, enabled: bool) -> None:
         self._enabled = bool(enabled)
         if not enabled:

@@ -49,6 +49,8 @@ class Backend:
     what a run needs (a library, a driver) and raises DeviceError saying how to fix it.
     ``calibrate`` ("module:function") runs the device's own calibration (it moves the
     device) and returns what it did; backends without one need none from hapticd.
+    ``calibrate_by_hand``: what the user does while a calibration the device does not
+    move for itself runs (empty: the device moves on its own).
     """
 
     name: str
@@ -62,6 +64,7 @@ class Backend:
     discover: str | None = None
     preflight: str | None = None
     calibrate: str | None = None
+    calibrate_by_hand: str = ""
     status: str = ""
     defaults: dict[str, Any] = field(default_factory=dict, init=False, compare=False)
 
@@ -279,6 +282,8 @@ BACKENDS: dict[str, Backend] = {
             emulated=True,
             discover="hapticd_drivers.falcon_backend:discover",
             calibrate="hapticd_drivers.falcon_backend:calibrate",
+            calibrate_by_hand="move its grip all the way out, then push it straight in "
+            "(the LED turns from red to blue)",
             status="protocol, kinematics and firmware load from libnifalcon; tested through "
             "an emulated FTDI chip under pyusb, not yet on a real Falcon",
         ),

@@ -1,6 +1,8 @@
 """The falcon backend: its packet codec and kinematics, and the backend through the
 emulated FTDI chip under pyusb (firmware load, homing, LEDs, grip, faults)."""
 
+import io
+
 import numpy as np
 import pytest
 from hapticd_drivers import DeviceError, DeviceState, models, open_device, registry
@@ -386,3 +388,83 @@ def test_a_fault_mid_run_ends_in_zero_force_and_a_latched_fault():
     for emu in s.emulators:
         np.testing.assert_array_equal(emu.motor, 0)
         assert np.isfinite(emu.end_effector_force()).all()
+
+
+def test_bringup_pulses_each_actuated_direction_through_the_falcons(tmp_path, capsys, monkeypatch):
+    """hapticd bringup on emulated Falcons: both pass as homed, each actuated direction is
+    pulsed, and the force the emulated motors exert stays at most 0.5 N (plus a motor
+    unit's quantisation)."""
+    from hapticd.cli import main
+    from hapticd.pulse import MAX_PULSE_N
+
+    felt: dict[int, list] = {}
+    real = FalconEmulator._command
+
+    def spy(self, packet):
+        real(self, packet)
+        felt.setdefault(id(self), []).append(self.end_effector_force())
+
+    monkeypatch.setattr(FalconEmulator, "_command", spy)
+    args = ["bringup", str(GRASP_PROFILE), "--unpaced", "--no-realtime", "--live-s", "0"]
+    code = main(
+        [*args, "--device", "falcon", "--emulate", "--answers", "yy", "--out", str(tmp_path)]
+    )
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "thumb: falcon Falcon EMU-thumb: calibrated" in out
+    assert "RESULT: PASS (devices, limits and workspace, 2 of 2 directions)" in out
+    assert len(felt) == 2
+    for forces in felt.values():
+        mags = np.linalg.norm(np.array(forces), axis=1)
+        assert 0.45 < mags.max() <= MAX_PULSE_N * 1.02
+
+
+class TickingClock:
+    """A device clock that moves on 1 ms each time it is read: homing runs in no time."""
+
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        self.t += 1e-3
+        return self.t
+
+
+def test_calibrate_loads_the_firmware_and_homes_the_falcon(tmp_path):
+    clock = TickingClock()
+    _, emu = falcon(clock, firmware_loaded=False, homed=False)
+    path = firmware_file(tmp_path)
+    seam = {"usb_backend": EmulatedFalconBackend([emu]), "clock": clock}
+    out = registry.calibrate("falcon", firmware=str(path), serial_number="EMU-1", **seam)
+    assert out == {"model": "Falcon", "serial": "EMU-1", "was_calibrated": False}
+    assert emu.state == "run" and emu.homed == fm.ALL_HOMED
+    assert not emu.homing and not emu.motor.any()  # homing asked off, forces zero
+    again = registry.calibrate("falcon", serial_number="EMU-1", **seam)
+    assert again["was_calibrated"] is True
+
+
+def test_hapticd_calibrate_tells_the_user_to_move_each_falcon(
+    grasp_data, write_profile, monkeypatch, capsys
+):
+    from hapticd_drivers import falcon_backend
+
+    from hapticd.cli import main
+
+    for f in grasp_data["fingers"]:
+        f["device"] = {"backend": "falcon", "index": 0 if f["name"] == "thumb" else 1}
+    homed = []
+    monkeypatch.setattr(
+        falcon_backend,
+        "calibrate",
+        lambda **kw: (
+            homed.append(kw["index"])
+            or {"model": "Falcon", "serial": f"SN{kw['index']}", "was_calibrated": False}
+        ),
+    )
+    monkeypatch.setattr("sys.stdin", io.StringIO(""))  # not a terminal
+    assert main(["calibrate", str(write_profile(grasp_data))]) == 0  # nothing moves itself
+    out = capsys.readouterr().out
+    assert homed == [0, 1]
+    assert "MOVE ON THEIR OWN" not in out
+    assert "thumb: now move its grip all the way out, then push it straight in" in out
+    assert "index: Falcon SN1 calibrated" in out
