@@ -466,6 +466,17 @@ def discover() -> list[dict[str, Any]]:
     return [{"backend": "falcon", "model": "Novint Falcon", "found": serials}]
 
 
+def preflight(firmware: str | None = None, **_: Any) -> None:
+    """Before a run: pyftdi is importable and the named firmware file is one (DeviceError
+    saying which and why)."""
+    try:
+        importlib.import_module("pyftdi.ftdi")
+    except ImportError as exc:
+        raise DeviceError("the falcon backend needs pyftdi: pip install pyftdi") from exc
+    if firmware is not None:
+        read_firmware(firmware)
+
+
 def calibrate(
     firmware: str | None = None,
     serial_number: str | None = None,

@@ -281,6 +281,7 @@ BACKENDS: dict[str, Backend] = {
             ),
             emulated=True,
             discover="hapticd_drivers.falcon_backend:discover",
+            preflight="hapticd_drivers.falcon_backend:preflight",
             calibrate="hapticd_drivers.falcon_backend:calibrate",
             calibrate_by_hand="move its grip all the way out, then push it straight in "
             "(the LED turns from red to blue)",

@@ -12,7 +12,7 @@ from hapticd_drivers.trajectory import Trajectory
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from tests.conftest import GRASP_PROFILE, AtTick, capture_writes
+from tests.conftest import GRASP_PROFILE, ROOT, AtTick, capture_writes
 
 RADIUS = models.by_name("Falcon").workspace_radius_m
 TIMES = np.array([0.0, 0.5, 1.0])
@@ -468,3 +468,27 @@ def test_hapticd_calibrate_tells_the_user_to_move_each_falcon(
     assert "MOVE ON THEIR OWN" not in out
     assert "thumb: now move its grip all the way out, then push it straight in" in out
     assert "index: Falcon SN1 calibrated" in out
+
+
+def test_a_run_on_a_falcon_whose_firmware_file_is_missing_ends_at_setup_naming_the_key(
+    grasp_data, write_profile, tmp_path
+):
+    from hapticd.build import build_devices
+    from hapticd.profile import ProfileError, load_profile
+
+    grasp_data["fingers"][1]["device"] = {
+        "backend": "falcon",
+        "firmware": str(tmp_path / "nowhere.bin"),
+    }
+    profile = load_profile(write_profile(grasp_data))
+    with pytest.raises(ProfileError, match=r"fingers\[1:index\]\.device: .*nowhere\.bin"):
+        build_devices(profile, clock=lambda: 0.0)
+
+
+def test_the_two_falcon_rig_passes_check(capsys):
+    from hapticd.cli import main
+
+    assert main(["check", str(ROOT / "configs" / "rigs" / "two-falcons.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "thumb (falcon, 1 actuated), index (falcon, 1 actuated)" in out
+    assert out.count("radius 40.0 mm") == 2 and "the object is reachable" in out
