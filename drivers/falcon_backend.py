@@ -151,14 +151,7 @@ class FalconDevice(Device):
     @staticmethod
     def _info(serial: str, max_force_n: float) -> DeviceInfo:
         assert MODEL is not None
-        return DeviceInfo(
-            MODEL.name,
-            serial,
-            max_force_n,
-            MODEL.workspace_radius_m,
-            max_stiffness_n_per_m=MODEL.max_stiffness_n_per_m,
-            max_damping_n_s_per_m=MODEL.max_damping_n_s_per_m,
-        )
+        return DeviceInfo.of_model(MODEL, serial, max_force_n)
 
     def _fail(self, what: str, exc: BaseException | None = None) -> DeviceError:
         detail = f": {exc}" if exc is not None else ""

@@ -26,10 +26,16 @@ from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
-import usb.backend
 import usb.core
 from hapticd_drivers import falcon_model as fm
 from hapticd_drivers.trajectory import Trajectory
+from hapticd_drivers.usb_emulator import (
+    ENODEV,
+    GET_DESCRIPTOR,
+    EmulatedBus,
+    fill,
+    string_descriptor,
+)
 
 # FTDI vendor requests (bRequest) and what the emulated chip does with them.
 SIO_RESET, SIO_MODEM_CTRL, SIO_SET_FLOW_CTRL, SIO_SET_BAUDRATE, SIO_SET_DATA = 0, 1, 2, 3, 4
@@ -38,7 +44,6 @@ FTDI_CLOCK_HZ = 3_000_000
 # Sub-integer divisor codes: bits 14-15 of the value, bit 0 of the index.
 _FRAC = (0.0, 0.5, 0.25, 0.125, 0.375, 0.625, 0.75, 0.875)
 MODEM_STATUS = bytes([0x01, 0x60])  # CTS/DSR clear, transmitter empty
-ENODEV, ETIMEDOUT = 19, 110
 
 LOADER_BAUD, BOOT_BAUD, NORMAL_BAUD = 9600, 142_857, 1_500_000
 LOADER_HELLO, LOADER_REPLY = b"\n\x43\r", b"\n\x44,\r"
@@ -278,19 +283,10 @@ class FalconEmulator:
         self.to_host.clear()
 
 
-class EmulatedFalconBackend(usb.backend.IBackend):
+class EmulatedFalconBackend(EmulatedBus):
     """pyusb backend whose devices are ``FalconEmulator`` instances behind FTDI chips."""
 
-    def __init__(self, emulators: list[FalconEmulator]) -> None:
-        self.emulators = emulators
-
-    def _emu(self, dev: int) -> FalconEmulator:
-        emu = self.emulators[dev]
-        emu._require()
-        return emu
-
-    def enumerate_devices(self) -> Any:
-        return iter([i for i, e in enumerate(self.emulators) if e.plugged])
+    emulators: list[FalconEmulator]
 
     def get_device_descriptor(self, dev: int) -> SimpleNamespace:
         return SimpleNamespace(
@@ -326,56 +322,26 @@ class EmulatedFalconBackend(usb.backend.IBackend):
             extra_descriptors=[],
         )  # fmt: skip
 
-    def open_device(self, dev: int) -> int:
-        self._emu(dev)
-        return dev
-
-    def close_device(self, dev_handle: int) -> None:
-        pass
-
-    def set_configuration(self, dev_handle: int, config_value: int) -> None:
-        self._emu(dev_handle)
-
-    def get_configuration(self, dev_handle: int) -> int:
-        return 1
-
-    def claim_interface(self, dev_handle: int, intf: int) -> None:
-        self._emu(dev_handle)
-
-    def release_interface(self, dev_handle: int, intf: int) -> None:
-        pass
-
-    def is_kernel_driver_active(self, dev_handle: int, intf: int) -> bool:
-        return False
-
     def bulk_write(self, dev_handle: int, ep: int, intf: int, data: Any, timeout: int) -> int:
         self._emu(dev_handle).write(bytes(data))
         return len(data)
 
     def bulk_read(self, dev_handle: int, ep: int, intf: int, buff: Any, timeout: int) -> int:
-        raw = self._emu(dev_handle).read(len(buff))
-        buff[: len(raw)] = type(buff)(buff.typecode, raw)
-        return len(raw)
+        return fill(buff, self._emu(dev_handle).read(len(buff)))
 
     def ctrl_transfer(
         self, dev_handle: int, bmRequestType: int, bRequest: int, wValue: int, wIndex: int,
         data: Any, timeout: int,
     ) -> int:  # fmt: skip
         emu = self._emu(dev_handle)
-        if bmRequestType == 0x80 and bRequest == 0x06 and wValue >> 8 == 0x03:
-            index = wValue & 0xFF
-            if index == 0:
-                raw = bytes([4, 3, 0x09, 0x04])
-            else:
-                text = {1: "NOVINT (emulated)", 2: "FALCON HAPTIC", 3: emu.serial}.get(index, "")
-                body = text.encode("utf-16-le")
-                raw = bytes([2 + len(body), 3]) + body
+        raw: bytes | None = None
+        if bmRequestType == 0x80 and bRequest == GET_DESCRIPTOR:
+            texts = {1: "NOVINT (emulated)", 2: "FALCON HAPTIC", 3: emu.serial}
+            raw = string_descriptor(wValue, texts)
         elif bmRequestType & 0x60 == 0x40:  # vendor: the FTDI requests
             raw = emu.control(bRequest, wValue, wIndex) or b""
             if not bmRequestType & 0x80:
                 return 0
-        else:
+        if raw is None:
             raise usb.core.USBError("Pipe error (request not supported)", -9, 32)
-        n = min(len(raw), len(data))
-        data[:n] = type(data)(data.typecode, raw[:n])
-        return n
+        return fill(data, raw)

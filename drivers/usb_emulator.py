@@ -28,13 +28,15 @@ LANG_EN_US = 0x0409
 ENODEV = 19
 
 
-class EmulatedUsbBackend(usb.backend.IBackend):
-    """pyusb backend whose devices are ``DeltaEmulator`` instances."""
+class EmulatedBus(usb.backend.IBackend):
+    """What every emulated pyusb backend shares: its devices are emulators (each with a
+    ``plugged`` flag), listed while plugged in; opening, configuring and claiming check
+    that the device is still there, and one that is not is libusb's ENODEV."""
 
-    def __init__(self, emulators: list[DeltaEmulator]) -> None:
+    def __init__(self, emulators: list[Any]) -> None:
         self.emulators = emulators
 
-    def _emu(self, dev: int) -> DeltaEmulator:
+    def _emu(self, dev: int) -> Any:
         emu = self.emulators[dev]
         if not emu.plugged:
             raise usb.core.USBError("No such device (it may have been disconnected)", -4, ENODEV)
@@ -42,6 +44,53 @@ class EmulatedUsbBackend(usb.backend.IBackend):
 
     def enumerate_devices(self) -> Any:
         return iter([i for i, e in enumerate(self.emulators) if e.plugged])
+
+    def open_device(self, dev: int) -> int:
+        self._emu(dev)
+        return dev
+
+    def close_device(self, dev_handle: int) -> None:
+        pass
+
+    def set_configuration(self, dev_handle: int, config_value: int) -> None:
+        self._emu(dev_handle)
+
+    def get_configuration(self, dev_handle: int) -> int:
+        return 1
+
+    def claim_interface(self, dev_handle: int, intf: int) -> None:
+        self._emu(dev_handle)
+
+    def release_interface(self, dev_handle: int, intf: int) -> None:
+        pass
+
+    def is_kernel_driver_active(self, dev_handle: int, intf: int) -> bool:
+        return False
+
+
+def string_descriptor(w_value: int, texts: dict[int, str]) -> bytes | None:
+    """The GET_DESCRIPTOR(string) answer for ``w_value`` (index 0: the languages), or None
+    when ``w_value`` asks for another descriptor type."""
+    if w_value >> 8 != DESC_STRING:
+        return None
+    index = w_value & 0xFF
+    if index == 0:
+        return bytes([4, DESC_STRING]) + LANG_EN_US.to_bytes(2, "little")
+    body = texts.get(index, "").encode("utf-16-le")
+    return bytes([2 + len(body), DESC_STRING]) + body
+
+
+def fill(buff: Any, raw: bytes) -> int:
+    """Copy ``raw`` into pyusb's array ``buff`` as far as it fits; the bytes copied."""
+    n = min(len(raw), len(buff))
+    buff[:n] = type(buff)(buff.typecode, raw[:n])
+    return n
+
+
+class EmulatedUsbBackend(EmulatedBus):
+    """pyusb backend whose devices are ``DeltaEmulator`` instances."""
+
+    emulators: list[DeltaEmulator]
 
     def get_device_descriptor(self, dev: int) -> SimpleNamespace:
         emu = self.emulators[dev]
@@ -83,35 +132,11 @@ class EmulatedUsbBackend(usb.backend.IBackend):
             wMaxPacketSize=64, bInterval=1, bRefresh=0, bSynchAddress=0, extra_descriptors=[],
         )  # fmt: skip
 
-    def open_device(self, dev: int) -> int:
-        self._emu(dev)
-        return dev
-
-    def close_device(self, dev_handle: int) -> None:
-        pass
-
-    def set_configuration(self, dev_handle: int, config_value: int) -> None:
-        self._emu(dev_handle)
-
-    def get_configuration(self, dev_handle: int) -> int:
-        return 1
-
-    def claim_interface(self, dev_handle: int, intf: int) -> None:
-        self._emu(dev_handle)
-
-    def release_interface(self, dev_handle: int, intf: int) -> None:
-        pass
-
-    def is_kernel_driver_active(self, dev_handle: int, intf: int) -> bool:
-        return False
-
     def intr_read(self, dev_handle: int, ep: int, intf: int, buff: Any, timeout: int) -> int:
         raw = self._emu(dev_handle).input_report()
         if raw is None:
             raise usb.core.USBTimeoutError("Operation timed out", -7, 110)
-        n = min(len(raw), len(buff))
-        buff[:n] = type(buff)(buff.typecode, raw[:n])
-        return n
+        return fill(buff, raw)
 
     def intr_write(self, dev_handle: int, ep: int, intf: int, data: Any, timeout: int) -> int:
         self._emu(dev_handle).output_report(bytes(data))
@@ -122,21 +147,16 @@ class EmulatedUsbBackend(usb.backend.IBackend):
         data: Any, timeout: int,
     ) -> int:  # fmt: skip
         emu = self._emu(dev_handle)
-        if bmRequestType == 0x80 and bRequest == GET_DESCRIPTOR and wValue >> 8 == DESC_STRING:
-            index = wValue & 0xFF
-            if index == 0:
-                raw = bytes([4, DESC_STRING]) + LANG_EN_US.to_bytes(2, "little")
-            else:
-                text = {1: "hapticd emulator", 2: emu.desc.model, 3: emu.serial}.get(index, "")
-                body = text.encode("utf-16-le")
-                raw = bytes([2 + len(body), DESC_STRING]) + body
+        texts = {1: "hapticd emulator", 2: emu.desc.model, 3: emu.serial}
+        if bmRequestType == 0x80 and bRequest == GET_DESCRIPTOR:
+            raw = string_descriptor(wValue, texts)
         elif bmRequestType == RT_VENDOR_IN and bRequest == REQ_GET_FEATURE:
             raw = emu.feature_report(wValue)
         elif bmRequestType == RT_VENDOR_OUT and bRequest == REQ_SET_FEATURE:
             emu.set_feature_report(bytes(data))
             return len(data)
         else:
+            raw = None
+        if raw is None:
             raise usb.core.USBError("Pipe error (request not supported)", -9, 32)
-        n = min(len(raw), len(data))
-        data[:n] = type(data)(data.typecode, raw[:n])
-        return n
+        return fill(data, raw)

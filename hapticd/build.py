@@ -158,9 +158,8 @@ def build_devices(
             entry = registry.backend(name)
             if emulate and not entry.emulated:
                 emulable = [b.name for b in registry.BACKENDS.values() if b.emulated]
-                raise ProfileError(
-                    f"--emulate works with the {' and '.join(emulable)} backends, not {name!r}"
-                )
+                names = ", ".join(emulable[:-1]) + f" and {emulable[-1]}"
+                raise ProfileError(f"--emulate works with the {names} backends, not {name!r}")
             # The profile's keys for its own backend; another backend (--device) runs on its
             # defaults, the n-th device for the n-th finger.
             if cfg.backend == name:

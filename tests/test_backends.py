@@ -252,7 +252,8 @@ def test_emulate_needs_the_hid_backend(capsys):
     from tests.conftest import GRASP_PROFILE
 
     assert main(["run", str(GRASP_PROFILE), "--emulate", "--unpaced"]) == 2
-    assert "--emulate works with the hid and usb backends, not 'replay'" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--emulate works with the hid, usb and falcon backends, not 'replay'" in err
 
 
 def test_no_usb_device_found_says_why():

@@ -5,7 +5,7 @@ import io
 
 import numpy as np
 import pytest
-from hapticd_drivers import DeviceError, DeviceState, models, open_device, registry
+from hapticd_drivers import DeviceError, models, open_device, registry
 from hapticd_drivers import falcon_model as fm
 from hapticd_drivers.falcon_emulator import EmulatedFalconBackend, FalconEmulator
 from hapticd_drivers.trajectory import Trajectory
@@ -13,6 +13,7 @@ from hypothesis import assume, given
 from hypothesis import strategies as st
 
 from tests.conftest import GRASP_PROFILE, ROOT, AtTick, capture_writes
+from tests.test_backends import Clock, run
 
 RADIUS = models.by_name("Falcon").workspace_radius_m
 TIMES = np.array([0.0, 0.5, 1.0])
@@ -150,13 +151,6 @@ def test_a_motor_value_beyond_the_limit_never_becomes_a_packet():
 # -- the backend through the emulated chip ---------------------------------------------------
 
 
-class Clock:
-    t = 0.0
-
-    def __call__(self):
-        return self.t
-
-
 def falcon(clock, firmware_loaded=True, homed=True, **kw):
     emu = FalconEmulator(
         Trajectory(TIMES, POS, "emu"),
@@ -169,15 +163,6 @@ def falcon(clock, firmware_loaded=True, homed=True, **kw):
         "falcon", serial_number="EMU-1", usb_backend=EmulatedFalconBackend([emu]), clock=clock, **kw
     )
     return dev, emu
-
-
-def run(dev, clock, ticks, force=(1.0, -2.0, 3.0), start=0):
-    st_ = DeviceState()
-    for k in range(start, start + ticks):
-        clock.t = k * 1e-3
-        dev.read_state(st_)
-        dev.write_force(np.array(force))
-    return st_
 
 
 def test_renders_the_force_and_follows_the_path():
