@@ -297,13 +297,6 @@ class EmulatedFalconBackend(EmulatedBus):
             port_number=dev + 1, port_numbers=(dev + 1,), speed=2,
         )  # fmt: skip
 
-    def get_configuration_descriptor(self, dev: int, config: int) -> SimpleNamespace:
-        return SimpleNamespace(
-            bLength=9, bDescriptorType=2, wTotalLength=32, bNumInterfaces=1,
-            bConfigurationValue=1, iConfiguration=0, bmAttributes=0x80, bMaxPower=250,
-            extra_descriptors=[],
-        )  # fmt: skip
-
     def get_interface_descriptor(
         self, dev: int, intf: int, alt: int, config: int
     ) -> SimpleNamespace:

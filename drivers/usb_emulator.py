@@ -45,6 +45,14 @@ class EmulatedBus(usb.backend.IBackend):
     def enumerate_devices(self) -> Any:
         return iter([i for i, e in enumerate(self.emulators) if e.plugged])
 
+    def get_configuration_descriptor(self, dev: int, config: int) -> SimpleNamespace:
+        """One configuration with one interface, bus powered."""
+        return SimpleNamespace(
+            bLength=9, bDescriptorType=2, wTotalLength=32, bNumInterfaces=1,
+            bConfigurationValue=1, iConfiguration=0, bmAttributes=0x80, bMaxPower=250,
+            extra_descriptors=[],
+        )  # fmt: skip
+
     def open_device(self, dev: int) -> int:
         self._emu(dev)
         return dev
@@ -101,13 +109,6 @@ class EmulatedUsbBackend(EmulatedBus):
             idProduct=int(ids["product_id"]), bcdDevice=emu.firmware, iManufacturer=1,
             iProduct=2, iSerialNumber=3, bNumConfigurations=1, address=dev + 1, bus=1,
             port_number=dev + 1, port_numbers=(dev + 1,), speed=3,
-        )  # fmt: skip
-
-    def get_configuration_descriptor(self, dev: int, config: int) -> SimpleNamespace:
-        return SimpleNamespace(
-            bLength=9, bDescriptorType=2, wTotalLength=32, bNumInterfaces=1,
-            bConfigurationValue=1, iConfiguration=0, bmAttributes=0x80, bMaxPower=250,
-            extra_descriptors=[],
         )  # fmt: skip
 
     def get_interface_descriptor(
