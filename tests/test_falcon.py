@@ -12,7 +12,7 @@ from hapticd_drivers.trajectory import Trajectory
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from tests.conftest import GRASP_PROFILE, ROOT, AtTick, capture_writes
+from tests.conftest import GRASP_PROFILE, ROOT, AtTick
 from tests.test_backends import Clock, run
 
 RADIUS = models.by_name("Falcon").workspace_radius_m
@@ -335,26 +335,24 @@ def test_the_udev_rules_cover_the_falcon():
 # -- the loop --------------------------------------------------------------------------------
 
 
-def session_forces(device, emulate):
-    from hapticd.daemon.session import build_session
-    from hapticd.profile import load_profile
+def test_an_emulated_falcon_run_renders_what_the_replay_run_renders(tmp_path, capsys):
+    """hapticd run PROFILE --device falcon --emulate --record R, as a user types it, against
+    the replay run: the forces sent to the devices agree within 0.1 N over the run, after
+    the Falcon's own force limit (8 N, which the safety chain applies to both runs)."""
+    from hapticd import recording
+    from hapticd.cli import main
 
-    s = build_session(load_profile(GRASP_PROFILE), paced=False, device=device, emulate=emulate)
-    written = capture_writes(s)
-    out = s.run()
-    n = len(s.devices)
-    return np.array(written).reshape(-1, n, 3), out, s
-
-
-def test_an_emulated_falcon_run_renders_what_the_replay_run_renders():
-    falcon_f, out, s = session_forces("falcon", True)
-    replay_f, _, _ = session_forces(None, False)
-    assert out["end_reason"] == "duration reached", out.get("fault")
-    n = min(len(falcon_f), len(replay_f))
-    assert n > 7000 and np.abs(replay_f).max() > 1.0  # the pinch happened
-    # After the Falcon's own force limit, as the safety chain applies it to both runs.
-    assert np.abs(falcon_f[:n] - replay_f[:n]).max() < 0.1
-    assert all(isinstance(e, FalconEmulator) for e in s.emulators)
+    common = ["run", str(GRASP_PROFILE), "--unpaced", "--no-socket", "-q"]
+    falcon_rec, replay_rec = tmp_path / "falcon.hrec", tmp_path / "replay.hrec"
+    assert main([*common, "--device", "falcon", "--emulate", "--record", str(falcon_rec)]) == 0
+    assert main([*common, "--record", str(replay_rec)]) == 0, capsys.readouterr().err
+    a, b = recording.read(falcon_rec), recording.read(replay_rec)
+    n = min(a.ticks, b.ticks)
+    assert n > 7000 and np.abs(b["device_force"]).max() > 1.0  # the pinch happened
+    assert not a["fault"].any()
+    assert np.abs(a["device_force"][:n] - b["device_force"][:n]).max() < 0.1
+    # the Falcon's encoders: ~40 um per count, through forward kinematics
+    assert np.abs(a["device_pos"][:n] - b["device_pos"][:n]).max() < 2e-4
 
 
 def test_a_fault_mid_run_ends_in_zero_force_and_a_latched_fault():
