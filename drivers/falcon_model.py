@@ -291,6 +291,8 @@ def motor_values(p: np.ndarray, force: np.ndarray) -> np.ndarray:
     jt = [[j[0][k], j[1][k], j[2][k]] for k in range(3)]
     fx, fy, fz = (float(v) for v in force)
     motor = [-MOTOR_UNITS_PER_NM * t for t in _solve(jt, (fx, fy, fz))]
+    if not all(math.isfinite(m) for m in motor):
+        raise FalconKinematicsError(f"no finite motor values for {force} N at {p} m")
     peak = max(abs(m) for m in motor)
     scale = MOTOR_LIMIT / peak if peak > MOTOR_LIMIT else 1.0
     return np.array([max(-MOTOR_LIMIT, min(MOTOR_LIMIT, round(m * scale))) for m in motor])
