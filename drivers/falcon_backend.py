@@ -446,17 +446,36 @@ def _first_difference(a: bytes, b: bytes) -> int:
     return next((i for i, (x, y) in enumerate(zip(a, b, strict=False)) if x != y), len(a))
 
 
-def discover() -> list[dict[str, Any]]:
-    """The attached Falcons (serial numbers), or why pyusb and libusb cannot look."""
+def _status(index: int, usb_backend: Any) -> str:
+    """What the Falcon at ``index`` runs: its firmware and homing, or why it cannot tell.
+    It is opened, asked with zero force, and closed; nothing is loaded."""
+    dev = FalconDevice(index=index, usb_backend=usb_backend)
     try:
-        found = find_falcons()
+        dev._connect()
+        if not dev._firmware_running():
+            return "firmware not loaded: hapticd loads the profile's 'firmware' file"
+        dev._read_state(DeviceState(), check_homed=False)
+        if dev.homed != fm.ALL_HOMED:
+            return "firmware running, NOT homed: hapticd calibrate PROFILE"
+        return "firmware running, homed"
+    except DeviceError as exc:
+        return f"cannot open it (in use? the udev rules?): {exc}"
+    finally:
+        dev._disconnect()
+
+
+def discover(usb_backend: Any = None) -> list[dict[str, Any]]:
+    """The attached Falcons (serial number, index, firmware and homing), or why pyusb and
+    libusb cannot look."""
+    try:
+        found = find_falcons(usb_backend)
     except DeviceError as exc:
         return [{"backend": "falcon", "problem": str(exc)}]
-    serials = []
-    for dev in found:
-        s = _serial(dev)
-        serials.append(s if s is not None else "(cannot open: are the udev rules installed?)")
-    return [{"backend": "falcon", "model": "Novint Falcon", "found": serials}]
+    listed = []
+    for i, dev in enumerate(found):
+        serial = _serial(dev) or "no readable serial"
+        listed.append(f"{serial} (index {i}, {_status(i, usb_backend)})")
+    return [{"backend": "falcon", "model": "Novint Falcon", "found": listed}]
 
 
 def preflight(firmware: str | None = None, **_: Any) -> None:

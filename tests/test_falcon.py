@@ -326,6 +326,24 @@ def test_discovery_says_why_it_cannot_look_without_libusb():
     assert len(entries) == 1 and "libusb" in entries[0]["problem"]
 
 
+def test_discovery_lists_each_falcon_with_its_firmware_and_homing():
+    from hapticd_drivers.falcon_backend import discover
+
+    path = Trajectory(TIMES, POS, "emu")
+    emus = [
+        FalconEmulator(path, Clock(), "SN-A"),
+        FalconEmulator(path, Clock(), "SN-B", firmware_loaded=True),
+        FalconEmulator(path, Clock(), "SN-C", firmware_loaded=True, homed=True),
+    ]
+    (entry,) = discover(EmulatedFalconBackend(emus))
+    assert entry["found"] == [
+        "SN-A (index 0, firmware not loaded: hapticd loads the profile's 'firmware' file)",
+        "SN-B (index 1, firmware running, NOT homed: hapticd calibrate PROFILE)",
+        "SN-C (index 2, firmware running, homed)",
+    ]
+    assert emus[0].state == "boot" and not any(e.motor.any() for e in emus)
+
+
 def test_the_udev_rules_cover_the_falcon():
     from hapticd_drivers.udev import rules
 
