@@ -65,6 +65,49 @@ def test_the_jacobian_is_the_derivative_of_the_inverse_kinematics(x, y, z):
     np.testing.assert_allclose(fm.joint_jacobian(p), numeric, rtol=1e-5, atol=1e-4)
 
 
+# libnifalcon's geometry as its FalconGeometry.h publishes it (m, rad), typed in here
+# independently of falcon_model, and its inverse kinematics in the expanded form of its
+# FalconKinematicStamper.cpp (IK): the constants and our rearranged solution are both
+# checked against them.
+LIB = dict(a=0.060, b=0.1025, c=0.01443, d=0.01125, e=0.01125, f=-0.025, r=0.0400, s=-0.02309)
+LIB_PHI = [np.pi / 2 + np.pi / 12, -np.pi / 6 + np.pi / 12, -5 * np.pi / 6 + np.pi / 12]
+
+
+def libnifalcon_thighs(world):
+    a, b, c, d, e, f, r, s = (LIB[k] for k in "abcdefrs")
+    out = []
+    for phi in LIB_PHI:
+        rot = np.array([[np.cos(phi), np.sin(phi), 0], [-np.sin(phi), np.cos(phi), 0], [0, 0, 1]])
+        pu, pv, pw = rot @ world + np.array([-r, -s, 0.0])
+        th3 = np.arccos((pv + f) / b)
+        s3 = np.sin(th3)
+        common = pw**2 + pu**2 + a**2 + c**2 - d**2 - e**2 - b**2 * s3**2
+        common -= 2 * b * e * s3 + 2 * b * d * s3 + 2 * d * e
+        l0 = common + 2 * c * pu - 2 * a * pu - 2 * a * c
+        l1 = -4 * a * pw
+        l2 = common + 2 * c * pu + 2 * a * pu + 2 * a * c
+        out.append(2 * np.arctan((-l1 - np.sqrt(l1 * l1 - 4 * l0 * l2)) / (2 * l2)))
+    return np.array(out)
+
+
+@given(coord, coord, coord)
+def test_the_inverse_kinematics_are_libnifalcons(x, y, z):
+    p = np.array([x, y, z])
+    assume(in_workspace(p))
+    world = p + np.array(fm.CENTER)  # libnifalcon's frame
+    np.testing.assert_allclose(fm.inverse(p), libnifalcon_thighs(world), atol=1e-12)
+
+
+def test_the_encoder_scale_is_libnifalcons():
+    # getTheta: degrees = (shaft diameter pi / (slots 4)) counts / (pi arm diameter / 360) + 35
+    deg_per_count = (0.01425 * np.pi / (320 * 4)) / (np.pi * 0.110 / 360.0)
+    np.testing.assert_allclose(
+        fm.angles_from_counts([1000, 0, -1000]),
+        np.radians([1000 * deg_per_count + 35, 35, -1000 * deg_per_count + 35]),
+        rtol=1e-12,
+    )
+
+
 def test_the_legs_are_symmetric_on_the_axis():
     # libnifalcon's three legs 120 degrees apart: on the z axis all thighs agree, and
     # further out (z toward the user) the thighs turn one way.
