@@ -32,7 +32,14 @@ from typing import Any
 import numpy as np
 from hapticd_drivers import falcon_model as fm
 from hapticd_drivers import models
-from hapticd_drivers.base import Device, DeviceError, DeviceInfo, DeviceState, check_force
+from hapticd_drivers.base import (
+    Device,
+    DeviceError,
+    DeviceInfo,
+    DeviceLostError,
+    DeviceState,
+    check_force,
+)
 
 MODEL = models.by_usb_id(fm.FALCON_VENDOR_ID, fm.FALCON_PRODUCT_ID)
 assert MODEL is not None
@@ -112,6 +119,10 @@ class FalconDevice(Device):
     """One Novint Falcon. ``firmware``: path of the firmware image to load when the
     Falcon runs none yet; ``max_force_n`` (N): rated force, at most the model's."""
 
+    # Lost (DeviceLostError): the chip gone from the bus, or a Falcon that answers nothing
+    # (its firmware gone with its power). A Falcon that answers wrongly is a fault.
+    reports_lost = True
+
     def __init__(
         self,
         firmware: str | None = None,
@@ -153,9 +164,10 @@ class FalconDevice(Device):
         assert MODEL is not None
         return DeviceInfo.of_model(MODEL, serial, max_force_n)
 
-    def _fail(self, what: str, exc: BaseException | None = None) -> DeviceError:
+    def _fail(self, what: str, exc: BaseException | None = None, lost: bool = False) -> DeviceError:
         detail = f": {exc}" if exc is not None else ""
-        return DeviceError(f"falcon {self.info.serial}: {what}{detail}")
+        cls = DeviceLostError if lost else DeviceError
+        return cls(f"falcon {self.info.serial}: {what}{detail}")
 
     # -- the FTDI chip ------------------------------------------------------------------------
 
@@ -189,7 +201,7 @@ class FalconDevice(Device):
         try:
             return call()
         except Exception as exc:  # pyftdi's FtdiError, pyusb's USBError, OSError
-            raise self._fail(f"{what} failed (unplugged?)", exc) from exc
+            raise self._fail(f"{what} failed (unplugged?)", exc, lost=True) from exc
 
     def _normal_mode(self) -> None:
         f = self._ftdi
@@ -347,7 +359,11 @@ class FalconDevice(Device):
             self._send()  # the firmware answers commands: ask with the last one again
         raw = self._packet()
         if raw is None:
-            raise self._fail(f"stopped answering ({self.read_attempts} reads brought nothing)")
+            raise self._fail(
+                f"stopped answering ({self.read_attempts} reads brought nothing): its power "
+                "cut, or reset?",
+                lost=True,
+            )
         try:
             counts, homed, grip = fm.decode_state(raw)
         except fm.FalconPacketError as exc:

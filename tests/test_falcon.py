@@ -5,7 +5,7 @@ import io
 
 import numpy as np
 import pytest
-from hapticd_drivers import DeviceError, models, open_device, registry
+from hapticd_drivers import DeviceError, DeviceLostError, models, open_device, registry
 from hapticd_drivers import falcon_model as fm
 from hapticd_drivers.falcon_emulator import EmulatedFalconBackend, FalconEmulator
 from hapticd_drivers.trajectory import Trajectory
@@ -239,11 +239,11 @@ def test_the_grip_buttons_are_the_device_buttons():
     dev.close()
 
 
-FAULTS = {
-    "broken frame": (lambda emu: setattr(emu, "corrupt_next", 1), "broken packet"),
-    "encoder jump": (lambda emu: setattr(emu, "jump_next", 1), "impossible encoder jump"),
-    "silence": (lambda emu: setattr(emu, "silent", True), "stopped answering"),
-    "unplug": (lambda emu: emu.unplug(), "unplugged"),
+FAULTS = {  # fault: (inject, message, a lost device rather than one answering wrongly)
+    "broken frame": (lambda emu: setattr(emu, "corrupt_next", 1), "broken packet", False),
+    "encoder jump": (lambda emu: setattr(emu, "jump_next", 1), "impossible encoder jump", False),
+    "silence": (lambda emu: setattr(emu, "silent", True), "stopped answering", True),
+    "unplug": (lambda emu: emu.unplug(), "unplugged", True),
 }
 
 
@@ -254,10 +254,11 @@ def test_a_device_fault_is_a_clear_error_naming_the_falcon(fault):
     dev.open()
     dev.enable_forces(True)
     run(dev, clock, 20)
-    inject, message = FAULTS[fault]
+    inject, message, lost = FAULTS[fault]
     inject(emu)
-    with pytest.raises(DeviceError, match=rf"falcon EMU-1: .*{message}"):
+    with pytest.raises(DeviceError, match=rf"falcon EMU-1: .*{message}") as err:
         run(dev, clock, 3, start=20)
+    assert isinstance(err.value, DeviceLostError) == lost
     dev.close()
 
 
@@ -536,3 +537,43 @@ def test_the_two_falcon_rig_passes_check(capsys):
     out = capsys.readouterr().out
     assert "thumb (falcon, 1 actuated), index (falcon, 1 actuated)" in out
     assert out.count("radius 40.0 mm") == 2 and "the object is reachable" in out
+
+
+def test_reconnect_mode_looks_for_an_unplugged_falcon_and_keeps_its_forces_off(
+    grasp_data, write_profile
+):
+    """Unplugged mid-pinch and plugged back: the run goes on with the fault latched; the
+    Falcon lost its firmware and homing with its power, so it is not opened again (the
+    profile names no firmware) and neither Falcon pushes again."""
+    from hapticd.daemon.session import build_session
+    from hapticd.profile import load_profile
+
+    grasp_data["safety"]["reconnect"] = True
+    profile = load_profile(write_profile(grasp_data))
+    s = build_session(profile, paced=False, device="falcon", emulate=True)
+    s.renderer.insert(AtTick(2999, lambda f: s.emulators[0].unplug()), after="allocation")
+    s.renderer.insert(AtTick(3799, lambda f: s.emulators[0].replug()), after="allocation")
+    out = s.run()
+    assert out["end_reason"] == "duration reached"
+    assert "unplugged" in out["fault"]["cause"]
+    events = [e["event"] for e in out["events"]]
+    assert any("lost" in e for e in events) and not any("reconnected" in e for e in events)
+    assert s.emulators[0].state == "boot"
+    for emu in s.emulators:
+        np.testing.assert_array_equal(emu.motor, 0)
+
+
+def test_in_reconnect_mode_a_falcon_answering_wrongly_still_ends_the_run(grasp_data, write_profile):
+    from hapticd.daemon.session import build_session
+    from hapticd.profile import load_profile
+
+    grasp_data["safety"]["reconnect"] = True
+    profile = load_profile(write_profile(grasp_data))
+    s = build_session(profile, paced=False, device="falcon", emulate=True)
+    s.renderer.insert(
+        AtTick(2999, lambda f: setattr(s.emulators[1], "jump_next", 1)), after="allocation"
+    )
+    out = s.run()
+    assert out["end_reason"] == "fault" and "impossible encoder jump" in out["fault"]["cause"]
+    for emu in s.emulators:
+        np.testing.assert_array_equal(emu.motor, 0)
