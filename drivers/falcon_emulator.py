@@ -97,6 +97,7 @@ class FalconEmulator:
         self.homing = False
         self._homing_t0: float | None = None
         self._theta_prev: np.ndarray | None = None
+        self._last_reached = np.zeros(3)
         self.grip = 0
         self.commands = 0
         self.rejected = 0
@@ -129,9 +130,20 @@ class FalconEmulator:
         self.hand.advance(now, tuple(self._force))
         return np.array(self.hand.x)
 
+    def reachable_position(self) -> np.ndarray:
+        """Where the end effector is now (3,) m: the path's point, or, beyond the
+        mechanism's reach, the last pose it reached (the arms are at their stops)."""
+        p = self.position()
+        try:
+            fm.inverse(p)
+        except fm.FalconKinematicsError:
+            return self._last_reached.copy()
+        self._last_reached = p
+        return p
+
     def end_effector_force(self) -> np.ndarray:
         """Force (3,) N the motors exert on the end effector now."""
-        return fm.force_from_motor(self.position(), self.motor)
+        return fm.force_from_motor(self.reachable_position(), self.motor)
 
     def _home(self, theta: np.ndarray) -> None:
         if self._theta_prev is not None:
@@ -143,7 +155,7 @@ class FalconEmulator:
         self._theta_prev = theta
 
     def _answer(self) -> bytes:
-        theta = fm.inverse(self.position())
+        theta = fm.inverse(self.reachable_position())
         if self.homing:
             self._home(theta)
         counts = fm.counts_from_angles(theta) + self._offset

@@ -230,6 +230,19 @@ def test_renders_the_force_and_follows_the_path():
     assert emu.leds == 0
 
 
+def test_a_path_beyond_the_reach_holds_the_emulated_arms_at_their_stops():
+    clock = Clock()
+    far = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.2], [0.0, 0.0, 0.2]])  # 20 cm out
+    emu = FalconEmulator(Trajectory(TIMES, far, "far"), clock, "EMU-1", True, True)
+    dev = open_device(
+        "falcon", serial_number="EMU-1", usb_backend=EmulatedFalconBackend([emu]), clock=clock
+    )
+    dev.open()
+    st_ = run(dev, clock, 1000, force=(0.0, 0.0, 0.0))
+    assert 0.05 < st_.position[2] < 0.2  # the last pose the arms reached, no error
+    dev.close()
+
+
 def test_the_grip_buttons_are_the_device_buttons():
     clock = Clock()
     dev, emu = falcon(clock)
