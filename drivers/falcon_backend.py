@@ -12,7 +12,7 @@ show the state (red: not homed, blue: ready, forces off, green: forces on); the 
 four buttons are the device's buttons 0-3.
 
 Each tick the backend reads the firmware's answer to its last command (encoders to
-thigh angles to position by forward kinematics, velocity by differences on ``clock``)
+thigh angles to position by forward kinematics, velocity over a 20 ms window of ``clock``)
 and sends the next command (force to thigh torques through the Jacobian, scaled
 together to the motor limit). A broken frame, an impossible encoder jump, a lost
 homing, a Falcon that stops answering or is unplugged: DeviceError naming the Falcon.
@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -53,6 +54,10 @@ FIRMWARE_CHUNK = 62
 # 9600 baud, the firmware upload at 3 MHz / 21, and the running firmware at 3 MHz / 2.
 LOADER_BAUD, BOOT_BAUD, NORMAL_BAUD = 9600, 142_857, 1_500_000
 LOADER_HELLO, LOADER_REPLY = b"\n\x43\r", b"\n\x44,\r"
+# Velocity is the position's change over this window, s: as Force Dimension's SDK
+# estimates it (its default window is 20 ms, dhdConfigLinearVelocity), for the same
+# reason: encoder counts differenced over one tick are mostly quantisation noise.
+VELOCITY_WINDOW_S = 0.02
 # An arm cannot turn this far (about 36 degrees) between two packets 1 ms apart.
 MAX_ENCODER_STEP = 1000
 LED_NOT_HOMED, LED_READY, LED_FORCES = fm.LED_RED, fm.LED_BLUE, fm.LED_GREEN
@@ -153,7 +158,8 @@ class FalconDevice(Device):
         self._pending = 0
         self._counts: np.ndarray | None = None
         self._p = np.zeros(3)
-        self._prev: tuple[float, np.ndarray] | None = None
+        # (time s, position m) of the reads within the velocity window, oldest first.
+        self._recent: deque[tuple[float, np.ndarray]] = deque()
         self._motor = np.zeros(3, dtype=int)
         self._homing = False
         self.homed = 0
@@ -320,7 +326,7 @@ class FalconDevice(Device):
                 self._load_firmware(image)
             self._enabled = False
             self._counts = None
-            self._prev = None
+            self._recent.clear()
             self._p = np.zeros(3)
             st = DeviceState()
             self._read_state(st, check_homed=False)
@@ -386,18 +392,23 @@ class FalconDevice(Device):
             # The counts start wherever the arms were at power-on: no position yet.
             state.position[:] = 0.0
             state.velocity[:] = 0.0
-            self._prev = None
+            self._recent.clear()
             return
         try:
             p = fm.forward(fm.angles_from_counts(c), self._p)
         except fm.FalconKinematicsError as exc:
             raise self._fail(f"encoder counts {c.tolist()} are not a pose", exc) from exc
         state.position[:] = p
-        if self._prev is not None and t > self._prev[0]:
-            state.velocity[:] = (p - self._prev[1]) / (t - self._prev[0])
+        # Velocity over the window, not the last tick: one encoder count (~40 um) in 1 ms
+        # would be 0.04 m/s of noise; over 20 ms it is 2 mm/s.
+        recent = self._recent
+        while len(recent) > 1 and t - recent[1][0] >= VELOCITY_WINDOW_S:
+            recent.popleft()
+        if recent and t > recent[0][0]:
+            state.velocity[:] = (p - recent[0][1]) / (t - recent[0][0])
         else:
             state.velocity[:] = 0.0
-        self._prev = (t, p)
+        recent.append((t, p))
         self._p = p
 
     def write_force(self, force: np.ndarray) -> None:

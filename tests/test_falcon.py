@@ -220,7 +220,7 @@ def test_renders_the_force_and_follows_the_path():
         np.testing.assert_allclose(emu.end_effector_force(), [1.0, -2.0, 3.0], atol=0.01)
         want, vel = Trajectory(TIMES, POS, "p").at(clock.t)
         np.testing.assert_allclose(st_.position, want, atol=1e-4)  # ~40 um per count
-        np.testing.assert_allclose(st_.velocity, vel, atol=0.05)
+        np.testing.assert_allclose(st_.velocity, vel, atol=0.005)  # over 20 ms
         dev.enable_forces(False)
         run(dev, clock, 1, start=600)
         np.testing.assert_array_equal(emu.motor, 0)
