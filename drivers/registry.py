@@ -43,8 +43,8 @@ class Backend:
 
     ``plays_trajectory``: the device follows the finger's trajectory (it gets
     ``times``, ``positions`` and ``clock``, and ``buttons`` when the trajectory
-    carries them). ``emulated``: the delta emulator can
-    run under it (``--emulate``). ``discover`` and ``preflight`` are
+    carries them). ``emulated``: a device emulator can run under it (``--emulate``:
+    the delta emulator, or the Falcon's under falcon). ``discover`` and ``preflight`` are
     "module:function" paths: the first lists attached devices, the second checks
     what a run needs (a library, a driver) and raises DeviceError saying how to fix it.
     ``calibrate`` ("module:function") runs the device's own calibration (it moves the
