@@ -109,6 +109,10 @@ class FalconEmulator:
         self.jump_next = 0
         self.corrupt_echo = 0
         self.silent = False
+        # The chip holds the firmware's answer until its latency timer runs out: the first
+        # IN poll after a command brings only the status bytes, the next the answer.
+        self.latency_polls = 1
+        self._held: list[list[Any]] = []  # [polls still to wait, answer bytes]
 
     # -- the mechanism ----------------------------------------------------------------------
 
@@ -189,7 +193,7 @@ class FalconEmulator:
         if self.drop_next:
             self.drop_next -= 1
             return
-        self.to_host += self._answer()
+        self._held.append([self.latency_polls, self._answer()])
 
     def _firmware_bytes(self) -> None:
         buf = self._from_host
@@ -239,6 +243,7 @@ class FalconEmulator:
             self.state, self.image = "boot", bytearray()
             self._from_host.clear()
             self.to_host.clear()
+            self._held.clear()
             self.motor[:] = 0
         self.dtr = high
 
@@ -257,6 +262,10 @@ class FalconEmulator:
 
     def read(self, size: int) -> bytes:
         self._require()
+        for held in self._held:
+            held[0] -= 1
+        while self._held and self._held[0][0] < 0:
+            self.to_host += self._held.pop(0)[1]
         n = max(0, min(size - 2, 62, len(self.to_host)))
         out = MODEM_STATUS + bytes(self.to_host[:n])
         del self.to_host[:n]
@@ -267,6 +276,7 @@ class FalconEmulator:
         self._require()
         if request == SIO_RESET and value == 1:  # purge what the chip holds for the host
             self.to_host.clear()
+            self._held.clear()
         elif request == SIO_RESET and value == 2:
             self._from_host.clear()
         elif request == SIO_MODEM_CTRL and value & 0x100:
@@ -293,6 +303,7 @@ class FalconEmulator:
         self.plugged = True
         self.state, self.image, self.homed = "boot", bytearray(), 0
         self.to_host.clear()
+        self._held.clear()
 
 
 class EmulatedFalconBackend(EmulatedBus):

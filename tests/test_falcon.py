@@ -243,6 +243,18 @@ def test_a_path_beyond_the_reach_holds_the_emulated_arms_at_their_stops():
     dev.close()
 
 
+@pytest.mark.parametrize("polls", [0, 1, 2])
+def test_an_answer_the_chip_holds_is_waited_for_a_few_polls(polls):
+    clock = Clock()
+    dev, emu = falcon(clock)
+    emu.latency_polls = polls
+    dev.open()
+    dev.enable_forces(True)
+    run(dev, clock, 50)
+    np.testing.assert_allclose(emu.end_effector_force(), [1.0, -2.0, 3.0], atol=0.01)
+    dev.close()
+
+
 def test_the_grip_buttons_are_the_device_buttons():
     clock = Clock()
     dev, emu = falcon(clock)
