@@ -461,11 +461,11 @@ class FalconDevice(Device):
 
 
 def _serial(dev: Any) -> str | None:
+    """The USB serial number of pyusb device ``dev``, or None when it cannot be read (no
+    permission to open it: pyusb's USBError or ValueError)."""
     try:
         return dev.serial_number
-    except (ValueError, NotImplementedError):
-        return None
-    except Exception:  # pyusb's USBError: a device this user may not open
+    except Exception:
         return None
 
 
