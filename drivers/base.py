@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from hapticd_drivers.models import DeviceModel
 
 
 class DeviceError(RuntimeError):
@@ -39,6 +40,18 @@ class DeviceInfo:
     n_dof: int = 3
     max_stiffness_n_per_m: float = math.inf
     max_damping_n_s_per_m: float = math.inf
+
+    @classmethod
+    def of_model(cls, row: DeviceModel, serial: str, max_force_n: float) -> DeviceInfo:
+        """A device of the model table's ``row``: its workspace and recommended maxima."""
+        return cls(
+            row.name,
+            serial,
+            max_force_n,
+            row.workspace_radius_m,
+            max_stiffness_n_per_m=row.max_stiffness_n_per_m,
+            max_damping_n_s_per_m=row.max_damping_n_s_per_m,
+        )
 
 
 @dataclass

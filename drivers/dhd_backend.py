@@ -492,14 +492,7 @@ class DhdDevice(Device):
     def _info(row: models.DeviceModel | None, name: str, max_force_n: float) -> DeviceInfo:
         if row is None:  # not known until the device is opened and identified
             return DeviceInfo("dhd", name, max_force_n, math.nan)
-        return DeviceInfo(
-            row.name,
-            name,
-            max_force_n,
-            row.workspace_radius_m,
-            max_stiffness_n_per_m=row.max_stiffness_n_per_m,
-            max_damping_n_s_per_m=row.max_damping_n_s_per_m,
-        )
+        return DeviceInfo.of_model(row, name, max_force_n)
 
     def _check(self, rc: int, what: str) -> int:
         if rc < 0:

@@ -7,8 +7,8 @@ The figures are the ones CHAI3D's cHapticDeviceInfo carries for each model
 m_maxLinearStiffness, m_maxLinearDamping); the type numbers are the SDK's
 dhdGetSystemType codes (DHD_DEVICE_*), left and right hand alike. A model not in
 this table is refused by the backends that identify their devices: hapticd does not
-guess a workspace or a force limit. A backend that meets a new model adds its row here
-(e.g. a Falcon driven by libnifalcon would add its own identification to the Falcon row).
+guess a workspace or a force limit. A backend that meets a new model adds its row here,
+and its own identification to the row (the falcon backend: the Falcon's USB IDs).
 
 Standard library only: the device layer and the command line both read it.
 """
@@ -23,7 +23,8 @@ class DeviceModel:
     """One device model: its name, the SDK's system type codes (dhdGetSystemType) that
     identify it, the radius of its translational workspace (m, a sphere about its
     origin), its continuous force limit (N), and the largest stiffness (N/m) and damping
-    (N s/m) a rendering should ask of it."""
+    (N s/m) a rendering should ask of it; ``usb_ids``: the (vendor, product) IDs by which
+    a backend that drives the model without its vendor's SDK finds it."""
 
     name: str
     dhd_types: tuple[int, ...]
@@ -31,6 +32,7 @@ class DeviceModel:
     max_force_n: float
     max_stiffness_n_per_m: float
     max_damping_n_s_per_m: float
+    usb_ids: tuple[tuple[int, int], ...] = ()
 
 
 MODELS: tuple[DeviceModel, ...] = (
@@ -40,7 +42,8 @@ MODELS: tuple[DeviceModel, ...] = (
     DeviceModel("omega.7", (35, 37), 0.075, 12.0, 5000.0, 30.0),
     DeviceModel("sigma.7", (104, 105), 0.075, 12.0, 4000.0, 30.0),
     DeviceModel("lambda.7", (108, 109), 0.1125, 12.0, 8000.0, 30.0),
-    DeviceModel("Falcon", (60,), 0.04, 8.0, 3000.0, 20.0),
+    # USB IDs: the Falcon's FTDI chip (libnifalcon, FalconComm.h).
+    DeviceModel("Falcon", (60,), 0.04, 8.0, 3000.0, 20.0, ((0x0403, 0xCB48),)),
 )
 
 
@@ -60,6 +63,14 @@ def by_dhd_type(system_type: int) -> DeviceModel | None:
     """The row whose SDK system type (dhdGetSystemType) is ``system_type``, or None."""
     for m in MODELS:
         if system_type in m.dhd_types:
+            return m
+    return None
+
+
+def by_usb_id(vendor: int, product: int) -> DeviceModel | None:
+    """The row a device with these USB IDs is, or None."""
+    for m in MODELS:
+        if (vendor, product) in m.usb_ids:
             return m
     return None
 

@@ -16,6 +16,7 @@ import importlib
 from dataclasses import dataclass, field
 from typing import Any
 
+from hapticd_drivers import models
 from hapticd_drivers.base import BackendUnavailableError, Device, DeviceError
 
 REQUIRED: Any = object()  # a key without a default: the profile must give it
@@ -42,8 +43,8 @@ class Backend:
 
     ``plays_trajectory``: the device follows the finger's trajectory (it gets
     ``times``, ``positions`` and ``clock``, and ``buttons`` when the trajectory
-    carries them). ``emulated``: the delta emulator can
-    run under it (``--emulate``). ``discover`` and ``preflight`` are
+    carries them). ``emulated``: a device emulator can run under it (``--emulate``:
+    the delta emulator, or the Falcon's under falcon). ``discover`` and ``preflight`` are
     "module:function" paths: the first lists attached devices, the second checks
     what a run needs (a library, a driver) and raises DeviceError saying how to fix it.
     ``calibrate`` ("module:function") runs the device's own calibration (it moves the
@@ -51,6 +52,8 @@ class Backend:
     ``takes_clock``: the device gets ``clock``, the loop's nominal time (s), without
     playing a trajectory (the virtual device moves at its speed per tick, not per
     wall-clock second, so a late tick is no jump).
+    ``calibrate_by_hand``: what the user does while a calibration the device does not
+    move for itself runs (empty: the device moves on its own).
     """
 
     name: str
@@ -65,6 +68,7 @@ class Backend:
     preflight: str | None = None
     calibrate: str | None = None
     takes_clock: bool = False
+    calibrate_by_hand: str = ""
     status: str = ""
     defaults: dict[str, Any] = field(default_factory=dict, init=False, compare=False)
 
@@ -94,6 +98,8 @@ _REPEAT = Key(
     "play the trajectory again from its start each time it ends, for as long as the run "
     "lasts (it must end where it starts; hold_s is then unused)",
 )
+_FALCON = models.by_name("Falcon")
+assert _FALCON is not None
 
 # The protocol devices (hid, usb) share their keys: the same device on two transports.
 _REPORT_KEYS = (
@@ -287,6 +293,42 @@ BACKENDS: dict[str, Backend] = {
             calibrate="hapticd_drivers.dhd_backend:calibrate",
             status="done, tested through a fake SDK compiled by the tests, as the SDK's "
             "documentation describes it and with its older behaviours",
+        ),
+        Backend(
+            "falcon",
+            "hapticd_drivers.falcon_backend",
+            "FalconDevice",
+            "a Novint Falcon, no vendor SDK: its FTDI chip through pyftdi on pyusb",
+            (
+                Key(
+                    "firmware",
+                    str,
+                    None,
+                    "path of the Falcon firmware image to load after power-on (not shipped: "
+                    "docs/devices.md says where to find it); none: the Falcon must run it already",
+                    True,
+                ),
+                Key("serial_number", str, None, "pick the Falcon by its USB serial number", True),
+                _INDEX,
+                Key(
+                    "max_force_n",
+                    float,
+                    _FALCON.max_force_n,
+                    "the device's rated force, at most the Falcon's (the model table), N",
+                    gt=0.0,
+                    le=_FALCON.max_force_n,
+                ),
+                _trajectory(False, "path for the emulator (--emulate) to move the Falcon along"),
+                _FINGER,
+            ),
+            emulated=True,
+            discover="hapticd_drivers.falcon_backend:discover",
+            preflight="hapticd_drivers.falcon_backend:preflight",
+            calibrate="hapticd_drivers.falcon_backend:calibrate",
+            calibrate_by_hand="move its grip all the way out, then push it straight in "
+            "(the LED turns from red to blue)",
+            status="protocol, kinematics and firmware load from libnifalcon; tested through "
+            "an emulated FTDI chip under pyusb, not yet on a real Falcon",
         ),
     )
 }

@@ -118,7 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--emulate",
         action="store_true",
-        help="put the device emulator under the hid or usb backend, moved along the trajectory",
+        help="put the device emulator under the hid, usb or falcon backend, moved along the "
+        "trajectory",
     )
     run.add_argument("--summary-json", type=Path, metavar="PATH", help="write the summary as JSON")
     run.add_argument(

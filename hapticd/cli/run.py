@@ -463,8 +463,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         )
         for i, f in targets
     )
-    print(CALIBRATE_WARNING.format(devices=listed), flush=True)
-    if not args.yes:
+    moving = [
+        (i, f) for i, f in targets if not registry.backend(f.device.backend).calibrate_by_hand
+    ]
+    if moving:
+        print(CALIBRATE_WARNING.format(devices=listed), flush=True)
+    else:  # nothing moves on its own: the user moves each device in turn
+        print(f"hapticd calibrate: one after the other:\n{listed}", flush=True)
+    if moving and not args.yes:
         if not sys.stdin.isatty():
             print(
                 "hapticd: refusing to calibrate without a confirmation: stdin is not a "
@@ -481,6 +487,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             return EXIT_ERROR
     failed = False
     for i, f in targets:
+        by_hand = registry.backend(f.device.backend).calibrate_by_hand
+        if by_hand:
+            print(f"  {f.name}: now {by_hand}", flush=True)
         try:
             out = registry.calibrate(f.device.backend, **kwargs_of[i])
         except DeviceError as exc:
