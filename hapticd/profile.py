@@ -101,14 +101,16 @@ class MountConfig(_Strict):
     """Where a device's frame sits in the world: x_world = s R x_dev + t, v_world = s R v_dev,
     force to the device R^T f_world (docs/devices.md, "Mounting")."""
 
-    position_m: Vec3 = Field(
-        default=(0.0, 0.0, 0.0), description="the device frame's origin in the world, m"
+    position_m: Position = Field(
+        default=(0.0, 0.0, 0.0),
+        description="the device frame's origin in the world, m (within 1 m of the world's "
+        "origin, as any position of the rig)",
     )
     orientation_rpy_rad: Vec3 = Field(
         default=(0.0, 0.0, 0.0),
         description="the device frame's roll, pitch, yaw in the world (fixed x, y, z axes), rad",
     )
-    workspace_scale: float = Field(
+    workspace_scale: Float = Field(
         default=1.0,
         gt=0.0,
         le=10.0,
