@@ -76,7 +76,11 @@ def format_status(st: dict[str, Any]) -> str:
 def _client_failed(args: argparse.Namespace, exc: Exception) -> int:
     """Report a failed client command; the exit code says whose fault it was."""
     if isinstance(exc, ProtocolError):
-        print(f"hapticd: {exc.code}: {exc}", file=sys.stderr)
+        # busy says it all ("the daemon is busy: N clients connected ..."); others get a code.
+        print(
+            f"hapticd: {exc}" if exc.code == "busy" else f"hapticd: {exc.code}: {exc}",
+            file=sys.stderr,
+        )
         # The request was wrong (exit 2), or the daemon's state (exit 1): hapticd.protocol.
         return EXIT_BAD_INPUT if exc.code in proto.BAD_REQUEST else EXIT_ERROR
     if isinstance(exc, NoDaemonError):

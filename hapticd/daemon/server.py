@@ -61,7 +61,11 @@ PERIODIC_S = 0.1
 WINDOW_S = 200e-6
 # ...but no longer than this (at high rates the loop's sleep may never be that long).
 WINDOW_MAX_WAIT_S = 0.005
-MAX_CLIENTS = 32  # one more is told so and closed: a runaway script cannot take every fd
+MAX_CLIENTS = 32  # connections served at once: a runaway script cannot take every fd
+# A connection must send a complete request line this soon after connecting, and finish
+# any line it begins this soon after its first byte; else it is told so and closed. A
+# connection with a subscription (telemetry or events) is never closed for being quiet.
+REQUEST_TIMEOUT_S = 5.0
 # When accept() fails for want of file descriptors the connection stays queued and the
 # listener readable; it is left unwatched this long instead of being retried in a spin.
 ACCEPT_BACKOFF_S = 0.1
@@ -70,6 +74,17 @@ _OUT_OF_FDS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
 
 class SocketInUseError(OSError):
     """Another live hapticd already serves this socket."""
+
+
+def busy_error(clients: int, limit: int) -> bytes:
+    """The line a client gets instead of the greeting when every place is in use."""
+    return proto.error(
+        None,
+        "busy",
+        f"the daemon is busy: {clients} clients connected (at most {limit}, each with a "
+        "request or a subscription); close one and try again",
+        clients=clients,
+    )
 
 
 @dataclass
@@ -83,6 +98,13 @@ class _Conn:
     skipped: int = 0
     event_kinds: frozenset[int] | None = None  # event subscription (kind codes); None: none
     events_from: int = 0  # the first tick whose events this subscriber gets
+    active_at: float = field(default_factory=time.monotonic)  # connected, or last request
+    served: int = 0  # complete requests served
+    line_since: float | None = None  # when the unfinished line in inbuf began
+
+    @property
+    def subscribed(self) -> bool:
+        return bool(self.rate_hz) or self.event_kinds is not None
 
 
 class ControlServer:
@@ -99,9 +121,12 @@ class ControlServer:
         *,
         periodic: list[Callable[[], None]] | None = None,
         max_clients: int = MAX_CLIENTS,
+        request_timeout_s: float = REQUEST_TIMEOUT_S,
     ) -> None:
         self.session = session
         self.max_clients = max_clients
+        self.request_timeout_s = request_timeout_s
+        self.idle_closed = 0  # connections closed for sending no complete request in time
         self.loop = session.loop
         self.path = Path(path) if path is not None else None
         self.periodic = [*(periodic or []), self._watch_recording]
@@ -264,6 +289,7 @@ class ControlServer:
         self._deliver_events()
         if now >= next_periodic:
             next_periodic = now + PERIODIC_S
+            self._reap_idle(now)
             # Also empties the sleep gate's pipe, which otherwise fills (a byte a tick).
             self._await_window()
             for fn in self.periodic:
@@ -317,17 +343,11 @@ class ControlServer:
                 self._pause_accept(exc)
             return  # otherwise that client went away before we got to it
         self.accept_failures = 0
-        if len(self._conns) >= self.max_clients:
-            log.warning("refused a control client: %d already connected", len(self._conns))
+        if len(self._conns) >= self.max_clients and not self._evict_idle():
+            n = len(self._conns)
+            log.warning("refused a control client: the daemon is busy, %d connected", n)
             with contextlib.suppress(OSError):
-                sock.send(
-                    proto.error(
-                        None,
-                        "too_many_clients",
-                        f"hapticd serves at most {self.max_clients} control clients at once; "
-                        "close one and try again",
-                    )
-                )
+                sock.send(busy_error(n, self.max_clients))
             sock.close()
             return
         sock.setblocking(False)
@@ -335,6 +355,51 @@ class ControlServer:
         self._conns[sock] = conn
         self._sel.register(sock, selectors.EVENT_READ, None)
         self._send(conn, proto.greeting(__version__))
+
+    def _idle(self, conn: _Conn, now: float) -> bool:
+        """A connection that may give up its place: no subscription, no request waiting,
+        and either none sent yet or none for ``request_timeout_s``."""
+        return (
+            not conn.subscribed
+            and b"\n" not in conn.inbuf
+            and (conn.served == 0 or now - conn.active_at >= self.request_timeout_s)
+        )
+
+    def _evict_idle(self) -> bool:
+        """At the cap, close the idle connection that has waited longest to make room for a
+        new one (one that never sent a request first); False if every one is in use."""
+        now = time.monotonic()
+        idle = [c for c in self._conns.values() if self._idle(c, now)]
+        if not idle:
+            return False
+        victim = min(idle, key=lambda c: (c.served > 0, c.active_at))
+        self._close_idle(victim, "closed to make room for another client")
+        return True
+
+    def _close_idle(self, conn: _Conn, why: str) -> None:
+        """Tell ``conn`` why it is closed (one ``idle`` error line, best effort) and close it."""
+        self.idle_closed += 1
+        with contextlib.suppress(OSError):
+            conn.sock.send(
+                bytes(conn.outbuf)
+                + proto.error(
+                    None,
+                    "idle",
+                    f"{why}: no complete request within {self.request_timeout_s:g} s "
+                    "(a subscription keeps a connection open)",
+                )
+            )
+        self._drop(conn.sock)
+
+    def _reap_idle(self, now: float) -> None:
+        """Close the connections that sent no complete request in time: none since they
+        connected, or a line begun ``request_timeout_s`` ago and not finished."""
+        limit = self.request_timeout_s
+        for conn in list(self._conns.values()):
+            unfinished = conn.line_since is not None and now - conn.line_since >= limit
+            silent = conn.served == 0 and not conn.subscribed and now - conn.active_at >= limit
+            if (unfinished or silent) and b"\n" not in conn.inbuf:
+                self._close_idle(conn, "closed")
 
     def _pause_accept(self, exc: OSError) -> None:
         """Stop watching the listener for ACCEPT_BACKOFF_S (out of file descriptors)."""
@@ -401,6 +466,10 @@ class ControlServer:
             data = data[cut + 1 :]
         conn.inbuf += data
         tail = len(conn.inbuf) - (conn.inbuf.rfind(b"\n") + 1)
+        if not tail:
+            conn.line_since = None
+        elif conn.line_since is None or b"\n" in data:
+            conn.line_since = time.monotonic()  # a new line begins in this chunk
         if tail > proto.MAX_LINE_BYTES:
             # One reply for the whole line, then everything up to its newline is dropped.
             del conn.inbuf[len(conn.inbuf) - tail :]
@@ -431,6 +500,8 @@ class ControlServer:
                     break
                 line = bytes(conn.inbuf[:cut])
                 del conn.inbuf[: cut + 1]
+                conn.served += 1
+                conn.active_at = time.monotonic()
                 self._send(conn, self._handle(conn, line))
             if conn.sock in self._conns:
                 self._update_events(conn)
