@@ -32,7 +32,13 @@ from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
 from hapticd.view import ViewServer, is_loopback
-from hapticd.view.server import MAX_STREAMS, SUBJECT_TELEMETRY, key_path, load_or_make_key
+from hapticd.view.server import (
+    MAX_CONNECTIONS,
+    MAX_STREAMS,
+    SUBJECT_TELEMETRY,
+    key_path,
+    load_or_make_key,
+)
 from tests import cdp
 from tests.conftest import ROOT, wait_for
 from tests.fake_daemon import FakeDaemon
@@ -87,12 +93,22 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+NOFILE_MAIN = (
+    "import resource, runpy, sys; resource.setrlimit(resource.RLIMIT_NOFILE, ({n}, {n})); "
+    "sys.argv[0] = 'hapticd'; runpy.run_module('hapticd', run_name='__main__')"
+)
+
+
 class View:
     """A ``hapticd view`` process: its URLs (the first two lines of stdout) and stderr."""
 
-    def __init__(self, sock: Path, *args: str, timeout_s: float = 30.0) -> None:
+    def __init__(
+        self, sock: Path, *args: str, timeout_s: float = 30.0, nofile: int | None = None
+    ) -> None:
+        # ``nofile``: the view runs with at most this many file descriptors.
+        limit = [] if nofile is None else ["-c", NOFILE_MAIN.format(n=nofile)]
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "hapticd", "view", "--socket", str(sock), *args],
+            [sys.executable, *(limit or ["-m", "hapticd"]), "view", "--socket", str(sock), *args],
             cwd=ROOT,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
@@ -166,8 +182,8 @@ def view():
     """Start ``hapticd view`` processes; each is stopped (SIGTERM) at the end and must exit 0."""
     started: list[View] = []
 
-    def start(sock: Path, *args: str) -> View:
-        v = View(sock, *args)
+    def start(sock: Path, *args: str, nofile: int | None = None) -> View:
+        v = View(sock, *args, nofile=nofile)
         started.append(v)
         return v
 
@@ -447,6 +463,59 @@ def test_a_page_that_stops_reading_is_dropped_and_the_others_go_on(daemon, view)
 
 
 @pytest.mark.timing("a rate of frames over wall-clock time is what is limited")
+def _flood(port: int, n: int) -> list[socket.socket]:
+    """``n`` bare TCP connections to ``port`` that send nothing (connecting, not waiting)."""
+    out = []
+    for _ in range(n):
+        s = socket.socket()
+        s.setblocking(False)
+        s.connect_ex(("127.0.0.1", port))
+        out.append(s)
+    return out
+
+
+def test_after_a_flood_at_the_descriptor_limit_the_view_serves_again(tmp_path, view):
+    """300 bare connections to a view limited to 40 descriptors: accept() runs out of them,
+    waits and tries again (saying so once), and when the flood ends the page is served
+    within seconds (before: the library's accept loop ended at the first EMFILE and the
+    view never served again)."""
+    v = view(tmp_path / "none.sock", "-q", nofile=40)
+    flood = _flood(v.port, 300)
+    try:
+        wait_for(
+            lambda: v.stderr_so_far(),
+            "the view to say it cannot accept",
+            until=lambda err: "cannot accept a connection" in err,
+            timeout_s=10,
+        )
+    finally:
+        for s in flood:
+            s.close()
+    t0 = time.monotonic()
+    with v.get("/", key=False, timeout_s=10.0) as r:
+        assert r.status == 200
+    assert time.monotonic() - t0 < 5.0
+    err = v.stderr_so_far(wait_s=0.5)
+    assert err.count("cannot accept a connection") == 1, err
+    assert "accepting connections again" in err
+
+
+def test_idle_connections_give_their_places_to_a_page(daemon, view):
+    """More bare connections than the view serves at once: the oldest idle ones are closed,
+    and a page still opens and streams."""
+    v = view(daemon)
+    flood = _flood(v.port, 2 * MAX_CONNECTIONS)
+    try:
+        time.sleep(0.5)
+        with v.ws() as ws:
+            ws_events(ws, lambda ev: len(ticks_of(ev)) >= 2)
+        with v.get("/api/status") as r:
+            assert r.status == 200
+    finally:
+        for s in flood:
+            s.close()
+
+
 def test_telemetry_to_the_pages_is_rate_limited(daemon, view):
     v = view(daemon, "--rate", "20")
     with v.ws() as ws:

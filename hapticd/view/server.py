@@ -21,6 +21,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import email.utils
+import errno
 import hmac
 import ipaddress
 import json
@@ -52,7 +53,12 @@ from hapticd.control import ControlClient, NoDaemonError, check_socket_dir
 STATUS_PERIOD_S = 0.5  # how often the status is polled (the panels' refresh)
 RETRY_S = 0.5  # how soon a lost daemon is looked for again
 CLIENT_TIMEOUT_S = 5.0  # a daemon silent this long is taken as gone
-OPEN_TIMEOUT_S = 10.0  # a browser that does not finish its request in this long is dropped
+OPEN_TIMEOUT_S = 5.0  # a connection that does not finish its request in this long is dropped
+MAX_CONNECTIONS = 64  # TCP connections at once (pages, requests, handshakes)
+# Out of file descriptors, accept() waits this long before it tries again (the pending
+# connections stay queued) instead of failing, which would end the accept loop for good.
+ACCEPT_BACKOFF_S = 0.1
+_OUT_OF_FDS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
 PING_INTERVAL_S = 5.0  # the WebSocket's keepalive: a page that answers no ping ...
 PING_TIMEOUT_S = 10.0  # ... for this long is closed
 CLOSE_TIMEOUT_S = 2.0  # a closing page gets this long to answer the close
@@ -452,6 +458,68 @@ class _LogBridge(logging.Handler):
         self._log(f"websockets: {record.getMessage()}" + (f": {exc!r}" if exc else ""))
 
 
+class _Listener(socket.socket):
+    """The view's listening socket: an ``accept`` that outlives a shortage of file
+    descriptors and keeps the connections bounded.
+
+    The ``websockets`` server's accept loop ends at the first error ``accept`` raises, so
+    a flood of connections at the descriptor limit would leave the view alive but deaf.
+    Here ``accept`` waits ``ACCEPT_BACKOFF_S`` and tries again (saying so once per
+    episode), and raises only once the socket is closed (the server shutting down). With
+    ``MAX_CONNECTIONS`` open, a new connection takes the place of the oldest that has not
+    become an open page (an idle or half-sent request), or is closed at once if every one
+    is a page."""
+
+    server: Server | None = None  # set once the server exists
+    log: Callable[[str], None] = staticmethod(lambda msg: None)
+    # The connections accepted and not yet seen closed, oldest first.
+    _accepted: dict[socket.socket, None]
+
+    def accept(self) -> tuple[socket.socket, Any]:
+        failing = False
+        while True:
+            if self.fileno() < 0:
+                raise OSError(errno.EBADF, "the view's listening socket is closed")
+            try:
+                sock, addr = super().accept()
+            except OSError as exc:
+                if exc.errno not in _OUT_OF_FDS:
+                    raise
+                if not failing:
+                    failing = True
+                    self.log(
+                        f"cannot accept a connection: {exc.strerror or exc}; retrying every "
+                        f"{ACCEPT_BACKOFF_S:g} s"
+                    )
+                time.sleep(ACCEPT_BACKOFF_S)
+                continue
+            if failing:
+                self.log("accepting connections again")
+                failing = False
+            if self._room_for_one(sock):
+                return sock, addr
+            with contextlib.suppress(OSError):
+                sock.close()
+
+    def _room_for_one(self, sock: socket.socket) -> bool:
+        """Whether ``sock``, just accepted, may be served, making room if need be."""
+        live = self._accepted
+        for old in [s for s in live if s.fileno() < 0]:
+            del live[old]  # closed by its handler
+        if len(live) >= MAX_CONNECTIONS:
+            pages = set() if self.server is None else {c.socket for c in self.server.connections}
+            # The oldest connection that is not an open page gives up its place: its
+            # handshake (or request) ends at once and its handler closes it.
+            victim = next((s for s in live if s not in pages), None)
+            if victim is None:
+                return False
+            del live[victim]
+            with contextlib.suppress(OSError):
+                victim.shutdown(socket.SHUT_RDWR)
+        live[sock] = None
+        return True
+
+
 class ViewServer:
     """The view: a link to the daemon at ``socket_path`` and the page served on
     ``host``:``port`` (0: a free port). ``control``: the page may send ``set``."""
@@ -482,11 +550,13 @@ class ViewServer:
         logger.setLevel(logging.ERROR)
         logger.addHandler(_LogBridge(self.log))
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        bound = socket.create_server((host, port), family=family)
+        listener = _Listener(bound.family, bound.type, bound.proto, fileno=bound.detach())
+        listener.log = self.log
+        listener._accepted = {}
         self.server: Server = serve(
             self._page,
-            host,
-            port,
-            family=family,
+            sock=listener,
             process_request=self._http,
             server_header="hapticd-view",
             compression=None,  # loopback: the CPU matters more than the bytes
@@ -497,6 +567,7 @@ class ViewServer:
             max_size=MAX_MESSAGE_BYTES,
             logger=logger,
         )
+        listener.server = self.server
         self._thread = threading.Thread(target=self.server.serve_forever, name="view-ws")
 
     @property
