@@ -245,7 +245,9 @@ def ticks_of(events):
 def test_the_url_comes_first_then_the_page_and_its_assets(daemon, view):
     v = view(daemon)
     assert v.host == "127.0.0.1"
-    assert v.subject_url == v.url + "&mode=subject"
+    # The subject's URL carries the subject's capability, not the experimenter's key.
+    assert v.subject_url.endswith("&mode=subject") and v.key not in v.subject_url
+    assert URL_RE.match(v.subject_url.removesuffix("&mode=subject"))
     with v.get("/", key=False) as r:
         assert r.status == 200 and r.headers["Content-Type"].startswith("text/html")
         assert "default-src 'self'" in r.headers["Content-Security-Policy"]
@@ -284,7 +286,8 @@ def test_the_socket_delivers_advancing_ticks_and_what_the_page_draws(daemon, vie
             lambda ev: len(set(ticks_of(ev))) >= 3 and any(n == "status" for n, _ in ev),
         )
     # The link state and the status come first, before any telemetry.
-    assert [n for n, _ in events[:2]] == ["link", "status"]
+    assert [n for n, _ in events[:3]] == ["hello", "link", "status"]
+    assert events[0][1] == {"role": "experimenter"}
     ticks = ticks_of(events)
     assert ticks == sorted(ticks) and ticks[-1] > ticks[0]
     sample = next(d for n, d in events if n == "telemetry")
@@ -313,7 +316,7 @@ def test_the_subjects_socket_reveals_no_condition(daemon, view):
         reply = reply_to(ws, {"type": "set", "param": "stiffness", "value": "90"})
         assert reply["ok"] is False and reply["error"]["code"] == "read_only"
     for name, data in events:
-        assert name in ("link", "status", "telemetry"), name  # no daemon events
+        assert name in ("hello", "link", "status", "telemetry"), name  # no daemon events
         if name == "telemetry":
             assert set(data) <= set(SUBJECT_TELEMETRY)
             assert {"object_pos", "object_rot", "proxy_pos", "tick"} <= set(data)
@@ -322,9 +325,47 @@ def test_the_subjects_socket_reveals_no_condition(daemon, view):
             assert set(data["scene"]) == {"bounds_m", "surfaces", "finger_radii_m"}
         elif name == "link":
             assert set(data) == {"connected"}
+        elif name == "hello":
+            assert data == {"role": "subject"}
     blob = json.dumps(events)
     for word in ("allocator", "stiffness", "force", "device_pos", "mass", "residual"):
         assert word not in blob, f"the subject's socket carries {word!r}"
+    with ControlClient(daemon) as c:
+        assert c.get("stiffness_n_per_m") == 60.0
+
+
+def _subject_key(v) -> str:
+    m = URL_RE.match(v.subject_url.removesuffix("&mode=subject"))
+    assert m
+    return m["key"]
+
+
+def test_the_subjects_capability_opens_only_the_subjects_page(daemon, view):
+    """The subject's URL without mode=subject: still the subject's stream (no condition),
+    no change even on a view with --control, no parameters, the stripped status; before,
+    it carried the experimenter's key and gave the experimenter's page."""
+    v = view(daemon, "--control")
+    cap = _subject_key(v)
+    with ws_connect(v.port, cap) as ws:  # no mode: the capability decides
+        events = ws_events(
+            ws, lambda ev: len(ticks_of(ev)) >= 2 and any(n == "status" for n, _ in ev)
+        )
+        reply = reply_to(ws, {"type": "set", "param": "stiffness", "value": "90"})
+        assert reply["ok"] is False and reply["error"]["code"] == "read_only"
+        # It may answer a prompt: the daemon checks the answer (none is asked here).
+        reply = reply_to(ws, {"type": "respond", "prompt": 1, "choice": "yes"})
+        assert reply["error"]["code"] == "no_prompt"
+    assert events[0] == ("hello", {"role": "subject"})
+    blob = json.dumps(events)
+    for word in ("allocator", "stiffness", "force", "device_pos", "mass", "residual", v.key):
+        assert word not in blob, f"the subject's socket carries {word!r}"
+    with pytest.raises(urllib.error.HTTPError) as exc:
+        OPENER.open(f"{v.base}/api/params?key={cap}", timeout=10)
+    assert exc.value.code == 403
+    with OPENER.open(f"{v.base}/api/status?key={cap}", timeout=10) as r:
+        body = json.loads(r.read())
+    assert set(body["status"] or {}) <= {"fingers", "scene", "prompt"}
+    assert body["link"] == {"connected": True}
     with ControlClient(daemon) as c:
         assert c.get("stiffness_n_per_m") == 60.0
 
@@ -347,6 +388,21 @@ def test_a_websocket_needs_the_key_and_the_pages_own_origin(daemon, view):
     for origin in (f"http://127.0.0.1:{v.port}", None):
         with v.ws(origin=origin) as ws:
             ws_events(ws, lambda ev: bool(ticks_of(ev)))
+
+
+def test_deeply_nested_json_from_a_page_gets_a_clear_error_and_the_page_lives(daemon, view):
+    """'[' * 30000: the parser's recursion limit, not a reason to close the page (before:
+    its handler died, close 1011)."""
+    v = view(daemon)
+    with v.ws() as ws:
+        ws.send("[" * 30000 + "]" * 30000)
+        events = ws_events(ws, lambda ev: any(n == "reply" for n, _ in ev))
+        reply = next(d for n, d in events if n == "reply")
+        assert reply["ok"] is False and reply["error"]["code"] == "bad_request"
+        assert "nested" in reply["error"]["message"]
+        ws_events(ws, lambda ev: len(ticks_of(ev)) >= 2)  # still streaming
+        reply = reply_to(ws, {"type": "set", "param": "stiffness", "value": "90"})
+        assert reply["error"]["code"] == "read_only"  # and still answering
 
 
 def test_read_only_refuses_a_change(daemon, view):
@@ -709,6 +765,51 @@ def test_a_page_in_headless_chromium_shows_advancing_ticks(daemon, view, tmp_pat
         browser.screenshot(tmp_path / "subject.png")
 
 
+SET_FROM_PAGE = (
+    "(() => { const q = new URLSearchParams(location.search); window.__reply = null; "
+    "const w = new WebSocket(`ws://${location.host}/ws?key=${q.get('key')}`); "
+    "w.onmessage = (e) => { const m = JSON.parse(e.data); "
+    "if (m.type === 'reply') window.__reply = m; }; "
+    "w.onopen = () => w.send(JSON.stringify({type: 'set', ref: 1, param: 'stiffness', "
+    "value: '90'})); return true; })()"
+)
+
+
+def test_the_subjects_url_without_its_mode_is_still_the_subjects_page(
+    daemon, view, tmp_path, chromium
+):
+    """In the browser: the subject's URL with mode=subject removed shows the subject's page
+    (no panels, no condition in the document), holds no experimenter's key, and a change
+    sent from it over the page's WebSocket is refused, on a view with --control."""
+    v = view(daemon, "--control")
+    bare = v.subject_url.removesuffix("&mode=subject")
+    frames = "Number(document.querySelector('[data-testid=scene]').dataset.frames)"
+    with cdp.Browser(chromium, tmp_path / "chromium") as browser:
+        browser.open(bare)
+        wait_for(
+            # (while the page redraws itself as the subject's, there may be no body)
+            lambda: browser.evaluate("document.body ? document.body.className : ''"),
+            "the page to become the subject's",
+            until=lambda c: c == "subject",
+        )
+        wait_for(lambda: browser.evaluate(frames), "the subject's page drawing", until=bool)
+        panels = "getComputedStyle(document.getElementById('panels')).display"
+        assert browser.evaluate(panels) == "none"
+        html = browser.evaluate("document.documentElement.outerHTML")
+        text = browser.evaluate("document.documentElement.textContent")
+        assert v.key not in browser.evaluate("location.href") + html
+        for name in params.ALLOCATORS:
+            assert not re.search(rf"\b{re.escape(name)}\b", text), name
+        assert not re.search(r"\d\s*N\b|N/m|\b60\b", text), text
+        browser.evaluate(SET_FROM_PAGE)
+        reply = wait_for(
+            lambda: browser.evaluate("window.__reply"), "the reply to the page's change"
+        )
+        assert reply["ok"] is False and reply["error"]["code"] == "read_only"
+    with ControlClient(daemon) as c:
+        assert c.get("stiffness_n_per_m") == 60.0
+
+
 def test_the_subjects_page_shows_the_prompt_as_buttons_and_a_click_answers(
     fake, view, tmp_path, chromium
 ):
@@ -907,7 +1008,8 @@ def test_a_page_hears_the_daemon_come_go_and_come_back(tmp_path, held_profile):
             events = ws_events(page, lambda ev: any(n == "link" for n, _ in ev))
             link = next(d for n, d in events if n == "link")
             assert link["connected"] is False and "is hapticd running?" in link["message"]
-            assert ws_events(subj, lambda ev: bool(ev))[0] == ("link", {"connected": False})
+            first = ws_events(subj, lambda ev: len(ev) >= 2)[:2]
+            assert first == [("hello", {"role": "subject"}), ("link", {"connected": False})]
             for _run in range(2):
                 with running_daemon(sock, held_profile):
                     events = ws_events(page, lambda ev: linked(ev, True), timeout_s=15)

@@ -18,10 +18,12 @@ nor change the run; a browser may open the WebSocket only from the page's own or
 
 from __future__ import annotations
 
+import base64
 import collections
 import contextlib
 import email.utils
 import errno
+import hashlib
 import hmac
 import ipaddress
 import json
@@ -119,6 +121,14 @@ def _message(kind: str, data: Any) -> str:
 def key_path(socket_path: Path) -> Path:
     """Where the view keeps its key: beside the control socket, readable by its user only."""
     return socket_path.with_name(socket_path.name + ".view-key")
+
+
+def subject_key(key: str) -> str:
+    """The subject's capability, derived from the experimenter's ``key`` (so it lasts as long
+    as the key) and not reversible to it: it opens the subject's page and answers the
+    current prompt, nothing else."""
+    digest = hmac.new(key.encode(), b"hapticd view: the subject's page", hashlib.sha256)
+    return base64.urlsafe_b64encode(digest.digest()).decode()[:24]
 
 
 def load_or_make_key(path: Path, log: Callable[[str], None]) -> str:
@@ -249,6 +259,9 @@ class Hub:
         with self._lock:
             if self.closed or len(self._pages) >= MAX_STREAMS:
                 return False
+            # First, whose page this is: the key decides (a subject's URL without
+            # mode=subject is still the subject's page).
+            page.offer(_message("hello", {"role": "subject" if page.subject else "experimenter"}))
             for kind in ("link", "status"):
                 item = self._latest.get(kind)
                 text = None if item is None else item[2] if page.subject else item[1]
@@ -541,6 +554,7 @@ class ViewServer:
         self.control = control
         self.log = log or (lambda msg: print(f"hapticd view: {msg}", file=sys.stderr, flush=True))
         self.key = load_or_make_key(key_path(self.socket_path), self.log)
+        self.subject_key = subject_key(self.key)
         self.hub = Hub(self.log)
         self.link = DaemonLink(
             self.socket_path, self.hub, rate_hz=rate_hz, control=control, log=self.log
@@ -587,8 +601,9 @@ class ViewServer:
 
     @property
     def subject_url(self) -> str:
-        """The subject's page: the scene alone."""
-        return f"{self.url}&mode=subject"
+        """The subject's page: the scene alone. It carries the subject's capability, not
+        the experimenter's key: without ``mode=subject`` it is still the subject's page."""
+        return self.url.replace(f"key={self.key}", f"key={self.subject_key}") + "&mode=subject"
 
     def start(self) -> None:
         self.link.start()
@@ -626,9 +641,16 @@ class ViewServer:
     def _json(self, status: int, body: Any) -> Response:
         return self._response(status, "application/json", _dumps(body).encode())
 
-    def _authorised(self, query: dict[str, list[str]]) -> bool:
-        key = query.get("key", [""])[0]
-        return hmac.compare_digest(key.encode(), self.key.encode())
+    def _role(self, query: dict[str, list[str]]) -> str | None:
+        """Whose key ``query`` carries: "experimenter", "subject" (the subject's capability,
+        or the experimenter's key asking for the subject's page), or None (no valid key)."""
+        key = query.get("key", [""])[0].encode()
+        # Both compared, in constant time, whichever matches.
+        experimenter = hmac.compare_digest(key, self.key.encode())
+        subject = hmac.compare_digest(key, self.subject_key.encode())
+        if experimenter:
+            return "subject" if query.get("mode", [""])[0] == "subject" else "experimenter"
+        return "subject" if subject else None
 
     def _http(self, conn: ServerConnection, request: Request) -> Response | None:
         """Answer a request: the page, an asset, a JSON answer or an error; None lets the
@@ -642,7 +664,8 @@ class ViewServer:
             return self._static(path[len("/static/") :])
         if path not in ("/ws", "/api/status", "/api/params"):
             return self._json(HTTPStatus.NOT_FOUND, _error("not_found", f"no page {path!r}"))
-        if not self._authorised(query):
+        role = self._role(query)
+        if role is None:
             return self._json(
                 HTTPStatus.FORBIDDEN,
                 _error(
@@ -651,9 +674,21 @@ class ViewServer:
                 ),
             )
         if path == "/api/status":
-            body = {"status": self.hub.latest("status"), "link": self.hub.latest("link")}
+            if role == "subject":
+                status = self.hub.latest("status")
+                body = {
+                    "status": None if status is None else _subject_status(status),
+                    "link": {"connected": bool((self.hub.latest("link") or {}).get("connected"))},
+                }
+            else:
+                body = {"status": self.hub.latest("status"), "link": self.hub.latest("link")}
             return self._json(HTTPStatus.OK, body)
         if path == "/api/params":
+            if role == "subject":
+                return self._json(
+                    HTTPStatus.FORBIDDEN,
+                    _error("forbidden", "the subject's page has no parameters"),
+                )
             return self._json(HTTPStatus.OK, self.params_json())
         # /ws: a browser says where the page that opens it came from; only this server's
         # own pages may (another site's script in the same browser may not). A client that
@@ -679,7 +714,9 @@ class ViewServer:
         """Serve one page: a sender thread empties its queue into the socket while this
         thread reads its commands, until either side ends."""
         query = parse_qs(urlsplit(conn.request.path if conn.request else "").query)
-        page = Page(conn, query.get("mode", ["experimenter"])[0] == "subject")
+        # The key decides, not the page: the subject's capability is the subject's page
+        # whatever its URL says (the HTTP check let in only a valid key).
+        page = Page(conn, self._role(query) != "experimenter")
         with contextlib.suppress(OSError):
             conn.socket.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, PAGE_SNDBUF_BYTES)
         # Bounds every write to the page (the library's reads wait in select, unaffected):
@@ -722,6 +759,8 @@ class ViewServer:
             msg = json.loads(raw)
         except ValueError:
             msg = None
+        except RecursionError:  # nested deeper than the parser goes: the page lives on
+            return {"type": "reply", "ref": None, **_error("bad_request", "nested too deeply")}
         if not isinstance(msg, dict):
             return {"type": "reply", "ref": None, **_error("bad_request", "a JSON object")}
         ref = msg.get("ref") if isinstance(msg.get("ref"), int | str) else None
