@@ -22,6 +22,7 @@ import os
 import select
 import selectors
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -66,6 +67,23 @@ MAX_CLIENTS = 32  # connections served at once: a runaway script cannot take eve
 # any line it begins this soon after its first byte; else it is told so and closed. A
 # connection with a subscription (telemetry or events) is never closed for being quiet.
 REQUEST_TIMEOUT_S = 5.0
+# The loop first: requests that rebuild or change the loop are served at most this often,
+# whoever sends them (the server's own minimum interval per kind, s). One due sooner waits
+# at the head of its connection (that client's later requests wait behind it, in order;
+# the other clients are served meanwhile): a storm of them slows the replies, not the loop.
+RATE_LIMITS_S = {"reload": 1.0, "change": 0.02}
+LIMITED = {
+    "reload": "reload",
+    "set": "change",
+    "enable": "change",
+    "disable": "change",
+    "record_start": "change",
+    "record_stop": "change",
+}
+# While a reload parses and builds (Python work in this thread), the GIL is handed to the
+# loop within this long when the loop wakes (the loop's own setting is 0.5 ms, more than
+# its wake-up margin of 0.2 ms).
+RELOAD_SWITCH_INTERVAL_S = 5e-5
 # When accept() fails for want of file descriptors the connection stays queued and the
 # listener readable; it is left unwatched this long instead of being retried in a spin.
 ACCEPT_BACKOFF_S = 0.1
@@ -101,6 +119,7 @@ class _Conn:
     active_at: float = field(default_factory=time.monotonic)  # connected, or last request
     served: int = 0  # complete requests served
     line_since: float | None = None  # when the unfinished line in inbuf began
+    wait_until: float = 0.0  # its next request is rate-limited until then
 
     @property
     def subscribed(self) -> bool:
@@ -145,6 +164,9 @@ class ControlServer:
         self._responses_of: object = None  # the profile _responses was made from
         # The subject prompt (id, question, choices), or None; answered by `respond`.
         self.prompt: dict[str, Any] | None = None
+        self._next_allowed = dict.fromkeys(RATE_LIMITS_S, 0.0)  # per limited kind, monotonic s
+        self.deferred = 0  # requests that waited for their rate limit
+        self._sighup_pending = False  # a SIGHUP reload waits for the reload limit
         self._accept_paused_until: float | None = None  # out of file descriptors
         self.accept_failures = 0  # accept() calls that failed so, since the last success
 
@@ -267,6 +289,9 @@ class ControlServer:
         due = [next_periodic] + [c.next_due for c in self._conns.values() if c.rate_hz]
         if self._accept_paused_until is not None:
             due.append(self._accept_paused_until)
+        due.extend(c.wait_until for c in self._conns.values() if c.wait_until > now)
+        if self._sighup_pending:
+            due.append(self._next_allowed["reload"])
         if any(c.event_kinds is not None for c in self._conns.values()):
             due.append(now + EVENT_PERIOD_S)
         timeout = 0.0 if self._pending() else max(0.0, min(due) - now)
@@ -283,6 +308,8 @@ class ControlServer:
                     self._read(self._conns[obj])
         self._serve_turns()
         now = time.monotonic()
+        if self._sighup_pending and now >= self._next_allowed["reload"]:
+            self._reload_from_signal()
         if self._accept_paused_until is not None and now >= self._accept_paused_until:
             self._resume_accept()
         self._stream(now)
@@ -316,11 +343,13 @@ class ControlServer:
         except BlockingIOError:
             return
         if b"R" in data:
-            self._reload_from_signal()
+            self._sighup_pending = True  # done when the reload limit allows (_serve_once)
 
     def _reload_from_signal(self) -> None:
+        self._sighup_pending = False
+        self._next_allowed["reload"] = time.monotonic() + RATE_LIMITS_S["reload"]
         try:
-            result = self.session.reload()
+            result = self._reload_gently()
         except (ProfileError, ValueError, TimeoutError, OSError) as exc:
             msg = f"reload rejected, the running profile stays: {exc}"
             log.error("%s", msg)
@@ -485,13 +514,38 @@ class ControlServer:
         self._update_events(conn)
 
     def _pending(self) -> bool:
-        """Does a client have a whole request waiting?"""
-        return any(b"\n" in c.inbuf for c in self._conns.values())
+        """Does a client have a whole request waiting that may be served now?"""
+        now = time.monotonic()
+        return any(b"\n" in c.inbuf and c.wait_until <= now for c in self._conns.values())
+
+    def _limited(self, conn: _Conn, line: bytes) -> bool:
+        """Is ``line`` a request of a rate-limited kind that is not due yet? Then ``conn``
+        waits until it is. Otherwise a limited request books its kind's next slot."""
+        if not any(cmd.encode() in line for cmd in LIMITED):
+            return False  # cheap: most lines name no limited command at all
+        try:
+            req = proto.decode(line)
+        except proto.ProtocolError:
+            return False  # answered as the error it is
+        kind = LIMITED.get(req.get("cmd"))  # type: ignore[arg-type]
+        if kind is None:
+            return False
+        now = time.monotonic()
+        if now < self._next_allowed[kind]:
+            conn.wait_until = self._next_allowed[kind]
+            self.deferred += 1
+            return True
+        self._next_allowed[kind] = now + RATE_LIMITS_S[kind]
+        return False
 
     def _serve_turns(self) -> None:
         """Serve up to LINES_PER_TURN waiting requests of each client, round-robin: one
-        client's burst of pipelined requests does not delay the others."""
+        client's burst of pipelined requests does not delay the others. A rate-limited
+        request not yet due stops its client's turn (RATE_LIMITS_S)."""
+        now = time.monotonic()
         for conn in list(self._conns.values()):
+            if conn.wait_until > now:
+                continue
             for _ in range(LINES_PER_TURN):
                 if conn.sock not in self._conns:
                     break
@@ -499,6 +553,8 @@ class ControlServer:
                 if cut < 0:
                     break
                 line = bytes(conn.inbuf[:cut])
+                if self._limited(conn, line):
+                    break
                 del conn.inbuf[: cut + 1]
                 conn.served += 1
                 conn.active_at = time.monotonic()
@@ -733,7 +789,17 @@ class ControlServer:
         return self.session.record_stop()
 
     def _reload(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
-        return self.session.reload(req.get("profile"))
+        return self._reload_gently(req.get("profile"))
+
+    def _reload_gently(self, path: str | None = None) -> dict[str, Any]:
+        """``session.reload`` with a short GIL switch interval: its parsing and building, in
+        this thread, hand the GIL to the loop soon after the loop wakes."""
+        old = sys.getswitchinterval()
+        sys.setswitchinterval(min(old, RELOAD_SWITCH_INTERVAL_S))
+        try:
+            return self.session.reload(path)
+        finally:
+            sys.setswitchinterval(old)
 
     def _set(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
         done = self.session.apply(SetParam(req["param"], req["value"]))
