@@ -78,6 +78,7 @@ def format_summary(s: dict[str, Any]) -> str:
         lines.append(
             f"  recording       {rec['path']}: {rec['written']} ticks written, "
             f"{rec['dropped']} dropped"
+            + (f", {rec['lost']} LOST: {rec['error']}" if rec.get("lost") or rec["error"] else "")
         )
     if s["fault"]:
         lines.append(f"  FAULT (latched) at tick {s['fault']['tick']}: {s['fault']['cause']}")
@@ -226,7 +227,7 @@ def _run(args: argparse.Namespace, record_path: Path | None) -> int:
     except RecordingError as exc:
         # The loop ended safely; only the file is in doubt, and the message says how.
         print(f"hapticd: {exc}", file=sys.stderr)
-        summary = summarize(loop, session.profile.finger_names)
+        summary = getattr(exc, "summary", None) or summarize(loop, session.profile.finger_names)
         summary["recording_error"] = str(exc)
     finally:
         stop_progress()
