@@ -75,8 +75,9 @@ def format_summary(s: dict[str, Any]) -> str:
         lines.append(f"  real time       {policy}{lock}")
     rec = s.get("recording")
     if rec is not None:
+        where = "(temporary, for the plot; removed)" if rec.get("temporary") else rec["path"]
         lines.append(
-            f"  recording       {rec['path']}: {rec['written']} ticks written, "
+            f"  recording       {where}: {rec['written']} ticks written, "
             f"{rec['dropped']} dropped"
             + (f", {rec['lost']} LOST: {rec['error']}" if rec.get("lost") or rec["error"] else "")
         )
@@ -170,13 +171,15 @@ def cmd_run(args: argparse.Namespace) -> int:
         temp_dir = tempfile.TemporaryDirectory(prefix="hapticd-run-")
         record_path = Path(temp_dir.name) / "run.hrec"
     try:
-        return _run(args, record_path)
+        return _run(args, record_path, temporary=temp_dir is not None)
     finally:
         if temp_dir is not None:
             temp_dir.cleanup()
 
 
-def _run(args: argparse.Namespace, record_path: Path | None) -> int:
+def _run(args: argparse.Namespace, record_path: Path | None, *, temporary: bool = False) -> int:
+    """Run the daemon; ``temporary``: ``record_path`` is removed afterwards (--plot without
+    --record), so the summary does not name it."""
     try:
         profile = load_profile(args.profile, _overrides(args))
         session = build_session(
@@ -237,6 +240,9 @@ def _run(args: argparse.Namespace, record_path: Path | None) -> int:
             signal.signal(s, h)
     summary["profile"] = str(args.profile)
     summary["reloads"] = server.reloads
+    if temporary and summary.get("recording"):
+        # Made only for the plot and removed after it: no path to a file that is gone.
+        summary["recording"] = {**summary["recording"], "path": None, "temporary": True}
     if loop.rt_report is not None:
         summary["realtime"] = loop.rt_report.to_json()
     if args.summary_json:
