@@ -269,3 +269,18 @@ def test_a_reload_storm_is_served_one_reload_a_second(tmp_path):
         session.loop.request_stop("test over")
         runner.join(timeout=10)
         server.close()
+
+
+@pytest.mark.parametrize("cmd", [["set"], {"reload": 1}, ["enable", "record_start"]])
+def test_a_command_of_the_wrong_type_naming_a_limited_one_gets_its_error(server, cmd):
+    """The rate limit looks at a line's command before it is served: one that is not a
+    string (here naming limited commands) is answered as the bad request it is, and the
+    connection goes on."""
+    with _raw(server.path) as s:
+        replies = s.makefile("rb")
+        replies.readline()  # the greeting
+        s.sendall(json.dumps({"id": 1, "cmd": cmd}).encode() + b"\n")
+        s.sendall(b'{"id": 2, "cmd": "get", "param": "mass_kg"}\n')
+        first, second = (json.loads(replies.readline()) for _ in range(2))
+    assert first["id"] == 1 and first["error"]["code"] == "bad_request"
+    assert second["id"] == 2 and second["ok"]

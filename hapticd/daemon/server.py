@@ -141,6 +141,7 @@ class ControlServer:
         periodic: list[Callable[[], None]] | None = None,
         max_clients: int = MAX_CLIENTS,
         request_timeout_s: float = REQUEST_TIMEOUT_S,
+        rate_limits_s: dict[str, float] | None = None,
     ) -> None:
         self.session = session
         self.max_clients = max_clients
@@ -164,7 +165,8 @@ class ControlServer:
         self._responses_of: object = None  # the profile _responses was made from
         # The subject prompt (id, question, choices), or None; answered by `respond`.
         self.prompt: dict[str, Any] | None = None
-        self._next_allowed = dict.fromkeys(RATE_LIMITS_S, 0.0)  # per limited kind, monotonic s
+        self.rate_limits_s = {**RATE_LIMITS_S, **(rate_limits_s or {})}
+        self._next_allowed = dict.fromkeys(self.rate_limits_s, 0.0)  # per kind, monotonic s
         self.deferred = 0  # requests that waited for their rate limit
         self._sighup_pending = False  # a SIGHUP reload waits for the reload limit
         self._accept_paused_until: float | None = None  # out of file descriptors
@@ -347,7 +349,7 @@ class ControlServer:
 
     def _reload_from_signal(self) -> None:
         self._sighup_pending = False
-        self._next_allowed["reload"] = time.monotonic() + RATE_LIMITS_S["reload"]
+        self._next_allowed["reload"] = time.monotonic() + self.rate_limits_s["reload"]
         try:
             result = self._reload_gently()
         except (ProfileError, ValueError, TimeoutError, OSError) as exc:
@@ -523,11 +525,15 @@ class ControlServer:
         waits until it is. Otherwise a limited request books its kind's next slot."""
         if not any(cmd.encode() in line for cmd in LIMITED):
             return False  # cheap: most lines name no limited command at all
+        # Parsing is Python work: in the loop's sleep, as every request's (this runs at
+        # any time, woken by a deferred request's due time).
+        self._await_window()
         try:
             req = proto.decode(line)
         except proto.ProtocolError:
             return False  # answered as the error it is
-        kind = LIMITED.get(req.get("cmd"))  # type: ignore[arg-type]
+        cmd = req.get("cmd")
+        kind = LIMITED.get(cmd) if isinstance(cmd, str) else None
         if kind is None:
             return False
         now = time.monotonic()
@@ -535,7 +541,7 @@ class ControlServer:
             conn.wait_until = self._next_allowed[kind]
             self.deferred += 1
             return True
-        self._next_allowed[kind] = now + RATE_LIMITS_S[kind]
+        self._next_allowed[kind] = now + self.rate_limits_s[kind]
         return False
 
     def _serve_turns(self) -> None:
