@@ -403,6 +403,27 @@ def test_deeply_nested_json_from_a_page_gets_a_clear_error_and_the_page_lives(da
         ws_events(ws, lambda ev: len(ticks_of(ev)) >= 2)  # still streaming
         reply = reply_to(ws, {"type": "set", "param": "stiffness", "value": "90"})
         assert reply["error"]["code"] == "read_only"  # and still answering
+        # More hostile messages, each one reply with a clear code, the page living on.
+        hostile = [
+            b"\xff\xfe",
+            "null",
+            "[]",
+            '{"type": 5}',
+            '{"type": "set", "param": [], "value": {}}',
+            '{"type": "respond", "prompt": -1, "choice": "yes"}',
+            '{"type": "respond", "prompt": 1e400, "choice": "yes"}',
+            '{"type": "respond", "prompt": 1, "choice": "' + "y" * 5000 + '"}',
+            '{"ref": {"a": [1]}, "type": "respond"}',
+            "{" * 20000,
+        ]
+        for raw in hostile:
+            ws.send(raw)
+        events = ws_events(
+            ws, lambda ev: sum(n == "reply" for n, _ in ev) >= len(hostile), timeout_s=20
+        )
+        replies = [d for n, d in events if n == "reply"]
+        assert all(r["ok"] is False and r["error"]["code"] for r in replies), replies
+        ws_events(ws, lambda ev: len(ticks_of(ev)) >= 2)  # and still streaming
 
 
 def test_read_only_refuses_a_change(daemon, view):
