@@ -61,6 +61,10 @@ MAX_CONNECTIONS = 64  # TCP connections at once (pages, requests, handshakes)
 # connections stay queued) instead of failing, which would end the accept loop for good.
 ACCEPT_BACKOFF_S = 0.1
 _OUT_OF_FDS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
+# A connection is served only with this many descriptors to spare: its handler needs more
+# (the library's reader makes a selector); without them it would die with a traceback.
+FD_HEADROOM = 4
+ACCEPT_LOG_EVERY_S = 10.0  # a shortage is said at most this often, however many episodes
 PING_INTERVAL_S = 5.0  # the WebSocket's keepalive: a page that answers no ping ...
 PING_TIMEOUT_S = 10.0  # ... for this long is closed
 CLOSE_TIMEOUT_S = 2.0  # a closing page gets this long to answer the close
@@ -471,6 +475,20 @@ class _LogBridge(logging.Handler):
         self._log(f"websockets: {record.getMessage()}" + (f": {exc!r}" if exc else ""))
 
 
+class _Connection(ServerConnection):
+    """A connection whose reader, started without a descriptor to spare for its selector
+    (a flood at the limit), drops the connection quietly instead of dying with a
+    traceback; the handshake then ends and the handler closes the socket."""
+
+    def recv_events(self) -> None:
+        try:
+            super().recv_events()
+        except OSError as exc:
+            if exc.errno not in _OUT_OF_FDS:
+                raise
+            self.close_socket()
+
+
 class _Listener(socket.socket):
     """The view's listening socket: an ``accept`` that outlives a shortage of file
     descriptors and keeps the connections bounded.
@@ -487,6 +505,8 @@ class _Listener(socket.socket):
     log: Callable[[str], None] = staticmethod(lambda msg: None)
     # The connections accepted and not yet seen closed, oldest first.
     _accepted: dict[socket.socket, None]
+    _quiet_until = 0.0  # no shortage is logged before then
+    _muted = False  # the last shortage was not logged: nor is its end
 
     def accept(self) -> tuple[socket.socket, Any]:
         failing = False
@@ -495,24 +515,54 @@ class _Listener(socket.socket):
                 raise OSError(errno.EBADF, "the view's listening socket is closed")
             try:
                 sock, addr = super().accept()
+                if not self._headroom():
+                    sock.close()  # it could not be served: as if accept() had failed
+                    raise OSError(errno.EMFILE, os.strerror(errno.EMFILE))
             except OSError as exc:
                 if exc.errno not in _OUT_OF_FDS:
                     raise
                 if not failing:
                     failing = True
-                    self.log(
+                    self._say(
                         f"cannot accept a connection: {exc.strerror or exc}; retrying every "
                         f"{ACCEPT_BACKOFF_S:g} s"
                     )
                 time.sleep(ACCEPT_BACKOFF_S)
                 continue
             if failing:
-                self.log("accepting connections again")
+                self._say("accepting connections again")
                 failing = False
             if self._room_for_one(sock):
                 return sock, addr
             with contextlib.suppress(OSError):
                 sock.close()
+
+    def _say(self, message: str) -> None:
+        """Log a shortage (or its end) once per ACCEPT_LOG_EVERY_S, not once per episode:
+        a flood that comes and goes would otherwise fill the log."""
+        now = time.monotonic()
+        if message.startswith("cannot"):
+            if now < self._quiet_until:
+                self._muted = True
+                return
+            self._quiet_until = now + ACCEPT_LOG_EVERY_S
+            self._muted = False
+        elif self._muted:
+            return
+        self.log(message)
+
+    def _headroom(self) -> bool:
+        """Whether FD_HEADROOM more descriptors can be opened (and are closed again)."""
+        fds: list[int] = []
+        try:
+            for _ in range(FD_HEADROOM):
+                fds.append(os.dup(self.fileno()))
+            return True
+        except OSError:
+            return False
+        finally:
+            for fd in fds:
+                os.close(fd)
 
     def _room_for_one(self, sock: socket.socket) -> bool:
         """Whether ``sock``, just accepted, may be served, making room if need be."""
@@ -571,6 +621,7 @@ class ViewServer:
         self.server: Server = serve(
             self._page,
             sock=listener,
+            create_connection=_Connection,
             process_request=self._http,
             server_header="hapticd-view",
             compression=None,  # loopback: the CPU matters more than the bytes
