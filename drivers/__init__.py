@@ -8,6 +8,7 @@ from hapticd_drivers.base import (
     Device,
     DeviceError,
     DeviceInfo,
+    DeviceLostError,
     DeviceState,
 )
 from hapticd_drivers.registry import BACKENDS, backend_names, open_device
@@ -18,6 +19,7 @@ __all__ = [
     "Device",
     "DeviceError",
     "DeviceInfo",
+    "DeviceLostError",
     "DeviceState",
     "backend_names",
     "open_device",

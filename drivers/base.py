@@ -11,10 +11,16 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from hapticd_drivers.models import DeviceModel
 
 
 class DeviceError(RuntimeError):
     """A device failed: read or write error, unplug, bad report, rejected command."""
+
+
+class DeviceLostError(DeviceError):
+    """A device that is gone (unplugged, its connection failed), as its driver documents
+    a lost device; any other DeviceError is a device that still answers but failed."""
 
 
 class BackendUnavailableError(DeviceError):
@@ -23,13 +29,29 @@ class BackendUnavailableError(DeviceError):
 
 @dataclass(frozen=True)
 class DeviceInfo:
-    """Identity and limits: model, serial, rated force (N), workspace radius (m)."""
+    """Identity and limits: model, serial, rated force (N), workspace radius (m; NaN: not
+    known until the device is opened), and the largest stiffness (N/m) and damping
+    (N s/m) a rendering should ask of the model (inf: no recommendation)."""
 
     model: str
     serial: str
     max_force_n: float
     workspace_radius_m: float
     n_dof: int = 3
+    max_stiffness_n_per_m: float = math.inf
+    max_damping_n_s_per_m: float = math.inf
+
+    @classmethod
+    def of_model(cls, row: DeviceModel, serial: str, max_force_n: float) -> DeviceInfo:
+        """A device of the model table's ``row``: its workspace and recommended maxima."""
+        return cls(
+            row.name,
+            serial,
+            max_force_n,
+            row.workspace_radius_m,
+            max_stiffness_n_per_m=row.max_stiffness_n_per_m,
+            max_damping_n_s_per_m=row.max_damping_n_s_per_m,
+        )
 
 
 @dataclass
@@ -49,6 +71,10 @@ class Device(abc.ABC):
     """
 
     info: DeviceInfo
+    # True for a backend whose driver documents which errors are a lost device: it raises
+    # DeviceLostError for those, so any other DeviceError is a device that still answers
+    # (reconnect mode does not close and look for it again: the run ends with the fault).
+    reports_lost: bool = False
 
     @abc.abstractmethod
     def open(self) -> None: ...

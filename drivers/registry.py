@@ -16,6 +16,7 @@ import importlib
 from dataclasses import dataclass, field
 from typing import Any
 
+from hapticd_drivers import models
 from hapticd_drivers.base import BackendUnavailableError, Device, DeviceError
 
 REQUIRED: Any = object()  # a key without a default: the profile must give it
@@ -23,7 +24,7 @@ REQUIRED: Any = object()  # a key without a default: the profile must give it
 
 @dataclass(frozen=True)
 class Key:
-    """One profile key of a backend: ``type`` is float, int, str, or that or None
+    """One profile key of a backend: ``type`` is float, int, bool, str, or that or None
     (``optional``); ``gt``/``ge``/``le`` bound a number; ``doc`` names the unit."""
 
     name: str
@@ -42,12 +43,17 @@ class Backend:
 
     ``plays_trajectory``: the device follows the finger's trajectory (it gets
     ``times``, ``positions`` and ``clock``, and ``buttons`` when the trajectory
-    carries them). ``emulated``: the delta emulator can
-    run under it (``--emulate``). ``discover`` and ``preflight`` are
+    carries them). ``emulated``: a device emulator can run under it (``--emulate``:
+    the delta emulator, or the Falcon's under falcon). ``discover`` and ``preflight`` are
     "module:function" paths: the first lists attached devices, the second checks
     what a run needs (a library, a driver) and raises DeviceError saying how to fix it.
     ``calibrate`` ("module:function") runs the device's own calibration (it moves the
     device) and returns what it did; backends without one need none from hapticd.
+    ``takes_clock``: the device gets ``clock``, the loop's nominal time (s), without
+    playing a trajectory (the virtual device moves at its speed per tick, not per
+    wall-clock second, so a late tick is no jump).
+    ``calibrate_by_hand``: what the user does while a calibration the device does not
+    move for itself runs (empty: the device moves on its own).
     """
 
     name: str
@@ -61,6 +67,8 @@ class Backend:
     discover: str | None = None
     preflight: str | None = None
     calibrate: str | None = None
+    takes_clock: bool = False
+    calibrate_by_hand: str = ""
     status: str = ""
     defaults: dict[str, Any] = field(default_factory=dict, init=False, compare=False)
 
@@ -83,6 +91,15 @@ _HOLD = Key(
     "hold_s", float, 0.0, "keep running this long after the trajectory ends, s", ge=0.0, le=86400.0
 )
 _INDEX = Key("index", int, 0, "pick the n-th matching device", ge=0, le=255)
+_REPEAT = Key(
+    "repeat",
+    bool,
+    False,
+    "play the trajectory again from its start each time it ends, for as long as the run "
+    "lasts (it must end where it starts; hold_s is then unused)",
+)
+_FALCON = models.by_name("Falcon")
+assert _FALCON is not None
 
 # The protocol devices (hid, usb) share their keys: the same device on two transports.
 _REPORT_KEYS = (
@@ -119,6 +136,7 @@ BACKENDS: dict[str, Backend] = {
                 _FINGER,
                 _MAX_FORCE,
                 _HOLD,
+                _REPEAT,
             ),
             plays_trajectory=True,
             status="done",
@@ -133,6 +151,7 @@ BACKENDS: dict[str, Backend] = {
                 _FINGER,
                 _MAX_FORCE,
                 _HOLD,
+                _REPEAT,
                 Key("mass_kg", float, 0.05, "fingertip and device mass, kg", gt=0.0, le=5.0),
                 Key(
                     "hand_stiffness_n_per_m",
@@ -153,6 +172,35 @@ BACKENDS: dict[str, Backend] = {
             ),
             plays_trajectory=True,
             status="done",
+        ),
+        Backend(
+            "virtual",
+            "hapticd_drivers.virtual",
+            "VirtualDevice",
+            "a handle with no hardware, moved from the view page (mouse and keys) over the "
+            "control protocol",
+            (
+                Key("serial", str, "virtual", "its name in the status and recordings"),
+                _MAX_FORCE,
+                Key(
+                    "max_speed_m_per_s",
+                    float,
+                    0.25,
+                    "how fast the handle follows the mouse, m/s",
+                    gt=0.0,
+                    le=2.0,
+                ),
+                Key(
+                    "workspace_radius_m",
+                    float,
+                    0.075,
+                    "the handle stays this close to the device's origin, m",
+                    gt=0.0,
+                    le=1.0,
+                ),
+            ),
+            takes_clock=True,
+            status="done, tested in headless Chromium",
         ),
         Backend(
             "hid",
@@ -182,6 +230,15 @@ BACKENDS: dict[str, Backend] = {
             "DhdDevice",
             "a Force Dimension device (omega.3, ...) through its SDK, libdhd",
             (
+                Key(
+                    "model",
+                    str,
+                    None,
+                    "the model the profile expects, a row of the model table (omega.3, "
+                    "...): its workspace is known before the device opens (hapticd check), "
+                    "and a device of another model is refused; none: read from the device",
+                    True,
+                ),
                 Key(
                     "library",
                     str,
@@ -215,7 +272,7 @@ BACKENDS: dict[str, Backend] = {
                     float,
                     12.0,
                     "the device's rated force, and the SDK's own force limit (dhdSetMaxForce, "
-                    "independent of the safety chain), N",
+                    "independent of the safety chain), at most its model's, N",
                     gt=0.0,
                     le=100.0,
                 ),
@@ -234,7 +291,44 @@ BACKENDS: dict[str, Backend] = {
             discover="hapticd_drivers.dhd_backend:discover",
             preflight="hapticd_drivers.dhd_backend:preflight",
             calibrate="hapticd_drivers.dhd_backend:calibrate",
-            status="done, tested through a fake libdhd compiled by the tests",
+            status="done, tested through a fake SDK compiled by the tests, as the SDK's "
+            "documentation describes it and with its older behaviours",
+        ),
+        Backend(
+            "falcon",
+            "hapticd_drivers.falcon_backend",
+            "FalconDevice",
+            "a Novint Falcon, no vendor SDK: its FTDI chip through pyftdi on pyusb",
+            (
+                Key(
+                    "firmware",
+                    str,
+                    None,
+                    "path of the Falcon firmware image to load after power-on (not shipped: "
+                    "docs/devices.md says where to find it); none: the Falcon must run it already",
+                    True,
+                ),
+                Key("serial_number", str, None, "pick the Falcon by its USB serial number", True),
+                _INDEX,
+                Key(
+                    "max_force_n",
+                    float,
+                    _FALCON.max_force_n,
+                    "the device's rated force, at most the Falcon's (the model table), N",
+                    gt=0.0,
+                    le=_FALCON.max_force_n,
+                ),
+                _trajectory(False, "path for the emulator (--emulate) to move the Falcon along"),
+                _FINGER,
+            ),
+            emulated=True,
+            discover="hapticd_drivers.falcon_backend:discover",
+            preflight="hapticd_drivers.falcon_backend:preflight",
+            calibrate="hapticd_drivers.falcon_backend:calibrate",
+            calibrate_by_hand="move its grip all the way out, then push it straight in "
+            "(the LED turns from red to blue)",
+            status="protocol, kinematics and firmware load from libnifalcon; tested through "
+            "an emulated FTDI chip under pyusb, not yet on a real Falcon",
         ),
     )
 }

@@ -1,4 +1,5 @@
-"""Replay device: plays recorded fingertip positions on the servo loop's timeline.
+"""Replay device: plays recorded fingertip positions on the servo loop's timeline, once or
+(``repeat``) again and again for as long as the run lasts.
 
 Positions are interpolated linearly between samples when the loop rate differs
 from the recording's; velocity is the slope of the current segment. Buttons, when
@@ -18,6 +19,8 @@ import numpy as np
 from hapticd_drivers.base import Device, DeviceError, DeviceInfo, DeviceState, check_force
 from hapticd_drivers.trajectory import Trajectory
 
+KEPT_FORCES = 1 << 16  # forces a device on a repeated path keeps for inspection
+
 
 class ReplayDevice(Device):
     """Plays ``positions`` (N, 3) m and ``buttons`` (N,) bit sets (None: every button up) at
@@ -33,8 +36,9 @@ class ReplayDevice(Device):
         hold_s: float = 0.0,
         workspace_radius_m: float = 0.075,
         buttons: np.ndarray | None = None,
+        repeat: bool = False,
     ) -> None:
-        self.path = Trajectory(times, positions, f"replay {serial}", buttons)
+        self.path = Trajectory(times, positions, f"replay {serial}", buttons, repeat)
         self.info = DeviceInfo("replay", serial, float(max_force_n), workspace_radius_m)
         self._who = f"{self.info.model} {self.info.serial}"  # names it in a refusal
         self._clock = clock
@@ -46,6 +50,9 @@ class ReplayDevice(Device):
         self._forces = np.zeros((1024, 3))
         self._force_times = np.zeros(1024)
         self._n_forces = 0
+        # The forces kept for inspection: all of a run that ends, the latest of one that
+        # does not (a repeated path): beyond KEPT_FORCES the older half is dropped.
+        self._kept_max = KEPT_FORCES if repeat else None
 
     @property
     def duration(self) -> float:
@@ -83,6 +90,11 @@ class ReplayDevice(Device):
 
     def _keep(self, force: np.ndarray) -> None:
         n = self._n_forces
+        if n == self._kept_max:
+            half = n // 2
+            self._forces[: n - half] = self._forces[half:n]
+            self._force_times[: n - half] = self._force_times[half:n]
+            n = n - half
         if n == len(self._force_times):
             self._forces = np.concatenate([self._forces, np.zeros_like(self._forces)])
             self._force_times = np.concatenate(
@@ -107,11 +119,12 @@ class ReplayDevice(Device):
 
     @property
     def finished(self) -> bool:
-        return self._now >= self.path.duration + self._hold_s
+        return not self.path.repeat and self._now >= self.path.duration + self._hold_s
 
     @property
     def forces(self) -> np.ndarray:
-        """Every force written, (n, 3) N (zeros while disabled)."""
+        """Every force written, (n, 3) N (zeros while disabled); on a repeated path, the
+        latest (at least KEPT_FORCES / 2)."""
         return self._forces[: self._n_forces].copy()
 
     @property

@@ -71,9 +71,18 @@ class SimulatedFinger(ReplayDevice):
         hand_damping_n_s_per_m: float = 3.0,
         max_step_s: float = 1e-4,
         buttons: np.ndarray | None = None,
+        repeat: bool = False,
     ) -> None:
         super().__init__(
-            times, positions, clock, max_force_n, serial, hold_s, workspace_radius_m, buttons
+            times,
+            positions,
+            clock,
+            max_force_n,
+            serial,
+            hold_s,
+            workspace_radius_m,
+            buttons,
+            repeat,
         )
         if not (mass_kg > 0 and hand_stiffness_n_per_m >= 0 and hand_damping_n_s_per_m >= 0):
             raise DeviceError(

@@ -1,5 +1,6 @@
 """A recorded fingertip path, interpolated linearly at any time (cursor-based, O(1) per step),
-and the buttons held along it (each sample's held until the next)."""
+and the buttons held along it (each sample's held until the next); played once, or
+again and again (``repeat``) for as long as the run lasts."""
 
 from __future__ import annotations
 
@@ -55,9 +56,16 @@ def check_samples(
     return t, x, b
 
 
+# How far a repeated trajectory may end from where it starts, m: a loop that jumps would
+# throw the fingertip across the gap in one tick (a glitch the device bank refuses).
+REPEAT_GAP_M = 1e-4
+
+
 class Trajectory:
     """Positions (N, 3) m at strictly increasing times (N,) s, shifted to start at t = 0;
-    optionally the device's buttons (N,) (bit i for button i) at each sample."""
+    optionally the device's buttons (N,) (bit i for button i) at each sample. With
+    ``repeat`` the path starts again each time it ends (time taken modulo its duration):
+    it must end where it starts (within REPEAT_GAP_M)."""
 
     def __init__(
         self,
@@ -65,11 +73,19 @@ class Trajectory:
         positions: np.ndarray,
         who: str,
         buttons: np.ndarray | None = None,
+        repeat: bool = False,
     ) -> None:
         try:
             t, x, b = check_samples(times, positions, buttons)
         except DeviceError as exc:
             raise DeviceError(f"{who}: {exc}") from None
+        gap = float(np.linalg.norm(x[-1] - x[0]))
+        if repeat and not gap <= REPEAT_GAP_M:
+            raise DeviceError(
+                f"{who}: a repeated trajectory must end where it starts (within "
+                f"{REPEAT_GAP_M * 1e3:g} mm); this one ends {gap * 1e3:.3g} mm away"
+            )
+        self.repeat = bool(repeat)
         self._buttons = None if b is None else [int(v) for v in b.tolist()]
         self._t = (t - t[0]).tolist()
         self._x = [tuple(p) for p in x.tolist()]
@@ -80,18 +96,27 @@ class Trajectory:
     def duration(self) -> float:
         return self._t[-1]
 
+    def _wrap(self, now: float) -> float:
+        """``now`` (s) on the path's own time: modulo its duration when it repeats."""
+        end = self._t[-1]
+        return now % end if self.repeat and now >= end else now
+
     def buttons_at(self, now: float) -> int:
         """The buttons of the last sample at or before ``now`` (s); 0 without buttons. Call
         after ``at(now)``: it reuses the cursor."""
         b = self._buttons
         if b is None:
             return 0
+        now = self._wrap(now)
         last = len(self._t) - 1
         return b[last] if now >= self._t[last] else b[self._k] if now >= self._t[0] else b[0]
 
     def at(self, now: float) -> tuple[Vec, Vec]:
-        """(position m, velocity m/s) at time ``now`` (s); held at the ends, zero velocity there."""
+        """(position m, velocity m/s) at time ``now`` (s); held at the ends, zero velocity there
+        (a repeated path has no end)."""
         t, last = self._t, len(self._t) - 1
+        if self.repeat and now >= t[last]:
+            now %= t[last]
         k = self._k
         if now < t[k]:
             k = 0  # time went back (a new run): search from the start

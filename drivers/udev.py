@@ -13,6 +13,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from hapticd_drivers import models
 from hapticd_drivers.base import DeviceError
 
 FORCE_DIMENSION_VID = 0x1451  # their devices speak their own protocol: the dhd backend
@@ -30,6 +31,9 @@ def usb_ids() -> list[tuple[int, int | None, str]]:
                 (int(usb["vendor_id"]), int(usb["product_id"]), f"{path.stem} (usb, hid backends)")
             )
     out.append((FORCE_DIMENSION_VID, None, "Force Dimension devices (dhd backend, via their SDK)"))
+    # Models driven without their vendor's SDK, by the IDs their row of the model table
+    # gives (the Falcon's FTDI chip: falcon backend).
+    out += [(v, p, f"{m.name} (falcon backend)") for m in models.MODELS for v, p in m.usb_ids]
     return out
 
 
@@ -102,4 +106,6 @@ def discover_usb() -> list[dict[str, Any]]:
 
 
 def _ids() -> list[tuple[int, int, str]]:
-    return [(v, p, w) for v, p, w in usb_ids() if p is not None]
+    """The protocol devices' IDs (the hid and usb backends look for these)."""
+    own = {ids for m in models.MODELS for ids in m.usb_ids}
+    return [(v, p, w) for v, p, w in usb_ids() if p is not None and (v, p) not in own]

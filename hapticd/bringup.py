@@ -325,6 +325,11 @@ def show_limits(session: Session, report: Report) -> bool:
         if not r.reachable:
             ok = False
             report.fail(f"{name}: the object is out of reach of the workspace")
+    for line, within in cli_run.rendering_limits(prof, session.devices):
+        report.say("  " + line)
+        if not within:
+            ok = False
+            report.fail(line.strip())
     report.data["limits"] = {
         "force_limit_n": list(safety.limits),
         "safety": sc.model_dump(mode="json"),

@@ -118,8 +118,12 @@ def load_trajectories(profile: Profile) -> list[tuple[Any, Any, Any] | None]:
     return out
 
 
-def _emulated_seam(backend: str, emulators: list[DeltaEmulator]) -> dict[str, Any]:
+def _emulated_seam(backend: str, emulators: list[Any]) -> dict[str, Any]:
     """The library seam a backend runs on when its devices are emulated."""
+    if backend == "falcon":
+        from hapticd_drivers.falcon_emulator import EmulatedFalconBackend
+
+        return {"usb_backend": EmulatedFalconBackend(emulators)}
     if backend == "hid":
         return {"hid_module": FakeHidModule(emulators)}
     try:
@@ -135,16 +139,16 @@ def build_devices(
     device: str | None = None,
     emulate: bool = False,
     clock: Callable[[], float],
-) -> tuple[list[Device], list[DeltaEmulator]]:
+) -> tuple[list[Device], list[Any]]:
     """The devices of ``profile`` (created, not opened), and the emulators under them.
 
     ``device`` overrides every finger's backend; ``emulate`` puts the device emulator
-    under the hid or usb backend, moved along each finger's trajectory; ``clock`` is
+    under the hid, usb or falcon backend, moved along each finger's trajectory; ``clock`` is
     the loop's nominal time (s) for devices that play a trajectory.
     """
     trajectories = load_trajectories(profile)
     devices: list[Device] = []
-    emulators: list[DeltaEmulator] = []
+    emulators: list[Any] = []  # DeltaEmulator, or FalconEmulator under the falcon backend
     where = f"{profile.source or '<profile>'}"
     for i, (finger, traj) in enumerate(zip(profile.fingers, trajectories, strict=True)):
         cfg = finger.device
@@ -154,9 +158,8 @@ def build_devices(
             entry = registry.backend(name)
             if emulate and not entry.emulated:
                 emulable = [b.name for b in registry.BACKENDS.values() if b.emulated]
-                raise ProfileError(
-                    f"--emulate works with the {' and '.join(emulable)} backends, not {name!r}"
-                )
+                names = ", ".join(emulable[:-1]) + f" and {emulable[-1]}"
+                raise ProfileError(f"--emulate works with the {names} backends, not {name!r}")
             # The profile's keys for its own backend; another backend (--device) runs on its
             # defaults, the n-th device for the n-th finger.
             if cfg.backend == name:
@@ -178,17 +181,24 @@ def build_devices(
                 kwargs["serial"] = f"{name}-{finger.name}"
             elif emulate:
                 serial = f"EMU-{finger.name}"
-                emulators.append(
-                    DeltaEmulator(
-                        load_description(kwargs["description"]),
-                        Trajectory(traj[0], traj[1], f"emulator {finger.name}"),
-                        clock,
-                        serial=serial,
+                path = Trajectory(traj[0], traj[1], f"emulator {finger.name}")
+                if name == "falcon":
+                    from hapticd_drivers.falcon_emulator import FalconEmulator
+
+                    # A Falcon whose firmware was loaded and which was homed (hapticd
+                    # calibrate) before the run; its time is the loop's nominal time.
+                    emulators.append(
+                        FalconEmulator(path, clock, serial, firmware_loaded=True, homed=True)
                     )
-                )
+                    kwargs["clock"] = clock
+                else:
+                    desc = load_description(kwargs["description"])
+                    emulators.append(DeltaEmulator(desc, path, clock, serial=serial))
                 kwargs.update(serial_number=serial, index=0, **_emulated_seam(name, emulators))
             else:
                 registry.preflight(name, **kwargs)
+                if entry.takes_clock:
+                    kwargs["clock"] = clock
             devices.append(registry.open_device(name, **kwargs))
         except DeviceError as exc:
             raise ProfileError(f"{loc}: {exc}") from None

@@ -24,6 +24,9 @@ from hapticd import protocol as proto
 
 # Where the per-user fallback directory lives (a seam for the tests).
 TMP_DIR = Path("/tmp")
+# The installed service's socket (systemd's RuntimeDirectory=hapticd; `hapticd service
+# unit`): clients find it when they have no socket of their own (a seam for the tests).
+SERVICE_SOCKET = Path("/run/hapticd/control.sock")
 
 
 class UnsafeSocketDirError(PermissionError):
@@ -53,18 +56,111 @@ def default_socket_path() -> Path:
     return TMP_DIR / f"hapticd-{os.getuid()}" / "control.sock"
 
 
-def check_socket_dir(path: str | Path, *, create: bool = False, uid: int | None = None) -> None:
+def client_socket_path() -> Path:
+    """Where a client looks for the daemon unless told: ``default_socket_path()`` when
+    $HAPTICD_SOCKET or $RUNTIME_DIRECTORY names it or a socket is there (your own daemon),
+    else the installed service's socket (SERVICE_SOCKET) when it exists, else the default
+    (whose absence the connection then reports)."""
+    own = default_socket_path()
+    env = os.environ
+    if env.get("HAPTICD_SOCKET") or env.get("RUNTIME_DIRECTORY") or os.path.lexists(own):
+        return own
+    return SERVICE_SOCKET if os.path.lexists(SERVICE_SOCKET) else own
+
+
+def _check_group_dir(d: Path, gid: int, create: bool) -> None:
+    """The directory a daemon shares with group ``gid`` (``--socket-group``): made 0750 and
+    given to the group when absent; else it must be a directory (not a symbolic link) owned
+    by this user, and is set to the group with mode 0750 (group: enter and list; nobody
+    else anything). Checked and changed through one descriptor opened without following
+    a link, so nothing can be swapped in between."""
+    if create:
+        with contextlib.suppress(FileExistsError):
+            os.mkdir(d, 0o700)
+    try:
+        fd = os.open(d, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError as exc:
+        if os.path.islink(d):
+            problem = f"is a symbolic link (to {os.readlink(d)}), not a directory"
+        else:
+            problem = f"cannot be opened as a directory ({exc.strerror or exc})"
+        raise UnsafeSocketDirError(f"unsafe socket directory {d}: it {problem}") from None
+    try:
+        st = os.fstat(fd)
+        if st.st_uid != os.getuid():
+            raise UnsafeSocketDirError(
+                f"unsafe socket directory {d}: it belongs to uid {st.st_uid}, not to uid "
+                f"{os.getuid()}, so another user could control the socket; remove it or "
+                "choose another socket with --socket"
+            )
+        try:
+            if st.st_gid != gid:
+                os.fchown(fd, -1, gid)
+            if stat.S_IMODE(st.st_mode) != 0o750:
+                os.fchmod(fd, 0o750)
+        except PermissionError:
+            raise PermissionError(
+                f"cannot give the socket directory {d} to group {gid}: this user is not in "
+                "that group (id -Gn lists yours)"
+            ) from None
+    finally:
+        os.close(fd)
+
+
+def share_socket(path: str | Path, gid: int) -> None:
+    """Let group ``gid`` connect to the daemon's socket at ``path``: group ``gid``, mode
+    0660 (it was bound 0600, so it was never open to more than this user)."""
+    os.chown(path, -1, gid, follow_symlinks=False)
+    os.chmod(path, 0o660)
+
+
+def _check_service_dir(d: Path) -> None:
+    """The installed service's socket directory, as a client checks it: a directory, not a
+    symbolic link, that nobody but its owner can add to (systemd makes it under /run,
+    which only root can write)."""
+    try:
+        st = os.lstat(d)
+    except FileNotFoundError:
+        return
+    if stat.S_ISLNK(st.st_mode) or not stat.S_ISDIR(st.st_mode) or st.st_mode & 0o022:
+        if stat.S_ISLNK(st.st_mode):
+            what = "a symbolic link"
+        elif not stat.S_ISDIR(st.st_mode):
+            what = "not a directory"
+        else:
+            what = f"of mode {stat.S_IMODE(st.st_mode):04o}"
+        raise UnsafeSocketDirError(
+            f"unsafe socket directory {d}: it is {what}, so another user could plant a "
+            "socket there; the service's RuntimeDirectory= makes it a directory of mode 0750"
+        )
+
+
+def check_socket_dir(
+    path: str | Path, *, create: bool = False, uid: int | None = None, group: int | None = None
+) -> None:
     """Make sure nobody else controls the directory of the socket ``path``.
 
     For hapticd's own directories ($XDG_RUNTIME_DIR/hapticd, /tmp/hapticd-UID), as
     ssh-agent and tmux check theirs: not a symbolic link, a directory, owned by ``uid``
-    (default: this process's), no access for group or others. ``create`` (the daemon)
+    (default: this process's), no access for others and no writing for the group (0700,
+    or 0750 when a daemon shares it with ``--socket-group``). ``create`` (the daemon)
     makes it with mode 0700 when absent. Any other directory was chosen by the user
-    (--socket, $HAPTICD_SOCKET, systemd's RuntimeDirectory=) and is only created.
-    Raises UnsafeSocketDirError saying what is wrong and what to do.
+    (--socket, $HAPTICD_SOCKET, systemd's RuntimeDirectory=) and is only created; the
+    installed service's (SERVICE_SOCKET's) must be one nobody else can add to. With
+    ``group`` (a daemon sharing its socket: ``--socket-group``) any directory is checked
+    and shared with that group only (mode 0750). Raises UnsafeSocketDirError saying what
+    is wrong and what to do.
     """
     uid = os.getuid() if uid is None else uid
     d = Path(os.path.abspath(Path(path).parent))
+    if group is not None:
+        if create:
+            d.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        _check_group_dir(d, group, create)
+        return
+    if d == Path(os.path.abspath(SERVICE_SOCKET.parent)) and not create:
+        _check_service_dir(d)
+        return
     if d not in _own_socket_dirs(uid):
         if create:
             d.mkdir(mode=0o700, parents=True, exist_ok=True)
@@ -86,8 +182,12 @@ def check_socket_dir(path: str | Path, *, create: bool = False, uid: int | None 
         problem = "is not a directory"
     elif st.st_uid != uid:
         problem = f"belongs to uid {st.st_uid}, not to uid {uid}"
-    elif st.st_mode & 0o077:
-        problem = f"has mode {stat.S_IMODE(st.st_mode):04o}; it must be 0700 (only you)"
+    elif st.st_mode & 0o027:
+        # Group r-x (0750) is a daemon's --socket-group share: the group can enter, not write.
+        problem = (
+            f"has mode {stat.S_IMODE(st.st_mode):04o}; it must be 0700 (only you) or 0750 "
+            "(a group may enter, not write)"
+        )
         fix = f"chmod 700 {d}, or remove it"
     else:
         return
@@ -150,7 +250,7 @@ class ControlClient:
     """
 
     def __init__(self, path: str | Path | None = None, timeout_s: float = 5.0) -> None:
-        self.path = Path(path) if path is not None else default_socket_path()
+        self.path = Path(path) if path is not None else client_socket_path()
         self.timeout_s = timeout_s
         check_socket_dir(self.path)  # never talk through a directory someone else controls
         self.sock = _connect(self.path, timeout_s)
@@ -195,7 +295,14 @@ class ControlClient:
             if cut >= 0:
                 line = bytes(self._buf[:cut])
                 del self._buf[: cut + 1]
-                return json.loads(line)
+                try:
+                    return json.loads(line)
+                except ValueError:
+                    shown = line[:60].decode("utf-8", "replace")
+                    raise proto.ProtocolError(
+                        "malformed",
+                        f"{self.path}: the daemon sent a line that is not JSON: {shown!r}",
+                    ) from None
             left = None if deadline is None else deadline - time.monotonic()
             if left is not None and left <= 0:
                 raise TimeoutError(f"{self.path}: nothing from the daemon in {timeout_s:g} s")
@@ -318,6 +425,12 @@ class ControlClient:
         ``no_prompt`` when another or none is current, ``bad_value`` for a choice it does
         not offer."""
         return self.call("respond", prompt=prompt_id, choice=choice)
+
+    def move(self, finger: str | int, position_m: Sequence[float]) -> dict[str, Any]:
+        """Send finger ``finger``'s (name or index) virtual device towards ``position_m``
+        (3 numbers, m, world frame); the result's ``target_m`` is where it goes (inside its
+        workspace). ProtocolError ``rejected`` for a device that is not virtual."""
+        return self.call("move", finger=finger, position_m=[float(c) for c in position_m])
 
     def stop(self) -> dict[str, Any]:
         return self.call("shutdown")

@@ -8,7 +8,10 @@ reading, f_dev = R^T f_world on writing, into preallocated arrays.
 A device that fails is *lost*: without reconnect mode the error ends the run;
 with it, a fault is latched (forces zero on every device), the device is
 closed, and it is looked for again every ``RECONNECT_PERIOD_S`` with forces
-left off until someone re-enables them. Every way out zeroes and disables.
+left off until someone re-enables them. A backend that tells a lost device from
+one that still answers (``Device.reports_lost``) has only its DeviceLostError
+looked for again; its other errors end the run as without reconnect mode. Every
+way out zeroes and disables.
 
 A sample no hand can make (a non-finite position or velocity, or a speed above
 ``max_speed_m_per_s`` or a position beyond ``MAX_DEVICE_DISTANCE_M``, in the device's
@@ -25,7 +28,7 @@ import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
-from hapticd_drivers import Device, DeviceError, DeviceState
+from hapticd_drivers import Device, DeviceError, DeviceLostError, DeviceState
 
 from hapticd.frame import Frame, item_view
 from hapticd.mount import Mount
@@ -252,6 +255,8 @@ class DeviceBank:
     def _lose(self, frame: Frame, i: int, k: int, t: float, exc: DeviceError) -> None:
         if not self.reconnect:
             raise exc
+        if self.devices[i].reports_lost and not isinstance(exc, DeviceLostError):
+            raise exc  # the device still answers: a fault, not a device to look for again
         self._on_fault(k, t, f"{type(exc).__name__}: {exc}", "device")
         frame.device_force[:] = 0.0
         self.zero()

@@ -208,6 +208,10 @@ def _quat_step(
     half = 0.5 * speed * h
     if half < 1e-15:
         return q
+    if half == math.inf:
+        # A spin whose square overflowed: math.cos would raise. NaN, as the compiled step
+        # gives; the loop's object check then ends the run (an object_state fault).
+        return (math.nan, math.nan, math.nan, math.nan)
     c, s = math.cos(half), math.sin(half) / speed
     a = (c, s * w[0], s * w[1], s * w[2])
     r = (

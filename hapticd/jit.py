@@ -24,7 +24,14 @@ service) in ``$NUMBA_CACHE_DIR`` if set, else ``$CACHE_DIRECTORY`` (systemd's
 ``CacheDirectory=``), ``$XDG_CACHE_HOME/hapticd/numba`` or
 ``~/.cache/hapticd/numba``; with none writable the kernels compile on every run.
 Two small JSON files there say which kernels compiled (``COMPILED``) and which
-failed and why (``FAILED``), keyed by numba, Python, machine and the kernels' source.
+failed and why (``FAILED``), keyed by numba, Python, machine and the kernels' sources
+(``kernels.SOURCES``: numba's own cache knows only kernels.py's stamp).
+
+A cache numba cannot read (damaged), or whose files hold another kernel than their
+name says (swapped), is removed and compiled again (``compiled``, and the background
+compiler), or removed and compiled in the background while Python renders (``auto``),
+with a message naming the cache's folder; ``auto`` takes a kernel whose index is there
+without its code for not cached (it would compile in the foreground).
 """
 
 from __future__ import annotations
@@ -155,12 +162,12 @@ def _cache_folder() -> Path:
 
 def _keys(names: Sequence[str], version: str) -> dict[str, str]:
     """What numba's cache of each kernel depends on: numba, Python, the machine, the
-    kernels' source file (numba's own stamp: its modification time and size), the
-    signature."""
+    kernels' sources (``kernels.SOURCES``, numba's own stamp of each: modification time
+    and size), the signature."""
     from hapticd import kernels
 
-    st = os.stat(kernels.__file__)
-    base = f"numba {version}; {sys.version}; {platform.machine()}; {st.st_mtime_ns} {st.st_size}"
+    stamps = " ".join(f"{st.st_mtime_ns} {st.st_size}" for st in map(os.stat, kernels.SOURCES))
+    base = f"numba {version}; {sys.version}; {platform.machine()}; {stamps}"
     return {n: f"{base}; {SIGNATURES.get(n)}" for n in names}
 
 
@@ -192,13 +199,21 @@ def _register_helpers(numba, kernels) -> None:
     numba compiles each into the kernels that call it, and leaves the function itself
     plain Python (the module is not changed)."""
     try:
-        from numba.extending import register_jitable
+        from numba.extending import overload, register_jitable
 
-        for name in kernels.KERNEL_HELPERS:
-            fn = getattr(kernels, name)
-            if fn not in _HELPERS:
+        from hapticd.allocation.closed import FLOAT_FORMS
+
+        for helper in kernels.KERNEL_HELPERS:
+            fn = getattr(kernels, helper) if isinstance(helper, str) else helper
+            if fn in _HELPERS:
+                continue
+            if fn in FLOAT_FORMS:
+                # Chooses its form by the argument's type: compiled code runs the float one.
+                floats = register_jitable(FLOAT_FORMS[fn])
+                overload(fn, strict=False)(lambda *args, _f=floats, **kw: _f)
+            else:
                 register_jitable(fn)
-                _HELPERS.add(fn)
+            _HELPERS.add(fn)
     except Exception:
         # A broken numba: a kernel that calls a helper then fails to compile, and the
         # failure is reported under that kernel's name like any other.
@@ -209,9 +224,101 @@ def _register_helpers(numba, kernels) -> None:
 _HELPERS: set[Callable[..., None]] = set()
 
 
-def compile_kernels(names: Sequence[str]) -> dict[str, Callable[..., None]]:
+class DamagedCacheError(JitUnavailableError):
+    """numba's cache of a kernel could not be read or held another kernel; its files are
+    removed (the message names the folder)."""
+
+
+def _cache_files(numba, fn: Callable[..., None]) -> tuple[Path, list[Path]]:
+    """numba's cache folder for kernel ``fn`` and the files of ``fn`` in it for this Python
+    (numba's names: ``kernels.NAME-LINE.pyXY.nbi``, the index, and ``...N.nbc``, the code)."""
+    from numba.core.caching import FunctionCache
+
+    folder = Path(FunctionCache(fn).cache_path)
+    tag = f"py{sys.version_info.major}{sys.version_info.minor}"
+    return folder, sorted(folder.glob(f"kernels.{fn.__name__}-*.{tag}.*nb[ic]"))
+
+
+def _complete(numba, fn: Callable[..., None]) -> bool:
+    """Whether numba's cache holds both the index and the code of kernel ``fn`` (an index
+    alone would make numba compile it, in the foreground)."""
+    try:
+        _, files = _cache_files(numba, fn)
+    except Exception:  # a numba without this layout: leave it to numba
+        return True
+    suffixes = {f.suffix for f in files}
+    return ".nbi" in suffixes and ".nbc" in suffixes
+
+
+def _mismatch(numba, disp, name: str) -> str | None:
+    """What is wrong with the dispatcher ``disp`` numba made for kernel ``name``: None when
+    it holds that kernel for its one signature, else what it holds instead (a cache whose
+    files were swapped between kernels loads the other kernel under this one's name)."""
+    from numba.core import sigutils
+
+    args, _ = sigutils.normalize_signature(SIGNATURES[name])
+    held = list(disp.overloads.values())
+    if (
+        len(held) == 1
+        and held[0].fndesc.qualname == name
+        and tuple(held[0].signature.args) == (tuple(args))
+    ):
+        return None
+    what = ", ".join(sorted({c.fndesc.qualname for c in held})) or "nothing"
+    return f"held another kernel's code ({what})"
+
+
+def _load(
+    numba, kernels, name: str, may_compile: bool, notes: list[str], stale: bool
+) -> Callable[..., None]:
+    """Kernel ``name`` compiled with numba, or loaded from its cache. A cache that cannot be
+    read or holds another kernel is removed; then it is compiled again (``may_compile``,
+    adding what happened to ``notes``) or DamagedCacheError says so. ``stale``: the
+    record of compiled kernels (``COMPILED``) does not have it for the present sources,
+    so whatever numba has cached is removed first (numba's cache knows only
+    ``kernels.py``'s stamp, not that of the closed forms the kernel compiles in)."""
+    kernel = getattr(kernels, name)
+    try:
+        folder, files = _cache_files(numba, kernel)
+    except Exception:  # a numba without this layout: nothing to check or remove
+        folder, files = None, []
+    if stale and may_compile:
+        for f in files:
+            with contextlib.suppress(OSError):
+                f.unlink()
+        files = []
+    bad: str | None = None
+    try:
+        fn = numba.njit(SIGNATURES[name], cache=True, nogil=True)(kernel)
+        bad = _mismatch(numba, fn, name)
+    except Exception as e:
+        if not files:
+            raise  # nothing was cached: compiling failed
+        bad = f"could not be read ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+    if bad is None:
+        return fn
+    for f in files:
+        with contextlib.suppress(OSError):
+            f.unlink()
+    why = f"numba's cache of {name} in {folder} {bad}: removed it"
+    if not may_compile:
+        raise DamagedCacheError(why)
+    fn = numba.njit(SIGNATURES[name], cache=True, nogil=True)(kernel)
+    still = _mismatch(numba, fn, name)
+    if still is not None:
+        raise JitUnavailableError(f"{why}, and compiling {name} again {still}")
+    notes.append(f"{why} and compiled {name} again")
+    return fn
+
+
+def compile_kernels(
+    names: Sequence[str], *, may_compile: bool = True, notes: list[str] | None = None
+) -> dict[str, Callable[..., None]]:
     """The kernels ``names`` compiled (or loaded from the cache); JitUnavailableError if not.
-    Marks them compiled in the cache folder (``is_cached``), or records why they failed."""
+    Marks them compiled in the cache folder (``is_cached``), or records why they failed.
+    A damaged cache (see ``_load``) is compiled again, or, without ``may_compile``,
+    raises DamagedCacheError; ``notes`` collects what was repaired."""
+    notes = [] if notes is None else notes
     missing = [n for n in names if n not in _COMPILED]
     if missing:
         from hapticd import kernels
@@ -219,11 +326,14 @@ def compile_kernels(names: Sequence[str]) -> dict[str, Callable[..., None]]:
         numba = _import_numba()
         _register_helpers(numba, kernels)
         keys = _keys(missing, numba.__version__)
+        done = _read_marker(COMPILED)
         for name in missing:
             if name not in SIGNATURES:
                 raise JitUnavailableError(f"no kernel {name!r}; known: {sorted(SIGNATURES)}")
             try:
-                fn = numba.njit(SIGNATURES[name], cache=True, nogil=True)(getattr(kernels, name))
+                fn = _load(numba, kernels, name, may_compile, notes, keys[name] not in done)
+            except JitUnavailableError:
+                raise
             except Exception as e:  # numba's errors, or no locator for the cache
                 why = (
                     f"numba {numba.__version__} could not compile {name} "
@@ -252,6 +362,14 @@ def cached(names: Sequence[str], version: str) -> tuple[bool, str | None]:
         if k in failed and k not in done:
             return False, failed[k]
     return all(k in done for k in keys.values()), None
+
+
+def _all_complete(names: Sequence[str]) -> bool:
+    """Whether numba's cache holds the index and the code of every kernel in ``names``."""
+    from hapticd import kernels
+
+    numba = _import_numba()
+    return all(_complete(numba, getattr(kernels, n)) for n in names if n in SIGNATURES)
 
 
 # The marker of a background compiler at work, in the cache folder: runs started while it
@@ -347,28 +465,19 @@ def choose(mode: str, names: Sequence[str]) -> KernelChoice:
     if mode == "python" or not names:
         return KernelChoice(mode, "python")
     t0 = time.perf_counter()
+    notes: list[str] = []
     try:
-        if mode == "auto" and any(n not in _COMPILED for n in names):
+        auto = mode == "auto" and any(n not in _COMPILED for n in names)
+        if auto:
             ready, failed = cached(names, _import_numba().__version__)
             if failed is not None:
                 raise JitUnavailableError(f"{failed} (when it was last tried)")
-            if not ready:
-                started = compile_in_background(names)
-                what = (
-                    f"compiling {', '.join(names)} in the background (once, into {_cache_folder()})"
-                    if started
-                    else f"another run's compiler is compiling the kernels into {_cache_folder()}"
-                )
-                return KernelChoice(
-                    mode,
-                    "python",
-                    note=(
-                        f"rendering.kernels is auto: {what}; this run renders with "
-                        "the Python kernels (the same forces; a slower tick)"
-                    ),
-                    seconds=time.perf_counter() - t0,
-                )
-        compiled = compile_kernels(names)
+            if not ready or not _all_complete(names):
+                return _in_background(mode, names, None, t0)
+        try:
+            compiled = compile_kernels(names, may_compile=not auto, notes=notes)
+        except DamagedCacheError as e:
+            return _in_background(mode, names, str(e), t0)
     except JitUnavailableError as e:
         return KernelChoice(
             mode,
@@ -379,7 +488,28 @@ def choose(mode: str, names: Sequence[str]) -> KernelChoice:
                 "rendering.kernels: python to silence this"
             ),
         )
-    return KernelChoice(mode, "compiled", compiled, seconds=time.perf_counter() - t0)
+    note = "; ".join(notes) if notes else None
+    return KernelChoice(mode, "compiled", compiled, note=note, seconds=time.perf_counter() - t0)
+
+
+def _in_background(mode: str, names: Sequence[str], damaged: str | None, t0: float) -> KernelChoice:
+    """Python renders this run while a background process compiles ``names`` (auto), after
+    a damaged cache (``damaged`` says which) or none."""
+    started = compile_in_background(names)
+    what = (
+        f"compiling {', '.join(names)} in the background (once, into {_cache_folder()})"
+        if started
+        else f"another run's compiler is compiling the kernels into {_cache_folder()}"
+    )
+    text = (
+        f"rendering.kernels is auto: {what}; this run renders with "
+        "the Python kernels (the same forces; a slower tick)"
+    )
+    if damaged is not None:
+        return KernelChoice(
+            mode, "python", message=f"{damaged}; {text}", seconds=time.perf_counter() - t0
+        )
+    return KernelChoice(mode, "python", note=text, seconds=time.perf_counter() - t0)
 
 
 def main(argv: Sequence[str]) -> int:

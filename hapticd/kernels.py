@@ -12,8 +12,9 @@ in the same order (so, without fused multiply-adds, the same bits):
 ``free_body_step`` is ``hapticd.stages.Dynamics`` with
 ``hapticd.dynamics.step_body_small``; ``allocation_step`` is
 ``hapticd.stages.Allocation`` with ``ContactAllocator`` for one actuated
-direction per finger and at most two contacts (the closed forms of
-``hapticd.allocation.closed`` and ``accuracy``; pinv, if, ef); ``contact_step`` is
+direction per finger and at most two contacts (pinv, if, ef), and calls the
+closed forms of ``hapticd.allocation.closed`` and ``accuracy`` themselves (written
+once, for floats and arrays; ``KERNEL_HELPERS``); ``contact_step`` is
 ``hapticd.stages.Contact`` with ``hapticd.contact.proxy_step_multi`` on flat obstacles;
 ``friction_step`` is ``hapticd.stages.Friction`` with
 ``hapticd.friction.friction_proxy``; ``forces_step`` is ``hapticd.stages.Forces``.
@@ -28,6 +29,16 @@ import math
 
 import numpy as np
 
+from hapticd import contact
+from hapticd.allocation import closed
+from hapticd.allocation.accuracy import one_contact_residuals, two_contact_residuals
+from hapticd.allocation.closed import (
+    one_contact_ef,
+    one_contact_pinv,
+    two_contact_ef,
+    two_contact_if,
+    two_contact_pinv,
+)
 from hapticd.contact import (
     _FREE_TOL,
     _GRAM_MIN,
@@ -286,32 +297,20 @@ ALLOCATED, MANY_CONTACTS, NON_FINITE_INPUT, NON_FINITE_OUTPUT = 0, 1, 2, 3
 ACCURACY = 4  # allocation_step's accuracy: internal, external, total, amplification
 
 
-# Functions of this module the kernels call (everything else a kernel does is inline):
-# hapticd.jit compiles them into the kernels that call them.
-KERNEL_HELPERS = ("_finv2", "_gram_mu", "_hypot3")
-
-
-def _finv2(ka: float, kb: float, kc: float, eps2: float) -> tuple[float, float, float]:
-    """``hapticd.allocation.closed._finv2``: the filtered inverse (fa, fb, fc) of the
-    symmetric [[ka, kb], [kb, kc]], eigenvalues below ``eps2`` lifted to it (a kernel
-    helper, ``KERNEL_HELPERS``)."""
-    mean = 0.5 * (ka + kc)
-    half = 0.5 * (ka - kc)
-    rad = math.sqrt(half * half + kb * kb)
-    e2 = mean - rad
-    if e2 >= eps2:
-        det = ka * kc - kb * kb
-        fa, fb, fc = kc / det, -kb / det, ka / det
-    else:
-        e1 = mean + rad
-        h2 = 1.0 / eps2
-        h1 = 1.0 / e1 if e1 >= eps2 else h2
-        if h1 == h2:
-            fa, fb, fc = h2, 0.0, h2
-        else:
-            sp = (h1 - h2) / (e1 - e2)
-            fa, fb, fc = h2 + sp * (ka - e2), sp * kb, h2 + sp * (kc - e2)
-    return fa, fb, fc
+# Functions the kernels call (everything else a kernel does is inline): this module's and
+# the allocation's closed forms (hapticd.allocation.closed and accuracy, written once for
+# the loop, allocate() and allocate_many). hapticd.jit compiles them into the kernels that
+# call them.
+KERNEL_HELPERS = (
+    *closed.KERNEL_HELPERS,
+    one_contact_residuals,
+    two_contact_residuals,
+    "_gram_mu",
+    "_hypot3",
+)
+# The sources whose code or constants the kernels compile in: numba's cache knows only
+# this file's, so hapticd.jit keys its record of compiled kernels on all of them.
+SOURCES = (__file__, closed.__file__, one_contact_residuals.__code__.co_filename, contact.__file__)
 
 
 def allocation_step(
@@ -361,7 +360,6 @@ def allocation_step(
     method = int(params[0])
     eps, min_sep, onset = params[1], params[2], params[3]
     ox, oy, oz = params[5], params[6], params[7]
-    eps2 = eps * eps
     # The world directions (hapticd.actuation.grasp_axes in the grasp frame).
     ax0, ax1, ax2 = 1.0, 0.0, 0.0
     ay0, ay1, ay2 = 0.0, 1.0, 0.0
@@ -386,138 +384,61 @@ def allocation_step(
         ay1 = az2 * ax0 - az0 * ax2
         ay2 = az0 * ax1 - az1 * ax0
     # Contact 1 (c0) and, with two, contact 2 (c1): offset r, direction d, force l.
-    r10, r11, r12 = points[c0, 0] - ox, points[c0, 1] - oy, points[c0, 2] - oz
-    l10, l11, l12 = forces[c0, 0], forces[c0, 1], forces[c0, 2]
+    r1 = (points[c0, 0] - ox, points[c0, 1] - oy, points[c0, 2] - oz)
+    l1 = (forces[c0, 0], forces[c0, 1], forces[c0, 2])
     p0, p1, p2 = local[c0, 0], local[c0, 1], local[c0, 2]
+    d1 = (p0, p1, p2)
     if grasp:
-        d10 = ax0 * p0 + ay0 * p1 + az0 * p2
-        d11 = ax1 * p0 + ay1 * p1 + az1 * p2
-        d12 = ax2 * p0 + ay2 * p1 + az2 * p2
-    else:
-        d10, d11, d12 = p0, p1, p2
-    r20 = r21 = r22 = l20 = l21 = l22 = d20 = d21 = d22 = 0.0
+        d1 = (
+            ax0 * p0 + ay0 * p1 + az0 * p2,
+            ax1 * p0 + ay1 * p1 + az1 * p2,
+            ax2 * p0 + ay2 * p1 + az2 * p2,
+        )
+    r2 = (0.0, 0.0, 0.0)
+    l2 = (0.0, 0.0, 0.0)
+    d2 = (0.0, 0.0, 0.0)
     if n == 2:
-        r20, r21, r22 = points[c1, 0] - ox, points[c1, 1] - oy, points[c1, 2] - oz
-        l20, l21, l22 = forces[c1, 0], forces[c1, 1], forces[c1, 2]
+        r2 = (points[c1, 0] - ox, points[c1, 1] - oy, points[c1, 2] - oz)
+        l2 = (forces[c1, 0], forces[c1, 1], forces[c1, 2])
         p0, p1, p2 = local[c1, 0], local[c1, 1], local[c1, 2]
+        d2 = (p0, p1, p2)
         if grasp:
-            d20 = ax0 * p0 + ay0 * p1 + az0 * p2
-            d21 = ax1 * p0 + ay1 * p1 + az1 * p2
-            d22 = ax2 * p0 + ay2 * p1 + az2 * p2
-        else:
-            d20, d21, d22 = p0, p1, p2
+            d2 = (
+                ax0 * p0 + ay0 * p1 + az0 * p2,
+                ax1 * p0 + ay1 * p1 + az1 * p2,
+                ax2 * p0 + ay2 * p1 + az2 * p2,
+            )
     # 0 x c is 0 for a finite c and NaN otherwise (the second contact's zeros: finite).
-    s = 0.0 * r10 + 0.0 * r11 + 0.0 * r12 + 0.0 * d10 + 0.0 * d11 + 0.0 * d12
-    s += 0.0 * l10 + 0.0 * l11 + 0.0 * l12 + 0.0 * r20 + 0.0 * r21 + 0.0 * r22
-    s += 0.0 * d20 + 0.0 * d21 + 0.0 * d22 + 0.0 * l20 + 0.0 * l21 + 0.0 * l22
+    s = 0.0
+    for v in (r1, d1, l1, r2, d2, l2):
+        s += 0.0 * v[0] + 0.0 * v[1] + 0.0 * v[2]
     if not math.isfinite(s):
         return NON_FINITE_INPUT
+    # The closed forms (hapticd.allocation.closed, compiled in by hapticd.jit).
     x0 = 0.0  # contact 1's actuator force, N
     x1 = 0.0  # contact 2's
-    if n == 2 and method == 0:  # pinv: closed.two_contact_pinv
-        k1 = d10 * d10 + d11 * d11 + d12 * d12
-        k2 = d20 * d20 + d21 * d21 + d22 * d22
-        g1 = 1.0 / k1 if k1 >= eps2 else 1.0 / eps2
-        g2 = 1.0 / k2 if k2 >= eps2 else 1.0 / eps2
-        x0 = g1 * (d10 * l10 + d11 * l11 + d12 * l12)
-        x1 = g2 * (d20 * l20 + d21 * l21 + d22 * l22)
-    elif n == 2 and method == 2:  # ef: closed.two_contact_ef
-        m10 = r11 * d12 - r12 * d11
-        m11 = r12 * d10 - r10 * d12
-        m12 = r10 * d11 - r11 * d10
-        m20 = r21 * d22 - r22 * d21
-        m21 = r22 * d20 - r20 * d22
-        m22 = r20 * d21 - r21 * d20
-        f0, f1, f2 = l10 + l20, l11 + l21, l12 + l22
-        t10 = r11 * l12 - r12 * l11
-        t11 = r12 * l10 - r10 * l12
-        t12 = r10 * l11 - r11 * l10
-        t20 = r21 * l22 - r22 * l21
-        t21 = r22 * l20 - r20 * l22
-        t22 = r20 * l21 - r21 * l20
-        t0, t1, t2 = t10 + t20, t11 + t21, t12 + t22
-        ka = (d10 * d10 + d11 * d11 + d12 * d12) + (m10 * m10 + m11 * m11 + m12 * m12)
-        kb = (d10 * d20 + d11 * d21 + d12 * d22) + (m10 * m20 + m11 * m21 + m12 * m22)
-        kc = (d20 * d20 + d21 * d21 + d22 * d22) + (m20 * m20 + m21 * m21 + m22 * m22)
-        y0 = (d10 * f0 + d11 * f1 + d12 * f2) + (m10 * t0 + m11 * t1 + m12 * t2)
-        y1 = (d20 * f0 + d21 * f1 + d22 * f2) + (m20 * t0 + m21 * t1 + m22 * t2)
-        # The filtered inverse of [[ka, kb], [kb, kc]] (closed._finv2).
-        fa, fb, fc = _finv2(ka, kb, kc, eps2)
-        x0, x1 = fa * y0 + fb * y1, fb * y0 + fc * y1
-    elif n == 2:  # if: closed.two_contact_if
-        # The grasp line e and the blend w toward all opposing pairs (closed._grasp_line).
-        gx, gy, gz = r20 - r10, r21 - r11, r22 - r12
-        dist = math.sqrt(gx * gx + gy * gy + gz * gz)
-        w = 1.0 - (dist / min_sep) ** 2 if dist < min_sep else 0.0
-        if dist > 1e-300:
-            e0, e1_, e2_ = gx / dist, gy / dist, gz / dist
-        else:
-            e0, e1_, e2_ = 1.0, 0.0, 0.0
-            w = 1.0
-        sa = (1.0 - w) * (e0 * d10 + e1_ * d11 + e2_ * d12)
-        a10, a11, a12 = sa * e0 + w * d10, sa * e1_ + w * d11, sa * e2_ + w * d12
-        sa = (1.0 - w) * (e0 * d20 + e1_ * d21 + e2_ * d22)
-        a20, a21, a22 = sa * e0 + w * d20, sa * e1_ + w * d21, sa * e2_ + w * d22
-        q0, q1, q2 = l10 - l20, l11 - l21, l12 - l22
-        sa = (1.0 - w) * (e0 * q0 + e1_ * q1 + e2_ * q2)
-        s0, s1, s2 = sa * e0 + w * q0, sa * e1_ + w * q1, sa * e2_ + w * q2
-        ka = 0.5 * (a10 * a10 + a11 * a11 + a12 * a12)
-        kb = -0.5 * (a10 * a20 + a11 * a21 + a12 * a22)
-        kc = 0.5 * (a20 * a20 + a21 * a21 + a22 * a22)
-        # FB: the filtered inverse of K_B (closed._finv2).
-        fa, fb, fc = _finv2(ka, kb, kc, eps2)
-        u0 = 0.5 * (a10 * s0 + a11 * s1 + a12 * s2)
-        u1 = -0.5 * (a20 * s0 + a21 * s1 + a22 * s2)
-        x0, x1 = fa * u0 + fb * u1, fb * u0 + fc * u1
-        # P = I - F(K_B) K_B.
-        pa = 1.0 - (fa * ka + fb * kb)
-        pb = -(fa * kb + fb * kc)
-        pc = 1.0 - (fb * kb + fc * kc)
-        k1 = d10 * d10 + d11 * d11 + d12 * d12
-        k2 = d20 * d20 + d21 * d21 + d22 * d22
-        v0 = (d10 * l10 + d11 * l11 + d12 * l12) - x0 * k1
-        v1 = (d20 * l20 + d21 * l21 + d22 * l22) - x1 * k2
-        # P diag(k1, k2) P (closed._sandwich), then its filtered inverse FP.
-        q00 = pa * k1 + pb * 0.0
-        q01 = pa * 0.0 + pb * k2
-        q10 = pb * k1 + pc * 0.0
-        q11 = pb * 0.0 + pc * k2
-        ka = q00 * pa + q01 * pb
-        kb = q00 * pb + q01 * pc
-        kc = q10 * pb + q11 * pc
-        fa, fb, fc = _finv2(ka, kb, kc, eps2)
-        v0, v1 = pa * v0 + pb * v1, pb * v0 + pc * v1
-        v0, v1 = fa * v0 + fb * v1, fb * v0 + fc * v1
-        v0, v1 = pa * v0 + pb * v1, pb * v0 + pc * v1
-        x0, x1 = x0 + v0, x1 + v1
+    if n == 2 and method == 0:
+        x0, x1 = two_contact_pinv(d1, d2, l1, l2, eps)
+    elif n == 2 and method == 2:
+        x0, x1 = two_contact_ef(r1, r2, d1, d2, l1, l2, eps)
+    elif n == 2:
+        x0, x1 = two_contact_if(r1, r2, d1, d2, l1, l2, eps, min_sep)
     # One contact alone, or the other one while the weaker of two is being made or broken
     # (contact onset: ContactAllocator.allocate's blend with the rest alone).
     beta = 1.0
     alone = c0  # the finger whose one-contact allocation is needed
     if n == 2 and onset > 0.0:
-        n1 = math.sqrt(l10 * l10 + l11 * l11 + l12 * l12)
-        n2 = math.sqrt(l20 * l20 + l21 * l21 + l22 * l22)
+        n1 = math.sqrt(l1[0] * l1[0] + l1[1] * l1[1] + l1[2] * l1[2])
+        n2 = math.sqrt(l2[0] * l2[0] + l2[1] * l2[1] + l2[2] * l2[2])
         weak = n2 if n2 < n1 else n1
         alone = c0 if n2 < n1 else c1
         z = weak / onset
         z = 0.0 if z < 0.0 else (1.0 if z > 1.0 else z)
         beta = z * z * (3.0 - 2.0 * z)
     y = 0.0
-    if n == 1 or beta < 1.0:  # closed.one_contact
-        if alone == c0:
-            r0, r1, r2, d0, d1, d2, m0, m1, m2 = r10, r11, r12, d10, d11, d12, l10, l11, l12
-        else:
-            r0, r1, r2, d0, d1, d2, m0, m1, m2 = r20, r21, r22, d20, d21, d22, l20, l21, l22
-        k = d0 * d0 + d1 * d1 + d2 * d2
-        if method == 2:
-            g0, g1, g2 = r1 * d2 - r2 * d1, r2 * d0 - r0 * d2, r0 * d1 - r1 * d0
-            h0, h1, h2 = r1 * m2 - r2 * m1, r2 * m0 - r0 * m2, r0 * m1 - r1 * m0
-            kk = k + (g0 * g0 + g1 * g1 + g2 * g2)
-            y = ((d0 * m0 + d1 * m1 + d2 * m2) + (g0 * h0 + g1 * h1 + g2 * h2)) / (
-                kk if eps2 <= kk else eps2
-            )
-        else:
-            y = (d0 * m0 + d1 * m1 + d2 * m2) / (k if k >= eps2 else eps2)
+    if n == 1 or beta < 1.0:
+        r, d, m = (r1, d1, l1) if alone == c0 else (r2, d2, l2)
+        y = one_contact_ef(r, d, m, eps) if method == 2 else one_contact_pinv(d, m, eps)
     if n == 1:
         x0 = y
     elif beta < 1.0:
@@ -531,56 +452,23 @@ def allocation_step(
     if not (math.isfinite(x0) and math.isfinite(x1)):
         return NON_FINITE_OUTPUT
     # The accuracy (hapticd.allocation.accuracy's closed forms).
-    q10, q11, q12 = l10 - x0 * d10, l11 - x0 * d11, l12 - x0 * d12
     if n == 1:
-        t0, t1, t2 = r11 * q12 - r12 * q11, r12 * q10 - r10 * q12, r10 * q11 - r11 * q10
-        n_lam = math.sqrt(l10 * l10 + l11 * l11 + l12 * l12)
-        qq = q10 * q10 + q11 * q11 + q12 * q12
-        acc[0] = 0.0
-        acc[1] = math.sqrt(qq + (t0 * t0 + t1 * t1 + t2 * t2))
-        acc[2] = math.sqrt(qq)
-        dd = d10 * d10 + d11 * d11 + d12 * d12
-        acc[3] = abs(x0) * math.sqrt(dd) / n_lam if n_lam > 0 else 0.0
+        acc[0], acc[1], acc[2], acc[3] = one_contact_residuals(r1, d1, l1, x0)
     else:
-        q20, q21, q22 = l20 - x1 * d20, l21 - x1 * d21, l22 - x1 * d22
-        g0, g1, g2 = q10 - q20, q11 - q21, q12 - q22
-        gx, gy, gz = r20 - r10, r21 - r11, r22 - r12
-        dist = math.sqrt(gx * gx + gy * gy + gz * gz)
-        if dist > 0.0:
-            acc[0] = abs(gx * g0 + gy * g1 + gz * g2) / dist / math.sqrt(2.0)
-        else:
-            acc[0] = math.sqrt((g0 * g0 + g1 * g1 + g2 * g2) / 2.0)
-        f0, f1, f2 = q10 + q20, q11 + q21, q12 + q22
-        t10 = r11 * q12 - r12 * q11
-        t11 = r12 * q10 - r10 * q12
-        t12 = r10 * q11 - r11 * q10
-        t20 = r21 * q22 - r22 * q21
-        t21 = r22 * q20 - r20 * q22
-        t22 = r20 * q21 - r21 * q20
-        t0, t1, t2 = t10 + t20, t11 + t21, t12 + t22
-        acc[1] = math.sqrt((f0 * f0 + f1 * f1 + f2 * f2) + (t0 * t0 + t1 * t1 + t2 * t2))
-        acc[2] = math.sqrt(
-            (q10 * q10 + q11 * q11 + q12 * q12) + (q20 * q20 + q21 * q21 + q22 * q22)
-        )
-        n_lam = math.sqrt((l10 * l10 + l11 * l11 + l12 * l12) + (l20 * l20 + l21 * l21 + l22 * l22))
-        shown = math.sqrt(
-            x0 * x0 * (d10 * d10 + d11 * d11 + d12 * d12)
-            + x1 * x1 * (d20 * d20 + d21 * d21 + d22 * d22)
-        )
-        acc[3] = shown / n_lam if n_lam > 0 else 0.0
+        acc[0], acc[1], acc[2], acc[3] = two_contact_residuals(r1, r2, d1, d2, l1, l2, x0, x1)
     # lam_a and the rendered rows M_a lam_a (zero out of contact).
     for i in range(n_fingers):
         lam_a[i] = 0.0
         rendered[i, 0], rendered[i, 1], rendered[i, 2] = 0.0, 0.0, 0.0
     lam_a[c0] = x0
-    rendered[c0, 0] = 0.0 + x0 * d10
-    rendered[c0, 1] = 0.0 + x0 * d11
-    rendered[c0, 2] = 0.0 + x0 * d12
+    rendered[c0, 0] = 0.0 + x0 * d1[0]
+    rendered[c0, 1] = 0.0 + x0 * d1[1]
+    rendered[c0, 2] = 0.0 + x0 * d1[2]
     if n == 2:
         lam_a[c1] = x1
-        rendered[c1, 0] = 0.0 + x1 * d20
-        rendered[c1, 1] = 0.0 + x1 * d21
-        rendered[c1, 2] = 0.0 + x1 * d22
+        rendered[c1, 0] = 0.0 + x1 * d2[0]
+        rendered[c1, 1] = 0.0 + x1 * d2[1]
+        rendered[c1, 2] = 0.0 + x1 * d2[2]
     return ALLOCATED
 
 

@@ -679,6 +679,46 @@ class _ProfileLoader(
             raise _Refused(node.start_mark.line + 1, f"cannot read this value: {exc}") from None
 
 
+def _flow_nesting_beyond(text: str, limit: int) -> int | None:
+    """The 1-based line where flow collections (``[``, ``{``) in ``text`` first nest more
+    than ``limit`` deep, or None; quoted scalars and comments are skipped. A YAML parser may
+    refuse such a document on its own while reading ahead (libyaml does, in its own words),
+    before the loader's depth check sees it: this names the cause the loader would have."""
+    depth = 0
+    line = 1
+    quote = ""
+    prev = "\n"
+    i, n = 0, len(text)
+    while i < n:
+        c = text[i]
+        if c == "\n":
+            line += 1
+        if quote:
+            if c == "\\" and quote == '"':
+                i += 1  # the escaped character
+                line += text.startswith("\n", i)
+            elif c == quote:
+                if quote == "'" and text.startswith("''", i):
+                    i += 1
+                else:
+                    quote = ""
+        elif c in "'\"" and prev in " \t\n[{,:":
+            quote = c
+        elif c == "#" and prev in " \t\n":
+            end = text.find("\n", i)
+            i = n if end < 0 else end
+            continue
+        elif c in "[{":
+            depth += 1
+            if depth > limit:
+                return line
+        elif c in "]}":
+            depth = max(depth - 1, 0)
+        prev = c
+        i += 1
+    return None
+
+
 def _line_map(node: yaml.Node) -> dict[Path_, int]:
     """The 1-based line of every key and list item of a document, by key path."""
     lines: dict[Path_, int] = {(): node.start_mark.line + 1}
@@ -724,6 +764,11 @@ def _read_yaml(
     except _Refused as exc:
         raise error(f"{p}: line {exc.line}: {exc.message}") from None
     except yaml.YAMLError as exc:
+        deep = _flow_nesting_beyond(text, MAX_DEPTH)
+        if deep is not None:
+            raise error(
+                f"{p}: line {deep}: values nested more than {MAX_DEPTH} levels deep"
+            ) from None
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)

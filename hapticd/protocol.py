@@ -40,6 +40,7 @@ ERRORS: dict[str, tuple[str, bool]] = {
     "rejected": ("the loop refused (already recording, not recording, ...)", False),
     "recording": ("the recording file exists, is outside the directory, or failed", False),
     "timeout": ("the loop is not running", False),
+    "stopped": ("the loop has ended (the message says why: its trajectory ended, ...)", False),
     "busy": (
         "sent instead of the greeting when every place is in use (`clients`: how many)",
         False,
@@ -86,6 +87,7 @@ COMMANDS = (
     "events_unsubscribe",
     "prompt",
     "respond",
+    "move",
     "shutdown",
     "stop",
 )
@@ -240,6 +242,8 @@ def check(req: dict[str, Any]) -> dict[str, Any]:
             )
     elif cmd == "prompt":
         _check_prompt(req)
+    elif cmd == "move":
+        _check_move(req)
     elif cmd == "respond":
         _prompt_id(req, "respond")
         choice = req.get("choice")
@@ -250,6 +254,39 @@ def check(req: dict[str, Any]) -> dict[str, Any]:
                 f"characters), got {_short(choice)}",
             )
     return req
+
+
+MOVE_MAX_M = 10.0  # a move's coordinates, m: far beyond any workspace, but finite
+
+
+def _check_move(req: dict[str, Any]) -> None:
+    """A move request: ``finger`` (its name or index) and ``position_m`` (3 finite numbers,
+    m, world frame, each within MOVE_MAX_M)."""
+    finger = req.get("finger")
+    if not (
+        (isinstance(finger, str) and 1 <= len(finger) <= 64)
+        or (isinstance(finger, int) and not isinstance(finger, bool) and 0 <= finger < 256)
+    ):
+        raise ProtocolError(
+            "bad_value", f"move needs a 'finger': its name or index, got {_short(finger)}"
+        )
+    pos = req.get("position_m")
+    if not (
+        isinstance(pos, list)
+        and len(pos) == 3
+        and all(
+            isinstance(c, int | float)
+            and not isinstance(c, bool)
+            and math.isfinite(c)
+            and abs(c) <= MOVE_MAX_M
+            for c in pos
+        )
+    ):
+        raise ProtocolError(
+            "bad_value",
+            f"move needs 'position_m': 3 finite numbers (m, world frame, within "
+            f"{MOVE_MAX_M:g} m), got {_short(pos)}",
+        )
 
 
 def _prompt_id(req: dict[str, Any], cmd: str) -> int:

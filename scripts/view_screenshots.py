@@ -1,5 +1,6 @@
 """Screenshots of ``hapticd view``: the experimenter's page, the subject's, and the subject's
-with a prompt's answer buttons, while the lift profile's cube is off the ground.
+with a prompt's answer buttons, while the lift profile's cube is off the ground; and the
+experimenter's page moving two virtual devices (configs/rehearse-virtual.yaml).
 
 Starts ``hapticd view`` on a socket in a temp dir, opens its pages in headless Chromium
 (tests/cdp.py, Debian's /usr/bin/chromium), then runs ``hapticd run
@@ -9,8 +10,14 @@ subject's pages at that moment; then sets a prompt over the control socket and c
 the subject's page with its buttons (skipped, with a note, when the daemon has no
 ``prompt`` command).
 
+The virtual devices' page (view-virtual.png): ``hapticd run configs/rehearse-virtual.yaml``
+and ``hapticd view --control``; both fingers brought into the cube with the squeeze key
+(s), lifted 5 mm (Shift+Up), and the thumb dragged deeper with the mouse, as a person
+does it.
+
     python scripts/view_screenshots.py                  # into a temp dir (printed)
     python scripts/view_screenshots.py --out docs/img   # the docs' figures
+    python scripts/view_screenshots.py --only virtual --out docs/img
 """
 
 from __future__ import annotations
@@ -34,6 +41,8 @@ from tests import cdp  # noqa: E402
 PROFILE = ROOT / "configs" / "lift-weight.yaml"
 RUN = [sys.executable, "-m", "hapticd", "run", str(PROFILE), "--device", "sim"]
 RUN += ["--no-realtime", "-q"]
+VIRTUAL = ROOT / "configs" / "rehearse-virtual.yaml"
+VIRTUAL_AT = "JSON.parse(document.querySelector('[data-testid=scene]').dataset.virtual || 'null')"
 PROMPT = {
     "prompt": 1,
     "question": "Was this cube heavier than the first?",
@@ -71,6 +80,7 @@ def main() -> int:
     ap.add_argument(
         "--lift-mm", type=float, default=20.0, help="how high the cube must be (mm, default 20)"
     )
+    ap.add_argument("--only", choices=["all", "lift", "virtual"], default="all")
     args = ap.parse_args()
     exe = cdp.find_chromium()
     if exe is None:
@@ -78,6 +88,71 @@ def main() -> int:
         return 2
     out = args.out or Path(tempfile.mkdtemp(prefix="hapticd-view-shots-"))
     out.mkdir(parents=True, exist_ok=True)
+    if args.only in ("all", "lift"):
+        lift_shots(exe, out, args.lift_mm)
+    if args.only in ("all", "virtual"):
+        virtual_shot(exe, out)
+    for p in sorted(out.glob("view-*.png")):
+        print(p)
+    return 0
+
+
+def stop(*procs: subprocess.Popen | None) -> None:
+    """SIGTERM each process still running; kill it after 15 s."""
+    for proc in procs:
+        if proc is not None and proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(timeout=15)
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+
+
+def virtual_shot(exe: str, out: Path) -> None:
+    """view-virtual.png: two virtual devices moved from the page, both fingers on the cube."""
+    with tempfile.TemporaryDirectory(prefix="hapticd-shots-") as tmp:
+        work = Path(tmp)
+        sock = work / "d.sock"
+        hapticd = [sys.executable, "-m", "hapticd"]
+        run = subprocess.Popen(
+            [*hapticd, "run", str(VIRTUAL), "--no-realtime", "-q", "--socket", str(sock)],
+            cwd=ROOT,
+        )
+        view = None
+        try:
+            connect(sock, run).close()
+            view = subprocess.Popen(
+                [*hapticd, "view", "--socket", str(sock), "--control", "-q"],
+                cwd=ROOT,
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+            url = view.stdout.readline().strip()
+            with cdp.Browser(exe, work / "c1") as page, ControlClient(sock) as c:
+                page.open(url)
+                at = wait(
+                    lambda: page.evaluate(VIRTUAL_AT),
+                    "the virtual fingertips drawn",
+                    until=lambda a: a and a["fingers"].get("0") and a["object"],
+                )
+                for _ in range(15):  # both fingers in, 2 mm a press: 2 mm into the cube
+                    page.press("s")
+                wait(lambda: all(c.status()["in_contact"]), "both fingers on the cube")
+                page.key("ArrowUp", shift=True)  # both up 5 mm
+                # And the thumb dragged a tenth of the way to the drawn cube's middle: deeper.
+                at = page.evaluate(VIRTUAL_AT)
+                (x0, y0), (x1, y1) = at["fingers"]["0"], at["object"]
+                page.drag((x0, y0), (x0 + (x1 - x0) / 10, y0 + (y1 - y0) / 10), steps=6)
+                time.sleep(1.0)  # the fingers there, the traces drawn
+                page.screenshot(out / "view-virtual.png")
+                print(f"view-virtual.png at tick {c.status()['tick']}")
+        finally:
+            stop(view, run)
+
+
+def lift_shots(exe: str, out: Path, lift_mm: float) -> None:
+    """view-experimenter.png, view-subject.png, view-subject-prompt.png: the lift."""
     with tempfile.TemporaryDirectory(prefix="hapticd-shots-") as tmp:
         work = Path(tmp)
         sock = work / "d.sock"
@@ -108,8 +183,8 @@ def main() -> int:
                 z0 = client.next_telemetry()["object_pos"][2]
                 sample = wait(
                     client.next_telemetry,
-                    f"lift of {args.lift_mm:g} mm",
-                    until=lambda s: s["object_pos"][2] - z0 >= args.lift_mm * 1e-3,
+                    f"lift of {lift_mm:g} mm",
+                    until=lambda s: s["object_pos"][2] - z0 >= lift_mm * 1e-3,
                 )
                 time.sleep(0.1)  # the pages' next frames
                 experimenter.screenshot(out / "view-experimenter.png")
@@ -134,17 +209,7 @@ def main() -> int:
                         time.sleep(0.1)
                         subject.screenshot(out / "view-subject-prompt.png")
         finally:
-            for proc in (view, run):
-                if proc is not None and proc.poll() is None:
-                    proc.send_signal(signal.SIGTERM)
-                    with contextlib.suppress(subprocess.TimeoutExpired):
-                        proc.wait(timeout=15)
-                    if proc.poll() is None:
-                        proc.kill()
-                        proc.wait()
-    for p in sorted(out.glob("view-*.png")):
-        print(p)
-    return 0
+            stop(view, run)
 
 
 if __name__ == "__main__":

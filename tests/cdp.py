@@ -178,6 +178,31 @@ class Browser:
                 {"type": kind, "x": rect[0], "y": rect[1], "button": "left", "clickCount": 1},
             )
 
+    def drag(self, start: tuple[float, float], end: tuple[float, float], steps: int = 10) -> None:
+        """A left-button drag, as a user's: press at ``start`` (CSS px), move in ``steps``
+        to ``end``, release there."""
+        (x0, y0), (x1, y1) = start, end
+        self.call(
+            "Input.dispatchMouseEvent",
+            {"type": "mousePressed", "x": x0, "y": y0, "button": "left", "clickCount": 1},
+        )
+        for k in range(1, steps + 1):
+            x, y = x0 + (x1 - x0) * k / steps, y0 + (y1 - y0) * k / steps
+            self.call(
+                "Input.dispatchMouseEvent",
+                {"type": "mouseMoved", "x": x, "y": y, "button": "left", "buttons": 1},
+            )
+        self.call(
+            "Input.dispatchMouseEvent",
+            {"type": "mouseReleased", "x": x1, "y": y1, "button": "left", "clickCount": 1},
+        )
+
+    def key(self, key: str, code: str | None = None, shift: bool = False) -> None:
+        """A named key (``ArrowUp``, ...) pressed and released on the page."""
+        params: dict[str, Any] = {"key": key, "code": code or key, "modifiers": 8 if shift else 0}
+        for kind in ("rawKeyDown", "keyUp"):
+            self.call("Input.dispatchKeyEvent", {"type": kind, **params})
+
     def press(self, key: str) -> None:
         """A key typed on the page (keydown and keyup of a one-character ``key``)."""
         for kind in ("keyDown", "keyUp"):

@@ -6,7 +6,6 @@ import contextlib
 import ctypes
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import threading
@@ -68,14 +67,23 @@ def pytest_collection_modifyitems(config, items):
 # The session's own numba cache: compiled kernels (hapticd.jit) neither come from nor go
 # into the source tree's or the user's cache, and a background compiler that a test's auto
 # run starts writes here; the session waits for it at its end (pytest_sessionfinish).
-NUMBA_CACHE = Path(tempfile.mkdtemp(prefix="hapticd-tests-numba-"))
+# One cache for the whole run: the first process to compile a kernel (pytest-xdist runs the
+# tests in several worker processes) leaves it for the others to load. The main process
+# makes it before the workers start, and they inherit it through the environment.
+# A developer may name a lasting one (HAPTICD_TEST_NUMBA_CACHE=DIR): kept across runs, so
+# repeated runs load the kernels instead of compiling them (numba recompiles what changed).
+_SHARED_CACHE = "HAPTICD_TEST_NUMBA_CACHE"
+_CACHE_MADE_HERE = _SHARED_CACHE not in os.environ
+if _CACHE_MADE_HERE:
+    os.environ[_SHARED_CACHE] = tempfile.mkdtemp(prefix="hapticd-tests-numba-")
+NUMBA_CACHE = Path(os.environ[_SHARED_CACHE])
 os.environ["NUMBA_CACHE_DIR"] = str(NUMBA_CACHE)
 COMPILER_WAIT_S = 180.0
 
 
 def pytest_sessionfinish(session, exitstatus):
     """No background compiler outlives the session: wait (bounded) for its marker to go,
-    fail the session if it does not, then remove the session's cache."""
+    fail the session if it does not; then the process that made the run's cache removes it."""
     from hapticd import jit
 
     marker = NUMBA_CACHE / jit.COMPILING
@@ -86,7 +94,8 @@ def pytest_sessionfinish(session, exitstatus):
         print(f"\na background kernel compiler still runs after {COMPILER_WAIT_S:.0f} s")
         session.exitstatus = 1
         return
-    shutil.rmtree(NUMBA_CACHE, ignore_errors=True)
+    if _CACHE_MADE_HERE:  # the main process (xdist's workers inherit the folder), last
+        shutil.rmtree(NUMBA_CACHE, ignore_errors=True)
 
 
 settings.register_profile(
@@ -97,7 +106,10 @@ settings.register_profile(
     suppress_health_check=[HealthCheck.too_slow],
 )
 settings.register_profile("thorough", max_examples=5000, deadline=None)
-settings.load_profile("ci")
+# HYPOTHESIS_PROFILE=thorough (or pytest's --hypothesis-profile thorough) for a deliberate
+# search: random cases, 5000 each. The ci profile: 300 derandomized cases per property,
+# the same every run.
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
 class AtTick:
@@ -258,19 +270,19 @@ def wait_for_tick(client, tick, limit_s=5.0):
     )
 
 
-def _build_fake_sdk(out_dir: Path, name: str, *defines: str) -> tuple[str, ctypes.CDLL]:
-    cc = shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
-        pytest.skip("no C compiler to build the fake Force Dimension SDK")
-    out = out_dir / f"lib{name}.so"
-    src = Path(__file__).with_name("fakes") / "fake_dhd.c"
-    cmd = [cc, "-shared", "-fPIC", "-O1", *defines, "-o", str(out), str(src), "-lm"]
-    subprocess.run(cmd, check=True)
+def _build_fake_sdk(out_dir: Path, drd: bool) -> tuple[str, ctypes.CDLL]:
+    from tests.fakes.fake_sdk import build
+
+    try:
+        out = build(out_dir, drd)
+    except RuntimeError as exc:
+        pytest.skip(str(exc))
     lib = ctypes.CDLL(str(out))
     lib.fake_set_state.argtypes = [ctypes.c_int] + [ctypes.c_double] * 6
     lib.fake_get_force.argtypes = [ctypes.c_int, ctypes.POINTER(ctypes.c_double)]
     lib.fake_get_force_sum.argtypes = [ctypes.c_int, ctypes.POINTER(ctypes.c_double)]
     lib.fake_set_buttons.argtypes = [ctypes.c_int, ctypes.c_uint]
+    lib.fake_set_velocity_window.argtypes = [ctypes.c_double]
     dp = ctypes.POINTER(ctypes.c_double)
     lib.fake_set_path.argtypes = [ctypes.c_int, ctypes.c_int, dp, dp]
     lib.fake_force_log.argtypes = [ctypes.c_int, dp, ctypes.c_int]
@@ -280,19 +292,58 @@ def _build_fake_sdk(out_dir: Path, name: str, *defines: str) -> tuple[str, ctype
     return str(out), lib
 
 
+# The fake SDK's switches back to older behaviours (tests/fakes/fake_dhd.c, FAKE_LEGACY_*).
+FAKE_LEGACY = {"drd_any_handle": 1, "no_velocity_window": 2, "open_twice_fails": 4, "no_codes": 8}
+FAKE_LEGACY_ALL = sum(FAKE_LEGACY.values())
+
+
 @pytest.fixture(scope="session")
-def libdhd(tmp_path_factory):
+def _fake_libdrd(tmp_path_factory):
+    return _build_fake_sdk(tmp_path_factory.mktemp("drd"), True)
+
+
+@pytest.fixture(scope="session")
+def _fake_libdhd(tmp_path_factory):
+    return _build_fake_sdk(tmp_path_factory.mktemp("dhd"), False)
+
+
+def _fresh(lib) -> None:
+    """No device left open in the fake, and none in the backend's list of devices this
+    process holds (a test that ends with a device open leaves it there)."""
+    from hapticd_drivers import dhd_backend
+
+    lib.fake_reset(0)
+    dhd_backend._HELD.clear()
+
+
+@pytest.fixture
+def libdhd(_fake_libdrd):
     """The fake Force Dimension SDK a profile's ``library`` points at, as the real libdrd:
-    the DHD calls and the DRD ones (initialisation state, automatic initialisation),
-    compiled from tests/fakes/fake_dhd.c: (path, ctypes handle with the fake's own
-    controls). Skips when there is no C compiler."""
-    return _build_fake_sdk(tmp_path_factory.mktemp("drd"), "fakedrd", "-DFAKE_DRD")
+    the DHD calls and the DRD ones (opening, initialisation state, automatic
+    initialisation), compiled from tests/fakes/fake_dhd.c, behaving as the SDK documents:
+    (path, ctypes handle with the fake's own controls). Skips when there is no C
+    compiler."""
+    _fake_libdrd[1].fake_set_legacy(0)
+    _fresh(_fake_libdrd[1])
+    return _fake_libdrd
 
 
-@pytest.fixture(scope="session")
-def libdhd_only(tmp_path_factory):
+@pytest.fixture(params=["documented", "legacy"])
+def libdhd_both(request, _fake_libdrd):
+    """``libdhd``, once as the SDK documents it and once with every older behaviour the
+    fake can switch back to (FAKE_LEGACY): what the backend must survive either way."""
+    _fake_libdrd[1].fake_set_legacy(FAKE_LEGACY_ALL if request.param == "legacy" else 0)
+    _fresh(_fake_libdrd[1])
+    yield _fake_libdrd
+    _fake_libdrd[1].fake_set_legacy(0)
+
+
+@pytest.fixture
+def libdhd_only(_fake_libdhd):
     """A fake libdhd without the DRD calls: (path, ctypes handle)."""
-    return _build_fake_sdk(tmp_path_factory.mktemp("dhd"), "fakedhd")
+    _fake_libdhd[1].fake_set_legacy(0)
+    _fresh(_fake_libdhd[1])
+    return _fake_libdhd
 
 
 @pytest.fixture

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import assume, given
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from hapticd.allocation import (
@@ -330,3 +330,42 @@ def test_bad_method_and_alpha():
     np.testing.assert_array_equal(
         allocate_many("if", G2, M2, L2, alpha=np.zeros(3)), allocate_many("if", G2, M2, L2)
     )
+
+
+# -- the closed forms on arrays are the closed forms on floats -------------------------------
+
+_SMALL = st.floats(-0.05, 0.05, allow_nan=False, allow_infinity=False)
+_DIR = st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False)
+_FORCE = st.floats(-10.0, 10.0, allow_nan=False, allow_infinity=False)
+
+
+@st.composite
+def _two_contact_grasps(draw):
+    """Two contacts with one direction each, often degenerate: coincident contacts, contacts
+    min_separation_m apart, parallel or vanishing directions, zero forces."""
+    r1 = draw(st.tuples(_SMALL, _SMALL, _SMALL))
+    r2 = draw(
+        st.tuples(_SMALL, _SMALL, _SMALL)
+        | st.just(r1)
+        | st.just((r1[0] + 0.005, r1[1], r1[2]))  # exactly min_separation_m apart
+    )
+    d1 = draw(st.tuples(_DIR, _DIR, _DIR))
+    d2 = draw(st.tuples(_DIR, _DIR, _DIR) | st.just(d1) | st.just((0.0, 0.0, 0.0)))
+    l1 = draw(st.tuples(_FORCE, _FORCE, _FORCE) | st.just((0.0, 0.0, 0.0)))
+    l2 = draw(st.tuples(_FORCE, _FORCE, _FORCE))
+    return r1, r2, d1, d2, l1, l2
+
+
+@settings(max_examples=100)  # each example: 12 grasps, 3 methods, both forms
+@given(st.lists(_two_contact_grasps(), min_size=1, max_size=12))
+def test_the_closed_forms_on_arrays_are_the_closed_forms_on_floats(grasps):
+    """allocate_many's two-contact path and the loop run the same closed forms; only the
+    filtered inverse, gain and grasp line have a float and an array form: bit for bit the
+    same on every grasp, whichever branch each takes."""
+    from hapticd.allocation.closed import two_contact
+
+    cols = [tuple(np.array([g[k][i] for g in grasps]) for i in range(3)) for k in range(6)]
+    for method in ("pinv", "if", "ef"):
+        x0, x1 = two_contact(method, *cols, 0.2, 0.005)
+        for j, g in enumerate(grasps):
+            assert (x0[j], x1[j]) == two_contact(method, *g, 0.2, 0.005), (method, g)

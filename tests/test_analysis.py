@@ -64,14 +64,14 @@ def test_tilted_wall_reproduces_the_seeds_f_l_and_rendered_matrix(deg):
         assert lin.asymmetry == pytest.approx(math.sin(a) / math.sqrt(2.0), abs=1e-9)
         # The rendered stiffness's antisymmetric part: k sin cos of work per unit loop area.
         assert lin.work_per_area == pytest.approx(60.0 * math.sin(a) * math.cos(a), abs=1e-6)
-    assert asymmetry(examples.wall_f_l(a, 60.0)) == 0.0  # F_L is symmetric: conservative
+    assert asymmetry(examples.wall_f_l(a, 60.0)) < 1e-12  # F_L is symmetric: conservative
 
 
 def test_tilted_wall_at_ninety_degrees_renders_nothing():
     wall = examples.tilted_wall(math.pi / 2)
     lin = wall.pipeline.linearize_coordinates(wall.coords, wall.inside(0.002))["pinv"]
     assert np.all(np.abs(lin.K_rendered) < 1e-9)
-    assert lin.asymmetry == 0.0
+    assert lin.asymmetry < 1e-9
     assert lin.null_directions.shape == (2, 2)
     assert np.abs(lin.K_full).max() == pytest.approx(60.0)
 
@@ -202,7 +202,7 @@ def test_the_grasp_profile_default_configuration(grasp):
     assert lin.fd_error < 1e-6
     # Squeezing a fixed cube: the adaptive allocator stays at IF; EF renders nothing.
     _close(res["adaptive"].K_rendered, res["if"].K_rendered, 1e-9)
-    assert np.all(res["ef"].rendered_force == 0.0)
+    np.testing.assert_allclose(res["ef"].rendered_force, 0.0, rtol=0, atol=1e-12)
     # Moving both fingers together sideways changes no rendered force.
     N = lin.null_directions
     side = np.array([0, 1, 0, 0, 1, 0]) / math.sqrt(2.0)

@@ -337,7 +337,8 @@ def test_a_device_unplugged_during_the_bringup_ends_it_in_a_fault_at_zero_force(
     code = main(["bringup", profile, *FAST, "--answers", "yy", "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert code == 3, out
-    assert "FAULT at tick 200" in out and "dhd 10002" in out and "unplugged" in out
+    assert "FAULT at tick 200" in out and "unplugged" in out
+    assert "dhd omega.3 index 1, serial 10002: lost" in out
     assert "RESULT: FAIL" in out and "felt in that direction" not in out
     assert _report(tmp_path)["fault"]["tick"] == 200
     assert lib.fake_is_enabled(0) == 0 and lib.fake_is_open(0) == 0
@@ -358,10 +359,20 @@ def test_on_a_terminal_positions_refresh_until_enter_and_answers_are_typed(tmp_p
     stdin = os.fdopen(slave, "r")
 
     def type_later() -> None:
-        time.sleep(0.5)  # a few refreshes first
-        os.write(master, b"\n")
-        time.sleep(0.2)
-        os.write(master, b"y\nn\n")
+        # Enter only once the lines have been redrawn in place (whatever the machine's
+        # speed): the test sees a refresh, then the final redraw that Enter brings.
+        # Each answer likewise waits for its question.
+        deadline = time.monotonic() + 20.0
+        for seen, times, typed in (
+            ("\x1b[2F", 1, b"\n"),
+            ("[y/n/r]", 1, b"y\n"),
+            ("[y/n/r]", 2, b"n\n"),
+        ):
+            while out.getvalue().count(seen) < times:
+                if time.monotonic() > deadline:
+                    return  # the assertions below say what was missing
+                time.sleep(0.01)
+            os.write(master, typed)
 
     typist = threading.Thread(target=type_later)
     typist.start()

@@ -4,7 +4,9 @@ import ctypes
 
 import numpy as np
 import pytest
-from hapticd_drivers import DeviceError, DeviceState, open_device
+from hapticd_drivers import DeviceError, DeviceLostError, DeviceState, open_device
+
+from tests.conftest import FAKE_LEGACY
 
 
 def force_of(lib, i):
@@ -13,8 +15,8 @@ def force_of(lib, i):
     return np.array(buf[:])
 
 
-def test_open_by_serial_read_write_and_close(libdhd):
-    path, lib = libdhd
+def test_open_by_serial_read_write_and_close(libdhd_both):
+    path, lib = libdhd_both
     lib.fake_reset(2)
     lib.fake_set_state(1, 0.01, -0.02, 0.03, 0.1, 0.0, -0.1)
     dev = open_device("dhd", library=path, serial_number=10002, device_watchdog_s=0.01)
@@ -46,21 +48,36 @@ def test_open_by_index_and_a_missing_device(libdhd):
     dev.close()
     with pytest.raises(DeviceError, match="no device at index 3; 1 present"):
         open_device("dhd", library=path, index=3).open()
-    with pytest.raises(DeviceError, match="no device with this serial number"):
+    with pytest.raises(DeviceError, match="no device with serial number 4242 among 1"):
         open_device("dhd", library=path, serial_number=4242).open()
 
 
-def test_unplug_is_a_device_error_with_the_sdk_message(libdhd):
+def test_unplug_is_a_lost_device_by_its_error_code_naming_the_device(libdhd):
     path, lib = libdhd
-    lib.fake_reset(1)
-    dev = open_device("dhd", library=path)
+    lib.fake_reset(2)
+    dev = open_device("dhd", library=path, index=1)
     dev.open()
     dev.enable_forces(True)
-    lib.fake_unplug(0)
-    with pytest.raises(DeviceError, match="cannot read the position: USB error: device unplugged"):
+    lib.fake_unplug(1)
+    who = "dhd omega.3 index 1, serial 10002"
+    with pytest.raises(DeviceLostError, match=f"{who}: lost .cannot read the position.: "):
         dev.read_state(DeviceState())
-    with pytest.raises(DeviceError, match="cannot set the force"):
+    with pytest.raises(DeviceLostError, match=f"{who}: lost .cannot set the force.: "):
         dev.write_force(np.ones(3))
+
+
+def test_without_error_codes_an_unplug_is_still_a_device_error_but_not_a_lost_device(libdhd):
+    """An SDK that reads every error as DHD_ERROR: the device fails, and is not called lost
+    (only DHD_ERROR_COM and DHD_ERROR_NO_DEVICE_FOUND are)."""
+    path, lib = libdhd
+    lib.fake_reset(1)
+    lib.fake_set_legacy(FAKE_LEGACY["no_codes"])
+    dev = open_device("dhd", library=path)
+    dev.open()
+    lib.fake_unplug(0)
+    with pytest.raises(DeviceError, match="cannot read the position: DHD_ERROR: ") as info:
+        dev.read_state(DeviceState())
+    assert not isinstance(info.value, DeviceLostError)
 
 
 def test_missing_library_says_how_to_get_it(monkeypatch, tmp_path):
@@ -130,12 +147,13 @@ def test_a_bare_libdhd_cannot_check_the_calibration_so_forces_stay_off(libdhd_on
         calibrate(library=path)
 
 
-def test_a_controller_memory_fault_refuses_the_device_and_closes_it(libdhd):
-    path, lib = libdhd
+def test_a_controller_memory_fault_refuses_the_device_and_closes_it(libdhd_both):
+    """Documented: dhdCheckControllerMemory returns DHD_ERROR_CONFIGURATION; older: -1."""
+    path, lib = libdhd_both
     lib.fake_reset(1)
     lib.fake_set_memory_fault(0, 1)
     dev = open_device("dhd", library=path)
-    with pytest.raises(DeviceError, match=r"memory check failed.*contact Force Dimension"):
+    with pytest.raises(DeviceError, match=r"memory check failed.*(CONFIGURATION|DHD_ERROR)"):
         dev.open()
     assert lib.fake_is_open(0) == 0 and lib.fake_is_enabled(0) == 0
     with pytest.raises(DeviceError, match="closed"):
@@ -166,6 +184,7 @@ def test_calibrate_runs_the_automatic_initialisation_by_index_and_by_serial(libd
     lib.fake_set_state(1, 0.02, 0.01, 0.0, 0, 0, 0)
     out = calibrate(library=path, serial_number=10002)
     assert out == {"model": "omega.3", "serial": "10002", "was_calibrated": False}
+    assert lib.fake_brakes(1) == 1  # drdStop(false) leaves it in brake mode
     assert lib.fake_autoinits(1) == 1 and lib.fake_autoinits(0) == 0
     # Every device it looked at is closed again, forces off.
     assert [lib.fake_is_open(i) for i in range(2)] == [0, 0]
@@ -183,10 +202,10 @@ def test_calibrate_runs_the_automatic_initialisation_by_index_and_by_serial(libd
     assert lib.fake_is_open(0) == 0
 
 
-def test_discover_lists_model_serial_and_calibration(libdhd, monkeypatch):
+def test_discover_lists_model_serial_and_calibration(libdhd_both, monkeypatch):
     from hapticd_drivers.dhd_backend import discover
 
-    path, lib = libdhd
+    path, lib = libdhd_both
     monkeypatch.setenv("HAPTICD_LIBDHD", path)
     lib.fake_reset(2)
     lib.fake_set_calibrated(1, 0)
@@ -195,9 +214,8 @@ def test_discover_lists_model_serial_and_calibration(libdhd, monkeypatch):
     assert entry["found"] == ["10001 (index 0, calibrated)", "10002 (index 1, NOT calibrated)"]
     assert [d["serial"] for d in entry["devices"]] == ["10001", "10002"]
     assert [lib.fake_is_open(i) for i in range(2)] == [0, 0]
-    # A device held open elsewhere is listed, not skipped.
-    dev = open_device("dhd", library=path, index=0)
-    dev.open()
+    # A device another program holds open is listed, not skipped.
+    lib.fake_set_in_use(0, 1)
     entries = discover()
-    dev.close()
-    assert any("in use" in s for e in entries for s in e["found"])
+    lib.fake_set_in_use(0, 0)
+    assert any("in use" in s and "DHD_ERROR" in s for e in entries for s in e["found"])

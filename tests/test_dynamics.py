@@ -130,3 +130,36 @@ def test_the_float_step_equals_the_numpy_step(case):
         rtol=0,
         atol=RTOL * (1 + np.abs(big.polytope.offsets).max()),
     )
+
+
+def huge(limit: float):
+    """Finite floats of any size up to ``limit`` (either sign), the large ones often."""
+    return st.floats(-limit, limit, allow_nan=False, allow_infinity=False) | st.sampled_from(
+        [1e154, -1e160, 1e200, 1.7e308]
+    )
+
+
+@given(
+    omega=st.tuples(huge(1.7e308), huge(1.7e308), huge(1.7e308)),
+    torque=st.tuples(huge(1.7e308), huge(1.7e308), huge(1.7e308)),
+)
+def test_the_float_step_never_raises_on_finite_input(omega, torque):
+    """A spin whose square overflows (|w| above about 1e154 rad/s, or a torque that makes
+    one) gives a non-finite pose, as the compiled step does, instead of a math error; the
+    loop's object check then sees the spin beyond its limit and ends the run."""
+    from hapticd.servo import MAX_OBJECT_SPIN_RAD_PER_S
+
+    obj = SceneObject(
+        ConvexShape.box(np.array([0.05, 0.04, 0.03])),
+        Material(500.0),
+        np.zeros(3),
+        np.eye(3),
+        fixed=False,
+        mass=0.1,
+        velocity=np.zeros(3),
+        omega=np.array(omega),
+    )
+    step_body_small(obj, (0.0, 0.0, 0.0), torque, DT, substeps=2)
+    if not np.all(np.isfinite(obj.rotation)):
+        spin = np.hypot.reduce(np.abs(obj.omega)) if np.all(np.isfinite(obj.omega)) else np.inf
+        assert not spin <= MAX_OBJECT_SPIN_RAD_PER_S  # NaN counts as beyond: the check's way

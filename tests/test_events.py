@@ -365,9 +365,12 @@ def test_a_stalled_subscriber_is_dropped_and_the_loop_goes_on(daemon, tmp_path, 
             got += chunk
         else:
             pytest.fail("the stalled subscriber was never disconnected")
-    # What it got is whole events, in order, from the first tick on: a prefix of the stream.
-    assert got.endswith(b"\n")
-    head_ticks = [json.loads(line)["tick"] for line in got.splitlines()]
+    # What it got is a prefix of the stream: whole events, in order, from the first tick on;
+    # the last line may be cut where the socket's buffer was full when the server dropped it
+    # (where it is cut depends on how far the kernel had sent: a line without its newline is
+    # unfinished, and a line reader never returns it).
+    lines = got.split(b"\n")[:-1]
+    head_ticks = [json.loads(line)["tick"] for line in lines]
     assert len(head_ticks) > 100 and head_ticks[0] == 1 and head_ticks == sorted(head_ticks)
 
 

@@ -175,7 +175,10 @@ def test_three_contacts_and_several_directions_run_the_general_path(compiled):
         },
     }
     ref = _outputs(case, None)
-    assert not isinstance(ref, str) and np.count_nonzero(ref["lam_a"]) == 3
+    # The squeeze along x is rendered whole; the third finger's vertical actuator has no
+    # vertical force to render (0 within rounding: its exact value is the library's).
+    assert not isinstance(ref, str)
+    np.testing.assert_allclose(ref["lam_a"], [1.0, 1.0, 0.0], rtol=0, atol=1e-12)
     _assert_same(ref, _outputs(case, compiled))
     calls = []
     stage, three = _stage(case, lambda *a: calls.append(a) or kernels.ALLOCATED)
@@ -185,7 +188,10 @@ def test_three_contacts_and_several_directions_run_the_general_path(compiled):
         getattr(frame, name)[...] = getattr(three, name)
     frame.in_contact[2] = 0
     stage.run(frame)
-    assert calls == [] and np.count_nonzero(frame.lam_a) == 3
+    assert calls == []
+    # thumb x, thumb y, index x, the third finger (not in contact): the squeeze whole, no
+    # y force to render, nothing for a finger out of contact.
+    np.testing.assert_allclose(frame.lam_a, [1.0, 0.0, -1.0, 0.0], rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -232,20 +233,27 @@ code = main(["run", {profile!r}, "--unpaced", "--no-socket", "--no-realtime",
 """
 
 
+def _python(code: str, cache: Path, timeout: float) -> subprocess.CompletedProcess:
+    """Run ``code`` in a Python process of its own with numba's cache in ``cache``; it must
+    succeed."""
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+        env={**os.environ, "NUMBA_CACHE_DIR": str(cache)},
+    )
+    assert out.returncode == 0, out.stderr
+    return out
+
+
 def _run_lift(tmp_path: Path, setup: str, mode: str, cache: Path) -> tuple[str, dict]:
     """Run the lift for 0.3 s in a subprocess after ``setup``; its stderr and summary."""
     summary = tmp_path / "s.json"
     extra = f", '--set', 'rendering.kernels={mode}'"
     code = setup + "import sys\n" + RUN.format(profile=str(LIFT), summary=str(summary), extra=extra)
-    out = subprocess.run(
-        [sys.executable, "-c", code + "sys.exit(code)\n"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        cwd=ROOT,
-        env={**os.environ, "NUMBA_CACHE_DIR": str(cache)},
-    )
-    assert out.returncode == 0, out.stderr
+    out = _python(code + "sys.exit(code)\n", cache, 120)
     s = json.loads(summary.read_text())
     assert s["fault"] is None and s["ticks"] == 300
     summary.unlink()
@@ -539,3 +547,125 @@ def test_a_moved_object_makes_its_polytope_again():
         moved.offsets - first.offsets, moved.normals[:, 0] * 0.01, atol=1e-15
     )
     np.testing.assert_array_equal(moved.center, (0.01, 0.0, 0.0))
+
+
+# -- a damaged or mismatched cache -----------------------------------------------------
+
+SMALL = ["world_planes", "forces_step"]  # two kernels that compile quickly
+# In a process of its own (numba's cache folder is chosen when it is imported): choose the
+# kernels, with the background compiler recorded instead of started, and call world_planes
+# (a swapped cache held forces_step's code there: "No matching definition" at the first tick).
+DAMAGED = """
+import json, sys
+import numpy as np
+from hapticd import jit
+started = []
+jit._spawn = started.append
+c = jit.choose({mode!r}, {names!r})
+out = None
+if c.used == "compiled":
+    planes = np.zeros((1, 4))
+    c.kernels["world_planes"](np.eye(3), np.ones(3), np.eye(3)[:1].copy(), np.ones(1), planes)
+    out = planes[0].tolist()
+print(json.dumps({{"used": c.used, "message": c.message, "note": c.note, "started": len(started),
+                  "out": out}}))
+"""
+
+
+def _choose_in(cache: Path, mode: str) -> dict:
+    out = _python(DAMAGED.format(mode=mode, names=SMALL), cache, 300)
+    return json.loads(out.stdout.splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def small_cache(tmp_path_factory) -> Path:
+    """A cache folder holding SMALL compiled (copy it before damaging it)."""
+    cache = tmp_path_factory.mktemp("small") / "cache"
+    assert _choose_in(cache, "compiled")["used"] == "compiled"
+    return cache
+
+
+def _copy(small_cache: Path, tmp_path: Path) -> tuple[Path, dict[str, Path]]:
+    """A copy of ``small_cache`` and its code file (.nbc) of each kernel of SMALL."""
+    cache = tmp_path / "cache"
+    shutil.copytree(small_cache, cache)
+    code = {n: next(cache.rglob(f"kernels.{n}-*.nbc")) for n in SMALL}
+    return cache, code
+
+
+def _swap(code: dict[str, Path]) -> None:
+    a, b = code["world_planes"], code["forces_step"]
+    data = a.read_bytes()
+    a.write_bytes(b.read_bytes())
+    b.write_bytes(data)
+
+
+PLANES = [1.0, 0.0, 0.0, 2.0]  # world_planes at x = (1, 1, 1) for the normal (1, 0, 0), d = 1
+
+
+def test_a_damaged_or_swapped_cache_is_compiled_again(small_cache, tmp_path):
+    """forces_step's code file holds world_planes' code (a swap), world_planes' is cut
+    short (damaged): both are removed and compiled again, and a message names the cache."""
+    cache, code = _copy(small_cache, tmp_path)
+    data = code["world_planes"].read_bytes()
+    code["forces_step"].write_bytes(data)
+    code["world_planes"].write_bytes(data[:100])
+    got = _choose_in(cache, "compiled")
+    assert got["used"] == "compiled" and got["out"] == PLANES, got
+    folder = code["world_planes"].parent
+    assert f"numba's cache of world_planes in {folder} could not be read" in got["note"], got
+    assert (
+        f"numba's cache of forces_step in {folder} held another kernel's code (world_planes)"
+        in got["note"]
+    ), got
+    # Repaired: the next run loads them without a word.
+    again = _choose_in(cache, "compiled")
+    assert again["note"] is None and again["out"] == PLANES, again
+
+
+def test_auto_renders_python_and_compiles_in_the_background_after_a_swapped_cache(
+    small_cache, tmp_path
+):
+    cache, code = _copy(small_cache, tmp_path)
+    _swap(code)
+    got = _choose_in(cache, "auto")
+    assert got["used"] == "python" and got["started"] == 1, got
+    assert f"numba's cache of world_planes in {code['world_planes'].parent}" in got["message"]
+    assert "compiling world_planes, forces_step in the background" in got["message"]
+    assert not code["world_planes"].exists()  # removed: the compiler writes it anew
+
+
+def test_auto_takes_an_index_without_its_code_for_not_cached(small_cache, tmp_path):
+    """numba would compile such a kernel in the foreground (seconds at the first tick's
+    door); auto leaves it to the background compiler like any kernel not cached."""
+    cache, code = _copy(small_cache, tmp_path)
+    code["forces_step"].unlink()
+    got = _choose_in(cache, "auto")
+    assert got["used"] == "python" and got["started"] == 1, got
+    assert "compiling world_planes, forces_step in the background" in got["note"]
+
+
+STAMPED = """
+import json
+from hapticd import jit, kernels
+kernels.SOURCES = (*kernels.SOURCES, *{extra!r})
+f = jit.compile_kernels(["world_planes"])["world_planes"]
+print(json.dumps([sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]))
+"""
+
+
+def test_a_kernel_whose_helpers_changed_is_compiled_again(small_cache, tmp_path):
+    """numba's cache knows only kernels.py's stamp; a kernel compiles in code from other
+    files too (the allocation's closed forms), so a change to any of ``kernels.SOURCES``
+    must not load the old machine code."""
+    cache, _ = _copy(small_cache, tmp_path)
+    helper = tmp_path / "helper.py"
+    helper.write_text("x = 1\n")
+
+    def hits_and_misses(extra: list[str]) -> list[int]:
+        out = _python(STAMPED.format(extra=extra), cache, 300)
+        return json.loads(out.stdout.splitlines()[-1])
+
+    assert hits_and_misses([]) == [1, 0]  # unchanged: loaded
+    assert hits_and_misses([str(helper)]) == [0, 1]  # a source it depends on: compiled
+    assert hits_and_misses([str(helper)]) == [1, 0]  # and cached for that source

@@ -34,7 +34,8 @@ def test_the_readme_says_how_its_commands_find_hapticd():
     bare `hapticd ...` commands need the venv activated, and must say so."""
     text = (ROOT / "README.md").read_text()
     quick = text.split("## Quick start", 1)[1].split("\n## ", 1)[0]
-    assert ".venv/bin/pip install -e . &&" in quick  # the first command: no extras, fast
+    # The first command installs the run lock (no development tools): fast.
+    assert ".venv/bin/pip install -r requirements/run.txt &&" in quick
     using = text.split("## Using it", 1)[1].split("\n## ", 1)[0]
     first = using.split("```sh", 1)[1].split("```", 1)[0]
     commands = [c for ln in first.splitlines() if (c := ln.split("#")[0].strip())]

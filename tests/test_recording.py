@@ -167,7 +167,7 @@ def test_the_ring_writer_reports_a_write_failure(tmp_path):
     ring.drain(rec._ring_fd, os.open("/dev/full", os.O_WRONLY), "/dev/full", os.getppid())
     assert "writing /dev/full failed" in rec.error
     os.kill(rec._proc.pid, signal.SIGKILL)
-    with pytest.raises(RecordingError, match="No space left"):
+    with pytest.raises(RecordingError, match="writing /dev/full failed"):
         rec.close()
 
 
@@ -247,3 +247,29 @@ def test_a_paced_recorder_takes_a_stale_drained_count_for_what_it_is(tmp_path):
     status = rec.close()
     assert status["dropped"] == 0 and status["written"] == 6
     np.testing.assert_array_equal(read(tmp_path / "x.hrec")["t"], np.arange(6))
+
+
+def test_csv_columns_name_every_per_finger_field_by_finger(tmp_path):
+    """Every field the tick frame declares per finger (first axis "F") is labelled by finger
+    name in a CSV export, 3-vectors by axis: ``contact_point.thumb.x``, ``buttons.index``."""
+    from hapticd.frame import FIELDS
+    from hapticd.recording.export import csv_columns
+
+    fields = loop_fields(2, 3)
+    data = np.zeros(4, dtype=recording.make_dtype(fields))
+    rec = recording.Recording(tmp_path / "r.hrec", data, fields, ["thumb", "index"], {}, 0)
+    cols = csv_columns(rec)
+    recorded = {f.name for f in fields}
+    per_finger = [f for f in FIELDS if f.shape[:1] == ("F",) and f.name in recorded]
+    assert {f.name for f in per_finger} >= {"contact_point", "contact_normal", "buttons"}
+    for f in per_finger:
+        for finger in ("thumb", "index"):
+            if f.shape == ("F", 3):
+                assert [f"{f.name}.{finger}.{a}" for a in "xyz"] == [
+                    c for c in cols if c.startswith(f"{f.name}.{finger}.")
+                ], f.name
+            else:
+                assert f"{f.name}.{finger}" in cols, f.name
+        assert not any(c.startswith(f"{f.name}.0") for c in cols), f.name
+    assert "lam_a.2" in cols and "object_pos.z" in cols and "object_rot.2.y" in cols
+    assert len(cols) == len(set(cols)) == sum(int(np.prod(f.shape)) for f in fields)

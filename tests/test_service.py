@@ -1,8 +1,7 @@
-"""The service: sd_notify messages, the systemd unit, the default socket path."""
+"""The service: sd_notify messages, the default socket path (the unit: test_service_unit)."""
 
 from __future__ import annotations
 
-import configparser
 import contextlib
 import os
 import signal
@@ -152,22 +151,6 @@ def test_notify_reaches_an_abstract_socket():
         s.bind("\0" + name)
         assert sdnotify.notify("STATUS=hi", {"NOTIFY_SOCKET": "@" + name})
         assert s.recv(100) == b"STATUS=hi"
-
-
-def test_the_systemd_unit_has_what_the_daemon_needs():
-    unit = configparser.ConfigParser(strict=False, interpolation=None)
-    unit.optionxform = str
-    unit.read(ROOT / "configs" / "systemd" / "hapticd.service")
-    svc = unit["Service"]
-    assert svc["Type"] == "notify"
-    assert svc["ExecStart"].split()[1:3] == ["run", "/etc/hapticd/profile.yaml"]
-    assert svc["ExecReload"].endswith("kill -HUP $MAINPID")
-    assert svc["RuntimeDirectory"] == "hapticd" and svc["RuntimeDirectoryMode"] == "0700"
-    assert svc["StateDirectory"] == "hapticd" and svc["StateDirectoryMode"] == "0700"
-    assert svc["LimitRTPRIO"] == "99" and svc["LimitMEMLOCK"] == "infinity"
-    assert svc["Restart"] == "on-abnormal" and "WatchdogSec" in svc
-    assert "RestrictRealtime" not in svc  # it would forbid SCHED_FIFO
-    assert unit["Install"]["WantedBy"] == "multi-user.target"
 
 
 def test_default_socket_path_follows_the_environment(monkeypatch, tmp_path):

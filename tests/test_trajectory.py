@@ -42,7 +42,12 @@ def test_bundled_trajectory_regenerates_to_rounding(tmp_path):
         capture_output=True,
     )
     made = sorted(tmp_path.glob("*.hrec"))
-    assert [p.name for p in made] == ["grasp-stiffness.hrec", "lift-weight.hrec"]
+    assert [p.name for p in made] == [
+        "grasp-cycle.hrec",
+        "grasp-stiffness.hrec",
+        "lift-cycle.hrec",
+        "lift-weight.hrec",
+    ]
     for path in made:
         new, old = recording.read(path), recording.read(builtin_trajectory(path.stem))
         assert (new.fields, new.fingers, new.meta) == (old.fields, old.fingers, old.meta)

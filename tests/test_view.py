@@ -1137,7 +1137,7 @@ def test_a_daemon_without_prompts_says_so_to_the_page(fake):
     [
         (b"", "the daemon closed the connection"),
         (b"[1, 2]\n", "the greeting is not an object"),
-        (b"{not json\n", "Expecting property name"),
+        (b"{not json\n", "the daemon sent a line that is not JSON: '{not json'"),
     ],
 )
 def test_a_daemon_that_closes_before_greeting_leaves_no_socket_open(tmp_path, greeting, error):

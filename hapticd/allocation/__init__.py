@@ -51,6 +51,7 @@ from hapticd.allocation.accuracy import (
 from hapticd.allocation.adaptive import AdaptiveState, external_ratio, smoothstep
 from hapticd.allocation.batch import allocate_many
 from hapticd.allocation.closed import (
+    adaptive_mix,
     one_contact,
     two_contact,
     two_contact_ef,
@@ -154,7 +155,7 @@ def allocate(
         x_if = _robust("if", G, M_a, lam, robust, fast)
         if alpha == 0.0:
             return x_if
-        return (1.0 - alpha) * x_if + alpha * _robust("ef", G, M_a, lam, robust, fast)
+        return adaptive_mix(x_if, _robust("ef", G, M_a, lam, robust, fast), alpha)
     return _robust(method, G, M_a, lam, robust, fast)
 
 
@@ -171,6 +172,7 @@ __all__ = [
     "AllocationError",
     "Robustness",
     "accuracy",
+    "adaptive_mix",
     "allocate",
     "allocate_many",
     "contact_offsets",

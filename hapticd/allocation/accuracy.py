@@ -42,10 +42,11 @@ def accuracy(G: np.ndarray, M_a: np.ndarray, lam: np.ndarray, lam_a: np.ndarray)
     )
 
 
-def two_contact_accuracy(
+def two_contact_residuals(
     r1: V3, r2: V3, d1: V3, d2: V3, l1: V3, l2: V3, x0: float, x1: float
-) -> Accuracy:
-    """``accuracy`` for two contacts with one direction each, in closed form."""
+) -> tuple[float, float, float, float]:
+    """``accuracy`` for two contacts with one direction each, in closed form, as the tuple
+    (internal, external, total, amplification) (compiled code calls it too)."""
     q1 = (l1[0] - x0 * d1[0], l1[1] - x0 * d1[1], l1[2] - x0 * d1[2])
     q2 = (l2[0] - x1 * d2[0], l2[1] - x1 * d2[1], l2[2] - x1 * d2[2])
     diff = (q1[0] - q2[0], q1[1] - q2[1], q1[2] - q2[2])
@@ -62,15 +63,28 @@ def two_contact_accuracy(
     total = math.sqrt(_dot(q1, q1) + _dot(q2, q2))
     n_lam = math.sqrt(_dot(l1, l1) + _dot(l2, l2))
     rendered = math.sqrt(x0 * x0 * _dot(d1, d1) + x1 * x1 * _dot(d2, d2))
-    return Accuracy(internal, external, total, rendered / n_lam if n_lam > 0 else 0.0)
+    return internal, external, total, rendered / n_lam if n_lam > 0 else 0.0
 
 
-def one_contact_accuracy(r: V3, d: V3, lam: V3, x: float) -> Accuracy:
-    """``accuracy`` for one contact with one direction: no internal forces exist."""
+def one_contact_residuals(r: V3, d: V3, lam: V3, x: float) -> tuple[float, float, float, float]:
+    """``accuracy`` for one contact with one direction (no internal forces exist), as the
+    tuple (internal, external, total, amplification) (compiled code calls it too)."""
     q = (lam[0] - x * d[0], lam[1] - x * d[1], lam[2] - x * d[2])
     t = _cross(r, q)
     n_lam = math.sqrt(_dot(lam, lam))
     total = math.sqrt(_dot(q, q))
     external = math.sqrt(_dot(q, q) + _dot(t, t))
     amp = abs(x) * math.sqrt(_dot(d, d)) / n_lam if n_lam > 0 else 0.0
-    return Accuracy(0.0, external, total, amp)
+    return 0.0, external, total, amp
+
+
+def two_contact_accuracy(
+    r1: V3, r2: V3, d1: V3, d2: V3, l1: V3, l2: V3, x0: float, x1: float
+) -> Accuracy:
+    """``accuracy`` for two contacts with one direction each, in closed form."""
+    return Accuracy(*two_contact_residuals(r1, r2, d1, d2, l1, l2, x0, x1))
+
+
+def one_contact_accuracy(r: V3, d: V3, lam: V3, x: float) -> Accuracy:
+    """``accuracy`` for one contact with one direction: no internal forces exist."""
+    return Accuracy(*one_contact_residuals(r, d, lam, x))

@@ -6,8 +6,8 @@ forces in N, lengths in m. Pure: numpy in, numpy out.
 Same methods and the same filtered-gain scheme as ``allocate()``:
 
 - two contacts with one direction each (the closed form ``allocate()`` takes) run
-  the closed form of ``hapticd.allocation.closed`` elementwise over the batch, in
-  the same operation order (equal to rounding);
+  the closed forms of ``hapticd.allocation.closed`` themselves, elementwise over
+  the batch (the same code on arrays);
 - every other grasp takes the general path on Gram matrices: a filtered
   pseudoinverse g(s) = 1/s or s/eps^2 of A is F(A^T A) A^T with F the spectral
   function 1/max(l, eps^2) of the Gram matrix. Where every eigenvalue is at
@@ -27,9 +27,8 @@ from __future__ import annotations
 import numpy as np
 
 from hapticd import params
-from hapticd.allocation.closed import _apply, _cross, _dot, _mul2, _sandwich, _soft_line
+from hapticd.allocation.closed import adaptive_mix, two_contact
 from hapticd.allocation.robust import (
-    _TINY,
     DEFAULT_ROBUSTNESS,
     AllocationError,
     Robustness,
@@ -95,89 +94,7 @@ def _check(
 
 # -- the two-contact closed form, elementwise over the batch ---------------------------------
 #
-# Same formulas and operation order as hapticd.allocation.closed (whose helpers _dot,
-# _cross, _mul2, ... work on tuples of arrays as they do on tuples of floats); the branches
-# become np.where with safe denominators.
-
-
-def _safe(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """x where ok, else 1 (a denominator in a branch np.where discards)."""
-    return np.where(ok, x, 1.0)
-
-
-def _finv2_v(a: np.ndarray, b: np.ndarray, c: np.ndarray, eps2: float) -> tuple:
-    """Vectorised closed._finv2: filtered inverse of [[a, b], [b, c]]."""
-    mean = 0.5 * (a + c)
-    half = 0.5 * (a - c)
-    rad = np.sqrt(half * half + b * b)
-    l2 = mean - rad
-    reg = l2 >= eps2
-    det = _safe(a * c - b * b, reg)
-    l1 = mean + rad
-    h2 = 1.0 / eps2
-    big1 = l1 >= eps2
-    h1 = np.where(big1, 1.0 / _safe(l1, big1), h2)
-    same = h1 == h2
-    s = (h1 - h2) / _safe(l1 - l2, ~(reg | same))
-    out0 = np.where(reg, c / det, np.where(same, h2, h2 + s * (a - l2)))
-    out1 = np.where(reg, -b / det, np.where(same, 0.0, s * b))
-    out2 = np.where(reg, a / det, np.where(same, h2, h2 + s * (c - l2)))
-    return out0, out1, out2
-
-
-def _two_pinv_v(d1, d2, l1, l2, eps: float) -> tuple[np.ndarray, np.ndarray]:
-    eps2 = eps * eps
-    k1, k2 = _dot(d1, d1), _dot(d2, d2)
-    g1 = np.where(k1 >= eps2, 1.0 / _safe(k1, k1 >= eps2), 1.0 / eps2)
-    g2 = np.where(k2 >= eps2, 1.0 / _safe(k2, k2 >= eps2), 1.0 / eps2)
-    return g1 * _dot(d1, l1), g2 * _dot(d2, l2)
-
-
-def _two_ef_v(r1, r2, d1, d2, l1, l2, eps: float) -> tuple[np.ndarray, np.ndarray]:
-    m1, m2 = _cross(r1, d1), _cross(r2, d2)
-    f = (l1[0] + l2[0], l1[1] + l2[1], l1[2] + l2[2])
-    t1, t2 = _cross(r1, l1), _cross(r2, l2)
-    t = (t1[0] + t2[0], t1[1] + t2[1], t1[2] + t2[2])
-    K = (_dot(d1, d1) + _dot(m1, m1), _dot(d1, d2) + _dot(m1, m2), _dot(d2, d2) + _dot(m2, m2))
-    y0 = _dot(d1, f) + _dot(m1, t)
-    y1 = _dot(d2, f) + _dot(m2, t)
-    return _apply(_finv2_v(*K, eps * eps), y0, y1)
-
-
-def _grasp_line_v(r1, r2, min_sep: float) -> tuple[tuple, np.ndarray]:
-    dx, dy, dz = r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2]
-    dist = np.sqrt(dx * dx + dy * dy + dz * dz)
-    near = dist < min_sep
-    q = dist / min_sep
-    w = np.where(near, 1.0 - q * q, 0.0)
-    apart = dist > _TINY
-    sd = _safe(dist, apart)
-    e = (
-        np.where(apart, dx / sd, 1.0),
-        np.where(apart, dy / sd, 0.0),
-        np.where(apart, dz / sd, 0.0),
-    )
-    return e, np.where(apart, w, 1.0)  # coincident: w = 1 makes e irrelevant
-
-
-def _two_if_v(r1, r2, d1, d2, l1, l2, eps: float, min_sep: float) -> tuple:
-    eps2 = eps * eps
-    e, w = _grasp_line_v(r1, r2, min_sep)
-    a1, a2 = _soft_line(e, w, d1), _soft_line(e, w, d2)
-    s = _soft_line(e, w, (l1[0] - l2[0], l1[1] - l2[1], l1[2] - l2[2]))
-    KB = (0.5 * _dot(a1, a1), -0.5 * _dot(a1, a2), 0.5 * _dot(a2, a2))
-    FB = _finv2_v(*KB, eps2)
-    x0, x1 = _apply(FB, 0.5 * _dot(a1, s), -0.5 * _dot(a2, s))
-    r00, r01, _, r11 = _mul2(FB, KB)
-    P = (1.0 - r00, -r01, 1.0 - r11)
-    k1, k2 = _dot(d1, d1), _dot(d2, d2)
-    m0 = _dot(d1, l1) - x0 * k1
-    m1 = _dot(d2, l2) - x1 * k2
-    FP = _finv2_v(*_sandwich(P, (k1, 0.0, k2)), eps2)
-    v0, v1 = _apply(P, m0, m1)
-    v0, v1 = _apply(FP, v0, v1)
-    v0, v1 = _apply(P, v0, v1)
-    return x0 + v0, x1 + v1
+# hapticd.allocation.closed's functions themselves, on tuples of arrays (one entry per grasp).
 
 
 def _two_contact_v(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust) -> tuple:
@@ -190,11 +107,7 @@ def _two_contact_v(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, r
     r1, r2 = (r[0], r[1], r[2]), (r[3], r[4], r[5])
     d1, d2 = (d[0], d[1], d[2]), (d[3], d[4], d[5])
     l1, l2 = (f[0], f[1], f[2]), (f[3], f[4], f[5])
-    if method == "pinv":
-        return _two_pinv_v(d1, d2, l1, l2, robust.eps)
-    if method == "ef":
-        return _two_ef_v(r1, r2, d1, d2, l1, l2, robust.eps)
-    return _two_if_v(r1, r2, d1, d2, l1, l2, robust.eps, robust.min_separation_m)
+    return two_contact(method, r1, r2, d1, d2, l1, l2, robust.eps, robust.min_separation_m)
 
 
 # -- the general path on Gram matrices --------------------------------------------------------
@@ -495,5 +408,5 @@ def _allocate_chunk(
     Mi = M if M.ndim == 2 else M[idx]
     x_ef = _robust_many("ef", G[idx], Mi, lam[idx], robust)
     ai = a[idx, None]
-    x_if[idx] = (1.0 - ai) * x_if[idx] + ai * x_ef
+    x_if[idx] = adaptive_mix(x_if[idx], x_ef, ai)
     return x_if

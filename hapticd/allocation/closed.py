@@ -1,8 +1,18 @@
-"""Closed forms on plain floats for one contact, and for two contacts with one direction each.
+"""Closed forms for one contact, and for two contacts with one direction each: written once.
 
 Equal to the general path (``hapticd.allocation.robust``) to rounding, and much
 cheaper per tick. Vectors are 3-tuples: offsets r (m), directions d (unit),
-forces l (N).
+forces l (N); their components are floats (one grasp) or arrays of equal shape
+(a batch, elementwise: ``hapticd.allocation.batch``). The servo loop's Python
+path, its compiled kernel (``hapticd.kernels.allocation_step``, which hapticd.jit
+compiles with these functions: ``KERNEL_HELPERS``), ``allocate()`` and
+``allocate_many`` all evaluate these same functions.
+
+The three steps that branch on a value (the filtered 2x2 inverse ``_finv2``, the
+filtered gain ``_gain`` and the grasp line ``_grasp_line``) come in a form on
+floats (what compiled code runs) and an elementwise form on arrays (np.where,
+with safe denominators), chosen by the argument's type; everything else is
+arithmetic that works on both.
 """
 
 from __future__ import annotations
@@ -29,8 +39,7 @@ def _cross(u: V3, v: V3) -> V3:
     return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
 
 
-def _finv2(a: float, b: float, c: float, eps2: float) -> Sym2:
-    """Filtered inverse of [[a, b], [b, c]] (symmetric PSD): eigenvalues l -> 1/l or 1/eps2."""
+def _finv2_floats(a: float, b: float, c: float, eps2: float) -> Sym2:
     mean = 0.5 * (a + c)
     half = 0.5 * (a - c)
     rad = math.sqrt(half * half + b * b)
@@ -46,6 +55,59 @@ def _finv2(a: float, b: float, c: float, eps2: float) -> Sym2:
     # f(K) = h2 I + (h1 - h2) P1 with the spectral projector P1 = (K - l2 I) / (l1 - l2).
     s = (h1 - h2) / (l1 - l2)
     return h2 + s * (a - l2), s * b, h2 + s * (c - l2)
+
+
+def _safe(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """x where ok, else 1 (a denominator in a branch np.where discards)."""
+    return np.where(ok, x, 1.0)
+
+
+def _finv2_arrays(a: np.ndarray, b: np.ndarray, c: np.ndarray, eps2: float) -> tuple:
+    mean = 0.5 * (a + c)
+    half = 0.5 * (a - c)
+    rad = np.sqrt(half * half + b * b)
+    l2 = mean - rad
+    reg = l2 >= eps2
+    det = _safe(a * c - b * b, reg)
+    l1 = mean + rad
+    h2 = 1.0 / eps2
+    big1 = l1 >= eps2
+    h1 = np.where(big1, 1.0 / _safe(l1, big1), h2)
+    same = h1 == h2
+    s = (h1 - h2) / _safe(l1 - l2, ~(reg | same))
+    out0 = np.where(reg, c / det, np.where(same, h2, h2 + s * (a - l2)))
+    out1 = np.where(reg, -b / det, np.where(same, 0.0, s * b))
+    out2 = np.where(reg, a / det, np.where(same, h2, h2 + s * (c - l2)))
+    return out0, out1, out2
+
+
+def _finv2(a, b, c, eps2: float):
+    """Filtered inverse of [[a, b], [b, c]] (symmetric PSD): eigenvalues l -> 1/l or
+    1/eps2, as (a', b', c'); on floats or elementwise on arrays."""
+    if isinstance(a, np.ndarray):
+        return _finv2_arrays(a, b, c, eps2)
+    return _finv2_floats(a, b, c, eps2)
+
+
+def _gain_floats(k: float, eps2: float) -> float:
+    return 1.0 / k if k >= eps2 else 1.0 / eps2
+
+
+def _gain_arrays(k: np.ndarray, eps2: float) -> np.ndarray:
+    return np.where(k >= eps2, 1.0 / _safe(k, k >= eps2), 1.0 / eps2)
+
+
+def _gain(k, eps2: float):
+    """Filtered gain 1/k (k >= eps2) or 1/eps2 of a squared length k; floats or arrays."""
+    if isinstance(k, np.ndarray):
+        return _gain_arrays(k, eps2)
+    return _gain_floats(k, eps2)
+
+
+def adaptive_mix(x_if, x_ef, alpha):
+    """The adaptive allocator: (1 - alpha) IF + alpha EF, alpha the external weight in
+    [0, 1] (floats, or arrays that broadcast)."""
+    return (1.0 - alpha) * x_if + alpha * x_ef
 
 
 def _mul2(x: Sym2, y: Sym2) -> tuple[float, float, float, float]:
@@ -75,9 +137,8 @@ def _apply(m: Sym2, v0: float, v1: float) -> tuple[float, float]:
 def two_contact_pinv(d1: V3, d2: V3, l1: V3, l2: V3, eps: float) -> tuple[float, float]:
     """Robust pinv for two fingers with one unit direction each."""
     eps2 = eps * eps
-    k1, k2 = _dot(d1, d1), _dot(d2, d2)
-    g1 = 1.0 / k1 if k1 >= eps2 else 1.0 / eps2
-    g2 = 1.0 / k2 if k2 >= eps2 else 1.0 / eps2
+    g1 = _gain(_dot(d1, d1), eps2)
+    g2 = _gain(_dot(d2, d2), eps2)
     return g1 * _dot(d1, l1), g2 * _dot(d2, l2)
 
 
@@ -95,32 +156,66 @@ def two_contact_ef(
     return _apply(_finv2(*K, eps * eps), y0, y1)
 
 
+def one_contact_pinv(d: V3, lam: V3, eps: float) -> float:
+    """Robust pinv (and IF: with one contact N(G) = {0}) for one contact with one direction."""
+    eps2 = eps * eps
+    k = _dot(d, d)
+    return _dot(d, lam) / (k if k >= eps2 else eps2)
+
+
+def one_contact_ef(r: V3, d: V3, lam: V3, eps: float) -> float:
+    """Robust EF for one contact with one direction: matches the contact's wrench."""
+    eps2 = eps * eps
+    m = _cross(r, d)
+    K = _dot(d, d) + _dot(m, m)
+    return (_dot(d, lam) + _dot(m, _cross(r, lam))) / (K if eps2 <= K else eps2)
+
+
 def one_contact(method: str, r: V3, d: V3, lam: V3, eps: float, alpha: float = 0.0) -> float:
     """Robust allocation for one contact with one direction (closed form of the general path).
 
     With one contact N(G) = {0}, so IF is pinv; EF matches the contact's wrench.
     """
-    eps2 = eps * eps
-    k = _dot(d, d)
-    x_pinv = _dot(d, lam) / (k if k >= eps2 else eps2)
+    x_pinv = one_contact_pinv(d, lam, eps)
     if method in ("pinv", "if") or (method == "adaptive" and alpha == 0.0):
         return x_pinv
-    m = _cross(r, d)
-    K = k + _dot(m, m)
-    x_ef = (_dot(d, lam) + _dot(m, _cross(r, lam))) / (K if eps2 <= K else eps2)
+    x_ef = one_contact_ef(r, d, lam, eps)
     if method == "ef":
         return x_ef
-    return (1.0 - alpha) * x_pinv + alpha * x_ef
+    return adaptive_mix(x_pinv, x_ef, alpha)
 
 
-def _grasp_line(r1: V3, r2: V3, min_sep: float) -> tuple[V3, float]:
-    """Unit grasp line e (first to second contact) and the blend w toward all opposing pairs."""
+def _grasp_line_floats(r1: V3, r2: V3, min_sep: float) -> tuple[V3, float]:
     dx, dy, dz = r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2]
     dist = math.sqrt(dx * dx + dy * dy + dz * dz)
     w = 1.0 - (dist / min_sep) ** 2 if dist < min_sep else 0.0
     if dist > _TINY:
         return (dx / dist, dy / dist, dz / dist), w
     return (1.0, 0.0, 0.0), 1.0  # coincident: w = 1 makes e irrelevant
+
+
+def _grasp_line_arrays(r1, r2, min_sep: float) -> tuple[tuple, np.ndarray]:
+    dx, dy, dz = r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2]
+    dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+    near = dist < min_sep
+    q = dist / min_sep
+    w = np.where(near, 1.0 - q * q, 0.0)
+    apart = dist > _TINY
+    sd = _safe(dist, apart)
+    e = (
+        np.where(apart, dx / sd, 1.0),
+        np.where(apart, dy / sd, 0.0),
+        np.where(apart, dz / sd, 0.0),
+    )
+    return e, np.where(apart, w, 1.0)  # coincident: w = 1 makes e irrelevant
+
+
+def _grasp_line(r1, r2, min_sep: float):
+    """Unit grasp line e (first to second contact) and the blend w toward all opposing
+    pairs; on floats or elementwise on arrays."""
+    if isinstance(r1[0], np.ndarray):
+        return _grasp_line_arrays(r1, r2, min_sep)
+    return _grasp_line_floats(r1, r2, min_sep)
 
 
 def _soft_line(e: V3, w: float, v: V3) -> V3:
@@ -192,4 +287,25 @@ def two_contact(
     if method != "adaptive" or alpha == 0.0:
         return x_if
     y0, y1 = two_contact_ef(r1, r2, d1, d2, l1, l2, eps)
-    return (1.0 - alpha) * x_if[0] + alpha * y0, (1.0 - alpha) * x_if[1] + alpha * y1
+    return adaptive_mix(x_if[0], y0, alpha), adaptive_mix(x_if[1], y1, alpha)
+
+
+# What compiled code calls (hapticd.jit makes them callable from a kernel). Those that
+# branch on the argument's type run their float form there (``FLOAT_FORMS``).
+KERNEL_HELPERS = (
+    _dot,
+    _cross,
+    _mul2,
+    _sandwich,
+    _apply,
+    _soft_line,
+    _finv2,
+    _gain,
+    _grasp_line,
+    two_contact_pinv,
+    two_contact_ef,
+    two_contact_if,
+    one_contact_pinv,
+    one_contact_ef,
+)
+FLOAT_FORMS = {_finv2: _finv2_floats, _gain: _gain_floats, _grasp_line: _grasp_line_floats}

@@ -99,6 +99,33 @@ class ContactAllocator:
             raise AllocationError(f"allocator {self.method!r} produced a non-finite force")
         return lam_a, self._measure(contacts, world, points, forces, center, lam_a)
 
+    def replay(
+        self,
+        in_contact: np.ndarray,
+        device_pos: np.ndarray,
+        points: np.ndarray,
+        forces: np.ndarray,
+        centers: np.ndarray,
+    ) -> np.ndarray:
+        """lam_a (N, r) N over N recorded ticks, tick by tick as the loop's Allocation stage
+        allocates them: the same per-tick code (contact onset, the adaptive allocator's
+        alpha following the task from its value now), so a recording's allocation is the
+        loop's. ``in_contact`` (N, F), ``device_pos``, ``points`` (m) and ``forces`` (N)
+        (N, F, 3) are the frame's fields per tick; ``centers`` (N, 3) m the grasp's
+        reference point the tick allocated about (the object's position before the tick's
+        dynamics moved it)."""
+        n = len(in_contact)
+        out = np.zeros((n, self.actuation.n_actuators))
+        touching, pos = np.asarray(in_contact).tolist(), np.asarray(device_pos).tolist()
+        pts, lam, ctr = np.asarray(points).tolist(), np.asarray(forces).tolist(), centers.tolist()
+        for k in range(n):
+            contacts = [i for i, on in enumerate(touching[k]) if on]
+            world = self.actuation.world_directions(pos[k]) if contacts else []
+            lam_a, _ = self.allocate(contacts, world, pts[k], lam[k], tuple(ctr[k]))
+            if lam_a is not None:
+                out[k] = lam_a
+        return out
+
     def _offsets(self, points: list[V3], contacts: list[int], center: V3) -> list[V3]:
         ox, oy, oz = center
         return [(points[i][0] - ox, points[i][1] - oy, points[i][2] - oz) for i in contacts]

@@ -54,6 +54,7 @@ from hapticd.cli.run import (
     workspace_reaches,
     workspace_report,
 )
+from hapticd.cli.service import _add_service
 
 # Used by other modules and tests as hapticd.cli.NAME.
 __all__ = [
@@ -109,6 +110,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--unpaced run serves one only when given)",
     )
     run.add_argument(
+        "--socket-group",
+        metavar="GROUP",
+        help="let this group's members connect too: the socket 0660 and its directory 0750 "
+        "for that group only (the installed service's experimenters; docs/daemon.md)",
+    )
+    run.add_argument(
         "--device",
         choices=backend_names(),
         help="use this backend for every finger instead of the profile's",
@@ -116,7 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--emulate",
         action="store_true",
-        help="put the device emulator under the hid or usb backend, moved along the trajectory",
+        help="put the device emulator under the hid, usb or falcon backend, moved along the "
+        "trajectory",
     )
     run.add_argument("--summary-json", type=Path, metavar="PATH", help="write the summary as JSON")
     run.add_argument(
@@ -207,6 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_plot(sub)
     _add_view(sub, sock_help)
     _add_bringup(sub)
+    _add_service(sub)
     exp = sub.add_parser("export", help="export a recording to CSV or MCAP (Foxglove)")
     exp.add_argument("recording", type=Path)
     fmt = exp.add_mutually_exclusive_group()

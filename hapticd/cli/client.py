@@ -18,7 +18,7 @@ from hapticd import params
 from hapticd import protocol as proto
 from hapticd.cli.common import EXIT_BAD_INPUT, EXIT_ERROR, EXIT_OK, _port, _rate, emit
 from hapticd.cli.run import _device_text
-from hapticd.control import ControlClient, NoDaemonError, default_socket_path
+from hapticd.control import ControlClient, NoDaemonError, client_socket_path
 from hapticd.protocol import ProtocolError
 
 log = logging.getLogger("hapticd")
@@ -86,7 +86,7 @@ def _client_failed(args: argparse.Namespace, exc: Exception) -> int:
     if isinstance(exc, NoDaemonError):
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_ERROR
-    where = args.socket or default_socket_path()
+    where = args.socket or client_socket_path()
     print(f"hapticd: cannot talk to {where}: {exc}", file=sys.stderr)
     return EXIT_ERROR
 
@@ -242,7 +242,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     from hapticd.control import UnsafeSocketDirError
     from hapticd.view import ViewServer, is_loopback
 
-    socket_path = args.socket or default_socket_path()
+    socket_path = args.socket or client_socket_path()
     try:
         view = ViewServer(
             socket_path, host=args.host, port=args.port, control=args.control, rate_hz=args.rate

@@ -4,8 +4,10 @@ build a run from a profile."""
 from __future__ import annotations
 
 import argparse
+import grp
 import json
 import logging
+import math
 import signal
 import sys
 import tempfile
@@ -95,12 +97,27 @@ def _run_socket(args: argparse.Namespace) -> Path | None:
     return args.socket or default_socket_path()
 
 
+def _socket_group(args: argparse.Namespace) -> int | None:
+    """The gid of ``--socket-group`` (a name or a number), or None."""
+    name = getattr(args, "socket_group", None)
+    if name is None:
+        return None
+    try:
+        return int(name) if name.isdigit() else grp.getgrnam(name).gr_gid
+    except KeyError:
+        raise ProfileError(
+            f"--socket-group {name}: no such group (getent group lists them)"
+        ) from None
+
+
 def _run_total_s(session: Any) -> float | None:
     """How long a run lasts on its nominal clock, s: --duration, else where its
     trajectories end (with their hold_s); None when nothing says (devices in the loop)."""
     loop = session.loop
     if loop.duration_s is not None:
         return float(loop.duration_s)
+    if any(getattr(getattr(d, "path", None), "repeat", False) for d in loop.devices):
+        return None  # a repeated path has no end
     ends = [getattr(d, "duration", None) for d in loop.devices if getattr(d, "duration", None)]
     if not ends or len(ends) != len(loop.devices):
         return None
@@ -181,6 +198,7 @@ def _run(args: argparse.Namespace, record_path: Path | None, *, temporary: bool 
     """Run the daemon; ``temporary``: ``record_path`` is removed afterwards (--plot without
     --record), so the summary does not name it."""
     try:
+        group = _socket_group(args)
         profile = load_profile(args.profile, _overrides(args))
         session = build_session(
             profile,
@@ -203,7 +221,7 @@ def _run(args: argparse.Namespace, record_path: Path | None, *, temporary: bool 
     loop = session.loop
     notifier = ServiceNotifier(lambda: loop.stats.ticks, lambda: _service_status(loop))
     socket_path = _run_socket(args)
-    server = ControlServer(session, socket_path, periodic=[notifier.poll])
+    server = ControlServer(session, socket_path, periodic=[notifier.poll], socket_group=group)
     try:
         server.start()
     except OSError as exc:
@@ -274,6 +292,11 @@ def _mm(v: Any) -> str:
 
 
 def _reach_line(name: str, r: Reach, where: str) -> str:
+    if not math.isfinite(r.workspace_radius_m):
+        return (
+            f"  {name}: {where}; its workspace is not known until the device is opened and "
+            "identified (name its model in the device key 'model' to check it here)"
+        )
     if r.contained:
         verdict = "the whole object is inside"
     elif r.reachable:
@@ -316,6 +339,35 @@ def workspace_reaches(profile: Any, devices: list[Any]) -> list[tuple[str, Reach
     return out
 
 
+def rendering_limits(profile: Any, devices: list[Any]) -> list[tuple[str, bool]]:
+    """Per finger whose device model recommends a largest stiffness and damping
+    (hapticd_drivers.models): the scene's stiffest surface and largest damping as the
+    hand feels them (times the mount's workspace scale) against them: (line, within)."""
+    scene = profile.scene
+    surfaces = [("object", scene.object)] + [
+        (name, s) for name in ("ground", "walls") if (s := getattr(scene, name)) is not None
+    ]
+    k_at, k = max(((n, s.stiffness_n_per_m) for n, s in surfaces), key=lambda x: x[1])
+    c_at, c = max(((n, s.damping_n_s_per_m) for n, s in surfaces), key=lambda x: x[1])
+    out = []
+    for f, dev in zip(profile.fingers, devices, strict=True):
+        info = dev.info
+        k_max, c_max = info.max_stiffness_n_per_m, info.max_damping_n_s_per_m
+        if not (math.isfinite(k_max) or math.isfinite(c_max)):
+            continue
+        scale = f.device.mount.workspace_scale
+        ok = k * scale <= k_max and c * scale <= c_max
+        out.append(
+            (
+                f"  {f.name}: the {info.model} renders at most {k_max:g} N/m and {c_max:g} "
+                f"N s/m; the scene asks {k * scale:g} N/m ({k_at}) and {c * scale:g} N s/m "
+                f"({c_at}): {'within' if ok else 'WARNING: above what the device renders stably'}",
+                ok,
+            )
+        )
+    return out
+
+
 def workspace_report(profile: Any, devices: list[Any]) -> list[str]:
     """Per finger, how its device's workspace sphere (from the device description, placed
     by its mount) and the safety section's sphere meet the object at its starting pose."""
@@ -343,6 +395,10 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"allocator {profile.rendering.allocator}, fingers: {fingers}"
     )
     print("\n".join(workspace_report(profile, devices)))
+    limits = rendering_limits(profile, devices)
+    if limits:
+        print("stiffness and damping (the device models' recommended maxima):")
+        print("\n".join(line for line, _ in limits))
     return EXIT_OK
 
 
@@ -414,8 +470,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         )
         for i, f in targets
     )
-    print(CALIBRATE_WARNING.format(devices=listed), flush=True)
-    if not args.yes:
+    moving = [
+        (i, f) for i, f in targets if not registry.backend(f.device.backend).calibrate_by_hand
+    ]
+    if moving:
+        print(CALIBRATE_WARNING.format(devices=listed), flush=True)
+    else:  # nothing moves on its own: the user moves each device in turn
+        print(f"hapticd calibrate: one after the other:\n{listed}", flush=True)
+    if moving and not args.yes:
         if not sys.stdin.isatty():
             print(
                 "hapticd: refusing to calibrate without a confirmation: stdin is not a "
@@ -432,6 +494,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             return EXIT_ERROR
     failed = False
     for i, f in targets:
+        by_hand = registry.backend(f.device.backend).calibrate_by_hand
+        if by_hand:
+            print(f"  {f.name}: now {by_hand}", flush=True)
         try:
             out = registry.calibrate(f.device.backend, **kwargs_of[i])
         except DeviceError as exc:
@@ -452,7 +517,9 @@ def cmd_devices(args: argparse.Namespace) -> int:
         if "problem" in entry:
             print(f"{entry['backend']:<4} cannot look: {entry['problem']}")
         elif entry["found"]:
-            print(f"{entry['backend']:<4} {entry['model']}: {', '.join(map(str, entry['found']))}")
+            sdk = f" (SDK {entry['sdk']})" if entry.get("sdk") else ""
+            found = ", ".join(map(str, entry["found"]))
+            print(f"{entry['backend']:<4} {entry['model']}{sdk}: {found}")
         else:
             print(f"{entry['backend']:<4} {entry['model']}: none found (plugged in? udev rules?)")
     return EXIT_OK

@@ -9,8 +9,8 @@ that stops reading is dropped instead of stalling everyone. The same thread
 streams telemetry to subscribers, drains the loop's event ring and delivers its
 events in order to event subscribers (hapticd.events), performs reloads asked
 for by SIGHUP (a signal handler only writes one byte to a pipe) and sends the
-service manager its notifications. The socket is created with mode 0600; no
-TCP listener.
+service manager its notifications. The socket is created with mode 0600 (0660 for
+one group with ``socket_group``: the service's experimenters); no TCP listener.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 from hapticd import __version__, events
 from hapticd import protocol as proto
 from hapticd.commands import Command, Disable, Enable, SetParam
-from hapticd.control import check_socket_dir
+from hapticd.control import check_socket_dir, share_socket
 from hapticd.daemon import summary as views
 from hapticd.params import PARAMS
 from hapticd.profile import ProfileError
@@ -142,8 +142,11 @@ class ControlServer:
         max_clients: int = MAX_CLIENTS,
         request_timeout_s: float = REQUEST_TIMEOUT_S,
         rate_limits_s: dict[str, float] | None = None,
+        socket_group: int | None = None,
     ) -> None:
         self.session = session
+        # The group (gid) whose members may connect too (--socket-group), else only this user.
+        self.socket_group = socket_group
         self.max_clients = max_clients
         self.request_timeout_s = request_timeout_s
         self.idle_closed = 0  # connections closed for sending no complete request in time
@@ -177,7 +180,7 @@ class ControlServer:
     def start(self) -> None:
         """Bind the socket (SocketInUseError if a live daemon has it) and start serving."""
         if self.path is not None:
-            self._sock = self._bind(self.path)
+            self._sock = self._bind(self.path, self.socket_group)
             self._sel.register(self._sock, selectors.EVENT_READ, None)
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
@@ -188,8 +191,9 @@ class ControlServer:
         self._thread.start()
 
     @staticmethod
-    def _bind(path: Path) -> socket.socket:
-        check_socket_dir(path, create=True)  # UnsafeSocketDirError: someone else's directory
+    def _bind(path: Path, group: int | None = None) -> socket.socket:
+        # UnsafeSocketDirError: someone else's directory
+        check_socket_dir(path, create=True, group=group)
         if path.exists() or path.is_symlink():
             probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             try:
@@ -209,6 +213,12 @@ class ControlServer:
             raise
         finally:
             os.umask(old)
+        if group is not None:
+            try:
+                share_socket(path, group)  # then 0660 for that group only
+            except OSError:
+                sock.close()
+                raise
         sock.listen(BACKLOG)
         sock.setblocking(False)
         return sock
@@ -836,6 +846,7 @@ _HANDLERS: dict[str, Callable[[ControlServer, _Conn, dict[str, Any]], dict[str, 
     "events_unsubscribe": ControlServer._events_unsubscribe,
     "prompt": ControlServer._prompt,
     "respond": ControlServer._respond,
+    "move": lambda server, conn, req: server.session.move(req["finger"], req["position_m"]),
     "shutdown": ControlServer._stop,
     "stop": ControlServer._stop,
 }

@@ -6,10 +6,12 @@ import logging
 import os
 import platform
 import stat
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from hapticd_drivers import Device, registry
 from hapticd_drivers.emulator import DeltaEmulator
 
@@ -28,6 +30,7 @@ from hapticd.daemon.summary import summarize
 from hapticd.event_ring import DEFAULT_CAPACITY
 from hapticd.frame import Frame
 from hapticd.profile import Profile, ProfileError, load_profile
+from hapticd.protocol import ProtocolError
 from hapticd.recording import Recorder, RecordingError, files, ring
 from hapticd.render import Renderer
 from hapticd.safety import SafetyChain
@@ -36,6 +39,7 @@ from hapticd.servo import Applied, ServoLoop
 log = logging.getLogger("hapticd")
 
 APPLY_TIMEOUT_S = 2.0
+APPLY_POLL_S = 0.05  # how often a command's wait looks whether the loop has ended, s
 MAX_PROFILE_BYTES = 1 << 20  # a profile to reload is a few KiB; more is not a profile
 
 
@@ -116,15 +120,51 @@ class Session:
     def apply(self, command: Command, timeout_s: float = APPLY_TIMEOUT_S) -> Applied:
         """Hand ``command`` to the loop and wait for its tick boundary.
 
-        TimeoutError if the loop does not get there in time (not running); ValueError
-        with the loop's reason if it refused (nothing changed).
+        ProtocolError ``stopped`` once the loop has ended (the message says why: "the daemon
+        stopped: trajectory ended"); TimeoutError if the loop does not get there in time
+        (not running); ValueError with the loop's reason if it refused (nothing changed).
         """
+        self._check_running()
         done = self.loop.submit(command)
-        if not done.wait(timeout_s):
-            raise TimeoutError("the loop did not reach a tick boundary in time (is it running?)")
+        deadline = time.monotonic() + timeout_s
+        while not done.wait(min(APPLY_POLL_S, max(deadline - time.monotonic(), 0.0))):
+            self._check_running()  # the loop may end while the command waits
+            if time.monotonic() >= deadline:
+                raise TimeoutError(
+                    "the loop did not reach a tick boundary in time (is it running?)"
+                )
         if done.error is not None:
             raise ValueError(done.error)
         return done
+
+    def move(self, finger: str | int, position_m: list[float]) -> dict[str, Any]:
+        """Send finger ``finger``'s virtual device (backend virtual) towards ``position_m``
+        (3,) m in the world; the reply names the finger and the target taken (in the world,
+        brought inside the device's workspace). ProtocolError for an unknown finger or one
+        whose device is not virtual. It needs no tick boundary: the device follows its
+        latest target when the loop reads it."""
+        names = self.profile.finger_names
+        i = finger if isinstance(finger, int) else names.index(finger) if finger in names else -1
+        if not 0 <= i < len(names):
+            raise ProtocolError("bad_value", f"no finger {finger!r}; fingers: {list(names)}")
+        dev = self.devices[i]
+        move_to = getattr(dev, "move_to", None)
+        if move_to is None:
+            raise ProtocolError(
+                "rejected",
+                f"finger {names[i]}'s device ({dev.info.model} {dev.info.serial}) is not "
+                "virtual: only a virtual device (backend: virtual) is moved over the socket",
+            )
+        mount = self.loop.bank.mounts[i]
+        taken = move_to(mount.point_to_device(np.asarray(position_m, dtype=float)))
+        world = mount.point_to_world(np.asarray(taken, dtype=float))
+        return {"finger": names[i], "target_m": [float(c) for c in world]}
+
+    def _check_running(self) -> None:
+        """ProtocolError ``stopped`` if the loop has ended: no command will apply any more."""
+        loop = self.loop
+        if loop.end_reason and not loop.running:
+            raise ProtocolError("stopped", f"the daemon stopped: {loop.end_reason}")
 
     def record_start(self, path: str | Path, *, overwrite: bool = False) -> dict[str, Any]:
         """Start recording every tick to ``path``, inside ``record_dir`` (a relative name

@@ -157,6 +157,7 @@ def status(loop: ServoLoop) -> dict[str, Any]:
         "devices": [
             {
                 "serial": d.info.serial,
+                "model": d.info.model,
                 "connected": loop.bank.lost[i] is None,
                 "force_limit_n": loop.safety.limits[i],
                 "buttons": pressed(buttons[i]),

@@ -34,7 +34,7 @@ import json
 import math
 import zlib
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -43,12 +43,12 @@ from hapticd_drivers import registry
 
 from hapticd import params
 from hapticd.actuation import Actuation
-from hapticd.allocation import allocate_many
+from hapticd.allocation import DEFAULT_ROBUSTNESS, AdaptiveState, Robustness
+from hapticd.allocation.contacts import ContactAllocator
 from hapticd.build import build_mounts, build_renderer, build_safety
 from hapticd.experiment.plan import PlannedTrial
 from hapticd.experiment.spec import Experiment, ExperimentError
 from hapticd.frame import Frame
-from hapticd.grasp import grasp_matrix
 from hapticd.profile import (
     Profile,
     apply_overrides,
@@ -354,23 +354,47 @@ def weight_cue(rows: np.ndarray, judge_from_s: float) -> float:
     return float(-rows["device_force"][held][:, :, 2].sum(axis=1).mean())
 
 
-def allocator_forces(rows: np.ndarray, actuation: Actuation, method: str) -> np.ndarray:
+def allocator_forces(
+    rows: np.ndarray,
+    actuation: Actuation,
+    method: str,
+    *,
+    robust: Robustness = DEFAULT_ROBUSTNESS,
+    adaptive: AdaptiveState | None = None,
+    initial_center: np.ndarray | None = None,
+) -> np.ndarray:
     """What allocator ``method`` would have rendered on each tick of a recorded interval
-    with both fingers in contact: M_a lam_a per finger (n, 2, 3) N, with lam_a from
-    ``hapticd.allocation.allocate_many`` on the recorded contact points, contact forces
-    and object position, and M_a the actuated directions (``actuation``) where the fingers
-    were. Ground and walls are left out. Compares allocators on one and the same
-    exploration (docs/experiments.md)."""
+    with both fingers in contact: M_a lam_a per finger (n, 2, 3) N, with lam_a from the
+    loop's own allocation (``ContactAllocator.replay``: the same per-tick code, contact
+    onset and the adaptive allocator's lag included) on the recorded contact points,
+    contact forces and object positions, tick by tick from the interval's start, and
+    M_a the actuated directions (``actuation``) where the fingers were. Ground and walls
+    are left out. Compares allocators on one and the same exploration
+    (docs/experiments.md); for the allocator the interval ran with, equal to what the
+    loop's allocation rendered. ``robust`` and ``adaptive`` (its lag and ratios; alpha
+    starts at 0): the profile's ``rendering`` settings; ``initial_center`` (3,) m: the
+    object's position before the first tick (default: after it)."""
     both = rows["in_contact"].all(axis=1)
-    sel = rows[both]
-    n = len(sel)
+    n = int(both.sum())
     if n == 0:
         return np.zeros((0, 2, 3))
-    G = np.stack(
-        [grasp_matrix(p, c) for p, c in zip(sel["contact_point"], sel["object_pos"], strict=True)]
-    )
-    M = np.stack([actuation.matrix(p) for p in sel["device_pos"]])
-    lam_a = allocate_many(method, G, M, sel["contact_force"].reshape(n, 6))
+    t = rows["t"]
+    rate = round(1.0 / float(np.median(np.diff(t)))) if len(t) > 1 else 1.0
+    state = AdaptiveState() if adaptive is None else replace(adaptive, alpha=0.0)
+    allocator = ContactAllocator(actuation, method, robust, state, 1.0 / rate)
+    # A tick allocates about the object's position before its dynamics moved it: the
+    # position the previous tick recorded.
+    pos = rows["object_pos"]
+    first = pos[0] if initial_center is None else np.asarray(initial_center, dtype=float)
+    centers = np.concatenate([first[None], pos[:-1]])
+    lam_a = allocator.replay(
+        rows["in_contact"],
+        rows["device_pos"],
+        rows["contact_point"],
+        rows["contact_force"],
+        centers,
+    )[both]
+    M = np.stack([actuation.matrix(p) for p in rows["device_pos"][both]])
     return np.einsum("nij,nj->ni", M, lam_a).reshape(n, 2, 3)
 
 

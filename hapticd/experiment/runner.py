@@ -379,6 +379,7 @@ class PersonPresenter:
         self.fault: str | None = None
         self._unmapped: set[str] = set()
         self._prompt_t: float | None = None
+        self.ended: str | None = None  # why the daemon's run ended, once it said so
         self._connect()
 
     # -- the connection ------------------------------------------------------------------
@@ -389,10 +390,19 @@ class PersonPresenter:
         a refusal (ProtocolError) goes through."""
         try:
             yield
-        except proto.ProtocolError:
+        except proto.ProtocolError as exc:
+            if exc.code == "stopped":
+                raise DaemonGoneError(str(exc)) from None
             raise
         except (OSError, ValueError) as exc:
-            raise DaemonGoneError(f"the daemon went away ({exc})") from None
+            raise self._gone(exc) from None
+
+    def _gone(self, exc: Exception) -> DaemonGoneError:
+        """The lost connection's error: why the daemon stopped when it said so (its
+        trajectories ended), else what the connection said."""
+        if self.ended is not None:
+            return DaemonGoneError(f"the daemon stopped: {self.ended}")
+        return DaemonGoneError(f"the daemon went away ({exc})")
 
     def _connect(self) -> None:
         with self._talking():
@@ -442,7 +452,7 @@ class PersonPresenter:
         except TimeoutError:
             return None
         except (OSError, ValueError) as exc:
-            raise DaemonGoneError(f"the daemon went away ({exc})") from None
+            raise self._gone(exc) from None
         name = ev.get("event")
         if name == "contact_begin":
             self.contacts.add(ev.get("finger", -1))
@@ -451,6 +461,7 @@ class PersonPresenter:
         elif name == "fault_latched":
             self.fault = f"{ev.get('cause')}: {ev.get('message', '')}".rstrip(": ")
         elif name == "trajectory_end":
+            self.ended = "trajectory ended"
             self.say("the daemon's run ends (its trajectories ended)")
         return ev
 

@@ -14,37 +14,38 @@ from typing import Any
 
 import numpy as np
 
+from hapticd.frame import FIELDS
 from hapticd.recording.format import Recording
 
-PER_FINGER = frozenset(
-    {
-        "device_pos",
-        "device_vel",
-        "proxy_pos",
-        "in_contact",
-        "contact_force",
-        "rendered_force",
-        "device_force",
-        "env_force",
-    }
-)
+# Per-finger fields (a first axis of one entry per finger, labelled by finger name): as
+# the tick frame declares them (hapticd.frame).
+PER_FINGER = frozenset(f.name for f in FIELDS if f.shape[:1] == ("F",))
+_DECLARED = {f.name: f.shape for f in FIELDS}
+
+
+def _labels(symbol: int | str, n: int, last: bool, fingers: list[str]) -> list[str]:
+    """Labels of an axis of ``n`` entries declared as ``symbol`` ("F", "r" or a size); an
+    axis whose size is not what the declaration says (a file from elsewhere) by index."""
+    if symbol == "F" and n == len(fingers):
+        return list(fingers)
+    if symbol == 3 and n == 3 and last:
+        return ["x", "y", "z"]
+    return [str(j) for j in range(n)]
 
 
 def csv_columns(rec: Recording) -> list[str]:
     """Column names of a CSV export: one per scalar, e.g. ``device_pos.thumb.x`` (units in
-    docs/recording.md); finger axes use the finger names, a last axis of 3 x/y/z, any other
-    axis its index (``object_rot.2.y`` is R[2, 1])."""
+    docs/recording.md), from the tick frame's declaration of each field: a finger axis
+    uses the finger names, a last axis of 3 x/y/z, any other axis its index
+    (``object_rot.2.y`` is R[2, 1], ``lam_a.0`` the first actuated direction). A field
+    the frame does not declare reads its axes by size."""
     cols: list[str] = []
-    F = len(rec.fingers)
     for f in rec.fields:
+        declared = _DECLARED.get(f.name, ())
+        symbols = declared if len(declared) == len(f.shape) else f.shape
         names = [f.name]
-        for axis_i, n in enumerate(f.shape):
-            if axis_i == 0 and n == F and f.name in PER_FINGER:
-                labels = list(rec.fingers)
-            elif n == 3 and axis_i == len(f.shape) - 1:
-                labels = ["x", "y", "z"]
-            else:
-                labels = [str(j) for j in range(n)]
+        for axis_i, (symbol, n) in enumerate(zip(symbols, f.shape, strict=True)):
+            labels = _labels(symbol, n, axis_i == len(f.shape) - 1, rec.fingers)
             names = [f"{a}.{b}" for a in names for b in labels]
         cols += names
     return cols

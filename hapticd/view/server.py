@@ -834,6 +834,8 @@ class ViewServer:
                 reply = self.set(msg["param"], msg["value"])
         elif kind == "respond":
             reply = self.respond(msg.get("prompt"), msg.get("choice"))
+        elif kind == "move":
+            reply = self._page_move(msg, subject=subject)
         else:
             reply = _error("bad_request", f"unknown message type {str(kind)[:32]!r}")
         return {"type": "reply", "ref": ref, **reply}
@@ -882,6 +884,25 @@ class ViewServer:
             tick = reply["result"].get("applied_at_tick")
             self.log(f"set {spec.name} {text} (applied at tick {tick})")
         return reply
+
+    def _page_move(self, msg: dict[str, Any], *, subject: bool) -> dict[str, Any]:
+        """A virtual device moved from the experimenter's page (``--control`` only): sent as
+        the daemon's ``move``, which checks it again (docs/control.md)."""
+        if subject or not self.control:
+            return _error("read_only", "only the experimenter's page of a --control view moves")
+        finger, pos = msg.get("finger"), msg.get("position_m")
+        if not (
+            isinstance(finger, int | str)
+            and not isinstance(finger, bool)
+            and isinstance(pos, list)
+            and len(pos) == 3
+            and all(isinstance(c, int | float) and not isinstance(c, bool) for c in pos)
+        ):
+            return _error(
+                "bad_request",
+                'expected {"type": "move", "finger": NAME_OR_INDEX, "position_m": [x, y, z]}',
+            )
+        return self._daemon("move", finger=finger, position_m=pos)
 
     def respond(self, prompt_id: Any, choice: Any) -> dict[str, Any]:
         """The subject's answer to the current prompt, sent as the daemon's ``respond``

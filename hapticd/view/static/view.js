@@ -215,6 +215,7 @@
       : `${rec.path}: ${rec.ticks} ticks, ${rec.written} written, ${rec.dropped} dropped` +
         (rec.error ? `; ERROR ${rec.error}` : "");
     r.className = rec && (rec.error || rec.dropped) ? "bad" : "";
+    onVirtual(st, !!v.control);
     $("control").hidden = !v.control;
     $("readonly").hidden = !!v.control;
     if (v.control && state.params === null) loadParams();
@@ -254,6 +255,123 @@
         ? `${param} = ${value}: applied at tick ${r.result.applied_at_tick}`
         : `${r.error.code}: ${r.error.message}`;
     });
+  });
+
+  // -- virtual devices (backend virtual): moved from here, with --control ------------------
+
+  // The fingers whose device is virtual, from the status; where each is sent (world, m).
+  let virtualFingers = [];
+  const targets = new Map(); // finger -> [x, y, z] m, the last target the daemon took
+  const moving = new Map(); // finger -> a target waiting for the reply to the last move
+  const inFlight = new Set(); // fingers with a move awaiting its reply
+  let lastView = null; // the camera of the last frame drawn (for picking and dragging)
+
+  function onVirtual(st, control) {
+    virtualFingers = control
+      ? (st.devices || []).map((d, i) => (d.model === "virtual" ? i : -1)).filter((i) => i >= 0)
+      : [];
+    $("virtual").hidden = virtualFingers.length === 0;
+  }
+
+  let shownSample = null;
+  function showVirtual() {
+    const s = state.sample;
+    if (!s || s === shownSample || virtualFingers.length === 0) return;
+    shownSample = s;
+    const names = (state.status && state.status.fingers) || [];
+    const rows = [];
+    for (const i of virtualFingers) {
+      const dt = document.createElement("dt");
+      dt.textContent = names[i] || `finger ${i}`;
+      const dd = document.createElement("dd");
+      const p = s.device_pos[i].map((c) => (c * 1e3).toFixed(1)).join(", ");
+      const f = norm(s.rendered_force[i]);
+      dd.dataset.testid = `virtual-${i}`;
+      dd.dataset.force = String(f);
+      dd.textContent = `(${p}) mm, ${s.in_contact[i] ? "touching" : "free"}, rendered ${f.toFixed(2)} N`;
+      rows.push(dt, dd);
+    }
+    $("virtual-list").replaceChildren(...rows);
+  }
+
+  function targetOf(i) {
+    if (targets.has(i)) return targets.get(i).slice();
+    return state.sample ? state.sample.device_pos[i].slice() : [0, 0, 0];
+  }
+
+  // Send finger i towards p (world, m): one move in flight per finger, the latest kept.
+  function moveTo(i, p) {
+    targets.set(i, p.slice());
+    if (inFlight.has(i)) {
+      moving.set(i, p);
+      return;
+    }
+    inFlight.add(i);
+    send({ type: "move", finger: i, position_m: p }, (r) => {
+      inFlight.delete(i);
+      const out = $("virtual-result");
+      if (r.ok) {
+        out.textContent = "";
+        if (!moving.has(i)) targets.set(i, r.result.target_m);
+      } else {
+        out.textContent = `${r.error.code}: ${r.error.message}`;
+        out.className = "bad";
+      }
+      if (moving.has(i)) {
+        const next = moving.get(i);
+        moving.delete(i);
+        moveTo(i, next);
+      }
+    });
+  }
+
+  // The virtual finger drawn under the pointer (canvas pixels), or -1.
+  function pickFinger(x, y) {
+    const s = state.sample;
+    if (!s || !lastView || virtualFingers.length === 0) return -1;
+    const radii = (state.status.scene && state.status.scene.finger_radii_m) || [];
+    let best = -1;
+    let bestD = Infinity;
+    for (const i of virtualFingers) {
+      for (const p of [s.device_pos[i], s.proxy_pos[i]]) {
+        const q = lastView.project(p);
+        if (!q) continue;
+        const d = Math.hypot(q.x - x, q.y - y);
+        const reach = lastView.px(radii[i] || 0.008, q.z) + 8 * (window.devicePixelRatio || 1);
+        if (d <= reach && d < bestD) {
+          best = i;
+          bestD = d;
+        }
+      }
+    }
+    return best;
+  }
+
+  const STEP_M = 0.002;
+  document.addEventListener("keydown", (e) => {
+    if (subject || virtualFingers.length === 0 || e.ctrlKey || e.altKey || e.metaKey) return;
+    if (e.target && ["INPUT", "SELECT", "TEXTAREA"].includes(e.target.tagName)) return;
+    const step = e.shiftKey ? 2.5 * STEP_M : STEP_M;
+    const key = e.key.toLowerCase();
+    const now = virtualFingers.map((i) => targetOf(i));
+    let move = null;
+    if (key === "arrowup" || key === "arrowdown") {
+      const dz = key === "arrowup" ? step : -step;
+      move = now.map((p) => [p[0], p[1], p[2] + dz]);
+    } else if (key === "s" || key === "r") {
+      // Towards (squeeze) or away from (release) the fingers' middle, horizontally; one
+      // finger alone: towards the object.
+      const mid = now.length > 1
+        ? scale(now.reduce((a, p) => add(a, p), [0, 0, 0]), 1 / now.length)
+        : state.sample.object_pos;
+      move = now.map((p) => {
+        const d = unit([mid[0] - p[0], mid[1] - p[1], 0]);
+        return add(p, scale(d, key === "s" ? step : -step));
+      });
+    }
+    if (move === null) return;
+    e.preventDefault();
+    virtualFingers.forEach((i, k) => moveTo(i, move[k]));
   });
 
   // -- the prompt: the subject's answer buttons, the experimenter's panel -------------------
@@ -367,6 +485,9 @@
     const focal = (0.5 * Math.min(W, H)) / Math.tan((35 * Math.PI) / 360);
     return {
       eye,
+      right,
+      up,
+      focal,
       project(p) {
         const d = sub(p, eye);
         const z = dot(d, fwd);
@@ -672,6 +793,18 @@
       }
     }
     drawFaces(true);
+    lastView = view;
+    if (!subject && virtualFingers.length) {
+      // Where the virtual fingertips and the object are drawn (CSS px): for scripts and tests.
+      const css = (p) => {
+        const q = view.project(p);
+        return q ? [q.x / dpr, q.y / dpr] : null;
+      };
+      canvas.dataset.virtual = JSON.stringify({
+        fingers: Object.fromEntries(virtualFingers.map((i) => [i, css(s.device_pos[i])])),
+        object: css(s.object_pos),
+      });
+    }
     if (!subject && s.fault) {
       ctx.fillStyle = "rgba(198,40,40,0.9)";
       ctx.font = `bold ${16 * dpr}px system-ui, sans-serif`;
@@ -734,12 +867,35 @@
 
   const canvas = $("scene");
   let drag = null;
+  // A press on a virtual fingertip moves it (in the plane facing the camera, through where
+  // it is); anywhere else turns the camera.
   canvas.addEventListener("pointerdown", (e) => {
+    const dpr = window.devicePixelRatio || 1;
+    const rect = canvas.getBoundingClientRect();
+    const i = subject ? -1 : pickFinger((e.clientX - rect.left) * dpr, (e.clientY - rect.top) * dpr);
     drag = { x: e.clientX, y: e.clientY };
+    if (i >= 0) {
+      const start = targetOf(i);
+      const q = lastView.project(state.sample.device_pos[i]);
+      drag.finger = { i, start, z: q ? q.z : cam.dist, x0: e.clientX, y0: e.clientY, view: lastView };
+    }
     canvas.setPointerCapture(e.pointerId);
   });
   canvas.addEventListener("pointermove", (e) => {
-    if (!drag) return;
+    if (!drag) {
+      const dpr = window.devicePixelRatio || 1;
+      const rect = canvas.getBoundingClientRect();
+      const over = !subject && pickFinger((e.clientX - rect.left) * dpr, (e.clientY - rect.top) * dpr) >= 0;
+      canvas.classList.toggle("virtual-hover", over);
+      return;
+    }
+    if (drag.finger) {
+      const f = drag.finger;
+      const k = (f.z * (window.devicePixelRatio || 1)) / f.view.focal; // m per CSS pixel
+      const delta = add(scale(f.view.right, (e.clientX - f.x0) * k), scale(f.view.up, -(e.clientY - f.y0) * k));
+      moveTo(f.i, add(f.start, delta));
+      return;
+    }
     cam.az -= (e.clientX - drag.x) * 0.01;
     cam.el = Math.min(1.5, Math.max(-0.3, cam.el + (e.clientY - drag.y) * 0.01));
     drag = { x: e.clientX, y: e.clientY };
@@ -757,6 +913,7 @@
     if (!subject) chooseArrowScale();
     drawScene();
     if (!subject) drawTraces();
+    if (!subject) showVirtual();
     requestAnimationFrame(frame);
   }
   requestAnimationFrame(frame);
