@@ -263,6 +263,14 @@ class ControlClient:
         if not isinstance(self.greeting, dict):
             self.close()
             raise proto.ProtocolError("malformed", f"{self.path}: the greeting is not an object")
+        refused = self.greeting.get("error")
+        if self.greeting.get("ok") is False and isinstance(refused, dict):
+            # Not a greeting: the daemon turned this connection away (busy) and closed it.
+            self.close()
+            raise proto.ProtocolError(
+                str(refused.get("code", "error")),
+                str(refused.get("message", "the daemon refused the connection")),
+            )
         if self.greeting.get("protocol") != proto.PROTOCOL_VERSION:
             self.close()
             raise proto.ProtocolError(

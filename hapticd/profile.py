@@ -554,12 +554,18 @@ class Profile(_Strict):
             raise ValueError(f"version must be the number {PROFILE_VERSION}")
         return v
 
-    @model_validator(mode="after")
-    def _consistent(self) -> Profile:
-        names = [f.name for f in self.fingers]
+    @field_validator("fingers", mode="after")
+    @classmethod
+    def _unique_names(cls, fingers: tuple[FingerConfig, ...]) -> tuple[FingerConfig, ...]:
+        # Here, not in the model's check, so the error points at `fingers`, not the top level.
+        names = [f.name for f in fingers]
         dup = {n for n in names if names.count(n) > 1}
         if dup:
             raise ValueError(f"finger names must be unique, repeated: {sorted(dup)}")
+        return fingers
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Profile:
         if self.rendering.actuation_frame == "grasp" and len(self.fingers) < 2:
             raise ValueError("actuation_frame 'grasp' needs at least two fingers")
         return self

@@ -41,7 +41,11 @@ ERRORS: dict[str, tuple[str, bool]] = {
     "recording": ("the recording file exists, is outside the directory, or failed", False),
     "timeout": ("the loop is not running", False),
     "stopped": ("the loop has ended (the message says why: its trajectory ended, ...)", False),
-    "too_many_clients": ("sent once, unasked, to a connection beyond those served", False),
+    "busy": (
+        "sent instead of the greeting when every place is in use (`clients`: how many)",
+        False,
+    ),
+    "idle": ("sent, unasked, to a connection closed for sending no request in time", False),
     "no_prompt": ("`respond` to a prompt that is not the current one", False),
     "internal": ("a bug in the daemon", False),
     "version": ("the daemon speaks another protocol version (the client's check)", False),
@@ -352,6 +356,8 @@ def ok(req_id: Any, result: Any) -> bytes:
     return encode({"id": req_id, "ok": True, "result": result})
 
 
-def error(req_id: Any, code: str, message: str) -> bytes:
-    """An error reply; ``code`` one of ERRORS (a test checks every code the sources use)."""
-    return encode({"id": req_id, "ok": False, "error": {"code": code, "message": message}})
+def error(req_id: Any, code: str, message: str, **more: Any) -> bytes:
+    """An error reply; ``code`` one of ERRORS (a test checks every code the sources use);
+    ``more``: further fields of the error object (``busy``: ``clients``)."""
+    err = {"code": code, "message": message, **more}
+    return encode({"id": req_id, "ok": False, "error": err})

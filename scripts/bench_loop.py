@@ -19,6 +19,7 @@ shared and noisy: compare within one run).
     python scripts/bench_loop.py --quick          # 1 and 4 kHz, replay only
     python scripts/bench_loop.py --view --rounds 2 --seconds 4   # the view's cost alone
     python scripts/bench_loop.py --kernels --rounds 3   # rendering.kernels python vs compiled
+    python scripts/bench_loop.py --storm --rounds 2 --seconds 4   # request storms vs quiet
 
 Prints a Markdown table and saves a histogram plot, in the system temp dir unless
 --plot PATH names a file (the docs' figure: --plot docs/img/bench-loop.png).
@@ -62,6 +63,37 @@ except (OSError, ValueError):
     pass  # the daemon's run ended first
 print(n)
 """
+
+# A storm of requests that change the loop or rebuild it: four clients, each sending
+# ``cmd`` (reload, or a set of the stiffness) as fast as the daemon answers, as the
+# adversarial run did. Prints the requests answered (any reply, ok or not).
+STORM_SCRIPT = r"""
+import signal, sys, threading
+from hapticd.control import ControlClient
+stop = threading.Event()
+signal.signal(signal.SIGTERM, lambda *a: stop.set())
+sock, cmd = sys.argv[1], sys.argv[2]
+counts = [0] * 4
+def storm(i):
+    try:
+        with ControlClient(sock, timeout_s=30.0) as c:
+            k = 0
+            while not stop.is_set():
+                k += 1
+                if cmd == "reload":
+                    c.request("reload")
+                else:
+                    c.request("set", param="stiffness_n_per_m", value=60.0 + k % 2)
+                counts[i] += 1
+    except (OSError, ValueError):
+        pass  # the daemon's run ended first
+threads = [threading.Thread(target=storm, args=(i,), daemon=True) for i in range(4)]
+for t in threads:
+    t.start()
+stop.wait()
+print(sum(counts))
+"""
+STORMS = {"reload storm": "reload", "set storm": "set"}
 
 # Two pages on ``hapticd view``: each holds the page's WebSocket and parses every message
 # as JSON, as the page's script does. Prints the telemetry frames read.
@@ -138,7 +170,7 @@ VIEW_LOAD = "view + 2 pages"
 class Case:
     rate_hz: int
     device: str  # "replay", "emulated" or "bare"
-    load: str  # "idle", "recording", "control + recording" or VIEW_LOAD
+    load: str  # "idle", "recording", "control + recording", VIEW_LOAD or one of STORMS
     realtime: bool
     profile: str = "grasp-stiffness"  # a bundled profile (configs/NAME.yaml)
     kernels: str | None = None  # rendering.kernels; None: the profile's
@@ -271,6 +303,14 @@ def run_case(case: Case, seconds: float, work: Path, browser: str = "ws") -> dic
     view = None
     if case.load == VIEW_LOAD and _wait_socket(sock, proc):
         view = ViewLoad(sock, work, browser)
+    if case.load in STORMS and _wait_socket(sock, proc):
+        load = subprocess.Popen(
+            [sys.executable, "-c", STORM_SCRIPT, str(sock), STORMS[case.load]],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
     if case.load == "control + recording" and _wait_socket(sock, proc):
         load = subprocess.Popen(
             [sys.executable, "-c", LOAD_SCRIPT, str(sock)],
@@ -313,6 +353,12 @@ def main() -> None:
         "rendering.kernels python against compiled, beside the bare wait",
     )
     ap.add_argument(
+        "--storm",
+        action="store_true",
+        help="only 1 kHz: replay idle against four clients storming it with reload requests, "
+        "and with set requests, as fast as it answers",
+    )
+    ap.add_argument(
         "--browser",
         choices=("ws", "chromium"),
         default="ws",
@@ -326,7 +372,13 @@ def main() -> None:
         help=f"save the plot here (default {DEFAULT_PLOT})",
     )
     args = ap.parse_args()
-    rates = [1000] if args.view else [1000, 4000] if args.quick else [1000, 2000, 4000, 8000]
+    rates = (
+        [1000]
+        if args.view or args.storm
+        else [1000, 4000]
+        if args.quick
+        else [1000, 2000, 4000, 8000]
+    )
     if args.kernels:
         rates = [1000, 4000, 8000]
     devices = ["replay"] if args.quick else ["replay", "emulated"]
@@ -337,6 +389,10 @@ def main() -> None:
             for profile in ("grasp-stiffness", "lift-weight"):
                 for kernels in ("python", "compiled"):
                     cases.append(Case(r, "replay", "idle", True, profile, kernels))
+            continue
+        if args.storm:
+            cases.append(Case(r, "replay", "idle", True))
+            cases.extend(Case(r, "replay", load, True) for load in STORMS)
             continue
         if args.view:
             cases.append(Case(r, "replay", "idle", True))

@@ -81,7 +81,13 @@ def test_export_csv_has_a_named_column_per_scalar(capsys, tmp_path):
     rec = recording.read(rec_path)
     with open(tmp_path / "r.csv") as fh:
         rows = list(csv.reader(fh))
-    header, body = rows[0], np.array(rows[1:], dtype=float)
+    header = rows[0]
+    # The allocator column holds the allocator's name (before: its index), the rest numbers.
+    at = header.index("allocator")
+    assert {r[at] for r in rows[1:]} == {"if"}  # the profile's allocator
+    assert [rec.meta["allocators"][k] for k in rec["allocator"]] == [r[at] for r in rows[1:]]
+    body = np.array([r[:at] + r[at + 1 :] for r in rows[1:]], dtype=float)
+    header = header[:at] + header[at + 1 :]
     assert len(body) == 500 and len(header) == body.shape[1] == len(set(header))
     assert header[0] == "t"
     col = header.index("device_pos.index.z")

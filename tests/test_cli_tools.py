@@ -5,7 +5,11 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import subprocess
+import sys
 
+import pytest
 import yaml
 
 from hapticd import recording
@@ -111,3 +115,36 @@ def test_progress_lines_of_an_unpaced_run_and_an_export(tmp_path, capsys):
     assert f"100% ({ticks} of {ticks} ticks)" in err, repr(err)
     # The chunked export writes what the one-piece export wrote.
     assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes()
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["check", str(GRASP_PROFILE)],
+        ["--help"],
+        ["status", "--socket", "{sock}"],
+        ["watch", "--rate", "50", "--count", "3", "--socket", "{sock}"],
+    ],
+    ids=lambda argv: " ".join(a for a in argv if a != "{sock}" and not a.startswith("/")),
+)
+def test_a_closed_stdout_ends_quietly(argv, idle_server):
+    """``hapticd ... | head -1``: the reader of stdout is gone before a line is written.
+    The command ends with the shell's usual code for that (141) or 0, and no traceback
+    (before: a BrokenPipeError traceback from every command that prints)."""
+    r, w = os.pipe()
+    os.close(r)  # the reader has gone
+    try:
+        args = [a.format(sock=idle_server.path) for a in argv]
+        proc = subprocess.run(
+            [sys.executable, "-m", "hapticd", *args],
+            cwd=ROOT,
+            stdout=w,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=60,
+        )
+    finally:
+        os.close(w)
+    assert proc.returncode in (0, 141), proc.stderr
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr
+    assert "BrokenPipe" not in proc.stderr and "Broken pipe" not in proc.stderr, proc.stderr

@@ -3,15 +3,23 @@ no file descriptors left. It keeps serving and never spins."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import socket
 import subprocess
 import sys
 import textwrap
+import threading
+import time
 
 import pytest
 
+from hapticd.cli import main
 from hapticd.control import ControlClient
+from hapticd.daemon.server import ControlServer
+from hapticd.daemon.session import build_session
+from hapticd.profile import load_profile
+from hapticd.protocol import ProtocolError
 from tests.conftest import GRASP_PROFILE, ROOT, wait_for
 
 
@@ -35,18 +43,59 @@ def test_an_unexpected_error_in_a_sighup_reload_is_reported_and_serving_goes_on(
         assert c.status()["reloads"] == server.reloads
 
 
-def test_one_client_beyond_the_limit_is_told_so_and_closed(server):
-    limit = 32  # docs/daemon.md
+def _raw(path) -> socket.socket:
+    """A bare connection to the control socket (the greeting left unread)."""
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(5.0)
+    s.connect(str(path))
+    return s
+
+
+def _lines(s: socket.socket) -> list[dict]:
+    """Every line the server sent ``s`` until it closed it (bounded by the socket timeout)."""
+    data = b""
+    while chunk := s.recv(65536):
+        data += chunk
+    return [json.loads(line) for line in data.splitlines()]
+
+
+def test_sixty_four_idle_connections_lock_nobody_out(server):
+    """Connections that never send a request give up their places to new clients: with 64
+    held, status still answers (before: the 33rd client on was refused, and the CLI said
+    the daemon spoke protocol None)."""
+    limit = server.max_clients
+    held = [_raw(server.path) for _ in range(2 * limit)]
+    try:
+        with ControlClient(server.path, timeout_s=5.0) as c:
+            assert c.status()["tick"] == 0
+        # The oldest idle connections were told why and closed; the newest are still held.
+        first = _lines(held[0])
+        assert first[-1]["ok"] is False and first[-1]["error"]["code"] == "idle"
+        assert len(server._conns) <= limit
+    finally:
+        for s in held:
+            s.close()
+
+
+def test_busy_is_said_plainly_when_every_place_is_in_use(server, capsys):
+    """32 clients that each hold a subscription: one more gets ``busy`` with the count, and
+    the command line says the daemon is busy (not a protocol mismatch)."""
+    limit = server.max_clients
     clients = [ControlClient(server.path, timeout_s=2.0) for _ in range(limit)]
     try:
-        extra = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        extra.settimeout(2.0)
-        with extra:
-            extra.connect(str(server.path))
-            reply = json.loads(extra.makefile("rb").readline())
-            assert reply["ok"] is False and reply["error"]["code"] == "too_many_clients"
-            assert str(limit) in reply["error"]["message"]
-            assert extra.recv(1) == b""  # and closed
+        for c in clients:
+            c.events_subscribe()
+        with _raw(server.path) as extra:
+            (reply,) = _lines(extra)
+        assert reply["ok"] is False and reply["error"]["code"] == "busy"
+        assert reply["error"]["clients"] == limit
+        with pytest.raises(ProtocolError) as caught:
+            ControlClient(server.path, timeout_s=2.0)
+        assert caught.value.code == "busy"
+        assert main(["status", "--socket", str(server.path)]) == 1
+        err = capsys.readouterr().err
+        assert f"the daemon is busy: {limit} clients connected" in err
+        assert "protocol" not in err
         assert clients[0].status()["tick"] == 0  # the others are served
         clients.pop().close()
         wait_for(
@@ -57,6 +106,44 @@ def test_one_client_beyond_the_limit_is_told_so_and_closed(server):
     finally:
         for c in clients:
             c.close()
+
+
+@pytest.fixture
+def quick_server(tmp_path):
+    """A control server that gives a connection 0.3 s to send a complete request."""
+    session = build_session(load_profile(GRASP_PROFILE), paced=False)
+    srv = ControlServer(session, tmp_path / "q.sock", request_timeout_s=0.3)
+    srv.start()
+    try:
+        yield srv
+    finally:
+        srv.close()
+
+
+def test_a_connection_that_sends_no_complete_request_in_time_is_closed(quick_server):
+    """Silent, or a line begun and never finished: told ``idle`` and closed within the
+    timeout (plus the 0.1 s reaping period). A subscriber that is quiet stays, and so does
+    a client between two requests."""
+    path = quick_server.path
+    with (
+        _raw(path) as silent,
+        _raw(path) as slow,
+        ControlClient(path, timeout_s=5.0) as events,
+        ControlClient(path, timeout_s=5.0) as between,
+    ):
+        slow.sendall(b'{"cmd": "sta')
+        events.events_subscribe()
+        between.status()
+        t0 = time.monotonic()
+        for s in (silent, slow):
+            lines = _lines(s)
+            assert lines[-1]["error"]["code"] == "idle", lines
+            assert "0.3 s" in lines[-1]["error"]["message"]
+        assert time.monotonic() - t0 < 3.0
+        time.sleep(0.6)
+        assert events.status()["tick"] == 0
+        assert between.status()["tick"] == 0
+        assert quick_server.idle_closed == 2
 
 
 _EMFILE_CHILD = textwrap.dedent(
@@ -151,3 +238,49 @@ def test_a_service_notification_out_of_file_descriptors_is_not_an_exception(monk
 
     monkeypatch.setattr(sdnotify.socket, "socket", no_fds)
     assert sdnotify.notify("STOPPING=1", {"NOTIFY_SOCKET": "/run/systemd/notify"}) is False
+
+
+@pytest.mark.timing("the reload limit is per second of the paced loop's wall-clock time")
+def test_a_reload_storm_is_served_one_reload_a_second(tmp_path):
+    """Reloads pipelined by two clients all get their replies, but the loop applies at most
+    one a second (docs/control.md): a storm slows the replies, not the loop (before: 2,324
+    reloads in 15 s, each a tick's worth of work and a swap)."""
+    session = build_session(load_profile(GRASP_PROFILE), paced=True, duration_s=30.0)
+    server = ControlServer(session, tmp_path / "r.sock")
+    server.start()
+    runner = threading.Thread(target=session.run, name="test-loop")
+    runner.start()
+    try:
+        with ControlClient(server.path, timeout_s=10.0) as a, _raw(server.path) as b:
+            b.sendall(b'{"id": 1, "cmd": "reload"}\n' * 3)
+            ticks = [a.reload()["applied_at_tick"] for _ in range(2)]
+            replies = b.makefile("rb")
+            replies.readline()  # the greeting
+            for _ in range(3):
+                reply = json.loads(replies.readline())
+                assert reply["ok"], reply
+                ticks.append(reply["result"]["applied_at_tick"])
+        ticks.sort()
+        gaps = [b - a for a, b in itertools.pairwise(ticks)]
+        # 1 s apart at 1 kHz; a loop that fell behind re-anchors, so fewer ticks may pass.
+        assert min(gaps) >= 500, ticks
+        assert server.deferred >= 4
+    finally:
+        session.loop.request_stop("test over")
+        runner.join(timeout=10)
+        server.close()
+
+
+@pytest.mark.parametrize("cmd", [["set"], {"reload": 1}, ["enable", "record_start"]])
+def test_a_command_of_the_wrong_type_naming_a_limited_one_gets_its_error(server, cmd):
+    """The rate limit looks at a line's command before it is served: one that is not a
+    string (here naming limited commands) is answered as the bad request it is, and the
+    connection goes on."""
+    with _raw(server.path) as s:
+        replies = s.makefile("rb")
+        replies.readline()  # the greeting
+        s.sendall(json.dumps({"id": 1, "cmd": cmd}).encode() + b"\n")
+        s.sendall(b'{"id": 2, "cmd": "get", "param": "mass_kg"}\n')
+        first, second = (json.loads(replies.readline()) for _ in range(2))
+    assert first["id"] == 1 and first["error"]["code"] == "bad_request"
+    assert second["id"] == 2 and second["ok"]

@@ -248,7 +248,12 @@ def daemon(tmp_path_factory):
     session = build_session(profile, paced=True, record_dir=tmp)
     session.loop.realtime_settings = None
     sock = tmp / "h.sock"
-    server = ControlServer(session, sock)
+    # Thousands of valid sets and dozens of reloads among the hostile lines: at the
+    # default limits they would stretch this suite by a minute or more, and this loop
+    # runs without real-time priority, so a loaded machine can stall it past the watchdog
+    # meanwhile. The limits themselves are tested in test_control_server.py; here every
+    # request still passes through them, with no wait.
+    server = ControlServer(session, sock, rate_limits_s={"change": 0.0, "reload": 0.0})
     server.start()
     out: dict = {}
     runner = threading.Thread(target=lambda: out.update(s=session.run()), name="hostile-loop")

@@ -169,6 +169,22 @@ def test_run_plot_without_record_leaves_no_recording_behind(tmp_path, monkeypatc
     assert list((tmp_path / "tmp").iterdir()) == []
 
 
+def test_run_plot_without_record_names_no_removed_recording(tmp_path, monkeypatch, capsys):
+    """The summary (printed and JSON) does not name the temporary recording the plot was
+    made from and then removed (before: it named a file already deleted)."""
+    monkeypatch.setenv("TMPDIR", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", None)  # re-read TMPDIR
+    summary = tmp_path / "s.json"
+    args = ["run", str(GRASP_PROFILE), "--unpaced", "--duration", "0.2", "--no-socket"]
+    assert main([*args, "--plot", str(tmp_path / "run.png"), "--summary-json", str(summary)]) == 0
+    out = capsys.readouterr().out
+    rec = json.loads(summary.read_text())["recording"]
+    assert rec["path"] is None and rec["temporary"] is True and rec["written"] > 0
+    assert str(tmp_path / "tmp") not in out + summary.read_text()
+    assert "temporary, for the plot; removed" in out
+
+
 def test_a_summary_histogram_is_drawn_bin_by_bin(tmp_path):
     s = {
         "ticks": 100,

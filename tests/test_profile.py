@@ -85,7 +85,7 @@ def test_a_key_of_another_section_is_not_suggested_as_its_own_fix(grasp_data, wr
             "fingers[0:thumb].device",
             "replay",
         ),
-        (lambda d: d["fingers"][1].__setitem__("name", "thumb"), "(top level)", "unique"),
+        (lambda d: d["fingers"][1].__setitem__("name", "thumb"), "fingers", "unique"),
         (lambda d: d.pop("safety"), "safety", "missing"),
         (
             lambda d: d["fingers"][0].__setitem__("actuated_directions", [[1, 0, 0]] * 4),

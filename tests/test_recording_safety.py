@@ -208,3 +208,98 @@ def test_overwrite_replaces_a_regular_file_by_rename_and_the_file_is_not_world_r
     assert read(root / "old.hrec").ticks == 5
     assert stat.S_IMODE(os.stat(root / "old.hrec").st_mode) == 0o640
     assert sorted(p.name for p in root.iterdir()) == ["old.hrec"]  # no temporary left
+
+
+# -- a full disk ---------------------------------------------------------------------------
+
+
+def _ring_with(records: np.ndarray, capacity: int) -> int:
+    """A ring (as Recorder makes it) holding ``records``, closed by the loop: its fd."""
+    size = records.dtype.itemsize
+    fd = os.memfd_create("test-ring", os.MFD_CLOEXEC)
+    os.ftruncate(fd, ring.HEADER_BYTES + capacity * size)
+    with mmap.mmap(fd, 0) as mm:
+        mm[:8] = ring.MAGIC
+        mm[ring.HEADER_BYTES : ring.HEADER_BYTES + records.nbytes] = records.tobytes()
+        words = ring.Words(mm)
+        words[ring.W_ITEMSIZE] = size
+        words[ring.W_CAPACITY] = capacity
+        words[ring.W_WRITTEN] = len(records)
+        words[ring.W_CLOSED] = 1
+        words.release()
+    return fd
+
+
+def test_on_a_full_disk_the_written_count_is_what_the_file_holds(tmp_path, monkeypatch):
+    """The disk fills in the middle of a chunk of records: the kernel takes part of it,
+    then says ENOSPC. The count is the whole records in the file, and a torn record is cut
+    off, so `written` is exact (before: the chunk's part was in the file, not in the count:
+    status said 1,530 written, the file held 1,537)."""
+    from hapticd.recording.format import make_dtype
+
+    dtype = make_dtype(_fields())
+    records = np.zeros(40, dtype)
+    records["t"] = np.arange(40)
+    fd = _ring_with(records, capacity=64)
+    out = tmp_path / "full.bin"
+    header = b"H" * 100
+    out.write_bytes(header)
+    room = [len(header) + int(20.5 * dtype.itemsize)]  # bytes left on the "disk"
+
+    def write(fd_, data):
+        left = room[0] - os.fstat(fd_).st_size
+        if left <= 0:
+            raise OSError(28, "No space left on device")
+        return os.write(fd_, data[:left])
+
+    monkeypatch.setattr(ring, "_write", write)
+    out_fd = os.open(out, os.O_WRONLY | os.O_APPEND)
+    try:
+        done = ring.drain(fd, out_fd, str(out), os.getppid())
+        with mmap.mmap(fd, 0) as mm:
+            words = ring.Words(mm)
+            drained, state = words[ring.W_DRAINED], words[ring.W_STATE]
+            words.release()
+            error = bytes(mm[ring.ERROR_AT : ring.ERROR_AT + ring.ERROR_BYTES])
+    finally:
+        os.close(fd)
+    assert done == drained == 20
+    assert out.stat().st_size == len(header) + 20 * dtype.itemsize  # the torn one cut off
+    got = np.frombuffer(out.read_bytes()[len(header) :], dtype)
+    assert list(got["t"]) == list(range(20))
+    assert state == ring.STATE_FAILED
+    assert b"after 20 ticks" in error and b"No space left" in error
+
+
+def test_a_failed_recording_is_named_in_the_runs_summary(tmp_path):
+    """The recording's file goes mid-run: the run's summary keeps its recording block,
+    with the error and how many ticks were lost (before: no recording block at all)."""
+    from hapticd.cli.run import format_summary
+    from hapticd.daemon.session import build_session
+    from hapticd.profile import load_profile
+    from tests.conftest import GRASP_PROFILE
+
+    where = tmp_path / "session"
+    where.mkdir()
+    session = build_session(
+        load_profile(GRASP_PROFILE), paced=False, duration_s=0.5, record_path=where / "r.hrec"
+    )
+
+    class RemoveAt:  # a stage that removes the recording's folder at tick 100
+        name = "remove"
+        k = 0
+
+        def run(self, frame):
+            self.k += 1
+            if self.k == 100:
+                shutil.rmtree(where)
+
+    session.loop.renderer.insert(RemoveAt(), after="allocation")
+    with pytest.raises(RecordingError, match="deleted while recording") as caught:
+        session.run()
+    summary = caught.value.summary
+    rec = summary["recording"]
+    assert "deleted while recording" in rec["error"]
+    assert rec["ticks"] > 100 and rec["lost"] == rec["ticks"] - rec["written"]
+    summary["recording_error"] = str(caught.value)
+    assert "deleted while recording" in format_summary(summary)

@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -205,3 +206,23 @@ def test_a_live_socket_is_not_stolen_and_a_stale_one_is_replaced(tmp_path):
     second.start()
     second.close()
     assert not path.exists()
+
+
+def test_a_manager_that_does_not_read_never_blocks_a_notification(tmp_path):
+    """The control thread sends these between requests: a notification socket whose queue
+    is full (a manager that stopped reading) drops the message instead of blocking the
+    control thread for good (before: status went unanswered once ~10 pings queued)."""
+    path = tmp_path / "notify"
+    env = {"NOTIFY_SOCKET": str(path)}
+    sent: list[bool] = []
+    sender = threading.Thread(
+        target=lambda: sent.extend(sdnotify.notify("WATCHDOG=1", env) for _ in range(1000))
+    )
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as manager:
+        manager.bind(str(path))
+        sender.start()
+        sender.join(timeout=10)
+        blocked = sender.is_alive()
+    sender.join(timeout=5)  # the manager's socket is closed: a blocked send fails now
+    assert not blocked, f"blocked after {len(sent)} notifications"
+    assert sent[0] is True and sent[-1] is False  # the queue filled; nothing waited

@@ -32,7 +32,13 @@ from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
 from hapticd.view import ViewServer, is_loopback
-from hapticd.view.server import MAX_STREAMS, SUBJECT_TELEMETRY, key_path, load_or_make_key
+from hapticd.view.server import (
+    MAX_CONNECTIONS,
+    MAX_STREAMS,
+    SUBJECT_TELEMETRY,
+    key_path,
+    load_or_make_key,
+)
 from tests import cdp
 from tests.conftest import ROOT, wait_for
 from tests.fake_daemon import FakeDaemon
@@ -87,12 +93,22 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+NOFILE_MAIN = (
+    "import resource, runpy, sys; resource.setrlimit(resource.RLIMIT_NOFILE, ({n}, {n})); "
+    "sys.argv[0] = 'hapticd'; runpy.run_module('hapticd', run_name='__main__')"
+)
+
+
 class View:
     """A ``hapticd view`` process: its URLs (the first two lines of stdout) and stderr."""
 
-    def __init__(self, sock: Path, *args: str, timeout_s: float = 30.0) -> None:
+    def __init__(
+        self, sock: Path, *args: str, timeout_s: float = 30.0, nofile: int | None = None
+    ) -> None:
+        # ``nofile``: the view runs with at most this many file descriptors.
+        limit = [] if nofile is None else ["-c", NOFILE_MAIN.format(n=nofile)]
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "hapticd", "view", "--socket", str(sock), *args],
+            [sys.executable, *(limit or ["-m", "hapticd"]), "view", "--socket", str(sock), *args],
             cwd=ROOT,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
@@ -166,8 +182,8 @@ def view():
     """Start ``hapticd view`` processes; each is stopped (SIGTERM) at the end and must exit 0."""
     started: list[View] = []
 
-    def start(sock: Path, *args: str) -> View:
-        v = View(sock, *args)
+    def start(sock: Path, *args: str, nofile: int | None = None) -> View:
+        v = View(sock, *args, nofile=nofile)
         started.append(v)
         return v
 
@@ -229,7 +245,9 @@ def ticks_of(events):
 def test_the_url_comes_first_then_the_page_and_its_assets(daemon, view):
     v = view(daemon)
     assert v.host == "127.0.0.1"
-    assert v.subject_url == v.url + "&mode=subject"
+    # The subject's URL carries the subject's capability, not the experimenter's key.
+    assert v.subject_url.endswith("&mode=subject") and v.key not in v.subject_url
+    assert URL_RE.match(v.subject_url.removesuffix("&mode=subject"))
     with v.get("/", key=False) as r:
         assert r.status == 200 and r.headers["Content-Type"].startswith("text/html")
         assert "default-src 'self'" in r.headers["Content-Security-Policy"]
@@ -268,7 +286,8 @@ def test_the_socket_delivers_advancing_ticks_and_what_the_page_draws(daemon, vie
             lambda ev: len(set(ticks_of(ev))) >= 3 and any(n == "status" for n, _ in ev),
         )
     # The link state and the status come first, before any telemetry.
-    assert [n for n, _ in events[:2]] == ["link", "status"]
+    assert [n for n, _ in events[:3]] == ["hello", "link", "status"]
+    assert events[0][1] == {"role": "experimenter"}
     ticks = ticks_of(events)
     assert ticks == sorted(ticks) and ticks[-1] > ticks[0]
     sample = next(d for n, d in events if n == "telemetry")
@@ -297,7 +316,7 @@ def test_the_subjects_socket_reveals_no_condition(daemon, view):
         reply = reply_to(ws, {"type": "set", "param": "stiffness", "value": "90"})
         assert reply["ok"] is False and reply["error"]["code"] == "read_only"
     for name, data in events:
-        assert name in ("link", "status", "telemetry"), name  # no daemon events
+        assert name in ("hello", "link", "status", "telemetry"), name  # no daemon events
         if name == "telemetry":
             assert set(data) <= set(SUBJECT_TELEMETRY)
             assert {"object_pos", "object_rot", "proxy_pos", "tick"} <= set(data)
@@ -306,9 +325,47 @@ def test_the_subjects_socket_reveals_no_condition(daemon, view):
             assert set(data["scene"]) == {"bounds_m", "surfaces", "finger_radii_m"}
         elif name == "link":
             assert set(data) == {"connected"}
+        elif name == "hello":
+            assert data == {"role": "subject"}
     blob = json.dumps(events)
     for word in ("allocator", "stiffness", "force", "device_pos", "mass", "residual"):
         assert word not in blob, f"the subject's socket carries {word!r}"
+    with ControlClient(daemon) as c:
+        assert c.get("stiffness_n_per_m") == 60.0
+
+
+def _subject_key(v) -> str:
+    m = URL_RE.match(v.subject_url.removesuffix("&mode=subject"))
+    assert m
+    return m["key"]
+
+
+def test_the_subjects_capability_opens_only_the_subjects_page(daemon, view):
+    """The subject's URL without mode=subject: still the subject's stream (no condition),
+    no change even on a view with --control, no parameters, the stripped status; before,
+    it carried the experimenter's key and gave the experimenter's page."""
+    v = view(daemon, "--control")
+    cap = _subject_key(v)
+    with ws_connect(v.port, cap) as ws:  # no mode: the capability decides
+        events = ws_events(
+            ws, lambda ev: len(ticks_of(ev)) >= 2 and any(n == "status" for n, _ in ev)
+        )
+        reply = reply_to(ws, {"type": "set", "param": "stiffness", "value": "90"})
+        assert reply["ok"] is False and reply["error"]["code"] == "read_only"
+        # It may answer a prompt: the daemon checks the answer (none is asked here).
+        reply = reply_to(ws, {"type": "respond", "prompt": 1, "choice": "yes"})
+        assert reply["error"]["code"] == "no_prompt"
+    assert events[0] == ("hello", {"role": "subject"})
+    blob = json.dumps(events)
+    for word in ("allocator", "stiffness", "force", "device_pos", "mass", "residual", v.key):
+        assert word not in blob, f"the subject's socket carries {word!r}"
+    with pytest.raises(urllib.error.HTTPError) as exc:
+        OPENER.open(f"{v.base}/api/params?key={cap}", timeout=10)
+    assert exc.value.code == 403
+    with OPENER.open(f"{v.base}/api/status?key={cap}", timeout=10) as r:
+        body = json.loads(r.read())
+    assert set(body["status"] or {}) <= {"fingers", "scene", "prompt"}
+    assert body["link"] == {"connected": True}
     with ControlClient(daemon) as c:
         assert c.get("stiffness_n_per_m") == 60.0
 
@@ -331,6 +388,42 @@ def test_a_websocket_needs_the_key_and_the_pages_own_origin(daemon, view):
     for origin in (f"http://127.0.0.1:{v.port}", None):
         with v.ws(origin=origin) as ws:
             ws_events(ws, lambda ev: bool(ticks_of(ev)))
+
+
+def test_deeply_nested_json_from_a_page_gets_a_clear_error_and_the_page_lives(daemon, view):
+    """'[' * 30000: the parser's recursion limit, not a reason to close the page (before:
+    its handler died, close 1011)."""
+    v = view(daemon)
+    with v.ws() as ws:
+        ws.send("[" * 30000 + "]" * 30000)
+        events = ws_events(ws, lambda ev: any(n == "reply" for n, _ in ev))
+        reply = next(d for n, d in events if n == "reply")
+        assert reply["ok"] is False and reply["error"]["code"] == "bad_request"
+        assert "nested" in reply["error"]["message"]
+        ws_events(ws, lambda ev: len(ticks_of(ev)) >= 2)  # still streaming
+        reply = reply_to(ws, {"type": "set", "param": "stiffness", "value": "90"})
+        assert reply["error"]["code"] == "read_only"  # and still answering
+        # More hostile messages, each one reply with a clear code, the page living on.
+        hostile = [
+            b"\xff\xfe",
+            "null",
+            "[]",
+            '{"type": 5}',
+            '{"type": "set", "param": [], "value": {}}',
+            '{"type": "respond", "prompt": -1, "choice": "yes"}',
+            '{"type": "respond", "prompt": 1e400, "choice": "yes"}',
+            '{"type": "respond", "prompt": 1, "choice": "' + "y" * 5000 + '"}',
+            '{"ref": {"a": [1]}, "type": "respond"}',
+            "{" * 20000,
+        ]
+        for raw in hostile:
+            ws.send(raw)
+        events = ws_events(
+            ws, lambda ev: sum(n == "reply" for n, _ in ev) >= len(hostile), timeout_s=20
+        )
+        replies = [d for n, d in events if n == "reply"]
+        assert all(r["ok"] is False and r["error"]["code"] for r in replies), replies
+        ws_events(ws, lambda ev: len(ticks_of(ev)) >= 2)  # and still streaming
 
 
 def test_read_only_refuses_a_change(daemon, view):
@@ -447,6 +540,60 @@ def test_a_page_that_stops_reading_is_dropped_and_the_others_go_on(daemon, view)
 
 
 @pytest.mark.timing("a rate of frames over wall-clock time is what is limited")
+def _flood(port: int, n: int) -> list[socket.socket]:
+    """``n`` bare TCP connections to ``port`` that send nothing (connecting, not waiting)."""
+    out = []
+    for _ in range(n):
+        s = socket.socket()
+        s.setblocking(False)
+        s.connect_ex(("127.0.0.1", port))
+        out.append(s)
+    return out
+
+
+def test_after_a_flood_at_the_descriptor_limit_the_view_serves_again(tmp_path, view):
+    """300 bare connections to a view limited to 40 descriptors: accept() runs out of them,
+    waits and tries again (saying so once), and when the flood ends the page is served
+    within seconds (before: the library's accept loop ended at the first EMFILE and the
+    view never served again)."""
+    v = view(tmp_path / "none.sock", "-q", nofile=40)
+    flood = _flood(v.port, 300)
+    try:
+        wait_for(
+            lambda: v.stderr_so_far(),
+            "the view to say it cannot accept",
+            until=lambda err: "cannot accept a connection" in err,
+            timeout_s=10,
+        )
+    finally:
+        for s in flood:
+            s.close()
+    t0 = time.monotonic()
+    with v.get("/", key=False, timeout_s=10.0) as r:
+        assert r.status == 200
+    assert time.monotonic() - t0 < 5.0
+    err = v.stderr_so_far(wait_s=0.5)
+    assert err.count("cannot accept a connection") == 1, err  # said once, not per retry
+    assert "accepting connections again" in err
+    assert "Traceback" not in err  # no connection's handler died for want of descriptors
+
+
+def test_idle_connections_give_their_places_to_a_page(daemon, view):
+    """More bare connections than the view serves at once: the oldest idle ones are closed,
+    and a page still opens and streams."""
+    v = view(daemon)
+    flood = _flood(v.port, 2 * MAX_CONNECTIONS)
+    try:
+        time.sleep(0.5)
+        with v.ws() as ws:
+            ws_events(ws, lambda ev: len(ticks_of(ev)) >= 2)
+        with v.get("/api/status") as r:
+            assert r.status == 200
+    finally:
+        for s in flood:
+            s.close()
+
+
 def test_telemetry_to_the_pages_is_rate_limited(daemon, view):
     v = view(daemon, "--rate", "20")
     with v.ws() as ws:
@@ -638,6 +785,51 @@ def test_a_page_in_headless_chromium_shows_advancing_ticks(daemon, view, tmp_pat
         assert not re.search(r"\d", shown), f"the subject's page shows {shown!r}"
         assert browser.evaluate(PROMPT_SHOWN) is False
         browser.screenshot(tmp_path / "subject.png")
+
+
+SET_FROM_PAGE = (
+    "(() => { const q = new URLSearchParams(location.search); window.__reply = null; "
+    "const w = new WebSocket(`ws://${location.host}/ws?key=${q.get('key')}`); "
+    "w.onmessage = (e) => { const m = JSON.parse(e.data); "
+    "if (m.type === 'reply') window.__reply = m; }; "
+    "w.onopen = () => w.send(JSON.stringify({type: 'set', ref: 1, param: 'stiffness', "
+    "value: '90'})); return true; })()"
+)
+
+
+def test_the_subjects_url_without_its_mode_is_still_the_subjects_page(
+    daemon, view, tmp_path, chromium
+):
+    """In the browser: the subject's URL with mode=subject removed shows the subject's page
+    (no panels, no condition in the document), holds no experimenter's key, and a change
+    sent from it over the page's WebSocket is refused, on a view with --control."""
+    v = view(daemon, "--control")
+    bare = v.subject_url.removesuffix("&mode=subject")
+    frames = "Number(document.querySelector('[data-testid=scene]').dataset.frames)"
+    with cdp.Browser(chromium, tmp_path / "chromium") as browser:
+        browser.open(bare)
+        wait_for(
+            # (while the page redraws itself as the subject's, there may be no body)
+            lambda: browser.evaluate("document.body ? document.body.className : ''"),
+            "the page to become the subject's",
+            until=lambda c: c == "subject",
+        )
+        wait_for(lambda: browser.evaluate(frames), "the subject's page drawing", until=bool)
+        panels = "getComputedStyle(document.getElementById('panels')).display"
+        assert browser.evaluate(panels) == "none"
+        html = browser.evaluate("document.documentElement.outerHTML")
+        text = browser.evaluate("document.documentElement.textContent")
+        assert v.key not in browser.evaluate("location.href") + html
+        for name in params.ALLOCATORS:
+            assert not re.search(rf"\b{re.escape(name)}\b", text), name
+        assert not re.search(r"\d\s*N\b|N/m|\b60\b", text), text
+        browser.evaluate(SET_FROM_PAGE)
+        reply = wait_for(
+            lambda: browser.evaluate("window.__reply"), "the reply to the page's change"
+        )
+        assert reply["ok"] is False and reply["error"]["code"] == "read_only"
+    with ControlClient(daemon) as c:
+        assert c.get("stiffness_n_per_m") == 60.0
 
 
 def test_the_subjects_page_shows_the_prompt_as_buttons_and_a_click_answers(
@@ -838,7 +1030,8 @@ def test_a_page_hears_the_daemon_come_go_and_come_back(tmp_path, held_profile):
             events = ws_events(page, lambda ev: any(n == "link" for n, _ in ev))
             link = next(d for n, d in events if n == "link")
             assert link["connected"] is False and "is hapticd running?" in link["message"]
-            assert ws_events(subj, lambda ev: bool(ev))[0] == ("link", {"connected": False})
+            first = ws_events(subj, lambda ev: len(ev) >= 2)[:2]
+            assert first == [("hello", {"role": "subject"}), ("link", {"connected": False})]
             for _run in range(2):
                 with running_daemon(sock, held_profile):
                     events = ws_events(page, lambda ev: linked(ev, True), timeout_s=15)

@@ -5,7 +5,9 @@ per group of commands; this one builds the parser and dispatches."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -27,6 +29,8 @@ from hapticd.cli.common import (
     EXIT_ERROR,
     EXIT_FAULT,
     EXIT_OK,
+    EXIT_PIPE,
+    OutputClosed,
     _add_log_options,
     _add_progress_option,
     _add_set_option,
@@ -34,6 +38,7 @@ from hapticd.cli.common import (
     _log_level,
     _overrides,
     _positive,
+    stdout_closed,
 )
 from hapticd.cli.experiment import _add_experiment, _add_study
 from hapticd.cli.offline import _add_analyze, _add_plot, cmd_export
@@ -242,10 +247,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="hapticd: %(message)s", stream=sys.stderr)
-    logging.getLogger("hapticd").setLevel(_log_level(args))
-    return int(args.func(args))
+    try:
+        args = build_parser().parse_args(argv)
+        logging.basicConfig(level=logging.INFO, format="hapticd: %(message)s", stream=sys.stderr)
+        logging.getLogger("hapticd").setLevel(_log_level(args))
+        code = int(args.func(args))
+        sys.stdout.flush()
+        return code
+    except (BrokenPipeError, OutputClosed) as exc:
+        # The reader of stdout went (`hapticd check P | head -1`): end quietly, as a program
+        # ended by SIGPIPE would; a broken pipe anywhere else is a real error.
+        if isinstance(exc, BrokenPipeError) and not stdout_closed():
+            raise
+        with contextlib.suppress(OSError, ValueError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())  # the interpreter's last flush goes nowhere
+        return EXIT_PIPE
 
 
 if __name__ == "__main__":

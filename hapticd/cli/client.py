@@ -16,7 +16,7 @@ from typing import Any
 from hapticd import events as event_kinds
 from hapticd import params
 from hapticd import protocol as proto
-from hapticd.cli.common import EXIT_BAD_INPUT, EXIT_ERROR, EXIT_OK, _port, _rate
+from hapticd.cli.common import EXIT_BAD_INPUT, EXIT_ERROR, EXIT_OK, _port, _rate, emit
 from hapticd.cli.run import _device_text
 from hapticd.control import ControlClient, NoDaemonError, client_socket_path
 from hapticd.protocol import ProtocolError
@@ -76,7 +76,11 @@ def format_status(st: dict[str, Any]) -> str:
 def _client_failed(args: argparse.Namespace, exc: Exception) -> int:
     """Report a failed client command; the exit code says whose fault it was."""
     if isinstance(exc, ProtocolError):
-        print(f"hapticd: {exc.code}: {exc}", file=sys.stderr)
+        # busy says it all ("the daemon is busy: N clients connected ..."); others get a code.
+        print(
+            f"hapticd: {exc}" if exc.code == "busy" else f"hapticd: {exc.code}: {exc}",
+            file=sys.stderr,
+        )
         # The request was wrong (exit 2), or the daemon's state (exit 1): hapticd.protocol.
         return EXIT_BAD_INPUT if exc.code in proto.BAD_REQUEST else EXIT_ERROR
     if isinstance(exc, NoDaemonError):
@@ -128,7 +132,7 @@ def cmd_client(args: argparse.Namespace) -> int:
             elif cmd == "status":
                 result = client.status()
                 if not args.json:
-                    print(format_status(result))
+                    emit(format_status(result))
                     return EXIT_OK
             else:
                 result = client.call(cmd)
@@ -177,7 +181,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
                 parts.append(f"{fr['allocator']}  overruns {fr['overruns']}")
                 if fr["fault"]:
                     parts.append("FAULT")
-                print("  ".join(parts), flush=True)
+                emit("  ".join(parts))
                 shown += 1
     except KeyboardInterrupt:
         return EXIT_OK
@@ -222,8 +226,7 @@ def cmd_events(args: argparse.Namespace) -> int:
     try:
         with ControlClient(args.socket) as client:
             for ev in client.events(kinds):
-                text = json.dumps(ev) if args.json else format_event(ev)
-                print(text, flush=True)
+                emit(json.dumps(ev) if args.json else format_event(ev))
                 shown += 1
                 if args.count is not None and shown >= args.count:
                     break

@@ -13,6 +13,33 @@ EXIT_OK = 0
 EXIT_ERROR = 1
 EXIT_BAD_INPUT = 2
 EXIT_FAULT = 3
+EXIT_PIPE = 128 + 13  # what a shell reports for a program ended by SIGPIPE
+
+
+class OutputClosed(Exception):  # noqa: N818  (not an error: the reader has gone)
+    """Standard output was closed by its reader (``hapticd ... | head -1``). Not an
+    OSError, so the commands' handlers of socket errors let it through to ``main``."""
+
+
+def emit(text: str) -> None:
+    """Print ``text`` and flush; OutputClosed if the reader of stdout has gone."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        raise OutputClosed from None
+
+
+def stdout_closed() -> bool:
+    """Whether stdout is a pipe or socket whose reader has gone (POLLERR on its end)."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        return any(ev & select.POLLERR for _, ev in poller.poll(0))
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def _fmt(v: float | None, unit: str = "") -> str:

@@ -77,9 +77,11 @@ def format_summary(s: dict[str, Any]) -> str:
         lines.append(f"  real time       {policy}{lock}")
     rec = s.get("recording")
     if rec is not None:
+        where = "(temporary, for the plot; removed)" if rec.get("temporary") else rec["path"]
         lines.append(
-            f"  recording       {rec['path']}: {rec['written']} ticks written, "
+            f"  recording       {where}: {rec['written']} ticks written, "
             f"{rec['dropped']} dropped"
+            + (f", {rec['lost']} LOST: {rec['error']}" if rec.get("lost") or rec["error"] else "")
         )
     if s["fault"]:
         lines.append(f"  FAULT (latched) at tick {s['fault']['tick']}: {s['fault']['cause']}")
@@ -186,13 +188,15 @@ def cmd_run(args: argparse.Namespace) -> int:
         temp_dir = tempfile.TemporaryDirectory(prefix="hapticd-run-")
         record_path = Path(temp_dir.name) / "run.hrec"
     try:
-        return _run(args, record_path)
+        return _run(args, record_path, temporary=temp_dir is not None)
     finally:
         if temp_dir is not None:
             temp_dir.cleanup()
 
 
-def _run(args: argparse.Namespace, record_path: Path | None) -> int:
+def _run(args: argparse.Namespace, record_path: Path | None, *, temporary: bool = False) -> int:
+    """Run the daemon; ``temporary``: ``record_path`` is removed afterwards (--plot without
+    --record), so the summary does not name it."""
     try:
         group = _socket_group(args)
         profile = load_profile(args.profile, _overrides(args))
@@ -244,7 +248,7 @@ def _run(args: argparse.Namespace, record_path: Path | None) -> int:
     except RecordingError as exc:
         # The loop ended safely; only the file is in doubt, and the message says how.
         print(f"hapticd: {exc}", file=sys.stderr)
-        summary = summarize(loop, session.profile.finger_names)
+        summary = getattr(exc, "summary", None) or summarize(loop, session.profile.finger_names)
         summary["recording_error"] = str(exc)
     finally:
         stop_progress()
@@ -254,6 +258,9 @@ def _run(args: argparse.Namespace, record_path: Path | None) -> int:
             signal.signal(s, h)
     summary["profile"] = str(args.profile)
     summary["reloads"] = server.reloads
+    if temporary and summary.get("recording"):
+        # Made only for the plot and removed after it: no path to a file that is gone.
+        summary["recording"] = {**summary["recording"], "path": None, "temporary": True}
     if loop.rt_report is not None:
         summary["realtime"] = loop.rt_report.to_json()
     if args.summary_json:

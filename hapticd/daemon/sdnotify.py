@@ -28,6 +28,9 @@ def notify(message: str, env: dict[str, str] | None = None) -> bool:
         addr = "\0" + addr[1:]
     try:  # creating the socket fails too when the process is out of file descriptors
         with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as s:
+            # Never wait: a manager that does not read (its queue holds ~10 datagrams)
+            # must not stop the control thread, which sends these between requests.
+            s.setblocking(False)
             s.sendto(message.encode("utf-8"), addr)
     except OSError:
         return False

@@ -22,6 +22,7 @@ import os
 import select
 import selectors
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -61,7 +62,28 @@ PERIODIC_S = 0.1
 WINDOW_S = 200e-6
 # ...but no longer than this (at high rates the loop's sleep may never be that long).
 WINDOW_MAX_WAIT_S = 0.005
-MAX_CLIENTS = 32  # one more is told so and closed: a runaway script cannot take every fd
+MAX_CLIENTS = 32  # connections served at once: a runaway script cannot take every fd
+# A connection must send a complete request line this soon after connecting, and finish
+# any line it begins this soon after its first byte; else it is told so and closed. A
+# connection with a subscription (telemetry or events) is never closed for being quiet.
+REQUEST_TIMEOUT_S = 5.0
+# The loop first: requests that rebuild or change the loop are served at most this often,
+# whoever sends them (the server's own minimum interval per kind, s). One due sooner waits
+# at the head of its connection (that client's later requests wait behind it, in order;
+# the other clients are served meanwhile): a storm of them slows the replies, not the loop.
+RATE_LIMITS_S = {"reload": 1.0, "change": 0.02}
+LIMITED = {
+    "reload": "reload",
+    "set": "change",
+    "enable": "change",
+    "disable": "change",
+    "record_start": "change",
+    "record_stop": "change",
+}
+# While a reload parses and builds (Python work in this thread), the GIL is handed to the
+# loop within this long when the loop wakes (the loop's own setting is 0.5 ms, more than
+# its wake-up margin of 0.2 ms).
+RELOAD_SWITCH_INTERVAL_S = 5e-5
 # When accept() fails for want of file descriptors the connection stays queued and the
 # listener readable; it is left unwatched this long instead of being retried in a spin.
 ACCEPT_BACKOFF_S = 0.1
@@ -70,6 +92,17 @@ _OUT_OF_FDS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
 
 class SocketInUseError(OSError):
     """Another live hapticd already serves this socket."""
+
+
+def busy_error(clients: int, limit: int) -> bytes:
+    """The line a client gets instead of the greeting when every place is in use."""
+    return proto.error(
+        None,
+        "busy",
+        f"the daemon is busy: {clients} clients connected (at most {limit}, each with a "
+        "request or a subscription); close one and try again",
+        clients=clients,
+    )
 
 
 @dataclass
@@ -83,6 +116,14 @@ class _Conn:
     skipped: int = 0
     event_kinds: frozenset[int] | None = None  # event subscription (kind codes); None: none
     events_from: int = 0  # the first tick whose events this subscriber gets
+    active_at: float = field(default_factory=time.monotonic)  # connected, or last request
+    served: int = 0  # complete requests served
+    line_since: float | None = None  # when the unfinished line in inbuf began
+    wait_until: float = 0.0  # its next request is rate-limited until then
+
+    @property
+    def subscribed(self) -> bool:
+        return bool(self.rate_hz) or self.event_kinds is not None
 
 
 class ControlServer:
@@ -99,12 +140,16 @@ class ControlServer:
         *,
         periodic: list[Callable[[], None]] | None = None,
         max_clients: int = MAX_CLIENTS,
+        request_timeout_s: float = REQUEST_TIMEOUT_S,
+        rate_limits_s: dict[str, float] | None = None,
         socket_group: int | None = None,
     ) -> None:
         self.session = session
         # The group (gid) whose members may connect too (--socket-group), else only this user.
         self.socket_group = socket_group
         self.max_clients = max_clients
+        self.request_timeout_s = request_timeout_s
+        self.idle_closed = 0  # connections closed for sending no complete request in time
         self.loop = session.loop
         self.path = Path(path) if path is not None else None
         self.periodic = [*(periodic or []), self._watch_recording]
@@ -123,6 +168,10 @@ class ControlServer:
         self._responses_of: object = None  # the profile _responses was made from
         # The subject prompt (id, question, choices), or None; answered by `respond`.
         self.prompt: dict[str, Any] | None = None
+        self.rate_limits_s = {**RATE_LIMITS_S, **(rate_limits_s or {})}
+        self._next_allowed = dict.fromkeys(self.rate_limits_s, 0.0)  # per kind, monotonic s
+        self.deferred = 0  # requests that waited for their rate limit
+        self._sighup_pending = False  # a SIGHUP reload waits for the reload limit
         self._accept_paused_until: float | None = None  # out of file descriptors
         self.accept_failures = 0  # accept() calls that failed so, since the last success
 
@@ -252,6 +301,9 @@ class ControlServer:
         due = [next_periodic] + [c.next_due for c in self._conns.values() if c.rate_hz]
         if self._accept_paused_until is not None:
             due.append(self._accept_paused_until)
+        due.extend(c.wait_until for c in self._conns.values() if c.wait_until > now)
+        if self._sighup_pending:
+            due.append(self._next_allowed["reload"])
         if any(c.event_kinds is not None for c in self._conns.values()):
             due.append(now + EVENT_PERIOD_S)
         timeout = 0.0 if self._pending() else max(0.0, min(due) - now)
@@ -268,12 +320,15 @@ class ControlServer:
                     self._read(self._conns[obj])
         self._serve_turns()
         now = time.monotonic()
+        if self._sighup_pending and now >= self._next_allowed["reload"]:
+            self._reload_from_signal()
         if self._accept_paused_until is not None and now >= self._accept_paused_until:
             self._resume_accept()
         self._stream(now)
         self._deliver_events()
         if now >= next_periodic:
             next_periodic = now + PERIODIC_S
+            self._reap_idle(now)
             # Also empties the sleep gate's pipe, which otherwise fills (a byte a tick).
             self._await_window()
             for fn in self.periodic:
@@ -300,11 +355,13 @@ class ControlServer:
         except BlockingIOError:
             return
         if b"R" in data:
-            self._reload_from_signal()
+            self._sighup_pending = True  # done when the reload limit allows (_serve_once)
 
     def _reload_from_signal(self) -> None:
+        self._sighup_pending = False
+        self._next_allowed["reload"] = time.monotonic() + self.rate_limits_s["reload"]
         try:
-            result = self.session.reload()
+            result = self._reload_gently()
         except (ProfileError, ValueError, TimeoutError, OSError) as exc:
             msg = f"reload rejected, the running profile stays: {exc}"
             log.error("%s", msg)
@@ -327,17 +384,11 @@ class ControlServer:
                 self._pause_accept(exc)
             return  # otherwise that client went away before we got to it
         self.accept_failures = 0
-        if len(self._conns) >= self.max_clients:
-            log.warning("refused a control client: %d already connected", len(self._conns))
+        if len(self._conns) >= self.max_clients and not self._evict_idle():
+            n = len(self._conns)
+            log.warning("refused a control client: the daemon is busy, %d connected", n)
             with contextlib.suppress(OSError):
-                sock.send(
-                    proto.error(
-                        None,
-                        "too_many_clients",
-                        f"hapticd serves at most {self.max_clients} control clients at once; "
-                        "close one and try again",
-                    )
-                )
+                sock.send(busy_error(n, self.max_clients))
             sock.close()
             return
         sock.setblocking(False)
@@ -345,6 +396,51 @@ class ControlServer:
         self._conns[sock] = conn
         self._sel.register(sock, selectors.EVENT_READ, None)
         self._send(conn, proto.greeting(__version__))
+
+    def _idle(self, conn: _Conn, now: float) -> bool:
+        """A connection that may give up its place: no subscription, no request waiting,
+        and either none sent yet or none for ``request_timeout_s``."""
+        return (
+            not conn.subscribed
+            and b"\n" not in conn.inbuf
+            and (conn.served == 0 or now - conn.active_at >= self.request_timeout_s)
+        )
+
+    def _evict_idle(self) -> bool:
+        """At the cap, close the idle connection that has waited longest to make room for a
+        new one (one that never sent a request first); False if every one is in use."""
+        now = time.monotonic()
+        idle = [c for c in self._conns.values() if self._idle(c, now)]
+        if not idle:
+            return False
+        victim = min(idle, key=lambda c: (c.served > 0, c.active_at))
+        self._close_idle(victim, "closed to make room for another client")
+        return True
+
+    def _close_idle(self, conn: _Conn, why: str) -> None:
+        """Tell ``conn`` why it is closed (one ``idle`` error line, best effort) and close it."""
+        self.idle_closed += 1
+        with contextlib.suppress(OSError):
+            conn.sock.send(
+                bytes(conn.outbuf)
+                + proto.error(
+                    None,
+                    "idle",
+                    f"{why}: no complete request within {self.request_timeout_s:g} s "
+                    "(a subscription keeps a connection open)",
+                )
+            )
+        self._drop(conn.sock)
+
+    def _reap_idle(self, now: float) -> None:
+        """Close the connections that sent no complete request in time: none since they
+        connected, or a line begun ``request_timeout_s`` ago and not finished."""
+        limit = self.request_timeout_s
+        for conn in list(self._conns.values()):
+            unfinished = conn.line_since is not None and now - conn.line_since >= limit
+            silent = conn.served == 0 and not conn.subscribed and now - conn.active_at >= limit
+            if (unfinished or silent) and b"\n" not in conn.inbuf:
+                self._close_idle(conn, "closed")
 
     def _pause_accept(self, exc: OSError) -> None:
         """Stop watching the listener for ACCEPT_BACKOFF_S (out of file descriptors)."""
@@ -411,6 +507,10 @@ class ControlServer:
             data = data[cut + 1 :]
         conn.inbuf += data
         tail = len(conn.inbuf) - (conn.inbuf.rfind(b"\n") + 1)
+        if not tail:
+            conn.line_since = None
+        elif conn.line_since is None or b"\n" in data:
+            conn.line_since = time.monotonic()  # a new line begins in this chunk
         if tail > proto.MAX_LINE_BYTES:
             # One reply for the whole line, then everything up to its newline is dropped.
             del conn.inbuf[len(conn.inbuf) - tail :]
@@ -426,13 +526,42 @@ class ControlServer:
         self._update_events(conn)
 
     def _pending(self) -> bool:
-        """Does a client have a whole request waiting?"""
-        return any(b"\n" in c.inbuf for c in self._conns.values())
+        """Does a client have a whole request waiting that may be served now?"""
+        now = time.monotonic()
+        return any(b"\n" in c.inbuf and c.wait_until <= now for c in self._conns.values())
+
+    def _limited(self, conn: _Conn, line: bytes) -> bool:
+        """Is ``line`` a request of a rate-limited kind that is not due yet? Then ``conn``
+        waits until it is. Otherwise a limited request books its kind's next slot."""
+        if not any(cmd.encode() in line for cmd in LIMITED):
+            return False  # cheap: most lines name no limited command at all
+        # Parsing is Python work: in the loop's sleep, as every request's (this runs at
+        # any time, woken by a deferred request's due time).
+        self._await_window()
+        try:
+            req = proto.decode(line)
+        except proto.ProtocolError:
+            return False  # answered as the error it is
+        cmd = req.get("cmd")
+        kind = LIMITED.get(cmd) if isinstance(cmd, str) else None
+        if kind is None:
+            return False
+        now = time.monotonic()
+        if now < self._next_allowed[kind]:
+            conn.wait_until = self._next_allowed[kind]
+            self.deferred += 1
+            return True
+        self._next_allowed[kind] = now + self.rate_limits_s[kind]
+        return False
 
     def _serve_turns(self) -> None:
         """Serve up to LINES_PER_TURN waiting requests of each client, round-robin: one
-        client's burst of pipelined requests does not delay the others."""
+        client's burst of pipelined requests does not delay the others. A rate-limited
+        request not yet due stops its client's turn (RATE_LIMITS_S)."""
+        now = time.monotonic()
         for conn in list(self._conns.values()):
+            if conn.wait_until > now:
+                continue
             for _ in range(LINES_PER_TURN):
                 if conn.sock not in self._conns:
                     break
@@ -440,7 +569,11 @@ class ControlServer:
                 if cut < 0:
                     break
                 line = bytes(conn.inbuf[:cut])
+                if self._limited(conn, line):
+                    break
                 del conn.inbuf[: cut + 1]
+                conn.served += 1
+                conn.active_at = time.monotonic()
                 self._send(conn, self._handle(conn, line))
             if conn.sock in self._conns:
                 self._update_events(conn)
@@ -672,7 +805,17 @@ class ControlServer:
         return self.session.record_stop()
 
     def _reload(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
-        return self.session.reload(req.get("profile"))
+        return self._reload_gently(req.get("profile"))
+
+    def _reload_gently(self, path: str | None = None) -> dict[str, Any]:
+        """``session.reload`` with a short GIL switch interval: its parsing and building, in
+        this thread, hand the GIL to the loop soon after the loop wakes."""
+        old = sys.getswitchinterval()
+        sys.setswitchinterval(min(old, RELOAD_SWITCH_INTERVAL_S))
+        try:
+            return self.session.reload(path)
+        finally:
+            sys.setswitchinterval(old)
 
     def _set(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
         done = self.session.apply(SetParam(req["param"], req["value"]))

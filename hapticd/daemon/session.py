@@ -31,7 +31,7 @@ from hapticd.event_ring import DEFAULT_CAPACITY
 from hapticd.frame import Frame
 from hapticd.profile import Profile, ProfileError, load_profile
 from hapticd.protocol import ProtocolError
-from hapticd.recording import Recorder, files, ring
+from hapticd.recording import Recorder, RecordingError, files, ring
 from hapticd.render import Renderer
 from hapticd.safety import SafetyChain
 from hapticd.servo import Applied, ServoLoop
@@ -88,18 +88,31 @@ class Session:
     overrides: list[str] = field(default_factory=list)
 
     def run(self) -> dict[str, Any]:
-        """Run the loop to its end; then flush and close whatever recording is open."""
+        """Run the loop to its end; then flush and close whatever recording is open. A
+        recording that failed raises RecordingError with the run's ``summary`` attached;
+        its ``recording`` block says what was written and what was ``lost``."""
         rec_status = None
+        failed: RecordingError | None = None
         try:
             self.loop.run()
         finally:
             rec = self.loop.recorder
             if rec is not None:
                 self.loop.recorder = None
-                rec_status = rec.close()
+                try:
+                    rec_status = rec.close()
+                except RecordingError as exc:
+                    failed = exc
+                    rec_status = rec.status()  # the final counts and the error
         summary = summarize(self.loop, self.profile.finger_names)
         if rec_status is not None:
-            summary["recording"] = rec_status
+            # Ticks the loop handed over that are not in the file (the writer failed or
+            # the file went); ``dropped`` ones never reached the ring.
+            lost = max(rec_status["ticks"] - rec_status["written"], 0)
+            summary["recording"] = {**rec_status, "lost": lost}
+        if failed is not None:
+            failed.summary = summary  # type: ignore[attr-defined]
+            raise failed
         return summary
 
     # -- live changes, called from the control thread (never from the loop) ---------------

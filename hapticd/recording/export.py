@@ -5,6 +5,7 @@ Both are offline conversions of a read ``Recording``; neither runs in the daemon
 
 from __future__ import annotations
 
+import io
 import json
 import math
 from collections.abc import Callable
@@ -69,10 +70,24 @@ def export_csv(rec: Recording, out: str | Path, progress: Progress | None = None
         axis=1,
     )
     assert flat.shape[1] == len(cols)
+    # The allocator column holds names (meta.allocators), not the recorded indices.
+    names = rec.meta.get("allocators")
+    at = cols.index("allocator") if "allocator" in cols and isinstance(names, list) else None
     with open(out, "w", encoding="utf-8") as fh:
         fh.write(",".join(cols) + "\n")
         for start in range(0, rec.ticks, PROGRESS_CHUNK):
-            np.savetxt(fh, flat[start : start + PROGRESS_CHUNK], delimiter=",", fmt="%.17g")
+            chunk = flat[start : start + PROGRESS_CHUNK]
+            if at is None:
+                np.savetxt(fh, chunk, delimiter=",", fmt="%.17g")
+            else:
+                buf = io.StringIO()
+                np.savetxt(buf, chunk, delimiter=",", fmt="%.17g")
+                for line in buf.getvalue().splitlines():
+                    row = line.split(",")
+                    v = float(row[at])
+                    k = int(v) if math.isfinite(v) and v == int(v) else -1
+                    row[at] = str(names[k]) if 0 <= k < len(names) else row[at]
+                    fh.write(",".join(row) + "\n")
             if progress is not None:
                 progress(min(start + PROGRESS_CHUNK, rec.ticks), rec.ticks)
     return rec.ticks

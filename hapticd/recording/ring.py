@@ -33,6 +33,7 @@ This module imports nothing heavy: the writer starts in about 50 ms.
 
 from __future__ import annotations
 
+import contextlib
 import mmap
 import os
 import platform
@@ -86,9 +87,25 @@ def fail(mm: mmap.mmap, words: Words, message: str) -> None:
     words[W_STATE] = STATE_FAILED
 
 
+_write = os.write  # a seam: the tests make it fail as a full disk does
+
+
+class _ShortWriteError(OSError):
+    """A write failed after ``written`` bytes of its data reached the file."""
+
+    def __init__(self, exc: OSError, written: int) -> None:
+        super().__init__(exc.errno, exc.strerror)
+        self.written = written
+
+
 def _write_all(fd: int, data: memoryview) -> None:
+    """Write all of ``data``; _ShortWriteError (saying how much did get written) if not."""
+    total = len(data)
     while data:
-        n = os.write(fd, data)
+        try:
+            n = _write(fd, data)
+        except OSError as exc:
+            raise _ShortWriteError(exc, total - len(data)) from None
         data = data[n:]
 
 
@@ -160,7 +177,19 @@ def _drain(words: Words, view: memoryview, out_fd: int, out_path: str, parent_pi
         if _deleted(out_fd):
             raise _WriterFailedError(lost, done)
     except OSError as exc:
-        why = f"writing {out_path} failed: {exc.strerror or exc}"
+        if isinstance(exc, _ShortWriteError):
+            # Part of the last chunk reached the file (a disk fills mid-write): count its
+            # whole records, and cut a torn one off, so the file holds exactly ``done``.
+            whole, torn = divmod(exc.written, size)
+            done += whole
+            words[W_DRAINED] = done
+            if torn:
+                with contextlib.suppress(OSError):
+                    os.ftruncate(out_fd, os.fstat(out_fd).st_size - torn)
+        why = (
+            f"writing {out_path} failed after {done} ticks: {exc.strerror or exc}; "
+            "later ticks are not recorded"
+        )
         raise _WriterFailedError(why, done) from None
     return done
 

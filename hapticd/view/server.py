@@ -18,9 +18,12 @@ nor change the run; a browser may open the WebSocket only from the page's own or
 
 from __future__ import annotations
 
+import base64
 import collections
 import contextlib
 import email.utils
+import errno
+import hashlib
 import hmac
 import ipaddress
 import json
@@ -52,7 +55,16 @@ from hapticd.control import ControlClient, NoDaemonError, check_socket_dir
 STATUS_PERIOD_S = 0.5  # how often the status is polled (the panels' refresh)
 RETRY_S = 0.5  # how soon a lost daemon is looked for again
 CLIENT_TIMEOUT_S = 5.0  # a daemon silent this long is taken as gone
-OPEN_TIMEOUT_S = 10.0  # a browser that does not finish its request in this long is dropped
+OPEN_TIMEOUT_S = 5.0  # a connection that does not finish its request in this long is dropped
+MAX_CONNECTIONS = 64  # TCP connections at once (pages, requests, handshakes)
+# Out of file descriptors, accept() waits this long before it tries again (the pending
+# connections stay queued) instead of failing, which would end the accept loop for good.
+ACCEPT_BACKOFF_S = 0.1
+_OUT_OF_FDS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
+# A connection is served only with this many descriptors to spare: its handler needs more
+# (the library's reader makes a selector); without them it would die with a traceback.
+FD_HEADROOM = 4
+ACCEPT_LOG_EVERY_S = 10.0  # a shortage is said at most this often, however many episodes
 PING_INTERVAL_S = 5.0  # the WebSocket's keepalive: a page that answers no ping ...
 PING_TIMEOUT_S = 10.0  # ... for this long is closed
 CLOSE_TIMEOUT_S = 2.0  # a closing page gets this long to answer the close
@@ -113,6 +125,14 @@ def _message(kind: str, data: Any) -> str:
 def key_path(socket_path: Path) -> Path:
     """Where the view keeps its key: beside the control socket, readable by its user only."""
     return socket_path.with_name(socket_path.name + ".view-key")
+
+
+def subject_key(key: str) -> str:
+    """The subject's capability, derived from the experimenter's ``key`` (so it lasts as long
+    as the key) and not reversible to it: it opens the subject's page and answers the
+    current prompt, nothing else."""
+    digest = hmac.new(key.encode(), b"hapticd view: the subject's page", hashlib.sha256)
+    return base64.urlsafe_b64encode(digest.digest()).decode()[:24]
 
 
 def load_or_make_key(path: Path, log: Callable[[str], None]) -> str:
@@ -243,6 +263,9 @@ class Hub:
         with self._lock:
             if self.closed or len(self._pages) >= MAX_STREAMS:
                 return False
+            # First, whose page this is: the key decides (a subject's URL without
+            # mode=subject is still the subject's page).
+            page.offer(_message("hello", {"role": "subject" if page.subject else "experimenter"}))
             for kind in ("link", "status"):
                 item = self._latest.get(kind)
                 text = None if item is None else item[2] if page.subject else item[1]
@@ -452,6 +475,114 @@ class _LogBridge(logging.Handler):
         self._log(f"websockets: {record.getMessage()}" + (f": {exc!r}" if exc else ""))
 
 
+class _Connection(ServerConnection):
+    """A connection whose reader, started without a descriptor to spare for its selector
+    (a flood at the limit), drops the connection quietly instead of dying with a
+    traceback; the handshake then ends and the handler closes the socket."""
+
+    def recv_events(self) -> None:
+        try:
+            super().recv_events()
+        except OSError as exc:
+            if exc.errno not in _OUT_OF_FDS:
+                raise
+            self.close_socket()
+
+
+class _Listener(socket.socket):
+    """The view's listening socket: an ``accept`` that outlives a shortage of file
+    descriptors and keeps the connections bounded.
+
+    The ``websockets`` server's accept loop ends at the first error ``accept`` raises, so
+    a flood of connections at the descriptor limit would leave the view alive but deaf.
+    Here ``accept`` waits ``ACCEPT_BACKOFF_S`` and tries again (saying so once per
+    episode), and raises only once the socket is closed (the server shutting down). With
+    ``MAX_CONNECTIONS`` open, a new connection takes the place of the oldest that has not
+    become an open page (an idle or half-sent request), or is closed at once if every one
+    is a page."""
+
+    server: Server | None = None  # set once the server exists
+    log: Callable[[str], None] = staticmethod(lambda msg: None)
+    # The connections accepted and not yet seen closed, oldest first.
+    _accepted: dict[socket.socket, None]
+    _quiet_until = 0.0  # no shortage is logged before then
+    _muted = False  # the last shortage was not logged: nor is its end
+
+    def accept(self) -> tuple[socket.socket, Any]:
+        failing = False
+        while True:
+            if self.fileno() < 0:
+                raise OSError(errno.EBADF, "the view's listening socket is closed")
+            try:
+                sock, addr = super().accept()
+                if not self._headroom():
+                    sock.close()  # it could not be served: as if accept() had failed
+                    raise OSError(errno.EMFILE, os.strerror(errno.EMFILE))
+            except OSError as exc:
+                if exc.errno not in _OUT_OF_FDS:
+                    raise
+                if not failing:
+                    failing = True
+                    self._say(
+                        f"cannot accept a connection: {exc.strerror or exc}; retrying every "
+                        f"{ACCEPT_BACKOFF_S:g} s"
+                    )
+                time.sleep(ACCEPT_BACKOFF_S)
+                continue
+            if failing:
+                self._say("accepting connections again")
+                failing = False
+            if self._room_for_one(sock):
+                return sock, addr
+            with contextlib.suppress(OSError):
+                sock.close()
+
+    def _say(self, message: str) -> None:
+        """Log a shortage (or its end) once per ACCEPT_LOG_EVERY_S, not once per episode:
+        a flood that comes and goes would otherwise fill the log."""
+        now = time.monotonic()
+        if message.startswith("cannot"):
+            if now < self._quiet_until:
+                self._muted = True
+                return
+            self._quiet_until = now + ACCEPT_LOG_EVERY_S
+            self._muted = False
+        elif self._muted:
+            return
+        self.log(message)
+
+    def _headroom(self) -> bool:
+        """Whether FD_HEADROOM more descriptors can be opened (and are closed again)."""
+        fds: list[int] = []
+        try:
+            for _ in range(FD_HEADROOM):
+                fds.append(os.dup(self.fileno()))
+            return True
+        except OSError:
+            return False
+        finally:
+            for fd in fds:
+                os.close(fd)
+
+    def _room_for_one(self, sock: socket.socket) -> bool:
+        """Whether ``sock``, just accepted, may be served, making room if need be."""
+        live = self._accepted
+        for old in [s for s in live if s.fileno() < 0]:
+            del live[old]  # closed by its handler
+        if len(live) >= MAX_CONNECTIONS:
+            pages = set() if self.server is None else {c.socket for c in self.server.connections}
+            # The oldest connection that is not an open page gives up its place: its
+            # handshake (or request) ends at once and its handler closes it.
+            victim = next((s for s in live if s not in pages), None)
+            if victim is None:
+                return False
+            del live[victim]
+            with contextlib.suppress(OSError):
+                victim.shutdown(socket.SHUT_RDWR)
+        live[sock] = None
+        return True
+
+
 class ViewServer:
     """The view: a link to the daemon at ``socket_path`` and the page served on
     ``host``:``port`` (0: a free port). ``control``: the page may send ``set``."""
@@ -473,6 +604,7 @@ class ViewServer:
         self.control = control
         self.log = log or (lambda msg: print(f"hapticd view: {msg}", file=sys.stderr, flush=True))
         self.key = load_or_make_key(key_path(self.socket_path), self.log)
+        self.subject_key = subject_key(self.key)
         self.hub = Hub(self.log)
         self.link = DaemonLink(
             self.socket_path, self.hub, rate_hz=rate_hz, control=control, log=self.log
@@ -482,11 +614,14 @@ class ViewServer:
         logger.setLevel(logging.ERROR)
         logger.addHandler(_LogBridge(self.log))
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        bound = socket.create_server((host, port), family=family)
+        listener = _Listener(bound.family, bound.type, bound.proto, fileno=bound.detach())
+        listener.log = self.log
+        listener._accepted = {}
         self.server: Server = serve(
             self._page,
-            host,
-            port,
-            family=family,
+            sock=listener,
+            create_connection=_Connection,
             process_request=self._http,
             server_header="hapticd-view",
             compression=None,  # loopback: the CPU matters more than the bytes
@@ -497,6 +632,7 @@ class ViewServer:
             max_size=MAX_MESSAGE_BYTES,
             logger=logger,
         )
+        listener.server = self.server
         self._thread = threading.Thread(target=self.server.serve_forever, name="view-ws")
 
     @property
@@ -516,8 +652,9 @@ class ViewServer:
 
     @property
     def subject_url(self) -> str:
-        """The subject's page: the scene alone."""
-        return f"{self.url}&mode=subject"
+        """The subject's page: the scene alone. It carries the subject's capability, not
+        the experimenter's key: without ``mode=subject`` it is still the subject's page."""
+        return self.url.replace(f"key={self.key}", f"key={self.subject_key}") + "&mode=subject"
 
     def start(self) -> None:
         self.link.start()
@@ -555,9 +692,16 @@ class ViewServer:
     def _json(self, status: int, body: Any) -> Response:
         return self._response(status, "application/json", _dumps(body).encode())
 
-    def _authorised(self, query: dict[str, list[str]]) -> bool:
-        key = query.get("key", [""])[0]
-        return hmac.compare_digest(key.encode(), self.key.encode())
+    def _role(self, query: dict[str, list[str]]) -> str | None:
+        """Whose key ``query`` carries: "experimenter", "subject" (the subject's capability,
+        or the experimenter's key asking for the subject's page), or None (no valid key)."""
+        key = query.get("key", [""])[0].encode()
+        # Both compared, in constant time, whichever matches.
+        experimenter = hmac.compare_digest(key, self.key.encode())
+        subject = hmac.compare_digest(key, self.subject_key.encode())
+        if experimenter:
+            return "subject" if query.get("mode", [""])[0] == "subject" else "experimenter"
+        return "subject" if subject else None
 
     def _http(self, conn: ServerConnection, request: Request) -> Response | None:
         """Answer a request: the page, an asset, a JSON answer or an error; None lets the
@@ -571,7 +715,8 @@ class ViewServer:
             return self._static(path[len("/static/") :])
         if path not in ("/ws", "/api/status", "/api/params"):
             return self._json(HTTPStatus.NOT_FOUND, _error("not_found", f"no page {path!r}"))
-        if not self._authorised(query):
+        role = self._role(query)
+        if role is None:
             return self._json(
                 HTTPStatus.FORBIDDEN,
                 _error(
@@ -580,9 +725,21 @@ class ViewServer:
                 ),
             )
         if path == "/api/status":
-            body = {"status": self.hub.latest("status"), "link": self.hub.latest("link")}
+            if role == "subject":
+                status = self.hub.latest("status")
+                body = {
+                    "status": None if status is None else _subject_status(status),
+                    "link": {"connected": bool((self.hub.latest("link") or {}).get("connected"))},
+                }
+            else:
+                body = {"status": self.hub.latest("status"), "link": self.hub.latest("link")}
             return self._json(HTTPStatus.OK, body)
         if path == "/api/params":
+            if role == "subject":
+                return self._json(
+                    HTTPStatus.FORBIDDEN,
+                    _error("forbidden", "the subject's page has no parameters"),
+                )
             return self._json(HTTPStatus.OK, self.params_json())
         # /ws: a browser says where the page that opens it came from; only this server's
         # own pages may (another site's script in the same browser may not). A client that
@@ -608,7 +765,9 @@ class ViewServer:
         """Serve one page: a sender thread empties its queue into the socket while this
         thread reads its commands, until either side ends."""
         query = parse_qs(urlsplit(conn.request.path if conn.request else "").query)
-        page = Page(conn, query.get("mode", ["experimenter"])[0] == "subject")
+        # The key decides, not the page: the subject's capability is the subject's page
+        # whatever its URL says (the HTTP check let in only a valid key).
+        page = Page(conn, self._role(query) != "experimenter")
         with contextlib.suppress(OSError):
             conn.socket.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, PAGE_SNDBUF_BYTES)
         # Bounds every write to the page (the library's reads wait in select, unaffected):
@@ -651,6 +810,8 @@ class ViewServer:
             msg = json.loads(raw)
         except ValueError:
             msg = None
+        except RecursionError:  # nested deeper than the parser goes: the page lives on
+            return {"type": "reply", "ref": None, **_error("bad_request", "nested too deeply")}
         if not isinstance(msg, dict):
             return {"type": "reply", "ref": None, **_error("bad_request", "a JSON object")}
         ref = msg.get("ref") if isinstance(msg.get("ref"), int | str) else None

@@ -55,7 +55,8 @@
     };
     sock.onmessage = (e) => {
       const m = JSON.parse(e.data);
-      if (m.type === "telemetry") onTelemetry(m.data);
+      if (m.type === "hello") onHello(m.data);
+      else if (m.type === "telemetry") onTelemetry(m.data);
       else if (m.type === "status") onStatus(m.data);
       else if (m.type === "link") onLink(m.data);
       else if (m.type === "event") onEvent(m.data);
@@ -75,6 +76,16 @@
       whyClosed();
       setTimeout(connect, 1000);
     };
+  }
+
+  // Whose page this is, as the view says from the key: a subject's URL without
+  // mode=subject still gets only the subject's data; it is drawn as the subject's page.
+  function onHello(hello) {
+    if (hello && hello.role === "subject" && !subject) {
+      const q = new URLSearchParams(location.search);
+      q.set("mode", "subject");
+      location.replace(`${location.pathname}?${q}`);
+    }
   }
 
   // The WebSocket API does not say why a connection failed: ask the view over HTTP.
