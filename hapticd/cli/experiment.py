@@ -111,9 +111,22 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     assert first is not None
     design = first.get("design") or {}
-    result = ana.analyze(
-        trials, conditions=design.get("conditions"), n_boot=args.boot, seed=args.seed
-    )
+    point = args.jnd_point or design.get("jnd_point", 0.75)
+    try:
+        result = ana.analyze(
+            trials,
+            conditions=design.get("conditions"),
+            n_boot=args.boot,
+            seed=args.seed,
+            jnd_point=point,
+            fitter=args.fitter,
+        )
+    except ImportError:
+        print(
+            "hapticd: --fitter psignifit needs psignifit: pip install 'hapticd[psignifit]'",
+            file=sys.stderr,
+        )
+        return EXIT_ERROR
     param = args.param or design.get("param", "stimulus")
     unit = args.unit or design.get("unit", "SI units")
     print(
@@ -249,6 +262,19 @@ def _add_experiment(sub: Any) -> None:
         "--param", help="the varied parameter, for labels (default: the store's design)"
     )
     ana.add_argument("--unit", help="its unit, for labels (default: the store's design)")
+    ana.add_argument(
+        "--fitter",
+        choices=("ml", "psignifit"),
+        default="ml",
+        help="ml: hapticd's maximum-likelihood fit (the default); psignifit: psignifit 4's "
+        "Bayesian fit (pip: hapticd[psignifit])",
+    )
+    ana.add_argument(
+        "--jnd-point",
+        type=float,
+        choices=(0.75, 0.84),
+        help="the JND is x(P) - x(0.5) (default: the experiment's analysis.jnd_point, 0.75)",
+    )
     ana.set_defaults(func=cmd_experiment_analyze)
 
 

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from hapticd.psychophysics import fit_psychometric, paired_t
+from hapticd.psychophysics import FITTERS, paired_t
 
 
 def _key(row: dict[str, Any]) -> tuple[str, str, float]:
@@ -23,12 +23,16 @@ def analyze(
     conditions: list[str] | None = None,
     n_boot: int = 1000,
     seed: int = 0,
+    jnd_point: float = 0.75,
+    fitter: str = "ml",
 ) -> dict[str, Any]:
     """``fits`` (per subject, condition, standard), ``groups`` (per condition and
     standard: Weber mean, SD over subjects) and ``tests`` (per standard and pair of
     conditions: paired t over the subjects estimable in both) from complete trial rows
-    (hapticd.experiment.store). Weber = JND / standard. Non-estimable fits carry a
-    ``reason`` and null numbers; JSON-ready (no NaN). ``conditions`` orders the groups
+    (hapticd.experiment.store). JND = x(jnd_point) - x(0.5); Weber = JND / standard.
+    ``fitter``: ``ml`` (hapticd.psychophysics.fit_psychometric) or ``psignifit``.
+    Non-estimable fits carry a ``reason`` and null numbers; an interval end that is
+    null is unbounded; JSON-ready (no NaN). ``conditions`` orders the groups
     and the tests (the experiment file's order; others after it, sorted); the test of
     conditions [a, b] is of Weber(a) - Weber(b)."""
     cells: dict[tuple[str, str, float], list[dict[str, Any]]] = defaultdict(list)
@@ -37,6 +41,9 @@ def analyze(
     present = sorted({k[1] for k in cells})
     order = [c for c in conditions or [] if c in present]
     order += [c for c in present if c not in order]
+    if fitter not in FITTERS:
+        raise ValueError(f"unknown fitter {fitter!r}; fitters: {', '.join(FITTERS)}")
+    fit_one = FITTERS[fitter]
     fits = []
     curves = {}
     for i, (subject, cond, standard) in enumerate(sorted(cells)):
@@ -46,7 +53,7 @@ def analyze(
         levels, inv = np.unique(x, return_inverse=True)
         n_yes = np.bincount(inv, yes, len(levels))
         n_tot = np.bincount(inv, minlength=len(levels)).astype(float)
-        fit = fit_psychometric(levels, n_yes, n_tot, n_boot=n_boot, seed=seed + i)
+        fit = fit_one(levels, n_yes, n_tot, n_boot=n_boot, seed=seed + i, jnd_point=jnd_point)
         curves[(subject, cond, standard)] = (fit, levels, n_yes, n_tot)
         fits.append(
             {
@@ -59,6 +66,7 @@ def analyze(
                 "jnd": fit.jnd,
                 "weber": None if fit.jnd is None else fit.jnd / standard,
                 "jnd_ci": None if fit.jnd_ci is None else list(fit.jnd_ci),
+                "pse_ci": None if fit.pse_ci is None else list(fit.pse_ci),
                 "sigma": fit.sigma,
                 "lapse": fit.lapse,
                 "n_trials": len(rows),
@@ -99,18 +107,45 @@ def analyze(
             except ValueError as exc:
                 entry.update(t=None, df=None, p=None, mean_diff=None, reason=str(exc))
             tests.append(entry)
-    return {"fits": fits, "groups": groups, "tests": tests, "_curves": curves}
+    return {
+        "jnd_point": jnd_point,
+        "fitter": fitter,
+        "fits": fits,
+        "groups": groups,
+        "tests": tests,
+        "_curves": curves,
+    }
+
+
+def jnd_label(jnd_point: float) -> str:
+    """What the JND is, for tables and plots: ``JND = x(0.75) - x(0.5)``."""
+    return f"JND = x({jnd_point:g}) - x(0.5)"
+
+
+def ci_text(ci: list[float | None] | tuple[float | None, float | None] | None, floor: str) -> str:
+    """An interval as text; an unbounded end (None) is ``floor`` below (``0`` for a JND,
+    ``-inf`` for a PSE) or ``inf`` above, with an open bracket."""
+    if not ci:
+        return ""
+    lo, hi = ci
+    left = f"({floor}" if lo is None else f"[{lo:.4g}"
+    right = "inf)" if hi is None else f"{hi:.4g}]"
+    return f"{left}, {right}"
 
 
 def format_report(result: dict[str, Any], unit: str) -> str:
-    lines = ["fits (per subject, condition, standard):"]
+    point = result.get("jnd_point", 0.75)
+    lines = [
+        f"fits (per subject, condition, standard; {jnd_label(point)}, fitter "
+        f"{result.get('fitter', 'ml')}; an interval end 'inf' or '(0' is unbounded):"
+    ]
     lines.append(
         f"  {'subject':<10} {'condition':<10} {'standard':>10} {'PSE':>10} {'JND':>10} "
         f"{'Weber':>7} {'JND 95% CI':>22} {'n':>4}"
     )
     for f in result["fits"]:
         if f["estimable"]:
-            ci = f"[{f['jnd_ci'][0]:.4g}, {f['jnd_ci'][1]:.4g}]" if f["jnd_ci"] else ""
+            ci = ci_text(f["jnd_ci"], "0")
             nums = f"{f['pse']:>10.4g} {f['jnd']:>10.4g} {f['weber']:>7.3f} {ci:>22}"
         else:
             nums = f"not estimable: {f['reason']}"
@@ -118,7 +153,9 @@ def format_report(result: dict[str, Any], unit: str) -> str:
             f"  {f['subject']:<10} {f['condition']:<10} {f['standard']:>10.4g} {nums} "
             f"{f['n_trials'] if f['estimable'] else ''}"
         )
-    lines.append(f"groups (Weber fraction = JND / standard; standards in {unit}):")
+    lines.append(
+        f"groups (Weber fraction = JND / standard, {jnd_label(point)}; standards in {unit}):"
+    )
     for g in result["groups"]:
         mean = "n/a" if g["weber_mean"] is None else f"{g['weber_mean']:.3f}"
         sd = "n/a" if g["weber_sd"] is None else f"{g['weber_sd']:.3f}"
@@ -153,6 +190,7 @@ def plot(result: dict[str, Any], out_dir: Path, *, param: str, unit: str) -> lis
     import matplotlib.pyplot as plt
 
     out_dir.mkdir(parents=True, exist_ok=True)
+    point = result.get("jnd_point", 0.75)
     written = []
     curves = result["_curves"]
     subjects = sorted({k[0] for k in curves})
@@ -174,16 +212,22 @@ def plot(result: dict[str, Any], out_dir: Path, *, param: str, unit: str) -> lis
                     xs = np.linspace(x[0], x[-1], 200)
                     ax.plot(xs, fit.predict(xs), "-", color=color)
                     label += f" (Weber {fit.jnd / s:.3f})"
+                    _jnd_interval(ax, fit, _panel_x(curves, subj, s), color)
                 else:
                     label += " (not estimable)"
                 ax.plot([], [], "o-", color=color, label=label)
             ax.axvline(s, color="0.7", lw=0.8)
             ax.set_ylim(-0.03, 1.03)
+            ax.set_xlim(*_panel_x(curves, subj, s))
             ax.set_title(f"standard {s:g} {unit}")
             ax.set_xlabel(f"comparison {param} ({unit})")
             ax.legend(fontsize=7, loc="upper left")
         axes[0][0].set_ylabel("P(comparison judged more)")
-        fig.suptitle(f"subject {subj}")
+        fig.suptitle(
+            f"subject {subj}\n{jnd_label(point)}; bar at P = {point:g}: PSE + the JND's "
+            "interval (arrow: unbounded)",
+            fontsize=8,
+        )
         fig.tight_layout()
         path = out_dir / f"psychometric-{subj}.png"
         fig.savefig(path, dpi=100)
@@ -204,10 +248,36 @@ def plot(result: dict[str, Any], out_dir: Path, *, param: str, unit: str) -> lis
     ax.set_ylabel("JND ratio (JND / standard)")
     ax.set_ylim(bottom=0)
     ax.legend()
-    ax.set_title("JND ratio: mean and SD across subjects")
+    ax.set_title(f"JND ratio, {jnd_label(point)}: mean and SD across subjects", fontsize=9)
     fig.tight_layout()
     path = out_dir / "jnd-ratio.png"
     fig.savefig(path, dpi=100)
     plt.close(fig)
     written.append(path)
     return written
+
+
+def _panel_x(curves: dict, subj: str, s: float) -> tuple[float, float]:
+    """The x range of one subject's panel at standard ``s``: its levels and a margin."""
+    xs = [v[1] for (subject, _, standard), v in curves.items() if (subject, standard) == (subj, s)]
+    return min(x[0] for x in xs) - 0.1 * s, max(x[-1] for x in xs) + 0.1 * s
+
+
+def _jnd_interval(ax: Any, fit: Any, xlim: tuple[float, float], color: str) -> None:
+    """The JND's interval as a bar from PSE + its lower end to PSE + its upper end at the
+    height of the JND point; an unbounded end runs to the panel's edge as an arrow."""
+    if not fit.jnd_ci:
+        return
+    lo, hi = fit.jnd_ci
+    y = fit.jnd_point
+    x0 = fit.pse + (0.0 if lo is None else lo)
+    x1 = xlim[1] if hi is None else fit.pse + hi
+    style = "->" if hi is None else "|-|"
+    ax.annotate(
+        "",
+        xy=(x1, y),
+        xytext=(x0, y),
+        arrowprops={"arrowstyle": style, "color": color, "lw": 1.5, "shrinkA": 0, "shrinkB": 0},
+    )
+    if hi is None:
+        ax.text(x1, y + 0.03, "unbounded", color=color, fontsize=6, ha="right")

@@ -171,6 +171,16 @@ class Randomization(_Strict):
     )
 
 
+class Analysis(_Strict):
+    """How the answers are analysed."""
+
+    jnd_point: Literal[0.75, 0.84] = Field(
+        default=0.75,
+        description="the JND is x(p) - x(0.5) of the fitted curve: 0.75 (0.6745 sigma) or "
+        "0.84 (0.9945 sigma, about one sigma); every table and plot names it",
+    )
+
+
 class Experiment(_Strict):
     """A complete experiment file (docs/experiments.md)."""
 
@@ -185,6 +195,7 @@ class Experiment(_Strict):
     blocks: Blocks = Blocks()
     breaks: Breaks = Breaks()
     randomization: Randomization
+    analysis: Analysis = Analysis()
 
     source: Path | None = Field(default=None, exclude=True)
     file_hash: str = Field(default="", exclude=True, description="sha256 of the file's bytes")

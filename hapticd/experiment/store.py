@@ -280,6 +280,7 @@ def design(exp: Experiment) -> dict[str, Any]:
         "ratios": list(exp.varied.ratios),
         "conditions": [c.name for c in exp.conditions],
         "question": exp.interval.question,
+        "jnd_point": exp.analysis.jnd_point,
     }
 
 
