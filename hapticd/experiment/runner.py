@@ -428,6 +428,24 @@ class PersonPresenter:
                     f"the daemon is recording to {path}: stop it (hapticd record stop) first"
                 )
 
+    def restore(self, values: Mapping[str, Any]) -> None:
+        """Set ``values`` (the base profile's, ``base_values``) on the daemon after a run,
+        however it ended, and say so; a daemon that went away or refuses is reported,
+        never raised (the run's own outcome is what the caller reports)."""
+        done = []
+        for name, value in values.items():
+            try:
+                with self._talking():
+                    self.client.set(name, value)
+            except (RunnerError, proto.ProtocolError, OSError) as exc:
+                self.say(f"could not restore {name} to the base profile's value: {exc}")
+                if isinstance(exc, DaemonGoneError):
+                    return
+                continue
+            done.append(f"{name} = {value}")
+        if done:
+            self.say("the daemon is back at the base profile's " + ", ".join(done))
+
     def say(self, text: str) -> None:
         self.out.write(f"\r\x1b[K{text}\n" if self.out.isatty() else f"{text}\n")
         self.out.flush()
@@ -678,11 +696,13 @@ def person_observer(exp: Experiment, subject: str, options: RunOptions) -> Itera
     except OSError as exc:
         raise RunnerError(f"cannot reach the daemon: {exc}") from None
     keys = None
+    checked: PersonPresenter | None = None
     try:
         presenter = PersonPresenter(
             client, subject=subject, out=options.out, options=options.person
         )
         presenter.check_daemon(exp, profile.name)
+        checked = presenter  # the daemon runs the base profile: restored at the end
         if options.keys_fd is not None:
             keys = KeyReader(options.keys_fd)
         presenter.keys = keys
@@ -690,7 +710,42 @@ def person_observer(exp: Experiment, subject: str, options: RunOptions) -> Itera
     finally:
         if keys is not None:
             keys.close()
+        if checked is not None:
+            checked.restore(base_values(exp, profile))
         client.close()
+
+
+def base_values(exp: Experiment, profile: Any) -> dict[str, Any]:
+    """The base ``profile``'s value of every parameter ``exp`` sets (the varied one, the
+    allocator, the conditions' parameters), as the control protocol takes them: what a
+    run puts back when it ends."""
+    from hapticd.params import PARAMS
+
+    names = [exp.varied.param, "allocator"]
+    names += [n for c in exp.conditions for n in c.values() if n not in names]
+    out = {}
+    for name in names:
+        value = _profile_value(profile, PARAMS[name].profile_key)
+        if value is not None:
+            out[name] = PARAMS[name].check(value)
+    return out
+
+
+def _profile_value(profile: Any, key: str) -> Any:
+    """The value at a parameter's ``profile_key`` (``scene.object.stiffness_n_per_m``,
+    ``fingers[].actuated_directions``: one list per finger; friction as [static,
+    dynamic]); None where the profile has none (a fixed object's mass)."""
+    head, _, rest = key.partition("[].")
+    if rest:
+        return [_profile_value(item, rest) for item in getattr(profile, head)]
+    value = profile
+    for part in key.split("."):
+        value = getattr(value, part)
+    if hasattr(value, "static") and hasattr(value, "dynamic"):
+        return [value.static, value.dynamic]
+    if isinstance(value, tuple):
+        return [list(v) if isinstance(v, tuple) else v for v in value]
+    return value
 
 
 ObserverFactory = Callable[
