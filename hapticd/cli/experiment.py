@@ -1,4 +1,4 @@
-"""hapticd experiment (check, plan, run, analyze) and hapticd study."""
+"""hapticd experiment (check, plan, run, analyze, export) and hapticd study."""
 
 from __future__ import annotations
 
@@ -150,6 +150,33 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_experiment_export(args: argparse.Namespace) -> int:
+    """A trial store as a tidy CSV, one row per trial (hapticd.experiment.export)."""
+    import csv
+
+    from hapticd.experiment import export
+    from hapticd.experiment.store import StoreError
+
+    status = None if args.all else "complete"
+    try:
+        if args.csv is None:
+            rows = export.trial_rows(args.db, status=status)
+            writer = csv.DictWriter(sys.stdout, fieldnames=export.NAMES, lineterminator="\n")
+            writer.writeheader()
+            writer.writerows(rows)
+            return EXIT_OK
+        n = export.write_csv(args.db, args.csv, status=status)
+    except StoreError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        print(f"hapticd: cannot write: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    what = "trials" if args.all else "complete trials"
+    print(f"{args.csv}: {n} {what} of {args.db}, one row each")
+    return EXIT_OK
+
+
 def cmd_experiment_run(args: argparse.Namespace) -> int:
     """Run (or resume) one subject on a running daemon (hapticd.experiment.runner)."""
     from hapticd.experiment import ExperimentError, check_experiment
@@ -276,6 +303,11 @@ def _add_experiment(sub: Any) -> None:
         help="the JND is x(P) - x(0.5) (default: the experiment's analysis.jnd_point, 0.75)",
     )
     ana.set_defaults(func=cmd_experiment_analyze)
+    ex = esub.add_parser("export", help="a trial store as a tidy CSV, one row per trial")
+    ex.add_argument("db", type=Path, help="the trial store")
+    ex.add_argument("--csv", type=Path, metavar="OUT", help="write here (default: stdout)")
+    ex.add_argument("--all", action="store_true", help="incomplete trials too (status column)")
+    ex.set_defaults(func=cmd_experiment_export)
 
 
 def _add_study(sub: Any) -> None:

@@ -319,20 +319,61 @@ def _planned(row: Sequence[Any]) -> PlannedTrial:
     return PlannedTrial(**d)
 
 
+# The trials table's number columns (SQLite stores whatever it is given: a damaged or
+# hand-edited store can hold text there), and those that may be empty.
+_NUMBER_COLUMNS = (
+    "plan_index",
+    "standard",
+    "comparison",
+    "comparison_first",
+    "answer_second_more",
+    "comparison_more",
+    "response_time_s",
+    "time_unix_s",
+)
+_NULLABLE = {"answer_second_more", "comparison_more", "response_time_s"}
+
+
 def read_trials(db: sqlite3.Connection, status: str | None = "complete") -> list[dict[str, Any]]:
+    """The trials (all with ``status`` None), in the order stored, each with its plan's
+    ``block``."""
     db.row_factory = sqlite3.Row
     try:
-        where = "" if status is None else "WHERE status = ?"
+        where = "" if status is None else "WHERE t.status = ?"
         args = () if status is None else (status,)
-        rows = db.execute(f"SELECT * FROM trials {where} ORDER BY id", args).fetchall()
+        rows = db.execute(
+            f"""SELECT t.*, p.block FROM trials t LEFT JOIN plan p
+                ON p.subject = t.subject AND p."index" = t.plan_index {where} ORDER BY t.id""",
+            args,
+        ).fetchall()
         return [dict(r) for r in rows]
     finally:
         db.row_factory = None
 
 
-def open_for_analysis(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """The meta table (``design`` decoded) and the complete trials of the store at
-    ``path``, read only."""
+def _check_rows(path: Path, rows: list[dict[str, Any]]) -> None:
+    """StoreError naming the row and column of the first value that is not a number
+    where a number belongs."""
+    for r in rows:
+        for col in _NUMBER_COLUMNS:
+            v = r.get(col)
+            if v is None and col in _NULLABLE:
+                continue
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                raise StoreError(
+                    f"{path}: damaged: trials row {r.get('id')} (subject {r.get('subject')!r}, "
+                    f"trial {r.get('plan_index')!r}): {col} holds {v!r}, not a number; "
+                    "fix or delete that row (sqlite3) and try again"
+                )
+
+
+def open_for_analysis(
+    path: str | Path, status: str | None = "complete"
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The meta table (``design`` decoded) and the trials of the store at ``path`` (the
+    complete ones; all with ``status`` None), read only (nothing in it changes).
+    StoreError naming the store and what is wrong: not a store, another schema, a
+    damaged file (a garbled page), a design that is not JSON, text in a number column."""
     p = Path(path)
     if not p.is_file():
         raise StoreError(f"{p}: no such trial store")
@@ -348,7 +389,20 @@ def open_for_analysis(path: str | Path) -> tuple[dict[str, Any], list[dict[str, 
             raise StoreError(f"{p}: not a trial store (SQLite): {exc}") from None
         _check_schema(p, meta)
         out: dict[str, Any] = dict(meta)
-        out["design"] = json.loads(meta.get("design") or "{}")
-        return out, read_trials(db)
+        try:
+            out["design"] = json.loads(meta.get("design") or "{}")
+        except ValueError as exc:
+            raise StoreError(f"{p}: damaged: meta.design is not JSON ({exc})") from None
+        if not isinstance(out["design"], dict):
+            raise StoreError(f"{p}: damaged: meta.design is not a JSON object")
+        try:
+            rows = read_trials(db, status)
+        except sqlite3.DatabaseError as exc:
+            raise StoreError(
+                f"{p}: damaged: the trials cannot be read ({exc}); sqlite3's .recover "
+                "salvages what is readable into a new file"
+            ) from None
+        _check_rows(p, rows)
+        return out, rows
     finally:
         db.close()
