@@ -70,7 +70,15 @@ def test_the_bundled_designs_are_the_seeds(path, capsys):
         (lambda d: d["varied"].update(param="stifness_n_per_m"), "varied.param", "did you mean"),
         (lambda d: d["varied"].update(param="allocator"), "varied.param", "not a number"),
         (lambda d: d["varied"].update(ratios=[0.7, 1.3]), "varied.ratios", "at least 3"),
-        (lambda d: d["varied"].update(standards=[30, 1e5]), "varied", "outside"),
+        (lambda d: d["varied"].update(standards=[30, 1e5]), "varied.ratios", "110000 is out"),
+        (
+            lambda d: d["varied"].update(standards=[30, 2e5]),
+            "varied.standards",
+            "200000 is outside",
+        ),
+        (lambda d: d.update(version=True), "version", "expected 1"),
+        (lambda d: d.update(name="a" * 5000), "name", "at most 64 characters"),
+        (lambda d: d.update(procedure="quest"), "procedure", "'constant_stimuli'"),
         (
             lambda d: d["conditions"][0]["set"].update(alocator="if"),
             "conditions[0:if].set.alocator",
@@ -100,6 +108,20 @@ def test_errors_name_the_file_and_the_key(stiffness_data, edit, where, what):
     assert msg.startswith("x.yaml: ") and "error(s) in experiment" in msg
     line = next(ln for ln in msg.splitlines() if ln.strip().startswith(where + ":"))
     assert what in line, msg
+
+
+def test_a_file_error_names_the_line(tmp_path):
+    text = STIFFNESS.read_text().replace("version: 1", "version: true")
+    text = text.replace("name: stiffness-jnd", "name: " + "x" * 5000)
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ExperimentError) as err:
+        load_experiment(path)
+    lines = text.splitlines()
+    msg = str(err.value)
+    assert "version: expected 1" in msg and f"(line {lines.index('version: true') + 1})" in msg
+    assert f"(line {lines.index('name: ' + 'x' * 5000) + 1})" in msg
+    assert len(msg) < 1000  # the 5,000 characters are not repeated back
 
 
 def test_the_profile_is_checked_with_the_experiment(tmp_path, stiffness_data, capsys):

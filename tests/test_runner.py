@@ -685,6 +685,29 @@ def test_cli_refusals_before_any_trial(tmp_path, capsys):
     assert "subject id 'a/b'" in capsys.readouterr().err
 
 
+def test_a_second_runner_on_one_subject_is_refused_at_start(tmp_path, capsys):
+    import os
+
+    from hapticd.cli import main
+    from hapticd.experiment.store import claim_subject
+
+    db = tmp_path / "t.db"
+    base = ["experiment", "run", str(STIFFNESS), "--subject", "s1", "--no-keys", "--db", str(db)]
+    base += ["--observer", "model", "--standards", "60", "--repetitions", "1"]
+    with claim_subject(db, "s1"):  # the first runner, here
+        assert main(base) == 2
+        err = capsys.readouterr().err
+        assert f"subject 's1' is being run by another runner (process {os.getpid()})" in err
+        with pytest.raises(StoreError, match="another runner"), claim_subject(db, "s1"):
+            pass
+        with claim_subject(db, "s2"):  # another subject is free
+            pass
+    with TrialStore.for_experiment(db, load_experiment(STIFFNESS)) as store:
+        assert store.plan("s1") == [] and store.trials(None) == []  # nothing presented
+    with claim_subject(db, "s1"):  # released when its holder ends
+        pass
+
+
 @pytest.mark.parametrize("ends_on", ["release", "time_limit"])
 def test_an_interval_held_past_its_limit_ends_there(live, ends_on):
     """The bundled grasp squeezes for seconds: the interval ends at exploration_s and the

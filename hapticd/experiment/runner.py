@@ -55,7 +55,7 @@ from hapticd import protocol as proto
 from hapticd.control import ControlClient
 from hapticd.experiment.plan import PlannedTrial, make_plan
 from hapticd.experiment.spec import Experiment, ExperimentError, file_hash
-from hapticd.experiment.store import StoreError, TrialStore
+from hapticd.experiment.store import StoreError, TrialStore, claim_subject
 
 SUBJECT_PATTERN = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 CHOICES = ("no", "yes")  # the prompt's labels: "was the second more?"
@@ -810,7 +810,8 @@ def run_experiment(
     options = dataclasses.replace(options or RunOptions(), seed=seed)
     out = options.out
     check_subject(subject)
-    with TrialStore.for_experiment(db, exp) as store:
+    # One runner per subject: a second one is refused here, before anything is stored.
+    with claim_subject(db, subject), TrialStore.for_experiment(db, exp) as store:
         check_start(store, subject, resume=resume)
         # The observer before the plan: a plan is stored only when it can be presented.
         with factory(exp, subject, options) as presenter:

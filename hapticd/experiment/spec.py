@@ -16,6 +16,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    ValidationInfo,
     create_model,
     field_validator,
     model_validator,
@@ -63,7 +64,7 @@ ParamSet = create_model(
 class Condition(_Strict):
     """One rendering condition: a name and the parameters it sets."""
 
-    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     set: ParamSet = Field(description="parameters (hapticd.params) this condition sets")
 
     def values(self) -> dict[str, Any]:
@@ -89,28 +90,35 @@ class Varied(_Strict):
             raise ValueError(f"{v} is not a number; the varied parameter must be one")
         return v
 
+    @field_validator("standards")
+    @classmethod
+    def _standards(cls, v: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        spec = params.PARAMS.get(info.data.get("param", ""))
+        for s in v:
+            if spec is not None and not (math.isfinite(s) and spec.in_range(s)):
+                raise ValueError(
+                    f"standard {s:g} is outside {spec.name}'s range {spec.range_text()}"
+                )
+        if len(set(v)) != len(v):
+            raise ValueError(f"standards must differ, got {list(v)}")
+        return v
+
     @field_validator("ratios")
     @classmethod
-    def _ratios(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+    def _ratios(cls, v: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
         if any(not (math.isfinite(r) and r > 0) for r in v):
             raise ValueError(f"ratios must be positive, got {list(v)}")
         if len(set(v)) != len(v):
             raise ValueError(f"ratios must differ, got {list(v)}")
-        return v
-
-    @model_validator(mode="after")
-    def _in_range(self) -> Varied:
-        spec = params.PARAMS[self.param]
-        for s in self.standards:
-            for r in (1.0, *self.ratios):
-                if not (math.isfinite(s * r) and spec.in_range(s * r)):
+        spec = params.PARAMS.get(info.data.get("param", ""))
+        for s in info.data.get("standards") or ():
+            for r in v:
+                if spec is not None and not (math.isfinite(s * r) and spec.in_range(s * r)):
                     raise ValueError(
-                        f"standard {s:g} x ratio {r:g} = {s * r:g} is outside {self.param}'s "
-                        f"range {spec.range_text()}"
+                        f"comparison = standard {s:g} x ratio {r:g} = {s * r:g} is outside "
+                        f"{spec.name}'s range {spec.range_text()}"
                     )
-        if len(set(self.standards)) != len(self.standards):
-            raise ValueError(f"standards must differ, got {list(self.standards)}")
-        return self
+        return v
 
 
 class Interval(_Strict):
@@ -185,8 +193,14 @@ class Experiment(_Strict):
     """A complete experiment file (docs/experiments.md)."""
 
     version: Literal[1] = 1
-    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    # It names the recordings (EXPERIMENT-SUBJECT-TRIAL-INTERVAL.hrec): a file name.
+    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     description: str = ""
+    procedure: Literal["constant_stimuli"] = Field(
+        default="constant_stimuli",
+        description="how comparisons are chosen: constant_stimuli (every ratio, repetitions "
+        "times, in a planned order)",
+    )
     profile: str = Field(min_length=1, description="base profile, relative to this file")
     varied: Varied
     conditions: tuple[Condition, ...] = Field(min_length=1)
@@ -199,6 +213,16 @@ class Experiment(_Strict):
 
     source: Path | None = Field(default=None, exclude=True)
     file_hash: str = Field(default="", exclude=True, description="sha256 of the file's bytes")
+
+    @field_validator("version", mode="before")
+    @classmethod
+    def _version(cls, v: Any) -> Any:
+        # YAML's `true` equals 1 in Python; it is no version.
+        if isinstance(v, bool) or v != 1:
+            raise ValueError(
+                f"expected 1 (the experiment file format this hapticd reads), got {v!r}"
+            )
+        return v
 
     @model_validator(mode="after")
     def _consistent(self) -> Experiment:

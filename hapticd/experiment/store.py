@@ -3,10 +3,13 @@ soon as the trial is answered, and each subject's plan so a run can resume."""
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
+import os
 import sqlite3
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import astuple, fields
 from pathlib import Path
 from typing import Any, Literal
@@ -269,6 +272,36 @@ class TrialStore:
 
     def trials(self, status: str | None = "complete") -> list[dict[str, Any]]:
         return read_trials(self._db, status)
+
+
+@contextlib.contextmanager
+def claim_subject(db: str | Path, subject: str) -> Iterator[Path]:
+    """Hold ``subject``'s run on the store ``db`` for the block: an exclusive lock
+    (flock) on the file ``DB.SUBJECT.lock`` beside the store, which the system releases
+    when the holder ends, even by SIGKILL. StoreError when another process holds it (a
+    second runner on the same subject), naming the store, the subject and the holder's
+    process id. Yields the lock file's path."""
+    path = Path(db)
+    lock = path.with_name(f"{path.name}.{subject}.lock")
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+    except OSError as exc:
+        raise StoreError(f"{path}: cannot lock subject {subject!r}: {lock}: {exc}") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            raise StoreError(
+                f"{path}: subject {subject!r} is being run by another runner (process "
+                f"{holder}): one runner per subject and store; wait for it to end, or stop it "
+                f"(its lock: {lock})"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield lock
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def design(exp: Experiment) -> dict[str, Any]:
