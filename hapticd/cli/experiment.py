@@ -30,8 +30,9 @@ def cmd_experiment_check(args: argparse.Namespace) -> int:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     v, spec = exp.varied, params.PARAMS[exp.varied.param]
-    plan = make_plan(exp, exp.subject_seed("example"))
-    total = len(plan)
+    total = exp.n_blocks * exp.trials_per_block
+    if exp.staircase is None:
+        total = len(make_plan(exp, exp.subject_seed("example")))
     dur = exp.duration_s()
     conds = ", ".join(
         f"{c.name} ({', '.join(f'{k}={val}' for k, val in c.values().items())})"
@@ -41,12 +42,12 @@ def cmd_experiment_check(args: argparse.Namespace) -> int:
         f"{args.experiment}: OK: experiment {exp.name!r} on profile {profile.name!r} "
         f"({exp.profile_path()})\n"
         f"  varied       {v.param} ({spec.unit}): standards "
-        f"{', '.join(f'{s:g}' for s in v.standards)}; ratios "
-        f"{', '.join(f'{r:g}' for r in v.ratios)}\n"
+        f"{', '.join(f'{s:g}' for s in v.standards)}"
+        + (f"; ratios {', '.join(f'{r:g}' for r in v.ratios)}" if v.ratios else "")
+        + "\n"
+        f"  procedure    {exp.procedure}\n"
         f"  conditions   {conds}\n"
-        f"  trials       {exp.comparisons} comparisons x {exp.repetitions} repetitions per "
-        f"standard and condition; {exp.trials_per_block} per block, {exp.n_blocks} blocks, "
-        f"{total} per subject\n"
+        f"  trials       {_trials_line(exp, total)}\n"
         f"  interval     {exp.interval.order}, 'was the second {exp.interval.question}?', "
         f"at most {exp.interval.exploration_s:g} s, ends on {exp.interval.ends_on}\n"
         f"  breaks       {exp.n_breaks()} of {exp.breaks.duration_s:g} s\n"
@@ -54,6 +55,23 @@ def cmd_experiment_check(args: argparse.Namespace) -> int:
         "with every interval at its limit, and the breaks)"
     )
     return EXIT_OK
+
+
+def _trials_line(exp: Any, total: int) -> str:
+    """The design's trials, as ``experiment check`` prints them."""
+    st = exp.staircase
+    if st is None:
+        return (
+            f"{exp.comparisons} comparisons x {exp.repetitions} repetitions per standard and "
+            f"condition; {exp.trials_per_block} per block, {exp.n_blocks} blocks, {total} per "
+            "subject"
+        )
+    return (
+        f"staircase {st.rule} (converges on {st.target_share:.1%} correct), {exp.n_blocks} "
+        f"tracks interleaved ({len(st.sign_list())} per condition and standard), each ending "
+        f"after {st.stop_reversals} reversals or {st.max_trials} trials: at most "
+        f"{exp.n_blocks * st.max_trials} per subject"
+    )
 
 
 def cmd_experiment_plan(args: argparse.Namespace) -> int:
@@ -133,13 +151,24 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
         f"hapticd experiment analyze: experiment {first.get('experiment')!r}, varied {param} "
         f"({unit}), {len(trials)} complete trials"
     )
+    if design.get("procedure") == "staircase" and design.get("staircase"):
+        result["staircases"] = ana.analyze_staircases(
+            trials, design["staircase"], design.get("conditions")
+        )
     print(ana.format_report(result, unit), end="")
+    if "staircases" in result:
+        print(ana.format_staircases(result["staircases"], unit), end="")
     try:
         if args.json is not None:
             args.json.write_text(json.dumps(ana.to_json(result), indent=1, allow_nan=False) + "\n")
         if args.plots is not None:
             try:
-                for path in ana.plot(result, args.plots, param=param, unit=unit):
+                paths = ana.plot(result, args.plots, param=param, unit=unit)
+                if "staircases" in result:
+                    paths += ana.plot_staircases(
+                        result["staircases"], args.plots, param=param, unit=unit
+                    )
+                for path in paths:
                     print(f"plot: {path}")
             except ImportError:
                 print("hapticd: --plots needs matplotlib: pip install matplotlib", file=sys.stderr)

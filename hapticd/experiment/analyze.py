@@ -92,6 +92,26 @@ def analyze(
                     "n_subjects": len(w),
                 }
             )
+    tests = paired_tests(weber, order, standards, subjects)
+    return {
+        "jnd_point": jnd_point,
+        "fitter": fitter,
+        "fits": fits,
+        "groups": groups,
+        "tests": tests,
+        "_curves": curves,
+    }
+
+
+def paired_tests(
+    weber: dict[tuple[str, str, float], float | None],
+    order: list[str],
+    standards: list[float],
+    subjects: list[str],
+) -> list[dict[str, Any]]:
+    """Per standard and pair of conditions [a, b] (in ``order``), the paired t-test of
+    Weber(a) - Weber(b) over the subjects with both ({(subject, condition, standard):
+    Weber or None}); ``reason`` where it is undefined."""
     tests = []
     for s in standards:
         for a, b in itertools.combinations(order, 2):
@@ -107,14 +127,150 @@ def analyze(
             except ValueError as exc:
                 entry.update(t=None, df=None, p=None, mean_diff=None, reason=str(exc))
             tests.append(entry)
+    return tests
+
+
+def analyze_staircases(
+    trials: list[dict[str, Any]], staircase: dict[str, Any], conditions: list[str] | None = None
+) -> dict[str, Any]:
+    """A staircase store's tracks and thresholds from the last reversals: ``tracks`` (per
+    subject and track: its reversals, threshold distance (fraction of the standard) and
+    comparison), ``thresholds`` (per subject, condition and standard: the JND at the
+    rule's target share, the mean of its sides' threshold distances times the standard,
+    and its Weber fraction) and ``tests`` (paired t of those Weber fractions between
+    conditions). ``staircase``: the design's staircase section."""
+    from hapticd.experiment.adaptive import tracks_from_rows
+    from hapticd.experiment.spec import Staircase
+
+    st = Staircase.model_validate(staircase)
+    tracks = tracks_from_rows(trials, st)
+    rows = []
+    for (subject, _), t in tracks.items():
+        d = t.threshold(st)
+        rows.append(
+            {
+                "subject": subject,
+                "condition": t.condition,
+                "standard": t.standard,
+                "side": t.side,
+                "trials": t.n,
+                "reversals": len(t.reversals),
+                "done": t.done(st),
+                "threshold_distance": d,
+                "threshold": None if d is None else t.standard * (1 + t.sign * d),
+                "_track": t,
+            }
+        )
+    cells: dict[tuple[str, str, float], list[dict[str, Any]]] = defaultdict(list)
+    for r in rows:
+        cells[(r["subject"], r["condition"], r["standard"])].append(r)
+    thresholds, weber = [], {}
+    for key in sorted(cells):
+        ds = [r["threshold_distance"] for r in cells[key]]
+        ok = all(d is not None for d in ds)
+        w = float(np.mean(ds)) if ok else None
+        weber[key] = w
+        thresholds.append(
+            {
+                "subject": key[0],
+                "condition": key[1],
+                "standard": key[2],
+                "target": st.target_share,
+                "jnd": None if w is None else w * key[2],
+                "weber": w,
+                "reason": None
+                if ok
+                else f"a track has fewer than {st.threshold_reversals} reversals",
+            }
+        )
+    present = sorted({k[1] for k in cells})
+    order = [c for c in conditions or [] if c in present] + [
+        c for c in present if c not in (conditions or [])
+    ]
     return {
-        "jnd_point": jnd_point,
-        "fitter": fitter,
-        "fits": fits,
-        "groups": groups,
-        "tests": tests,
-        "_curves": curves,
+        "target": st.target_share,
+        "rule": st.rule,
+        "tracks": rows,
+        "thresholds": thresholds,
+        "tests": paired_tests(
+            weber, order, sorted({k[2] for k in cells}), sorted({k[0] for k in cells})
+        ),
     }
+
+
+def format_staircases(result: dict[str, Any], unit: str) -> str:
+    """The staircase section of the report."""
+    lines = [
+        f"staircase tracks ({result['rule']}, converging on {result['target']:.1%} correct; "
+        "threshold: mean of the last reversals):"
+    ]
+    for r in result["tracks"]:
+        thr = "n/a" if r["threshold"] is None else f"{r['threshold']:.4g} {unit}"
+        lines.append(
+            f"  {r['subject']:<10} {r['condition']:<10} standard {r['standard']:<8.4g} "
+            f"{r['side']:<6} {r['trials']:>3} trials {r['reversals']:>3} reversals "
+            f"threshold {thr}{'' if r['done'] else ' (not finished)'}"
+        )
+    lines.append(
+        f"thresholds from the reversals (JND at {result['target']:.1%} = the sides' mean "
+        "distance from the standard; Weber = JND / standard):"
+    )
+    for t in result["thresholds"]:
+        what = t["reason"] if t["jnd"] is None else f"JND {t['jnd']:.4g}, Weber {t['weber']:.3f}"
+        lines.append(f"  {t['subject']:<10} {t['condition']:<10} {t['standard']:<8.4g} {what}")
+    lines.append("paired t-tests of the reversal Weber fractions across subjects:")
+    for t in result["tests"]:
+        a, b = t["conditions"]
+        res = t["reason"] if t["t"] is None else f"t({t['df']}) = {t['t']:.3f}, p = {t['p']:.4f}"
+        lines.append(f"  standard {t['standard']:<8.4g} {a} vs {b}: {res}")
+    return "\n".join(lines) + "\n"
+
+
+def plot_staircases(result: dict[str, Any], out_dir: Path, *, param: str, unit: str) -> list[Path]:
+    """Every track, one figure per subject (``staircase-SUBJECT.png``): a panel per
+    condition and standard, the comparison of each trial (filled: correct, open: wrong),
+    the reversals ringed, each side's threshold dashed. Needs matplotlib."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for subj in sorted({r["subject"] for r in result["tracks"]}):
+        mine = [r for r in result["tracks"] if r["subject"] == subj]
+        panels = sorted({(r["condition"], r["standard"]) for r in mine})
+        fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 3.4), squeeze=False)
+        for ax, (cond, s) in zip(axes[0], panels, strict=True):
+            for j, r in enumerate(x for x in mine if (x["condition"], x["standard"]) == (cond, s)):
+                t = r["_track"]
+                y = s * (1 + t.sign * np.array(t.levels))
+                n = np.arange(1, len(y) + 1)
+                ok = np.array(t.correct, dtype=bool)
+                color = f"C{j}"
+                ax.plot(n, y, "-", color=color, lw=0.8, label=r["side"])
+                ax.plot(n[ok], y[ok], "o", color=color, ms=4)
+                ax.plot(n[~ok], y[~ok], "o", mfc="none", color=color, ms=4)
+                rev = s * (1 + t.sign * np.array(t.reversals))
+                ax.plot(t.reversal_trials, rev, "o", mfc="none", mec="k", ms=8)
+                if r["threshold"] is not None:
+                    ax.axhline(r["threshold"], color=color, ls="--", lw=0.8)
+            ax.axhline(s, color="0.6", lw=0.8)
+            ax.set_title(f"{cond}, standard {s:g} {unit}", fontsize=9)
+            ax.set_xlabel("trial of the track")
+            ax.legend(fontsize=7)
+        axes[0][0].set_ylabel(f"comparison {param} ({unit})")
+        fig.suptitle(
+            f"subject {subj}: staircases (filled: correct, open: wrong, ringed: reversals, "
+            f"dashed: threshold at {result['target']:.1%})",
+            fontsize=8,
+        )
+        fig.tight_layout()
+        path = out_dir / f"staircase-{subj}.png"
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        written.append(path)
+    return written
 
 
 def jnd_label(jnd_point: float) -> str:
@@ -177,7 +333,12 @@ def format_report(result: dict[str, Any], unit: str) -> str:
 
 
 def to_json(result: dict[str, Any]) -> dict[str, Any]:
-    return {k: v for k, v in result.items() if not k.startswith("_")}
+    """The result without its private parts (keys starting with _, at any depth)."""
+    if isinstance(result, dict):
+        return {k: to_json(v) for k, v in result.items() if not str(k).startswith("_")}
+    if isinstance(result, list):
+        return [to_json(v) for v in result]  # type: ignore[return-value]
+    return result
 
 
 def plot(result: dict[str, Any], out_dir: Path, *, param: str, unit: str) -> list[Path]:

@@ -243,39 +243,103 @@ def run_subject(
             per = sum(spent) / len(spent) if spent else exp.trial_s()
             breaks = sum(t.break_before_s for t in todo[k:])
             progress(Progress(total - len(todo) + k, total, trial, per * (len(todo) - k) + breaks))
-        if trial.break_before_s > 0:
-            presenter.rest(trial.break_before_s)
         began = time.monotonic()
-        try:
-            got = presenter.present(exp, trial, conditions[trial.condition])
-        except TrialAbortedError as exc:
-            store.record(
-                subject,
-                trial,
-                answer_second_more=None,
-                response_time_s=None,
-                profile_hash=profile_hash,
-                seed=seed,
-                recording=_recordings(exc.recordings),
-                status="incomplete",
-            )
-            raise
-        store.record(
-            subject,
-            trial,
-            answer_second_more=got.answer_second_more,
-            response_time_s=got.response_time_s,
-            profile_hash=profile_hash,
-            seed=seed,
-            recording=_recordings(got.recordings),
-            status=got.status,
-            source=got.source or None,
-        )
+        got = _present(store, exp, subject, seed, presenter, trial, conditions, profile_hash)
         spent.append(time.monotonic() - began)
         recorded += got.status == "complete"
     if progress is not None:
         left = len(store.remaining(subject))
         progress(Progress(total - left, total, None, 0.0))
+    return recorded
+
+
+def _present(
+    store: TrialStore,
+    exp: Experiment,
+    subject: str,
+    seed: int,
+    presenter: Presenter,
+    trial: PlannedTrial,
+    conditions: Mapping[str, Mapping[str, Any]],
+    profile_hash: str,
+) -> Presented:
+    """The break before ``trial``, the trial presented, and its row stored at once
+    (incomplete, and the error raised again, when the presenter aborts it)."""
+    if trial.break_before_s > 0:
+        presenter.rest(trial.break_before_s)
+    try:
+        got = presenter.present(exp, trial, conditions[trial.condition])
+    except TrialAbortedError as exc:
+        store.record(
+            subject,
+            trial,
+            answer_second_more=None,
+            response_time_s=None,
+            profile_hash=profile_hash,
+            seed=seed,
+            recording=_recordings(exc.recordings),
+            status="incomplete",
+        )
+        raise
+    store.record(
+        subject,
+        trial,
+        answer_second_more=got.answer_second_more,
+        response_time_s=got.response_time_s,
+        profile_hash=profile_hash,
+        seed=seed,
+        recording=_recordings(got.recordings),
+        status=got.status,
+        source=got.source or None,
+    )
+    return got
+
+
+def run_adaptive_subject(
+    store: TrialStore,
+    exp: Experiment,
+    subject: str,
+    seed: int,
+    presenter: Presenter,
+    *,
+    profile_hash: str,
+    progress: Callable[[Progress], None] | None = None,
+) -> int:
+    """``run_subject`` for a staircase (hapticd.experiment.adaptive): each next trial is
+    decided from the answers so far, stored in the plan, presented and recorded; the
+    tracks are rebuilt from the stored trials first, and a trial decided but not
+    answered (a run that stopped in it) is presented again as it was. The number of
+    complete trials recorded now."""
+    from hapticd.experiment import adaptive
+
+    assert exp.staircase is not None
+    st = exp.staircase
+    conditions = {c.name: c.values() for c in exp.conditions}
+    rows = [r for r in store.trials() if r["subject"] == subject]
+    tracks = adaptive.replay(exp, rows)
+    most = exp.n_blocks * st.max_trials
+    recorded = 0
+    while True:
+        pending = store.remaining(subject)
+        if pending:
+            trial: PlannedTrial | None = pending[0]
+        else:
+            trial = adaptive.next_trial(exp, seed, len(store.plan(subject)), tracks)
+            if trial is None:
+                break
+            store.append_plan(subject, trial, seed)
+        assert trial is not None
+        if progress is not None:
+            progress(Progress(trial.index, most, trial, exp.trial_s() * (most - trial.index)))
+        got = _present(store, exp, subject, seed, presenter, trial, conditions, profile_hash)
+        if got.status == "complete":
+            recorded += 1
+            track = tracks[trial.block]
+            more = bool(got.answer_second_more) != trial.comparison_first
+            track.answer(adaptive.is_correct(track, more), st)
+    if progress is not None:
+        done = len(store.plan(subject))
+        progress(Progress(done, done, None, 0.0))
     return recorded
 
 
@@ -815,8 +879,33 @@ def run_experiment(
         check_start(store, subject, resume=resume)
         # The observer before the plan: a plan is stored only when it can be presented.
         with factory(exp, subject, options) as presenter:
+            if exp.staircase is not None:
+                return _run_adaptive(store, exp, subject, seed, presenter, db, out)
             todo = start_subject(store, exp, subject, seed, resume=resume)
             return _run(store, exp, subject, seed, presenter, todo, db, out)
+
+
+def _run_adaptive(
+    store: TrialStore,
+    exp: Experiment,
+    subject: str,
+    seed: int,
+    presenter: Presenter,
+    db: Path,
+    out: TextIO,
+) -> tuple[int, int]:
+    """``run_adaptive_subject`` with the opening line and the progress lines."""
+    say = getattr(presenter, "say", None) or (lambda s: out.write(s + "\n"))
+    assert exp.staircase is not None
+    say(
+        f"experiment {exp.name}: subject {subject}, seed {seed}, staircase "
+        f"{exp.staircase.rule}, {exp.n_blocks} tracks interleaved; store {db}"
+    )
+    done = run_adaptive_subject(
+        store, exp, subject, seed, presenter, profile_hash=profile_hash(exp),
+        progress=lambda p: say(p.line()),
+    )  # fmt: skip
+    return done, len(store.remaining(subject))
 
 
 def _run(

@@ -77,7 +77,8 @@ class Varied(_Strict):
     param: str = Field(description="a numeric settable parameter of hapticd.params")
     standards: tuple[float, ...] = Field(min_length=1, description="standard values, SI units")
     ratios: tuple[float, ...] = Field(
-        min_length=3, description="comparison = ratio x standard; at least 3 ratios"
+        default=(),
+        description="comparison = ratio x standard; at least 3 ratios (constant stimuli only)",
     )
 
     @field_validator("param")
@@ -106,6 +107,8 @@ class Varied(_Strict):
     @field_validator("ratios")
     @classmethod
     def _ratios(cls, v: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        if 0 < len(v) < 3:
+            raise ValueError(f"at least 3 ratios are needed, got {list(v)}")
         if any(not (math.isfinite(r) and r > 0) for r in v):
             raise ValueError(f"ratios must be positive, got {list(v)}")
         if len(set(v)) != len(v):
@@ -179,6 +182,80 @@ class Randomization(_Strict):
     )
 
 
+# The answer rule of each staircase and the share of "correct" answers it converges on
+# (Levitt 1971): two (three) correct in a row make it harder, one wrong easier; the
+# weighted rule (Kaernbach 1991) moves up by step x target / (1 - target) after a wrong
+# answer, down by step after a correct one, and converges on its target.
+RULE_TARGETS = {"1up2down": 2**-0.5, "1up3down": 2 ** (-1 / 3)}
+
+
+class Staircase(_Strict):
+    """An adaptive staircase per condition, standard and side (docs/experiments.md):
+    the comparison's distance from the standard, as a fraction of the standard, goes
+    down after correct answers and up after wrong ones."""
+
+    rule: Literal["1up2down", "1up3down", "weighted"] = Field(
+        description="1up2down (converges on 70.7 % correct), 1up3down (79.4 %), weighted "
+        "(on target)"
+    )
+    target: float | None = Field(
+        default=None, gt=0.5, lt=1.0, description="the weighted rule's share correct"
+    )
+    sides: Literal["both", "above"] = Field(
+        default="both",
+        description="both: a track above the standard (correct: the comparison judged more) "
+        "and one below (correct: judged less), interleaved; above: only the first",
+    )
+    start: float = Field(gt=0, description="first distance from the standard, fraction of it")
+    step: float = Field(gt=0, description="first step, fraction of the standard")
+    step_rule: Literal["fixed", "halve"] = Field(
+        default="halve", description="halve: the step halves at each reversal, to min_step"
+    )
+    min_step: float | None = Field(default=None, gt=0, description="smallest step (halve)")
+    max_distance: float = Field(
+        gt=0, description="the farthest a comparison may be from the standard, fraction of it"
+    )
+    stop_reversals: int = Field(default=8, ge=2, le=100, description="a track ends after these")
+    max_trials: int = Field(default=60, ge=2, le=1000, description="or after these trials")
+    threshold_reversals: int = Field(
+        default=6, ge=1, description="the threshold: mean of the last N reversals' distances"
+    )
+
+    @model_validator(mode="after")
+    def _converges(self) -> Staircase:
+        if self.step > self.max_distance:
+            raise ValueError(
+                f"step {self.step:g} is larger than the range max_distance "
+                f"{self.max_distance:g}: the staircase cannot converge"
+            )
+        if self.start > self.max_distance:
+            raise ValueError(f"start {self.start:g} is beyond max_distance {self.max_distance:g}")
+        if self.min_step is not None and self.min_step > self.step:
+            raise ValueError(f"min_step {self.min_step:g} is larger than step {self.step:g}")
+        if (self.rule == "weighted") != (self.target is not None):
+            raise ValueError("target is needed by the weighted rule, and only by it")
+        if self.threshold_reversals > self.stop_reversals:
+            raise ValueError(
+                f"threshold_reversals ({self.threshold_reversals}) exceeds stop_reversals "
+                f"({self.stop_reversals}): a stopped track would not have them"
+            )
+        if self.sides == "both" and self.max_distance >= 1:
+            raise ValueError(
+                f"max_distance {self.max_distance:g}: a track below the standard needs it "
+                "below 1 (a comparison above 0)"
+            )
+        return self
+
+    @property
+    def target_share(self) -> float:
+        """The share of correct answers the track converges on."""
+        return self.target if self.target is not None else RULE_TARGETS[self.rule]
+
+    def sign_list(self) -> tuple[int, ...]:
+        """The sides' signs: +1 above the standard, -1 below."""
+        return (1, -1) if self.sides == "both" else (1,)
+
+
 class Analysis(_Strict):
     """How the answers are analysed."""
 
@@ -196,15 +273,19 @@ class Experiment(_Strict):
     # It names the recordings (EXPERIMENT-SUBJECT-TRIAL-INTERVAL.hrec): a file name.
     name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     description: str = ""
-    procedure: Literal["constant_stimuli"] = Field(
+    procedure: Literal["constant_stimuli", "staircase"] = Field(
         default="constant_stimuli",
         description="how comparisons are chosen: constant_stimuli (every ratio, repetitions "
-        "times, in a planned order)",
+        "times, in a planned order) or staircase (each next comparison from the answers so "
+        "far, the tracks interleaved)",
     )
     profile: str = Field(min_length=1, description="base profile, relative to this file")
     varied: Varied
     conditions: tuple[Condition, ...] = Field(min_length=1)
-    repetitions: int = Field(ge=1, le=1000, description="presentations of each comparison")
+    repetitions: int | None = Field(
+        default=None, ge=1, le=1000, description="presentations of each comparison"
+    )
+    staircase: Staircase | None = None
     interval: Interval
     blocks: Blocks = Blocks()
     breaks: Breaks = Breaks()
@@ -235,6 +316,14 @@ class Experiment(_Strict):
                 raise ValueError(
                     f"condition {c.name!r} sets {self.varied.param}, the varied parameter"
                 )
+        if self.procedure == "staircase":
+            return self._staircase_consistent()
+        if not self.varied.ratios:
+            raise ValueError("varied.ratios is needed by procedure constant_stimuli")
+        if self.repetitions is None:
+            raise ValueError("repetitions is needed by procedure constant_stimuli")
+        if self.staircase is not None:
+            raise ValueError("staircase is for procedure staircase (procedure: staircase)")
         if self.repetitions % self.blocks.per_standard:
             raise ValueError(
                 f"repetitions ({self.repetitions}) must divide into blocks.per_standard "
@@ -244,16 +333,46 @@ class Experiment(_Strict):
             raise ValueError("interval.order randomized needs an even number of repetitions")
         return self
 
+    def _staircase_consistent(self) -> Experiment:
+        st = self.staircase
+        if st is None:
+            raise ValueError("procedure staircase needs a staircase section")
+        if self.varied.ratios or self.repetitions is not None:
+            raise ValueError(
+                "varied.ratios and repetitions are for constant_stimuli; a staircase chooses "
+                "its comparisons"
+            )
+        spec = params.PARAMS[self.varied.param]
+        for s in self.varied.standards:
+            for sign in st.sign_list():
+                c = s * (1 + sign * st.max_distance)
+                if not spec.in_range(c):
+                    raise ValueError(
+                        f"staircase.max_distance: the comparison standard {s:g} x "
+                        f"(1 {'+' if sign > 0 else '-'} {st.max_distance:g}) = {c:g} is outside "
+                        f"{self.varied.param}'s range {spec.range_text()}"
+                    )
+        return self
+
     @property
     def comparisons(self) -> int:
         return len(self.varied.ratios)
 
     @property
     def trials_per_block(self) -> int:
+        """Trials per block; a staircase's block is a track, at most max_trials long."""
+        if self.staircase is not None:
+            return self.staircase.max_trials
+        assert self.repetitions is not None
         return self.comparisons * self.repetitions // self.blocks.per_standard
 
     @property
     def n_blocks(self) -> int:
+        """Blocks per subject; a staircase's: its tracks (conditions x standards x sides)."""
+        if self.staircase is not None:
+            return (
+                len(self.conditions) * len(self.varied.standards) * len(self.staircase.sign_list())
+            )
         return len(self.conditions) * len(self.varied.standards) * self.blocks.per_standard
 
     def profile_path(self) -> Path:
@@ -282,6 +401,9 @@ class Experiment(_Strict):
 
     def n_breaks(self) -> int:
         b = self.breaks
+        if self.staircase is not None:  # tracks interleave: breaks by trials only
+            total = self.n_blocks * self.trials_per_block
+            return (total - 1) // b.every_trials if b.every_trials else 0
         between = (self.n_blocks - 1) // b.every_blocks if b.every_blocks else 0
         within = (self.trials_per_block - 1) // b.every_trials if b.every_trials else 0
         return between + within * self.n_blocks

@@ -186,6 +186,21 @@ class TrialStore:
                 [(subject, *astuple(t), seed) for t in plan],
             )
 
+    def append_plan(self, subject: str, trial: PlannedTrial, seed: int) -> None:
+        """Add one decided trial to ``subject``'s plan (an adaptive procedure decides each
+        trial from the answers before it); StoreError unless it is the next index."""
+        with self._db:
+            n = self._db.execute("SELECT COUNT(*) FROM plan WHERE subject = ?", (subject,))
+            if trial.index != n.fetchone()[0]:
+                raise StoreError(
+                    f"{self.path}: subject {subject!r}: trial {trial.index} is not the next "
+                    "of its plan"
+                )
+            self._db.execute(
+                f"INSERT INTO plan VALUES (?, {', '.join('?' * len(_PLAN_COLUMNS))}, ?)",
+                (subject, *astuple(trial), seed),
+            )
+
     def plan(self, subject: str) -> list[PlannedTrial]:
         cols = ", ".join(f'"{c}"' for c in _PLAN_COLUMNS)
         rows = self._db.execute(
@@ -314,6 +329,8 @@ def design(exp: Experiment) -> dict[str, Any]:
         "conditions": [c.name for c in exp.conditions],
         "question": exp.interval.question,
         "jnd_point": exp.analysis.jnd_point,
+        "procedure": exp.procedure,
+        "staircase": None if exp.staircase is None else exp.staircase.model_dump(),
     }
 
 
