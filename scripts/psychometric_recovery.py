@@ -218,6 +218,7 @@ def main() -> None:
     ap.add_argument("--series", type=int, default=400, help="series for the global check")
     ap.add_argument("--psignifit", type=int, default=0, help="series fitted by psignifit too")
     ap.add_argument("--checks-only", action="store_true", help="skip the recovery table")
+    ap.add_argument("--table-only", action="store_true", help="skip the checks")
     args = ap.parse_args()
     if args.checks_only:
         print_checks(args)
@@ -258,7 +259,8 @@ def main() -> None:
     out = args.plot or Path(tempfile.gettempdir()) / "psychometric-recovery.png"
     fig.savefig(out, dpi=100)
     print(f"plot: {out}")
-    print_checks(args)
+    if not args.table_only:
+        print_checks(args)
 
 
 if __name__ == "__main__":

@@ -252,3 +252,34 @@ def test_the_bundled_staircases_check(capsys):
     out = capsys.readouterr().out
     assert "staircase 1up2down (converges on 70.7% correct), 12 tracks" in out
     assert "staircase weighted (converges on 75.0% correct), 12 tracks" in out
+
+
+def test_quest_plus_resumes_exactly_and_estimates_the_observer(tmp_path, capsys):
+    pytest.importorskip("questplus")
+    from hapticd.experiment.analyze import analyze_quest
+    from hapticd.experiment.store import design as store_design
+
+    data = yaml.safe_load((ROOT / "configs" / "experiments" / "stiffness-quest.yaml").read_text())
+    data["profile"] = str(ROOT / "configs" / "grasp-stiffness.yaml")
+    data["quest_plus"]["trials"] = 30
+    path = tmp_path / "q.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    exp = rn.reduced(load_experiment(path), standards=[60.0])
+    with TrialStore.for_experiment(tmp_path / "whole.db", exp) as store:
+        rn.run_adaptive_subject(store, exp, "s1", 3, Simulated(3), profile_hash="p")
+        rows = store.trials()
+    whole = session_rows(tmp_path / "whole.db")
+    assert len(whole) == 60  # two tracks of 30
+    assert len({r[3] for r in whole}) > 5  # QUEST+ moves the comparison
+    cut = tmp_path / "cut.db"
+    with TrialStore.for_experiment(cut, exp) as store, pytest.raises(rn.TrialAbortedError):
+        rn.run_adaptive_subject(store, exp, "s1", 3, Simulated(3, abort_at=17), profile_hash="p")
+    with TrialStore.for_experiment(cut, exp) as store:
+        rn.run_adaptive_subject(store, exp, "s1", 3, Simulated(3), profile_hash="p")
+    assert session_rows(tmp_path / "cut.db") == whole
+    # The simulated observer's sigma is 0.2 of the standard: JND 0.6745 x 12 = 8.1 N/m.
+    result = analyze_quest(rows, store_design(exp)["quest_plus"], 0.75)
+    for t in result["tracks"]:
+        assert t["trials"] == 30
+        assert 8.1 / 2 < t["jnd"] < 8.1 * 2, t
+        assert abs(t["pse"] - 60) < 8, t

@@ -31,7 +31,7 @@ def cmd_experiment_check(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     v, spec = exp.varied, params.PARAMS[exp.varied.param]
     total = exp.n_blocks * exp.trials_per_block
-    if exp.staircase is None:
+    if exp.adaptive is None:
         total = len(make_plan(exp, exp.subject_seed("example")))
     dur = exp.duration_s()
     conds = ", ".join(
@@ -60,6 +60,13 @@ def cmd_experiment_check(args: argparse.Namespace) -> int:
 def _trials_line(exp: Any, total: int) -> str:
     """The design's trials, as ``experiment check`` prints them."""
     st = exp.staircase
+    if exp.quest_plus is not None:
+        q = exp.quest_plus
+        return (
+            f"QUEST+, {exp.n_blocks} tracks interleaved (one per condition and standard), "
+            f"{q.trials} trials each on {q.n_stimuli} comparisons from {q.min_ratio:g} to "
+            f"{q.max_ratio:g} x the standard: {exp.n_blocks * q.trials} per subject"
+        )
     if st is None:
         return (
             f"{exp.comparisons} comparisons x {exp.repetitions} repetitions per standard and "
@@ -145,6 +152,16 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_ERROR
+    from hapticd.experiment import ExperimentError
+
+    try:
+        if design.get("procedure") == "quest_plus" and design.get("quest_plus"):
+            result["quest_plus"] = ana.analyze_quest(
+                trials, design["quest_plus"], point, design.get("conditions")
+            )
+    except ExperimentError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_ERROR
     param = args.param or design.get("param", "stimulus")
     unit = args.unit or design.get("unit", "SI units")
     print(
@@ -158,6 +175,8 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
     print(ana.format_report(result, unit), end="")
     if "staircases" in result:
         print(ana.format_staircases(result["staircases"], unit), end="")
+    if "quest_plus" in result:
+        print(ana.format_quest(result["quest_plus"], unit), end="")
     try:
         if args.json is not None:
             args.json.write_text(json.dumps(ana.to_json(result), indent=1, allow_nan=False) + "\n")

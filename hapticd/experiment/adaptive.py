@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from hapticd.experiment.plan import PlannedTrial
-from hapticd.experiment.spec import Experiment, Staircase
+from hapticd.experiment.spec import Experiment, ExperimentError, QuestPlusDesign, Staircase
 
 
 @dataclass
@@ -93,49 +93,133 @@ class Track:
         return float(np.mean(self.reversals[-k:])) if len(self.reversals) >= k else None
 
 
-def tracks_for(exp: Experiment) -> list[Track]:
+class QuestTrack:
+    """One QUEST+ track (the ``questplus`` package): the posterior over the PSE and
+    sigma (as fractions of the standard) of P(comparison judged more) = l/2 + (1 - l)
+    Phi((ratio - mean) / sd), and the next comparison, the grid ratio of least expected
+    entropy. Its "correct" is "the comparison judged more" (``sign`` +1)."""
+
+    sign = 1
+
+    def __init__(self, index: int, condition: str, standard: float, q: QuestPlusDesign) -> None:
+        try:
+            import questplus  # an optional dependency: imported when a file uses QUEST+
+        except ImportError:
+            raise ExperimentError(
+                "procedure quest_plus needs the questplus package: pip install 'hapticd[questplus]'"
+            ) from None
+
+        self.index, self.condition, self.standard = index, condition, standard
+        self.n = 0
+        self.levels: list[float] = []
+        self.correct: list[bool] = []
+        half = (q.max_ratio - q.min_ratio) / 2
+        self._qp = questplus.QuestPlus(
+            stim_domain={"intensity": np.linspace(q.min_ratio, q.max_ratio, q.n_stimuli)},
+            param_domain={
+                "mean": np.linspace(1 - half / 2, 1 + half / 2, 31),
+                "sd": np.geomspace(0.01, 2 * half, 25),
+                "lower_asymptote": [q.lapse / 2],
+                "lapse_rate": [q.lapse / 2],
+            },
+            outcome_domain={"response": ["Yes", "No"]},
+            func="norm_cdf",
+            stim_scale="linear",
+        )
+
+    @property
+    def side(self) -> str:
+        return "both"
+
+    @property
+    def name(self) -> str:
+        return f"{self.condition}/{self.standard:g}"
+
+    def comparison(self) -> float:
+        """The next comparison value: the grid ratio of least expected entropy."""
+        ratio = float(self._qp.next_stim["intensity"])
+        return float(f"{self.standard * ratio:.12g}")
+
+    def done(self, q: QuestPlusDesign) -> bool:
+        return self.n >= q.trials
+
+    def answer(self, more: bool, q: QuestPlusDesign, comparison: float) -> None:
+        """The answer to ``comparison``: ``more`` the comparison judged more."""
+        grid = self._qp.stim_domain["intensity"]
+        # The grid's own value, so the update finds it in the stimulus domain.
+        ratio = float(grid[int(np.argmin(np.abs(grid - comparison / self.standard)))])
+        self._qp.update(stim={"intensity": ratio}, outcome={"response": "Yes" if more else "No"})
+        self.levels.append(ratio - 1)
+        self.correct.append(bool(more))
+        self.n += 1
+
+    def estimate(self) -> dict[str, float]:
+        """The posterior mean PSE and sigma, in the varied parameter's unit."""
+        est = self._qp.param_estimate
+        return {
+            "pse": float(est["mean"]) * self.standard,
+            "sigma": float(est["sd"]) * self.standard,
+        }
+
+
+AnyTrack = Track | QuestTrack
+
+
+def tracks_for(exp: Experiment) -> list[AnyTrack]:
     """Every track of ``exp`` at its start, in order: conditions as listed, standards
     ascending, above before below (a track's index is its ``block`` in the store)."""
-    st = _staircase(exp)
-    out = []
+    section = _section(exp)
+    out: list[AnyTrack] = []
     for c in exp.conditions:
         for s in sorted(exp.varied.standards):
-            for sign in st.sign_list():
-                out.append(Track(len(out), c.name, float(s), sign, st.start, st.step))
+            if isinstance(section, QuestPlusDesign):
+                out.append(QuestTrack(len(out), c.name, float(s), section))
+                continue
+            for sign in section.sign_list():
+                out.append(Track(len(out), c.name, float(s), sign, section.start, section.step))
     return out
 
 
-def _staircase(exp: Experiment) -> Staircase:
-    if exp.staircase is None:
-        raise ValueError(f"experiment {exp.name!r} is not a staircase (procedure staircase)")
-    return exp.staircase
+def _section(exp: Experiment) -> Staircase | QuestPlusDesign:
+    if exp.adaptive is None:
+        raise ValueError(f"experiment {exp.name!r} has no adaptive procedure")
+    return exp.adaptive
 
 
-def is_correct(track: Track, comparison_more: bool) -> bool:
+def is_correct(track: AnyTrack, comparison_more: bool) -> bool:
     """Whether an answer is correct for ``track``: the comparison judged more above the
     standard, less below it."""
     return bool(comparison_more) == (track.sign > 0)
 
 
-def replay(exp: Experiment, trials: Iterable[Mapping[str, Any]]) -> list[Track]:
+def replay(exp: Experiment, trials: Iterable[Mapping[str, Any]]) -> list[AnyTrack]:
     """The tracks after the complete ``trials`` (store rows with ``plan_index``,
     ``block`` (the track) and ``comparison_more``), in plan order."""
-    st = _staircase(exp)
+    st = _section(exp)
     tracks = tracks_for(exp)
     for t in sorted(trials, key=lambda r: r["plan_index"]):
         if t.get("status", "complete") != "complete":
             continue
-        track = tracks[int(t["block"])]
-        track.answer(is_correct(track, bool(t["comparison_more"])), st)
+        apply_answer(tracks[int(t["block"])], bool(t["comparison_more"]), st, t["comparison"])
     return tracks
 
 
-def next_trial(exp: Experiment, seed: int, index: int, tracks: list[Track]) -> PlannedTrial | None:
+def apply_answer(track: AnyTrack, more: bool, section: Any, comparison: float) -> None:
+    """Move ``track`` after an answer to ``comparison`` (``more``: judged more)."""
+    if isinstance(track, QuestTrack):
+        track.answer(more, section, comparison)
+    else:
+        track.answer(is_correct(track, more), section)
+
+
+def next_trial(
+    exp: Experiment, seed: int, index: int, tracks: list[AnyTrack]
+) -> PlannedTrial | None:
     """Trial ``index`` of the session: a track drawn among those not done (uniformly, by
     a generator seeded by ``seed`` and ``index``), its current comparison; None when
     every track is done."""
-    st = _staircase(exp)
-    live = [t for t in tracks if not t.done(st)]
+    st = _section(exp)
+    live = [t for t in tracks if not t.done(st)]  # type: ignore[arg-type]
     if not live:
         return None
     rng = np.random.default_rng([int(seed), int(index)])
@@ -166,7 +250,7 @@ def session(
     """The rest of a session after the complete trials ``done``: each next trial and
     ``answer(trial)`` (True: the comparison judged more), until every track is done.
     For simulated observers (no store)."""
-    st = _staircase(exp)
+    st = _section(exp)
     rows = list(done)
     tracks = replay(exp, rows)
     index = 1 + max((int(r["plan_index"]) for r in rows), default=-1)
@@ -174,8 +258,7 @@ def session(
     while (trial := next_trial(exp, seed, index, tracks)) is not None:
         more = answer(trial)
         out.append((trial, more))
-        track = tracks[trial.block]
-        track.answer(is_correct(track, more), st)
+        apply_answer(tracks[trial.block], more, st, trial.comparison)
         index += 1
     return out
 

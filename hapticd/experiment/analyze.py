@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from hapticd.psychophysics import FITTERS, paired_t
+from hapticd.psychophysics import FITTERS, jnd_z, paired_t
 
 
 def _key(row: dict[str, Any]) -> tuple[str, str, float]:
@@ -198,6 +198,79 @@ def analyze_staircases(
     }
 
 
+def analyze_quest(
+    trials: list[dict[str, Any]],
+    quest: dict[str, Any],
+    jnd_point: float = 0.75,
+    conditions: list[str] | None = None,
+) -> dict[str, Any]:
+    """A QUEST+ store's tracks: per subject, condition and standard the posterior mean
+    PSE and sigma after all its trials, the JND (x(jnd_point) - x(0.5)) and Weber
+    fraction, and paired t-tests of those between conditions."""
+    from hapticd.experiment.adaptive import QuestTrack
+    from hapticd.experiment.spec import QuestPlusDesign
+
+    q = QuestPlusDesign.model_validate(quest)
+    by: dict[tuple[str, int], list[dict[str, Any]]] = defaultdict(list)
+    for r in trials:
+        if r.get("block") is not None:
+            by[(r["subject"], int(r["block"]))].append(r)
+    rows, weber = [], {}
+    z = jnd_z(jnd_point)
+    for (subject, block), rs in sorted(by.items()):
+        rs.sort(key=lambda r: r["plan_index"])
+        track = QuestTrack(block, rs[0]["condition"], float(rs[0]["standard"]), q)
+        for r in rs:
+            track.answer(bool(r["comparison_more"]), q, r["comparison"])
+        est = track.estimate()
+        jnd = z * est["sigma"]
+        weber[(subject, track.condition, track.standard)] = jnd / track.standard
+        rows.append(
+            {
+                "subject": subject,
+                "condition": track.condition,
+                "standard": track.standard,
+                "trials": track.n,
+                "pse": est["pse"],
+                "sigma": est["sigma"],
+                "jnd": jnd,
+                "weber": jnd / track.standard,
+            }
+        )
+    present = sorted({r["condition"] for r in rows})
+    order = [c for c in conditions or [] if c in present]
+    order += [c for c in present if c not in order]
+    return {
+        "jnd_point": jnd_point,
+        "tracks": rows,
+        "tests": paired_tests(
+            weber,
+            order,
+            sorted({r["standard"] for r in rows}),
+            sorted({r["subject"] for r in rows}),
+        ),
+    }
+
+
+def format_quest(result: dict[str, Any], unit: str) -> str:
+    """The QUEST+ section of the report."""
+    lines = [
+        f"QUEST+ tracks (posterior means; {jnd_label(result['jnd_point'])}; standards in {unit}):"
+    ]
+    for r in result["tracks"]:
+        lines.append(
+            f"  {r['subject']:<10} {r['condition']:<10} standard {r['standard']:<8.4g} "
+            f"{r['trials']:>3} trials PSE {r['pse']:.4g} JND {r['jnd']:.4g} "
+            f"Weber {r['weber']:.3f}"
+        )
+    lines.append("paired t-tests of the QUEST+ Weber fractions across subjects:")
+    for t in result["tests"]:
+        a, b = t["conditions"]
+        res = t["reason"] if t["t"] is None else f"t({t['df']}) = {t['t']:.3f}, p = {t['p']:.4f}"
+        lines.append(f"  standard {t['standard']:<8.4g} {a} vs {b}: {res}")
+    return "\n".join(lines) + "\n"
+
+
 def format_staircases(result: dict[str, Any], unit: str) -> str:
     """The staircase section of the report."""
     lines = [
@@ -265,12 +338,18 @@ def plot_staircases(result: dict[str, Any], out_dir: Path, *, param: str, unit: 
             f"dashed: threshold at {result['target']:.1%})",
             fontsize=8,
         )
-        fig.tight_layout()
-        path = out_dir / f"staircase-{subj}.png"
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        written.append(path)
+        written.append(_save(fig, out_dir / f"staircase-{subj}.png"))
     return written
+
+
+def _save(fig: Any, path: Path) -> Path:
+    """Lay out, write and close a figure; its path."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
 
 
 def jnd_label(jnd_point: float) -> str:
@@ -389,11 +468,7 @@ def plot(result: dict[str, Any], out_dir: Path, *, param: str, unit: str) -> lis
             "interval (arrow: unbounded)",
             fontsize=8,
         )
-        fig.tight_layout()
-        path = out_dir / f"psychometric-{subj}.png"
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        written.append(path)
+        written.append(_save(fig, out_dir / f"psychometric-{subj}.png"))
     fig, ax = plt.subplots(figsize=(5, 3.6))
     for j, c in enumerate(conds):
         gs = [g for g in result["groups"] if g["condition"] == c and g["weber_mean"] is not None]
@@ -410,11 +485,7 @@ def plot(result: dict[str, Any], out_dir: Path, *, param: str, unit: str) -> lis
     ax.set_ylim(bottom=0)
     ax.legend()
     ax.set_title(f"JND ratio, {jnd_label(point)}: mean and SD across subjects", fontsize=9)
-    fig.tight_layout()
-    path = out_dir / "jnd-ratio.png"
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    written.append(path)
+    written.append(_save(fig, out_dir / "jnd-ratio.png"))
     return written
 
 

@@ -312,8 +312,8 @@ def run_adaptive_subject(
     complete trials recorded now."""
     from hapticd.experiment import adaptive
 
-    assert exp.staircase is not None
-    st = exp.staircase
+    st = exp.adaptive
+    assert st is not None
     conditions = {c.name: c.values() for c in exp.conditions}
     rows = [r for r in store.trials() if r["subject"] == subject]
     tracks = adaptive.replay(exp, rows)
@@ -334,9 +334,8 @@ def run_adaptive_subject(
         got = _present(store, exp, subject, seed, presenter, trial, conditions, profile_hash)
         if got.status == "complete":
             recorded += 1
-            track = tracks[trial.block]
             more = bool(got.answer_second_more) != trial.comparison_first
-            track.answer(adaptive.is_correct(track, more), st)
+            adaptive.apply_answer(tracks[trial.block], more, st, trial.comparison)
     if progress is not None:
         done = len(store.plan(subject))
         progress(Progress(done, done, None, 0.0))
@@ -879,7 +878,7 @@ def run_experiment(
         check_start(store, subject, resume=resume)
         # The observer before the plan: a plan is stored only when it can be presented.
         with factory(exp, subject, options) as presenter:
-            if exp.staircase is not None:
+            if exp.adaptive is not None:
                 return _run_adaptive(store, exp, subject, seed, presenter, db, out)
             todo = start_subject(store, exp, subject, seed, resume=resume)
             return _run(store, exp, subject, seed, presenter, todo, db, out)
@@ -896,10 +895,9 @@ def _run_adaptive(
 ) -> tuple[int, int]:
     """``run_adaptive_subject`` with the opening line and the progress lines."""
     say = getattr(presenter, "say", None) or (lambda s: out.write(s + "\n"))
-    assert exp.staircase is not None
     say(
-        f"experiment {exp.name}: subject {subject}, seed {seed}, staircase "
-        f"{exp.staircase.rule}, {exp.n_blocks} tracks interleaved; store {db}"
+        f"experiment {exp.name}: subject {subject}, seed {seed}, {exp.procedure}, "
+        f"{exp.n_blocks} tracks interleaved; store {db}"
     )
     done = run_adaptive_subject(
         store, exp, subject, seed, presenter, profile_hash=profile_hash(exp),

@@ -256,6 +256,27 @@ class Staircase(_Strict):
         return (1, -1) if self.sides == "both" else (1,)
 
 
+class QuestPlusDesign(_Strict):
+    """QUEST+ (Watson 2017; the ``questplus`` package) per condition and standard: the
+    comparison (a ratio of the standard, on a grid) that minimises the expected entropy
+    of the posterior over the psychometric function's PSE and sigma, for a fixed number
+    of trials."""
+
+    min_ratio: float = Field(gt=0, lt=1, description="the smallest comparison / standard")
+    max_ratio: float = Field(gt=1, description="the largest comparison / standard")
+    n_stimuli: int = Field(default=41, ge=5, le=201, description="comparisons on the grid")
+    trials: int = Field(default=40, ge=5, le=1000, description="trials per track")
+    lapse: float = Field(default=0.02, ge=0, lt=0.5, description="assumed lapse rate")
+
+    @property
+    def max_trials(self) -> int:
+        return self.trials
+
+    def sign_list(self) -> tuple[int, ...]:
+        """One track per condition and standard (both sides on one grid)."""
+        return (1,)
+
+
 class Analysis(_Strict):
     """How the answers are analysed."""
 
@@ -273,11 +294,11 @@ class Experiment(_Strict):
     # It names the recordings (EXPERIMENT-SUBJECT-TRIAL-INTERVAL.hrec): a file name.
     name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     description: str = ""
-    procedure: Literal["constant_stimuli", "staircase"] = Field(
+    procedure: Literal["constant_stimuli", "staircase", "quest_plus"] = Field(
         default="constant_stimuli",
         description="how comparisons are chosen: constant_stimuli (every ratio, repetitions "
-        "times, in a planned order) or staircase (each next comparison from the answers so "
-        "far, the tracks interleaved)",
+        "times, in a planned order), staircase (each next comparison from the answers so "
+        "far, the tracks interleaved) or quest_plus (QUEST+, interleaved)",
     )
     profile: str = Field(min_length=1, description="base profile, relative to this file")
     varied: Varied
@@ -286,6 +307,7 @@ class Experiment(_Strict):
         default=None, ge=1, le=1000, description="presentations of each comparison"
     )
     staircase: Staircase | None = None
+    quest_plus: QuestPlusDesign | None = None
     interval: Interval
     blocks: Blocks = Blocks()
     breaks: Breaks = Breaks()
@@ -318,12 +340,17 @@ class Experiment(_Strict):
                 )
         if self.procedure == "staircase":
             return self._staircase_consistent()
+        if self.procedure == "quest_plus":
+            return self._quest_consistent()
         if not self.varied.ratios:
             raise ValueError("varied.ratios is needed by procedure constant_stimuli")
         if self.repetitions is None:
             raise ValueError("repetitions is needed by procedure constant_stimuli")
-        if self.staircase is not None:
-            raise ValueError("staircase is for procedure staircase (procedure: staircase)")
+        if self.staircase is not None or self.quest_plus is not None:
+            raise ValueError(
+                "staircase and quest_plus are for their procedures (procedure: staircase, "
+                "procedure: quest_plus)"
+            )
         if self.repetitions % self.blocks.per_standard:
             raise ValueError(
                 f"repetitions ({self.repetitions}) must divide into blocks.per_standard "
@@ -332,6 +359,31 @@ class Experiment(_Strict):
         if self.interval.order == "randomized" and self.repetitions % 2:
             raise ValueError("interval.order randomized needs an even number of repetitions")
         return self
+
+    def _quest_consistent(self) -> Experiment:
+        q = self.quest_plus
+        if q is None:
+            raise ValueError("procedure quest_plus needs a quest_plus section")
+        if self.varied.ratios or self.repetitions is not None or self.staircase is not None:
+            raise ValueError(
+                "varied.ratios, repetitions and staircase are not for quest_plus: it chooses "
+                "its comparisons"
+            )
+        spec = params.PARAMS[self.varied.param]
+        for s in self.varied.standards:
+            for r in (q.min_ratio, q.max_ratio):
+                if not spec.in_range(s * r):
+                    raise ValueError(
+                        f"quest_plus: the comparison standard {s:g} x {r:g} = {s * r:g} is "
+                        f"outside {self.varied.param}'s range {spec.range_text()}"
+                    )
+        return self
+
+    @property
+    def adaptive(self) -> Staircase | QuestPlusDesign | None:
+        """The adaptive procedure's section (staircase or quest_plus), None for constant
+        stimuli."""
+        return self.staircase if self.staircase is not None else self.quest_plus
 
     def _staircase_consistent(self) -> Experiment:
         st = self.staircase
@@ -361,17 +413,17 @@ class Experiment(_Strict):
     @property
     def trials_per_block(self) -> int:
         """Trials per block; a staircase's block is a track, at most max_trials long."""
-        if self.staircase is not None:
-            return self.staircase.max_trials
+        if self.adaptive is not None:
+            return self.adaptive.max_trials
         assert self.repetitions is not None
         return self.comparisons * self.repetitions // self.blocks.per_standard
 
     @property
     def n_blocks(self) -> int:
         """Blocks per subject; a staircase's: its tracks (conditions x standards x sides)."""
-        if self.staircase is not None:
+        if self.adaptive is not None:
             return (
-                len(self.conditions) * len(self.varied.standards) * len(self.staircase.sign_list())
+                len(self.conditions) * len(self.varied.standards) * len(self.adaptive.sign_list())
             )
         return len(self.conditions) * len(self.varied.standards) * self.blocks.per_standard
 
@@ -401,7 +453,7 @@ class Experiment(_Strict):
 
     def n_breaks(self) -> int:
         b = self.breaks
-        if self.staircase is not None:  # tracks interleave: breaks by trials only
+        if self.adaptive is not None:  # tracks interleave: breaks by trials only
             total = self.n_blocks * self.trials_per_block
             return (total - 1) // b.every_trials if b.every_trials else 0
         between = (self.n_blocks - 1) // b.every_blocks if b.every_blocks else 0

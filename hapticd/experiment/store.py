@@ -331,6 +331,7 @@ def design(exp: Experiment) -> dict[str, Any]:
         "jnd_point": exp.analysis.jnd_point,
         "procedure": exp.procedure,
         "staircase": None if exp.staircase is None else exp.staircase.model_dump(),
+        "quest_plus": None if exp.quest_plus is None else exp.quest_plus.model_dump(),
     }
 
 

@@ -47,9 +47,10 @@ def reduce_design(
             )
         keep = tuple(x for x in exp.varied.standards if any(np.isclose(s, x) for s in standards))
         update["varied"] = exp.varied.model_copy(update={"standards": keep})
-    if repetitions is not None and exp.staircase is not None:
+    if repetitions is not None and exp.adaptive is not None:
         raise ExperimentError(
-            f"{exp.source}: --repetitions: a staircase has none (its tracks stop by themselves)"
+            f"{exp.source}: --repetitions: an adaptive procedure has none (its tracks stop "
+            "by themselves)"
         )
     if repetitions is not None:
         per = exp.blocks.per_standard
@@ -116,7 +117,7 @@ def answer_task(task: Task) -> list[Answer]:
     the rest of the subject's session after its history (no I/O)."""
     out = []
     profile = observer.profile_from_document(task.profile)
-    if task.exp.staircase is not None:
+    if task.exp.adaptive is not None:
 
         def judged_more(trial: PlannedTrial) -> bool:
             r = observer.answer_trial(
@@ -206,7 +207,7 @@ def run_model_subject(
     exp = _load(exp_path_or_exp, standards, repetitions)
     s = study_seed(exp, subject, seed)
     presenter = ModelPresenter(exp, subject, s, config or observer.default_config(exp))
-    if exp.staircase is not None:
+    if exp.adaptive is not None:
         return runner.run_adaptive_subject(
             store, exp, subject, s, presenter, profile_hash=file_hash(exp.profile_path()),
             progress=None if progress is None else lambda p: progress(p.done, p.total),
@@ -307,10 +308,10 @@ def run_study(
     with TrialStore.for_experiment(db, exp) as store:
         for subject in subjects:
             s = study_seed(exp, subject, seed)
-            if exp.staircase is not None:
+            if exp.adaptive is not None:
                 # Each subject's session is one task: its next trials depend on its answers.
                 history = tuple(r for r in store.trials() if r["subject"] == subject)
-                total += exp.n_blocks * exp.staircase.max_trials
+                total += exp.n_blocks * exp.adaptive.max_trials
                 tasks.append(Task(exp, profile, config, subject, s, (), history))
                 continue
             plan = make_plan(exp, s)
@@ -326,7 +327,7 @@ def run_study(
         answered = 0
         for answers in _execute(tasks, workers, scheduler):
             for a in answers:
-                if exp.staircase is not None and a.trial.index >= len(store.plan(a.subject)):
+                if exp.adaptive is not None and a.trial.index >= len(store.plan(a.subject)):
                     store.append_plan(a.subject, a.trial, a.seed)
                 _record(store, a, profile_hash)
             answered += len(answers)
