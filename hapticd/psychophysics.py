@@ -328,7 +328,7 @@ def _separation(x: np.ndarray, k: np.ndarray, n: np.ndarray) -> str | None:
     return None
 
 
-def _check_inputs(
+def check_counts(
     levels: object, n_yes: object, n_total: object
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     x, k, n = (np.asarray(a, dtype=float) for a in (levels, n_yes, n_total))
@@ -352,7 +352,7 @@ def _check_inputs(
     return ux, np.bincount(inv, k, len(ux)), np.bincount(inv, n, len(ux))
 
 
-def _no_fit(reason: str, n_trials: float, n_levels: int, jnd_point: float) -> PsychometricFit:
+def no_fit(reason: str, n_trials: float, n_levels: int, jnd_point: float) -> PsychometricFit:
     return PsychometricFit(
         estimable=False,
         reason=reason,
@@ -369,7 +369,7 @@ def _no_fit(reason: str, n_trials: float, n_levels: int, jnd_point: float) -> Ps
     )
 
 
-def _data_reason(x: np.ndarray, k: np.ndarray, n: np.ndarray, min_trials: int) -> str | None:
+def data_reason(x: np.ndarray, k: np.ndarray, n: np.ndarray, min_trials: int) -> str | None:
     """Why the counts cannot determine a curve whatever the fitter, or None."""
     if len(x) < 3:
         return f"{len(x)} level(s) with trials: a curve needs at least 3"
@@ -381,7 +381,7 @@ def _data_reason(x: np.ndarray, k: np.ndarray, n: np.ndarray, min_trials: int) -
     return _separation(x, k, n)
 
 
-def _curve_reason(pse: float, sigma: float, x: np.ndarray) -> str | None:
+def curve_reason(pse: float, sigma: float, x: np.ndarray) -> str | None:
     """Why a fitted curve (PSE, sigma in the levels' unit) is no estimate, or None: flat
     (sigma at its search bound), steeper than the levels resolve, the PSE beyond them."""
     span = x[-1] - x[0]
@@ -435,18 +435,18 @@ def fit_psychometric(
     if n_boot < 0:
         raise ValueError(f"n_boot must be >= 0, got {n_boot}")
     zj = jnd_z(jnd_point)
-    x, k, n = _check_inputs(levels, n_yes, n_total)
+    x, k, n = check_counts(levels, n_yes, n_total)
     total, n_levels = float(n.sum()), len(x)
-    why = _data_reason(x, k, n, min_trials)
+    why = data_reason(x, k, n, min_trials)
     if why:
-        return _no_fit(why, total, n_levels, jnd_point)
+        return no_fit(why, total, n_levels, jnd_point)
     centre, span = (x[0] + x[-1]) / 2, x[-1] - x[0]
     z = (x - centre) / span
     theta = _fit_one(z, k, n, lapse_max)
     m, s, lapse = (float(v) for v in theta)
-    why = _curve_reason(m * span + centre, s * span, x)
+    why = curve_reason(m * span + centre, s * span, x)
     if why:
-        return _no_fit(why, total, n_levels, jnd_point)
+        return no_fit(why, total, n_levels, jnd_point)
     jnd_ci = pse_ci = None
     if n_boot > 0:
         rng = np.random.default_rng(seed)
@@ -511,73 +511,3 @@ def paired_t(a: object, b: object) -> PairedT:
     t = mean / (sd / np.sqrt(n))
     p = float(2 * stats.t.sf(abs(t), n - 1))
     return PairedT(t=float(t), df=n - 1, p=p, mean_diff=mean, sd_diff=sd, n=n)
-
-
-def fit_psignifit(
-    levels: object,
-    n_yes: object,
-    n_total: object,
-    *,
-    lapse_max: float = 0.06,
-    ci: float = 0.95,
-    min_trials: int = 20,
-    jnd_point: float = 0.75,
-    **_: object,
-) -> PsychometricFit:
-    """The same curve fitted by psignifit 4 (Schuett et al. 2016; ``pip install
-    'hapticd[psignifit]'``), for a second opinion: a cumulative normal with equal lower
-    and upper asymptotes (l/2 each, l <= ``lapse_max``), no overdispersion (eta 0), its
-    default priors, the MAP estimate; ``jnd_ci``/``pse_ci`` its ``ci`` credible
-    intervals as psignifit gives them. Data that ``fit_psychometric`` calls not estimable
-    (too few levels or trials, one answer, separated, flat, too steep, PSE beyond the
-    levels) is not estimable here either, with the same reason. ImportError without
-    psignifit."""
-    import psignifit  # an optional dependency: imported when chosen
-
-    zj = jnd_z(jnd_point)
-    x, k, n = _check_inputs(levels, n_yes, n_total)
-    total, n_levels = float(n.sum()), len(x)
-    why = _data_reason(x, k, n, min_trials)
-    if why:
-        return _no_fit(why, total, n_levels, jnd_point)
-    conf = (0.95, 0.9, 0.68) if ci in (0.95, 0.9, 0.68) else (ci,)
-    r = psignifit.psignifit(
-        np.c_[x, k, n],
-        sigmoid="norm",
-        # No lapse allowed: both asymptotes fixed at 0 (psignifit's equal-asymptote
-        # type cannot fix its shared one).
-        experiment_type="equal asymptote" if lapse_max > 0 else "yes/no",
-        fixed_parameters=(
-            {"eta": 0.0} if lapse_max > 0 else {"eta": 0.0, "lambda": 0.0, "gamma": 0.0}
-        ),
-        bounds={"lambda": (0.0, lapse_max / 2)} if lapse_max > 0 else None,
-        confP=conf,
-        verbose=False,
-    )
-    est = r.parameter_estimate_MAP
-    # psignifit's width is x(0.95) - x(0.05) of the sigmoid without lapse.
-    per_sigma = float(stats.norm.ppf(0.95) - stats.norm.ppf(0.05))
-    pse, sigma = float(est["threshold"]), float(est["width"]) / per_sigma
-    why = _curve_reason(pse, sigma, x)
-    if why:
-        return _no_fit(why, total, n_levels, jnd_point)
-    width_ci = r.confidence_intervals["width"][str(ci)]
-    pse_ci = r.confidence_intervals["threshold"][str(ci)]
-    return PsychometricFit(
-        estimable=True,
-        reason=None,
-        pse=pse,
-        jnd=zj * sigma,
-        sigma=sigma,
-        lapse=2 * float(est["lambda"]),
-        jnd_ci=(zj * width_ci[0] / per_sigma, zj * width_ci[1] / per_sigma),
-        pse_ci=(float(pse_ci[0]), float(pse_ci[1])),
-        n_trials=total,
-        n_levels=n_levels,
-        log_likelihood=None,
-        jnd_point=jnd_point,
-    )
-
-
-# ``--fitter`` names: the maximum-likelihood fit here, psignifit's Bayesian one.
-FITTERS = {"ml": fit_psychometric, "psignifit": fit_psignifit}

@@ -40,6 +40,7 @@ import numpy as np
 from scipy import optimize, stats
 
 from hapticd import psychophysics as pp
+from hapticd.experiment.fitters import fit_psignifit
 
 STANDARD = 60.0
 LEVELS = STANDARD * np.array([0.7, 0.8, 0.9, 1.1, 1.2, 1.3])
@@ -167,7 +168,7 @@ def psignifit_study(n_series: int, seed: int) -> list[dict]:
         sigma = [4.0, 6.0, 9.0, 15.0][i % 4]
         k = rng.binomial(REPS, stats.norm.cdf((LEVELS - STANDARD - rng.normal(0, 2)) / sigma))
         ours = pp.fit_psychometric(LEVELS, k, REPS, n_boot=0, lapse_max=0.0)
-        theirs = pp.fit_psignifit(LEVELS, k, REPS, lapse_max=0.0)
+        theirs = fit_psignifit(LEVELS, k, REPS, lapse_max=0.0)
         rows.append(
             {
                 "both": ours.estimable and theirs.estimable,

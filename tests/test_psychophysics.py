@@ -9,6 +9,7 @@ import pytest
 from scipy import stats
 
 from hapticd import psychophysics as pp
+from hapticd.experiment.fitters import fit_psignifit
 from hapticd.psychophysics import Z75, fit_psychometric, paired_t
 
 # The seed's design for one standard: six comparisons (ratios of the standard) x 10.
@@ -314,7 +315,7 @@ def test_psignifit_agrees_where_its_priors_are_flat():
     for i in range(8):
         k = rng.binomial(REPS, psi(LEVELS, 60 + rng.normal(0, 2), [4.0, 5.0, 6.0][i % 3]))
         ours = fit_psychometric(LEVELS, k, REPS, n_boot=0, lapse_max=0.0)
-        theirs = pp.fit_psignifit(LEVELS, k, REPS, lapse_max=0.0)
+        theirs = fit_psignifit(LEVELS, k, REPS, lapse_max=0.0)
         assert ours.estimable == theirs.estimable, k
         if not ours.estimable:
             assert ours.reason == theirs.reason

@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from hapticd.psychophysics import FITTERS, jnd_z, paired_t
+from hapticd.experiment.fitters import FITTERS
+from hapticd.psychophysics import jnd_z, paired_t
 
 
 def _key(row: dict[str, Any]) -> tuple[str, str, float]:
