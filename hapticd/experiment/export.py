@@ -19,7 +19,7 @@ COLUMNS: tuple[tuple[str, str], ...] = (
     ("experiment", "the experiment's name"),
     ("subject", "the subject's id"),
     ("trial", "the trial's index in the subject's plan (0-based)"),
-    ("block", "the block in the plan (0-based): one condition and one standard"),
+    ("block", "the block (0-based): one condition and one standard; an adaptive run's track"),
     ("condition", "the condition's name"),
     ("param", "the varied parameter (hapticd.params name)"),
     ("unit", "its SI unit"),
