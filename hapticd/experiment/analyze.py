@@ -264,12 +264,18 @@ def format_quest(result: dict[str, Any], unit: str) -> str:
             f"{r['trials']:>3} trials PSE {r['pse']:.4g} JND {r['jnd']:.4g} "
             f"Weber {r['weber']:.3f}"
         )
-    lines.append("paired t-tests of the QUEST+ Weber fractions across subjects:")
-    for t in result["tests"]:
+    lines += _test_lines(result["tests"], "the QUEST+ Weber fractions")
+    return "\n".join(lines) + "\n"
+
+
+def _test_lines(tests: list[dict[str, Any]], what: str) -> list[str]:
+    """The paired t-tests of ``what``, a line per standard and pair of conditions."""
+    lines = [f"paired t-tests of {what} across subjects:"]
+    for t in tests:
         a, b = t["conditions"]
         res = t["reason"] if t["t"] is None else f"t({t['df']}) = {t['t']:.3f}, p = {t['p']:.4f}"
         lines.append(f"  standard {t['standard']:<8.4g} {a} vs {b}: {res}")
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def format_staircases(result: dict[str, Any], unit: str) -> str:
@@ -292,11 +298,7 @@ def format_staircases(result: dict[str, Any], unit: str) -> str:
     for t in result["thresholds"]:
         what = t["reason"] if t["jnd"] is None else f"JND {t['jnd']:.4g}, Weber {t['weber']:.3f}"
         lines.append(f"  {t['subject']:<10} {t['condition']:<10} {t['standard']:<8.4g} {what}")
-    lines.append("paired t-tests of the reversal Weber fractions across subjects:")
-    for t in result["tests"]:
-        a, b = t["conditions"]
-        res = t["reason"] if t["t"] is None else f"t({t['df']}) = {t['t']:.3f}, p = {t['p']:.4f}"
-        lines.append(f"  standard {t['standard']:<8.4g} {a} vs {b}: {res}")
+    lines += _test_lines(result["tests"], "the reversal Weber fractions")
     return "\n".join(lines) + "\n"
 
 
@@ -399,16 +401,7 @@ def format_report(result: dict[str, Any], unit: str) -> str:
             f"  {g['condition']:<10} standard {g['standard']:<8.4g} Weber {mean} "
             f"(SD {sd}, {g['n_subjects']} subjects)"
         )
-    lines.append("paired t-tests of the Weber fractions across subjects:")
-    for t in result["tests"]:
-        a, b = t["conditions"]
-        if t["t"] is None:
-            lines.append(f"  standard {t['standard']:<8.4g} {a} vs {b}: {t['reason']}")
-        else:
-            lines.append(
-                f"  standard {t['standard']:<8.4g} {a} vs {b}: t({t['df']}) = {t['t']:.3f}, "
-                f"p = {t['p']:.4f}"
-            )
+    lines += _test_lines(result["tests"], "the Weber fractions")
     return "\n".join(lines) + "\n"
 
 
