@@ -114,6 +114,7 @@ class Motor:
     squeeze_hold_s: float = 0.10
     squeeze_out_s: float = 0.20
     grip_depth_m: tuple[float, float] = (0.008, 0.001)
+    grip_margin: float = 1.4  # grip over slip (Johansson & Westling 1984: ~1.2-2)
     grip_s: float = 0.15
     lift_height_m: tuple[float, float] = (0.030, 0.005)
     lift_s: tuple[float, float] = (0.25, 0.04)
@@ -179,11 +180,39 @@ def _normal(rng: np.random.Generator, spec: tuple[float, float], lo: float) -> f
     return max(lo, float(rng.normal(mean, sd)))
 
 
+def grip_depth(
+    profile: Profile, settings: Mapping[str, Any], motor: Motor, hand: Mapping[str, float]
+) -> float:
+    """How deep (m) a lift must pinch the object in ``settings`` (its mass and friction,
+    else the profile's) for its weight to be carried with ``motor.grip_margin``: a
+    person's grip scales with the load and the friction (Johansson & Westling 1984).
+    Each finger's normal force is about the object's and the hand's springs in series
+    times the depth, and two fingers carry at most 2 mu_dynamic N."""
+    obj = profile.scene.object
+    mass = float(settings.get("mass_kg") or obj.mass_kg or 0.0)
+    fr = settings.get("friction")
+    mu = float(fr[1]) if fr is not None else float(obj.friction.dynamic)
+    k_obj = float(settings.get("stiffness_n_per_m") or obj.stiffness_n_per_m)
+    k_hand = float(hand.get("hand_stiffness_n_per_m", 300.0))
+    k = k_obj * k_hand / (k_obj + k_hand)
+    if mu <= 0 or k <= 0:
+        return float("inf")  # no friction: no grip carries it
+    return motor.grip_margin * mass * 9.81 / (2 * mu * k)
+
+
 def plan_path(
-    kind: str, profile: Profile, motor: Motor, rng: np.random.Generator
+    kind: str,
+    profile: Profile,
+    motor: Motor,
+    rng: np.random.Generator,
+    *,
+    settings: Mapping[str, Any] | None = None,
+    hand: Mapping[str, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
     """The planned hand path of one interval: times (N,) s, positions (N, 2, 3) m (thumb
-    on -x, index on +x of the profile's cube), and the phase times (s) the cue reads."""
+    on -x, index on +x of the profile's cube), and the phase times (s) the cue reads.
+    A lift pinches at least ``grip_depth`` for the interval's ``settings`` (its mass and
+    friction; the hand's springs ``hand``), at most the object's half width."""
     check_observable(profile)
     obj = profile.scene.object
     assert obj.size_m is not None
@@ -211,6 +240,11 @@ def plan_path(
         phases = {"end": t_in + motor.squeeze_hold_s + motor.squeeze_out_s}
     else:
         depth = _normal(rng, motor.grip_depth_m, 0.002)
+        if settings is not None:
+            # Scaled to the load: the nominal pinch, or what the load needs with the same
+            # trial-to-trial variation (relative), whichever is deeper.
+            need = grip_depth(profile, settings, motor, hand or {})
+            depth = min(max(depth, need * depth / motor.grip_depth_m[0]), half)
         height = _normal(rng, motor.lift_height_m, 0.005)
         t_lift = _normal(rng, motor.lift_s, 0.1)
         for sign, r, off in ((-1.0, radii[0], (0.0, 0.0)), (1.0, radii[1], (dy, dz))):
@@ -385,7 +419,7 @@ def interval_cue(
     rng: np.random.Generator,
 ) -> float:
     """One interval: plan the hand's path, run the loop, read the cue."""
-    t, x, phases = plan_path(kind, profile, config.motor, rng)
+    t, x, phases = plan_path(kind, profile, config.motor, rng, settings=settings, hand=config.hand)
     rows = run_interval(profile, settings, (t, x), config)
     if kind == "squeeze":
         return stiffness_cue(rows)
