@@ -315,3 +315,31 @@ def test_the_grip_depth_follows_mass_and_friction(weight):
     slippery = ob.grip_depth(prof, {"mass_kg": 0.06, "friction": [0.4, 0.2]}, cfg.motor, cfg.hand)
     assert heavy == pytest.approx(4 * light) and slippery == pytest.approx(4 * light)
     assert light < cfg.motor.grip_depth_m[0]  # the bundled masses keep the nominal pinch
+
+
+def test_a_design_the_hand_cannot_perform_is_refused_with_the_cause(tmp_path, capsys):
+    """A 500 g cube slips out of the model hand's pinch: ``study`` and ``experiment run
+    --observer model`` refuse the design after a few pilot intervals, naming the cause,
+    and store nothing."""
+    data = yaml.safe_load(WEIGHT.read_text())
+    data["profile"] = str(ROOT / "configs" / "lift-weight.yaml")
+    data["varied"]["standards"] = [0.5]
+    path = tmp_path / "heavy.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    db = tmp_path / "s.sqlite"
+    assert main(["study", str(path), "--observers", "1", "--db", str(db), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "the model observer's hand cannot perform this design" in err
+    assert "the cube slipped or dropped" in err and "mass_kg 0.6" in err
+    run = ["experiment", "run", str(path), "--subject", "m1", "--observer", "model"]
+    assert main([*run, "--no-keys", "--db", str(tmp_path / "r.sqlite")]) == 2
+    assert "cannot perform this design" in capsys.readouterr().err
+    for store in (db, tmp_path / "r.sqlite"):
+        if store.exists():
+            with sqlite3.connect(store) as con:
+                assert con.execute("SELECT COUNT(*) FROM plan").fetchone()[0] == 0
+
+
+def test_the_bundled_designs_pass_the_pilot(stiff, weight):
+    for exp, prof, cfg in (stiff, weight):
+        ob.pilot_check(exp, prof, cfg)  # raises naming the cause otherwise

@@ -237,7 +237,11 @@ def plan_path(
                     MinJerk(motor.squeeze_out_s, tuple(start)),
                 ]
             )
-        phases = {"end": t_in + motor.squeeze_hold_s + motor.squeeze_out_s}
+        phases = {
+            "hold_from": t_in,
+            "hold_to": t_in + motor.squeeze_hold_s,
+            "end": t_in + motor.squeeze_hold_s + motor.squeeze_out_s,
+        }
     else:
         depth = _normal(rng, motor.grip_depth_m, 0.002)
         if settings is not None:
@@ -424,6 +428,89 @@ def interval_cue(
     if kind == "squeeze":
         return stiffness_cue(rows)
     return weight_cue(rows, phases["judge_from"])
+
+
+# The pilot check's limits: the fingers on the cube over at least this share of the
+# judged part of an interval; a lifted cube up by at least this share of the hand's
+# lift (less: it slipped or dropped); the EF vertical cue (the net load, which a held
+# still cube makes m g) within this share of m g.
+PILOT_CONTACT = 0.9
+PILOT_RISE = 0.5
+PILOT_EF_TOLERANCE = 0.10
+
+
+def interval_failure(
+    kind: str, rows: np.ndarray, phases: Mapping[str, float], planned: np.ndarray
+) -> str | None:
+    """Why one simulated interval is no exploration of the task, or None: the fingers
+    off the cube over the judged part (a lift's hold from ``judge_from``, a squeeze's
+    hold from ``hold_from`` to ``hold_to``), or a lifted cube that did not rise with the
+    hand (``planned``: the path's positions)."""
+    start = phases.get("judge_from", phases.get("hold_from", 0.0))
+    judged = (rows["t"] >= start) & (rows["t"] <= phases.get("hold_to", np.inf))
+    if not judged.any():
+        return "the interval is empty"
+    both = rows["in_contact"][judged].all(axis=1).mean()
+    if both < PILOT_CONTACT:
+        return f"no contact: both fingers touched the cube in only {both:.0%} of it"
+    if kind == "lift":
+        rise = float(rows["object_pos"][judged][:, 2].mean() - rows["object_pos"][0, 2])
+        want = float(planned[-1, 0, 2] - planned[0, 0, 2])
+        if rise < PILOT_RISE * want:
+            return (
+                f"the cube slipped or dropped: it rose {rise * 1e3:.1f} mm of the hand's "
+                f"{want * 1e3:.1f} mm"
+            )
+    return None
+
+
+def pilot_check(exp: Experiment, profile: Profile, config: ObserverConfig) -> None:
+    """Refuse (ExperimentError naming each cause) a design the observer's hand cannot
+    perform, before any trial: one pilot interval per condition at the smallest and the
+    largest value of the varied parameter the design presents, and for a lift also two
+    with the EF allocator, whose vertical cue must be m g within PILOT_EF_TOLERANCE."""
+    kind = exploration_kind(exp)
+    rng = np.random.default_rng(0)
+    lo, hi = _design_range(exp)
+    tried: list[tuple[dict[str, Any], str]] = [
+        ({**c.values(), exp.varied.param: v}, f"condition {c.name}")
+        for c in exp.conditions
+        for v in (lo, hi)
+    ]
+    if kind == "lift":
+        tried += [({"allocator": "ef", exp.varied.param: v}, "the EF check") for v in (lo, hi)]
+    problems = []
+    for settings, what in tried:
+        t, x, phases = plan_path(
+            kind, profile, config.motor, rng, settings=settings, hand=config.hand
+        )
+        rows = run_interval(profile, settings, (t, x), config)
+        why = interval_failure(kind, rows, phases, x)
+        if why is None and what == "the EF check":
+            cue, mg = weight_cue(rows, phases["judge_from"]), settings["mass_kg"] * 9.81
+            if abs(cue - mg) > PILOT_EF_TOLERANCE * mg:
+                why = (
+                    f"the EF vertical cue is {cue:.3f} N against m g {mg:.3f} N (more than "
+                    f"{PILOT_EF_TOLERANCE:.0%} off)"
+                )
+        if why is not None:
+            problems.append(f"{what}, {exp.varied.param} {settings[exp.varied.param]:g}: {why}")
+    if problems:
+        raise ExperimentError(
+            f"{exp.source}: the model observer's hand cannot perform this design (pilot "
+            "intervals):\n  " + "\n  ".join(problems)
+        )
+
+
+def _design_range(exp: Experiment) -> tuple[float, float]:
+    """The smallest and the largest value of the varied parameter the design presents."""
+    lo_s, hi_s = min(exp.varied.standards), max(exp.varied.standards)
+    if exp.staircase is not None:
+        d = exp.staircase.max_distance
+        return lo_s * (1 - d if exp.staircase.sides == "both" else 1), hi_s * (1 + d)
+    if exp.quest_plus is not None:
+        return lo_s * exp.quest_plus.min_ratio, hi_s * exp.quest_plus.max_ratio
+    return lo_s * min(exp.varied.ratios), hi_s * max(exp.varied.ratios)
 
 
 @dataclass(frozen=True)

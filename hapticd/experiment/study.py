@@ -185,7 +185,10 @@ def model_observer(
     """``hapticd experiment run --observer model``: the model observer for ``subject``
     with the run's seed (the experiment's per-subject seed unless ``--seed``)."""
     seed = exp.subject_seed(subject) if options.seed is None else options.seed
-    yield ModelPresenter(exp, subject, seed, observer.default_config(exp))
+    presenter = ModelPresenter(exp, subject, seed, observer.default_config(exp))
+    # Before any trial: a design its hand cannot perform is refused with the cause.
+    observer.pilot_check(exp, presenter.profile, presenter.config)
+    yield presenter
 
 
 def run_model_subject(
@@ -300,6 +303,8 @@ def run_study(
     exp = _load(exp_path_or_exp, standards, repetitions)
     config = config or observer.default_config(exp)
     profile = observer.profile_document(exp, config)
+    # Before any plan is stored: a design the hand cannot perform is refused with the cause.
+    observer.pilot_check(exp, observer.profile_from_document(profile), config)
     profile_hash = file_hash(exp.profile_path())
     t0 = time.monotonic()
     tasks: list[Task] = []
