@@ -7,11 +7,15 @@ more. ``fit_psychometric`` fits, by maximum likelihood on the binomial counts,
     psi(x) = l/2 + (1 - l) Phi((x - mu) / sigma)
 
 with the lapse rate l bounded in [0, lapse_max]. The point of subjective equality is
-PSE = mu and the just noticeable difference JND = x(0.75) - x(0.5) of the curve
-without lapse, 0.6745 sigma; the Weber fraction is JND / standard
-(/work/shared/notes/grasp-math.md, "Psychometrics"). The JND's confidence interval
-is a parametric bootstrap: data simulated from the fitted curve, refitted, and the
-bias-corrected and accelerated (BCa) percentile interval of the refitted JNDs.
+PSE = mu and the just noticeable difference JND = x(p) - x(0.5) of the curve
+without lapse, at the JND point p: 0.75 by default (0.6745 sigma), 0.84 (0.9945
+sigma, about one sigma) where a lab defines it so; the Weber fraction is JND /
+standard (/work/shared/notes/grasp-math.md, "Psychometrics"). The fit is the global
+maximum of the likelihood over the bounded parameters (a grid over PSE, sigma and
+lapse, its highest peaks polished). The JND's confidence interval is a parametric
+bootstrap: data simulated from the fitted curve, refitted, and the bias-corrected and
+accelerated (BCa) percentile interval of the refitted JNDs; an end the refits push to
+a search bound is reported unbounded (None), never as the bound.
 
 Data that cannot determine a curve gives ``estimable=False`` and a ``reason``, never
 an arbitrary number: fewer than three levels or ``min_trials`` trials, every answer
@@ -28,10 +32,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize, special, stats
+from scipy import ndimage, optimize, special, stats
 
 # x(0.75) - x(0.5) of a cumulative normal with sigma 1.
 Z75 = float(stats.norm.ppf(0.75))
+# The JND points an experiment may define its JND by (docs/experiments.md).
+JND_POINTS = (0.75, 0.84)
+
+
+def jnd_z(point: float) -> float:
+    """x(point) - x(0.5) of a cumulative normal with sigma 1: the JND in sigmas."""
+    if not 0.5 < point < 1.0:
+        raise ValueError(f"the JND point must be in (0.5, 1), got {point}")
+    return float(stats.norm.ppf(point))
+
 
 # Bounds in normalised units (z = (x - centre) / range of the levels): the PSE may lie
 # at most one level range beyond the tested levels; sigma from 1/1000 of the range
@@ -41,14 +55,16 @@ _MU_BOUND = 1.5
 _SIGMA_LO = 1e-3
 _SIGMA_HI = 4.0
 _SQRT_2PI = float(np.sqrt(2 * np.pi))
+_PEAKS = 8  # grid peaks polished by the global search
 _P_EPS = 1e-15  # probabilities are kept in [eps, 1 - eps]: finite log-likelihood
 
 
 @dataclass(frozen=True)
 class PsychometricFit:
     """A fitted psychometric function; the numbers are in the levels' unit (lapse: a
-    probability). When ``estimable`` is false, ``reason`` says why and every estimate
-    is None."""
+    probability). ``jnd`` is x(jnd_point) - x(0.5). An interval end that is None is
+    unbounded (the data do not bound it; the search's bound was reached). When
+    ``estimable`` is false, ``reason`` says why and every estimate is None."""
 
     estimable: bool
     reason: str | None
@@ -56,11 +72,12 @@ class PsychometricFit:
     jnd: float | None
     sigma: float | None
     lapse: float | None
-    jnd_ci: tuple[float, float] | None
-    pse_ci: tuple[float, float] | None
+    jnd_ci: tuple[float | None, float | None] | None
+    pse_ci: tuple[float | None, float | None] | None
     n_trials: float
     n_levels: int
     log_likelihood: float | None
+    jnd_point: float = 0.75
 
     def predict(self, x: np.ndarray | float) -> np.ndarray:
         """psi(x): the fitted probability of judging the comparison more, shape of x."""
@@ -100,36 +117,45 @@ def _bounds(lapse_max: float) -> np.ndarray:
     return np.array([[-_MU_BOUND, _MU_BOUND], [_SIGMA_LO, _SIGMA_HI], [0.0, lapse_max]])
 
 
-def _grid_starts(z: np.ndarray, k: np.ndarray, n: np.ndarray, lapse_max: float) -> np.ndarray:
-    """The best few parameter sets of a coarse grid, best first: (3, 3)."""
-    m = np.linspace(-1.2, 1.2, 25)
-    s = np.geomspace(0.02, 3.0, 16)
-    lapses = np.unique([0.0, lapse_max / 2, lapse_max])
-    grid = np.stack(np.meshgrid(m, s, lapses, indexing="ij"), axis=-1).reshape(-1, 3)
-    ll = _loglik(_psi(z, grid), k, n)
-    return grid[np.argsort(-ll)[:3]]
+def _grid_peaks(z: np.ndarray, k: np.ndarray, n: np.ndarray, lapse_max: float) -> np.ndarray:
+    """The highest local maxima of the log-likelihood on a grid over the whole bounded
+    parameter space, best first: (<= _PEAKS, 3). The grid's PSE step (1/40 of the level
+    range) is finer than any level spacing, and sigma runs over its whole range (64
+    log steps), so every hill of the likelihood, a near-step curve's too, has a grid
+    point on its slope."""
+    m = np.linspace(-_MU_BOUND, _MU_BOUND, 121)
+    s = np.geomspace(_SIGMA_LO, _SIGMA_HI, 64)
+    lapses = np.linspace(0.0, lapse_max, 7) if lapse_max > 0 else np.zeros(1)
+    grid = np.stack(np.meshgrid(m, s, lapses, indexing="ij"), axis=-1)
+    ll = _loglik(_psi(z, grid.reshape(-1, 3)), k, n).reshape(grid.shape[:3])
+    peak = ll >= ndimage.maximum_filter(ll, size=3, mode="nearest")
+    idx = np.flatnonzero(peak)
+    idx = idx[np.argsort(-ll.reshape(-1)[idx], kind="stable")[:_PEAKS]]
+    return grid.reshape(-1, 3)[idx]
 
 
 def _fit_one(z: np.ndarray, k: np.ndarray, n: np.ndarray, lapse_max: float) -> np.ndarray:
-    """Maximum-likelihood parameters (normalised units): Fisher scoring from the best
-    points of a grid and from near-step curves, then L-BFGS-B from the best of them."""
+    """The global maximum-likelihood parameters (normalised units): every high peak of a
+    grid over the bounded parameter space (``_grid_peaks``) and the near-step curves
+    polished by Fisher scoring, then L-BFGS-B from each; the best of all. Starting from
+    the grid's best point alone finds a lower hill in about 1 % of series."""
     bounds = _bounds(lapse_max)
-    starts = _grid_starts(z, k, n, lapse_max)
-    starts = np.vstack([starts, *_steep_starts(z, k, n, lapse_max)])
+    starts = np.vstack([_grid_peaks(z, k, n, lapse_max), *_steep_starts(z, k, n, lapse_max)])
     cands = _fit_batch(z, np.tile(k, (len(starts), 1)), n, starts, lapse_max)
-    ll = _loglik(_psi(z, cands), k, n)
-    best = cands[int(np.argmax(ll))]
-    res = optimize.minimize(
-        _nll_and_grad,
-        best,
-        args=(z, k, n),
-        jac=True,
-        method="L-BFGS-B",
-        bounds=bounds,
-        options={"maxiter": 500, "ftol": 1e-14, "gtol": 1e-10},
-    )
-    out = res.x if res.fun <= -ll.max() else best
-    return np.clip(out, bounds[:, 0], bounds[:, 1])
+    polished = [cands]
+    for start in cands:
+        res = optimize.minimize(
+            _nll_and_grad,
+            start,
+            args=(z, k, n),
+            jac=True,
+            method="L-BFGS-B",
+            bounds=bounds,
+            options={"maxiter": 500, "ftol": 1e-14, "gtol": 1e-10},
+        )
+        polished.append(np.clip(res.x, bounds[:, 0], bounds[:, 1])[None])
+    every = np.vstack(polished)
+    return every[int(np.argmax(_loglik(_psi(z, every), k, n)))]
 
 
 def _fit_batch(
@@ -249,21 +275,38 @@ def _acceleration(
 
 
 def _bca_interval(
-    boot: np.ndarray, estimate: float, ci: float, accel: float
-) -> tuple[float, float]:
-    """The bias-corrected and accelerated percentile interval (Efron 1987) of
-    ``estimate`` from its bootstrap replicates: the percentiles move by the replicates'
-    median bias (z0) and by how the estimate's spread changes with its value (accel).
-    The ML sigma of 60 trials is biased low (about 8 %) and skewed; in simulation the
-    plain percentile interval covers the true JND in 82 % of experiments, the
-    bias-corrected one in 89 %, this one in 93 % (tests/test_psychophysics.py)."""
+    boot: np.ndarray, estimate: float, ci: float, accel: float, bounds: np.ndarray
+) -> tuple[float | None, float | None]:
+    """The bias-corrected and accelerated percentile interval (Efron 1987) of a
+    parameter's ``estimate`` from its bootstrap replicates: the percentiles move by the
+    replicates' median bias (z0) and by how the estimate's spread changes with its value
+    (accel). The ML sigma of 60 trials is biased low (about 8 %) and skewed; in
+    simulation the plain percentile interval covers the true JND in 82 % of experiments,
+    the bias-corrected one in 89 %, this one in 93 % (tests/test_psychophysics.py).
+
+    An end whose percentile falls among replicates stuck at the parameter's search
+    ``bounds`` (lo, hi) is None, unbounded: the data do not bound it there, and the
+    bound is the search's, not a finding."""
     below = np.mean(boot < estimate) + 0.5 * np.mean(boot == estimate)
     z0 = float(stats.norm.ppf(np.clip(below, 1 / (2 * len(boot)), 1 - 1 / (2 * len(boot)))))
     zq = np.array([-1.0, 1.0]) * float(stats.norm.ppf(0.5 + ci / 2))
     shifted = z0 + (z0 + zq) / (1 - accel * (z0 + zq))
     lo, hi = stats.norm.cdf(shifted) * 100
     q = np.percentile(boot, [lo, hi])
-    return float(q[0]), float(q[1])
+    tol = 1e-3 * (bounds[1] - bounds[0])
+    at_lo = 100 * np.mean(boot <= bounds[0] + tol)
+    at_hi = 100 * np.mean(boot >= bounds[1] - tol)
+    return (
+        None if at_lo > 0 and at_lo >= lo else float(q[0]),
+        None if at_hi > 0 and at_hi >= 100 - hi else float(q[1]),
+    )
+
+
+def _scaled(
+    end: tuple[float | None, float | None], scale: float, shift: float = 0.0
+) -> tuple[float | None, float | None]:
+    """An interval in normalised units in the levels' unit (None ends stay None)."""
+    return tuple(None if v is None else float(v * scale + shift) for v in end)  # type: ignore[return-value]
 
 
 def _separation(x: np.ndarray, k: np.ndarray, n: np.ndarray) -> str | None:
@@ -285,7 +328,7 @@ def _separation(x: np.ndarray, k: np.ndarray, n: np.ndarray) -> str | None:
     return None
 
 
-def _check_inputs(
+def check_counts(
     levels: object, n_yes: object, n_total: object
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     x, k, n = (np.asarray(a, dtype=float) for a in (levels, n_yes, n_total))
@@ -309,7 +352,7 @@ def _check_inputs(
     return ux, np.bincount(inv, k, len(ux)), np.bincount(inv, n, len(ux))
 
 
-def _not_estimable(reason: str, n_trials: float, n_levels: int) -> PsychometricFit:
+def no_fit(reason: str, n_trials: float, n_levels: int, jnd_point: float) -> PsychometricFit:
     return PsychometricFit(
         estimable=False,
         reason=reason,
@@ -322,7 +365,42 @@ def _not_estimable(reason: str, n_trials: float, n_levels: int) -> PsychometricF
         n_trials=n_trials,
         n_levels=n_levels,
         log_likelihood=None,
+        jnd_point=jnd_point,
     )
+
+
+def data_reason(x: np.ndarray, k: np.ndarray, n: np.ndarray, min_trials: int) -> str | None:
+    """Why the counts cannot determine a curve whatever the fitter, or None."""
+    if len(x) < 3:
+        return f"{len(x)} level(s) with trials: a curve needs at least 3"
+    if n.sum() < min_trials:
+        return f"{n.sum():g} trials: a curve needs at least {min_trials}"
+    if np.all(k <= 0) or np.all(k >= n):
+        word = "no" if np.all(k <= 0) else "yes"
+        return f"every answer was '{word}': the levels are all on one side of the curve"
+    return _separation(x, k, n)
+
+
+def curve_reason(pse: float, sigma: float, x: np.ndarray) -> str | None:
+    """Why a fitted curve (PSE, sigma in the levels' unit) is no estimate, or None: flat
+    (sigma at its search bound), steeper than the levels resolve, the PSE beyond them."""
+    span = x[-1] - x[0]
+    if sigma >= _SIGMA_HI * span * 0.99:
+        return (
+            "flat: the answers hardly change over the levels (sigma reached its bound, "
+            f"{_SIGMA_HI:g} times the level range)"
+        )
+    if sigma <= _SIGMA_LO * span * 1.01:
+        return "the curve is steeper than the levels resolve"
+    if abs(pse - (x[0] + x[-1]) / 2) > 0.5 * span:
+        return f"the PSE ({pse:g}) lies beyond the tested levels ({x[0]:g} to {x[-1]:g})"
+    min_gap = float(np.min(np.diff(x)))
+    if sigma < min_gap / 4:
+        return (
+            f"the curve is steeper than the levels resolve (sigma {sigma:.3g} is below a "
+            f"quarter of the smallest level spacing, {min_gap:g})"
+        )
+    return None
 
 
 def fit_psychometric(
@@ -335,15 +413,18 @@ def fit_psychometric(
     n_boot: int = 1000,
     seed: int | np.random.Generator | None = None,
     min_trials: int = 20,
+    jnd_point: float = 0.75,
 ) -> PsychometricFit:
-    """Maximum-likelihood fit of psi(x) = l/2 + (1 - l) Phi((x - mu)/sigma).
+    """The global maximum-likelihood fit of psi(x) = l/2 + (1 - l) Phi((x - mu)/sigma).
 
     ``levels`` (L,) the comparison values (any unit; the results are in it),
     ``n_yes`` (L,) how often the comparison was judged more (expected counts may be
     fractional), ``n_total`` (L,) the trials per level. ``lapse_max`` bounds the lapse
     rate (0 fixes it at 0). ``jnd_ci``/``pse_ci``: a ``ci`` BCa interval from ``n_boot``
     parametric bootstrap refits (``n_boot=0``: none; the bootstrap rounds
-    ``n_total`` to whole trials), drawn with ``seed``. Malformed input (shapes, NaN,
+    ``n_total`` to whole trials), drawn with ``seed``; an end that reaches the search's
+    bound is None (unbounded). ``jnd_point``: the JND is x(jnd_point) - x(0.5).
+    Malformed input (shapes, NaN,
     n_yes > n_total) raises ValueError; data that cannot determine a curve gives
     ``estimable=False`` with a reason.
     """
@@ -353,54 +434,19 @@ def fit_psychometric(
         raise ValueError(f"ci must be in (0, 1), got {ci}")
     if n_boot < 0:
         raise ValueError(f"n_boot must be >= 0, got {n_boot}")
-    x, k, n = _check_inputs(levels, n_yes, n_total)
+    zj = jnd_z(jnd_point)
+    x, k, n = check_counts(levels, n_yes, n_total)
     total, n_levels = float(n.sum()), len(x)
-    if n_levels < 3:
-        return _not_estimable(
-            f"{n_levels} level(s) with trials: a curve needs at least 3", total, n_levels
-        )
-    if total < min_trials:
-        return _not_estimable(
-            f"{total:g} trials: a curve needs at least {min_trials}", total, n_levels
-        )
-    if np.all(k <= 0) or np.all(k >= n):
-        word = "no" if np.all(k <= 0) else "yes"
-        return _not_estimable(
-            f"every answer was '{word}': the levels are all on one side of the curve",
-            total,
-            n_levels,
-        )
-    separated = _separation(x, k, n)
-    if separated:
-        return _not_estimable(separated, total, n_levels)
+    why = data_reason(x, k, n, min_trials)
+    if why:
+        return no_fit(why, total, n_levels, jnd_point)
     centre, span = (x[0] + x[-1]) / 2, x[-1] - x[0]
     z = (x - centre) / span
     theta = _fit_one(z, k, n, lapse_max)
     m, s, lapse = (float(v) for v in theta)
-    if s >= _SIGMA_HI * 0.99:
-        return _not_estimable(
-            "flat: the answers hardly change over the levels (sigma reached its bound, "
-            f"{_SIGMA_HI:g} times the level range)",
-            total,
-            n_levels,
-        )
-    if s <= _SIGMA_LO * 1.01:
-        return _not_estimable("the curve is steeper than the levels resolve", total, n_levels)
-    if abs(m) > 0.5:
-        return _not_estimable(
-            f"the PSE ({m * span + centre:g}) lies beyond the tested levels "
-            f"({x[0]:g} to {x[-1]:g})",
-            total,
-            n_levels,
-        )
-    min_gap = float(np.min(np.diff(x)))
-    if s * span < min_gap / 4:
-        return _not_estimable(
-            f"the curve is steeper than the levels resolve (sigma {s * span:.3g} is below a "
-            f"quarter of the smallest level spacing, {min_gap:g})",
-            total,
-            n_levels,
-        )
+    why = curve_reason(m * span + centre, s * span, x)
+    if why:
+        return no_fit(why, total, n_levels, jnd_point)
     jnd_ci = pse_ci = None
     if n_boot > 0:
         rng = np.random.default_rng(seed)
@@ -408,13 +454,15 @@ def fit_psychometric(
         kb = rng.binomial(nb, _psi(z, theta), size=(n_boot, n_levels)).astype(float)
         boot = _refit(z, kb, nb.astype(float), theta, lapse_max)
         accel = _acceleration(z, k, n, theta, lapse_max)
-        jnd_ci = _bca_interval(boot[:, 1] * span * Z75, Z75 * s * span, ci, float(accel[1]))
-        pse_ci = _bca_interval(boot[:, 0] * span + centre, m * span + centre, ci, float(accel[0]))
+        bounds = _bounds(lapse_max)
+        sig_ci = _bca_interval(boot[:, 1], s, ci, float(accel[1]), bounds[1])
+        jnd_ci = _scaled(sig_ci, span * zj)
+        pse_ci = _scaled(_bca_interval(boot[:, 0], m, ci, float(accel[0]), bounds[0]), span, centre)
     return PsychometricFit(
         estimable=True,
         reason=None,
         pse=float(m * span + centre),
-        jnd=float(Z75 * s * span),
+        jnd=float(zj * s * span),
         sigma=float(s * span),
         lapse=lapse,
         jnd_ci=jnd_ci,
@@ -422,6 +470,7 @@ def fit_psychometric(
         n_trials=total,
         n_levels=n_levels,
         log_likelihood=float(_loglik(_psi(z, theta), k, n)),
+        jnd_point=jnd_point,
     )
 
 

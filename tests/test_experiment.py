@@ -70,7 +70,15 @@ def test_the_bundled_designs_are_the_seeds(path, capsys):
         (lambda d: d["varied"].update(param="stifness_n_per_m"), "varied.param", "did you mean"),
         (lambda d: d["varied"].update(param="allocator"), "varied.param", "not a number"),
         (lambda d: d["varied"].update(ratios=[0.7, 1.3]), "varied.ratios", "at least 3"),
-        (lambda d: d["varied"].update(standards=[30, 1e5]), "varied", "outside"),
+        (lambda d: d["varied"].update(standards=[30, 1e5]), "varied.ratios", "110000 is out"),
+        (
+            lambda d: d["varied"].update(standards=[30, 2e5]),
+            "varied.standards",
+            "200000 is outside",
+        ),
+        (lambda d: d.update(version=True), "version", "expected 1"),
+        (lambda d: d.update(name="a" * 5000), "name", "at most 64 characters"),
+        (lambda d: d.update(procedure="quest"), "procedure", "'constant_stimuli'"),
         (
             lambda d: d["conditions"][0]["set"].update(alocator="if"),
             "conditions[0:if].set.alocator",
@@ -100,6 +108,20 @@ def test_errors_name_the_file_and_the_key(stiffness_data, edit, where, what):
     assert msg.startswith("x.yaml: ") and "error(s) in experiment" in msg
     line = next(ln for ln in msg.splitlines() if ln.strip().startswith(where + ":"))
     assert what in line, msg
+
+
+def test_a_file_error_names_the_line(tmp_path):
+    text = STIFFNESS.read_text().replace("version: 1", "version: true")
+    text = text.replace("name: stiffness-jnd", "name: " + "x" * 5000)
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ExperimentError) as err:
+        load_experiment(path)
+    lines = text.splitlines()
+    msg = str(err.value)
+    assert "version: expected 1" in msg and f"(line {lines.index('version: true') + 1})" in msg
+    assert f"(line {lines.index('name: ' + 'x' * 5000) + 1})" in msg
+    assert len(msg) < 1000  # the 5,000 characters are not repeated back
 
 
 def test_the_profile_is_checked_with_the_experiment(tmp_path, stiffness_data, capsys):
@@ -407,7 +429,8 @@ def test_analyze_recovers_the_weber_fractions_and_the_direction_of_the_test(tmp_
     assert "varied stiffness_n_per_m (N/m), 1800 complete trials" in text  # the store's design
     assert "paired t-tests" in text and "t(4)" in text
     data = json.loads(out.read_text())
-    assert set(data) == {"fits", "groups", "tests"}
+    assert set(data) == {"jnd_point", "fitter", "fits", "groups", "tests"}
+    assert data["jnd_point"] == 0.75 and "JND = x(0.75) - x(0.5)" in text
     assert {p.name for p in plots.iterdir()} == {"jnd-ratio.png"} | {
         f"psychometric-s{i:02d}.png" for i in range(1, 6)
     }
@@ -425,3 +448,39 @@ def test_analyze_reports_what_it_cannot_fit():
     assert fit["weber"] is None
     json.dumps(result["fits"], allow_nan=False)
     assert result["groups"][0]["weber_mean"] is None
+
+
+def _rows(counts: list[int], subject: str = "a") -> list[dict]:
+    """Trial rows of one subject, condition if, standard 60: counts[i] of 10 "more" at
+    the six comparisons 42..78."""
+    return [
+        {"subject": subject, "condition": "if", "standard": 60.0, "comparison": c,
+         "comparison_more": int(j < k)}
+        for c, k in zip((42.0, 48.0, 54.0, 66.0, 72.0, 78.0), counts, strict=True)
+        for j in range(10)
+    ]  # fmt: skip
+
+
+def test_the_jnd_point_and_an_unbounded_interval_show_in_the_report_and_plot(tmp_path):
+    from hapticd.experiment.analyze import format_report, plot
+
+    rows = _rows([1, 2, 4, 6, 8, 9]) + _rows([3, 4, 4, 5, 6, 6], subject="b")
+    r75 = analyze(rows, n_boot=200)
+    r84 = analyze(rows, n_boot=0, jnd_point=0.84)
+    a75, a84 = r75["fits"][0], r84["fits"][0]
+    assert a84["weber"] / a75["weber"] == pytest.approx(
+        stats.norm.ppf(0.84) / stats.norm.ppf(0.75), rel=1e-6
+    )
+    flat = r75["fits"][1]
+    assert flat["estimable"] and flat["jnd_ci"][1] is None  # the near-flat one
+    text = format_report(r75, "N/m")
+    assert "JND = x(0.75) - x(0.5)" in text and "inf)" in text
+    assert "JND = x(0.84) - x(0.5)" in format_report(r84, "N/m")
+    written = plot(r75, tmp_path, param="stiffness_n_per_m", unit="N/m")
+    assert {p.name for p in written} == {
+        "psychometric-a.png",
+        "psychometric-b.png",
+        "jnd-ratio.png",
+    }
+    with pytest.raises(ValueError, match="unknown fitter"):
+        analyze(rows, fitter="nope")

@@ -292,3 +292,57 @@ def test_reduce_design_keeps_the_file(stiff):
     small = reduce_design(exp, standards=[90.0, 30.0], repetitions=4)
     assert small.varied.standards == (30.0, 90.0) and small.repetitions == 4
     assert small.file_hash == exp.file_hash and small.varied.ratios == exp.varied.ratios
+
+
+@pytest.mark.parametrize("mass", [0.03, 0.175, 0.25])
+def test_the_grip_scales_with_the_load_so_heavier_cubes_are_lifted(weight, mass):
+    """With the nominal 8 mm pinch a 175 g cube slipped and stayed on the ground (its EF
+    cue 1.43 N against m g 1.72 N); the grip scaled to the load and the friction lifts
+    it, and the EF cue is m g."""
+    _, prof, cfg = weight
+    settings = {"allocator": "ef", "mass_kg": mass}
+    t, x, phases = ob.plan_path(
+        "lift", prof, cfg.motor, np.random.default_rng(1), settings=settings, hand=cfg.hand
+    )
+    rows = ob.run_interval(prof, settings, (t, x), cfg)
+    held = rows["t"] >= phases["judge_from"]
+    rose = rows["object_pos"][held][:, 2].mean() - rows["object_pos"][0, 2]
+    assert rose > 0.005, rose  # off the ground: carried, not slipping in place
+    assert ob.weight_cue(rows, phases["judge_from"]) == pytest.approx(mass * 9.81, rel=0.05)
+
+
+def test_the_grip_depth_follows_mass_and_friction(weight):
+    _, prof, cfg = weight
+    light = ob.grip_depth(prof, {"mass_kg": 0.06}, cfg.motor, cfg.hand)
+    heavy = ob.grip_depth(prof, {"mass_kg": 0.24}, cfg.motor, cfg.hand)
+    slippery = ob.grip_depth(prof, {"mass_kg": 0.06, "friction": [0.4, 0.2]}, cfg.motor, cfg.hand)
+    assert heavy == pytest.approx(4 * light) and slippery == pytest.approx(4 * light)
+    assert light < cfg.motor.grip_depth_m[0]  # the bundled masses keep the nominal pinch
+
+
+def test_a_design_the_hand_cannot_perform_is_refused_with_the_cause(tmp_path, capsys):
+    """A 500 g cube slips out of the model hand's pinch: ``study`` and ``experiment run
+    --observer model`` refuse the design after a few pilot intervals, naming the cause,
+    and store nothing."""
+    data = yaml.safe_load(WEIGHT.read_text())
+    data["profile"] = str(ROOT / "configs" / "lift-weight.yaml")
+    data["varied"]["standards"] = [0.5]
+    path = tmp_path / "heavy.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    db = tmp_path / "s.sqlite"
+    assert main(["study", str(path), "--observers", "1", "--db", str(db), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "the model observer's hand cannot perform this design" in err
+    assert "the cube slipped or dropped" in err and "mass_kg 0.6" in err
+    run = ["experiment", "run", str(path), "--subject", "m1", "--observer", "model"]
+    assert main([*run, "--no-keys", "--db", str(tmp_path / "r.sqlite")]) == 2
+    assert "cannot perform this design" in capsys.readouterr().err
+    for store in (db, tmp_path / "r.sqlite"):
+        if store.exists():
+            with sqlite3.connect(store) as con:
+                assert con.execute("SELECT COUNT(*) FROM plan").fetchone()[0] == 0
+
+
+def test_the_bundled_designs_pass_the_pilot(stiff, weight):
+    for exp, prof, cfg in (stiff, weight):
+        ob.pilot_check(exp, prof, cfg)  # raises naming the cause otherwise

@@ -480,6 +480,8 @@ def test_a_person_answers_by_respond_and_by_keys(tmp_path, daemons):
     assert not answers.errors
     assert "6 trial(s) answered; 0 left: done" in out
     assert "trial 1 of 6 · block 1" in err and "break: 0.3 s" in err
+    # The last trial was pinv at 48, 60 or 72 N/m; the daemon is back at the profile's.
+    assert_base_profile(sock, err)
     exp = rn.reduced(load_experiment(exp_path), standards=[60.0], repetitions=1)
     plan = make_plan(exp, exp.subject_seed("s1"))
     got = rows(db)
@@ -522,6 +524,36 @@ def test_no_answer_in_time_stops_the_run_with_the_trial_incomplete(tmp_path, dae
     with ControlClient(sock) as c:
         st = c.status()
     assert st["prompt"] is None and st["recording"] is None
+    assert_base_profile(sock, err)  # a failed run too
+
+
+def test_ctrl_c_mid_trial_puts_the_daemon_back_at_the_base_profile(tmp_path, daemons):
+    profile, exp_path = setup_files(tmp_path, one_condition=True)  # pinv, not the profile's if
+    sock = tmp_path / "d.sock"
+    daemons(profile, sock)
+    db = tmp_path / "t.db"
+    proc = runner(exp_path, db, sock)
+
+    def asked() -> bool:
+        with ControlClient(sock) as c:
+            return c.status()["prompt"] is not None
+
+    wait_for(asked, "the first question", timeout_s=60)
+    proc.send_signal(signal.SIGINT)
+    code, _, err = finish(proc)
+    assert code == 130, err
+    assert [r["status"] for r in rows(db)] == ["incomplete"]
+    assert_base_profile(sock, err)
+
+
+def assert_base_profile(sock: Path, err: str) -> None:
+    """The daemon's stiffness and allocator are the base profile's (60 N/m, if) after a
+    run that set others (pinv, the comparisons), and the runner said so."""
+    with ControlClient(sock) as c:
+        assert (c.get("stiffness_n_per_m"), c.get("allocator")) == (60.0, "if")
+    assert (
+        "the daemon is back at the base profile's stiffness_n_per_m = 60.0, allocator = if" in err
+    )
 
 
 def test_kill_9_mid_experiment_then_resume_finishes_the_plan_once(tmp_path, daemons):
@@ -651,6 +683,29 @@ def test_cli_refusals_before_any_trial(tmp_path, capsys):
             assert code == 2 and what in err, err
     assert main([*base[:3], "--subject", "a/b", "--db", str(fresh), *sock]) == 2
     assert "subject id 'a/b'" in capsys.readouterr().err
+
+
+def test_a_second_runner_on_one_subject_is_refused_at_start(tmp_path, capsys):
+    import os
+
+    from hapticd.cli import main
+    from hapticd.experiment.store import claim_subject
+
+    db = tmp_path / "t.db"
+    base = ["experiment", "run", str(STIFFNESS), "--subject", "s1", "--no-keys", "--db", str(db)]
+    base += ["--observer", "model", "--standards", "60", "--repetitions", "1"]
+    with claim_subject(db, "s1"):  # the first runner, here
+        assert main(base) == 2
+        err = capsys.readouterr().err
+        assert f"subject 's1' is being run by another runner (process {os.getpid()})" in err
+        with pytest.raises(StoreError, match="another runner"), claim_subject(db, "s1"):
+            pass
+        with claim_subject(db, "s2"):  # another subject is free
+            pass
+    with TrialStore.for_experiment(db, load_experiment(STIFFNESS)) as store:
+        assert store.plan("s1") == [] and store.trials(None) == []  # nothing presented
+    with claim_subject(db, "s1"):  # released when its holder ends
+        pass
 
 
 @pytest.mark.parametrize("ends_on", ["release", "time_limit"])

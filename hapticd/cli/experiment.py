@@ -1,4 +1,4 @@
-"""hapticd experiment (check, plan, run, analyze) and hapticd study."""
+"""hapticd experiment (check, plan, run, analyze, export) and hapticd study."""
 
 from __future__ import annotations
 
@@ -30,8 +30,9 @@ def cmd_experiment_check(args: argparse.Namespace) -> int:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     v, spec = exp.varied, params.PARAMS[exp.varied.param]
-    plan = make_plan(exp, exp.subject_seed("example"))
-    total = len(plan)
+    total = exp.n_blocks * exp.trials_per_block
+    if exp.adaptive is None:
+        total = len(make_plan(exp, exp.subject_seed("example")))
     dur = exp.duration_s()
     conds = ", ".join(
         f"{c.name} ({', '.join(f'{k}={val}' for k, val in c.values().items())})"
@@ -41,12 +42,12 @@ def cmd_experiment_check(args: argparse.Namespace) -> int:
         f"{args.experiment}: OK: experiment {exp.name!r} on profile {profile.name!r} "
         f"({exp.profile_path()})\n"
         f"  varied       {v.param} ({spec.unit}): standards "
-        f"{', '.join(f'{s:g}' for s in v.standards)}; ratios "
-        f"{', '.join(f'{r:g}' for r in v.ratios)}\n"
+        f"{', '.join(f'{s:g}' for s in v.standards)}"
+        + (f"; ratios {', '.join(f'{r:g}' for r in v.ratios)}" if v.ratios else "")
+        + "\n"
+        f"  procedure    {exp.procedure}\n"
         f"  conditions   {conds}\n"
-        f"  trials       {exp.comparisons} comparisons x {exp.repetitions} repetitions per "
-        f"standard and condition; {exp.trials_per_block} per block, {exp.n_blocks} blocks, "
-        f"{total} per subject\n"
+        f"  trials       {_trials_line(exp, total)}\n"
         f"  interval     {exp.interval.order}, 'was the second {exp.interval.question}?', "
         f"at most {exp.interval.exploration_s:g} s, ends on {exp.interval.ends_on}\n"
         f"  breaks       {exp.n_breaks()} of {exp.breaks.duration_s:g} s\n"
@@ -54,6 +55,30 @@ def cmd_experiment_check(args: argparse.Namespace) -> int:
         "with every interval at its limit, and the breaks)"
     )
     return EXIT_OK
+
+
+def _trials_line(exp: Any, total: int) -> str:
+    """The design's trials, as ``experiment check`` prints them."""
+    st = exp.staircase
+    if exp.quest_plus is not None:
+        q = exp.quest_plus
+        return (
+            f"QUEST+, {exp.n_blocks} tracks interleaved (one per condition and standard), "
+            f"{q.trials} trials each on {q.n_stimuli} comparisons from {q.min_ratio:g} to "
+            f"{q.max_ratio:g} x the standard: {exp.n_blocks * q.trials} per subject"
+        )
+    if st is None:
+        return (
+            f"{exp.comparisons} comparisons x {exp.repetitions} repetitions per standard and "
+            f"condition; {exp.trials_per_block} per block, {exp.n_blocks} blocks, {total} per "
+            "subject"
+        )
+    return (
+        f"staircase {st.rule} (converges on {st.target_share:.1%} correct), {exp.n_blocks} "
+        f"tracks interleaved ({len(st.sign_list())} per condition and standard), each ending "
+        f"after {st.stop_reversals} reversals or {st.max_trials} trials: at most "
+        f"{exp.n_blocks * st.max_trials} per subject"
+    )
 
 
 def cmd_experiment_plan(args: argparse.Namespace) -> int:
@@ -111,22 +136,58 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     assert first is not None
     design = first.get("design") or {}
-    result = ana.analyze(
-        trials, conditions=design.get("conditions"), n_boot=args.boot, seed=args.seed
-    )
+    point = args.jnd_point or design.get("jnd_point", 0.75)
+    try:
+        result = ana.analyze(
+            trials,
+            conditions=design.get("conditions"),
+            n_boot=args.boot,
+            seed=args.seed,
+            jnd_point=point,
+            fitter=args.fitter,
+        )
+    except ImportError:
+        print(
+            "hapticd: --fitter psignifit needs psignifit: pip install 'hapticd[psignifit]'",
+            file=sys.stderr,
+        )
+        return EXIT_ERROR
+    from hapticd.experiment import ExperimentError
+
+    try:
+        if design.get("procedure") == "quest_plus" and design.get("quest_plus"):
+            result["quest_plus"] = ana.analyze_quest(
+                trials, design["quest_plus"], point, design.get("conditions")
+            )
+    except ExperimentError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_ERROR
     param = args.param or design.get("param", "stimulus")
     unit = args.unit or design.get("unit", "SI units")
     print(
         f"hapticd experiment analyze: experiment {first.get('experiment')!r}, varied {param} "
         f"({unit}), {len(trials)} complete trials"
     )
+    if design.get("procedure") == "staircase" and design.get("staircase"):
+        result["staircases"] = ana.analyze_staircases(
+            trials, design["staircase"], design.get("conditions")
+        )
     print(ana.format_report(result, unit), end="")
+    if "staircases" in result:
+        print(ana.format_staircases(result["staircases"], unit), end="")
+    if "quest_plus" in result:
+        print(ana.format_quest(result["quest_plus"], unit), end="")
     try:
         if args.json is not None:
             args.json.write_text(json.dumps(ana.to_json(result), indent=1, allow_nan=False) + "\n")
         if args.plots is not None:
             try:
-                for path in ana.plot(result, args.plots, param=param, unit=unit):
+                paths = ana.plot(result, args.plots, param=param, unit=unit)
+                if "staircases" in result:
+                    paths += ana.plot_staircases(
+                        result["staircases"], args.plots, param=param, unit=unit
+                    )
+                for path in paths:
                     print(f"plot: {path}")
             except ImportError:
                 print("hapticd: --plots needs matplotlib: pip install matplotlib", file=sys.stderr)
@@ -134,6 +195,33 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"hapticd: cannot write: {exc}", file=sys.stderr)
         return EXIT_ERROR
+    return EXIT_OK
+
+
+def cmd_experiment_export(args: argparse.Namespace) -> int:
+    """A trial store as a tidy CSV, one row per trial (hapticd.experiment.export)."""
+    import csv
+
+    from hapticd.experiment import export
+    from hapticd.experiment.store import StoreError
+
+    status = None if args.all else "complete"
+    try:
+        if args.csv is None:
+            rows = export.trial_rows(args.db, status=status)
+            writer = csv.DictWriter(sys.stdout, fieldnames=export.NAMES, lineterminator="\n")
+            writer.writeheader()
+            writer.writerows(rows)
+            return EXIT_OK
+        n = export.write_csv(args.db, args.csv, status=status)
+    except StoreError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        print(f"hapticd: cannot write: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    what = "trials" if args.all else "complete trials"
+    print(f"{args.csv}: {n} {what} of {args.db}, one row each")
     return EXIT_OK
 
 
@@ -249,7 +337,25 @@ def _add_experiment(sub: Any) -> None:
         "--param", help="the varied parameter, for labels (default: the store's design)"
     )
     ana.add_argument("--unit", help="its unit, for labels (default: the store's design)")
+    ana.add_argument(
+        "--fitter",
+        choices=("ml", "psignifit"),
+        default="ml",
+        help="ml: hapticd's maximum-likelihood fit (the default); psignifit: psignifit 4's "
+        "Bayesian fit (pip: hapticd[psignifit])",
+    )
+    ana.add_argument(
+        "--jnd-point",
+        type=float,
+        choices=(0.75, 0.84),
+        help="the JND is x(P) - x(0.5) (default: the experiment's analysis.jnd_point, 0.75)",
+    )
     ana.set_defaults(func=cmd_experiment_analyze)
+    ex = esub.add_parser("export", help="a trial store as a tidy CSV, one row per trial")
+    ex.add_argument("db", type=Path, help="the trial store")
+    ex.add_argument("--csv", type=Path, metavar="OUT", help="write here (default: stdout)")
+    ex.add_argument("--all", action="store_true", help="incomplete trials too (status column)")
+    ex.set_defaults(func=cmd_experiment_export)
 
 
 def _add_study(sub: Any) -> None:

@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from hapticd.psychophysics import fit_psychometric, paired_t
+from hapticd.experiment.fitters import FITTERS
+from hapticd.psychophysics import jnd_z, paired_t
 
 
 def _key(row: dict[str, Any]) -> tuple[str, str, float]:
@@ -23,12 +24,16 @@ def analyze(
     conditions: list[str] | None = None,
     n_boot: int = 1000,
     seed: int = 0,
+    jnd_point: float = 0.75,
+    fitter: str = "ml",
 ) -> dict[str, Any]:
     """``fits`` (per subject, condition, standard), ``groups`` (per condition and
     standard: Weber mean, SD over subjects) and ``tests`` (per standard and pair of
     conditions: paired t over the subjects estimable in both) from complete trial rows
-    (hapticd.experiment.store). Weber = JND / standard. Non-estimable fits carry a
-    ``reason`` and null numbers; JSON-ready (no NaN). ``conditions`` orders the groups
+    (hapticd.experiment.store). JND = x(jnd_point) - x(0.5); Weber = JND / standard.
+    ``fitter``: ``ml`` (hapticd.psychophysics.fit_psychometric) or ``psignifit``.
+    Non-estimable fits carry a ``reason`` and null numbers; an interval end that is
+    null is unbounded; JSON-ready (no NaN). ``conditions`` orders the groups
     and the tests (the experiment file's order; others after it, sorted); the test of
     conditions [a, b] is of Weber(a) - Weber(b)."""
     cells: dict[tuple[str, str, float], list[dict[str, Any]]] = defaultdict(list)
@@ -37,6 +42,9 @@ def analyze(
     present = sorted({k[1] for k in cells})
     order = [c for c in conditions or [] if c in present]
     order += [c for c in present if c not in order]
+    if fitter not in FITTERS:
+        raise ValueError(f"unknown fitter {fitter!r}; fitters: {', '.join(FITTERS)}")
+    fit_one = FITTERS[fitter]
     fits = []
     curves = {}
     for i, (subject, cond, standard) in enumerate(sorted(cells)):
@@ -46,7 +54,7 @@ def analyze(
         levels, inv = np.unique(x, return_inverse=True)
         n_yes = np.bincount(inv, yes, len(levels))
         n_tot = np.bincount(inv, minlength=len(levels)).astype(float)
-        fit = fit_psychometric(levels, n_yes, n_tot, n_boot=n_boot, seed=seed + i)
+        fit = fit_one(levels, n_yes, n_tot, n_boot=n_boot, seed=seed + i, jnd_point=jnd_point)
         curves[(subject, cond, standard)] = (fit, levels, n_yes, n_tot)
         fits.append(
             {
@@ -59,6 +67,7 @@ def analyze(
                 "jnd": fit.jnd,
                 "weber": None if fit.jnd is None else fit.jnd / standard,
                 "jnd_ci": None if fit.jnd_ci is None else list(fit.jnd_ci),
+                "pse_ci": None if fit.pse_ci is None else list(fit.pse_ci),
                 "sigma": fit.sigma,
                 "lapse": fit.lapse,
                 "n_trials": len(rows),
@@ -84,6 +93,26 @@ def analyze(
                     "n_subjects": len(w),
                 }
             )
+    tests = paired_tests(weber, order, standards, subjects)
+    return {
+        "jnd_point": jnd_point,
+        "fitter": fitter,
+        "fits": fits,
+        "groups": groups,
+        "tests": tests,
+        "_curves": curves,
+    }
+
+
+def paired_tests(
+    weber: dict[tuple[str, str, float], float | None],
+    order: list[str],
+    standards: list[float],
+    subjects: list[str],
+) -> list[dict[str, Any]]:
+    """Per standard and pair of conditions [a, b] (in ``order``), the paired t-test of
+    Weber(a) - Weber(b) over the subjects with both ({(subject, condition, standard):
+    Weber or None}); ``reason`` where it is undefined."""
     tests = []
     for s in standards:
         for a, b in itertools.combinations(order, 2):
@@ -99,18 +128,262 @@ def analyze(
             except ValueError as exc:
                 entry.update(t=None, df=None, p=None, mean_diff=None, reason=str(exc))
             tests.append(entry)
-    return {"fits": fits, "groups": groups, "tests": tests, "_curves": curves}
+    return tests
+
+
+def analyze_staircases(
+    trials: list[dict[str, Any]], staircase: dict[str, Any], conditions: list[str] | None = None
+) -> dict[str, Any]:
+    """A staircase store's tracks and thresholds from the last reversals: ``tracks`` (per
+    subject and track: its reversals, threshold distance (fraction of the standard) and
+    comparison), ``thresholds`` (per subject, condition and standard: the JND at the
+    rule's target share, the mean of its sides' threshold distances times the standard,
+    and its Weber fraction) and ``tests`` (paired t of those Weber fractions between
+    conditions). ``staircase``: the design's staircase section."""
+    from hapticd.experiment.adaptive import tracks_from_rows
+    from hapticd.experiment.spec import Staircase
+
+    st = Staircase.model_validate(staircase)
+    tracks = tracks_from_rows(trials, st)
+    rows = []
+    for (subject, _), t in tracks.items():
+        d = t.threshold(st)
+        rows.append(
+            {
+                "subject": subject,
+                "condition": t.condition,
+                "standard": t.standard,
+                "side": t.side,
+                "trials": t.n,
+                "reversals": len(t.reversals),
+                "done": t.done(st),
+                "threshold_distance": d,
+                "threshold": None if d is None else t.standard * (1 + t.sign * d),
+                "_track": t,
+            }
+        )
+    cells: dict[tuple[str, str, float], list[dict[str, Any]]] = defaultdict(list)
+    for r in rows:
+        cells[(r["subject"], r["condition"], r["standard"])].append(r)
+    thresholds, weber = [], {}
+    for key in sorted(cells):
+        ds = [r["threshold_distance"] for r in cells[key]]
+        ok = all(d is not None for d in ds)
+        w = float(np.mean(ds)) if ok else None
+        weber[key] = w
+        thresholds.append(
+            {
+                "subject": key[0],
+                "condition": key[1],
+                "standard": key[2],
+                "target": st.target_share,
+                "jnd": None if w is None else w * key[2],
+                "weber": w,
+                "reason": None
+                if ok
+                else f"a track has fewer than {st.threshold_reversals} reversals",
+            }
+        )
+    present = sorted({k[1] for k in cells})
+    order = [c for c in conditions or [] if c in present] + [
+        c for c in present if c not in (conditions or [])
+    ]
+    return {
+        "target": st.target_share,
+        "rule": st.rule,
+        "tracks": rows,
+        "thresholds": thresholds,
+        "tests": paired_tests(
+            weber, order, sorted({k[2] for k in cells}), sorted({k[0] for k in cells})
+        ),
+    }
+
+
+def analyze_quest(
+    trials: list[dict[str, Any]],
+    quest: dict[str, Any],
+    jnd_point: float = 0.75,
+    conditions: list[str] | None = None,
+) -> dict[str, Any]:
+    """A QUEST+ store's tracks: per subject, condition and standard the posterior mean
+    PSE and sigma after all its trials, the JND (x(jnd_point) - x(0.5)) and Weber
+    fraction, and paired t-tests of those between conditions."""
+    from hapticd.experiment.adaptive import QuestTrack
+    from hapticd.experiment.spec import QuestPlusDesign
+
+    q = QuestPlusDesign.model_validate(quest)
+    by: dict[tuple[str, int], list[dict[str, Any]]] = defaultdict(list)
+    for r in trials:
+        if r.get("block") is not None:
+            by[(r["subject"], int(r["block"]))].append(r)
+    rows, weber = [], {}
+    z = jnd_z(jnd_point)
+    for (subject, block), rs in sorted(by.items()):
+        rs.sort(key=lambda r: r["plan_index"])
+        track = QuestTrack(block, rs[0]["condition"], float(rs[0]["standard"]), q)
+        for r in rs:
+            track.answer(bool(r["comparison_more"]), q, r["comparison"])
+        est = track.estimate()
+        jnd = z * est["sigma"]
+        weber[(subject, track.condition, track.standard)] = jnd / track.standard
+        rows.append(
+            {
+                "subject": subject,
+                "condition": track.condition,
+                "standard": track.standard,
+                "trials": track.n,
+                "pse": est["pse"],
+                "sigma": est["sigma"],
+                "jnd": jnd,
+                "weber": jnd / track.standard,
+            }
+        )
+    present = sorted({r["condition"] for r in rows})
+    order = [c for c in conditions or [] if c in present]
+    order += [c for c in present if c not in order]
+    return {
+        "jnd_point": jnd_point,
+        "tracks": rows,
+        "tests": paired_tests(
+            weber,
+            order,
+            sorted({r["standard"] for r in rows}),
+            sorted({r["subject"] for r in rows}),
+        ),
+    }
+
+
+def format_quest(result: dict[str, Any], unit: str) -> str:
+    """The QUEST+ section of the report."""
+    lines = [
+        f"QUEST+ tracks (posterior means; {jnd_label(result['jnd_point'])}; standards in {unit}):"
+    ]
+    for r in result["tracks"]:
+        lines.append(
+            f"  {r['subject']:<10} {r['condition']:<10} standard {r['standard']:<8.4g} "
+            f"{r['trials']:>3} trials PSE {r['pse']:.4g} JND {r['jnd']:.4g} "
+            f"Weber {r['weber']:.3f}"
+        )
+    lines += _test_lines(result["tests"], "the QUEST+ Weber fractions")
+    return "\n".join(lines) + "\n"
+
+
+def _test_lines(tests: list[dict[str, Any]], what: str) -> list[str]:
+    """The paired t-tests of ``what``, a line per standard and pair of conditions."""
+    lines = [f"paired t-tests of {what} across subjects:"]
+    for t in tests:
+        a, b = t["conditions"]
+        res = t["reason"] if t["t"] is None else f"t({t['df']}) = {t['t']:.3f}, p = {t['p']:.4f}"
+        lines.append(f"  standard {t['standard']:<8.4g} {a} vs {b}: {res}")
+    return lines
+
+
+def format_staircases(result: dict[str, Any], unit: str) -> str:
+    """The staircase section of the report."""
+    lines = [
+        f"staircase tracks ({result['rule']}, converging on {result['target']:.1%} correct; "
+        "threshold: mean of the last reversals):"
+    ]
+    for r in result["tracks"]:
+        thr = "n/a" if r["threshold"] is None else f"{r['threshold']:.4g} {unit}"
+        lines.append(
+            f"  {r['subject']:<10} {r['condition']:<10} standard {r['standard']:<8.4g} "
+            f"{r['side']:<6} {r['trials']:>3} trials {r['reversals']:>3} reversals "
+            f"threshold {thr}{'' if r['done'] else ' (not finished)'}"
+        )
+    lines.append(
+        f"thresholds from the reversals (JND at {result['target']:.1%} = the sides' mean "
+        "distance from the standard; Weber = JND / standard):"
+    )
+    for t in result["thresholds"]:
+        what = t["reason"] if t["jnd"] is None else f"JND {t['jnd']:.4g}, Weber {t['weber']:.3f}"
+        lines.append(f"  {t['subject']:<10} {t['condition']:<10} {t['standard']:<8.4g} {what}")
+    lines += _test_lines(result["tests"], "the reversal Weber fractions")
+    return "\n".join(lines) + "\n"
+
+
+def plot_staircases(result: dict[str, Any], out_dir: Path, *, param: str, unit: str) -> list[Path]:
+    """Every track, one figure per subject (``staircase-SUBJECT.png``): a panel per
+    condition and standard, the comparison of each trial (filled: correct, open: wrong),
+    the reversals ringed, each side's threshold dashed. Needs matplotlib."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for subj in sorted({r["subject"] for r in result["tracks"]}):
+        mine = [r for r in result["tracks"] if r["subject"] == subj]
+        panels = sorted({(r["condition"], r["standard"]) for r in mine})
+        fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 3.4), squeeze=False)
+        for ax, (cond, s) in zip(axes[0], panels, strict=True):
+            for j, r in enumerate(x for x in mine if (x["condition"], x["standard"]) == (cond, s)):
+                t = r["_track"]
+                y = s * (1 + t.sign * np.array(t.levels))
+                n = np.arange(1, len(y) + 1)
+                ok = np.array(t.correct, dtype=bool)
+                color = f"C{j}"
+                ax.plot(n, y, "-", color=color, lw=0.8, label=r["side"])
+                ax.plot(n[ok], y[ok], "o", color=color, ms=4)
+                ax.plot(n[~ok], y[~ok], "o", mfc="none", color=color, ms=4)
+                rev = s * (1 + t.sign * np.array(t.reversals))
+                ax.plot(t.reversal_trials, rev, "o", mfc="none", mec="k", ms=8)
+                if r["threshold"] is not None:
+                    ax.axhline(r["threshold"], color=color, ls="--", lw=0.8)
+            ax.axhline(s, color="0.6", lw=0.8)
+            ax.set_title(f"{cond}, standard {s:g} {unit}", fontsize=9)
+            ax.set_xlabel("trial of the track")
+            ax.legend(fontsize=7)
+        axes[0][0].set_ylabel(f"comparison {param} ({unit})")
+        fig.suptitle(
+            f"subject {subj}: staircases (filled: correct, open: wrong, ringed: reversals, "
+            f"dashed: threshold at {result['target']:.1%})",
+            fontsize=8,
+        )
+        written.append(_save(fig, out_dir / f"staircase-{subj}.png"))
+    return written
+
+
+def _save(fig: Any, path: Path) -> Path:
+    """Lay out, write and close a figure; its path."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def jnd_label(jnd_point: float) -> str:
+    """What the JND is, for tables and plots: ``JND = x(0.75) - x(0.5)``."""
+    return f"JND = x({jnd_point:g}) - x(0.5)"
+
+
+def ci_text(ci: list[float | None] | tuple[float | None, float | None] | None, floor: str) -> str:
+    """An interval as text; an unbounded end (None) is ``floor`` below (``0`` for a JND,
+    ``-inf`` for a PSE) or ``inf`` above, with an open bracket."""
+    if not ci:
+        return ""
+    lo, hi = ci
+    left = f"({floor}" if lo is None else f"[{lo:.4g}"
+    right = "inf)" if hi is None else f"{hi:.4g}]"
+    return f"{left}, {right}"
 
 
 def format_report(result: dict[str, Any], unit: str) -> str:
-    lines = ["fits (per subject, condition, standard):"]
+    point = result.get("jnd_point", 0.75)
+    lines = [
+        f"fits (per subject, condition, standard; {jnd_label(point)}, fitter "
+        f"{result.get('fitter', 'ml')}; an interval end 'inf' or '(0' is unbounded):"
+    ]
     lines.append(
         f"  {'subject':<10} {'condition':<10} {'standard':>10} {'PSE':>10} {'JND':>10} "
         f"{'Weber':>7} {'JND 95% CI':>22} {'n':>4}"
     )
     for f in result["fits"]:
         if f["estimable"]:
-            ci = f"[{f['jnd_ci'][0]:.4g}, {f['jnd_ci'][1]:.4g}]" if f["jnd_ci"] else ""
+            ci = ci_text(f["jnd_ci"], "0")
             nums = f"{f['pse']:>10.4g} {f['jnd']:>10.4g} {f['weber']:>7.3f} {ci:>22}"
         else:
             nums = f"not estimable: {f['reason']}"
@@ -118,7 +391,9 @@ def format_report(result: dict[str, Any], unit: str) -> str:
             f"  {f['subject']:<10} {f['condition']:<10} {f['standard']:>10.4g} {nums} "
             f"{f['n_trials'] if f['estimable'] else ''}"
         )
-    lines.append(f"groups (Weber fraction = JND / standard; standards in {unit}):")
+    lines.append(
+        f"groups (Weber fraction = JND / standard, {jnd_label(point)}; standards in {unit}):"
+    )
     for g in result["groups"]:
         mean = "n/a" if g["weber_mean"] is None else f"{g['weber_mean']:.3f}"
         sd = "n/a" if g["weber_sd"] is None else f"{g['weber_sd']:.3f}"
@@ -126,21 +401,17 @@ def format_report(result: dict[str, Any], unit: str) -> str:
             f"  {g['condition']:<10} standard {g['standard']:<8.4g} Weber {mean} "
             f"(SD {sd}, {g['n_subjects']} subjects)"
         )
-    lines.append("paired t-tests of the Weber fractions across subjects:")
-    for t in result["tests"]:
-        a, b = t["conditions"]
-        if t["t"] is None:
-            lines.append(f"  standard {t['standard']:<8.4g} {a} vs {b}: {t['reason']}")
-        else:
-            lines.append(
-                f"  standard {t['standard']:<8.4g} {a} vs {b}: t({t['df']}) = {t['t']:.3f}, "
-                f"p = {t['p']:.4f}"
-            )
+    lines += _test_lines(result["tests"], "the Weber fractions")
     return "\n".join(lines) + "\n"
 
 
 def to_json(result: dict[str, Any]) -> dict[str, Any]:
-    return {k: v for k, v in result.items() if not k.startswith("_")}
+    """The result without its private parts (keys starting with _, at any depth)."""
+    if isinstance(result, dict):
+        return {k: to_json(v) for k, v in result.items() if not str(k).startswith("_")}
+    if isinstance(result, list):
+        return [to_json(v) for v in result]  # type: ignore[return-value]
+    return result
 
 
 def plot(result: dict[str, Any], out_dir: Path, *, param: str, unit: str) -> list[Path]:
@@ -153,6 +424,7 @@ def plot(result: dict[str, Any], out_dir: Path, *, param: str, unit: str) -> lis
     import matplotlib.pyplot as plt
 
     out_dir.mkdir(parents=True, exist_ok=True)
+    point = result.get("jnd_point", 0.75)
     written = []
     curves = result["_curves"]
     subjects = sorted({k[0] for k in curves})
@@ -174,21 +446,23 @@ def plot(result: dict[str, Any], out_dir: Path, *, param: str, unit: str) -> lis
                     xs = np.linspace(x[0], x[-1], 200)
                     ax.plot(xs, fit.predict(xs), "-", color=color)
                     label += f" (Weber {fit.jnd / s:.3f})"
+                    _jnd_interval(ax, fit, _panel_x(curves, subj, s), color)
                 else:
                     label += " (not estimable)"
                 ax.plot([], [], "o-", color=color, label=label)
             ax.axvline(s, color="0.7", lw=0.8)
             ax.set_ylim(-0.03, 1.03)
+            ax.set_xlim(*_panel_x(curves, subj, s))
             ax.set_title(f"standard {s:g} {unit}")
             ax.set_xlabel(f"comparison {param} ({unit})")
             ax.legend(fontsize=7, loc="upper left")
         axes[0][0].set_ylabel("P(comparison judged more)")
-        fig.suptitle(f"subject {subj}")
-        fig.tight_layout()
-        path = out_dir / f"psychometric-{subj}.png"
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        written.append(path)
+        fig.suptitle(
+            f"subject {subj}\n{jnd_label(point)}; bar at P = {point:g}: PSE + the JND's "
+            "interval (arrow: unbounded)",
+            fontsize=8,
+        )
+        written.append(_save(fig, out_dir / f"psychometric-{subj}.png"))
     fig, ax = plt.subplots(figsize=(5, 3.6))
     for j, c in enumerate(conds):
         gs = [g for g in result["groups"] if g["condition"] == c and g["weber_mean"] is not None]
@@ -204,10 +478,32 @@ def plot(result: dict[str, Any], out_dir: Path, *, param: str, unit: str) -> lis
     ax.set_ylabel("JND ratio (JND / standard)")
     ax.set_ylim(bottom=0)
     ax.legend()
-    ax.set_title("JND ratio: mean and SD across subjects")
-    fig.tight_layout()
-    path = out_dir / "jnd-ratio.png"
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    written.append(path)
+    ax.set_title(f"JND ratio, {jnd_label(point)}: mean and SD across subjects", fontsize=9)
+    written.append(_save(fig, out_dir / "jnd-ratio.png"))
     return written
+
+
+def _panel_x(curves: dict, subj: str, s: float) -> tuple[float, float]:
+    """The x range of one subject's panel at standard ``s``: its levels and a margin."""
+    xs = [v[1] for (subject, _, standard), v in curves.items() if (subject, standard) == (subj, s)]
+    return min(x[0] for x in xs) - 0.1 * s, max(x[-1] for x in xs) + 0.1 * s
+
+
+def _jnd_interval(ax: Any, fit: Any, xlim: tuple[float, float], color: str) -> None:
+    """The JND's interval as a bar from PSE + its lower end to PSE + its upper end at the
+    height of the JND point; an unbounded end runs to the panel's edge as an arrow."""
+    if not fit.jnd_ci:
+        return
+    lo, hi = fit.jnd_ci
+    y = fit.jnd_point
+    x0 = fit.pse + (0.0 if lo is None else lo)
+    x1 = xlim[1] if hi is None else fit.pse + hi
+    style = "->" if hi is None else "|-|"
+    ax.annotate(
+        "",
+        xy=(x1, y),
+        xytext=(x0, y),
+        arrowprops={"arrowstyle": style, "color": color, "lw": 1.5, "shrinkA": 0, "shrinkB": 0},
+    )
+    if hi is None:
+        ax.text(x1, y + 0.03, "unbounded", color=color, fontsize=6, ha="right")

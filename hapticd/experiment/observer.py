@@ -114,6 +114,7 @@ class Motor:
     squeeze_hold_s: float = 0.10
     squeeze_out_s: float = 0.20
     grip_depth_m: tuple[float, float] = (0.008, 0.001)
+    grip_margin: float = 1.4  # grip over slip (Johansson & Westling 1984: ~1.2-2)
     grip_s: float = 0.15
     lift_height_m: tuple[float, float] = (0.030, 0.005)
     lift_s: tuple[float, float] = (0.25, 0.04)
@@ -179,11 +180,39 @@ def _normal(rng: np.random.Generator, spec: tuple[float, float], lo: float) -> f
     return max(lo, float(rng.normal(mean, sd)))
 
 
+def grip_depth(
+    profile: Profile, settings: Mapping[str, Any], motor: Motor, hand: Mapping[str, float]
+) -> float:
+    """How deep (m) a lift must pinch the object in ``settings`` (its mass and friction,
+    else the profile's) for its weight to be carried with ``motor.grip_margin``: a
+    person's grip scales with the load and the friction (Johansson & Westling 1984).
+    Each finger's normal force is about the object's and the hand's springs in series
+    times the depth, and two fingers carry at most 2 mu_dynamic N."""
+    obj = profile.scene.object
+    mass = float(settings.get("mass_kg") or obj.mass_kg or 0.0)
+    fr = settings.get("friction")
+    mu = float(fr[1]) if fr is not None else float(obj.friction.dynamic)
+    k_obj = float(settings.get("stiffness_n_per_m") or obj.stiffness_n_per_m)
+    k_hand = float(hand.get("hand_stiffness_n_per_m", 300.0))
+    k = k_obj * k_hand / (k_obj + k_hand)
+    if mu <= 0 or k <= 0:
+        return float("inf")  # no friction: no grip carries it
+    return motor.grip_margin * mass * 9.81 / (2 * mu * k)
+
+
 def plan_path(
-    kind: str, profile: Profile, motor: Motor, rng: np.random.Generator
+    kind: str,
+    profile: Profile,
+    motor: Motor,
+    rng: np.random.Generator,
+    *,
+    settings: Mapping[str, Any] | None = None,
+    hand: Mapping[str, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
     """The planned hand path of one interval: times (N,) s, positions (N, 2, 3) m (thumb
-    on -x, index on +x of the profile's cube), and the phase times (s) the cue reads."""
+    on -x, index on +x of the profile's cube), and the phase times (s) the cue reads.
+    A lift pinches at least ``grip_depth`` for the interval's ``settings`` (its mass and
+    friction; the hand's springs ``hand``), at most the object's half width."""
     check_observable(profile)
     obj = profile.scene.object
     assert obj.size_m is not None
@@ -208,9 +237,18 @@ def plan_path(
                     MinJerk(motor.squeeze_out_s, tuple(start)),
                 ]
             )
-        phases = {"end": t_in + motor.squeeze_hold_s + motor.squeeze_out_s}
+        phases = {
+            "hold_from": t_in,
+            "hold_to": t_in + motor.squeeze_hold_s,
+            "end": t_in + motor.squeeze_hold_s + motor.squeeze_out_s,
+        }
     else:
         depth = _normal(rng, motor.grip_depth_m, 0.002)
+        if settings is not None:
+            # Scaled to the load: the nominal pinch, or what the load needs with the same
+            # trial-to-trial variation (relative), whichever is deeper.
+            need = grip_depth(profile, settings, motor, hand or {})
+            depth = min(max(depth, need * depth / motor.grip_depth_m[0]), half)
         height = _normal(rng, motor.lift_height_m, 0.005)
         t_lift = _normal(rng, motor.lift_s, 0.1)
         for sign, r, off in ((-1.0, radii[0], (0.0, 0.0)), (1.0, radii[1], (dy, dz))):
@@ -409,11 +447,94 @@ def interval_cue(
     rng: np.random.Generator,
 ) -> float:
     """One interval: plan the hand's path, run the loop, read the cue."""
-    t, x, phases = plan_path(kind, profile, config.motor, rng)
+    t, x, phases = plan_path(kind, profile, config.motor, rng, settings=settings, hand=config.hand)
     rows = run_interval(profile, settings, (t, x), config)
     if kind == "squeeze":
         return stiffness_cue(rows)
     return weight_cue(rows, phases["judge_from"])
+
+
+# The pilot check's limits: the fingers on the cube over at least this share of the
+# judged part of an interval; a lifted cube up by at least this share of the hand's
+# lift (less: it slipped or dropped); the EF vertical cue (the net load, which a held
+# still cube makes m g) within this share of m g.
+PILOT_CONTACT = 0.9
+PILOT_RISE = 0.5
+PILOT_EF_TOLERANCE = 0.10
+
+
+def interval_failure(
+    kind: str, rows: np.ndarray, phases: Mapping[str, float], planned: np.ndarray
+) -> str | None:
+    """Why one simulated interval is no exploration of the task, or None: the fingers
+    off the cube over the judged part (a lift's hold from ``judge_from``, a squeeze's
+    hold from ``hold_from`` to ``hold_to``), or a lifted cube that did not rise with the
+    hand (``planned``: the path's positions)."""
+    start = phases.get("judge_from", phases.get("hold_from", 0.0))
+    judged = (rows["t"] >= start) & (rows["t"] <= phases.get("hold_to", np.inf))
+    if not judged.any():
+        return "the interval is empty"
+    both = rows["in_contact"][judged].all(axis=1).mean()
+    if both < PILOT_CONTACT:
+        return f"no contact: both fingers touched the cube in only {both:.0%} of it"
+    if kind == "lift":
+        rise = float(rows["object_pos"][judged][:, 2].mean() - rows["object_pos"][0, 2])
+        want = float(planned[-1, 0, 2] - planned[0, 0, 2])
+        if rise < PILOT_RISE * want:
+            return (
+                f"the cube slipped or dropped: it rose {rise * 1e3:.1f} mm of the hand's "
+                f"{want * 1e3:.1f} mm"
+            )
+    return None
+
+
+def pilot_check(exp: Experiment, profile: Profile, config: ObserverConfig) -> None:
+    """Refuse (ExperimentError naming each cause) a design the observer's hand cannot
+    perform, before any trial: one pilot interval per condition at the smallest and the
+    largest value of the varied parameter the design presents, and for a lift also two
+    with the EF allocator, whose vertical cue must be m g within PILOT_EF_TOLERANCE."""
+    kind = exploration_kind(exp)
+    rng = np.random.default_rng(0)
+    lo, hi = _design_range(exp)
+    tried: list[tuple[dict[str, Any], str]] = [
+        ({**c.values(), exp.varied.param: v}, f"condition {c.name}")
+        for c in exp.conditions
+        for v in (lo, hi)
+    ]
+    if kind == "lift":
+        tried += [({"allocator": "ef", exp.varied.param: v}, "the EF check") for v in (lo, hi)]
+    problems = []
+    for settings, what in tried:
+        t, x, phases = plan_path(
+            kind, profile, config.motor, rng, settings=settings, hand=config.hand
+        )
+        rows = run_interval(profile, settings, (t, x), config)
+        why = interval_failure(kind, rows, phases, x)
+        if why is None and what == "the EF check":
+            cue, mg = weight_cue(rows, phases["judge_from"]), settings["mass_kg"] * 9.81
+            if abs(cue - mg) > PILOT_EF_TOLERANCE * mg:
+                why = (
+                    f"the EF vertical cue is {cue:.3f} N against m g {mg:.3f} N (more than "
+                    f"{PILOT_EF_TOLERANCE:.0%} off)"
+                )
+        if why is not None:
+            problems.append(f"{what}, {exp.varied.param} {settings[exp.varied.param]:g}: {why}")
+    if problems:
+        raise ExperimentError(
+            f"{exp.source}: the model observer's hand cannot perform this design (pilot "
+            "intervals):\n  " + "\n  ".join(problems)
+        )
+
+
+def _design_range(exp: Experiment) -> tuple[float, float]:
+    """The smallest and the largest value of the varied parameter the design presents."""
+    lo_s, hi_s = min(exp.varied.standards), max(exp.varied.standards)
+    if exp.staircase is not None:
+        d = exp.staircase.max_distance
+        return lo_s * (1 - d if exp.staircase.sides == "both" else 1), hi_s * (1 + d)
+    if exp.quest_plus is not None:
+        return lo_s * exp.quest_plus.min_ratio, hi_s * exp.quest_plus.max_ratio
+    return lo_s * min(exp.varied.ratios), hi_s * max(exp.varied.ratios)
 
 
 @dataclass(frozen=True)

@@ -55,7 +55,7 @@ from hapticd import protocol as proto
 from hapticd.control import ControlClient
 from hapticd.experiment.plan import PlannedTrial, make_plan
 from hapticd.experiment.spec import Experiment, ExperimentError, file_hash
-from hapticd.experiment.store import StoreError, TrialStore
+from hapticd.experiment.store import StoreError, TrialStore, claim_subject
 
 SUBJECT_PATTERN = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 CHOICES = ("no", "yes")  # the prompt's labels: "was the second more?"
@@ -243,39 +243,102 @@ def run_subject(
             per = sum(spent) / len(spent) if spent else exp.trial_s()
             breaks = sum(t.break_before_s for t in todo[k:])
             progress(Progress(total - len(todo) + k, total, trial, per * (len(todo) - k) + breaks))
-        if trial.break_before_s > 0:
-            presenter.rest(trial.break_before_s)
         began = time.monotonic()
-        try:
-            got = presenter.present(exp, trial, conditions[trial.condition])
-        except TrialAbortedError as exc:
-            store.record(
-                subject,
-                trial,
-                answer_second_more=None,
-                response_time_s=None,
-                profile_hash=profile_hash,
-                seed=seed,
-                recording=_recordings(exc.recordings),
-                status="incomplete",
-            )
-            raise
-        store.record(
-            subject,
-            trial,
-            answer_second_more=got.answer_second_more,
-            response_time_s=got.response_time_s,
-            profile_hash=profile_hash,
-            seed=seed,
-            recording=_recordings(got.recordings),
-            status=got.status,
-            source=got.source or None,
-        )
+        got = _present(store, exp, subject, seed, presenter, trial, conditions, profile_hash)
         spent.append(time.monotonic() - began)
         recorded += got.status == "complete"
     if progress is not None:
         left = len(store.remaining(subject))
         progress(Progress(total - left, total, None, 0.0))
+    return recorded
+
+
+def _present(
+    store: TrialStore,
+    exp: Experiment,
+    subject: str,
+    seed: int,
+    presenter: Presenter,
+    trial: PlannedTrial,
+    conditions: Mapping[str, Mapping[str, Any]],
+    profile_hash: str,
+) -> Presented:
+    """The break before ``trial``, the trial presented, and its row stored at once
+    (incomplete, and the error raised again, when the presenter aborts it)."""
+    if trial.break_before_s > 0:
+        presenter.rest(trial.break_before_s)
+    try:
+        got = presenter.present(exp, trial, conditions[trial.condition])
+    except TrialAbortedError as exc:
+        store.record(
+            subject,
+            trial,
+            answer_second_more=None,
+            response_time_s=None,
+            profile_hash=profile_hash,
+            seed=seed,
+            recording=_recordings(exc.recordings),
+            status="incomplete",
+        )
+        raise
+    store.record(
+        subject,
+        trial,
+        answer_second_more=got.answer_second_more,
+        response_time_s=got.response_time_s,
+        profile_hash=profile_hash,
+        seed=seed,
+        recording=_recordings(got.recordings),
+        status=got.status,
+        source=got.source or None,
+    )
+    return got
+
+
+def run_adaptive_subject(
+    store: TrialStore,
+    exp: Experiment,
+    subject: str,
+    seed: int,
+    presenter: Presenter,
+    *,
+    profile_hash: str,
+    progress: Callable[[Progress], None] | None = None,
+) -> int:
+    """``run_subject`` for a staircase (hapticd.experiment.adaptive): each next trial is
+    decided from the answers so far, stored in the plan, presented and recorded; the
+    tracks are rebuilt from the stored trials first, and a trial decided but not
+    answered (a run that stopped in it) is presented again as it was. The number of
+    complete trials recorded now."""
+    from hapticd.experiment import adaptive
+
+    st = exp.adaptive
+    assert st is not None
+    conditions = {c.name: c.values() for c in exp.conditions}
+    rows = [r for r in store.trials() if r["subject"] == subject]
+    tracks = adaptive.replay(exp, rows)
+    most = exp.n_blocks * st.max_trials
+    recorded = 0
+    while True:
+        pending = store.remaining(subject)
+        if pending:
+            trial: PlannedTrial | None = pending[0]
+        else:
+            trial = adaptive.next_trial(exp, seed, len(store.plan(subject)), tracks)
+            if trial is None:
+                break
+            store.append_plan(subject, trial, seed)
+        assert trial is not None
+        if progress is not None:
+            progress(Progress(trial.index, most, trial, exp.trial_s() * (most - trial.index)))
+        got = _present(store, exp, subject, seed, presenter, trial, conditions, profile_hash)
+        if got.status == "complete":
+            recorded += 1
+            more = bool(got.answer_second_more) != trial.comparison_first
+            adaptive.apply_answer(tracks[trial.block], more, st, trial.comparison)
+    if progress is not None:
+        done = len(store.plan(subject))
+        progress(Progress(done, done, None, 0.0))
     return recorded
 
 
@@ -437,6 +500,24 @@ class PersonPresenter:
                 raise RunnerError(
                     f"the daemon is recording to {path}: stop it (hapticd record stop) first"
                 )
+
+    def restore(self, values: Mapping[str, Any]) -> None:
+        """Set ``values`` (the base profile's, ``base_values``) on the daemon after a run,
+        however it ended, and say so; a daemon that went away or refuses is reported,
+        never raised (the run's own outcome is what the caller reports)."""
+        done = []
+        for name, value in values.items():
+            try:
+                with self._talking():
+                    self.client.set(name, value)
+            except (RunnerError, proto.ProtocolError, OSError) as exc:
+                self.say(f"could not restore {name} to the base profile's value: {exc}")
+                if isinstance(exc, DaemonGoneError):
+                    return
+                continue
+            done.append(f"{name} = {value}")
+        if done:
+            self.say("the daemon is back at the base profile's " + ", ".join(done))
 
     def say(self, text: str) -> None:
         self.out.write(f"\r\x1b[K{text}\n" if self.out.isatty() else f"{text}\n")
@@ -689,11 +770,13 @@ def person_observer(exp: Experiment, subject: str, options: RunOptions) -> Itera
     except OSError as exc:
         raise RunnerError(f"cannot reach the daemon: {exc}") from None
     keys = None
+    checked: PersonPresenter | None = None
     try:
         presenter = PersonPresenter(
             client, subject=subject, out=options.out, options=options.person
         )
         presenter.check_daemon(exp, profile.name)
+        checked = presenter  # the daemon runs the base profile: restored at the end
         if options.keys_fd is not None:
             keys = KeyReader(options.keys_fd)
         presenter.keys = keys
@@ -701,7 +784,42 @@ def person_observer(exp: Experiment, subject: str, options: RunOptions) -> Itera
     finally:
         if keys is not None:
             keys.close()
+        if checked is not None:
+            checked.restore(base_values(exp, profile))
         client.close()
+
+
+def base_values(exp: Experiment, profile: Any) -> dict[str, Any]:
+    """The base ``profile``'s value of every parameter ``exp`` sets (the varied one, the
+    allocator, the conditions' parameters), as the control protocol takes them: what a
+    run puts back when it ends."""
+    from hapticd.params import PARAMS
+
+    names = [exp.varied.param, "allocator"]
+    names += [n for c in exp.conditions for n in c.values() if n not in names]
+    out = {}
+    for name in names:
+        value = _profile_value(profile, PARAMS[name].profile_key)
+        if value is not None:
+            out[name] = PARAMS[name].check(value)
+    return out
+
+
+def _profile_value(profile: Any, key: str) -> Any:
+    """The value at a parameter's ``profile_key`` (``scene.object.stiffness_n_per_m``,
+    ``fingers[].actuated_directions``: one list per finger; friction as [static,
+    dynamic]); None where the profile has none (a fixed object's mass)."""
+    head, _, rest = key.partition("[].")
+    if rest:
+        return [_profile_value(item, rest) for item in getattr(profile, head)]
+    value = profile
+    for part in key.split("."):
+        value = getattr(value, part)
+    if hasattr(value, "static") and hasattr(value, "dynamic"):
+        return [value.static, value.dynamic]
+    if isinstance(value, tuple):
+        return [list(v) if isinstance(v, tuple) else v for v in value]
+    return value
 
 
 ObserverFactory = Callable[
@@ -766,12 +884,37 @@ def run_experiment(
     options = dataclasses.replace(options or RunOptions(), seed=seed)
     out = options.out
     check_subject(subject)
-    with TrialStore.for_experiment(db, exp) as store:
+    # One runner per subject: a second one is refused here, before anything is stored.
+    with claim_subject(db, subject), TrialStore.for_experiment(db, exp) as store:
         check_start(store, subject, resume=resume)
         # The observer before the plan: a plan is stored only when it can be presented.
         with factory(exp, subject, options) as presenter:
+            if exp.adaptive is not None:
+                return _run_adaptive(store, exp, subject, seed, presenter, db, out)
             todo = start_subject(store, exp, subject, seed, resume=resume)
             return _run(store, exp, subject, seed, presenter, todo, db, out)
+
+
+def _run_adaptive(
+    store: TrialStore,
+    exp: Experiment,
+    subject: str,
+    seed: int,
+    presenter: Presenter,
+    db: Path,
+    out: TextIO,
+) -> tuple[int, int]:
+    """``run_adaptive_subject`` with the opening line and the progress lines."""
+    say = getattr(presenter, "say", None) or (lambda s: out.write(s + "\n"))
+    say(
+        f"experiment {exp.name}: subject {subject}, seed {seed}, {exp.procedure}, "
+        f"{exp.n_blocks} tracks interleaved; store {db}"
+    )
+    done = run_adaptive_subject(
+        store, exp, subject, seed, presenter, profile_hash=profile_hash(exp),
+        progress=lambda p: say(p.line()),
+    )  # fmt: skip
+    return done, len(store.remaining(subject))
 
 
 def _run(

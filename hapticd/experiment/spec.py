@@ -16,6 +16,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    ValidationInfo,
     create_model,
     field_validator,
     model_validator,
@@ -63,7 +64,7 @@ ParamSet = create_model(
 class Condition(_Strict):
     """One rendering condition: a name and the parameters it sets."""
 
-    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     set: ParamSet = Field(description="parameters (hapticd.params) this condition sets")
 
     def values(self) -> dict[str, Any]:
@@ -76,7 +77,8 @@ class Varied(_Strict):
     param: str = Field(description="a numeric settable parameter of hapticd.params")
     standards: tuple[float, ...] = Field(min_length=1, description="standard values, SI units")
     ratios: tuple[float, ...] = Field(
-        min_length=3, description="comparison = ratio x standard; at least 3 ratios"
+        default=(),
+        description="comparison = ratio x standard; at least 3 ratios (constant stimuli only)",
     )
 
     @field_validator("param")
@@ -89,28 +91,37 @@ class Varied(_Strict):
             raise ValueError(f"{v} is not a number; the varied parameter must be one")
         return v
 
+    @field_validator("standards")
+    @classmethod
+    def _standards(cls, v: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        spec = params.PARAMS.get(info.data.get("param", ""))
+        for s in v:
+            if spec is not None and not (math.isfinite(s) and spec.in_range(s)):
+                raise ValueError(
+                    f"standard {s:g} is outside {spec.name}'s range {spec.range_text()}"
+                )
+        if len(set(v)) != len(v):
+            raise ValueError(f"standards must differ, got {list(v)}")
+        return v
+
     @field_validator("ratios")
     @classmethod
-    def _ratios(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+    def _ratios(cls, v: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        if 0 < len(v) < 3:
+            raise ValueError(f"at least 3 ratios are needed, got {list(v)}")
         if any(not (math.isfinite(r) and r > 0) for r in v):
             raise ValueError(f"ratios must be positive, got {list(v)}")
         if len(set(v)) != len(v):
             raise ValueError(f"ratios must differ, got {list(v)}")
-        return v
-
-    @model_validator(mode="after")
-    def _in_range(self) -> Varied:
-        spec = params.PARAMS[self.param]
-        for s in self.standards:
-            for r in (1.0, *self.ratios):
-                if not (math.isfinite(s * r) and spec.in_range(s * r)):
+        spec = params.PARAMS.get(info.data.get("param", ""))
+        for s in info.data.get("standards") or ():
+            for r in v:
+                if spec is not None and not (math.isfinite(s * r) and spec.in_range(s * r)):
                     raise ValueError(
-                        f"standard {s:g} x ratio {r:g} = {s * r:g} is outside {self.param}'s "
-                        f"range {spec.range_text()}"
+                        f"comparison = standard {s:g} x ratio {r:g} = {s * r:g} is outside "
+                        f"{spec.name}'s range {spec.range_text()}"
                     )
-        if len(set(self.standards)) != len(self.standards):
-            raise ValueError(f"standards must differ, got {list(self.standards)}")
-        return self
+        return v
 
 
 class Interval(_Strict):
@@ -171,23 +182,150 @@ class Randomization(_Strict):
     )
 
 
+# The answer rule of each staircase and the share of "correct" answers it converges on
+# (Levitt 1971): two (three) correct in a row make it harder, one wrong easier; the
+# weighted rule (Kaernbach 1991) moves up by step x target / (1 - target) after a wrong
+# answer, down by step after a correct one, and converges on its target.
+RULE_TARGETS = {"1up2down": 2**-0.5, "1up3down": 2 ** (-1 / 3)}
+
+
+class Staircase(_Strict):
+    """An adaptive staircase per condition, standard and side (docs/experiments.md):
+    the comparison's distance from the standard, as a fraction of the standard, goes
+    down after correct answers and up after wrong ones."""
+
+    rule: Literal["1up2down", "1up3down", "weighted"] = Field(
+        description="1up2down (converges on 70.7 % correct), 1up3down (79.4 %), weighted "
+        "(on target)"
+    )
+    target: float | None = Field(
+        default=None, gt=0.5, lt=1.0, description="the weighted rule's share correct"
+    )
+    sides: Literal["both", "above"] = Field(
+        default="both",
+        description="both: a track above the standard (correct: the comparison judged more) "
+        "and one below (correct: judged less), interleaved; above: only the first",
+    )
+    start: float = Field(gt=0, description="first distance from the standard, fraction of it")
+    step: float = Field(gt=0, description="first step, fraction of the standard")
+    step_rule: Literal["fixed", "halve"] = Field(
+        default="halve", description="halve: the step halves at each reversal, to min_step"
+    )
+    min_step: float | None = Field(default=None, gt=0, description="smallest step (halve)")
+    max_distance: float = Field(
+        gt=0, description="the farthest a comparison may be from the standard, fraction of it"
+    )
+    stop_reversals: int = Field(default=8, ge=2, le=100, description="a track ends after these")
+    max_trials: int = Field(default=60, ge=2, le=1000, description="or after these trials")
+    threshold_reversals: int = Field(
+        default=6, ge=1, description="the threshold: mean of the last N reversals' distances"
+    )
+
+    @model_validator(mode="after")
+    def _converges(self) -> Staircase:
+        if self.step > self.max_distance:
+            raise ValueError(
+                f"step {self.step:g} is larger than the range max_distance "
+                f"{self.max_distance:g}: the staircase cannot converge"
+            )
+        if self.start > self.max_distance:
+            raise ValueError(f"start {self.start:g} is beyond max_distance {self.max_distance:g}")
+        if self.min_step is not None and self.min_step > self.step:
+            raise ValueError(f"min_step {self.min_step:g} is larger than step {self.step:g}")
+        if (self.rule == "weighted") != (self.target is not None):
+            raise ValueError("target is needed by the weighted rule, and only by it")
+        if self.threshold_reversals > self.stop_reversals:
+            raise ValueError(
+                f"threshold_reversals ({self.threshold_reversals}) exceeds stop_reversals "
+                f"({self.stop_reversals}): a stopped track would not have them"
+            )
+        if self.sides == "both" and self.max_distance >= 1:
+            raise ValueError(
+                f"max_distance {self.max_distance:g}: a track below the standard needs it "
+                "below 1 (a comparison above 0)"
+            )
+        return self
+
+    @property
+    def target_share(self) -> float:
+        """The share of correct answers the track converges on."""
+        return self.target if self.target is not None else RULE_TARGETS[self.rule]
+
+    def sign_list(self) -> tuple[int, ...]:
+        """The sides' signs: +1 above the standard, -1 below."""
+        return (1, -1) if self.sides == "both" else (1,)
+
+
+class QuestPlusDesign(_Strict):
+    """QUEST+ (Watson 2017; the ``questplus`` package) per condition and standard: the
+    comparison (a ratio of the standard, on a grid) that minimises the expected entropy
+    of the posterior over the psychometric function's PSE and sigma, for a fixed number
+    of trials."""
+
+    min_ratio: float = Field(gt=0, lt=1, description="the smallest comparison / standard")
+    max_ratio: float = Field(gt=1, description="the largest comparison / standard")
+    n_stimuli: int = Field(default=41, ge=5, le=201, description="comparisons on the grid")
+    trials: int = Field(default=40, ge=5, le=1000, description="trials per track")
+    lapse: float = Field(default=0.02, ge=0, lt=0.5, description="assumed lapse rate")
+
+    @property
+    def max_trials(self) -> int:
+        return self.trials
+
+    def sign_list(self) -> tuple[int, ...]:
+        """One track per condition and standard (both sides on one grid)."""
+        return (1,)
+
+
+class Analysis(_Strict):
+    """How the answers are analysed."""
+
+    jnd_point: Literal[0.75, 0.84] = Field(
+        default=0.75,
+        description="the JND is x(p) - x(0.5) of the fitted curve: 0.75 (0.6745 sigma) or "
+        "0.84 (0.9945 sigma, about one sigma); every table and plot names it",
+    )
+
+
 class Experiment(_Strict):
     """A complete experiment file (docs/experiments.md)."""
 
     version: Literal[1] = 1
-    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    # It names the recordings (EXPERIMENT-SUBJECT-TRIAL-INTERVAL.hrec): a file name.
+    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     description: str = ""
+    procedure: Literal["constant_stimuli", "staircase", "quest_plus"] = Field(
+        default="constant_stimuli",
+        description="how comparisons are chosen: constant_stimuli (every ratio, repetitions "
+        "times, in a planned order), staircase (each next comparison from the answers so "
+        "far, the tracks interleaved) or quest_plus (QUEST+, interleaved)",
+    )
     profile: str = Field(min_length=1, description="base profile, relative to this file")
     varied: Varied
     conditions: tuple[Condition, ...] = Field(min_length=1)
-    repetitions: int = Field(ge=1, le=1000, description="presentations of each comparison")
+    repetitions: int | None = Field(
+        default=None, ge=1, le=1000, description="presentations of each comparison"
+    )
+    staircase: Staircase | None = None
+    quest_plus: QuestPlusDesign | None = None
     interval: Interval
     blocks: Blocks = Blocks()
     breaks: Breaks = Breaks()
     randomization: Randomization
+    analysis: Analysis = Analysis()
 
     source: Path | None = Field(default=None, exclude=True)
     file_hash: str = Field(default="", exclude=True, description="sha256 of the file's bytes")
+
+    @field_validator("version", mode="before")
+    @classmethod
+    def _version(cls, v: Any) -> Any:
+        # YAML's `true` equals 1 in Python; it is no version.
+        if isinstance(v, bool) or v != 1:
+            raise ValueError(
+                f"expected 1 (the experiment file format this hapticd reads), got {v!r}"
+            )
+        return v
 
     @model_validator(mode="after")
     def _consistent(self) -> Experiment:
@@ -200,6 +338,19 @@ class Experiment(_Strict):
                 raise ValueError(
                     f"condition {c.name!r} sets {self.varied.param}, the varied parameter"
                 )
+        if self.procedure == "staircase":
+            return self._staircase_consistent()
+        if self.procedure == "quest_plus":
+            return self._quest_consistent()
+        if not self.varied.ratios:
+            raise ValueError("varied.ratios is needed by procedure constant_stimuli")
+        if self.repetitions is None:
+            raise ValueError("repetitions is needed by procedure constant_stimuli")
+        if self.staircase is not None or self.quest_plus is not None:
+            raise ValueError(
+                "staircase and quest_plus are for their procedures (procedure: staircase, "
+                "procedure: quest_plus)"
+            )
         if self.repetitions % self.blocks.per_standard:
             raise ValueError(
                 f"repetitions ({self.repetitions}) must divide into blocks.per_standard "
@@ -209,16 +360,71 @@ class Experiment(_Strict):
             raise ValueError("interval.order randomized needs an even number of repetitions")
         return self
 
+    def _quest_consistent(self) -> Experiment:
+        q = self.quest_plus
+        if q is None:
+            raise ValueError("procedure quest_plus needs a quest_plus section")
+        if self.varied.ratios or self.repetitions is not None or self.staircase is not None:
+            raise ValueError(
+                "varied.ratios, repetitions and staircase are not for quest_plus: it chooses "
+                "its comparisons"
+            )
+        spec = params.PARAMS[self.varied.param]
+        for s in self.varied.standards:
+            for r in (q.min_ratio, q.max_ratio):
+                if not spec.in_range(s * r):
+                    raise ValueError(
+                        f"quest_plus: the comparison standard {s:g} x {r:g} = {s * r:g} is "
+                        f"outside {self.varied.param}'s range {spec.range_text()}"
+                    )
+        return self
+
+    @property
+    def adaptive(self) -> Staircase | QuestPlusDesign | None:
+        """The adaptive procedure's section (staircase or quest_plus), None for constant
+        stimuli."""
+        return self.staircase if self.staircase is not None else self.quest_plus
+
+    def _staircase_consistent(self) -> Experiment:
+        st = self.staircase
+        if st is None:
+            raise ValueError("procedure staircase needs a staircase section")
+        if self.varied.ratios or self.repetitions is not None:
+            raise ValueError(
+                "varied.ratios and repetitions are for constant_stimuli; a staircase chooses "
+                "its comparisons"
+            )
+        spec = params.PARAMS[self.varied.param]
+        for s in self.varied.standards:
+            for sign in st.sign_list():
+                c = s * (1 + sign * st.max_distance)
+                if not spec.in_range(c):
+                    raise ValueError(
+                        f"staircase.max_distance: the comparison standard {s:g} x "
+                        f"(1 {'+' if sign > 0 else '-'} {st.max_distance:g}) = {c:g} is outside "
+                        f"{self.varied.param}'s range {spec.range_text()}"
+                    )
+        return self
+
     @property
     def comparisons(self) -> int:
         return len(self.varied.ratios)
 
     @property
     def trials_per_block(self) -> int:
+        """Trials per block; a staircase's block is a track, at most max_trials long."""
+        if self.adaptive is not None:
+            return self.adaptive.max_trials
+        assert self.repetitions is not None
         return self.comparisons * self.repetitions // self.blocks.per_standard
 
     @property
     def n_blocks(self) -> int:
+        """Blocks per subject; a staircase's: its tracks (conditions x standards x sides)."""
+        if self.adaptive is not None:
+            return (
+                len(self.conditions) * len(self.varied.standards) * len(self.adaptive.sign_list())
+            )
         return len(self.conditions) * len(self.varied.standards) * self.blocks.per_standard
 
     def profile_path(self) -> Path:
@@ -247,6 +453,9 @@ class Experiment(_Strict):
 
     def n_breaks(self) -> int:
         b = self.breaks
+        if self.adaptive is not None:  # tracks interleave: breaks by trials only
+            total = self.n_blocks * self.trials_per_block
+            return (total - 1) // b.every_trials if b.every_trials else 0
         between = (self.n_blocks - 1) // b.every_blocks if b.every_blocks else 0
         within = (self.trials_per_block - 1) // b.every_trials if b.every_trials else 0
         return between + within * self.n_blocks

@@ -3,10 +3,13 @@ soon as the trial is answered, and each subject's plan so a run can resume."""
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
+import os
 import sqlite3
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import astuple, fields
 from pathlib import Path
 from typing import Any, Literal
@@ -183,6 +186,21 @@ class TrialStore:
                 [(subject, *astuple(t), seed) for t in plan],
             )
 
+    def append_plan(self, subject: str, trial: PlannedTrial, seed: int) -> None:
+        """Add one decided trial to ``subject``'s plan (an adaptive procedure decides each
+        trial from the answers before it); StoreError unless it is the next index."""
+        with self._db:
+            n = self._db.execute("SELECT COUNT(*) FROM plan WHERE subject = ?", (subject,))
+            if trial.index != n.fetchone()[0]:
+                raise StoreError(
+                    f"{self.path}: subject {subject!r}: trial {trial.index} is not the next "
+                    "of its plan"
+                )
+            self._db.execute(
+                f"INSERT INTO plan VALUES (?, {', '.join('?' * len(_PLAN_COLUMNS))}, ?)",
+                (subject, *astuple(trial), seed),
+            )
+
     def plan(self, subject: str) -> list[PlannedTrial]:
         cols = ", ".join(f'"{c}"' for c in _PLAN_COLUMNS)
         rows = self._db.execute(
@@ -271,6 +289,36 @@ class TrialStore:
         return read_trials(self._db, status)
 
 
+@contextlib.contextmanager
+def claim_subject(db: str | Path, subject: str) -> Iterator[Path]:
+    """Hold ``subject``'s run on the store ``db`` for the block: an exclusive lock
+    (flock) on the file ``DB.SUBJECT.lock`` beside the store, which the system releases
+    when the holder ends, even by SIGKILL. StoreError when another process holds it (a
+    second runner on the same subject), naming the store, the subject and the holder's
+    process id. Yields the lock file's path."""
+    path = Path(db)
+    lock = path.with_name(f"{path.name}.{subject}.lock")
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+    except OSError as exc:
+        raise StoreError(f"{path}: cannot lock subject {subject!r}: {lock}: {exc}") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            raise StoreError(
+                f"{path}: subject {subject!r} is being run by another runner (process "
+                f"{holder}): one runner per subject and store; wait for it to end, or stop it "
+                f"(its lock: {lock})"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield lock
+    finally:
+        os.close(fd)  # releases the lock
+
+
 def design(exp: Experiment) -> dict[str, Any]:
     """What the analysis needs to know of an experiment, JSON-ready."""
     return {
@@ -280,6 +328,10 @@ def design(exp: Experiment) -> dict[str, Any]:
         "ratios": list(exp.varied.ratios),
         "conditions": [c.name for c in exp.conditions],
         "question": exp.interval.question,
+        "jnd_point": exp.analysis.jnd_point,
+        "procedure": exp.procedure,
+        "staircase": None if exp.staircase is None else exp.staircase.model_dump(),
+        "quest_plus": None if exp.quest_plus is None else exp.quest_plus.model_dump(),
     }
 
 
@@ -318,20 +370,61 @@ def _planned(row: Sequence[Any]) -> PlannedTrial:
     return PlannedTrial(**d)
 
 
+# The trials table's number columns (SQLite stores whatever it is given: a damaged or
+# hand-edited store can hold text there), and those that may be empty.
+_NUMBER_COLUMNS = (
+    "plan_index",
+    "standard",
+    "comparison",
+    "comparison_first",
+    "answer_second_more",
+    "comparison_more",
+    "response_time_s",
+    "time_unix_s",
+)
+_NULLABLE = {"answer_second_more", "comparison_more", "response_time_s"}
+
+
 def read_trials(db: sqlite3.Connection, status: str | None = "complete") -> list[dict[str, Any]]:
+    """The trials (all with ``status`` None), in the order stored, each with its plan's
+    ``block``."""
     db.row_factory = sqlite3.Row
     try:
-        where = "" if status is None else "WHERE status = ?"
+        where = "" if status is None else "WHERE t.status = ?"
         args = () if status is None else (status,)
-        rows = db.execute(f"SELECT * FROM trials {where} ORDER BY id", args).fetchall()
+        rows = db.execute(
+            f"""SELECT t.*, p.block FROM trials t LEFT JOIN plan p
+                ON p.subject = t.subject AND p."index" = t.plan_index {where} ORDER BY t.id""",
+            args,
+        ).fetchall()
         return [dict(r) for r in rows]
     finally:
         db.row_factory = None
 
 
-def open_for_analysis(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """The meta table (``design`` decoded) and the complete trials of the store at
-    ``path``, read only."""
+def _check_rows(path: Path, rows: list[dict[str, Any]]) -> None:
+    """StoreError naming the row and column of the first value that is not a number
+    where a number belongs."""
+    for r in rows:
+        for col in _NUMBER_COLUMNS:
+            v = r.get(col)
+            if v is None and col in _NULLABLE:
+                continue
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                raise StoreError(
+                    f"{path}: damaged: trials row {r.get('id')} (subject {r.get('subject')!r}, "
+                    f"trial {r.get('plan_index')!r}): {col} holds {v!r}, not a number; "
+                    "fix or delete that row (sqlite3) and try again"
+                )
+
+
+def open_for_analysis(
+    path: str | Path, status: str | None = "complete"
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The meta table (``design`` decoded) and the trials of the store at ``path`` (the
+    complete ones; all with ``status`` None), read only (nothing in it changes).
+    StoreError naming the store and what is wrong: not a store, another schema, a
+    damaged file (a garbled page), a design that is not JSON, text in a number column."""
     p = Path(path)
     if not p.is_file():
         raise StoreError(f"{p}: no such trial store")
@@ -347,7 +440,20 @@ def open_for_analysis(path: str | Path) -> tuple[dict[str, Any], list[dict[str, 
             raise StoreError(f"{p}: not a trial store (SQLite): {exc}") from None
         _check_schema(p, meta)
         out: dict[str, Any] = dict(meta)
-        out["design"] = json.loads(meta.get("design") or "{}")
-        return out, read_trials(db)
+        try:
+            out["design"] = json.loads(meta.get("design") or "{}")
+        except ValueError as exc:
+            raise StoreError(f"{p}: damaged: meta.design is not JSON ({exc})") from None
+        if not isinstance(out["design"], dict):
+            raise StoreError(f"{p}: damaged: meta.design is not a JSON object")
+        try:
+            rows = read_trials(db, status)
+        except sqlite3.DatabaseError as exc:
+            raise StoreError(
+                f"{p}: damaged: the trials cannot be read ({exc}); sqlite3's .recover "
+                "salvages what is readable into a new file"
+            ) from None
+        _check_rows(p, rows)
+        return out, rows
     finally:
         db.close()

@@ -18,7 +18,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from hapticd.experiment import observer, runner
+from hapticd.experiment import adaptive, observer, runner
 from hapticd.experiment.plan import PlannedTrial, make_plan
 from hapticd.experiment.spec import Experiment, ExperimentError, check_experiment, file_hash
 from hapticd.experiment.store import TrialStore
@@ -47,6 +47,11 @@ def reduce_design(
             )
         keep = tuple(x for x in exp.varied.standards if any(np.isclose(s, x) for s in standards))
         update["varied"] = exp.varied.model_copy(update={"standards": keep})
+    if repetitions is not None and exp.adaptive is not None:
+        raise ExperimentError(
+            f"{exp.source}: --repetitions: an adaptive procedure has none (its tracks stop "
+            "by themselves)"
+        )
     if repetitions is not None:
         per = exp.blocks.per_standard
         if (
@@ -92,6 +97,9 @@ class Task:
     subject: str
     seed: int
     trials: tuple[PlannedTrial, ...]
+    # A staircase (no trials planned ahead): the subject's complete trials so far; the
+    # worker runs the rest of the session from them.
+    history: tuple[dict[str, Any], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -105,9 +113,20 @@ class Answer:
 
 
 def answer_task(task: Task) -> list[Answer]:
-    """A worker's job: the observer's answers to ``task``'s trials (no I/O)."""
+    """A worker's job: the observer's answers to ``task``'s trials, or for a staircase
+    the rest of the subject's session after its history (no I/O)."""
     out = []
     profile = observer.profile_from_document(task.profile)
+    if task.exp.adaptive is not None:
+
+        def judged_more(trial: PlannedTrial) -> bool:
+            r = observer.answer_trial(
+                task.exp, profile, task.config, trial, task.subject, task.seed
+            )
+            return r.answer_second_more != trial.comparison_first
+
+        rest = adaptive.session(task.exp, task.seed, judged_more, task.history)
+        return [Answer(task.subject, t, more != t.comparison_first, task.seed) for t, more in rest]
     for trial in task.trials:
         r = observer.answer_trial(task.exp, profile, task.config, trial, task.subject, task.seed)
         out.append(Answer(task.subject, trial, r.answer_second_more, task.seed))
@@ -166,7 +185,10 @@ def model_observer(
     """``hapticd experiment run --observer model``: the model observer for ``subject``
     with the run's seed (the experiment's per-subject seed unless ``--seed``)."""
     seed = exp.subject_seed(subject) if options.seed is None else options.seed
-    yield ModelPresenter(exp, subject, seed, observer.default_config(exp))
+    presenter = ModelPresenter(exp, subject, seed, observer.default_config(exp))
+    # Before any trial: a design its hand cannot perform is refused with the cause.
+    observer.pilot_check(exp, presenter.profile, presenter.config)
+    yield presenter
 
 
 def run_model_subject(
@@ -188,6 +210,11 @@ def run_model_subject(
     exp = _load(exp_path_or_exp, standards, repetitions)
     s = study_seed(exp, subject, seed)
     presenter = ModelPresenter(exp, subject, s, config or observer.default_config(exp))
+    if exp.adaptive is not None:
+        return runner.run_adaptive_subject(
+            store, exp, subject, s, presenter, profile_hash=file_hash(exp.profile_path()),
+            progress=None if progress is None else lambda p: progress(p.done, p.total),
+        )  # fmt: skip
     store.ensure_plan(subject, make_plan(exp, s), s)
     left = len(store.remaining(subject))
     runner.run_subject(
@@ -276,6 +303,8 @@ def run_study(
     exp = _load(exp_path_or_exp, standards, repetitions)
     config = config or observer.default_config(exp)
     profile = observer.profile_document(exp, config)
+    # Before any plan is stored: a design the hand cannot perform is refused with the cause.
+    observer.pilot_check(exp, observer.profile_from_document(profile), config)
     profile_hash = file_hash(exp.profile_path())
     t0 = time.monotonic()
     tasks: list[Task] = []
@@ -284,6 +313,12 @@ def run_study(
     with TrialStore.for_experiment(db, exp) as store:
         for subject in subjects:
             s = study_seed(exp, subject, seed)
+            if exp.adaptive is not None:
+                # Each subject's session is one task: its next trials depend on its answers.
+                history = tuple(r for r in store.trials() if r["subject"] == subject)
+                total += exp.n_blocks * exp.adaptive.max_trials
+                tasks.append(Task(exp, profile, config, subject, s, (), history))
+                continue
             plan = make_plan(exp, s)
             store.ensure_plan(subject, plan, s)
             rest = store.remaining(subject)
@@ -297,6 +332,8 @@ def run_study(
         answered = 0
         for answers in _execute(tasks, workers, scheduler):
             for a in answers:
+                if exp.adaptive is not None and a.trial.index >= len(store.plan(a.subject)):
+                    store.append_plan(a.subject, a.trial, a.seed)
                 _record(store, a, profile_hash)
             answered += len(answers)
             done += len(answers)

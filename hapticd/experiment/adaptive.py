@@ -1,0 +1,284 @@
+"""Adaptive procedures: interleaved staircases whose next comparison depends on the
+answers so far (docs/experiments.md, "Staircases").
+
+A **track** is one condition, one standard and one side (above the standard: correct
+is "the comparison judged more"; below: "judged less"). Its state (the comparison's
+distance from the standard as a fraction of the standard, the step, the correct
+answers in a row, the reversals) is a pure function of its answers, so a resumed run
+rebuilds it from the stored trials (``replay``) and goes on exactly where it stopped.
+Which track presents trial k, and whether its comparison comes first, is drawn from a
+generator seeded by the subject's seed and k alone: the same seed gives the same
+session, whoever answers, in any process, after any resume.
+
+Pure: no I/O (the walker that stores each trial is ``run_adaptive_subject``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from hapticd.experiment.plan import PlannedTrial
+from hapticd.experiment.spec import Experiment, ExperimentError, QuestPlusDesign, Staircase
+
+
+@dataclass
+class Track:
+    """One staircase's state; ``distance`` and ``step`` are fractions of the standard."""
+
+    index: int
+    condition: str
+    standard: float
+    sign: int  # +1: comparisons above the standard; -1: below
+    distance: float
+    step: float
+    run: int = 0  # correct answers in a row since the last move
+    last_move: int = 0  # +1 up (easier), -1 down (harder), 0 none yet
+    n: int = 0  # trials answered
+    reversals: list[float] = field(default_factory=list)  # distances where it turned
+    reversal_trials: list[int] = field(default_factory=list)  # at which trial (1-based)
+    levels: list[float] = field(default_factory=list)  # each trial's distance
+    correct: list[bool] = field(default_factory=list)
+
+    @property
+    def side(self) -> str:
+        return "above" if self.sign > 0 else "below"
+
+    @property
+    def name(self) -> str:
+        return f"{self.condition}/{self.standard:g}/{self.side}"
+
+    def comparison(self) -> float:
+        """The next comparison value (the varied parameter's unit)."""
+        # 60 x 1.05 is 63.00000000000001 in binary; the design meant 63.
+        return float(f"{self.standard * (1 + self.sign * self.distance):.12g}")
+
+    def done(self, st: Staircase) -> bool:
+        return len(self.reversals) >= st.stop_reversals or self.n >= st.max_trials
+
+    def answer(self, correct: bool, st: Staircase) -> None:
+        """Move after one answer: down (harder) after the rule's correct answers in a row
+        (weighted: one), up (easier) after a wrong one; a change of direction is a
+        reversal, where the step halves (``step_rule: halve``, down to min_step)."""
+        self.levels.append(self.distance)
+        self.correct.append(correct)
+        self.n += 1
+        needed = {"1up2down": 2, "1up3down": 3, "weighted": 1}[st.rule]
+        move = 0
+        if correct:
+            self.run += 1
+            if self.run >= needed:
+                move, self.run = -1, 0
+        else:
+            move, self.run = 1, 0
+        if move == 0:
+            return
+        if self.last_move and move != self.last_move:
+            self.reversals.append(self.distance)
+            self.reversal_trials.append(self.n)
+            if st.step_rule == "halve":
+                self.step = max(self.step / 2, st.min_step or 0.0)
+        self.last_move = move
+        up = st.target_share / (1 - st.target_share) if st.rule == "weighted" else 1.0
+        size = self.step * (up if move > 0 else 1.0)
+        self.distance = float(np.clip(self.distance + move * size, 0.0, st.max_distance))
+
+    def threshold(self, st: Staircase) -> float | None:
+        """The mean distance of the last ``threshold_reversals`` reversals (fraction of
+        the standard), None with fewer."""
+        k = st.threshold_reversals
+        return float(np.mean(self.reversals[-k:])) if len(self.reversals) >= k else None
+
+
+class QuestTrack:
+    """One QUEST+ track (the ``questplus`` package): the posterior over the PSE and
+    sigma (as fractions of the standard) of P(comparison judged more) = l/2 + (1 - l)
+    Phi((ratio - mean) / sd), and the next comparison, the grid ratio of least expected
+    entropy. Its "correct" is "the comparison judged more" (``sign`` +1)."""
+
+    sign = 1
+
+    def __init__(self, index: int, condition: str, standard: float, q: QuestPlusDesign) -> None:
+        try:
+            import questplus  # an optional dependency: imported when a file uses QUEST+
+        except ImportError:
+            raise ExperimentError(
+                "procedure quest_plus needs the questplus package: pip install 'hapticd[questplus]'"
+            ) from None
+
+        self.index, self.condition, self.standard = index, condition, standard
+        self.n = 0
+        self.levels: list[float] = []
+        self.correct: list[bool] = []
+        half = (q.max_ratio - q.min_ratio) / 2
+        self._qp = questplus.QuestPlus(
+            stim_domain={"intensity": np.linspace(q.min_ratio, q.max_ratio, q.n_stimuli)},
+            param_domain={
+                "mean": np.linspace(1 - half / 2, 1 + half / 2, 31),
+                "sd": np.geomspace(0.01, 2 * half, 25),
+                "lower_asymptote": [q.lapse / 2],
+                "lapse_rate": [q.lapse / 2],
+            },
+            outcome_domain={"response": ["Yes", "No"]},
+            func="norm_cdf",
+            stim_scale="linear",
+        )
+
+    @property
+    def side(self) -> str:
+        return "both"
+
+    @property
+    def name(self) -> str:
+        return f"{self.condition}/{self.standard:g}"
+
+    def comparison(self) -> float:
+        """The next comparison value: the grid ratio of least expected entropy."""
+        ratio = float(self._qp.next_stim["intensity"])
+        return float(f"{self.standard * ratio:.12g}")
+
+    def done(self, q: QuestPlusDesign) -> bool:
+        return self.n >= q.trials
+
+    def answer(self, more: bool, q: QuestPlusDesign, comparison: float) -> None:
+        """The answer to ``comparison``: ``more`` the comparison judged more."""
+        grid = self._qp.stim_domain["intensity"]
+        # The grid's own value, so the update finds it in the stimulus domain.
+        ratio = float(grid[int(np.argmin(np.abs(grid - comparison / self.standard)))])
+        self._qp.update(stim={"intensity": ratio}, outcome={"response": "Yes" if more else "No"})
+        self.levels.append(ratio - 1)
+        self.correct.append(bool(more))
+        self.n += 1
+
+    def estimate(self) -> dict[str, float]:
+        """The posterior mean PSE and sigma, in the varied parameter's unit."""
+        est = self._qp.param_estimate
+        return {
+            "pse": float(est["mean"]) * self.standard,
+            "sigma": float(est["sd"]) * self.standard,
+        }
+
+
+AnyTrack = Track | QuestTrack
+
+
+def tracks_for(exp: Experiment) -> list[AnyTrack]:
+    """Every track of ``exp`` at its start, in order: conditions as listed, standards
+    ascending, above before below (a track's index is its ``block`` in the store)."""
+    section = _section(exp)
+    out: list[AnyTrack] = []
+    for c in exp.conditions:
+        for s in sorted(exp.varied.standards):
+            if isinstance(section, QuestPlusDesign):
+                out.append(QuestTrack(len(out), c.name, float(s), section))
+                continue
+            for sign in section.sign_list():
+                out.append(Track(len(out), c.name, float(s), sign, section.start, section.step))
+    return out
+
+
+def _section(exp: Experiment) -> Staircase | QuestPlusDesign:
+    if exp.adaptive is None:
+        raise ValueError(f"experiment {exp.name!r} has no adaptive procedure")
+    return exp.adaptive
+
+
+def is_correct(track: AnyTrack, comparison_more: bool) -> bool:
+    """Whether an answer is correct for ``track``: the comparison judged more above the
+    standard, less below it."""
+    return bool(comparison_more) == (track.sign > 0)
+
+
+def replay(exp: Experiment, trials: Iterable[Mapping[str, Any]]) -> list[AnyTrack]:
+    """The tracks after the complete ``trials`` (store rows with ``plan_index``,
+    ``block`` (the track) and ``comparison_more``), in plan order."""
+    st = _section(exp)
+    tracks = tracks_for(exp)
+    for t in sorted(trials, key=lambda r: r["plan_index"]):
+        if t.get("status", "complete") != "complete":
+            continue
+        apply_answer(tracks[int(t["block"])], bool(t["comparison_more"]), st, t["comparison"])
+    return tracks
+
+
+def apply_answer(track: AnyTrack, more: bool, section: Any, comparison: float) -> None:
+    """Move ``track`` after an answer to ``comparison`` (``more``: judged more)."""
+    if isinstance(track, QuestTrack):
+        track.answer(more, section, comparison)
+    else:
+        track.answer(is_correct(track, more), section)
+
+
+def next_trial(
+    exp: Experiment, seed: int, index: int, tracks: list[AnyTrack]
+) -> PlannedTrial | None:
+    """Trial ``index`` of the session: a track drawn among those not done (uniformly, by
+    a generator seeded by ``seed`` and ``index``), its current comparison; None when
+    every track is done."""
+    st = _section(exp)
+    live = [t for t in tracks if not t.done(st)]  # type: ignore[arg-type]
+    if not live:
+        return None
+    rng = np.random.default_rng([int(seed), int(index)])
+    track = live[int(rng.integers(len(live)))]
+    first = exp.interval.order == "randomized" and bool(rng.integers(2))
+    every = exp.breaks.every_trials
+    pause = exp.breaks.duration_s if every and index > 0 and index % every == 0 else 0.0
+    comparison = track.comparison()
+    return PlannedTrial(
+        index=index,
+        block=track.index,
+        position=track.n,
+        condition=track.condition,
+        standard=track.standard,
+        ratio=comparison / track.standard,
+        comparison=comparison,
+        comparison_first=first,
+        break_before_s=float(pause),
+    )
+
+
+def session(
+    exp: Experiment,
+    seed: int,
+    answer: Callable[[PlannedTrial], bool],
+    done: Iterable[Mapping[str, Any]] = (),
+) -> list[tuple[PlannedTrial, bool]]:
+    """The rest of a session after the complete trials ``done``: each next trial and
+    ``answer(trial)`` (True: the comparison judged more), until every track is done.
+    For simulated observers (no store)."""
+    st = _section(exp)
+    rows = list(done)
+    tracks = replay(exp, rows)
+    index = 1 + max((int(r["plan_index"]) for r in rows), default=-1)
+    out = []
+    while (trial := next_trial(exp, seed, index, tracks)) is not None:
+        more = answer(trial)
+        out.append((trial, more))
+        apply_answer(tracks[trial.block], more, st, trial.comparison)
+        index += 1
+    return out
+
+
+def tracks_from_rows(rows: Iterable[Mapping[str, Any]], st: Staircase) -> dict[tuple, Track]:
+    """Every track in the store rows ``rows`` (complete trials of any subjects), replayed:
+    {(subject, block): Track}. A track's condition and standard are its trials', its side
+    that of its first comparison (``start`` from the standard, never on it), so the
+    store's rows suffice, whatever reduced design the run used."""
+    by: dict[tuple, list[Mapping[str, Any]]] = {}
+    for r in rows:
+        if r.get("status", "complete") == "complete" and r.get("block") is not None:
+            by.setdefault((r["subject"], int(r["block"])), []).append(r)
+    out = {}
+    for (subject, block), rs in sorted(by.items()):
+        rs = sorted(rs, key=lambda r: r["plan_index"])
+        first = rs[0]
+        sign = 1 if first["comparison"] > first["standard"] else -1
+        track = Track(block, first["condition"], float(first["standard"]), sign, st.start, st.step)
+        for r in rs:
+            track.answer(is_correct(track, bool(r["comparison_more"])), st)
+        out[(subject, block)] = track
+    return out
