@@ -755,3 +755,23 @@ def test_keys_on_a_terminal_need_no_enter_and_the_terminal_is_restored():
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_a_busy_daemon_is_a_clear_error_before_any_trial(idle_server):
+    """Every place of the daemon held by a subscriber: the runner says it cannot reach the
+    daemon because it is busy (a protocol error from the daemon, not a traceback)."""
+    exp = load_experiment(STIFFNESS)
+    clients = [
+        ControlClient(idle_server.path, timeout_s=2.0) for _ in range(idle_server.max_clients)
+    ]
+    try:
+        for c in clients:
+            c.events_subscribe()
+        with (
+            pytest.raises(rn.RunnerError, match=r"cannot reach the daemon: .*busy"),
+            rn.person_observer(exp, "s1", rn.RunOptions(socket=idle_server.path)),
+        ):
+            pytest.fail("a presenter on a busy daemon")
+    finally:
+        for c in clients:
+            c.close()

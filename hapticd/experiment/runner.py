@@ -767,7 +767,9 @@ def person_observer(exp: Experiment, subject: str, options: RunOptions) -> Itera
     profile = load_profile(exp.profile_path())
     try:
         client = ControlClient(options.socket)
-    except OSError as exc:
+    except (OSError, proto.ProtocolError) as exc:
+        # A busy daemon (every place in use) or one that speaks another protocol answers
+        # with a ProtocolError that says so.
         raise RunnerError(f"cannot reach the daemon: {exc}") from None
     keys = None
     checked: PersonPresenter | None = None
