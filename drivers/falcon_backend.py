@@ -156,7 +156,7 @@ class FalconDevice(Device):
         self._enabled = False
         self._rx = bytearray()
         self._pending = 0
-        self._counts: np.ndarray | None = None
+        self._counts: tuple[int, int, int] | None = None
         self._p = np.zeros(3)
         # (time s, position m) of the reads within the velocity window, oldest first.
         self._recent: deque[tuple[float, np.ndarray]] = deque()
@@ -374,13 +374,13 @@ class FalconDevice(Device):
             counts, homed, grip = fm.decode_state(raw)
         except fm.FalconPacketError as exc:
             raise self._fail("broken packet", exc) from exc
-        c = np.array(counts)
+        c = counts  # plain ints: this runs every tick
         if self._counts is not None and homed == self.homed:
-            step = int(np.abs(c - self._counts).max())
+            step = max(abs(a - b) for a, b in zip(c, self._counts, strict=True))
             if step > MAX_ENCODER_STEP:
                 raise self._fail(
                     f"impossible encoder jump of {step} counts between two packets "
-                    f"({self._counts.tolist()} then {c.tolist()})"
+                    f"({list(self._counts)} then {list(c)})"
                 )
         if check_homed and homed != fm.ALL_HOMED and self.homed == fm.ALL_HOMED:
             raise self._fail(f"lost its homing (homed bits {homed:03b}): power cut?")
@@ -397,7 +397,7 @@ class FalconDevice(Device):
         try:
             p = fm.forward(fm.angles_from_counts(c), self._p)
         except fm.FalconKinematicsError as exc:
-            raise self._fail(f"encoder counts {c.tolist()} are not a pose", exc) from exc
+            raise self._fail(f"encoder counts {list(c)} are not a pose", exc) from exc
         state.position[:] = p
         # Velocity over the window, not the last tick: one encoder count (~40 um) in 1 ms
         # would be 0.04 m/s of noise; over 20 ms it is 2 mm/s.
