@@ -277,6 +277,14 @@ def test_another_user_reaches_the_daemon_only_through_the_group(tmp_path):
     try:
         base.chmod(0o755)  # as /run: anyone may look for the socket's directory
         group = 54321  # a group of its own, as the experimenters' is
+        # The client's code where the other user may read it: the clone this runs from may
+        # sit below a directory only root may enter (a `mktemp -d` folder is 0700).
+        lib = base / "lib"
+        shutil.copytree(ROOT / "hapticd", lib / "hapticd", ignore=shutil.ignore_patterns("*.pyc"))
+        for d, _, files in os.walk(lib):
+            os.chmod(d, 0o755)
+            for f in files:
+                os.chmod(os.path.join(d, f), 0o644)
         sock = base / "hapticd" / "control.sock"
         server = _server(sock, group)
         try:
@@ -287,7 +295,7 @@ def test_another_user_reaches_the_daemon_only_through_the_group(tmp_path):
                     user=NOBODY,
                     group=NOBODY,
                     extra_groups=extra,
-                    env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
+                    env={"PYTHONPATH": str(lib), "PATH": "/usr/bin:/bin"},
                     capture_output=True,
                     text=True,
                     timeout=60,
