@@ -105,7 +105,7 @@ def _nll_and_grad(
 ) -> tuple[float, np.ndarray]:
     m, s, lapse = theta
     u = (z - m) / s
-    phi = stats.norm.pdf(u)
+    phi = np.exp(-0.5 * u * u) / _SQRT_2PI
     p = np.clip(lapse / 2 + (1 - lapse) * special.ndtr(u), _P_EPS, 1 - _P_EPS)
     nll = -float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
     r = (k - n * p) / (p * (1 - p))
@@ -143,7 +143,12 @@ def _fit_one(z: np.ndarray, k: np.ndarray, n: np.ndarray, lapse_max: float) -> n
     starts = np.vstack([_grid_peaks(z, k, n, lapse_max), *_steep_starts(z, k, n, lapse_max)])
     cands = _fit_batch(z, np.tile(k, (len(starts), 1)), n, starts, lapse_max)
     polished = [cands]
-    for start in cands:
+    # Starts on one hill reach the same point by scoring: polish each point once.
+    distinct: list[np.ndarray] = []
+    for c in cands:
+        if all(np.max(np.abs(c - d)) > 1e-7 for d in distinct):
+            distinct.append(c)
+    for start in distinct:
         res = optimize.minimize(
             _nll_and_grad,
             start,

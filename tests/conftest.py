@@ -12,6 +12,11 @@ import threading
 import time
 from pathlib import Path
 
+# As the hapticd command does (hapticd.__main__), before numpy loads BLAS: one BLAS thread
+# per process, not one per core spinning beside the other test worker.
+for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_name, "1")
+
 import numpy as np
 import pytest
 import yaml

@@ -214,9 +214,10 @@ class RehearsalDaemon(Daemon):
 def test_the_reduced_stiffness_experiment_completes_against_the_rehearsal_daemon(tmp_path):
     """The bundled files as a newcomer runs them: `hapticd run configs/rehearse-grasp.yaml`
     and `hapticd experiment run configs/experiments/stiffness-jnd.yaml --standards 60
-    --repetitions 1`, every trial answered by a `respond` over the socket (as the subject
-    page sends it). It lasts as long as the design does: 12 trials of two touches, a 1 s
-    gap each, and its 60 s break between the two conditions."""
+    --repetitions 1 --break-s 2`, every trial answered by a `respond` over the socket (as
+    the subject page sends it). It lasts as long as the design does: 12 trials of two
+    touches, a 1 s gap each, and its break between the two conditions (2 s, not the
+    file's 60 s: a rehearsal's reduced design)."""
     sock, db = tmp_path / "d.sock", tmp_path / "t.db"
     daemon = RehearsalDaemon(sock, tmp_path / "recs")
     choice: dict[int, str] = {}
@@ -226,7 +227,7 @@ def test_the_reduced_stiffness_experiment_completes_against_the_rehearsal_daemon
         return ("respond", choice[pid])
 
     try:
-        proc = _runner(STIFFNESS, db, sock)
+        proc = _runner(STIFFNESS, db, sock, "--break-s", "2")
         answers = Answerer(sock, answer)
         try:
             code, out, err = finish(proc, 600)
@@ -237,6 +238,7 @@ def test_the_reduced_stiffness_experiment_completes_against_the_rehearsal_daemon
     assert not answers.errors
     assert code == 0, err[-3000:]
     assert "12 trial(s) answered; 0 left: done" in out
+    assert err.count("break: 2 s") == 1 and "the break is over" in err
     exp = rn.reduced(load_experiment(STIFFNESS), standards=[60.0], repetitions=1)
     plan = make_plan(exp, exp.subject_seed("s1"))
     got = rows(db)

@@ -4,6 +4,7 @@ parameters applied, kill -9 and --resume, the daemon going away mid-trial."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import signal
 import sqlite3
@@ -258,6 +259,22 @@ def test_start_subject_refusals(tmp_path):
         rn.reduced(exp, repetitions=0)
     with pytest.raises(ValueError, match="range"):
         rn.reduced(exp, standards=[1e9])
+    with pytest.raises(ValueError, match="duration_s"):
+        rn.reduced(exp, break_s=-1.0)
+
+
+def test_a_shorter_break_keeps_the_plan():
+    exp = load_experiment(STIFFNESS)
+    short = rn.reduced(exp, break_s=2.0)
+    assert short.breaks.duration_s == 2.0 and exp.breaks.duration_s == 60.0
+    assert short.n_breaks() == exp.n_breaks() >= 1
+    # The same trials in the same order; only the breaks before some are shorter.
+    a, b = make_plan(short, 7), make_plan(exp, 7)
+    assert [dataclasses.replace(t, break_before_s=0.0) for t in a] == [
+        dataclasses.replace(t, break_before_s=0.0) for t in b
+    ]
+    assert [t.break_before_s for t in b if t.break_before_s] == [60.0] * exp.n_breaks()
+    assert [t.break_before_s for t in a if t.break_before_s] == [2.0] * exp.n_breaks()
 
 
 # -- the runner against a real daemon -----------------------------------------------------------

@@ -233,7 +233,9 @@ def cmd_experiment_run(args: argparse.Namespace) -> int:
     try:
         exp, _ = check_experiment(args.experiment)
         standards = None if args.standards is None else rn.float_list(args.standards)
-        exp = rn.reduced(exp, standards=standards, repetitions=args.repetitions)
+        exp = rn.reduced(
+            exp, standards=standards, repetitions=args.repetitions, break_s=args.break_s
+        )
         opts = rn.RunOptions(
             socket=args.socket,
             keys_fd=None if args.no_keys else rn.stdin_fd(),
@@ -281,6 +283,9 @@ def _add_experiment_run(esub: Any) -> None:
     run.add_argument("--seed", type=int, help="use this seed instead of the subject's")
     run.add_argument("--repetitions", type=int, help="a reduced design: repetitions")
     run.add_argument("--standards", metavar="LIST", help="a reduced design: e.g. 60 or 30,90")
+    run.add_argument(
+        "--break-s", type=float, metavar="S", help="a reduced design: each break lasts S s"
+    )
     run.add_argument("--resume", action="store_true", help="continue the subject's stored plan")
     run.add_argument("--socket", type=Path, help="the daemon's control socket")
     run.add_argument(

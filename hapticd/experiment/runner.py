@@ -153,16 +153,20 @@ def reduced(
     *,
     standards: Sequence[float] | None = None,
     repetitions: int | None = None,
+    break_s: float | None = None,
 ) -> Experiment:
-    """``exp`` with other standards and/or repetitions (a pilot's or a test's reduced
-    design), validated as the file is (ExperimentError naming what is wrong)."""
-    if standards is None and repetitions is None:
+    """``exp`` with other standards, repetitions and/or break length (s) (a pilot's, a
+    rehearsal's or a test's reduced design), validated as the file is (ExperimentError
+    naming what is wrong). The break length does not change the plan."""
+    if standards is None and repetitions is None and break_s is None:
         return exp
     data = exp.model_dump()
     if standards is not None:
         data["varied"]["standards"] = [float(s) for s in standards]
     if repetitions is not None:
         data["repetitions"] = int(repetitions)
+    if break_s is not None:
+        data["breaks"]["duration_s"] = float(break_s)
     try:
         new = Experiment.model_validate(data)
     except ValueError as exc:
