@@ -434,8 +434,13 @@ class ServoLoop:
                     return self.stats
                 for problem in self.rt_report.problems:
                     log.warning("real time: %s", problem)
-            gc.collect()
-            gc.freeze()
+            if self.paced:
+                # A real-time run starts with nothing left to collect and its objects out
+                # of the collector's reach. An unpaced run (the model observer's
+                # intervals, replays) has no deadline to miss: the full collection would
+                # cost more than its ticks (about a third of an observer's trial).
+                gc.collect()
+                gc.freeze()
             gc.disable()
             if self.switch_interval_s is not None and self.paced:
                 sys.setswitchinterval(self.switch_interval_s)
