@@ -434,7 +434,11 @@ class ServoLoop:
                     return self.stats
                 for problem in self.rt_report.problems:
                     log.warning("real time: %s", problem)
-            gc.collect()
+            if self.paced:
+                # A collection now keeps a paced loop free of a collector's pause later; an
+                # unpaced run has no deadline to protect, and a full collection of a big
+                # process's heap (a Dask worker's) cost more than the ticks of a short run.
+                gc.collect()
             gc.freeze()
             gc.disable()
             if self.switch_interval_s is not None and self.paced:

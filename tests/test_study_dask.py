@@ -1,0 +1,86 @@
+"""hapticd study on a real Dask cluster (a ``dask scheduler`` process and ``dask worker``
+processes on loopback), and what made Dask studies slow: a full garbage collection
+before every simulated interval."""
+
+from __future__ import annotations
+
+import gc
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hapticd.daemon.session import build_session
+from hapticd.experiment.cluster import kill_listed
+from hapticd.experiment.study import run_study
+from hapticd.profile import load_profile
+from tests.conftest import GRASP_PROFILE
+
+ROOT = Path(__file__).resolve().parent.parent
+STIFFNESS = ROOT / "configs" / "experiments" / "stiffness-jnd.yaml"
+
+
+def stored(db: Path) -> list[tuple]:
+    con = sqlite3.connect(db)
+    try:
+        return con.execute(
+            "SELECT subject, plan_index, condition, comparison, comparison_first, "
+            "answer_second_more, seed, status, source FROM trials ORDER BY subject, plan_index"
+        ).fetchall()
+    finally:
+        con.close()
+
+
+def test_only_a_paced_loop_collects_garbage_before_it_runs(monkeypatch):
+    # A full collection before each of a study's thousands of short unpaced loops cost
+    # more than their ticks, and most in a Dask worker's large heap.
+    calls = []
+    real = gc.collect
+    monkeypatch.setattr(gc, "collect", lambda *a: calls.append(a) or real(*a))
+    assert gc.isenabled()
+    build_session(load_profile(GRASP_PROFILE), paced=False, duration_s=0.05).run()
+    assert calls == [] and gc.isenabled()
+    build_session(load_profile(GRASP_PROFILE), paced=True, duration_s=0.01).run()
+    assert calls and gc.isenabled()
+
+
+DASK_SCRIPT = """
+import sys
+from hapticd.experiment.cluster import loopback_cluster
+from hapticd.experiment.study import run_study
+
+folder, db = sys.argv[1], sys.argv[2]
+with loopback_cluster(2, folder, start_s=90) as address:
+    assert address.startswith("tcp://127.0.0.1:"), address
+    run_study({exp!r}, 2, db, scheduler=address, seed=9, standards=[90.0], repetitions=1)
+"""
+
+
+def test_a_study_on_scheduler_and_worker_processes_stores_the_same_answers(tmp_path):
+    pytest.importorskip(
+        "distributed", reason="dask.distributed is not installed (pip install 'hapticd[dask]')"
+    )
+    design = dict(seed=9, standards=[90.0], repetitions=1)
+    run_study(STIFFNESS, 2, tmp_path / "one.sqlite", workers=1, **design)
+    one = stored(tmp_path / "one.sqlite")
+    assert len(one) == 24
+    # In a child process (a Client leaves threads behind in whatever process made it),
+    # which starts the scheduler and two workers as programs on 127.0.0.1 (address
+    # given as a string: run_study makes and closes its own Client). Bounded by the
+    # timeout; the cluster's process groups are killed whatever happens.
+    folder = tmp_path / "cluster"
+    script = DASK_SCRIPT.format(exp=str(STIFFNESS))
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-c", script, str(folder), str(tmp_path / "dask.sqlite")],
+            capture_output=True,
+            text=True,
+            timeout=180,
+        )
+    finally:
+        kill_listed(folder)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (folder / "pids").read_text().split().__len__() == 3  # scheduler, 2 workers
+    assert stored(tmp_path / "dask.sqlite") == one
