@@ -21,11 +21,11 @@ import numpy as np
 from hapticd.experiment import adaptive, observer, runner
 from hapticd.experiment.plan import PlannedTrial, make_plan
 from hapticd.experiment.spec import Experiment, ExperimentError, check_experiment, file_hash
-from hapticd.experiment.store import TrialStore
+from hapticd.experiment.store import DONE, TrialStore
 
-# Trials per task handed to a worker: large enough that the hand-off is cheap beside the
-# simulation (a trial is ~0.1 s), small enough that the progress bar moves and the load
-# spreads over the workers.
+# Trials per task handed to a worker: large enough that the hand-off (a few ms, 4 kB) is
+# cheap beside the simulation (a trial is 30-90 ms of CPU), small enough that the progress
+# bar moves and the load spreads over the workers.
 CHUNK = 10
 
 Progress = Callable[[int, int], None]
@@ -104,33 +104,38 @@ class Task:
 
 @dataclass(frozen=True)
 class Answer:
-    """One computed trial, for the store."""
+    """One computed trial, for the store: its answer, or (``failure``: why) none, when
+    an exploration failed."""
 
     subject: str
     trial: PlannedTrial
-    answer_second_more: bool
+    answer_second_more: bool | None
     seed: int
+    failure: str | None = None
 
 
 def answer_task(task: Task) -> list[Answer]:
     """A worker's job: the observer's answers to ``task``'s trials, or for a staircase
-    the rest of the subject's session after its history (no I/O)."""
-    out = []
+    the rest of the subject's session after its history (no I/O); a trial whose
+    exploration failed has no answer, its failure's cause instead."""
     profile = observer.profile_from_document(task.profile)
-    if task.exp.adaptive is not None:
 
-        def judged_more(trial: PlannedTrial) -> bool:
-            r = observer.answer_trial(
-                task.exp, profile, task.config, trial, task.subject, task.seed
-            )
-            return r.answer_second_more != trial.comparison_first
-
-        rest = adaptive.session(task.exp, task.seed, judged_more, task.history)
-        return [Answer(task.subject, t, more != t.comparison_first, task.seed) for t, more in rest]
-    for trial in task.trials:
+    def answer(trial: PlannedTrial) -> Answer:
         r = observer.answer_trial(task.exp, profile, task.config, trial, task.subject, task.seed)
-        out.append(Answer(task.subject, trial, r.answer_second_more, task.seed))
-    return out
+        return Answer(task.subject, trial, r.answer_second_more, task.seed, r.failure)
+
+    if task.exp.adaptive is None:
+        return [answer(trial) for trial in task.trials]
+    answers: dict[int, Answer] = {}
+
+    def judged_more(trial: PlannedTrial) -> bool | None:
+        a = answers[trial.index] = answer(trial)
+        return (
+            None if a.answer_second_more is None else a.answer_second_more != trial.comparison_first
+        )
+
+    rest = adaptive.session(task.exp, task.seed, judged_more, task.history)
+    return [answers[t.index] for t, _ in rest]
 
 
 def _load(
@@ -151,8 +156,9 @@ def _record(store: TrialStore, a: Answer, profile_hash: str) -> None:
         profile_hash=profile_hash,
         seed=a.seed,
         recording=None,
-        status="complete",
+        status="complete" if a.failure is None else "failed",
         source="model",
+        failure=a.failure,
     )
 
 
@@ -172,6 +178,8 @@ class ModelPresenter:
         self, exp: Experiment, trial: PlannedTrial, params: Mapping[str, Any]
     ) -> runner.Presented:
         r = observer.answer_trial(exp, self.profile, self.config, trial, self.subject, self.seed)
+        if r.failure is not None:  # stored failed, never judged from a broken cue
+            return runner.Presented(None, None, status="failed", source="model", failure=r.failure)
         return runner.Presented(r.answer_second_more, None, source="model")
 
     def rest(self, seconds: float) -> None:
@@ -315,7 +323,9 @@ def run_study(
             s = study_seed(exp, subject, seed)
             if exp.adaptive is not None:
                 # Each subject's session is one task: its next trials depend on its answers.
-                history = tuple(r for r in store.trials() if r["subject"] == subject)
+                history = tuple(
+                    r for r in store.trials(None) if r["subject"] == subject and r["status"] in DONE
+                )
                 total += exp.n_blocks * exp.adaptive.max_trials
                 tasks.append(Task(exp, profile, config, subject, s, (), history))
                 continue
