@@ -22,6 +22,9 @@ from pathlib import Path
 
 # The file in the cluster's folder listing its process groups' ids, one a line.
 PIDS = "pids"
+# Dask's setting (as an environment variable) that turns a worker's profiler off.
+PROFILER_OFF = "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED"
+Popen = subprocess.Popen[bytes]
 
 
 class ClusterError(RuntimeError):
@@ -34,7 +37,7 @@ def _tail(path: Path, n: int = 1500) -> str:
     return ""
 
 
-def _stop(procs: list[subprocess.Popen[bytes]], stop_s: float) -> None:
+def _stop(procs: list[Popen], stop_s: float) -> None:
     """SIGTERM each process's group (a worker's nanny and its worker), then SIGKILL the
     groups after ``stop_s`` (a group may outlive its leader), and reap the leaders."""
     for sig in (signal.SIGTERM, signal.SIGKILL):
@@ -53,13 +56,17 @@ def loopback_cluster(
     folder: str | Path,
     *,
     threads: int = 1,
+    profiler: bool = False,
     start_s: float = 60.0,
     stop_s: float = 10.0,
 ) -> Iterator[str]:
     """Start ``dask scheduler`` and ``n_workers`` ``dask worker`` processes (``threads``
     threads each) bound to 127.0.0.1, their files and logs in ``folder``; yield the
     scheduler's address once every worker has joined (within ``start_s`` s, else
-    ClusterError). The processes inherit this one's environment and niceness."""
+    ClusterError). The processes inherit this one's environment and niceness; the
+    workers run without Dask's statistical profiler unless ``profiler`` (sampling a
+    study's deep Python stacks 100 times a second cost about 7 % of a worker's CPU:
+    docs/experiments.md)."""
     try:
         from distributed import Client
     except ImportError:
@@ -71,15 +78,16 @@ def loopback_cluster(
     sched_file = folder / "scheduler.json"
     sched_file.unlink(missing_ok=True)
     (folder / PIDS).unlink(missing_ok=True)
-    procs: list[subprocess.Popen[bytes]] = []
+    procs: list[Popen] = []
     logs: list[Path] = []
 
-    def spawn(name: str, args: list[str]) -> subprocess.Popen[bytes]:
+    def spawn(name: str, args: list[str], env: dict[str, str] | None = None) -> Popen:
         log = folder / f"{name}.log"
         logs.append(log)
         with open(log, "wb") as out:
             p = subprocess.Popen(
                 [sys.executable, "-m", *args],
+                env=None if env is None else {**os.environ, **env},
                 stdin=subprocess.DEVNULL,
                 stdout=out,
                 stderr=subprocess.STDOUT,
@@ -118,6 +126,7 @@ def loopback_cluster(
                 ["distributed.cli.dask_worker", address, "--host", "127.0.0.1",
                  "--nthreads", str(threads), "--nworkers", "1", "--no-dashboard",
                  "--local-directory", str(folder / f"worker{i}")],
+                None if profiler else {PROFILER_OFF: "False"},
             )  # fmt: skip
         left = max(1.0, deadline - time.monotonic())
         with Client(address, timeout=f"{left:.0f}s") as client:
