@@ -14,8 +14,8 @@ import pytest
 import yaml
 
 from hapticd.cli import main
+from hapticd.experiment import ExperimentError, load_experiment
 from hapticd.experiment import adaptive as ad
-from hapticd.experiment import load_experiment
 from hapticd.experiment import observer as ob
 from hapticd.experiment.plan import make_plan
 from hapticd.experiment.store import StoreError, TrialStore, open_for_analysis
@@ -191,3 +191,20 @@ def test_an_ef_lift_whose_vertical_cue_is_off_m_g_is_a_failure():
     # Not an EF rendering: its vertical cue is not m g, and is not checked against it.
     pinv = {"allocator": "pinv", "mass_kg": 0.06}
     assert ob.exploration_failure("lift", rows_, phases, x, prof, pinv, 0.8 * mg) is None
+
+
+@pytest.mark.parametrize(("standard", "too_wide"), [(0.25, False), (0.5, True)])
+def test_heavy_lifts_are_refused_before_a_study_with_the_cause(tmp_path, standard, too_wide):
+    # The hand lifts 30-108 g; at 200-300 g the cube slips in its pinch, from 400 g no
+    # pinch the 5 cm cube allows carries it (docs/experiments.md, measured).
+    data = yaml.safe_load(WEIGHT.read_text())
+    data["profile"] = str(ROOT / "configs" / "lift-weight.yaml")
+    data["varied"]["standards"] = [standard]
+    path = tmp_path / "w.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ExperimentError, match="cannot perform this design") as err:
+        run_study(path, 1, tmp_path / "x.db", workers=1)
+    assert "the cube slipped or dropped" in str(err.value)
+    # The pinch it would need, named where no pinch the cube allows is enough.
+    assert ("more than the cube's 25.0 mm half width" in str(err.value)) == too_wide
+    assert not (tmp_path / "x.db").exists() or not rows(tmp_path / "x.db")  # nothing stored
