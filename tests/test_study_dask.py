@@ -5,14 +5,17 @@ before every simulated interval."""
 from __future__ import annotations
 
 import gc
+import os
 import sqlite3
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from hapticd.daemon.session import build_session
+from hapticd.experiment import cluster
 from hapticd.experiment.cluster import kill_listed
 from hapticd.experiment.study import run_study
 from hapticd.profile import load_profile
@@ -84,3 +87,25 @@ def test_a_study_on_scheduler_and_worker_processes_stores_the_same_answers(tmp_p
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (folder / "pids").read_text().split().__len__() == 3  # scheduler, 2 workers
     assert stored(tmp_path / "dask.sqlite") == one
+
+
+def test_a_cluster_that_cannot_start_fails_with_its_log_and_leaves_no_process(
+    tmp_path, monkeypatch
+):
+    pytest.importorskip(
+        "distributed", reason="dask.distributed is not installed (pip install 'hapticd[dask]')"
+    )
+    # A "python" that exits at once with a message: the scheduler dies before its address.
+    fake = tmp_path / "python"
+    fake.write_text("#!/bin/sh\necho 'no scheduler here' >&2\nexit 3\n")
+    fake.chmod(0o755)
+    monkeypatch.setattr(cluster, "sys", SimpleNamespace(executable=str(fake)))
+    with (
+        pytest.raises(cluster.ClusterError, match=r"scheduler exited \(3\)") as err,
+        cluster.loopback_cluster(2, tmp_path / "c", start_s=30),
+    ):
+        pass
+    assert "no scheduler here" in str(err.value)  # the log's tail
+    for pid in (tmp_path / "c" / cluster.PIDS).read_text().split():
+        with pytest.raises(ProcessLookupError):
+            os.killpg(int(pid), 0)

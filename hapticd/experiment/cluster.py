@@ -1,7 +1,9 @@
 """A real Dask cluster on this machine's loopback: a ``dask scheduler`` process and
 ``dask worker`` processes, as a lab would start them by hand, for ``hapticd study
 --scheduler`` benchmarks and tests (``scripts/bench_study.py``). Not a LocalCluster:
-the scheduler and every worker are separate programs that talk over TCP on 127.0.0.1.
+the scheduler and every worker are separate programs that talk over TCP on 127.0.0.1
+(unauthenticated, as Dask is by default: any local user can reach them while they run,
+so for a machine whose users you trust).
 
 Every wait has a deadline that fails (``ClusterError`` with the process's log tail), and
 every process is ended when the block ends, however it ends: each runs in its own
@@ -116,8 +118,8 @@ def loopback_cluster(
                 raise fail(f"the scheduler exited ({sched.returncode})")
             if time.monotonic() > deadline:
                 raise fail(f"no scheduler address within {start_s:g} s")
-            with contextlib.suppress(OSError, ValueError):
-                address = json.loads(sched_file.read_text())["address"]
+            with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+                address = str(json.loads(sched_file.read_text())["address"])
             if address is None:
                 time.sleep(0.05)
         for i in range(n_workers):
@@ -129,7 +131,11 @@ def loopback_cluster(
                 None if profiler else {PROFILER_OFF: "False"},
             )  # fmt: skip
         left = max(1.0, deadline - time.monotonic())
-        with Client(address, timeout=f"{left:.0f}s") as client:
+        try:
+            client = Client(address, timeout=f"{left:.0f}s")
+        except (OSError, TimeoutError) as exc:
+            raise fail(f"cannot reach the scheduler at {address}: {exc}") from None
+        with client:
             try:
                 client.wait_for_workers(n_workers, timeout=max(1.0, deadline - time.monotonic()))
             except TimeoutError:
