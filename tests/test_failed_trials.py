@@ -57,7 +57,7 @@ def test_a_study_marks_the_trials_it_could_not_explore_and_analyze_leaves_them_o
     db = tmp_path / "s.db"
     res = run_study(heavy, 1, db, workers=1, seed=4)
     got = rows(db)
-    assert res.answered == len(got) == 6
+    assert res.answered == len(got) == 6 and res.failed == 3
     for _, standard, status, answer, more, source, failure in got:
         assert source == "model"
         if standard == pytest.approx(0.06):

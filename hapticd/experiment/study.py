@@ -278,6 +278,7 @@ class StudyResult:
     answered: int  # trials computed in this run
     total: int  # trials in every subject's plan
     seconds: float
+    failed: int = 0  # of those computed now, trials whose exploration failed (not judged)
 
 
 def _chunks(trials: Sequence[PlannedTrial], n: int) -> Iterator[tuple[PlannedTrial, ...]]:
@@ -339,9 +340,10 @@ def run_study(
             ]
         if progress is not None:
             progress(done, total)
-        answered = 0
+        answered = failed = 0
         for answers in _execute(tasks, workers, scheduler):
             for a in answers:
+                failed += a.failure is not None
                 if exp.adaptive is not None and a.trial.index >= len(store.plan(a.subject)):
                     store.append_plan(a.subject, a.trial, a.seed)
                 _record(store, a, profile_hash)
@@ -349,7 +351,7 @@ def run_study(
             done += len(answers)
             if progress is not None:
                 progress(done, total)
-    return StudyResult(subjects, answered, total, time.monotonic() - t0)
+    return StudyResult(subjects, answered, total, time.monotonic() - t0, failed)
 
 
 def _execute(
@@ -441,6 +443,13 @@ def cmd_study(args: Any) -> int:
     print(
         f"{db}: {len(result.subjects)} model observers ({result.subjects[0]}.."
         f"{result.subjects[-1]}), {result.total} trials, {result.answered} computed now in "
-        f"{result.seconds:.1f} s; analyse with: hapticd experiment analyze {db}"
+        f"{result.seconds:.1f} s"
+        + (
+            f" ({result.failed} of them failed: the hand's exploration, stored as failed, "
+            "never judged)"
+            if result.failed
+            else ""
+        )
+        + f"; analyse with: hapticd experiment analyze {db}"
     )
     return 0
