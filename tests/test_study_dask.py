@@ -17,7 +17,7 @@ import pytest
 from hapticd.daemon.session import build_session
 from hapticd.experiment import cluster
 from hapticd.experiment.cluster import kill_listed
-from hapticd.experiment.study import run_study
+from hapticd.experiment.study import dask_advice, run_study
 from hapticd.profile import load_profile
 from tests.conftest import GRASP_PROFILE
 
@@ -51,13 +51,18 @@ def test_only_a_paced_loop_collects_garbage_before_it_runs(monkeypatch):
 
 DASK_SCRIPT = """
 import sys
+from distributed import Client
+from hapticd.experiment import study
 from hapticd.experiment.cluster import loopback_cluster
-from hapticd.experiment.study import run_study
 
 folder, db = sys.argv[1], sys.argv[2]
 with loopback_cluster(2, folder, start_s=90) as address:
     assert address.startswith("tcp://127.0.0.1:"), address
-    run_study({exp!r}, 2, db, scheduler=address, seed=9, standards=[90.0], repetitions=1)
+    with Client(address, timeout="60s") as client:
+        # Single-threaded, no profiler: set up as the docs advise, so no advice.
+        assert set(client.run(study._worker_setup).values()) == {{(1, False)}}
+        assert study.dask_advice(client) == []
+    study.run_study({exp!r}, 2, db, scheduler=address, seed=9, standards=[90.0], repetitions=1)
 """
 
 
@@ -109,3 +114,23 @@ def test_a_cluster_that_cannot_start_fails_with_its_log_and_leaves_no_process(
     for pid in (tmp_path / "c" / cluster.PIDS).read_text().split():
         with pytest.raises(ProcessLookupError):
             os.killpg(int(pid), 0)
+
+
+class FakeClient:
+    """What dask_advice asks a Client for: each worker's (threads, profiler running)."""
+
+    def __init__(self, setups):
+        self.setups = setups
+
+    def run(self, fn):
+        if self.setups is None:
+            raise RuntimeError("run() is not allowed on this cluster")
+        return {f"tcp://127.0.0.1:{i}": s for i, s in enumerate(self.setups)}
+
+
+def test_dask_advice_names_threaded_and_profiled_workers():
+    assert dask_advice(FakeClient([(1, False), (1, False)])) == []
+    assert dask_advice(FakeClient(None)) == []  # workers that cannot be asked
+    threads, profiler = dask_advice(FakeClient([(2, True), (1, True), (1, False)]))
+    assert threads.startswith("1 of 3 Dask workers run 2 threads") and "--nthreads 1" in threads
+    assert profiler.startswith("2 of 3") and "PROFILE__ENABLED=False" in profiler

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import logging
 import os
 import sys
 import time
@@ -22,6 +23,8 @@ from hapticd.experiment import adaptive, observer, runner
 from hapticd.experiment.plan import PlannedTrial, make_plan
 from hapticd.experiment.spec import Experiment, ExperimentError, check_experiment, file_hash
 from hapticd.experiment.store import DONE, TrialStore
+
+log = logging.getLogger(__name__)
 
 # Trials per task handed to a worker: large enough that the hand-off (a few ms, 4 kB) is
 # cheap beside the simulation (a trial is 30-90 ms of CPU), small enough that the progress
@@ -389,12 +392,46 @@ def _on_dask(tasks: list[Task], scheduler: str | Any) -> Iterator[list[Answer]]:
     own = isinstance(scheduler, str)
     client = Client(scheduler, timeout="30s") if own else scheduler
     try:
+        for note in dask_advice(client):
+            log.warning("%s", note)
         futures = client.map(answer_task, tasks, pure=False)
         for fut in as_completed(futures):
             yield fut.result()
     finally:
         if own:
             client.close()
+
+
+def _worker_setup(dask_worker: Any) -> tuple[int, bool]:
+    """A Dask worker's threads and whether its statistical profiler runs."""
+    return int(dask_worker.state.nthreads), "profile" in dask_worker.periodic_callbacks
+
+
+def dask_advice(client: Any) -> list[str]:
+    """How the cluster's workers would compute a study faster, measured
+    (docs/experiments.md): one thread each (a trial holds Python's interpreter lock),
+    no statistical profiler (it cost about 7 % of a worker's CPU). Empty when they are
+    so, or when the workers cannot be asked."""
+    try:
+        setups = list(client.run(_worker_setup).values())
+    except Exception:  # a cluster that refuses run(): no advice, the study still runs
+        return []
+    notes = []
+    threaded = [n for n, _ in setups if n > 1]
+    if threaded:
+        notes.append(
+            f"{len(threaded)} of {len(setups)} Dask workers run {max(threaded)} threads: a "
+            "study's trial holds Python's interpreter lock, so start one single-threaded "
+            "worker per core (dask worker ADDRESS --nthreads 1)"
+        )
+    profiled = sum(p for _, p in setups)
+    if profiled:
+        notes.append(
+            f"{profiled} of {len(setups)} Dask workers run Dask's statistical profiler "
+            "(about 7 % of their CPU in a study): start them with "
+            "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False"
+        )
+    return notes
 
 
 def cmd_study(args: Any) -> int:
