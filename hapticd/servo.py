@@ -435,12 +435,11 @@ class ServoLoop:
                 for problem in self.rt_report.problems:
                     log.warning("real time: %s", problem)
             if self.paced:
-                # A real-time run starts with nothing left to collect and its objects out
-                # of the collector's reach. An unpaced run (the model observer's
-                # intervals, replays) has no deadline to miss: the full collection would
-                # cost more than its ticks (about a third of an observer's trial).
+                # A collection now keeps a paced loop free of a collector's pause later; an
+                # unpaced run has no deadline to protect, and a full collection of a big
+                # process's heap (a Dask worker's) cost more than the ticks of a short run.
                 gc.collect()
-                gc.freeze()
+            gc.freeze()
             gc.disable()
             if self.switch_interval_s is not None and self.paced:
                 sys.setswitchinterval(self.switch_interval_s)

@@ -340,10 +340,10 @@ def test_a_store_of_the_first_schema_is_read_and_brought_up_to_date(tmp_path):
         got = store.trials()
     assert [(r["plan_index"], r["source"]) for r in got] == [(0, None), (1, "key")]
     meta, _ = open_for_analysis(db)
-    assert meta["schema"] == "2"
+    assert meta["schema"] == "3"
     with sqlite3.connect(db) as con:
         con.execute("UPDATE meta SET value = '99' WHERE key = 'schema'")
-    with pytest.raises(StoreError, match="schema '99', this hapticd reads 1, 2"):
+    with pytest.raises(StoreError, match="schema '99', this hapticd reads 1, 2, 3"):
         open_for_analysis(db)
 
 

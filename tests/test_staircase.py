@@ -163,7 +163,7 @@ def session_rows(db: Path) -> list[tuple]:
     with sqlite3.connect(db) as con:
         return con.execute(
             "SELECT plan_index, condition, standard, comparison, comparison_first, "
-            "comparison_more FROM trials WHERE status = 'complete' ORDER BY plan_index"
+            "comparison_more FROM trials WHERE status = 'complete' ORDER BY subject, plan_index"
         ).fetchall()
 
 

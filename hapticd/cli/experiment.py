@@ -117,10 +117,13 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
     from hapticd.experiment.store import StoreError, open_for_analysis
 
     trials: list[dict[str, Any]] = []
+    failed: list[dict[str, Any]] = []
     first: dict[str, Any] | None = None
     try:
         for db in args.db:
-            meta, rows = open_for_analysis(db)
+            meta, rows = open_for_analysis(db, None)
+            failed += [r for r in rows if r["status"] == "failed"]
+            rows = [r for r in rows if r["status"] == "complete"]
             if first is not None and meta.get("experiment_hash") != first.get("experiment_hash"):
                 raise StoreError(
                     f"{db}: holds experiment {meta.get('experiment')!r} with another file hash "
@@ -168,6 +171,9 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
         f"hapticd experiment analyze: experiment {first.get('experiment')!r}, varied {param} "
         f"({unit}), {len(trials)} complete trials"
     )
+    if failed:  # left out of every fit: said, and kept in the JSON
+        result["failed"] = ana.failed_trials(failed)
+        print(ana.format_failed(result["failed"]), end="")
     if design.get("procedure") == "staircase" and design.get("staircase"):
         result["staircases"] = ana.analyze_staircases(
             trials, design["staircase"], design.get("conditions")
@@ -359,7 +365,9 @@ def _add_experiment(sub: Any) -> None:
     ex = esub.add_parser("export", help="a trial store as a tidy CSV, one row per trial")
     ex.add_argument("db", type=Path, help="the trial store")
     ex.add_argument("--csv", type=Path, metavar="OUT", help="write here (default: stdout)")
-    ex.add_argument("--all", action="store_true", help="incomplete trials too (status column)")
+    ex.add_argument(
+        "--all", action="store_true", help="incomplete and failed trials too (status column)"
+    )
     ex.set_defaults(func=cmd_experiment_export)
 
 

@@ -193,15 +193,25 @@ def is_correct(track: AnyTrack, comparison_more: bool) -> bool:
 
 
 def replay(exp: Experiment, trials: Iterable[Mapping[str, Any]]) -> list[AnyTrack]:
-    """The tracks after the complete ``trials`` (store rows with ``plan_index``,
-    ``block`` (the track) and ``comparison_more``), in plan order."""
+    """The tracks after the complete and failed ``trials`` (store rows with
+    ``plan_index``, ``block`` (the track), ``status`` and ``comparison_more``), in plan
+    order (``skip``: a failed trial)."""
     st = _section(exp)
     tracks = tracks_for(exp)
     for t in sorted(trials, key=lambda r: r["plan_index"]):
-        if t.get("status", "complete") != "complete":
-            continue
-        apply_answer(tracks[int(t["block"])], bool(t["comparison_more"]), st, t["comparison"])
+        status = t.get("status", "complete")
+        if status == "failed":
+            skip(tracks[int(t["block"])])
+        elif status == "complete":
+            more = bool(t["comparison_more"])
+            apply_answer(tracks[int(t["block"])], more, st, t["comparison"])
     return tracks
+
+
+def skip(track: AnyTrack) -> None:
+    """A trial of ``track`` whose exploration failed: it counts towards the track's
+    trials (its stopping rule, so a track that always fails ends) and moves nothing."""
+    track.n += 1
 
 
 def apply_answer(track: AnyTrack, more: bool, section: Any, comparison: float) -> None:
@@ -244,12 +254,12 @@ def next_trial(
 def session(
     exp: Experiment,
     seed: int,
-    answer: Callable[[PlannedTrial], bool],
+    answer: Callable[[PlannedTrial], bool | None],
     done: Iterable[Mapping[str, Any]] = (),
-) -> list[tuple[PlannedTrial, bool]]:
-    """The rest of a session after the complete trials ``done``: each next trial and
-    ``answer(trial)`` (True: the comparison judged more), until every track is done.
-    For simulated observers (no store)."""
+) -> list[tuple[PlannedTrial, bool | None]]:
+    """The rest of a session after the complete and failed trials ``done``: each next
+    trial and ``answer(trial)`` (True: the comparison judged more; None: its exploration
+    failed, ``skip``), until every track is done. For simulated observers (no store)."""
     st = _section(exp)
     rows = list(done)
     tracks = replay(exp, rows)
@@ -258,7 +268,10 @@ def session(
     while (trial := next_trial(exp, seed, index, tracks)) is not None:
         more = answer(trial)
         out.append((trial, more))
-        apply_answer(tracks[trial.block], more, st, trial.comparison)
+        if more is None:
+            skip(tracks[trial.block])
+        else:
+            apply_answer(tracks[trial.block], more, st, trial.comparison)
         index += 1
     return out
 

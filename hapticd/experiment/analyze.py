@@ -104,6 +104,36 @@ def analyze(
     }
 
 
+def failed_trials(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The trials whose exploration failed (store rows of status failed), left out of
+    every fit: how many, and how many per cause (``failure``'s kind: the text before its
+    first colon after the interval, e.g. "the cube slipped or dropped") and per
+    condition and standard."""
+    causes: dict[str, int] = defaultdict(int)
+    cells: dict[str, int] = defaultdict(int)
+    for r in rows:
+        for part in str(r.get("failure") or "unknown").split("; "):
+            causes[
+                part.split(": ")[1] if part.startswith("interval ") else part.split(": ")[0]
+            ] += 1
+        cells[f"{r['condition']} {float(r['standard']):g}"] += 1
+    return {
+        "n": len(rows),
+        "causes": dict(sorted(causes.items())),
+        "cells": dict(sorted(cells.items())),
+    }
+
+
+def format_failed(failed: dict[str, Any]) -> str:
+    """The failed trials as the report's lines."""
+    causes = ", ".join(f"{c} ({n} intervals)" for c, n in failed["causes"].items())
+    cells = ", ".join(f"{c}: {n}" for c, n in failed["cells"].items())
+    return (
+        f"{failed['n']} trial(s) whose exploration failed are left out (never judged): "
+        f"{causes}; by condition and standard: {cells}\n"
+    )
+
+
 def paired_tests(
     weber: dict[tuple[str, str, float], float | None],
     order: list[str],

@@ -447,11 +447,31 @@ def interval_cue(
     rng: np.random.Generator,
 ) -> float:
     """One interval: plan the hand's path, run the loop, read the cue."""
+    return explore(kind, profile, settings, config, rng)[0]
+
+
+def explore(
+    kind: str,
+    profile: Profile,
+    settings: Mapping[str, Any],
+    config: ObserverConfig,
+    rng: np.random.Generator,
+) -> tuple[float, str | None]:
+    """One interval: plan the hand's path, run the loop, read the cue; and why the
+    exploration failed (``exploration_failure``), None when it did not."""
     t, x, phases = plan_path(kind, profile, config.motor, rng, settings=settings, hand=config.hand)
     rows = run_interval(profile, settings, (t, x), config)
-    if kind == "squeeze":
-        return stiffness_cue(rows)
-    return weight_cue(rows, phases["judge_from"])
+    cue = stiffness_cue(rows) if kind == "squeeze" else weight_cue(rows, phases["judge_from"])
+    why = exploration_failure(kind, rows, phases, x, profile, settings, cue)
+    if why is not None and kind == "lift" and "slipped" in why:
+        need = grip_depth(profile, settings, config.motor, config.hand)
+        half = 0.5 * float(profile.scene.object.size_m[0])  # type: ignore[index]
+        if need > half:  # the cause, computed: no pinch the cube allows carries it
+            why += (
+                f" (carrying it needs a {need * 1e3:.1f} mm pinch, more than the cube's "
+                f"{half * 1e3:.1f} mm half width: a stiffer or rougher object would do)"
+            )
+    return cue, why
 
 
 # The pilot check's limits: the fingers on the cube over at least this share of the
@@ -488,6 +508,32 @@ def interval_failure(
     return None
 
 
+def exploration_failure(
+    kind: str,
+    rows: np.ndarray,
+    phases: Mapping[str, float],
+    planned: np.ndarray,
+    profile: Profile,
+    settings: Mapping[str, Any],
+    cue: float,
+) -> str | None:
+    """Why one interval is no exploration of the task (``interval_failure``: no contact,
+    a cube that slipped or dropped), or, a lift rendered by EF (``settings``' allocator,
+    else the profile's), a vertical cue more than PILOT_EF_TOLERANCE off m g (a cube not
+    held still: "cue off"); None when it is one."""
+    why = interval_failure(kind, rows, phases, planned)
+    allocator = settings.get("allocator", profile.rendering.allocator)
+    if why is None and kind == "lift" and allocator == "ef":
+        mass = settings.get("mass_kg") or profile.scene.object.mass_kg or 0.0
+        mg = float(mass) * 9.81
+        if abs(cue - mg) > PILOT_EF_TOLERANCE * mg:
+            why = (
+                f"cue off: the EF vertical cue is {cue:.3f} N against m g {mg:.3f} N (more "
+                f"than {PILOT_EF_TOLERANCE:.0%} off)"
+            )
+    return why
+
+
 def pilot_check(exp: Experiment, profile: Profile, config: ObserverConfig) -> None:
     """Refuse (ExperimentError naming each cause) a design the observer's hand cannot
     perform, before any trial: one pilot interval per condition at the smallest and the
@@ -505,18 +551,7 @@ def pilot_check(exp: Experiment, profile: Profile, config: ObserverConfig) -> No
         tried += [({"allocator": "ef", exp.varied.param: v}, "the EF check") for v in (lo, hi)]
     problems = []
     for settings, what in tried:
-        t, x, phases = plan_path(
-            kind, profile, config.motor, rng, settings=settings, hand=config.hand
-        )
-        rows = run_interval(profile, settings, (t, x), config)
-        why = interval_failure(kind, rows, phases, x)
-        if why is None and what == "the EF check":
-            cue, mg = weight_cue(rows, phases["judge_from"]), settings["mass_kg"] * 9.81
-            if abs(cue - mg) > PILOT_EF_TOLERANCE * mg:
-                why = (
-                    f"the EF vertical cue is {cue:.3f} N against m g {mg:.3f} N (more than "
-                    f"{PILOT_EF_TOLERANCE:.0%} off)"
-                )
+        _, why = explore(kind, profile, settings, config, rng)
         if why is not None:
             problems.append(f"{what}, {exp.varied.param} {settings[exp.varied.param]:g}: {why}")
     if problems:
@@ -539,13 +574,15 @@ def _design_range(exp: Experiment) -> tuple[float, float]:
 
 @dataclass(frozen=True)
 class TrialResult:
-    """One answered trial: the answer to "was the second more?", both intervals' cues
-    (the sensory model's unit) and their noisy percepts."""
+    """One trial: the answer to "was the second more?", both intervals' cues (the
+    sensory model's unit) and their noisy percepts; or, when an interval's exploration
+    failed (``failure``: which interval and why), no answer and no percepts (nan)."""
 
     index: int
-    answer_second_more: bool
+    answer_second_more: bool | None
     cues: tuple[float, float]
     percepts: tuple[float, float]
+    failure: str | None = None
 
 
 def trial_rng(seed: int, subject: str, index: int) -> np.random.Generator:
@@ -602,18 +639,21 @@ def answer_trial(
     seed: int,
 ) -> TrialResult:
     """The observer's answer to one planned trial (no I/O): two explorations, two cues,
-    two noisy percepts; "yes" when the second percept is the larger. Deterministic for
-    (seed, subject, trial.index)."""
+    two noisy percepts; "yes" when the second percept is the larger; no answer and the
+    cause (``failure``) when an exploration failed (``exploration_failure``).
+    Deterministic for (seed, subject, trial.index)."""
     rng = trial_rng(seed, subject, trial.index)
     kind = exploration_kind(exp)
-    cues = [
-        interval_cue(kind, profile, interval_settings(exp, trial, second), config, rng)
+    got = [
+        explore(kind, profile, interval_settings(exp, trial, second), config, rng)
         for second in (False, True)
     ]
+    cues = (got[0][0], got[1][0])
+    failed = [f"interval {i + 1}: {why}" for i, (_, why) in enumerate(got) if why is not None]
+    if failed:
+        # Never judged from a broken cue.
+        return TrialResult(trial.index, None, cues, (math.nan, math.nan), "; ".join(failed))
     percepts = [c + float(rng.normal(0.0, config.sense.sd(c))) for c in cues]
     return TrialResult(
-        trial.index,
-        bool(percepts[1] > percepts[0]),
-        (cues[0], cues[1]),
-        (percepts[0], percepts[1]),
+        trial.index, bool(percepts[1] > percepts[0]), cues, (percepts[0], percepts[1])
     )

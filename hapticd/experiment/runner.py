@@ -55,7 +55,7 @@ from hapticd import protocol as proto
 from hapticd.control import ControlClient
 from hapticd.experiment.plan import PlannedTrial, make_plan
 from hapticd.experiment.spec import Experiment, ExperimentError, file_hash
-from hapticd.experiment.store import StoreError, TrialStore, claim_subject
+from hapticd.experiment.store import DONE, StoreError, TrialStore, claim_subject
 
 SUBJECT_PATTERN = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 CHOICES = ("no", "yes")  # the prompt's labels: "was the second more?"
@@ -89,14 +89,16 @@ class TrialAbortedError(RunnerError):
 class Presented:
     """What presenting one trial gave: the answer to "was the second more?" (None: no
     answer), the response time from the question to the answer (s), the recordings (one
-    per interval), the trial's status and where the answer came from (``key``,
+    per interval), the trial's status (``failed``: the exploration failed, ``failure``
+    says why; no answer) and where the answer came from (``key``,
     ``button``, ``respond`` or an observer's own name)."""
 
     answer_second_more: bool | None
     response_time_s: float | None
     recordings: tuple[str, ...] = ()
-    status: Literal["complete", "incomplete"] = "complete"
+    status: Literal["complete", "incomplete", "failed"] = "complete"
     source: str = ""
+    failure: str | None = None
 
 
 class Presenter(Protocol):
@@ -234,7 +236,9 @@ def run_subject(
     record each trial in ``store`` as soon as it is answered; the number of complete
     trials recorded. Breaks (``break_before_s``) go to ``presenter.rest``. A trial the
     presenter returns ``incomplete`` is stored so and the run goes on (it stays in the
-    plan); ``TrialAbortedError`` stores the trial incomplete and is raised again."""
+    plan); one it returns ``failed`` (the model observer's exploration failed) is stored
+    so, never presented again; ``TrialAbortedError`` stores the trial incomplete and is
+    raised again."""
     total = len(store.plan(subject))
     todo = store.remaining(subject)
     if total == 0:
@@ -295,6 +299,7 @@ def _present(
         recording=_recordings(got.recordings),
         status=got.status,
         source=got.source or None,
+        failure=got.failure,
     )
     return got
 
@@ -319,7 +324,7 @@ def run_adaptive_subject(
     st = exp.adaptive
     assert st is not None
     conditions = {c.name: c.values() for c in exp.conditions}
-    rows = [r for r in store.trials() if r["subject"] == subject]
+    rows = [r for r in store.trials(None) if r["subject"] == subject and r["status"] in DONE]
     tracks = adaptive.replay(exp, rows)
     most = exp.n_blocks * st.max_trials
     recorded = 0
@@ -340,6 +345,8 @@ def run_adaptive_subject(
             recorded += 1
             more = bool(got.answer_second_more) != trial.comparison_first
             adaptive.apply_answer(tracks[trial.block], more, st, trial.comparison)
+        elif got.status == "failed":
+            adaptive.skip(tracks[trial.block])
     if progress is not None:
         done = len(store.plan(subject))
         progress(Progress(done, done, None, 0.0))

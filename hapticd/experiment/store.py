@@ -18,31 +18,19 @@ from hapticd import params
 from hapticd.experiment.plan import PlannedTrial
 from hapticd.experiment.spec import Experiment
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 # Stores this hapticd reads; a writer brings an older one up to SCHEMA_VERSION (MIGRATIONS).
-READABLE_SCHEMAS = (1, 2)
-# schema n -> the statements that make it n + 1.
-MIGRATIONS: dict[int, tuple[str, ...]] = {
-    1: ("ALTER TABLE trials ADD COLUMN source TEXT",),  # where the answer came from
-}
+READABLE_SCHEMAS = (1, 2, 3)
+# A trial's status: answered; presented but not answered (stays to be done); presented,
+# but the exploration failed (the model observer's: a cube that slipped, no contact, a
+# cue off), never judged, not presented again.
+STATUSES = ("complete", "incomplete", "failed")
+# Statuses that settle a planned trial: it is not presented again.
+DONE = ("complete", "failed")
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS plan (
-    subject TEXT NOT NULL,
-    "index" INTEGER NOT NULL,
-    block INTEGER NOT NULL,
-    position INTEGER NOT NULL,
-    condition TEXT NOT NULL,
-    standard REAL NOT NULL,
-    ratio REAL NOT NULL,
-    comparison REAL NOT NULL,
-    comparison_first INTEGER NOT NULL,
-    break_before_s REAL NOT NULL,
-    seed INTEGER NOT NULL,
-    PRIMARY KEY (subject, "index")
-);
-CREATE TABLE IF NOT EXISTS trials (
+# The trials table (``name``: the table's, or IF NOT EXISTS and it) and its index: a
+# planned trial is completed or failed once only.
+_TRIALS = """CREATE TABLE {name} (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
     subject TEXT NOT NULL,
     plan_index INTEGER NOT NULL,
@@ -59,13 +47,54 @@ CREATE TABLE IF NOT EXISTS trials (
     profile_hash TEXT NOT NULL,
     seed INTEGER NOT NULL,
     time_unix_s REAL NOT NULL,
-    status TEXT NOT NULL CHECK (status IN ('complete', 'incomplete')),
+    status TEXT NOT NULL CHECK (status IN ('complete', 'incomplete', 'failed')),
     source TEXT,                       -- key, button, respond, model (None: not answered)
+    failure TEXT,                      -- status failed: why the exploration failed
     FOREIGN KEY (subject, plan_index) REFERENCES plan (subject, "index")
+)"""
+_INDEX = """CREATE UNIQUE INDEX IF NOT EXISTS one_answer_per_planned_trial
+    ON trials (subject, plan_index) WHERE status IN ('complete', 'failed')"""
+
+_SCHEMA = (
+    """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS plan (
+    subject TEXT NOT NULL,
+    "index" INTEGER NOT NULL,
+    block INTEGER NOT NULL,
+    position INTEGER NOT NULL,
+    condition TEXT NOT NULL,
+    standard REAL NOT NULL,
+    ratio REAL NOT NULL,
+    comparison REAL NOT NULL,
+    comparison_first INTEGER NOT NULL,
+    break_before_s REAL NOT NULL,
+    seed INTEGER NOT NULL,
+    PRIMARY KEY (subject, "index")
 );
-CREATE UNIQUE INDEX IF NOT EXISTS one_answer_per_planned_trial
-    ON trials (subject, plan_index) WHERE status = 'complete';
 """
+    + _TRIALS.format(name="IF NOT EXISTS trials")
+    + ";\n"
+    + _INDEX
+    + ";\n"
+)
+_V2_COLUMNS = (
+    "id, subject, plan_index, experiment, experiment_hash, condition, standard, comparison, "
+    "comparison_first, answer_second_more, comparison_more, response_time_s, recording, "
+    "profile_hash, seed, time_unix_s, status, source"
+)
+# schema n -> the statements that make it n + 1.
+MIGRATIONS: dict[int, tuple[str, ...]] = {
+    1: ("ALTER TABLE trials ADD COLUMN source TEXT",),  # where the answer came from
+    # The status failed and its cause: SQLite changes a CHECK only by copying the table.
+    2: (
+        _TRIALS.format(name="trials_v3"),
+        f"INSERT INTO trials_v3 ({_V2_COLUMNS}) SELECT {_V2_COLUMNS} FROM trials",
+        "DROP TABLE trials",
+        "ALTER TABLE trials_v3 RENAME TO trials",
+        _INDEX,
+    ),
+}
 
 _PLAN_COLUMNS = [f.name for f in fields(PlannedTrial)]
 
@@ -141,6 +170,7 @@ class TrialStore:
         if schema == SCHEMA_VERSION:
             return
         with self._db:
+            self._db.execute("BEGIN IMMEDIATE")  # the DDL too: all of it or nothing
             for n in range(schema, SCHEMA_VERSION):
                 for statement in MIGRATIONS[n]:
                     self._db.execute(statement)
@@ -209,12 +239,13 @@ class TrialStore:
         return [_planned(r) for r in rows]
 
     def remaining(self, subject: str) -> list[PlannedTrial]:
-        """The planned trials of ``subject`` without a complete answer, in order."""
+        """The planned trials of ``subject`` not done (neither complete nor failed), in
+        order."""
         cols = ", ".join(f'p."{c}"' for c in _PLAN_COLUMNS)
         rows = self._db.execute(
             f"""SELECT {cols} FROM plan p WHERE p.subject = ? AND NOT EXISTS (
                     SELECT 1 FROM trials t WHERE t.subject = p.subject
-                    AND t.plan_index = p."index" AND t.status = 'complete')
+                    AND t.plan_index = p."index" AND t.status IN ('complete', 'failed'))
                 ORDER BY p."index" """,
             (subject,),
         ).fetchall()
@@ -236,15 +267,22 @@ class TrialStore:
         profile_hash: str,
         seed: int,
         recording: str | None = None,
-        status: Literal["complete", "incomplete"] = "complete",
+        status: Literal["complete", "incomplete", "failed"] = "complete",
         time_unix_s: float | None = None,
         source: str | None = None,
+        failure: str | None = None,
     ) -> int:
         """Store one trial and commit it before returning; its row id. A complete trial
-        needs an answer; a planned trial is answered (completed) once only. ``source``:
-        where the answer came from (``key``, ``button``, ``respond``, ``model``)."""
+        needs an answer; a failed one (its exploration failed) needs ``failure``, the
+        cause, and has no answer; a planned trial is completed or failed once only.
+        ``source``: where the answer came from (``key``, ``button``, ``respond``,
+        ``model``)."""
         if status == "complete" and answer_second_more is None:
             raise ValueError("a complete trial needs an answer")
+        if (status == "failed") != (failure is not None):
+            raise ValueError("a failed trial, and only a failed one, needs its failure's cause")
+        if status == "failed" and answer_second_more is not None:
+            raise ValueError("a failed trial is not judged: it has no answer")
         more = None
         if answer_second_more is not None:
             # "Was the second more?": the comparison was judged more when it was second
@@ -256,8 +294,8 @@ class TrialStore:
                     """INSERT INTO trials (subject, plan_index, experiment, experiment_hash,
                         condition, standard, comparison, comparison_first, answer_second_more,
                         comparison_more, response_time_s, recording, profile_hash, seed,
-                        time_unix_s, status, source) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?,
-                        ?, ?, ?, ?, ?)""",
+                        time_unix_s, status, source, failure) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?,
+                        ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
                     (
                         subject,
                         trial.index,
@@ -276,12 +314,13 @@ class TrialStore:
                         time.time() if time_unix_s is None else time_unix_s,
                         status,
                         source,
+                        failure,
                     ),
                 )
         except sqlite3.IntegrityError as exc:
             raise StoreError(
                 f"{self.path}: trial {trial.index} of subject {subject!r} cannot be stored: "
-                f"{exc} (already answered, or not in the subject's plan)"
+                f"{exc} (already answered or failed, or not in the subject's plan)"
             ) from None
         return int(cur.lastrowid or 0)
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import logging
 import os
 import sys
 import time
@@ -21,11 +22,13 @@ import numpy as np
 from hapticd.experiment import adaptive, observer, runner
 from hapticd.experiment.plan import PlannedTrial, make_plan
 from hapticd.experiment.spec import Experiment, ExperimentError, check_experiment, file_hash
-from hapticd.experiment.store import TrialStore
+from hapticd.experiment.store import DONE, TrialStore
 
-# Trials per task handed to a worker: large enough that the hand-off is cheap beside the
-# simulation (a trial is ~0.1 s), small enough that the progress bar moves and the load
-# spreads over the workers.
+log = logging.getLogger(__name__)
+
+# Trials per task handed to a worker: large enough that the hand-off (a few ms, 4 kB) is
+# cheap beside the simulation (a trial is 30-90 ms of CPU), small enough that the progress
+# bar moves and the load spreads over the workers.
 CHUNK = 10
 
 Progress = Callable[[int, int], None]
@@ -104,33 +107,38 @@ class Task:
 
 @dataclass(frozen=True)
 class Answer:
-    """One computed trial, for the store."""
+    """One computed trial, for the store: its answer, or (``failure``: why) none, when
+    an exploration failed."""
 
     subject: str
     trial: PlannedTrial
-    answer_second_more: bool
+    answer_second_more: bool | None
     seed: int
+    failure: str | None = None
 
 
 def answer_task(task: Task) -> list[Answer]:
     """A worker's job: the observer's answers to ``task``'s trials, or for a staircase
-    the rest of the subject's session after its history (no I/O)."""
-    out = []
+    the rest of the subject's session after its history (no I/O); a trial whose
+    exploration failed has no answer, its failure's cause instead."""
     profile = observer.profile_from_document(task.profile)
-    if task.exp.adaptive is not None:
 
-        def judged_more(trial: PlannedTrial) -> bool:
-            r = observer.answer_trial(
-                task.exp, profile, task.config, trial, task.subject, task.seed
-            )
-            return r.answer_second_more != trial.comparison_first
-
-        rest = adaptive.session(task.exp, task.seed, judged_more, task.history)
-        return [Answer(task.subject, t, more != t.comparison_first, task.seed) for t, more in rest]
-    for trial in task.trials:
+    def answer(trial: PlannedTrial) -> Answer:
         r = observer.answer_trial(task.exp, profile, task.config, trial, task.subject, task.seed)
-        out.append(Answer(task.subject, trial, r.answer_second_more, task.seed))
-    return out
+        return Answer(task.subject, trial, r.answer_second_more, task.seed, r.failure)
+
+    if task.exp.adaptive is None:
+        return [answer(trial) for trial in task.trials]
+    answers: dict[int, Answer] = {}
+
+    def judged_more(trial: PlannedTrial) -> bool | None:
+        a = answers[trial.index] = answer(trial)
+        return (
+            None if a.answer_second_more is None else a.answer_second_more != trial.comparison_first
+        )
+
+    rest = adaptive.session(task.exp, task.seed, judged_more, task.history)
+    return [answers[t.index] for t, _ in rest]
 
 
 def _load(
@@ -151,8 +159,9 @@ def _record(store: TrialStore, a: Answer, profile_hash: str) -> None:
         profile_hash=profile_hash,
         seed=a.seed,
         recording=None,
-        status="complete",
+        status="complete" if a.failure is None else "failed",
         source="model",
+        failure=a.failure,
     )
 
 
@@ -172,6 +181,8 @@ class ModelPresenter:
         self, exp: Experiment, trial: PlannedTrial, params: Mapping[str, Any]
     ) -> runner.Presented:
         r = observer.answer_trial(exp, self.profile, self.config, trial, self.subject, self.seed)
+        if r.failure is not None:  # stored failed, never judged from a broken cue
+            return runner.Presented(None, None, status="failed", source="model", failure=r.failure)
         return runner.Presented(r.answer_second_more, None, source="model")
 
     def rest(self, seconds: float) -> None:
@@ -270,6 +281,7 @@ class StudyResult:
     answered: int  # trials computed in this run
     total: int  # trials in every subject's plan
     seconds: float
+    failed: int = 0  # of those computed now, trials whose exploration failed (not judged)
 
 
 def _chunks(trials: Sequence[PlannedTrial], n: int) -> Iterator[tuple[PlannedTrial, ...]]:
@@ -315,7 +327,9 @@ def run_study(
             s = study_seed(exp, subject, seed)
             if exp.adaptive is not None:
                 # Each subject's session is one task: its next trials depend on its answers.
-                history = tuple(r for r in store.trials() if r["subject"] == subject)
+                history = tuple(
+                    r for r in store.trials(None) if r["subject"] == subject and r["status"] in DONE
+                )
                 total += exp.n_blocks * exp.adaptive.max_trials
                 tasks.append(Task(exp, profile, config, subject, s, (), history))
                 continue
@@ -329,9 +343,10 @@ def run_study(
             ]
         if progress is not None:
             progress(done, total)
-        answered = 0
+        answered = failed = 0
         for answers in _execute(tasks, workers, scheduler):
             for a in answers:
+                failed += a.failure is not None
                 if exp.adaptive is not None and a.trial.index >= len(store.plan(a.subject)):
                     store.append_plan(a.subject, a.trial, a.seed)
                 _record(store, a, profile_hash)
@@ -339,7 +354,7 @@ def run_study(
             done += len(answers)
             if progress is not None:
                 progress(done, total)
-    return StudyResult(subjects, answered, total, time.monotonic() - t0)
+    return StudyResult(subjects, answered, total, time.monotonic() - t0, failed)
 
 
 def _execute(
@@ -377,12 +392,46 @@ def _on_dask(tasks: list[Task], scheduler: str | Any) -> Iterator[list[Answer]]:
     own = isinstance(scheduler, str)
     client = Client(scheduler, timeout="30s") if own else scheduler
     try:
+        for note in dask_advice(client):
+            log.warning("%s", note)
         futures = client.map(answer_task, tasks, pure=False)
         for fut in as_completed(futures):
             yield fut.result()
     finally:
         if own:
             client.close()
+
+
+def _worker_setup(dask_worker: Any) -> tuple[int, bool]:
+    """A Dask worker's threads and whether its statistical profiler runs."""
+    return int(dask_worker.state.nthreads), "profile" in dask_worker.periodic_callbacks
+
+
+def dask_advice(client: Any) -> list[str]:
+    """How the cluster's workers would compute a study faster, measured
+    (docs/experiments.md): one thread each (a trial holds Python's interpreter lock),
+    no statistical profiler (it cost about 7 % of a worker's CPU). Empty when they are
+    so, or when the workers cannot be asked."""
+    try:
+        setups = list(client.run(_worker_setup).values())
+    except Exception:  # a cluster that refuses run(): no advice, the study still runs
+        return []
+    notes = []
+    threaded = [n for n, _ in setups if n > 1]
+    if threaded:
+        notes.append(
+            f"{len(threaded)} of {len(setups)} Dask workers run {max(threaded)} threads: a "
+            "study's trial holds Python's interpreter lock, so start one single-threaded "
+            "worker per core (dask worker ADDRESS --nthreads 1)"
+        )
+    profiled = sum(p for _, p in setups)
+    if profiled:
+        notes.append(
+            f"{profiled} of {len(setups)} Dask workers run Dask's statistical profiler "
+            "(about 7 % of their CPU in a study): start them with "
+            "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False"
+        )
+    return notes
 
 
 def cmd_study(args: Any) -> int:
@@ -431,6 +480,13 @@ def cmd_study(args: Any) -> int:
     print(
         f"{db}: {len(result.subjects)} model observers ({result.subjects[0]}.."
         f"{result.subjects[-1]}), {result.total} trials, {result.answered} computed now in "
-        f"{result.seconds:.1f} s; analyse with: hapticd experiment analyze {db}"
+        f"{result.seconds:.1f} s"
+        + (
+            f" ({result.failed} of them failed: the hand's exploration, stored as failed, "
+            "never judged)"
+            if result.failed
+            else ""
+        )
+        + f"; analyse with: hapticd experiment analyze {db}"
     )
     return 0
