@@ -315,6 +315,8 @@ class ControlClient:
             self._buf += chunk
 
     def request(self, cmd: str, **args: Any) -> dict[str, Any]:
+        """Send ``cmd`` and return its reply. A reply to an earlier request whose wait was
+        interrupted (Ctrl-C, a timeout) is skipped: it is not this one's."""
         self._next += 1
         self.sock.sendall(proto.encode({"id": self._next, "cmd": cmd, **args}))
         while True:
@@ -324,6 +326,9 @@ class ControlClient:
                 continue
             if proto.is_event(msg):
                 self.pending_events.append(msg)
+                continue
+            rid = msg.get("id")
+            if isinstance(rid, int) and not isinstance(rid, bool) and rid < self._next:
                 continue
             return msg
 

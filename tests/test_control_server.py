@@ -290,3 +290,17 @@ def test_a_command_of_the_wrong_type_naming_a_limited_one_gets_its_error(server,
         first, second = (json.loads(replies.readline()) for _ in range(2))
     assert first["id"] == 1 and first["error"]["code"] == "bad_request"
     assert second["id"] == 2 and second["ok"]
+
+
+def test_a_reply_left_by_an_interrupted_request_is_not_taken_for_the_next_ones(server):
+    """A request whose wait was interrupted (Ctrl-C between sending and reading) leaves its
+    reply on the connection; the next request skips it and gets its own (before: each
+    later request got the reply of the one before, so a runner's restore after Ctrl-C set
+    the stiffness and took the stiffness's reply for the allocator's)."""
+    with ControlClient(server.path, timeout_s=10.0) as c:
+        c._next += 1  # what request() does before it is interrupted
+        c.sock.sendall(json.dumps({"id": c._next, "cmd": "get", "param": "mass_kg"}).encode())
+        c.sock.sendall(b"\n")
+        assert c.get("stiffness_n_per_m") == 60.0
+        assert c.get("allocator") == "if"
+        assert c.status()["tick"] == 0
