@@ -199,3 +199,25 @@ def test_one_exploration_serves_every_judgement(stiff_exp):
         ob.answer_trial_judgements(
             stiff_exp, prof, [configs[0], replace(configs[0], rate_hz=1000.0)], t, "s03", 11
         )
+
+
+def test_hapticd_study_selects_the_variant(tmp_path, monkeypatch, capsys):
+    from hapticd.cli import main
+    from hapticd.experiment import study
+
+    seen = {}
+
+    def fake_run_study(exp, n, db, **kw):
+        seen.update(kw)
+        return study.StudyResult(["s01"], 0, 0, 0.0)
+
+    monkeypatch.setattr(study, "run_study", fake_run_study)
+    args = ["study", str(STIFFNESS), "--observers", "1", "--db", str(tmp_path / "s.db"), "--quiet"]
+    assert main([*args, "--judgement", "force_displacement", "--actuation-angle-deg", "45"]) == 0
+    assert seen["config"].judgement == "force_displacement"
+    assert seen["config"].actuation_angle_deg == 45.0
+    assert main(args) == 0 and seen["config"] is None  # the default observer
+    assert main([*args, "--judgement", "bayes"]) == 2
+    assert "judgements: weber, rising_weber, force_displacement" in capsys.readouterr().err
+    assert main([*args, "--actuation-angle-deg", "90"]) == 2
+    assert "angle" in capsys.readouterr().err
