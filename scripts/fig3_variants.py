@@ -206,8 +206,11 @@ def table(rows: list[dict]) -> str:
             f"| {fmt(r['weber_pinv'])} | {r['n']} | {fmt(r['t'], '.2f')} "
             f"| {fmt(r['p'], '.3g')} | {rng} | {fmt(r['seed_t'])} | {sign} | {size} |"
         )
-    summary = ["", "| angle | judgement | subjects | sign reproduced | size reproduced |"]
-    summary.append("|---|---|---|---|---|")
+    summary = [
+        "",
+        "| angle | judgement | subjects | sign reproduced | size reproduced | both |",
+        "|---|---|---|---|---|---|",
+    ]
     for (angle, label), group in itertools.groupby(
         rows, key=lambda r: (r["angle_deg"], r["variant"])
     ):
@@ -216,7 +219,8 @@ def table(rows: list[dict]) -> str:
         summary.append(
             f"| {angle:g} | {label} | {g[0]['subjects']} "
             f"| {sum(s == 'yes' for s, _ in v)} of {len(g)} "
-            f"| {sum(z == 'yes' for _, z in v)} of {len(g)} |"
+            f"| {sum(z == 'yes' for _, z in v)} of {len(g)} "
+            f"| {sum(v_ == ('yes', 'yes') for v_ in v)} of {len(g)} |"
         )
     return head + "\n".join(lines) + "\n" + "\n".join(summary) + "\n"
 
