@@ -141,6 +141,10 @@ def summarize(exp, out: Path, angles: list[float]) -> list[dict]:
         if not trials:
             continue
         res = analyze(trials, conditions=["if", "pinv"], n_boot=0)
+        # Every subject's trials in one series per condition and standard: the model's
+        # effect measured with all its trials, beside the t-test over subjects.
+        pooled = analyze([{**r, "subject": "all"} for r in trials], n_boot=0)
+        pool = {(f["condition"], f["standard"]): f["weber"] for f in pooled["fits"]}
         weber = {(f["subject"], f["condition"], f["standard"]): f["weber"] for f in res["fits"]}
         subjects = sorted({f["subject"] for f in res["fits"]})
         for s in sorted({f["standard"] for f in res["fits"]}):
@@ -161,6 +165,8 @@ def summarize(exp, out: Path, angles: list[float]) -> list[dict]:
                 "weber_if": float(np.mean(w_if)) if w_if else None,
                 "weber_pinv": float(np.mean(w_pinv)) if w_pinv else None,
                 "seed_t": SEED_T.get(s),
+                "pooled_if": pool.get(("if", s)),
+                "pooled_pinv": pool.get(("pinv", s)),
             }
             try:
                 r = paired_t(w_pinv, w_if)  # positive: IF better, the seed's sign
@@ -193,9 +199,9 @@ def fmt(x: float | None, spec: str = ".3f") -> str:
 
 def table(rows: list[dict]) -> str:
     head = (
-        "| angle | judgement | standard N/m | Weber IF | Weber pinv | n | t (pinv - IF) | p "
-        "| 5-subject t, 90 % range | seed t | sign | size |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "| angle | judgement | standard N/m | Weber IF | Weber pinv | pooled IF / pinv | n "
+        "| t (pinv - IF) | p | 5-subject t, 90 % range | seed t | sign | size |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = []
     for r in rows:
@@ -203,7 +209,8 @@ def table(rows: list[dict]) -> str:
         rng = "n/a" if r["t5"] is None else f"{r['t5'][0]:.2f} to {r['t5'][1]:.2f}"
         lines.append(
             f"| {r['angle_deg']:g} | {r['variant']} | {r['standard']:g} | {fmt(r['weber_if'])} "
-            f"| {fmt(r['weber_pinv'])} | {r['n']} | {fmt(r['t'], '.2f')} "
+            f"| {fmt(r['weber_pinv'])} | {fmt(r['pooled_if'])} / {fmt(r['pooled_pinv'])} "
+            f"| {r['n']} | {fmt(r['t'], '.2f')} "
             f"| {fmt(r['p'], '.3g')} | {rng} | {fmt(r['seed_t'])} | {sign} | {size} |"
         )
     summary = [
