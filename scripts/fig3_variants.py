@@ -19,9 +19,9 @@ resumable (the stores keep every answered trial); the machine's other users come
 run it under ``nice -n 19``; it uses one process.
 
     nice -n 19 python scripts/fig3_variants.py --observers 8 --angles 30 --out fig3-runs
-    nice -n 19 python scripts/fig3_variants.py --observers 5 --angles 60,45 --out fig3-runs
+    nice -n 19 python scripts/fig3_variants.py --observers 8 --angles 60,45 --out fig3-runs
     python scripts/fig3_variants.py --table-only --angles 30,60,45 --out fig3-runs
-    python scripts/fig3_variants.py --quick     # a check that it runs (about a minute)
+    python scripts/fig3_variants.py --quick     # a check that it runs (about 30 s)
 
 Writes OUT/fig3-table.md (the tables) and OUT/fig3-table.json.
 """
