@@ -389,4 +389,17 @@ def _add_study(sub: Any) -> None:
     st.add_argument("--repetitions", type=int, metavar="N", help="per comparison (reduced)")
     st.add_argument("--scheduler", metavar="ADDRESS", help="a Dask scheduler (pip: hapticd[dask])")
     st.add_argument("--quiet", action="store_true", help="no progress bar")
+    st.add_argument(
+        "--judgement",
+        metavar="NAME",
+        help="how the model observer judges: a name in hapticd.experiment.observer.JUDGEMENTS "
+        "(default weber; docs/experiments.md, observer variants)",
+    )
+    st.add_argument(
+        "--actuation-angle-deg",
+        type=float,
+        metavar="A",
+        help="tilt each finger's one actuated direction A degrees up from the grasp line "
+        "(default: the profile's own)",
+    )
     st.set_defaults(func=run)

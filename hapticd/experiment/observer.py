@@ -23,9 +23,13 @@ the safety chain), the force that reached the fingertips.
 
 The sensory model (``SensoryModel``) adds Gaussian noise of sd sqrt((w c)^2 + floor^2)
 to each interval's cue c (Weber's law with an absolute floor) and answers "was the
-second more?" by comparing the two noisy cues. Everything is drawn from one generator
-seeded per trial: the same seed gives the same answers. It is a model, not subjects:
-docs/experiments.md says what it assumes and what it predicts.
+second more?" by comparing the two noisy cues. That is the default judgement
+(``weber``); ``JUDGEMENTS`` declares the others an observer may use instead (a Weber
+fraction that rises at small forces; stiffness from force and finger displacement
+together), and ``ObserverConfig.actuation_angle_deg`` tilts the profile's actuated
+directions. Everything is drawn from one generator seeded per trial: the same seed gives
+the same answers. It is a model, not subjects: docs/experiments.md says what it assumes
+and what it predicts.
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ from __future__ import annotations
 import json
 import math
 import zlib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -127,7 +131,11 @@ class Motor:
 @dataclass(frozen=True)
 class ObserverConfig:
     """What the observer needs beyond the experiment: its sensory model, its motor
-    model, its hand (the sim device's keys) and the loop rate (Hz) it simulates at."""
+    model, its hand (the sim device's keys), the loop rate (Hz) it simulates at, how it
+    judges (``judgement``, a name in ``JUDGEMENTS``, with the parameters of the
+    judgements that need them) and the actuation geometry it explores
+    (``actuation_angle_deg``: None, the profile's own; docs/experiments.md, "Observer
+    variants")."""
 
     sense: SensoryModel
     motor: Motor = field(default_factory=Motor)
@@ -140,11 +148,54 @@ class ObserverConfig:
             "max_step_s": 5e-4,
         }
     )
+    judgement: str = "weber"
+    # The absolute term c (N) of force discrimination, JND(F) = W F + c: a Weber fraction
+    # W + c / F that rises at small forces (Feyzabadi et al. 2013: the smallest force
+    # felt, 0.04 N). Used by the judgements that read the force (rising_weber,
+    # force_displacement).
+    force_threshold_n: float = 0.04
+    # force_displacement: the Weber fractions of the force (Pang, Tan & Durlach 1991: ~7 %;
+    # Allin et al. 2002: ~10 %) and of the finger closure (our choice: with the force's,
+    # sqrt(0.10^2 + 0.11^2) = 0.15, the default stiffness Weber fraction at large forces).
+    force_weber: float = 0.10
+    closure_weber: float = 0.11
+    # Each finger's one actuated direction tilted this far (degrees) up from the grasp
+    # line: thumb (cos a, 0, sin a), index (-cos a, 0, sin a); None: the profile's own.
+    actuation_angle_deg: float | None = None
 
 
-def default_config(exp: Experiment) -> ObserverConfig:
-    """The observer for ``exp``'s question: stiffness (squeeze) or weight (lift)."""
-    return ObserverConfig(WEIGHT_SENSE if exploration_kind(exp) == "lift" else STIFFNESS_SENSE)
+# The largest actuation angle (degrees): IF's gain 1 / cos(a) grows without bound at 90.
+MAX_ACTUATION_ANGLE_DEG = 80.0
+
+
+def default_config(
+    exp: Experiment, *, judgement: str = "weber", actuation_angle_deg: float | None = None
+) -> ObserverConfig:
+    """The observer for ``exp``'s question: stiffness (squeeze) or weight (lift), judged
+    by ``judgement`` (a name in ``JUDGEMENTS``) on the profile's actuation, or on one
+    tilted ``actuation_angle_deg`` up from the grasp line. ExperimentError for a
+    judgement that does not exist or cannot judge this exploration, or an angle out of
+    [0, MAX_ACTUATION_ANGLE_DEG]."""
+    kind = exploration_kind(exp)
+    j = JUDGEMENTS.get(judgement)
+    if j is None:
+        raise ExperimentError(
+            f"unknown observer judgement {judgement!r}; judgements: {', '.join(JUDGEMENTS)}"
+        )
+    if kind not in j.explorations:
+        raise ExperimentError(
+            f"{exp.source}: the observer judgement {judgement!r} judges a "
+            f"{' or '.join(j.explorations)}, not this experiment's {kind}"
+        )
+    if actuation_angle_deg is not None and not (
+        0.0 <= actuation_angle_deg <= MAX_ACTUATION_ANGLE_DEG
+    ):
+        raise ExperimentError(
+            f"observer actuation angle {actuation_angle_deg!r} degrees: expected 0 to "
+            f"{MAX_ACTUATION_ANGLE_DEG:g} (up from the grasp line)"
+        )
+    sense = WEIGHT_SENSE if kind == "lift" else STIFFNESS_SENSE
+    return ObserverConfig(sense, judgement=judgement, actuation_angle_deg=actuation_angle_deg)
 
 
 CUES = {"stiffness_n_per_m": "squeeze", "mass_kg": "lift"}
@@ -436,17 +487,125 @@ def allocator_forces(
     return np.einsum("nij,nj->ni", M, lam_a).reshape(n, 2, 3)
 
 
+@dataclass(frozen=True)
+class IntervalCues:
+    """What one interval delivered at the fingertips: ``cue``, the experiment's cue
+    (stiffness_cue N/m, weight_cue N); ``force_n``, the force it was felt at (N: a
+    squeeze's mean force magnitude per finger over its hold, a lift's vertical load);
+    ``closure_m``, a squeeze's finger closure over its hold (m; 0 for a lift)."""
+
+    cue: float
+    force_n: float
+    closure_m: float = 0.0
+
+
+def squeeze_cues(rows: np.ndarray, phases: Mapping[str, float]) -> IntervalCues:
+    """A squeeze's cues: the stiffness cue, and the fingers' mean force magnitude (N) and
+    closure (m, half the decrease of the fingertips' distance since both touched), each
+    averaged over the hold's ticks (``hold_from`` to ``hold_to``) with both fingers in
+    contact (0 without any)."""
+    both = rows["in_contact"].all(axis=1)
+    held = both & (rows["t"] >= phases["hold_from"]) & (rows["t"] <= phases["hold_to"])
+    if not held.any():
+        return IntervalCues(stiffness_cue(rows), 0.0, 0.0)
+    pos = rows["device_pos"]
+    aperture = np.linalg.norm(pos[:, 1] - pos[:, 0], axis=1)
+    first = int(np.argmax(both))
+    closure = 0.5 * (aperture[first] - aperture[held])
+    force = np.linalg.norm(rows["device_force"][held], axis=2).mean(axis=1)
+    return IntervalCues(stiffness_cue(rows), float(force.mean()), float(closure.mean()))
+
+
+# -- how the observer judges -------------------------------------------------------------
+
+# A percept: one interval's noisy percept of the varied quantity from its cues, drawn from
+# the trial's generator; "was the second more?" is whether the second's is the larger.
+Percept = Callable[[IntervalCues, ObserverConfig, np.random.Generator], float]
+_TINY = 1e-9  # a force (N) or a length (m) below which the cue is taken as absent
+
+
+def weber_percept(c: IntervalCues, cfg: ObserverConfig, rng: np.random.Generator) -> float:
+    """The cue with noise of sd sqrt((w c)^2 + floor^2) (``SensoryModel``): Weber's law
+    with a floor on the cue itself."""
+    return c.cue + float(rng.normal(0.0, cfg.sense.sd(c.cue)))
+
+
+def rising_weber_fraction(force_n: float, weber: float, threshold_n: float) -> float:
+    """The Weber fraction at force ``force_n`` (N) of a discrimination whose JND is
+    weber F + threshold_n: weber + threshold_n / F, rising at small forces."""
+    return weber + threshold_n / max(force_n, _TINY)
+
+
+def rising_weber_percept(c: IntervalCues, cfg: ObserverConfig, rng: np.random.Generator) -> float:
+    """The cue with Gaussian noise whose Weber fraction rises at small forces: sd =
+    W(F) |cue| / (sqrt(2) 0.6745), W(F) = sense.weber + force_threshold_n / F, F the force
+    the interval was felt at. The absolute term replaces the default's floor."""
+    w = rising_weber_fraction(c.force_n, cfg.sense.weber, cfg.force_threshold_n)
+    return c.cue + float(rng.normal(0.0, w / JND_PER_NOISE_SD * abs(c.cue)))
+
+
+def force_displacement_percept(
+    c: IntervalCues, cfg: ObserverConfig, rng: np.random.Generator
+) -> float:
+    """Stiffness as perceived force over perceived finger closure (N/m), each with its own
+    Gaussian noise: the force's Weber fraction force_weber + force_threshold_n / F, the
+    closure's closure_weber (each sd = W x / (sqrt(2) 0.6745))."""
+    w_f = rising_weber_fraction(c.force_n, cfg.force_weber, cfg.force_threshold_n)
+    force = c.force_n + float(rng.normal(0.0, w_f / JND_PER_NOISE_SD * c.force_n))
+    closure = c.closure_m + float(
+        rng.normal(0.0, cfg.closure_weber / JND_PER_NOISE_SD * c.closure_m)
+    )
+    return force / max(closure, _TINY)
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """One way the observer may judge an interval: its name (``ObserverConfig.judgement``),
+    the explorations it can judge (``squeeze``, ``lift``), what it assumes, and its
+    percept."""
+
+    name: str
+    explorations: tuple[str, ...]
+    summary: str
+    percept: Percept
+
+
+JUDGEMENTS: dict[str, Judgement] = {
+    j.name: j
+    for j in (
+        Judgement(
+            "weber",
+            ("squeeze", "lift"),
+            "the cue with Weber's-law noise and a floor (the default)",
+            weber_percept,
+        ),
+        Judgement(
+            "rising_weber",
+            ("squeeze", "lift"),
+            "the cue with a Weber fraction that rises at small forces, W + c / F",
+            rising_weber_percept,
+        ),
+        Judgement(
+            "force_displacement",
+            ("squeeze",),
+            "stiffness as perceived force over perceived finger closure, each with its noise",
+            force_displacement_percept,
+        ),
+    )
+}
+
+
 # -- a trial -----------------------------------------------------------------------------
 
 
-def interval_cue(
+def interval_cues(
     kind: str,
     profile: Profile,
     settings: Mapping[str, Any],
     config: ObserverConfig,
     rng: np.random.Generator,
-) -> float:
-    """One interval: plan the hand's path, run the loop, read the cue."""
+) -> IntervalCues:
+    """One interval: plan the hand's path, run the loop, read the cues."""
     return explore(kind, profile, settings, config, rng)[0]
 
 
@@ -456,13 +615,17 @@ def explore(
     settings: Mapping[str, Any],
     config: ObserverConfig,
     rng: np.random.Generator,
-) -> tuple[float, str | None]:
-    """One interval: plan the hand's path, run the loop, read the cue; and why the
+) -> tuple[IntervalCues, str | None]:
+    """One interval: plan the hand's path, run the loop, read the cues; and why the
     exploration failed (``exploration_failure``), None when it did not."""
     t, x, phases = plan_path(kind, profile, config.motor, rng, settings=settings, hand=config.hand)
     rows = run_interval(profile, settings, (t, x), config)
-    cue = stiffness_cue(rows) if kind == "squeeze" else weight_cue(rows, phases["judge_from"])
-    why = exploration_failure(kind, rows, phases, x, profile, settings, cue)
+    if kind == "squeeze":
+        cues = squeeze_cues(rows, phases)
+    else:
+        load = weight_cue(rows, phases["judge_from"])
+        cues = IntervalCues(load, load)
+    why = exploration_failure(kind, rows, phases, x, profile, settings, cues.cue)
     if why is not None and kind == "lift" and "slipped" in why:
         need = grip_depth(profile, settings, config.motor, config.hand)
         half = 0.5 * float(profile.scene.object.size_m[0])  # type: ignore[index]
@@ -471,7 +634,7 @@ def explore(
                 f" (carrying it needs a {need * 1e3:.1f} mm pinch, more than the cube's "
                 f"{half * 1e3:.1f} mm half width: a stiffer or rougher object would do)"
             )
-    return cue, why
+    return cues, why
 
 
 # The pilot check's limits: the fingers on the cube over at least this share of the
@@ -598,12 +761,35 @@ def observer_overrides(config: ObserverConfig) -> list[str]:
     """What the observer changes in the base profile: the loop rate, and no force ramp
     (``safety.ramp_s``: the ramp after the daemon enables forces is long over when a
     subject's trial starts; each simulated interval is a fresh loop, and would otherwise
-    start inside it)."""
-    return [f"loop.rate_hz={config.rate_hz:g}", "safety.ramp_s=0"]
+    start inside it); with ``actuation_angle_deg``, each finger's actuated direction."""
+    out = [f"loop.rate_hz={config.rate_hz:g}", "safety.ramp_s=0"]
+    if config.actuation_angle_deg is not None:
+        a = math.radians(config.actuation_angle_deg)
+        c, s = math.cos(a), math.sin(a)
+        out += [
+            f"fingers[0].actuated_directions=[[{c!r}, 0.0, {s!r}]]",
+            f"fingers[1].actuated_directions=[[{-c!r}, 0.0, {s!r}]]",
+        ]
+    return out
+
+
+def _check_angle(exp: Experiment, config: ObserverConfig) -> None:
+    """ExperimentError unless the base profile can take ``config.actuation_angle_deg``:
+    two fingers of one actuated direction each (the angle replaces it)."""
+    if config.actuation_angle_deg is None:
+        return
+    base = load_profile(exp.profile_path())
+    counts = [len(f.actuated_directions) for f in base.fingers]
+    if counts != [1, 1]:
+        raise ExperimentError(
+            f"{base.source}: the observer's actuation angle replaces each of two fingers' one "
+            f"actuated direction; this profile's fingers have {counts} directions"
+        )
 
 
 def observer_profile(exp: Experiment, config: ObserverConfig) -> Profile:
     """The experiment's base profile as the observer runs it (``observer_overrides``)."""
+    _check_angle(exp, config)
     return load_profile(exp.profile_path(), observer_overrides(config))
 
 
@@ -630,6 +816,36 @@ def profile_from_document(doc: tuple[str, str]) -> Profile:
     return prof
 
 
+def explore_trial(
+    exp: Experiment,
+    profile: Profile,
+    config: ObserverConfig,
+    trial: PlannedTrial,
+    rng: np.random.Generator,
+) -> tuple[tuple[IntervalCues, IntervalCues], str | None]:
+    """Both intervals of ``trial`` explored in the loop, in order: their cues, and which
+    interval's exploration failed and why (None when neither did)."""
+    kind = exploration_kind(exp)
+    got = [
+        explore(kind, profile, interval_settings(exp, trial, s), config, rng) for s in (False, True)
+    ]
+    failed = [f"interval {i + 1}: {why}" for i, (_, why) in enumerate(got) if why is not None]
+    return (got[0][0], got[1][0]), ("; ".join(failed) if failed else None)
+
+
+def judge(
+    config: ObserverConfig,
+    index: int,
+    cues: tuple[IntervalCues, IntervalCues],
+    rng: np.random.Generator,
+) -> TrialResult:
+    """Trial ``index``'s answer from its intervals' cues by ``config.judgement``: a
+    percept per interval, in order; "yes" when the second is the larger."""
+    percept = JUDGEMENTS[config.judgement].percept
+    p = (percept(cues[0], config, rng), percept(cues[1], config, rng))
+    return TrialResult(index, bool(p[1] > p[0]), (cues[0].cue, cues[1].cue), p)
+
+
 def answer_trial(
     exp: Experiment,
     profile: Profile,
@@ -643,17 +859,40 @@ def answer_trial(
     cause (``failure``) when an exploration failed (``exploration_failure``).
     Deterministic for (seed, subject, trial.index)."""
     rng = trial_rng(seed, subject, trial.index)
-    kind = exploration_kind(exp)
-    got = [
-        explore(kind, profile, interval_settings(exp, trial, second), config, rng)
-        for second in (False, True)
-    ]
-    cues = (got[0][0], got[1][0])
-    failed = [f"interval {i + 1}: {why}" for i, (_, why) in enumerate(got) if why is not None]
-    if failed:
-        # Never judged from a broken cue.
-        return TrialResult(trial.index, None, cues, (math.nan, math.nan), "; ".join(failed))
-    percepts = [c + float(rng.normal(0.0, config.sense.sd(c))) for c in cues]
-    return TrialResult(
-        trial.index, bool(percepts[1] > percepts[0]), cues, (percepts[0], percepts[1])
-    )
+    cues, failure = explore_trial(exp, profile, config, trial, rng)
+    if failure is not None:
+        return failed_result(trial.index, cues, failure)
+    return judge(config, trial.index, cues, rng)
+
+
+def failed_result(index: int, cues: tuple[IntervalCues, IntervalCues], failure: str) -> TrialResult:
+    """A trial whose exploration failed: never judged from a broken cue."""
+    return TrialResult(index, None, (cues[0].cue, cues[1].cue), (math.nan, math.nan), failure)
+
+
+def answer_trial_judgements(
+    exp: Experiment,
+    profile: Profile,
+    configs: list[ObserverConfig],
+    trial: PlannedTrial,
+    subject: str,
+    seed: int,
+) -> list[TrialResult]:
+    """``answer_trial`` for each of ``configs`` from one exploration: the configs may
+    differ in how they judge, not in what they explore (the motor model, the hand, the
+    rate, the actuation angle: ValueError otherwise). Each answer equals its config's
+    ``answer_trial``: the explorations draw first from the trial's generator, and every
+    judgement continues from the state they left."""
+    explores = {(c.motor, tuple(c.hand.items()), c.rate_hz, c.actuation_angle_deg) for c in configs}
+    if len(explores) > 1:
+        raise ValueError("the configs explore differently: one exploration cannot serve them")
+    rng = trial_rng(seed, subject, trial.index)
+    cues, failure = explore_trial(exp, profile, configs[0], trial, rng)
+    if failure is not None:
+        return [failed_result(trial.index, cues, failure) for _ in configs]
+    state = rng.bit_generator.state
+    out = []
+    for config in configs:
+        rng.bit_generator.state = state
+        out.append(judge(config, trial.index, cues, rng))
+    return out

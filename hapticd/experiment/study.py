@@ -452,6 +452,14 @@ def cmd_study(args: Any) -> int:
 
         real: ProgressBar | None = None
     try:
+        judgement = getattr(args, "judgement", None)
+        angle = getattr(args, "actuation_angle_deg", None)
+        config = None
+        if judgement is not None or angle is not None:
+            exp = check_experiment(args.experiment)[0]
+            config = observer.default_config(
+                exp, judgement=judgement or "weber", actuation_angle_deg=angle
+            )
         result = run_study(
             args.experiment,
             args.observers,
@@ -462,6 +470,7 @@ def cmd_study(args: Any) -> int:
             repetitions=args.repetitions,
             scheduler=args.scheduler,
             progress=bar,
+            config=config,
         )
     except (ExperimentError, ProfileError, StoreError) as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
