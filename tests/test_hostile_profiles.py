@@ -13,6 +13,8 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import pytest
+
 from tests.hostile import ROOT, Case, generate
 
 CASE_DEADLINE_S = 10.0  # a hang; the slowest case takes milliseconds
@@ -83,9 +85,15 @@ def _judge(case: Case, path: Path, res: dict | None) -> tuple[str, str]:
     return "clear error", ""
 
 
-def test_hostile_profiles_give_clear_errors(tmp_path):
-    cases = list(generate())
-    assert len(cases) > 2000  # generated at every key: a schema walk that finds nothing fails
+# The cases in interleaved shards: separate tests, so the suite's workers share them.
+SHARDS = 4
+
+
+@pytest.mark.parametrize("shard", range(SHARDS))
+def test_hostile_profiles_give_clear_errors(tmp_path, shard):
+    every = list(generate())
+    assert len(every) > 2000  # generated at every key: a schema walk that finds nothing fails
+    cases = every[shard::SHARDS]
     worker = _Worker()
     outcomes: Counter[str] = Counter()
     failures: list[str] = []
@@ -113,7 +121,8 @@ def test_hostile_profiles_give_clear_errors(tmp_path):
     finally:
         worker.close()
     summary = (
-        f"hostile profiles: {len(cases)} tried in {time.monotonic() - t0:.1f} s "
+        f"hostile profiles, shard {shard + 1} of {SHARDS}: {len(cases)} tried in "
+        f"{time.monotonic() - t0:.1f} s "
         f"(slowest check {slowest * 1e3:.0f} ms): "
         + ", ".join(f"{k} {v}" for k, v in sorted(outcomes.items()))
     )
