@@ -47,11 +47,25 @@ ZERO3: V3 = (0.0, 0.0, 0.0)
 
 
 class Stage(Protocol):
-    """One step of a tick: reads and writes fields of the frame, nothing else of the tick."""
+    """One step of a tick: reads and writes fields of the frame, nothing else of the tick.
+
+    ``reads`` and ``writes`` name the frame fields (hapticd.frame) it reads and writes; the
+    renderer refuses a plan in which two stages write one field. A stage that declares
+    neither (a test's hook acting at a tick) is taken to touch no field; a test's fault
+    injector names the fields it spoils after their writer in ``corrupts``."""
 
     name: str
+    reads: tuple[str, ...]
+    writes: tuple[str, ...]
 
     def run(self, frame: Frame) -> None: ...
+
+
+HELD = ("proxy_pos", "surface_point", "contact_point")
+"""What friction makes of contact's results: the proxy shown, the fingertip's centre held
+on the object, the contact point."""
+FRICTIONLESS = ("frictionless_proxy", "frictionless_point", "frictionless_contact_point")
+"""Contact's results in a plan with friction (friction reads them and writes ``HELD``)."""
 
 
 def _unit(v: V3, fallback: V3) -> V3:
@@ -76,14 +90,15 @@ def _projector(directions: list[V3]) -> np.ndarray:
 class Contact:
     """God-object contact of spherical fingertips with the object, the ground and the walls.
 
-    Writes ``proxy_pos`` (the god-object proxy, outside every obstacle),
-    ``surface_point`` (the device pushed out of the object's active planes only,
-    frictionless), ``contact_normal``, ``in_contact``, ``contact_point`` and
-    ``env_force`` (the ground and walls' spring-damper force on each finger; only
-    a scene with surfaces writes it).
+    Writes the god-object proxy (outside every obstacle), the device pushed out of the
+    object's active planes only (frictionless) and the contact point into ``outputs``
+    (``HELD``: ``proxy_pos``, ``surface_point``, ``contact_point``; in a plan with friction
+    the renderer makes them ``FRICTIONLESS``), and ``contact_normal``, ``in_contact`` and
+    ``env_force`` (the ground and walls' spring-damper force on each finger).
     """
 
     name = "contact"
+    reads = ("device_pos", "device_vel")
 
     def __init__(
         self, scene: Scene, radii: list[float], kernel: Callable[..., int] | None = None
@@ -111,6 +126,18 @@ class Contact:
         self._sets: list[ObstacleSet] = []
         self._untouched: Frame | None = None  # the frame whose contact normals are all zero
         self._off_surfaces: Frame | None = None  # the frame whose env_force is all zero
+        self.outputs = HELD
+        self.carries = {"proxies": self._state}  # hapticd.frame.STATE
+
+    @property
+    def state(self) -> np.ndarray:
+        """The proxies (columns 0-2, m), the radii and the kernel's work space (F,
+        kernels.CONTACT_STATE), carried from tick to tick."""
+        return self._state
+
+    @property
+    def writes(self) -> tuple[str, ...]:
+        return ("in_contact", "contact_normal", "env_force", *self.outputs)
 
     def _obstacles(self) -> list[ObstacleSet]:
         """The obstacle sets per finger, rebuilt when the object has moved."""
@@ -183,19 +210,20 @@ class Contact:
             r = self.radii[i]
             points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
         # Assignment through [...] is the cheapest way numpy takes a list of tuples.
+        out_proxy, out_surface, out_point = (getattr(frame, n) for n in self.outputs)
         self._proxies[...] = proxies
-        frame.proxy_pos[...] = self._proxies
+        out_proxy[...] = self._proxies
         frame.in_contact[...] = touching
         if any(touching):
-            frame.surface_point[...] = held
-            frame.contact_point[...] = points
+            out_surface[...] = held
+            out_point[...] = points
             frame.contact_normal[...] = normals
             self._untouched = None
         else:
             # Nothing touches the object: every point is the proxy and every normal zero
             # (still zero if this frame was written so last tick). Array copies are cheaper.
-            frame.surface_point[...] = frame.proxy_pos
-            frame.contact_point[...] = frame.proxy_pos
+            out_surface[...] = out_proxy
+            out_point[...] = out_proxy
             if frame is not self._untouched:
                 frame.contact_normal.fill(0.0)
                 self._untouched = frame
@@ -212,15 +240,16 @@ class Contact:
         planes = self._kernel_planes()
         if planes is None:
             return False
+        out_proxy, out_surface, out_point = (getattr(frame, n) for n in self.outputs)
         outcome = self.kernel(  # type: ignore[misc]
             frame.device_pos,
             frame.device_vel,
             planes,
             self._state,
-            frame.proxy_pos,
+            out_proxy,
             frame.in_contact,
-            frame.surface_point,
-            frame.contact_point,
+            out_surface,
+            out_point,
             frame.contact_normal,
             frame.env_force,
         )
@@ -307,9 +336,13 @@ class Friction:
     The anchors live in ``anchors`` (F, kernels.FRICTION_COLUMNS: the anchor (3, m, body
     frame), 1.0 if it is set, the fingertip's radius (m)), which this code and the
     compiled kernel (hapticd.kernels.friction_step) both read and write.
+
+    Reads contact's results from ``inputs`` (``FRICTIONLESS`` in the renderer's plan;
+    ``HELD`` when run on its own: then it moves them in place) and writes ``HELD``.
     """
 
     name = "friction"
+    outputs = HELD
 
     def __init__(
         self, scene: Scene, radii: list[float], kernel: Callable[..., None] | None = None
@@ -323,9 +356,22 @@ class Friction:
         self._holding = False  # an anchor may be set
         self._params = np.zeros(kernels.FRICTION_PARAMS)
         self._params_for: Material | None = None
-        self._object = ObjectState()
+        self.inputs = HELD
+        self.carries = {"friction_anchors": self.anchors}  # hapticd.frame.STATE
+
+    @property
+    def reads(self) -> tuple[str, ...]:
+        return ("in_contact", "device_pos", "contact_normal", *self.inputs)
+
+    @property
+    def writes(self) -> tuple[str, ...]:
+        return self.outputs
 
     def run(self, frame: Frame) -> None:
+        if self.inputs != HELD:
+            # Contact's results are where friction starts; it moves them from there.
+            for src, dst in zip(self.inputs, HELD, strict=True):
+                getattr(frame, dst)[...] = getattr(frame, src)
         # Out of contact both paths return here: cheaper than a call to the kernel.
         touching = frame.in_contact.tolist()
         if not any(touching):
@@ -384,7 +430,7 @@ class Friction:
 
     def _run_kernel(self, frame: Frame, obj: SceneObject) -> None:
         """The same tick as ``run`` by the kernel, on the frame's arrays, the anchors and
-        the object's state array (``ObjectState``)."""
+        the object's ``state``."""
         mat = obj.material
         params = self._params
         if mat is not self._params_for:  # a Material is frozen: a change is a new one
@@ -399,7 +445,7 @@ class Friction:
             frame.proxy_pos,
             frame.contact_point,
             self.anchors,
-            self._object.of(obj),
+            obj.state,
             params,
         )
 
@@ -412,6 +458,8 @@ class Forces:
     """
 
     name = "forces"
+    reads = ("in_contact", "device_pos", "device_vel", "surface_point", "contact_normal")
+    writes = ("contact_force",)
 
     def __init__(self, scene: Scene, kernel: Callable[..., None] | None = None) -> None:
         self.scene = scene
@@ -419,7 +467,6 @@ class Forces:
         self.kernel = kernel
         self._params = np.zeros(kernels.FORCES_PARAMS)
         self._params_for: tuple[Material, bool] | None = None
-        self._object = ObjectState()
         self._still = np.zeros(kernels.STATE)  # a fixed object's motion: none is read
 
     def run(self, frame: Frame) -> None:
@@ -455,7 +502,7 @@ class Forces:
 
     def _run_kernel(self, frame: Frame, obj: SceneObject) -> None:
         """The same forces as ``run`` by the kernel, on the frame's arrays and (a free
-        object) the object's state array (``ObjectState``)."""
+        object) the object's ``state``."""
         mat, fixed = obj.material, obj.fixed
         made = self._params_for
         if made is None or made[0] is not mat or made[1] != fixed:
@@ -470,7 +517,7 @@ class Forces:
             frame.surface_point,
             frame.contact_normal,
             frame.contact_force,
-            self._still if fixed else self._object.of(obj),
+            self._still if fixed else obj.state,
             self._params,
         )
 
@@ -506,11 +553,13 @@ class Forces:
 class Allocation:
     """Projects the full contact forces onto the actuated directions (``ContactAllocator``).
 
-    Writes ``lam_a``, ``rendered_force`` (M_a lam_a per finger; zero out of
-    contact), the four accuracy measures and ``alpha``.
+    Writes ``lam_a``, M_a lam_a per finger (zero out of contact) into ``output``
+    (``rendered_force``, or ``allocated_force`` when the plan sums more than this into the
+    rendered force), the four accuracy measures and ``alpha``.
     """
 
     name = "allocation"
+    reads = ("in_contact", "device_pos", "contact_point", "contact_force")
 
     def __init__(
         self, scene: Scene, allocator: ContactAllocator, kernel: Callable[..., int] | None = None
@@ -525,6 +574,23 @@ class Allocation:
         self._accuracy = np.zeros(kernels.ACCURACY)
         self._local: np.ndarray | None = None  # the kernel's directions, for _local_for
         self._local_for: tuple[Actuation, object] | None = None
+        self.output = "rendered_force"
+
+    @property
+    def carries(self) -> dict[str, object]:
+        return {"allocator_blend": self.allocator.alpha}  # hapticd.frame.STATE
+
+    @property
+    def writes(self) -> tuple[str, ...]:
+        return (
+            "lam_a",
+            "residual_internal",
+            "residual_external",
+            "residual_total",
+            "amplification",
+            "alpha",
+            self.output,
+        )
 
     @property
     def actuation(self) -> Actuation:
@@ -550,8 +616,9 @@ class Allocation:
         frame.residual_external[()] = acc[1]
         frame.residual_total[()] = acc[2]
         frame.amplification[()] = acc[3]
+        out = getattr(frame, self.output)
         if lam_a is None:
-            frame.rendered_force.fill(0.0)
+            out.fill(0.0)
             frame.lam_a.fill(0.0)
             return
         frame.lam_a[...] = lam_a
@@ -564,7 +631,7 @@ class Allocation:
                 f[1] += x * d[1]
                 f[2] += x * d[2]
             rows[i] = (f[0], f[1], f[2])
-        frame.rendered_force[...] = rows
+        out[...] = rows
 
     def _run_kernel(self, frame: Frame) -> bool:
         """The same allocation as ``run`` by the kernel, on the frame's arrays; False (and
@@ -599,7 +666,7 @@ class Allocation:
             self._local,
             params,
             frame.lam_a,
-            frame.rendered_force,
+            getattr(frame, self.output),
             acc,
         )
         if outcome == kernels.MANY_CONTACTS:
@@ -617,23 +684,53 @@ class Allocation:
 
 
 class Environment:
-    """Renders the ground's and walls' force through each finger's own actuated directions
-    (adds to ``rendered_force``)."""
+    """Renders the ground's and walls' force through each finger's own actuated directions:
+    writes ``env_rendered`` (the output stage adds it to the rendered force)."""
 
     name = "environment"
+    reads = ("env_force", "device_pos")
+    writes = ("env_rendered",)
 
     def __init__(self, actuation: Actuation) -> None:
         self.actuation = actuation
+        self._zero: Frame | None = None  # the frame whose env_rendered is all zero
 
     def run(self, frame: Frame) -> None:
         env = frame.env_force.tolist()
+        out = frame.env_rendered
         if not any(any(e) for e in env):  # plain floats: numpy's any() costs more here
+            if frame is not self._zero:
+                out.fill(0.0)
+                self._zero = frame
             return
+        self._zero = None
         world = self.actuation.world_directions(frame.device_pos.tolist())
-        rendered = frame.rendered_force
         for i, e in enumerate(env):
             if any(e):
-                rendered[i] += _projector(world[i]) @ np.array(e)
+                out[i] = _projector(world[i]) @ np.array(e)
+            else:
+                out[i] = 0.0
+
+
+class Output:
+    """The rendered force: the sum of the contributions the plan has (``inputs``: the
+    allocated force, then the environment's, then the passivity controller's), in that
+    order; the only writer of ``rendered_force``."""
+
+    name = "output"
+    writes = ("rendered_force",)
+
+    def __init__(self, inputs: tuple[str, ...]) -> None:
+        if len(inputs) < 2:
+            raise ValueError("the output stage sums two or more contributions")
+        self.reads = inputs
+
+    def run(self, frame: Frame) -> None:
+        first, second, *rest = self.reads
+        out = frame.rendered_force
+        np.add(getattr(frame, first), getattr(frame, second), out=out)
+        for name in rest:
+            np.add(out, getattr(frame, name), out=out)
 
 
 class Passivity:
@@ -641,14 +738,15 @@ class Passivity:
     port has absorbed and adds the least damping along that finger's actuated directions
     that keeps it from going negative.
 
-    Runs after the last stage that writes ``rendered_force`` (allocation, or environment
-    with ground or walls), so it observes the whole rendered force; rewrites
-    ``rendered_force`` where it adds damping, and writes ``passivity_energy`` (J) and
-    ``passivity_damping`` (N s/m) every tick. Keeps each finger's observed energy and
-    last position; the first tick sees no motion.
+    Observes the sum of the contributions before it (``inputs``: the allocated force, and
+    the environment's with ground or walls), the whole rendered force but its own;
+    writes its damping force to ``passivity_force`` (the output stage adds it),
+    ``passivity_energy`` (J) and ``passivity_damping`` (N s/m) every tick. Keeps each
+    finger's observed energy and last position; the first tick sees no motion.
     """
 
     name = "passivity"
+    writes = ("passivity_force", "passivity_energy", "passivity_damping")
 
     def __init__(
         self, allocator: ContactAllocator, params: PassivityParams, n_fingers: int, dt: float
@@ -656,11 +754,24 @@ class Passivity:
         self.allocator = allocator  # its actuation is read every tick: it may change live
         self.params = params
         self.dt = dt
-        self._energy = [0.0] * n_fingers
+        # The state it carries (hapticd.frame.STATE): each finger's observed energy (J) and
+        # last position (m; None before the first tick, which sees no motion).
+        self.energy = [0.0] * n_fingers
         self._damping = [0.0] * n_fingers
-        self._prev: list[list[float]] | None = None
+        self.last_pos: list[list[float]] | None = None
         self._basis_for: Actuation | None = None
         self._basis: list[list[V3]] = []
+        self.inputs: tuple[str, ...] = ("allocated_force",)
+        self._undamped: Frame | None = None  # the frame whose passivity_force is all zero
+
+    @property
+    def reads(self) -> tuple[str, ...]:
+        return ("device_pos", *self.inputs)
+
+    @property
+    def carries(self) -> dict[str, object]:
+        # hapticd.frame.STATE
+        return {"passivity_energy": self.energy, "passivity_last_pos": self.last_pos}
 
     def _bases(self, pos: list[list[float]]) -> list[list[V3]]:
         """Orthonormal bases of each finger's actuated directions in the world (cached while
@@ -675,10 +786,17 @@ class Passivity:
 
     def run(self, frame: Frame) -> None:
         pos = frame.device_pos.tolist()
-        prev = self._prev if self._prev is not None else pos
-        self._prev = pos
-        forces = frame.rendered_force.tolist()
-        energy, damping = self._energy, self._damping
+        prev = self.last_pos if self.last_pos is not None else pos
+        self.last_pos = pos
+        first, *rest = self.inputs
+        forces = getattr(frame, first).tolist()
+        for name in rest:  # the same sums the output stage makes
+            more = getattr(frame, name).tolist()
+            forces = [
+                [a[0] + b[0], a[1] + b[1], a[2] + b[2]] for a, b in zip(forces, more, strict=True)
+            ]
+        added = [ZERO3] * len(forces)
+        energy, damping = self.energy, self._damping
         dt, params = self.dt, self.params
         bases = None
         damped = False
@@ -694,7 +812,7 @@ class Passivity:
                 e, alpha = control(e, du, dt, params)
                 if alpha > 0.0:
                     c = alpha / dt  # the damping force is -alpha P_a v, v = dx / T
-                    forces[i] = [f[0] - c * du[0], f[1] - c * du[1], f[2] - c * du[2]]
+                    added[i] = (-(c * du[0]), -(c * du[1]), -(c * du[2]))
                     damped = True
             elif not e >= 0.0:  # NaN: a non-finite position or force; keep the last energy
                 e = energy[i]
@@ -703,7 +821,11 @@ class Passivity:
         frame.passivity_energy[...] = energy
         frame.passivity_damping[...] = damping
         if damped:
-            frame.rendered_force[...] = forces
+            frame.passivity_force[...] = added
+            self._undamped = None
+        elif frame is not self._undamped:  # zero once per frame (a reload keeps the loop's)
+            frame.passivity_force.fill(0.0)
+            self._undamped = frame
 
 
 class Dynamics:
@@ -715,6 +837,8 @@ class Dynamics:
     """
 
     name = "dynamics"
+    reads = ("in_contact", "contact_point", "contact_force", "contact_normal")
+    writes = ()  # the object's pose and motion (the scene's object)
 
     def __init__(
         self, scene: Scene, n_fingers: int, dt: float, kernel: Callable[..., None] | None = None
@@ -734,9 +858,12 @@ class Dynamics:
         self.small = len(obj.shape.vertices) <= SMALL_SHAPE
         self._prepared: SmallBody | None = None  # the small step's cache (shape, mass)
         self._arrays: _BodyArrays | None = None  # the kernel's (shape, mass, surfaces)
-        self._object = ObjectState()
         self._scratch = np.zeros((n_fingers, kernels.SCRATCH_COLUMNS))
         self._gravity = np.zeros(3) if self.gravity is None else np.array(self.gravity, float)
+
+    @property
+    def carries(self) -> dict[str, object]:
+        return {"object_state": self.scene.object.state}  # hapticd.frame.STATE
 
     @property
     def effects(self) -> list[str]:
@@ -798,15 +925,12 @@ class Dynamics:
 
     def _run_kernel(self, frame: Frame) -> None:
         """The same step as ``run`` by the kernel, on the frame's arrays and the object's
-        state, which lives in a state array (``ObjectState``: the object's position,
-        velocity, omega and rotation are views of it, put there again whenever someone has
-        put other arrays in their place)."""
+        ``state`` (its position, velocity, omega and rotation are views of it)."""
         obj = self.scene.object
         arr = self._arrays
         if arr is None or not arr.fits(obj, self.surfaces):
             arr = self._arrays = _BodyArrays(obj, self.surfaces, self.dt, self.substeps)
             arr.params[6:9] = self._gravity
-        state = self._object.of(obj)
         mat = obj.material
         params = arr.params
         params[0] = mat.stiffness
@@ -817,7 +941,7 @@ class Dynamics:
             frame.contact_force,
             frame.contact_normal,
             params,
-            state,
+            obj.state,
             arr.body,
             arr.surf,
             self._scratch,
@@ -829,7 +953,7 @@ class _BodyArrays:
     """The free-body kernel's arrays for an object's shape and mass and the surfaces
     (``SmallBody``'s numbers; hapticd.kernels.free_body_step says the layouts): params,
     body (inertia, its inverse and the vertices) and surfaces. The object's state is its
-    ``ObjectState``."""
+    ``state``."""
 
     def __init__(
         self, obj: SceneObject, surfaces: SurfaceSet | None, dt: float, substeps: int
@@ -848,70 +972,6 @@ class _BodyArrays:
         return obj.shape is self.shape and obj.mass == self.mass and surfaces is self.surfaces
 
 
-def _state_views(state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """x, v, w (3,) and R (3, 3) as views of a state array (kernels.STATE)."""
-    return state[0:3], state[3:6], state[6:9], state[9:18].reshape(3, 3)
-
-
-def _same_view(a: object, b: np.ndarray) -> bool:
-    """Whether ``a`` is an array looking at the very memory ``b`` does, as ``b`` does."""
-    return (
-        isinstance(a, np.ndarray)
-        and a.dtype == b.dtype
-        and a.shape == b.shape
-        and a.strides == b.strides
-        and a.__array_interface__["data"][0] == b.__array_interface__["data"][0]
-    )
-
-
-class ObjectState:
-    """The object's state as one array for the kernels (hapticd.kernels.STATE: x (3, m),
-    v (3, m/s), w (3, rad/s), R (9, row by row)) whose views are the object's
-    ``position``, ``velocity``, ``omega`` and ``rotation``.
-
-    Every stage with a kernel that reads or writes the object holds one; they share the
-    array: ``of`` finds the one the object's arrays are views of, or, when someone has put
-    other arrays in their place (a reset, the Python dynamics), makes a new one with the
-    object's state copied in and makes the object's arrays views of it.
-    """
-
-    def __init__(self) -> None:
-        self.state = np.zeros(kernels.STATE)
-        self._views: tuple[np.ndarray, ...] = ()
-
-    def of(self, obj: SceneObject) -> np.ndarray:
-        """The object's state array (kernels.STATE,), read and written in place."""
-        v = self._views
-        if (
-            v
-            and obj.position is v[0]
-            and obj.velocity is v[1]
-            and obj.omega is v[2]
-            and obj.rotation is v[3]
-        ):
-            return self.state
-        arrays = (obj.position, obj.velocity, obj.omega, obj.rotation)
-        state = getattr(arrays[0], "base", None)
-        if not (
-            isinstance(state, np.ndarray)
-            and state.shape == (kernels.STATE,)
-            and state.dtype == np.float64
-            and state.flags.c_contiguous
-            and state.flags.writeable
-            and all(_same_view(a, b) for a, b in zip(arrays, _state_views(state), strict=True))
-        ):
-            state = np.zeros(kernels.STATE)
-            x, u, w, R = _state_views(state)
-            x[:] = np.asarray(obj.position, dtype=float).reshape(3)
-            u[:] = np.asarray(obj.velocity, dtype=float).reshape(3)
-            w[:] = np.asarray(obj.omega, dtype=float).reshape(3)
-            R[:] = np.asarray(obj.rotation, dtype=float).reshape(3, 3)
-            obj.position, obj.velocity, obj.omega, obj.rotation = x, u, w, R
-        self.state = state
-        self._views = (obj.position, obj.velocity, obj.omega, obj.rotation)
-        return state
-
-
 class SceneState:
     """Publishes the scene's state after the tick: the object's pose, stiffness and mass,
     and the allocator in use (an index into ``methods``).
@@ -921,6 +981,8 @@ class SceneState:
     """
 
     name = "scene"
+    reads = ()
+    writes = ("object_pos", "object_rot", "stiffness_n_per_m", "mass_kg", "allocator")
 
     def __init__(self, scene: Scene, allocator: ContactAllocator, methods: tuple[str, ...]) -> None:
         self.scene = scene
