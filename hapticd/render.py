@@ -162,17 +162,18 @@ class Renderer:
         self._friction.kernel = self.kernels.get("friction_step")
         self._allocation.kernel = self.kernels.get("allocation_step")
         stages += [Forces(sc, self.kernels.get("forces_step")), self._allocation]
-        parts = ["allocated_force"]
+        parts: list[tuple[str, Environment | Passivity]] = []
         if sc.surfaces:
-            stages.append(Environment(self.allocator.actuation))
-            parts.append("env_rendered")
+            environment = Environment(self.allocator.actuation)
+            stages.append(environment)
+            parts.append(("env_rendered", environment))
         if self._passivity is not None:  # it sees every other contribution
-            self._passivity.inputs = tuple(parts)
+            self._passivity.inputs = ("allocated_force", *(name for name, _ in parts))
             stages.append(self._passivity)
-            parts.append("passivity_force")
+            parts.append(("passivity_force", self._passivity))
         output = self._output
-        if output is None and len(parts) > 1:
-            output = Output(tuple(parts))
+        if output is None and parts:
+            output = Output(parts)
         self._allocation.output = "rendered_force" if output is None else "allocated_force"
         if output is not None:
             stages.append(output)

@@ -68,6 +68,24 @@ FRICTIONLESS = ("frictionless_proxy", "frictionless_point", "frictionless_contac
 """Contact's results in a plan with friction (friction reads them and writes ``HELD``)."""
 
 
+class _Fields:
+    """The views of some fields of a frame, looked up once per frame and names (a stage
+    whose fields the plan binds keeps one: a lookup per tick costs more than the check)."""
+
+    __slots__ = ("_frame", "_names", "views")
+
+    def __init__(self) -> None:
+        self._frame: Frame | None = None
+        self._names: tuple[str, ...] = ()
+        self.views: tuple[np.ndarray, ...] = ()
+
+    def of(self, frame: Frame, names: tuple[str, ...]) -> tuple[np.ndarray, ...]:
+        if frame is not self._frame or names is not self._names:
+            self.views = tuple(getattr(frame, n) for n in names)
+            self._frame, self._names = frame, names
+        return self.views
+
+
 def _unit(v: V3, fallback: V3) -> V3:
     n = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     return (v[0] / n, v[1] / n, v[2] / n) if n > 1e-15 else fallback
@@ -127,6 +145,7 @@ class Contact:
         self._untouched: Frame | None = None  # the frame whose contact normals are all zero
         self._off_surfaces: Frame | None = None  # the frame whose env_force is all zero
         self.outputs = HELD
+        self._out = _Fields()
         self.carries = {"proxies": self._state}  # hapticd.frame.STATE
 
     @property
@@ -210,7 +229,7 @@ class Contact:
             r = self.radii[i]
             points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
         # Assignment through [...] is the cheapest way numpy takes a list of tuples.
-        out_proxy, out_surface, out_point = (getattr(frame, n) for n in self.outputs)
+        out_proxy, out_surface, out_point = self._out.of(frame, self.outputs)
         self._proxies[...] = proxies
         out_proxy[...] = self._proxies
         frame.in_contact[...] = touching
@@ -240,7 +259,7 @@ class Contact:
         planes = self._kernel_planes()
         if planes is None:
             return False
-        out_proxy, out_surface, out_point = (getattr(frame, n) for n in self.outputs)
+        out_proxy, out_surface, out_point = self._out.of(frame, self.outputs)
         outcome = self.kernel(  # type: ignore[misc]
             frame.device_pos,
             frame.device_vel,
@@ -356,8 +375,17 @@ class Friction:
         self._holding = False  # an anchor may be set
         self._params = np.zeros(kernels.FRICTION_PARAMS)
         self._params_for: Material | None = None
-        self.inputs = HELD
+        self._inputs = HELD
         self.carries = {"friction_anchors": self.anchors}  # hapticd.frame.STATE
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """The fields it reads contact's results from (``FRICTIONLESS`` or ``HELD``)."""
+        return self._inputs
+
+    @inputs.setter
+    def inputs(self, names: tuple[str, ...]) -> None:
+        self._inputs = HELD if tuple(names) == HELD else tuple(names)
 
     @property
     def reads(self) -> tuple[str, ...]:
@@ -368,10 +396,11 @@ class Friction:
         return self.outputs
 
     def run(self, frame: Frame) -> None:
-        if self.inputs != HELD:
+        if self._inputs is not HELD:
             # Contact's results are where friction starts; it moves them from there.
-            for src, dst in zip(self.inputs, HELD, strict=True):
-                getattr(frame, dst)[...] = getattr(frame, src)
+            frame.proxy_pos[...] = getattr(frame, self._inputs[0])
+            frame.surface_point[...] = getattr(frame, self._inputs[1])
+            frame.contact_point[...] = getattr(frame, self._inputs[2])
         # Out of contact both paths return here: cheaper than a call to the kernel.
         touching = frame.in_contact.tolist()
         if not any(touching):
@@ -574,7 +603,18 @@ class Allocation:
         self._accuracy = np.zeros(kernels.ACCURACY)
         self._local: np.ndarray | None = None  # the kernel's directions, for _local_for
         self._local_for: tuple[Actuation, object] | None = None
-        self.output = "rendered_force"
+        self._out = _Fields()
+        self._output = ("rendered_force",)
+
+    @property
+    def output(self) -> str:
+        """The field M_a lam_a goes to: ``rendered_force`` or ``allocated_force``."""
+        return self._output[0]
+
+    @output.setter
+    def output(self, name: str) -> None:
+        if name != self._output[0]:
+            self._output = (name,)
 
     @property
     def carries(self) -> dict[str, object]:
@@ -616,7 +656,7 @@ class Allocation:
         frame.residual_external[()] = acc[1]
         frame.residual_total[()] = acc[2]
         frame.amplification[()] = acc[3]
-        out = getattr(frame, self.output)
+        out = self._out.of(frame, self._output)[0]
         if lam_a is None:
             out.fill(0.0)
             frame.lam_a.fill(0.0)
@@ -666,7 +706,7 @@ class Allocation:
             self._local,
             params,
             frame.lam_a,
-            getattr(frame, self.output),
+            self._out.of(frame, self._output)[0],
             acc,
         )
         if outcome == kernels.MANY_CONTACTS:
@@ -693,17 +733,17 @@ class Environment:
 
     def __init__(self, actuation: Actuation) -> None:
         self.actuation = actuation
-        self._zero: Frame | None = None  # the frame whose env_rendered is all zero
+        self.zero_on: Frame | None = None  # the frame whose env_rendered is all zero
 
     def run(self, frame: Frame) -> None:
         env = frame.env_force.tolist()
-        out = frame.env_rendered
         if not any(any(e) for e in env):  # plain floats: numpy's any() costs more here
-            if frame is not self._zero:
-                out.fill(0.0)
-                self._zero = frame
+            if frame is not self.zero_on:
+                frame.env_rendered.fill(0.0)
+                self.zero_on = frame
             return
-        self._zero = None
+        self.zero_on = None
+        out = frame.env_rendered
         world = self.actuation.world_directions(frame.device_pos.tolist())
         for i, e in enumerate(env):
             if any(e):
@@ -713,24 +753,34 @@ class Environment:
 
 
 class Output:
-    """The rendered force: the sum of the contributions the plan has (``inputs``: the
-    allocated force, then the environment's, then the passivity controller's), in that
-    order; the only writer of ``rendered_force``."""
+    """The rendered force: the allocated force plus the other contributions the plan has
+    (``parts``: field and stage, the environment's, then the passivity controller's), in
+    that order; the only writer of ``rendered_force``. A contribution whose stage says it
+    is all zero on this frame (its ``zero_on``) is not added: the same numbers."""
 
     name = "output"
     writes = ("rendered_force",)
 
-    def __init__(self, inputs: tuple[str, ...]) -> None:
-        if len(inputs) < 2:
+    def __init__(self, parts: list[tuple[str, Environment | Passivity]]) -> None:
+        if not parts:
             raise ValueError("the output stage sums two or more contributions")
-        self.reads = inputs
+        self.reads = ("allocated_force", *(name for name, _ in parts))
+        self._parts = parts
+        self._frame: Frame | None = None
+        self._more: list[tuple[np.ndarray, Environment | Passivity]] = []
 
     def run(self, frame: Frame) -> None:
-        first, second, *rest = self.reads
+        if frame is not self._frame:
+            self._frame = frame
+            self._more = [(getattr(frame, name), stage) for name, stage in self._parts]
         out = frame.rendered_force
-        np.add(getattr(frame, first), getattr(frame, second), out=out)
-        for name in rest:
-            np.add(out, getattr(frame, name), out=out)
+        total = frame.allocated_force
+        for view, stage in self._more:
+            if stage.zero_on is not frame:
+                np.add(total, view, out=out)
+                total = out
+        if total is not out:
+            out[...] = total
 
 
 class Passivity:
@@ -762,7 +812,7 @@ class Passivity:
         self._basis_for: Actuation | None = None
         self._basis: list[list[V3]] = []
         self.inputs: tuple[str, ...] = ("allocated_force",)
-        self._undamped: Frame | None = None  # the frame whose passivity_force is all zero
+        self.zero_on: Frame | None = None  # the frame whose passivity_force is all zero
 
     @property
     def reads(self) -> tuple[str, ...]:
@@ -822,10 +872,10 @@ class Passivity:
         frame.passivity_damping[...] = damping
         if damped:
             frame.passivity_force[...] = added
-            self._undamped = None
-        elif frame is not self._undamped:  # zero once per frame (a reload keeps the loop's)
+            self.zero_on = None
+        elif frame is not self.zero_on:  # zero once per frame (a reload keeps the loop's)
             frame.passivity_force.fill(0.0)
-            self._undamped = frame
+            self.zero_on = frame
 
 
 class Dynamics:
