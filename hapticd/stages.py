@@ -372,7 +372,7 @@ class Friction:
         self.kernel = kernel
         self.anchors = np.zeros((len(radii), kernels.FRICTION_COLUMNS))
         self.anchors[:, kernels.FINGER_RADIUS] = radii
-        self._holding = False  # an anchor may be set
+        self.holding = False  # an anchor may be set (out of contact, clear them only then)
         self._params = np.zeros(kernels.FRICTION_PARAMS)
         self._params_for: Material | None = None
         self._inputs = HELD
@@ -404,11 +404,11 @@ class Friction:
         # Out of contact both paths return here: cheaper than a call to the kernel.
         touching = frame.in_contact.tolist()
         if not any(touching):
-            if self._holding:
+            if self.holding:
                 self.anchors[:, kernels.ANCHOR_SET] = 0.0
-                self._holding = False
+                self.holding = False
             return
-        self._holding = True
+        self.holding = True
         obj = self.scene.object
         if self.kernel is not None:
             self._run_kernel(frame, obj)

@@ -143,7 +143,7 @@ def _run(case: dict, paths: list) -> list[dict[str, np.ndarray]]:
     forces = Forces(scene)
     frame = Frame(n, n)
     friction.anchors[:, :4] = case["ticks"][0]["anchors"][:, :4]
-    friction._holding = True  # the anchors above were set on a tick before these
+    friction.holding = True  # the anchors above were set on a tick before these
     out = []
     for tick, path in zip(case["ticks"], paths, strict=True):
         for name, value in tick["fields"].items():
@@ -228,7 +228,7 @@ def test_an_anchor_within_the_static_cone_sticks_and_one_beyond_slips(
     frame.device_pos[0] = (0.0, 0.0, top - depth)
     frame.contact_normal[0] = (0.0, 0.0, 1.0)
     friction.anchors[0, :4] = (-reach * mu_s * depth, 0.0, top, 1.0)
-    friction._holding = True
+    friction.holding = True
     friction.run(frame)
     forces.run(frame)
     x = -expected * mu_s * depth
