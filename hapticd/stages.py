@@ -376,6 +376,7 @@ class Friction:
         self._params = np.zeros(kernels.FRICTION_PARAMS)
         self._params_for: Material | None = None
         self._inputs = HELD
+        self._in = _Fields()
         self.carries = {"friction_anchors": self.anchors}  # hapticd.frame.STATE
 
     @property
@@ -396,34 +397,36 @@ class Friction:
         return self.outputs
 
     def run(self, frame: Frame) -> None:
-        if self._inputs is not HELD:
-            # Contact's results are where friction starts; it moves them from there.
-            frame.proxy_pos[...] = getattr(frame, self._inputs[0])
-            frame.surface_point[...] = getattr(frame, self._inputs[1])
-            frame.contact_point[...] = getattr(frame, self._inputs[2])
+        # Contact's results (its proxy, surface point and contact point), where friction
+        # starts from.
+        god_in, plain_in, point_in = self._in.of(frame, self._inputs)
         # Out of contact both paths return here: cheaper than a call to the kernel.
         touching = frame.in_contact.tolist()
         if not any(touching):
             if self.holding:
                 self.anchors[:, kernels.ANCHOR_SET] = 0.0
                 self.holding = False
+            if self._inputs is not HELD:
+                frame.proxy_pos[...] = god_in
+                frame.surface_point[...] = plain_in
+                frame.contact_point[...] = point_in
             return
         self.holding = True
         obj = self.scene.object
         if self.kernel is not None:
-            self._run_kernel(frame, obj)
+            self._run_kernel(frame, obj, god_in, plain_in, point_in)
             return
         mat = obj.material
         (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = obj.rotation.tolist()
         x0, x1, x2 = obj.position.tolist()
         anchors = self.anchors.tolist()
         pos = frame.device_pos.tolist()
-        plain = frame.surface_point.tolist()  # frictionless, as contact wrote them
+        plain = plain_in.tolist()  # frictionless, as contact wrote them
         held = list(plain)
         normals = frame.contact_normal.tolist()
-        god = frame.proxy_pos.tolist()
+        god = god_in.tolist()
         shown = list(god)
-        points = frame.contact_point.tolist()
+        points = point_in.tolist()
         for i, on in enumerate(touching):
             a = anchors[i]
             if not on:
@@ -457,7 +460,14 @@ class Friction:
         frame.proxy_pos[...] = shown
         frame.contact_point[...] = points
 
-    def _run_kernel(self, frame: Frame, obj: SceneObject) -> None:
+    def _run_kernel(
+        self,
+        frame: Frame,
+        obj: SceneObject,
+        god_in: np.ndarray,
+        plain_in: np.ndarray,
+        point_in: np.ndarray,
+    ) -> None:
         """The same tick as ``run`` by the kernel, on the frame's arrays, the anchors and
         the object's ``state``."""
         mat = obj.material
@@ -469,6 +479,9 @@ class Friction:
         self.kernel(  # type: ignore[misc]
             frame.in_contact,
             frame.device_pos,
+            plain_in,
+            god_in,
+            point_in,
             frame.surface_point,
             frame.contact_normal,
             frame.proxy_pos,
