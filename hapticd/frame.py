@@ -77,7 +77,10 @@ FIELDS: tuple[FrameField, ...] = (
     FrameField("amplification", "<f8", (), "", "|M_a lam_a| / |lam| (0 without force)"),
     FrameField("alpha", "<f8", (), "", "external weight of the adaptive allocator (0 otherwise)"),
     FrameField("env_force", "<f8", F3, "N", "force on each finger from the ground and walls"),
+    # The object's state in SceneObject.state's order (x, v, w, R): one copy publishes it.
     FrameField("object_pos", "<f8", (3,), "m", "object centre of mass (the grasp reference point)"),
+    FrameField("object_vel", "<f8", (3,), "m/s", "object velocity (0 for a fixed object)"),
+    FrameField("object_omega", "<f8", (3,), "rad/s", "object angular velocity, world frame"),
     FrameField("object_rot", "<f8", (3, 3), "", "object orientation (columns: body axes in world)"),
     FrameField("fault", "u1", (), "", "a safety fault is latched (0/1)"),
     FrameField(
@@ -220,7 +223,7 @@ STATE: tuple[StateField, ...] = (
         "m, m/s, rad/s",
         "the object's position, velocity, spin and rotation (row by row); a fixed object's "
         "never changes",
-        "object_pos, object_rot",
+        "object_pos, object_vel, object_omega, object_rot",
     ),
     StateField(
         "allocator_blend",

@@ -1036,8 +1036,8 @@ class _BodyArrays:
 
 
 class SceneState:
-    """Publishes the scene's state after the tick: the object's pose, stiffness and mass,
-    and the allocator in use (an index into ``methods``).
+    """Publishes the scene's state after the tick: the object's pose and motion (its state,
+    in one copy), stiffness and mass, and the allocator in use (an index into ``methods``).
 
     Made anew whenever the plan changes, so the parameters are written once per frame
     and the pose on every tick only when the object can move.
@@ -1045,22 +1045,43 @@ class SceneState:
 
     name = "scene"
     reads = ()
-    writes = ("object_pos", "object_rot", "stiffness_n_per_m", "mass_kg", "allocator")
+    writes = (
+        "object_pos",
+        "object_vel",
+        "object_omega",
+        "object_rot",
+        "stiffness_n_per_m",
+        "mass_kg",
+        "allocator",
+    )
 
     def __init__(self, scene: Scene, allocator: ContactAllocator, methods: tuple[str, ...]) -> None:
         self.scene = scene
         self.allocator = allocator
         self.methods = methods
         self._written: Frame | None = None
+        self._state = np.zeros(18)
 
     def run(self, frame: Frame) -> None:
         obj = self.scene.object
         if frame is self._written and obj.fixed:
             return
-        frame.object_pos[:] = obj.position
-        frame.object_rot[:] = obj.rotation
+        if frame is not self._written:
+            self._state = _object_fields(frame)
+        self._state[...] = obj.state
         if frame is not self._written:
             frame.stiffness_n_per_m[()] = obj.material.stiffness
             frame.mass_kg[()] = obj.mass
             frame.allocator[()] = self.methods.index(self.allocator.method)
             self._written = frame
+
+
+def _object_fields(frame: Frame) -> np.ndarray:
+    """The frame's object_pos, object_vel, object_omega and object_rot as one (18,) float
+    view, in SceneObject.state's order (they are adjacent in the record)."""
+    fields = frame.dtype.fields
+    start = fields["object_pos"][1]
+    if fields["object_rot"][1] != start + 9 * 8:
+        raise RuntimeError("frame fields: object_pos, _vel, _omega and _rot must be adjacent")
+    raw = frame.record.reshape(1).view(np.uint8)[start : start + 18 * 8]
+    return raw.view("<f8")
