@@ -576,7 +576,7 @@ def bringup(args: argparse.Namespace, stdin: IO[str] | None = None) -> int:
     session.renderer.obj.fixed = True
     session.renderer.plan()
     stage = PulseStage(len(profile.fingers), loop.period, PULSE_RAMP_S, PULSE_HOLD_S)
-    session.renderer.insert(stage, after=session.renderer.stage_names[-1])
+    session.renderer.set_output(stage)
     report.data.update(
         hapticd=__version__,
         profile=str(args.profile),

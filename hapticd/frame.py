@@ -10,8 +10,10 @@ bytes), and the control server's status and telemetry read the frame.
 
 Data flows one way through a tick: the device bank fills the device state, the
 renderer's stages fill proxies, contact forces, allocation and the scene's
-state, the safety chain fills ``device_force`` and ``fault``, the device bank
-writes ``device_force``.
+state, the safety chain fills ``device_force`` and the loop ``fault``, the device bank
+writes ``device_force`` to the devices. Every field has one writer: ``LOOP_WRITERS``
+names those outside the renderer; each stage declares what it reads and writes and
+the renderer refuses a plan with two writers of a field.
 """
 
 from __future__ import annotations
@@ -75,7 +77,10 @@ FIELDS: tuple[FrameField, ...] = (
     FrameField("amplification", "<f8", (), "", "|M_a lam_a| / |lam| (0 without force)"),
     FrameField("alpha", "<f8", (), "", "external weight of the adaptive allocator (0 otherwise)"),
     FrameField("env_force", "<f8", F3, "N", "force on each finger from the ground and walls"),
+    # The object's state in SceneObject.state's order (x, v, w, R): one copy publishes it.
     FrameField("object_pos", "<f8", (3,), "m", "object centre of mass (the grasp reference point)"),
+    FrameField("object_vel", "<f8", (3,), "m/s", "object velocity (0 for a fixed object)"),
+    FrameField("object_omega", "<f8", (3,), "rad/s", "object angular velocity, world frame"),
     FrameField("object_rot", "<f8", (3, 3), "", "object orientation (columns: body axes in world)"),
     FrameField("fault", "u1", (), "", "a safety fault is latched (0/1)"),
     FrameField(
@@ -124,9 +129,153 @@ FIELDS: tuple[FrameField, ...] = (
     ),
     # Hand-offs within a tick, not recorded.
     FrameField("surface_point", "<f8", F3, "m", "fingertip centre held on the object", False),
+    # Contact's results before friction moves them (written only when friction is planned;
+    # without friction contact writes proxy_pos, surface_point and contact_point itself).
+    FrameField("frictionless_proxy", "<f8", F3, "m", "god-object proxy before friction", False),
+    FrameField(
+        "frictionless_point", "<f8", F3, "m", "fingertip centre on the object, frictionless", False
+    ),
+    FrameField(
+        "frictionless_contact_point", "<f8", F3, "m", "contact point before friction", False
+    ),
+    # The rendered force's contributions, each with its own writer; the renderer's output
+    # stage sums those in the plan into rendered_force (allocation writes rendered_force
+    # itself when it is the only one).
+    FrameField("allocated_force", "<f8", F3, "N", "finger i's rows of M_a lam_a", False),
+    FrameField(
+        "env_rendered",
+        "<f8",
+        F3,
+        "N",
+        "env_force through each finger's actuated directions (projected onto their span)",
+        False,
+    ),
+    FrameField(
+        "passivity_force",
+        "<f8",
+        F3,
+        "N",
+        "the passivity controller's damping force along each finger's actuated directions",
+        False,
+    ),
 )
 
+LOOP_WRITERS: dict[str, str] = {
+    "t": "the loop",
+    "t_wall": "the loop",
+    "tick": "the loop",
+    "compute_s": "the loop",
+    "control_seq": "the loop",
+    "fault": "the loop",
+    "device_pos": "the device bank",
+    "device_vel": "the device bank",
+    "buttons": "the device bank",
+    "device_force": "the safety chain",
+}
+"""The frame's fields written outside the renderer, and by whom: the loop (hapticd.servo),
+the device bank (hapticd.device_bank) or the safety chain (hapticd.safety). Every other
+field is written by exactly one stage of the renderer's plan (hapticd.render checks it
+when it plans)."""
+
+
+@dataclass(frozen=True)
+class StateField:
+    """One quantity a tick carries to the next: its one ``writer`` (a stage's name, or a
+    part of the loop), the attribute it lives in (``where``), its shape and SI unit.
+
+    The frame holds what one tick hands from stage to stage; these are what the next tick
+    starts from. Where one is also a frame field (``recorded_as``), the recording has it.
+    """
+
+    name: str
+    writer: str
+    where: str
+    shape: str
+    unit: str
+    doc: str
+    recorded_as: str = ""
+
+
+STATE: tuple[StateField, ...] = (
+    StateField(
+        "proxies",
+        "contact",
+        "Contact.state",
+        "(F, kernels.CONTACT_STATE)",
+        "m",
+        "each finger's god-object proxy (columns 0-2), its radius and the contact "
+        "kernel's work space; the first tick puts each proxy at its device",
+    ),
+    StateField(
+        "friction_anchors",
+        "friction",
+        "Friction.anchors",
+        "(F, kernels.FRICTION_COLUMNS)",
+        "m",
+        "each finger's sticking point in the object's body frame, its set flag (cleared "
+        "out of contact) and the finger's radius",
+    ),
+    StateField(
+        "object_state",
+        "dynamics",
+        "SceneObject.state",
+        "(18,)",
+        "m, m/s, rad/s",
+        "the object's position, velocity, spin and rotation (row by row); a fixed object's "
+        "never changes",
+        "object_pos, object_vel, object_omega, object_rot",
+    ),
+    StateField(
+        "allocator_blend",
+        "allocation",
+        "ContactAllocator.alpha",
+        "()",
+        "",
+        "the adaptive allocator's weight of the external force, following the task",
+        "alpha",
+    ),
+    StateField(
+        "passivity_energy",
+        "passivity",
+        "Passivity.energy",
+        "(F,)",
+        "J",
+        "the energy each finger's port absorbed, as the observer sees it",
+        "passivity_energy",
+    ),
+    StateField(
+        "passivity_last_pos",
+        "passivity",
+        "Passivity.last_pos",
+        "(F, 3)",
+        "m",
+        "each finger's position on the last tick (its motion this tick is the difference)",
+    ),
+    StateField(
+        "safety_output",
+        "the safety chain",
+        "SafetyChain.output",
+        "(F, 3)",
+        "N",
+        "the force sent on the last tick, which the rate limiter starts from",
+        "device_force",
+    ),
+    StateField(
+        "safety_ramp",
+        "the safety chain",
+        "SafetyChain ramps",
+        "scalars and (F,)",
+        "s",
+        "when forces were enabled (ramp up) or the stop ramp began, and each deadman's gate",
+    ),
+)
+STATE_NAMES = frozenset(f.name for f in STATE)
+STATE_WRITERS = {f.name: f.writer for f in STATE}
+
 _NAMES = frozenset(f.name for f in FIELDS)
+NAMES = _NAMES
+if not LOOP_WRITERS.keys() <= _NAMES:
+    raise RuntimeError("frame fields: LOOP_WRITERS names a field FIELDS does not declare")
 if any(a.recorded < b.recorded for a, b in itertools.pairwise(FIELDS)):
     raise RuntimeError("frame fields: every recorded field must come before the unrecorded ones")
 

@@ -487,6 +487,9 @@ FRICTION_PARAMS = 2
 def friction_step(
     in_contact: np.ndarray,
     device_pos: np.ndarray,
+    plain_surface: np.ndarray,
+    plain_proxy: np.ndarray,
+    plain_point: np.ndarray,
     surface_point: np.ndarray,
     normals: np.ndarray,
     proxy_pos: np.ndarray,
@@ -496,9 +499,11 @@ def friction_step(
     params: np.ndarray,
 ) -> None:
     """Coulomb stick/slip at each fingertip in contact (``hapticd.stages.Friction`` with
-    ``hapticd.friction.friction_proxy``): moves the frictionless ``surface_point`` (F, 3)
-    m to the friction proxy, ``proxy_pos`` (F, 3) m with it, and ``contact_point`` (F, 3)
-    m to match, in place; rows of fingers out of contact are left as they are.
+    ``hapticd.friction.friction_proxy``): from contact's frictionless surface point, proxy
+    and contact point (``plain_surface``, ``plain_proxy``, ``plain_point``, (F, 3) m),
+    writes the friction proxy to ``surface_point`` (F, 3) m, ``proxy_pos`` (F, 3) m moved
+    with it, and ``contact_point`` (F, 3) m to match; rows of fingers out of contact are
+    contact's, copied. Each input may be its output (moved in place).
 
     ``in_contact`` (F,) u1, ``device_pos`` (F, 3) m and ``normals`` (F, 3) (unit) are the
     frame's. ``fingers`` (F, FRICTION_COLUMNS): the stage's anchors (body frame, m), read
@@ -514,8 +519,12 @@ def friction_step(
     for i in range(in_contact.shape[0]):
         if in_contact[i] == 0:
             fingers[i, ANCHOR_SET] = 0.0
+            for j in range(3):
+                surface_point[i, j] = plain_surface[i, j]
+                proxy_pos[i, j] = plain_proxy[i, j]
+                contact_point[i, j] = plain_point[i, j]
             continue
-        p0, p1, p2 = surface_point[i, 0], surface_point[i, 1], surface_point[i, 2]
+        p0, p1, p2 = plain_surface[i, 0], plain_surface[i, 1], plain_surface[i, 2]
         n0, n1, n2 = normals[i, 0], normals[i, 1], normals[i, 2]
         # The friction proxy: p stays where contact put it (a new contact sticks there)
         # unless an anchor held from the last tick moves it.
@@ -546,9 +555,9 @@ def friction_step(
         fingers[i, 2] = r02 * d0 + r12 * d1 + r22 * d2
         fingers[i, ANCHOR_SET] = 1.0
         surface_point[i, 0], surface_point[i, 1], surface_point[i, 2] = q0, q1, q2
-        proxy_pos[i, 0] = proxy_pos[i, 0] + q0 - p0
-        proxy_pos[i, 1] = proxy_pos[i, 1] + q1 - p1
-        proxy_pos[i, 2] = proxy_pos[i, 2] + q2 - p2
+        proxy_pos[i, 0] = plain_proxy[i, 0] + q0 - p0
+        proxy_pos[i, 1] = plain_proxy[i, 1] + q1 - p1
+        proxy_pos[i, 2] = plain_proxy[i, 2] + q2 - p2
         r = fingers[i, FINGER_RADIUS]
         contact_point[i, 0] = q0 - r * n0
         contact_point[i, 1] = q1 - r * n1

@@ -6,9 +6,10 @@ raised-cosine rise over ``ramp_s``, a plateau of ``hold_s``, a raised-cosine fal
 over ``ramp_s`` (s). Its force and its rate of change are continuous; the force
 never exceeds A, and changes by at most A pi / (2 ramp_s) N/s.
 
-``PulseStage`` replaces every finger's ``rendered_force`` with the pulse (zero
-while none runs): in a bring-up the researcher judges the pulse's direction, and
-no contact force of the scene may mix into it. What it writes then passes the
+``PulseStage`` writes every finger's ``rendered_force`` as the pulse (zero
+while none runs), in the place of the sum of the scene's forces
+(``Renderer.set_output``): in a bring-up the researcher judges the pulse's
+direction, and no contact force of the scene may mix into it. What it writes then passes the
 safety chain and the device bank like any rendered force. It also reads the
 frame's ``device_force`` (what the safety chain sent on the previous tick) to
 report the peak that actually reached each device during the pulse.
@@ -52,6 +53,9 @@ class PulseStage:
     """
 
     name = "pulse"
+    # device_force: the previous tick's, as the safety chain sent it.
+    reads = ("tick", "device_force")
+    writes = ("rendered_force",)
 
     def __init__(self, n_fingers: int, dt: float, ramp_s: float = 0.2, hold_s: float = 0.3) -> None:
         if not (dt > 0 and math.isfinite(dt)):

@@ -23,21 +23,73 @@ import numpy as np
 from hapticd.actuation import Actuation
 from hapticd.allocation import DEFAULT_ROBUSTNESS, METHODS, AdaptiveState, Robustness
 from hapticd.allocation.contacts import ContactAllocator
-from hapticd.frame import Frame
+from hapticd.frame import LOOP_WRITERS, NAMES, STATE_WRITERS, Frame
 from hapticd.params import PARAMS, ParamError
 from hapticd.passivity import PassivityParams
 from hapticd.scene import Material, Scene, SceneObject
 from hapticd.stages import (
+    FRICTIONLESS,
+    HELD,
     Allocation,
     Contact,
     Dynamics,
     Environment,
     Forces,
     Friction,
+    Output,
     Passivity,
     SceneState,
     Stage,
 )
+
+
+class PlanError(ValueError):
+    """A plan of stages that breaks the frame's rule: one writer per field, and every field
+    read written by someone (hapticd.frame)."""
+
+
+def check_plan(stages: list[Stage]) -> dict[str, str]:
+    """The writer of every frame field the plan or the loop writes (field -> who), or
+    PlanError naming the field and both writers when two write one field, or the stage and
+    field when a stage names a field the frame does not have or reads one nobody writes.
+
+    A stage declares ``reads`` and ``writes`` (hapticd.stages.Stage); one that declares
+    neither (a test's hook) touches no field. A test's fault injector declares the fields
+    it spoils after their writer in ``corrupts``: not a writer, but it must name fields
+    someone writes. A stage that carries state to the next tick names it in ``carries``:
+    each is declared in hapticd.frame.STATE with that stage as its one writer."""
+    order = " -> ".join(s.name for s in stages)
+    writers = dict(LOOP_WRITERS)
+    for stage in stages:
+        for name in getattr(stage, "writes", ()):
+            if name not in NAMES:
+                raise PlanError(f"stage {stage.name!r} writes {name!r}, which is no frame field")
+            if name in writers:
+                raise PlanError(
+                    f"two writers of the frame's {name!r}: {writers[name]} and stage "
+                    f"{stage.name!r} (plan: {order}); every field has one writer"
+                )
+            writers[name] = f"stage {stage.name!r}"
+    carriers: dict[str, str] = {}
+    for stage in stages:
+        for name in getattr(stage, "carries", {}):
+            if STATE_WRITERS.get(name) != stage.name:
+                raise PlanError(
+                    f"stage {stage.name!r} carries {name!r} from tick to tick, which "
+                    f"hapticd.frame.STATE gives to {STATE_WRITERS.get(name, 'no one')!r}"
+                )
+            if name in carriers:
+                raise PlanError(f"two stages named {stage.name!r} carry {name!r}")
+            carriers[name] = stage.name
+    for stage in stages:
+        for name in (*getattr(stage, "reads", ()), *getattr(stage, "corrupts", ())):
+            if name not in NAMES:
+                raise PlanError(f"stage {stage.name!r} reads {name!r}, which is no frame field")
+            if name not in writers:
+                raise PlanError(
+                    f"stage {stage.name!r} reads {name!r}, which nothing writes (plan: {order})"
+                )
+    return writers
 
 
 class Renderer:
@@ -80,6 +132,7 @@ class Renderer:
             None if passivity is None else Passivity(self.allocator, passivity, self.n_fingers, dt)
         )
         self._inserted: list[tuple[str, Stage]] = []
+        self._output: Stage | None = None  # a stage writing rendered_force instead of the sum
         self.kernels: dict[str, Callable[..., None]] = {}
         self.frame = Frame(self.n_fingers, actuation.n_actuators)
         self.plan()
@@ -87,27 +140,50 @@ class Renderer:
     # -- the plan -------------------------------------------------------------------------
 
     def plan(self) -> None:
-        """Choose the stages this scene needs, in tick order."""
+        """Choose the stages this scene needs, in tick order, and bind the fields each
+        writes so that every field has one writer (PlanError otherwise, the plan as it was).
+
+        Contact writes the proxies and points friction then moves (``FRICTIONLESS``) when
+        friction is planned, the final ones (``HELD``) when not. The rendered force's
+        contributions (the allocated force, the environment's, the passivity controller's
+        damping) each have a field; the output stage sums them into ``rendered_force``, or
+        allocation writes it when it is the only one; ``set_output`` puts another writer
+        of ``rendered_force`` in the sum's place."""
         sc = self.scene
         obj = sc.object
         self._contact.kernel = self.kernels.get("contact_step")
         self._contact.planes_kernel = self.kernels.get("world_planes")
         stages: list[Stage] = [self._contact]
-        if obj.material.has_friction:
+        friction = obj.material.has_friction
+        self._contact.outputs = FRICTIONLESS if friction else HELD
+        self._friction.inputs = FRICTIONLESS
+        if friction:
             stages.append(self._friction)
         self._friction.kernel = self.kernels.get("friction_step")
         self._allocation.kernel = self.kernels.get("allocation_step")
         stages += [Forces(sc, self.kernels.get("forces_step")), self._allocation]
+        parts: list[tuple[str, Environment | Passivity]] = []
         if sc.surfaces:
-            stages.append(Environment(self.allocator.actuation))
-        if self._passivity is not None:  # after the last stage that writes rendered_force
+            environment = Environment(self.allocator.actuation)
+            stages.append(environment)
+            parts.append(("env_rendered", environment))
+        if self._passivity is not None:  # it sees every other contribution
+            self._passivity.inputs = ("allocated_force", *(name for name, _ in parts))
             stages.append(self._passivity)
+            parts.append(("passivity_force", self._passivity))
+        output = self._output
+        if output is None and parts:
+            output = Output(parts)
+        self._allocation.output = "rendered_force" if output is None else "allocated_force"
+        if output is not None:
+            stages.append(output)
         if not obj.fixed:
             stages.append(Dynamics(sc, self.n_fingers, self.dt, self.kernels.get("free_body_step")))
         stages.append(SceneState(sc, self.allocator, METHODS))
         for after, stage in self._inserted:
             names = [s.name for s in stages]
             stages.insert(names.index(after) + 1, stage)
+        self.writers = check_plan(stages)
         self.stages: list[Stage] = stages
 
     @property
@@ -148,11 +224,32 @@ class Renderer:
         return [s.name for s in self.stages]
 
     def insert(self, stage: Stage, *, after: str) -> None:
-        """Run ``stage`` after the stage named ``after`` on every tick from now on."""
+        """Run ``stage`` after the stage named ``after`` on every tick from now on
+        (PlanError, the plan unchanged, if it writes a field another writer has)."""
         if after not in self.stage_names:
             raise ValueError(f"no stage {after!r} in the plan {self.stage_names}")
         self._inserted.append((after, stage))
-        self.plan()
+        try:
+            self.plan()
+        except PlanError:
+            self._inserted.pop()
+            self.plan()
+            raise
+
+    def set_output(self, stage: Stage | None) -> None:
+        """Let ``stage`` (declaring it writes ``rendered_force``) write the rendered force
+        in place of the sum of the contributions, from the next tick on (the bring-up's
+        pulse: no force of the scene mixes into it); None: the sum again."""
+        if stage is not None and "rendered_force" not in getattr(stage, "writes", ()):
+            raise PlanError(f"stage {stage.name!r} does not write 'rendered_force'")
+        before = self._output
+        self._output = stage
+        try:
+            self.plan()
+        except PlanError:
+            self._output = before
+            self.plan()
+            raise
 
     # -- the tick -------------------------------------------------------------------------
 

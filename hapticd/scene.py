@@ -64,9 +64,27 @@ class ConvexShape:
         return cls(normals, offsets, signs * h, a * b * c, inertia)
 
 
+OBJECT_STATE = 18
+"""Length of a SceneObject's ``state``: x (3, m), v (3, m/s), w (3, rad/s), R (9, row by row),
+the layout hapticd.kernels.STATE names."""
+
+_MOTION: dict[str, tuple[slice, tuple[int, ...]]] = {
+    "position": (slice(0, 3), (3,)),
+    "velocity": (slice(3, 6), (3,)),
+    "omega": (slice(6, 9), (3,)),
+    "rotation": (slice(9, 18), (3, 3)),
+}
+
+
 @dataclass
 class SceneObject:
-    """The grasped object: shape, material and pose; velocities and mass when free."""
+    """The grasped object: shape, material and pose; velocities and mass when free.
+
+    Its pose and motion live in one array, ``state`` (OBJECT_STATE,): ``position`` (3,) m,
+    ``velocity`` (3,) m/s, ``omega`` (3,) rad/s and ``rotation`` (3, 3) are views of it,
+    always. Assigning one of them copies the value into the state (and says the pose
+    changed); the compiled kernels read and write ``state`` in place.
+    """
 
     shape: ConvexShape
     material: Material
@@ -79,14 +97,39 @@ class SceneObject:
     _polytope: Polytope | None = field(init=False, default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        self.position = np.asarray(self.position, dtype=float).copy()
-        self.rotation = np.asarray(self.rotation, dtype=float).copy()
+        given = {name: self.__dict__[name] for name in _MOTION}
+        self.__dict__["state"] = np.zeros(OBJECT_STATE)
+        self._bind()
+        for name, value in given.items():
+            setattr(self, name, value)
         self.update_world()
+
+    def _bind(self) -> None:
+        state = self.__dict__["state"]
+        for name, (part, shape) in _MOTION.items():
+            self.__dict__[name] = state[part].reshape(shape)
+
+    def __setattr__(self, name: str, value: object) -> None:
+        if name in _MOTION and "state" in self.__dict__:
+            shape = _MOTION[name][1]
+            self.__dict__[name][...] = np.asarray(value, dtype=float).reshape(shape)
+            self.__dict__["_polytope"] = None
+            return
+        object.__setattr__(self, name, value)
+
+    def __getstate__(self) -> dict[str, object]:
+        # The views are made again from the state on the other side (a deep copy or a
+        # pickle would otherwise detach them from it).
+        return {k: v for k, v in self.__dict__.items() if k not in _MOTION}
+
+    def __setstate__(self, d: dict[str, object]) -> None:
+        self.__dict__.update(d)
+        self._bind()
 
     def update_world(self) -> None:
         """Say the pose changed: the world-frame polytope is made again on its next use (a
         free object moves every tick; its polytope is read only by the Python contact)."""
-        self._polytope = None
+        self.__dict__["_polytope"] = None  # past __setattr__: every tick of a free object
 
     @property
     def polytope(self) -> Polytope:

@@ -312,7 +312,7 @@ class ServoLoop:
         obj = self.renderer.obj
         if obj.fixed:
             return
-        p, v, w = frame.object_pos, obj.velocity, obj.omega
+        p, v, w = frame.object_pos, frame.object_vel, frame.object_omega
         hypot = math.hypot
         # NaN fails every comparison; hypot does not overflow.
         if (

@@ -47,11 +47,43 @@ ZERO3: V3 = (0.0, 0.0, 0.0)
 
 
 class Stage(Protocol):
-    """One step of a tick: reads and writes fields of the frame, nothing else of the tick."""
+    """One step of a tick: reads and writes fields of the frame, nothing else of the tick.
+
+    ``reads`` and ``writes`` name the frame fields (hapticd.frame) it reads and writes; the
+    renderer refuses a plan in which two stages write one field. A stage that declares
+    neither (a test's hook acting at a tick) is taken to touch no field; a test's fault
+    injector names the fields it spoils after their writer in ``corrupts``."""
 
     name: str
+    reads: tuple[str, ...]
+    writes: tuple[str, ...]
 
     def run(self, frame: Frame) -> None: ...
+
+
+HELD = ("proxy_pos", "surface_point", "contact_point")
+"""What friction makes of contact's results: the proxy shown, the fingertip's centre held
+on the object, the contact point."""
+FRICTIONLESS = ("frictionless_proxy", "frictionless_point", "frictionless_contact_point")
+"""Contact's results in a plan with friction (friction reads them and writes ``HELD``)."""
+
+
+class _Fields:
+    """The views of some fields of a frame, looked up once per frame and names (a stage
+    whose fields the plan binds keeps one: a lookup per tick costs more than the check)."""
+
+    __slots__ = ("_frame", "_names", "views")
+
+    def __init__(self) -> None:
+        self._frame: Frame | None = None
+        self._names: tuple[str, ...] = ()
+        self.views: tuple[np.ndarray, ...] = ()
+
+    def of(self, frame: Frame, names: tuple[str, ...]) -> tuple[np.ndarray, ...]:
+        if frame is not self._frame or names is not self._names:
+            self.views = tuple(getattr(frame, n) for n in names)
+            self._frame, self._names = frame, names
+        return self.views
 
 
 def _unit(v: V3, fallback: V3) -> V3:
@@ -76,14 +108,15 @@ def _projector(directions: list[V3]) -> np.ndarray:
 class Contact:
     """God-object contact of spherical fingertips with the object, the ground and the walls.
 
-    Writes ``proxy_pos`` (the god-object proxy, outside every obstacle),
-    ``surface_point`` (the device pushed out of the object's active planes only,
-    frictionless), ``contact_normal``, ``in_contact``, ``contact_point`` and
-    ``env_force`` (the ground and walls' spring-damper force on each finger; only
-    a scene with surfaces writes it).
+    Writes the god-object proxy (outside every obstacle), the device pushed out of the
+    object's active planes only (frictionless) and the contact point into ``outputs``
+    (``HELD``: ``proxy_pos``, ``surface_point``, ``contact_point``; in a plan with friction
+    the renderer makes them ``FRICTIONLESS``), and ``contact_normal``, ``in_contact`` and
+    ``env_force`` (the ground and walls' spring-damper force on each finger).
     """
 
     name = "contact"
+    reads = ("device_pos", "device_vel")
 
     def __init__(
         self, scene: Scene, radii: list[float], kernel: Callable[..., int] | None = None
@@ -111,6 +144,19 @@ class Contact:
         self._sets: list[ObstacleSet] = []
         self._untouched: Frame | None = None  # the frame whose contact normals are all zero
         self._off_surfaces: Frame | None = None  # the frame whose env_force is all zero
+        self.outputs = HELD
+        self._out = _Fields()
+        self.carries = {"proxies": self._state}  # hapticd.frame.STATE
+
+    @property
+    def state(self) -> np.ndarray:
+        """The proxies (columns 0-2, m), the radii and the kernel's work space (F,
+        kernels.CONTACT_STATE), carried from tick to tick."""
+        return self._state
+
+    @property
+    def writes(self) -> tuple[str, ...]:
+        return ("in_contact", "contact_normal", "env_force", *self.outputs)
 
     def _obstacles(self) -> list[ObstacleSet]:
         """The obstacle sets per finger, rebuilt when the object has moved."""
@@ -183,19 +229,20 @@ class Contact:
             r = self.radii[i]
             points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
         # Assignment through [...] is the cheapest way numpy takes a list of tuples.
+        out_proxy, out_surface, out_point = self._out.of(frame, self.outputs)
         self._proxies[...] = proxies
-        frame.proxy_pos[...] = self._proxies
+        out_proxy[...] = self._proxies
         frame.in_contact[...] = touching
         if any(touching):
-            frame.surface_point[...] = held
-            frame.contact_point[...] = points
+            out_surface[...] = held
+            out_point[...] = points
             frame.contact_normal[...] = normals
             self._untouched = None
         else:
             # Nothing touches the object: every point is the proxy and every normal zero
             # (still zero if this frame was written so last tick). Array copies are cheaper.
-            frame.surface_point[...] = frame.proxy_pos
-            frame.contact_point[...] = frame.proxy_pos
+            out_surface[...] = out_proxy
+            out_point[...] = out_proxy
             if frame is not self._untouched:
                 frame.contact_normal.fill(0.0)
                 self._untouched = frame
@@ -212,15 +259,16 @@ class Contact:
         planes = self._kernel_planes()
         if planes is None:
             return False
+        out_proxy, out_surface, out_point = self._out.of(frame, self.outputs)
         outcome = self.kernel(  # type: ignore[misc]
             frame.device_pos,
             frame.device_vel,
             planes,
             self._state,
-            frame.proxy_pos,
+            out_proxy,
             frame.in_contact,
-            frame.surface_point,
-            frame.contact_point,
+            out_surface,
+            out_point,
             frame.contact_normal,
             frame.env_force,
         )
@@ -307,9 +355,13 @@ class Friction:
     The anchors live in ``anchors`` (F, kernels.FRICTION_COLUMNS: the anchor (3, m, body
     frame), 1.0 if it is set, the fingertip's radius (m)), which this code and the
     compiled kernel (hapticd.kernels.friction_step) both read and write.
+
+    Reads contact's results from ``inputs`` (``FRICTIONLESS`` in the renderer's plan;
+    ``HELD`` when run on its own: then it moves them in place) and writes ``HELD``.
     """
 
     name = "friction"
+    outputs = HELD
 
     def __init__(
         self, scene: Scene, radii: list[float], kernel: Callable[..., None] | None = None
@@ -320,35 +372,61 @@ class Friction:
         self.kernel = kernel
         self.anchors = np.zeros((len(radii), kernels.FRICTION_COLUMNS))
         self.anchors[:, kernels.FINGER_RADIUS] = radii
-        self._holding = False  # an anchor may be set
+        self.holding = False  # an anchor may be set (out of contact, clear them only then)
         self._params = np.zeros(kernels.FRICTION_PARAMS)
         self._params_for: Material | None = None
-        self._object = ObjectState()
+        self._inputs = HELD
+        self._in = _Fields()
+        self.carries = {"friction_anchors": self.anchors}  # hapticd.frame.STATE
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """The fields it reads contact's results from (``FRICTIONLESS`` or ``HELD``)."""
+        return self._inputs
+
+    @inputs.setter
+    def inputs(self, names: tuple[str, ...]) -> None:
+        self._inputs = HELD if tuple(names) == HELD else tuple(names)
+
+    @property
+    def reads(self) -> tuple[str, ...]:
+        return ("in_contact", "device_pos", "contact_normal", *self.inputs)
+
+    @property
+    def writes(self) -> tuple[str, ...]:
+        return self.outputs
 
     def run(self, frame: Frame) -> None:
+        # Contact's results (its proxy, surface point and contact point), where friction
+        # starts from.
+        god_in, plain_in, point_in = self._in.of(frame, self._inputs)
         # Out of contact both paths return here: cheaper than a call to the kernel.
         touching = frame.in_contact.tolist()
         if not any(touching):
-            if self._holding:
+            if self.holding:
                 self.anchors[:, kernels.ANCHOR_SET] = 0.0
-                self._holding = False
+                self.holding = False
+            if self._inputs is not HELD:
+                frame.proxy_pos[...] = god_in
+                frame.surface_point[...] = plain_in
+                frame.contact_point[...] = point_in
             return
-        self._holding = True
+        self.holding = True
         obj = self.scene.object
         if self.kernel is not None:
-            self._run_kernel(frame, obj)
+            self._run_kernel(frame, obj, god_in, plain_in, point_in)
             return
         mat = obj.material
         (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = obj.rotation.tolist()
         x0, x1, x2 = obj.position.tolist()
         anchors = self.anchors.tolist()
         pos = frame.device_pos.tolist()
-        plain = frame.surface_point.tolist()  # frictionless, as contact wrote them
+        plain = plain_in.tolist()  # frictionless, as contact wrote them
         held = list(plain)
         normals = frame.contact_normal.tolist()
-        god = frame.proxy_pos.tolist()
+        god = god_in.tolist()
         shown = list(god)
-        points = frame.contact_point.tolist()
+        points = point_in.tolist()
         for i, on in enumerate(touching):
             a = anchors[i]
             if not on:
@@ -382,9 +460,16 @@ class Friction:
         frame.proxy_pos[...] = shown
         frame.contact_point[...] = points
 
-    def _run_kernel(self, frame: Frame, obj: SceneObject) -> None:
+    def _run_kernel(
+        self,
+        frame: Frame,
+        obj: SceneObject,
+        god_in: np.ndarray,
+        plain_in: np.ndarray,
+        point_in: np.ndarray,
+    ) -> None:
         """The same tick as ``run`` by the kernel, on the frame's arrays, the anchors and
-        the object's state array (``ObjectState``)."""
+        the object's ``state``."""
         mat = obj.material
         params = self._params
         if mat is not self._params_for:  # a Material is frozen: a change is a new one
@@ -394,12 +479,15 @@ class Friction:
         self.kernel(  # type: ignore[misc]
             frame.in_contact,
             frame.device_pos,
+            plain_in,
+            god_in,
+            point_in,
             frame.surface_point,
             frame.contact_normal,
             frame.proxy_pos,
             frame.contact_point,
             self.anchors,
-            self._object.of(obj),
+            obj.state,
             params,
         )
 
@@ -412,6 +500,8 @@ class Forces:
     """
 
     name = "forces"
+    reads = ("in_contact", "device_pos", "device_vel", "surface_point", "contact_normal")
+    writes = ("contact_force",)
 
     def __init__(self, scene: Scene, kernel: Callable[..., None] | None = None) -> None:
         self.scene = scene
@@ -419,7 +509,6 @@ class Forces:
         self.kernel = kernel
         self._params = np.zeros(kernels.FORCES_PARAMS)
         self._params_for: tuple[Material, bool] | None = None
-        self._object = ObjectState()
         self._still = np.zeros(kernels.STATE)  # a fixed object's motion: none is read
 
     def run(self, frame: Frame) -> None:
@@ -455,7 +544,7 @@ class Forces:
 
     def _run_kernel(self, frame: Frame, obj: SceneObject) -> None:
         """The same forces as ``run`` by the kernel, on the frame's arrays and (a free
-        object) the object's state array (``ObjectState``)."""
+        object) the object's ``state``."""
         mat, fixed = obj.material, obj.fixed
         made = self._params_for
         if made is None or made[0] is not mat or made[1] != fixed:
@@ -470,7 +559,7 @@ class Forces:
             frame.surface_point,
             frame.contact_normal,
             frame.contact_force,
-            self._still if fixed else self._object.of(obj),
+            self._still if fixed else obj.state,
             self._params,
         )
 
@@ -506,11 +595,13 @@ class Forces:
 class Allocation:
     """Projects the full contact forces onto the actuated directions (``ContactAllocator``).
 
-    Writes ``lam_a``, ``rendered_force`` (M_a lam_a per finger; zero out of
-    contact), the four accuracy measures and ``alpha``.
+    Writes ``lam_a``, M_a lam_a per finger (zero out of contact) into ``output``
+    (``rendered_force``, or ``allocated_force`` when the plan sums more than this into the
+    rendered force), the four accuracy measures and ``alpha``.
     """
 
     name = "allocation"
+    reads = ("in_contact", "device_pos", "contact_point", "contact_force")
 
     def __init__(
         self, scene: Scene, allocator: ContactAllocator, kernel: Callable[..., int] | None = None
@@ -525,6 +616,34 @@ class Allocation:
         self._accuracy = np.zeros(kernels.ACCURACY)
         self._local: np.ndarray | None = None  # the kernel's directions, for _local_for
         self._local_for: tuple[Actuation, object] | None = None
+        self._out = _Fields()
+        self._output = ("rendered_force",)
+
+    @property
+    def output(self) -> str:
+        """The field M_a lam_a goes to: ``rendered_force`` or ``allocated_force``."""
+        return self._output[0]
+
+    @output.setter
+    def output(self, name: str) -> None:
+        if name != self._output[0]:
+            self._output = (name,)
+
+    @property
+    def carries(self) -> dict[str, object]:
+        return {"allocator_blend": self.allocator.alpha}  # hapticd.frame.STATE
+
+    @property
+    def writes(self) -> tuple[str, ...]:
+        return (
+            "lam_a",
+            "residual_internal",
+            "residual_external",
+            "residual_total",
+            "amplification",
+            "alpha",
+            self.output,
+        )
 
     @property
     def actuation(self) -> Actuation:
@@ -550,8 +669,9 @@ class Allocation:
         frame.residual_external[()] = acc[1]
         frame.residual_total[()] = acc[2]
         frame.amplification[()] = acc[3]
+        out = self._out.of(frame, self._output)[0]
         if lam_a is None:
-            frame.rendered_force.fill(0.0)
+            out.fill(0.0)
             frame.lam_a.fill(0.0)
             return
         frame.lam_a[...] = lam_a
@@ -564,7 +684,7 @@ class Allocation:
                 f[1] += x * d[1]
                 f[2] += x * d[2]
             rows[i] = (f[0], f[1], f[2])
-        frame.rendered_force[...] = rows
+        out[...] = rows
 
     def _run_kernel(self, frame: Frame) -> bool:
         """The same allocation as ``run`` by the kernel, on the frame's arrays; False (and
@@ -599,7 +719,7 @@ class Allocation:
             self._local,
             params,
             frame.lam_a,
-            frame.rendered_force,
+            self._out.of(frame, self._output)[0],
             acc,
         )
         if outcome == kernels.MANY_CONTACTS:
@@ -617,23 +737,63 @@ class Allocation:
 
 
 class Environment:
-    """Renders the ground's and walls' force through each finger's own actuated directions
-    (adds to ``rendered_force``)."""
+    """Renders the ground's and walls' force through each finger's own actuated directions:
+    writes ``env_rendered`` (the output stage adds it to the rendered force)."""
 
     name = "environment"
+    reads = ("env_force", "device_pos")
+    writes = ("env_rendered",)
 
     def __init__(self, actuation: Actuation) -> None:
         self.actuation = actuation
+        self.zero_on: Frame | None = None  # the frame whose env_rendered is all zero
 
     def run(self, frame: Frame) -> None:
         env = frame.env_force.tolist()
         if not any(any(e) for e in env):  # plain floats: numpy's any() costs more here
+            if frame is not self.zero_on:
+                frame.env_rendered.fill(0.0)
+                self.zero_on = frame
             return
+        self.zero_on = None
+        out = frame.env_rendered
         world = self.actuation.world_directions(frame.device_pos.tolist())
-        rendered = frame.rendered_force
         for i, e in enumerate(env):
             if any(e):
-                rendered[i] += _projector(world[i]) @ np.array(e)
+                out[i] = _projector(world[i]) @ np.array(e)
+            else:
+                out[i] = 0.0
+
+
+class Output:
+    """The rendered force: the allocated force plus the other contributions the plan has
+    (``parts``: field and stage, the environment's, then the passivity controller's), in
+    that order; the only writer of ``rendered_force``. A contribution whose stage says it
+    is all zero on this frame (its ``zero_on``) is not added: the same numbers."""
+
+    name = "output"
+    writes = ("rendered_force",)
+
+    def __init__(self, parts: list[tuple[str, Environment | Passivity]]) -> None:
+        if not parts:
+            raise ValueError("the output stage sums two or more contributions")
+        self.reads = ("allocated_force", *(name for name, _ in parts))
+        self._parts = parts
+        self._frame: Frame | None = None
+        self._more: list[tuple[np.ndarray, Environment | Passivity]] = []
+
+    def run(self, frame: Frame) -> None:
+        if frame is not self._frame:
+            self._frame = frame
+            self._more = [(getattr(frame, name), stage) for name, stage in self._parts]
+        out = frame.rendered_force
+        total = frame.allocated_force
+        for view, stage in self._more:
+            if stage.zero_on is not frame:
+                np.add(total, view, out=out)
+                total = out
+        if total is not out:
+            out[...] = total
 
 
 class Passivity:
@@ -641,14 +801,15 @@ class Passivity:
     port has absorbed and adds the least damping along that finger's actuated directions
     that keeps it from going negative.
 
-    Runs after the last stage that writes ``rendered_force`` (allocation, or environment
-    with ground or walls), so it observes the whole rendered force; rewrites
-    ``rendered_force`` where it adds damping, and writes ``passivity_energy`` (J) and
-    ``passivity_damping`` (N s/m) every tick. Keeps each finger's observed energy and
-    last position; the first tick sees no motion.
+    Observes the sum of the contributions before it (``inputs``: the allocated force, and
+    the environment's with ground or walls), the whole rendered force but its own;
+    writes its damping force to ``passivity_force`` (the output stage adds it),
+    ``passivity_energy`` (J) and ``passivity_damping`` (N s/m) every tick. Keeps each
+    finger's observed energy and last position; the first tick sees no motion.
     """
 
     name = "passivity"
+    writes = ("passivity_force", "passivity_energy", "passivity_damping")
 
     def __init__(
         self, allocator: ContactAllocator, params: PassivityParams, n_fingers: int, dt: float
@@ -656,11 +817,24 @@ class Passivity:
         self.allocator = allocator  # its actuation is read every tick: it may change live
         self.params = params
         self.dt = dt
-        self._energy = [0.0] * n_fingers
+        # The state it carries (hapticd.frame.STATE): each finger's observed energy (J) and
+        # last position (m; None before the first tick, which sees no motion).
+        self.energy = [0.0] * n_fingers
         self._damping = [0.0] * n_fingers
-        self._prev: list[list[float]] | None = None
+        self.last_pos: list[list[float]] | None = None
         self._basis_for: Actuation | None = None
         self._basis: list[list[V3]] = []
+        self.inputs: tuple[str, ...] = ("allocated_force",)
+        self.zero_on: Frame | None = None  # the frame whose passivity_force is all zero
+
+    @property
+    def reads(self) -> tuple[str, ...]:
+        return ("device_pos", *self.inputs)
+
+    @property
+    def carries(self) -> dict[str, object]:
+        # hapticd.frame.STATE
+        return {"passivity_energy": self.energy, "passivity_last_pos": self.last_pos}
 
     def _bases(self, pos: list[list[float]]) -> list[list[V3]]:
         """Orthonormal bases of each finger's actuated directions in the world (cached while
@@ -675,10 +849,17 @@ class Passivity:
 
     def run(self, frame: Frame) -> None:
         pos = frame.device_pos.tolist()
-        prev = self._prev if self._prev is not None else pos
-        self._prev = pos
-        forces = frame.rendered_force.tolist()
-        energy, damping = self._energy, self._damping
+        prev = self.last_pos if self.last_pos is not None else pos
+        self.last_pos = pos
+        first, *rest = self.inputs
+        forces = getattr(frame, first).tolist()
+        for name in rest:  # the same sums the output stage makes
+            more = getattr(frame, name).tolist()
+            forces = [
+                [a[0] + b[0], a[1] + b[1], a[2] + b[2]] for a, b in zip(forces, more, strict=True)
+            ]
+        added = [ZERO3] * len(forces)
+        energy, damping = self.energy, self._damping
         dt, params = self.dt, self.params
         bases = None
         damped = False
@@ -694,7 +875,7 @@ class Passivity:
                 e, alpha = control(e, du, dt, params)
                 if alpha > 0.0:
                     c = alpha / dt  # the damping force is -alpha P_a v, v = dx / T
-                    forces[i] = [f[0] - c * du[0], f[1] - c * du[1], f[2] - c * du[2]]
+                    added[i] = (-(c * du[0]), -(c * du[1]), -(c * du[2]))
                     damped = True
             elif not e >= 0.0:  # NaN: a non-finite position or force; keep the last energy
                 e = energy[i]
@@ -703,7 +884,11 @@ class Passivity:
         frame.passivity_energy[...] = energy
         frame.passivity_damping[...] = damping
         if damped:
-            frame.rendered_force[...] = forces
+            frame.passivity_force[...] = added
+            self.zero_on = None
+        elif frame is not self.zero_on:  # zero once per frame (a reload keeps the loop's)
+            frame.passivity_force.fill(0.0)
+            self.zero_on = frame
 
 
 class Dynamics:
@@ -715,6 +900,8 @@ class Dynamics:
     """
 
     name = "dynamics"
+    reads = ("in_contact", "contact_point", "contact_force", "contact_normal")
+    writes = ()  # the object's pose and motion (the scene's object)
 
     def __init__(
         self, scene: Scene, n_fingers: int, dt: float, kernel: Callable[..., None] | None = None
@@ -734,9 +921,12 @@ class Dynamics:
         self.small = len(obj.shape.vertices) <= SMALL_SHAPE
         self._prepared: SmallBody | None = None  # the small step's cache (shape, mass)
         self._arrays: _BodyArrays | None = None  # the kernel's (shape, mass, surfaces)
-        self._object = ObjectState()
         self._scratch = np.zeros((n_fingers, kernels.SCRATCH_COLUMNS))
         self._gravity = np.zeros(3) if self.gravity is None else np.array(self.gravity, float)
+
+    @property
+    def carries(self) -> dict[str, object]:
+        return {"object_state": self.scene.object.state}  # hapticd.frame.STATE
 
     @property
     def effects(self) -> list[str]:
@@ -798,15 +988,12 @@ class Dynamics:
 
     def _run_kernel(self, frame: Frame) -> None:
         """The same step as ``run`` by the kernel, on the frame's arrays and the object's
-        state, which lives in a state array (``ObjectState``: the object's position,
-        velocity, omega and rotation are views of it, put there again whenever someone has
-        put other arrays in their place)."""
+        ``state`` (its position, velocity, omega and rotation are views of it)."""
         obj = self.scene.object
         arr = self._arrays
         if arr is None or not arr.fits(obj, self.surfaces):
             arr = self._arrays = _BodyArrays(obj, self.surfaces, self.dt, self.substeps)
             arr.params[6:9] = self._gravity
-        state = self._object.of(obj)
         mat = obj.material
         params = arr.params
         params[0] = mat.stiffness
@@ -817,7 +1004,7 @@ class Dynamics:
             frame.contact_force,
             frame.contact_normal,
             params,
-            state,
+            obj.state,
             arr.body,
             arr.surf,
             self._scratch,
@@ -829,7 +1016,7 @@ class _BodyArrays:
     """The free-body kernel's arrays for an object's shape and mass and the surfaces
     (``SmallBody``'s numbers; hapticd.kernels.free_body_step says the layouts): params,
     body (inertia, its inverse and the vertices) and surfaces. The object's state is its
-    ``ObjectState``."""
+    ``state``."""
 
     def __init__(
         self, obj: SceneObject, surfaces: SurfaceSet | None, dt: float, substeps: int
@@ -848,94 +1035,53 @@ class _BodyArrays:
         return obj.shape is self.shape and obj.mass == self.mass and surfaces is self.surfaces
 
 
-def _state_views(state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """x, v, w (3,) and R (3, 3) as views of a state array (kernels.STATE)."""
-    return state[0:3], state[3:6], state[6:9], state[9:18].reshape(3, 3)
-
-
-def _same_view(a: object, b: np.ndarray) -> bool:
-    """Whether ``a`` is an array looking at the very memory ``b`` does, as ``b`` does."""
-    return (
-        isinstance(a, np.ndarray)
-        and a.dtype == b.dtype
-        and a.shape == b.shape
-        and a.strides == b.strides
-        and a.__array_interface__["data"][0] == b.__array_interface__["data"][0]
-    )
-
-
-class ObjectState:
-    """The object's state as one array for the kernels (hapticd.kernels.STATE: x (3, m),
-    v (3, m/s), w (3, rad/s), R (9, row by row)) whose views are the object's
-    ``position``, ``velocity``, ``omega`` and ``rotation``.
-
-    Every stage with a kernel that reads or writes the object holds one; they share the
-    array: ``of`` finds the one the object's arrays are views of, or, when someone has put
-    other arrays in their place (a reset, the Python dynamics), makes a new one with the
-    object's state copied in and makes the object's arrays views of it.
-    """
-
-    def __init__(self) -> None:
-        self.state = np.zeros(kernels.STATE)
-        self._views: tuple[np.ndarray, ...] = ()
-
-    def of(self, obj: SceneObject) -> np.ndarray:
-        """The object's state array (kernels.STATE,), read and written in place."""
-        v = self._views
-        if (
-            v
-            and obj.position is v[0]
-            and obj.velocity is v[1]
-            and obj.omega is v[2]
-            and obj.rotation is v[3]
-        ):
-            return self.state
-        arrays = (obj.position, obj.velocity, obj.omega, obj.rotation)
-        state = getattr(arrays[0], "base", None)
-        if not (
-            isinstance(state, np.ndarray)
-            and state.shape == (kernels.STATE,)
-            and state.dtype == np.float64
-            and state.flags.c_contiguous
-            and state.flags.writeable
-            and all(_same_view(a, b) for a, b in zip(arrays, _state_views(state), strict=True))
-        ):
-            state = np.zeros(kernels.STATE)
-            x, u, w, R = _state_views(state)
-            x[:] = np.asarray(obj.position, dtype=float).reshape(3)
-            u[:] = np.asarray(obj.velocity, dtype=float).reshape(3)
-            w[:] = np.asarray(obj.omega, dtype=float).reshape(3)
-            R[:] = np.asarray(obj.rotation, dtype=float).reshape(3, 3)
-            obj.position, obj.velocity, obj.omega, obj.rotation = x, u, w, R
-        self.state = state
-        self._views = (obj.position, obj.velocity, obj.omega, obj.rotation)
-        return state
-
-
 class SceneState:
-    """Publishes the scene's state after the tick: the object's pose, stiffness and mass,
-    and the allocator in use (an index into ``methods``).
+    """Publishes the scene's state after the tick: the object's pose and motion (its state,
+    in one copy), stiffness and mass, and the allocator in use (an index into ``methods``).
 
     Made anew whenever the plan changes, so the parameters are written once per frame
     and the pose on every tick only when the object can move.
     """
 
     name = "scene"
+    reads = ()
+    writes = (
+        "object_pos",
+        "object_vel",
+        "object_omega",
+        "object_rot",
+        "stiffness_n_per_m",
+        "mass_kg",
+        "allocator",
+    )
 
     def __init__(self, scene: Scene, allocator: ContactAllocator, methods: tuple[str, ...]) -> None:
         self.scene = scene
         self.allocator = allocator
         self.methods = methods
         self._written: Frame | None = None
+        self._state = np.zeros(18)
 
     def run(self, frame: Frame) -> None:
         obj = self.scene.object
         if frame is self._written and obj.fixed:
             return
-        frame.object_pos[:] = obj.position
-        frame.object_rot[:] = obj.rotation
+        if frame is not self._written:
+            self._state = _object_fields(frame)
+        self._state[...] = obj.state
         if frame is not self._written:
             frame.stiffness_n_per_m[()] = obj.material.stiffness
             frame.mass_kg[()] = obj.mass
             frame.allocator[()] = self.methods.index(self.allocator.method)
             self._written = frame
+
+
+def _object_fields(frame: Frame) -> np.ndarray:
+    """The frame's object_pos, object_vel, object_omega and object_rot as one (18,) float
+    view, in SceneObject.state's order (they are adjacent in the record)."""
+    fields = frame.dtype.fields
+    start = fields["object_pos"][1]
+    if fields["object_rot"][1] != start + 9 * 8:
+        raise RuntimeError("frame fields: object_pos, _vel, _omega and _rot must be adjacent")
+    raw = frame.record.reshape(1).view(np.uint8)[start : start + 18 * 8]
+    return raw.view("<f8")

@@ -123,7 +123,7 @@ def _run(case: dict, kernel) -> list[dict[str, np.ndarray]]:
             getattr(frame, name)[...] = 7
         stage.run(frame)
         got = {name: getattr(frame, name).copy() for name in OUTPUTS}
-        got["proxies"] = stage._proxies.copy()
+        got["proxies"] = stage.state[:, :3].copy()
         out.append(got)
     return out
 
@@ -215,25 +215,25 @@ def test_what_the_kernel_does_not_take_runs_the_python_code_on_the_same_proxies(
         for s, f in ((stage, frame), (ref, rframe)):
             f.device_pos[0] = p
             s.run(f)
-        state = stage._state.copy()
+        state = stage.state.copy()
         for name in OUTPUTS:
             np.testing.assert_array_equal(getattr(frame, name), getattr(rframe, name))
-        np.testing.assert_array_equal(stage._proxies, ref._proxies)
-        assert np.array_equal(state, stage._state, equal_nan=True)
+        np.testing.assert_array_equal(stage.state[:, :3], ref.state[:, :3])
+        assert np.array_equal(state, stage.state, equal_nan=True)
     # The kernel itself, handed the NaN: not taken, nothing written.
     frame.device_pos[0] = (math.nan, 0.0, 0.0)
     before = {name: getattr(frame, name).copy() for name in OUTPUTS}
     planes = stage._kernel_planes()
-    state = stage._state.copy()
+    state = stage.state.copy()
     outcome = compiled(
-        frame.device_pos, frame.device_vel, planes, stage._state, frame.proxy_pos,
+        frame.device_pos, frame.device_vel, planes, stage.state, frame.proxy_pos,
         frame.in_contact, frame.surface_point, frame.contact_point, frame.contact_normal,
         frame.env_force,
     )  # fmt: skip
     assert outcome == kernels.CONTACT_NOT_TAKEN
     for name in OUTPUTS:
         np.testing.assert_array_equal(getattr(frame, name), before[name])
-    assert np.array_equal(stage._state, state, equal_nan=True)
+    assert np.array_equal(stage.state, state, equal_nan=True)
     # A large mesh: vectorised in Python, not the kernel's.
     k = _VECTOR_PLANES + 1
     angles = np.linspace(0.0, 2.0 * np.pi, k, endpoint=False)

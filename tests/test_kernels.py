@@ -151,9 +151,10 @@ def test_the_kernel_as_plain_python_is_the_stage_bit_for_bit(case):
         np.testing.assert_array_equal(getattr(ref, name), getattr(got, name), err_msg=name)
 
 
-def test_the_kernel_stage_keeps_its_own_state_arrays_and_follows_replaced_ones(compiled):
-    """The kernel writes the object's state in place, into arrays the stage gave the object;
-    state put there from outside (a reset) is taken on the next tick, not overwritten."""
+def test_the_kernel_writes_the_objects_state_in_place_and_takes_what_is_set(compiled):
+    """The kernel writes the object's state in place, into its one state array (whose views
+    are its position, velocity, omega and rotation); state put there from outside (a reset)
+    is taken on the next tick, not overwritten."""
     case = {
         "object": {
             "shape": ConvexShape.box(np.array([0.05, 0.05, 0.05])),
@@ -172,12 +173,13 @@ def test_the_kernel_stage_keeps_its_own_state_arrays_and_follows_replaced_ones(c
     }
     stage, frame = _stage(case, compiled)
     obj = stage.scene.object
-    given_velocity = obj.velocity
+    given_velocity, state = obj.velocity, obj.state
     stage.run(frame)
-    assert obj.velocity is not given_velocity and given_velocity[2] == 0.0  # not written
-    assert obj.velocity[2] == pytest.approx(-9.81 * DT)
-    obj.velocity = np.array([1, 0, 0])  # ints, from outside
+    assert obj.velocity is given_velocity and obj.state is state  # written in place
+    assert obj.velocity[2] == pytest.approx(-9.81 * DT) and state[5] == obj.velocity[2]
+    obj.velocity = np.array([1, 0, 0])  # ints, from outside: copied into the state
     obj.position = np.zeros(3)
+    assert obj.velocity is given_velocity and state[3] == 1.0
     stage.run(frame)
     assert obj.velocity.dtype == float and obj.velocity[0] == 1.0
     assert obj.position[0] == pytest.approx(1.0 * DT)
@@ -379,6 +381,8 @@ class Poison:
     ``at`` (s) on: what a broken contact model could hand to allocation and dynamics."""
 
     name = "poison"
+
+    corrupts = ("contact_force", "in_contact")
 
     def __init__(self, loop, value: float, at: float) -> None:
         self.loop, self.value, self.at = loop, value, at

@@ -125,7 +125,7 @@ def test_damping_is_bounded_idle_below_the_threshold_and_never_nan(
 def test_as_v_goes_to_zero_the_stage_adds_nothing_and_no_nan(v, energy):
     assume(energy < 0.0)  # a deficit the controller would like to pay back
     r = _wall_renderer(PARAMS)
-    r.passivity._energy[0] = energy
+    r.passivity.energy[0] = energy
     x = np.array([[0.0, -0.002, 0.0]])
     r.step(x, np.zeros((1, 3)))
     f = r.step(x + np.array([[v * DT, 0.0, 0.0]]), np.zeros((1, 3)))
@@ -135,10 +135,10 @@ def test_as_v_goes_to_zero_the_stage_adds_nothing_and_no_nan(v, energy):
 
 def test_non_finite_positions_add_no_damping_and_leave_the_energy():
     r = _wall_renderer(PARAMS)
-    r.passivity._energy[0] = -1e-3
+    r.passivity.energy[0] = -1e-3
     x = np.array([[0.0, -0.002, 0.0]])
     r.step(x, np.zeros((1, 3)))
-    r.passivity._prev = [[math.nan, 0.0, 0.0]]  # as after a NaN read
+    r.passivity.last_pos = [[math.nan, 0.0, 0.0]]  # as after a NaN read
     f = r.step(x, np.zeros((1, 3)))
     assert float(f.passivity_damping[0]) == 0.0 and float(f.passivity_energy[0]) == -1e-3
     assert np.all(np.isfinite(f.rendered_force))
@@ -258,7 +258,7 @@ def test_at_rest_the_stage_adds_nothing_so_the_analysis_leaves_it_out():
     # The analysis linearizes at rest; there the stage adds no damping even with a deficit,
     # so a pipeline with or without it renders the same forces.
     r = _wall_renderer(PARAMS)
-    r.passivity._energy[0] = -1.0
+    r.passivity.energy[0] = -1.0
     x = np.array([[0.0, -0.002, 0.0]])
     for _ in range(3):
         f = r.step(x, np.zeros((1, 3)))
@@ -277,7 +277,7 @@ def test_the_stage_is_planned_only_when_enabled(grasp_data, write_profile):
     assert "passivity" not in r.stage_names
     grasp_data["rendering"]["passivity"] = {"enabled": True}
     r = build_renderer(parse_profile(grasp_data))
-    assert r.stage_names == ["contact", "forces", "allocation", "passivity", "scene"]
+    assert r.stage_names == ["contact", "forces", "allocation", "passivity", "output", "scene"]
     assert r.passivity.params == PassivityParams(0.005, 20.0)
     # With ground and walls it observes their force too: after the environment stage.
     lift = load_profile(ROOT / "configs" / "lift-weight.yaml")

@@ -292,6 +292,7 @@ def test_fixed_frictionless_scene_runs_no_friction_and_no_dynamics():
         "forces",
         "allocation",
         "environment",
+        "output",
         "dynamics",
         "scene",
     ]
