@@ -4,6 +4,7 @@ never a crash, a hang or a silent acceptance of a value invalid by construction.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import select
@@ -89,9 +90,15 @@ def _judge(case: Case, path: Path, res: dict | None) -> tuple[str, str]:
 SHARDS = 4
 
 
+@functools.cache
+def _cases() -> list[Case]:
+    """Every generated case, made once per process (the shards share them)."""
+    return list(generate())
+
+
 @pytest.mark.parametrize("shard", range(SHARDS))
 def test_hostile_profiles_give_clear_errors(tmp_path, shard):
-    every = list(generate())
+    every = _cases()
     assert len(every) > 2000  # generated at every key: a schema walk that finds nothing fails
     cases = every[shard::SHARDS]
     worker = _Worker()
