@@ -277,12 +277,25 @@ def test_without_a_working_jit_the_python_code_renders_with_a_message(tmp_path, 
     assert "compiled or loaded" not in err
 
 
+def _numba_cache_of(names: list[str], cache: Path) -> None:
+    """``cache`` as a folder holding numba's machine code of ``names`` (from the session's
+    cache, compiled there first if need be) but no record of hapticd's that they were
+    compiled: hapticd's runs see kernels never compiled, and a compiler it starts loads
+    numba's code instead of compiling for a quarter of a minute. (Compiling itself is
+    covered where the session's cache is filled, and by test_several_runs_at_once_...)"""
+    jit.compile_kernels(names)
+    session = Path(os.environ["NUMBA_CACHE_DIR"])
+    skip = shutil.ignore_patterns(jit.COMPILED, jit.FAILED, jit.COMPILING)
+    shutil.copytree(session, cache, ignore=skip)
+
+
 def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp_path):
     """A first auto run does not wait for the compiler: it renders with Python and leaves
     the compiling to a process of its own; a later run loads the compiled kernel."""
     cache = tmp_path / "cache"
-    err, _ = _run_lift(tmp_path, "", "auto", cache)
     names = [*LIFT_KERNELS, *SafetyChain.kernel_names]
+    _numba_cache_of(names, cache)
+    err, _ = _run_lift(tmp_path, "", "auto", cache)
     assert f"compiling {', '.join(names)} in the background" in err, err
     assert "compiled or loaded" not in err
     marker = cache / jit.COMPILED
