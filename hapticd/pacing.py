@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 from hapticd.stats import LogHistogram
 
 OVERRUN_FACTOR = 1.1
-# Sleep until this long before a deadline, then spin: measured in docs/daemon.md.
+# Sleep until this long before a deadline, then spin: measured in docs/daemon.md. The
+# default of the profile's loop.spin_s.
 SPIN_MARGIN_S = 200e-6
 # If the loop falls this many periods behind, it re-anchors instead of bursting.
 REANCHOR_PERIODS = 10
@@ -50,18 +51,25 @@ def wait_until(deadline: float, margin: float) -> None:
 
 
 class Pacer:
-    """Deadlines for ticks at ``rate_hz``; ``paced`` False runs them back to back.
+    """Deadlines for ticks at ``rate_hz``; ``paced`` False runs them back to back. A paced
+    loop spins the last ``spin_s`` s before each deadline (at most half the period).
 
     ``max_consecutive_overruns`` periods in a row longer than ``OVERRUN_FACTOR`` x
     the period make ``begin`` report sustained lateness (0: never).
     """
 
-    def __init__(self, rate_hz: float, paced: bool, max_consecutive_overruns: int = 0) -> None:
+    def __init__(
+        self,
+        rate_hz: float,
+        paced: bool,
+        max_consecutive_overruns: int = 0,
+        spin_s: float = SPIN_MARGIN_S,
+    ) -> None:
         self.rate_hz = float(rate_hz)
         self.period = 1.0 / self.rate_hz
         self.paced = paced
         self.max_consecutive_overruns = max_consecutive_overruns if paced else 0
-        self.margin = min(SPIN_MARGIN_S, 0.5 * self.period)
+        self.margin = min(max(float(spin_s), 0.0), 0.5 * self.period)
         self.stats = LoopStats()
         self.t0 = 0.0
         self.sleep_until = 0.0  # when the loop's current sleep ends, less the spin

@@ -414,6 +414,13 @@ class LoopConfig(_Strict):
         description="Python's GIL switch interval while the loop runs, s: the longest the "
         "loop waits for the GIL held by the control thread (Python's default is 0.005)",
     )
+    spin_s: Float = Field(
+        default=200e-6,
+        ge=0.0,
+        le=0.01,
+        description="the last part of each period the paced loop spins instead of sleeping, s "
+        "(at most half the period): less spin, less CPU and more period error",
+    )
 
 
 class RobustnessConfig(_Strict):

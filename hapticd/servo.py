@@ -37,7 +37,7 @@ from hapticd.device_bank import DeviceBank
 from hapticd.event_ring import DEFAULT_CAPACITY, EventRing, FrameEvents
 from hapticd.events import CAUSE_CODES, CODES
 from hapticd.frame import Frame, item_view
-from hapticd.pacing import LoopStats, Pacer
+from hapticd.pacing import SPIN_MARGIN_S, LoopStats, Pacer
 from hapticd.params import PARAMS, ParamError
 from hapticd.recording import Recorder
 from hapticd.render import Renderer
@@ -85,6 +85,7 @@ class ServoLoop:
         stop_ramp_s: float = 0.0,
         realtime_settings: realtime.RealtimeSettings | None = None,
         switch_interval_s: float | None = None,
+        spin_s: float = SPIN_MARGIN_S,
         event_capacity: int = DEFAULT_CAPACITY,
         wall_watchdog: bool = True,
     ) -> None:
@@ -92,7 +93,7 @@ class ServoLoop:
             raise ValueError(f"rate_hz must be positive, got {rate_hz}")
         self.renderer = renderer
         self.safety = safety
-        self.pacer = Pacer(rate_hz, paced, max_consecutive_overruns)
+        self.pacer = Pacer(rate_hz, paced, max_consecutive_overruns, spin_s)
         self.rate_hz = self.pacer.rate_hz
         self.period = self.pacer.period
         self.paced = paced

@@ -299,6 +299,7 @@ def setup_files(
     # A shared 2-core machine can stall a paced loop for 100 ms: no wall-clock faults here.
     data["safety"]["watchdog_s"] = None
     data.setdefault("loop", {})["max_consecutive_overruns"] = 0
+    data["loop"]["spin_s"] = 0  # nothing here measures periods: no spinning beside the suite
     (tmp_path / "recs").mkdir()
     data["recording"] = {"directory": str(tmp_path / "recs")}
     profile = tmp_path / "profile.yaml"

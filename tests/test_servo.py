@@ -3,11 +3,13 @@ import threading
 
 import numpy as np
 import pytest
+import yaml
 from hapticd_drivers import Device, DeviceError, DeviceInfo
 
 from hapticd import recording
 from hapticd.commands import Enable
 from hapticd.daemon.session import build_session
+from hapticd.pacing import Pacer
 from hapticd.profile import load_profile
 from tests.conftest import GRASP_PROFILE, AtTick, wait_for
 
@@ -310,3 +312,13 @@ def test_a_cpu_number_beyond_a_c_long_is_a_real_time_problem_not_an_exception():
     # priority 0, no timer slack, no mlockall: nothing here changes the test process.
     rep = realtime.apply(realtime.RealtimeSettings(0, 10**30, False, None, False))
     assert rep.cpu is None and any("cpu affinity" in p for p in rep.problems)
+
+
+def test_the_profiles_spin_reaches_the_pacer_at_most_half_a_period(write_profile):
+    data = yaml.safe_load(GRASP_PROFILE.read_text())
+    data.setdefault("loop", {})["spin_s"] = 5e-5
+    loop = build_session(load_profile(write_profile(data)), paced=True).loop
+    assert loop.pacer.margin == 5e-5
+    assert build_session(load_profile(GRASP_PROFILE), paced=True).loop.pacer.margin == 2e-4
+    assert Pacer(4000.0, True, 0, 1e-3).margin == 0.5 / 4000.0
+    assert Pacer(1000.0, True, 0, 0.0).margin == 0.0

@@ -271,6 +271,7 @@ def build_session(
         max_consecutive_overruns=profile.loop.max_consecutive_overruns,
         stop_ramp_s=profile.safety.stop_ramp_s,
         switch_interval_s=profile.loop.gil_switch_interval_s,
+        spin_s=profile.loop.spin_s,
         realtime_settings=realtime_settings(profile) if paced else None,
         event_capacity=event_capacity,
         wall_watchdog=paced or not on_nominal_clock(profile, device, emulate),
