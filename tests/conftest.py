@@ -94,6 +94,17 @@ NUMBA_CACHE = Path(os.environ[_SHARED_CACHE])
 os.environ["NUMBA_CACHE_DIR"] = str(NUMBA_CACHE)
 COMPILER_WAIT_S = 180.0
 
+# The tree's bytecode, compiled once by the process that starts the run: where the machine
+# sets PYTHONDONTWRITEBYTECODE, no process writes it, and every one of the suite's few
+# hundred hapticd processes (daemons, runners, workers) compiled hapticd from source again
+# (0.2 s of CPU each). Python still recompiles a module whose source is newer. The
+# folders are __pycache__, which git ignores.
+if _CACHE_MADE_HERE and sys.flags.dont_write_bytecode:
+    import compileall
+
+    for _tree in ("hapticd", "drivers", "tests"):
+        compileall.compile_dir(ROOT / _tree, quiet=2)
+
 
 def pytest_sessionfinish(session, exitstatus):
     """No background compiler outlives the session: wait (bounded) for its marker to go,
