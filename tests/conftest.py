@@ -68,15 +68,6 @@ def pytest_collection_modifyitems(config, items):
         )
 
 
-def pytest_xdist_auto_num_workers(config):
-    """``-n auto``: half again as many workers as cores (at least 2). About a sixth of the
-    suite's time waits on wall-clock time (paced daemons, a rehearsal's touches, process
-    starts), which a core's second worker fills: on 2 cores the suite took 426 s with 2
-    workers and 371 s with 3, the same CPU time."""
-    cores = os.cpu_count() or 1
-    return max(2, cores + cores // 2)
-
-
 # Deterministic generated cases in CI; more examples on demand (HYPOTHESIS_PROFILE=thorough).
 # The session's own numba cache: compiled kernels (hapticd.jit) neither come from nor go
 # into the source tree's or the user's cache, and a background compiler that a test's auto
