@@ -808,12 +808,17 @@ def test_the_subjects_url_without_its_mode_is_still_the_subjects_page(
     frames = "Number(document.querySelector('[data-testid=scene]').dataset.frames)"
     with cdp.Browser(chromium, tmp_path / "chromium") as browser:
         browser.open(bare)
-        wait_for(
-            # (while the page redraws itself as the subject's, there may be no body)
-            lambda: browser.evaluate("document.body ? document.body.className : ''"),
-            "the page to become the subject's",
-            until=lambda c: c == "subject",
-        )
+
+        def body_class() -> str:
+            # While the page redraws itself as the subject's there may be no body, or no
+            # document at all: the browser answers a question asked then with an error
+            # (asked again until wait_for's deadline).
+            try:
+                return browser.evaluate("document.body ? document.body.className : ''")
+            except cdp.CDPError:
+                return ""
+
+        wait_for(body_class, "the page to become the subject's", until=lambda c: c == "subject")
         wait_for(lambda: browser.evaluate(frames), "the subject's page drawing", until=bool)
         panels = "getComputedStyle(document.getElementById('panels')).display"
         assert browser.evaluate(panels) == "none"
