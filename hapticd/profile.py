@@ -41,6 +41,7 @@ from pydantic import (
 
 from hapticd import params
 from hapticd.mount import mount_rotation
+from hapticd.pacing import SPIN_MARGIN_S
 
 PROFILE_VERSION = 1
 DOCS = "docs/profiles.md"
@@ -415,7 +416,7 @@ class LoopConfig(_Strict):
         "loop waits for the GIL held by the control thread (Python's default is 0.005)",
     )
     spin_s: Float = Field(
-        default=200e-6,
+        default=SPIN_MARGIN_S,
         ge=0.0,
         le=0.01,
         description="the last part of each period the paced loop spins instead of sleeping, s "
