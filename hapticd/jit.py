@@ -37,6 +37,7 @@ without its code for not cached (it would compile in the foreground).
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
 import platform
@@ -181,14 +182,18 @@ def _read_marker(name: str) -> dict[str, str]:
 
 def _write_marker(name: str, entries: dict[str, str]) -> None:
     """Add ``entries`` to the marker file ``name`` in the cache folder (atomically; a
-    folder that is not writable leaves it as it was)."""
+    folder that is not writable leaves it as it was). Under a lock: two processes that
+    compile different kernels at once would otherwise each write back what they read,
+    and one's entries would be lost."""
     folder = _cache_folder()
-    data = {**_read_marker(name), **entries}
     tmp = folder / f".{name}.{os.getpid()}"
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        tmp.write_text(json.dumps(data, indent=1))
-        os.replace(tmp, folder / name)
+        with open(folder / f".{name}.lock", "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            data = {**_read_marker(name), **entries}
+            tmp.write_text(json.dumps(data, indent=1))
+            os.replace(tmp, folder / name)
     except OSError:
         with contextlib.suppress(OSError):
             tmp.unlink()

@@ -519,6 +519,27 @@ def test_several_runs_at_once_start_one_compiler_that_leaves_no_marker(tmp_path)
     assert set(keys.values()) <= set(json.loads((cache / jit.COMPILED).read_text()))
 
 
+RECORD = """
+from hapticd import jit
+for i in range(300):
+    jit._write_marker(jit.COMPILED, {{f"{tag} {{i}}": "compiled"}})
+"""
+
+
+def test_processes_recording_kernels_at_once_lose_none_of_them(tmp_path):
+    """Two compilers that finish different kernels at the same moment both keep their
+    record of them (each adds its own under a lock; without one, a writer wrote back what
+    it had read before the other's entries, and those kernels counted as not compiled)."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    procs = [
+        subprocess.Popen([sys.executable, "-c", RECORD.format(tag=tag)], cwd=ROOT, env=env)
+        for tag in ("a", "b")
+    ]
+    assert [p.wait(timeout=120) for p in procs] == [0, 0]
+    record = json.loads((tmp_path / "cache" / jit.COMPILED).read_text())
+    assert set(record) == {f"{tag} {i}" for tag in "ab" for i in range(300)}
+
+
 @pytest.fixture(scope="module")
 def world_planes():
     return jit.compile_kernels(["world_planes"])["world_planes"]
