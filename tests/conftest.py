@@ -6,6 +6,7 @@ import contextlib
 import ctypes
 import os
 import shutil
+import subprocess
 import sys
 import tempfile
 import threading
@@ -95,6 +96,36 @@ if _CACHE_MADE_HERE and sys.flags.dont_write_bytecode:
 
     for _tree in ("hapticd", "drivers", "tests"):
         compileall.compile_dir(ROOT / _tree, quiet=2)
+
+
+def _compile_kernels_once() -> None:
+    """Every kernel compiled into the run's cache before the workers start, by two
+    compilers at once (``python -m hapticd.jit``), the kernels shared out by source length.
+    Left to the tests, each worker compiled what it first needed (10 s of CPU for all of
+    them), and every run in auto mode before that rendered with the slower Python code
+    and started a compiler of its own: 100 s of the suite's CPU. A failure here fails no
+    test: the tests that need a kernel compile it and say why it does not."""
+    import inspect
+
+    from hapticd import jit, kernels
+
+    sizes = {n: len(inspect.getsource(getattr(kernels, n))) for n in jit.SIGNATURES}
+    if jit.cached(list(sizes), __import__("numba").__version__)[0]:
+        return  # a lasting cache (HAPTICD_TEST_NUMBA_CACHE) that holds them
+    groups: list[list[str]] = [[], []]
+    for name in sorted(sizes, key=sizes.get, reverse=True):
+        min(groups, key=lambda g: sum(map(sizes.get, g))).append(name)
+    procs = [subprocess.Popen([sys.executable, "-m", "hapticd.jit", *g]) for g in groups]
+    for proc in procs:
+        try:
+            proc.wait(timeout=COMPILER_WAIT_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+if _CACHE_MADE_HERE or os.environ.get("PYTEST_XDIST_WORKER") is None:
+    _compile_kernels_once()
 
 
 def pytest_sessionfinish(session, exitstatus):
