@@ -25,7 +25,7 @@ import math
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -102,6 +102,8 @@ class ServoLoop:
         # whose devices all follow the loop's nominal clock (replay, sim, emulated) is a
         # simulation: a machine pausing it endangers no one, so it feeds no watchdog.
         self.wall_watchdog = wall_watchdog
+        # The clock that watchdog reads (s): the monotonic one; a test's own to stall a tick.
+        self.watchdog_clock: Callable[[], float] = time.monotonic
         self.duration_s = duration_s
         # Whether the run ends when every device's trajectory has (a bring-up goes on).
         self.end_with_trajectory = True
@@ -279,7 +281,7 @@ class ServoLoop:
         self.bank.read(frame, k, t)
         self.renderer.run(frame)
         self._check_object(frame, k, t)
-        self.safety.run(frame, time.monotonic() if self.wall_watchdog else None)
+        self.safety.run(frame, self.watchdog_clock() if self.wall_watchdog else None)
         self.bank.write(frame, k, t)
         if self.safety.fault is not None and not self.forces_off:
             # A latched fault: after the zero force just written, the devices' forces go off

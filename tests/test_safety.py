@@ -142,24 +142,33 @@ def test_leaving_the_workspace_latches():
     assert np.all(chain.output == 0)
 
 
-@pytest.mark.timing(
-    "the loop watchdog reads the monotonic clock: the stall is a real 0.15 s sleep, and "
-    "another stall over 0.1 s on a loaded machine would trip it at another tick"
-)
 def test_a_stalled_servo_loop_ends_in_zero_force():
+    """The loop's watchdog times the gap between ticks on its clock: a tick that takes
+    longer than the 0.1 s limit latches a fault at that tick, and every force after it is
+    zero. The clock is the test's own (1 ms a reading, 0.15 s more at the stalled tick), so
+    that a loaded machine stalling this process trips nothing else."""
     from hapticd.daemon.session import build_session
     from hapticd.profile import load_profile
     from tests.conftest import GRASP_PROFILE, AtTick
 
     s = build_session(load_profile(GRASP_PROFILE), paced=False)
-    import time
-
     assert not s.loop.wall_watchdog  # replay devices on the nominal clock: a simulation
     s.loop.wall_watchdog = True  # as with a device in the loop
+    now = [0.0]
+
+    def clock() -> float:
+        now[0] += 1e-3
+        return now[0]
+
+    def stall(frame) -> None:
+        now[0] += 0.15
+
+    s.loop.watchdog_clock = clock
     # In the pinch, a tick takes longer than the 0.1 s watchdog.
-    s.renderer.insert(AtTick(2999, lambda f: time.sleep(0.15)), after="allocation")
+    s.renderer.insert(AtTick(2999, stall), after="allocation")
     out = s.run()
     assert out["fault"] is not None and "watchdog" in out["fault"]["cause"]
+    assert "151.0 ms between ticks" in out["fault"]["cause"]  # its 1 ms and the stall
     assert out["fault"]["tick"] == 2999
     for dev in s.devices:
         assert np.all(dev.forces[2999:] == 0)

@@ -51,6 +51,10 @@ def test_daemon_tells_systemd_ready_status_watchdog_and_stopping(tmp_path):
                 "-q",
                 "--socket",
                 str(tmp_path / "c.sock"),
+                # Not the loop's own 0.1 s watchdog under test (tests/test_safety.py): a
+                # loaded machine stalled this run 135 ms, and it ended with a fault.
+                "--set",
+                "safety.watchdog_s=2.0",
             ],
             cwd=ROOT,
             env=env,
