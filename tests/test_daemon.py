@@ -330,3 +330,28 @@ def test_a_rejected_sighup_leaves_the_control_thread_serving_and_a_later_reload_
     rc, _out, err = finish(proc)
     assert rc == 0, err
     assert "Traceback" not in err
+
+
+def test_the_stop_signals_are_the_daemons_before_its_socket_is_served(tmp_path, monkeypatch):
+    """A client, or systemd, may signal the daemon as soon as its socket exists: by then
+    SIGTERM, SIGINT and SIGHUP are the daemon's own (a SIGTERM that came first killed it
+    without its orderly stop: forces to zero, devices off, the recording closed)."""
+    from hapticd.cli import main
+    from hapticd.daemon.server import ControlServer
+
+    seen: dict[int, object] = {}
+    start = ControlServer.start
+
+    def spy(self) -> None:
+        seen.update(
+            {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
+        )
+        start(self)
+
+    monkeypatch.setattr(ControlServer, "start", spy)
+    sock = tmp_path / "c.sock"
+    args = ["run", str(GRASP_PROFILE), "--unpaced", "--duration", "0.05", "--no-realtime", "-q"]
+    assert main([*args, "--socket", str(sock)]) == 0
+    assert len(seen) == 3
+    defaults = (signal.SIG_DFL, signal.SIG_IGN, signal.default_int_handler, None)
+    assert all(callable(h) and h not in defaults for h in seen.values()), seen

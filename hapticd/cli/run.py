@@ -222,13 +222,6 @@ def _run(args: argparse.Namespace, record_path: Path | None, *, temporary: bool 
     notifier = ServiceNotifier(lambda: loop.stats.ticks, lambda: _service_status(loop))
     socket_path = _run_socket(args)
     server = ControlServer(session, socket_path, periodic=[notifier.poll], socket_group=group)
-    try:
-        server.start()
-    except OSError as exc:
-        if session.loop.recorder is not None:
-            session.loop.recorder.close()
-        print(f"hapticd: cannot serve the control socket {socket_path}: {exc}", file=sys.stderr)
-        return EXIT_ERROR
 
     def on_stop(signum: int, _frame: object) -> None:
         # First signal: forces ramp to zero, then the run ends; a second one ends it now.
@@ -237,8 +230,20 @@ def _run(args: argparse.Namespace, record_path: Path | None, *, temporary: bool 
     def on_hup(_signum: int, _frame: object) -> None:
         server.request_reload()  # the control thread does the work, not the servo thread
 
+    # Before the socket exists: a client (or systemd) that sees it may signal the daemon at
+    # once, and a SIGTERM before the handlers were in place killed it without its orderly
+    # stop (seen: a test that stopped the daemon as soon as its socket appeared).
     handlers = {signal.SIGINT: on_stop, signal.SIGTERM: on_stop, signal.SIGHUP: on_hup}
     old = {s: signal.signal(s, h) for s, h in handlers.items()}
+    try:
+        server.start()
+    except OSError as exc:
+        for s, h in old.items():
+            signal.signal(s, h)
+        if session.loop.recorder is not None:
+            session.loop.recorder.close()
+        print(f"hapticd: cannot serve the control socket {socket_path}: {exc}", file=sys.stderr)
+        return EXIT_ERROR
     if socket_path is not None and not args.quiet:
         print(f"hapticd: control socket {socket_path}", file=sys.stderr)
     _log_build(args, session, socket_path)
