@@ -123,5 +123,39 @@ def test_the_readme_and_ci_install_from_the_locks():
     assert "-r requirements/run.txt" in run_cmd and "-r requirements/dev.txt" in test_cmd
     for cmd in (run_cmd, test_cmd):
         assert "--no-deps --no-build-isolation -e ." in cmd
+    # uv comes from its own lock, with pip, before it installs the dev lock, hashes checked.
+    assert test_cmd.index("pip install -r requirements/uv.txt") < test_cmd.index("uv pip install")
+    assert "--require-hashes" in test_cmd
     ci = (ROOT / ".ci" / "run").read_text()
     assert "README.md" in ci  # CI runs the README's own line, not a copy of it
+
+
+def test_the_uv_lock_is_the_dev_locks_pin_of_uv_with_its_hashes(tmp_path):
+    """requirements/uv.txt, which pip installs first, is exactly the dev lock's uv entry
+    (the same version and hashes): the dev lock is then installed by the uv it pins."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("lock_script", ROOT / "scripts" / "lock.py")
+    script = importlib.util.module_from_spec(spec)  # type: ignore[arg-type]
+    spec.loader.exec_module(script)  # type: ignore[union-attr]
+
+    def hashes(path: Path) -> set[str]:
+        lines = path.read_text().splitlines()
+        i = next(i for i, ln in enumerate(lines) if ln.startswith("uv=="))
+        block = [lines[i]]
+        for ln in lines[i + 1 :]:
+            if not ln.startswith(" "):
+                break
+            block.append(ln)
+        return {h for ln in block for h in re.findall(r"sha256:[0-9a-f]{64}", ln)}
+
+    uv_lock, dev = ROOT / "requirements" / "uv.txt", ROOT / "requirements" / "dev.txt"
+    assert locked(uv_lock).keys() == {"uv"}
+    assert locked(uv_lock)["uv"][0][0] == locked(dev)["uv"][0][0]
+    assert hashes(uv_lock) == hashes(dev) and len(hashes(dev)) > 1
+    assert "--only-binary :all:" in uv_lock.read_text()
+    # The lock script writes it from the dev lock, as it is; and tests a new lock with the
+    # README's own command.
+    script.write_bootstrap(dev, tmp_path / "uv.txt")
+    assert (tmp_path / "uv.txt").read_text() == uv_lock.read_text()
+    assert "requirements/uv.txt" in script.readme_test_command()
