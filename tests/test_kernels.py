@@ -282,7 +282,8 @@ def _numba_cache_of(names: list[str], cache: Path) -> None:
     cache, compiled there first if need be) but no record of hapticd's that they were
     compiled: hapticd's runs see kernels never compiled, and a compiler it starts loads
     numba's code instead of compiling for a quarter of a minute. (Compiling itself is
-    covered where the session's cache is filled, and by test_several_runs_at_once_...)"""
+    covered where the session's cache is filled, and by the tests that compile a kernel
+    again: a damaged or swapped cache, changed helpers, the cache across runs.)"""
     jit.compile_kernels(names)
     session = Path(os.environ["NUMBA_CACHE_DIR"])
     skip = shutil.ignore_patterns(jit.COMPILED, jit.FAILED, jit.COMPILING)
@@ -497,8 +498,11 @@ print(jit.choose("auto", {names!r}).note)
 
 def test_several_runs_at_once_start_one_compiler_that_leaves_no_marker(tmp_path):
     """Four processes ask for the kernels at the same moment (no cache): one compiler
-    starts; when it is done the kernels are in the cache and its marker is gone."""
+    starts; when it is done the kernels are in the cache and its marker is gone. (numba's
+    machine code is there already: the compiler loads it rather than compile for 5 s at
+    the lowest priority; compiling is tested where a kernel is compiled again.)"""
     cache = tmp_path / "cache"
+    _numba_cache_of(NAMES, cache)
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
     code = CHOOSE.format(names=NAMES)
     procs = [
