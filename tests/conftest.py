@@ -29,6 +29,11 @@ from hapticd.profile import load_profile
 
 ROOT = Path(__file__).resolve().parent.parent
 GRASP_PROFILE = ROOT / "configs" / "grasp-stiffness.yaml"
+# The profile overrides of a paced loop run in a test's own process: its clients (the
+# test's threads) share the loop's process and GIL, and on a loaded machine stalled it
+# past the rig's 0.1 s watchdog (102 ms, seen). A 1 s stall still latches a fault. The
+# watchdog itself is tested in tests/test_safety.py.
+IN_PROCESS = ["safety.watchdog_s=1.0"]
 
 pytest_plugins = ["pytester"]
 
@@ -284,7 +289,7 @@ def live(tmp_path):
     sock = tmp_path / "hapticd.sock"
     rec = tmp_path / "live.hrec"
     session = build_session(
-        load_profile(GRASP_PROFILE),
+        load_profile(GRASP_PROFILE, IN_PROCESS),
         paced=True,
         duration_s=4.0,
         record_path=rec,

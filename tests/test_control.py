@@ -22,7 +22,7 @@ from hapticd.control import ControlClient
 from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
 from hapticd.protocol import MAX_LINE_BYTES, ProtocolError, parse_request
-from tests.conftest import GRASP_PROFILE, wait_for, wait_for_tick
+from tests.conftest import GRASP_PROFILE, IN_PROCESS, wait_for, wait_for_tick
 
 
 @pytest.mark.parametrize(
@@ -213,7 +213,7 @@ def test_telemetry_streams_and_a_reader_that_stalls_blocks_no_one(live):
 
 
 def test_the_loop_writes_one_gate_byte_per_tick_before_it_sleeps():
-    session = build_session(load_profile(GRASP_PROFILE), paced=True, duration_s=0.1)
+    session = build_session(load_profile(GRASP_PROFILE, IN_PROCESS), paced=True, duration_s=0.1)
     session.loop.realtime_settings = None
     r = session.loop.open_sleep_gate()
     try:

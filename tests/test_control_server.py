@@ -20,7 +20,7 @@ from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
 from hapticd.protocol import ProtocolError
-from tests.conftest import GRASP_PROFILE, ROOT, wait_for
+from tests.conftest import GRASP_PROFILE, IN_PROCESS, ROOT, wait_for
 
 
 @pytest.fixture
@@ -245,7 +245,7 @@ def test_a_reload_storm_is_served_one_reload_a_second(tmp_path):
     """Reloads pipelined by two clients all get their replies, but the loop applies at most
     one a second (docs/control.md): a storm slows the replies, not the loop (before: 2,324
     reloads in 15 s, each a tick's worth of work and a swap)."""
-    session = build_session(load_profile(GRASP_PROFILE), paced=True, duration_s=30.0)
+    session = build_session(load_profile(GRASP_PROFILE, IN_PROCESS), paced=True, duration_s=30.0)
     server = ControlServer(session, tmp_path / "r.sock")
     server.start()
     runner = threading.Thread(target=session.run, name="test-loop")

@@ -26,7 +26,7 @@ from hapticd import params, protocol, recording
 from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
-from tests.conftest import GRASP_PROFILE
+from tests.conftest import GRASP_PROFILE, IN_PROCESS
 
 REPLY_TIMEOUT_S = 10.0
 REQUEST_ERRORS = {
@@ -244,7 +244,8 @@ def daemon(tmp_path_factory):
         finger["device"]["hold_s"] = 3600.0
     path = tmp / "profile.yaml"
     path.write_text(yaml.safe_dump(data))
-    profile = load_profile(path)
+    # A hostile line that stalls the loop for a second still latches a fault.
+    profile = load_profile(path, IN_PROCESS)
     session = build_session(profile, paced=True, record_dir=tmp)
     session.loop.realtime_settings = None
     sock = tmp / "h.sock"

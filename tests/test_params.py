@@ -25,9 +25,9 @@ from hapticd.control import ControlClient
 from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import Session, build_session
 from hapticd.params import PARAMS, ParamError
-from hapticd.profile import ProfileError, RenderingConfig, parse_profile
+from hapticd.profile import ProfileError, RenderingConfig, apply_overrides, parse_profile
 from hapticd.protocol import ProtocolError
-from tests.conftest import GRASP_PROFILE, wait_for_tick
+from tests.conftest import GRASP_PROFILE, IN_PROCESS, wait_for_tick
 
 ROOT = Path(__file__).resolve().parent.parent
 SPECS = list(PARAMS.values())
@@ -221,6 +221,7 @@ def served(tmp_path_factory):
     for finger in data["fingers"]:
         finger["device"]["hold_s"] = 60.0
     sock = tmp_path_factory.mktemp("params") / "hapticd.sock"
+    data = apply_overrides(data, IN_PROCESS, GRASP_PROFILE)
     session = build_session(parse_profile(data, GRASP_PROFILE), paced=True, duration_s=60.0)
     session.loop.realtime_settings = None  # a shared test machine: no SCHED_FIFO
     server = ControlServer(session, sock)

@@ -40,7 +40,7 @@ from hapticd.view.server import (
     load_or_make_key,
 )
 from tests import cdp
-from tests.conftest import ROOT, wait_for
+from tests.conftest import IN_PROCESS, ROOT, wait_for
 from tests.fake_daemon import FakeDaemon
 
 URL_RE = re.compile(r"^http://(?P<host>[^/:]+|\[[^]]+\]):(?P<port>\d+)/\?key=(?P<key>[\w-]+)$")
@@ -51,7 +51,7 @@ OPENER = urllib.request.build_opener(urllib.request.ProxyHandler({}))
 @contextlib.contextmanager
 def running_daemon(sock: Path, profile: Path):
     """A paced run of ``profile`` serving ``sock`` in a thread until the block ends."""
-    session = build_session(load_profile(profile), paced=True, duration_s=60.0)
+    session = build_session(load_profile(profile, IN_PROCESS), paced=True, duration_s=60.0)
     server = ControlServer(session, sock)
     server.start()
     runner = threading.Thread(target=session.run, name="test-loop")
