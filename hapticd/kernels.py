@@ -16,8 +16,10 @@ direction per finger and at most two contacts (pinv, if, ef), and calls the
 closed forms of ``hapticd.allocation.closed`` and ``accuracy`` themselves (written
 once, for floats and arrays; ``KERNEL_HELPERS``); ``contact_step`` is
 ``hapticd.stages.Contact`` with ``hapticd.contact.proxy_step_multi`` on flat obstacles;
-``friction_step`` is ``hapticd.stages.Friction`` with
-``hapticd.friction.friction_proxy``; ``forces_step`` is ``hapticd.stages.Forces``.
+``forces_step`` is ``hapticd.stages.Forces``.
+
+``friction_step`` has no twin: it is the Friction stage's physics, compiled or, with
+``rendering.kernels=python``, run uncompiled (``uncompiled``).
 
 Units: positions m, velocities m/s, angular velocities rad/s, forces N, torques
 N m, stiffness N/m, damping N s/m, mass kg, inertia kg m^2, times s.
@@ -25,7 +27,9 @@ N m, stiffness N/m, damping N s/m, mass kg, inertia kg m^2, times s.
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -48,6 +52,23 @@ from hapticd.contact import (
     _T_EPS,
     _VECTOR_PLANES,
 )
+
+
+@functools.cache
+def uncompiled(name: str) -> Callable[..., object]:
+    """Kernel ``name`` of this module as plain Python (what ``rendering.kernels=python``
+    runs): the same function, called with numpy's floating-point warnings off. Its scalars
+    are numpy's, which give IEEE results (inf, NaN) where the compiled code does, and
+    would otherwise warn on the loop; one function per name."""
+    fn = globals()[name]
+
+    @functools.wraps(fn)
+    def run(*args: object) -> object:
+        with np.errstate(all="ignore"):
+            return fn(*args)
+
+    return run
+
 
 SCRATCH_COLUMNS = 13  # per finger: c0 (3), body (3), f0 (3), torsion normal (3), cap (1)
 # free_body_step's params: k, mu_t, m, dt, substeps, reach, gravity (3)
@@ -498,8 +519,8 @@ def friction_step(
     state: np.ndarray,
     params: np.ndarray,
 ) -> None:
-    """Coulomb stick/slip at each fingertip in contact (``hapticd.stages.Friction`` with
-    ``hapticd.friction.friction_proxy``): from contact's frictionless surface point, proxy
+    """Coulomb stick/slip at each fingertip in contact (after CHAI3D's finger proxy; the
+    Friction stage's physics): from contact's frictionless surface point, proxy
     and contact point (``plain_surface``, ``plain_proxy``, ``plain_point``, (F, 3) m),
     writes the friction proxy to ``surface_point`` (F, 3) m, ``proxy_pos`` (F, 3) m moved
     with it, and ``contact_point`` (F, 3) m to match; rows of fingers out of contact are
@@ -510,6 +531,13 @@ def friction_step(
     and written, their set flags (1.0 or 0.0; cleared out of contact) and the radii (m).
     ``state`` (STATE,): the object's pose, x (m) and R (row by row) as free_body_step has
     them (velocities unread). ``params`` (FRICTION_PARAMS,): mu_static, mu_dynamic.
+
+    The frictionless point p lies on a face with unit normal n, at depth
+    d = n . (p - device) >= 0. A sticking contact keeps an anchor on the face (projected
+    onto the plane through p); the friction proxy stays at the anchor while it lies within
+    mu_s d of p (the static cone), else slips to the dynamic cone's edge, mu_d d from p
+    toward the anchor; a new contact, or one at depth <= 0, sticks at p. The force
+    k (proxy - device) then has normal part k d and tangential part at most mu k d.
     """
     mu_s, mu_d = params[0], params[1]
     x0, x1, x2 = state[0], state[1], state[2]

@@ -38,7 +38,6 @@ from hapticd.dynamics import (
     step_body_small,
 )
 from hapticd.frame import Frame
-from hapticd.friction import friction_proxy
 from hapticd.passivity import PassivityParams, control, observe, orthonormal, project
 from hapticd.scene import Material, Scene, SceneObject
 
@@ -91,10 +90,18 @@ def _unit(v: V3, fallback: V3) -> V3:
     return (v[0] / n, v[1] / n, v[2] / n) if n > 1e-15 else fallback
 
 
-def _shown(p: V3, held: V3, plain: V3) -> V3:
-    """The proxy shown for a finger: the god-object ``p`` moved as friction moved the
-    fingertip from ``plain`` (frictionless) to ``held``."""
-    return (p[0] + held[0] - plain[0], p[1] + held[1] - plain[1], p[2] + held[2] - plain[2])
+def _kernel(name: str) -> property:
+    """A stage's kernel ``name`` (a function of hapticd.kernels): the compiled function
+    hapticd.jit gave it, or, set to None, the very same function uncompiled
+    (``kernels.uncompiled``: ``rendering.kernels=python``). The stage calls ``_kernel``."""
+
+    def get(stage: object) -> Callable[..., object]:
+        return stage._kernel  # type: ignore[attr-defined]
+
+    def put(stage: object, fn: Callable[..., object] | None) -> None:
+        stage._kernel = kernels.uncompiled(name) if fn is None else fn  # type: ignore[attr-defined]
+
+    return property(get, put, doc=f"hapticd.kernels.{name}, compiled or not")
 
 
 def _projector(directions: list[V3]) -> np.ndarray:
@@ -353,8 +360,8 @@ class Friction:
     moves with the object); moves ``proxy_pos`` (the god-object proxy as contact
     wrote it) with the fingertip's point and updates ``contact_point`` to match.
     The anchors live in ``anchors`` (F, kernels.FRICTION_COLUMNS: the anchor (3, m, body
-    frame), 1.0 if it is set, the fingertip's radius (m)), which this code and the
-    compiled kernel (hapticd.kernels.friction_step) both read and write.
+    frame), 1.0 if it is set, the fingertip's radius (m)). The physics is
+    hapticd.kernels.friction_step, compiled or not (``kernel``).
 
     Reads contact's results from ``inputs`` (``FRICTIONLESS`` in the renderer's plan;
     ``HELD`` when run on its own: then it moves them in place) and writes ``HELD``.
@@ -362,13 +369,13 @@ class Friction:
 
     name = "friction"
     outputs = HELD
+    kernel = _kernel("friction_step")
 
     def __init__(
         self, scene: Scene, radii: list[float], kernel: Callable[..., None] | None = None
     ) -> None:
         self.scene = scene
         self.radii = radii
-        # hapticd.kernels.friction_step compiled (hapticd.jit), or None: the code below.
         self.kernel = kernel
         self.anchors = np.zeros((len(radii), kernels.FRICTION_COLUMNS))
         self.anchors[:, kernels.FINGER_RADIUS] = radii
@@ -400,9 +407,8 @@ class Friction:
         # Contact's results (its proxy, surface point and contact point), where friction
         # starts from.
         god_in, plain_in, point_in = self._in.of(frame, self._inputs)
-        # Out of contact both paths return here: cheaper than a call to the kernel.
-        touching = frame.in_contact.tolist()
-        if not any(touching):
+        # Out of contact the kernel would only copy them: cheaper here than a call.
+        if not any(frame.in_contact.tolist()):
             if self.holding:
                 self.anchors[:, kernels.ANCHOR_SET] = 0.0
                 self.holding = False
@@ -413,70 +419,13 @@ class Friction:
             return
         self.holding = True
         obj = self.scene.object
-        if self.kernel is not None:
-            self._run_kernel(frame, obj, god_in, plain_in, point_in)
-            return
-        mat = obj.material
-        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = obj.rotation.tolist()
-        x0, x1, x2 = obj.position.tolist()
-        anchors = self.anchors.tolist()
-        pos = frame.device_pos.tolist()
-        plain = plain_in.tolist()  # frictionless, as contact wrote them
-        held = list(plain)
-        normals = frame.contact_normal.tolist()
-        god = god_in.tolist()
-        shown = list(god)
-        points = point_in.tolist()
-        for i, on in enumerate(touching):
-            a = anchors[i]
-            if not on:
-                a[3] = 0.0
-                continue
-            aw = None
-            if a[3] != 0.0:
-                # R a + x in plain sums (each row's products left to right, then x), not
-                # numpy's R @ a, whose BLAS rounds differently: the kernel's sums, bit for bit.
-                aw = (
-                    r00 * a[0] + r01 * a[1] + r02 * a[2] + x0,
-                    r10 * a[0] + r11 * a[1] + r12 * a[2] + x1,
-                    r20 * a[0] + r21 * a[1] + r22 * a[2] + x2,
-                )
-            dev, n = pos[i], normals[i]
-            pf, _ = friction_proxy(held[i], dev, n, aw, mat.mu_static, mat.mu_dynamic)  # type: ignore[arg-type]
-            # The new anchor in the body frame: R^T (pf - x), each column's products left
-            # to right.
-            d0, d1, d2 = pf[0] - x0, pf[1] - x1, pf[2] - x2
-            a[0] = r00 * d0 + r10 * d1 + r20 * d2
-            a[1] = r01 * d0 + r11 * d1 + r21 * d2
-            a[2] = r02 * d0 + r12 * d1 + r22 * d2
-            a[3] = 1.0
-            held[i] = pf
-            p, po = god[i], plain[i]
-            shown[i] = _shown(p, pf, po)
-            r = self.radii[i]
-            points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
-        self.anchors[...] = anchors
-        frame.surface_point[...] = held
-        frame.proxy_pos[...] = shown
-        frame.contact_point[...] = points
-
-    def _run_kernel(
-        self,
-        frame: Frame,
-        obj: SceneObject,
-        god_in: np.ndarray,
-        plain_in: np.ndarray,
-        point_in: np.ndarray,
-    ) -> None:
-        """The same tick as ``run`` by the kernel, on the frame's arrays, the anchors and
-        the object's ``state``."""
         mat = obj.material
         params = self._params
         if mat is not self._params_for:  # a Material is frozen: a change is a new one
             params[0] = mat.mu_static
             params[1] = mat.mu_dynamic
             self._params_for = mat
-        self.kernel(  # type: ignore[misc]
+        self._kernel(
             frame.in_contact,
             frame.device_pos,
             plain_in,
