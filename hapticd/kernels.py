@@ -15,11 +15,11 @@ in the same order (so, without fused multiply-adds, the same bits):
 direction per finger and at most two contacts (pinv, if, ef), and calls the
 closed forms of ``hapticd.allocation.closed`` and ``accuracy`` themselves (written
 once, for floats and arrays; ``KERNEL_HELPERS``); ``contact_step`` is
-``hapticd.stages.Contact`` with ``hapticd.contact.proxy_step_multi`` on flat obstacles;
-``forces_step`` is ``hapticd.stages.Forces``.
+``hapticd.stages.Contact`` with ``hapticd.contact.proxy_step_multi`` on flat obstacles.
 
-``friction_step`` has no twin: it is the Friction stage's physics, compiled or, with
-``rendering.kernels=python``, run uncompiled (``uncompiled``).
+``friction_step`` and ``forces_step`` have no twin: each is its stage's physics
+(hapticd.stages.Friction, Forces), compiled or, with ``rendering.kernels=python``, run
+uncompiled (``uncompiled``).
 
 Units: positions m, velocities m/s, angular velocities rad/s, forces N, torques
 N m, stiffness N/m, damping N s/m, mass kg, inertia kg m^2, times s.
@@ -607,7 +607,7 @@ def forces_step(
     state: np.ndarray,
     params: np.ndarray,
 ) -> None:
-    """The full contact force on each finger (``hapticd.stages.Forces``): k (surface point
+    """The full contact force on each finger (the Forces stage's physics): k (surface point
     - device) - b v_rel, less any normal part that would pull the finger in; writes
     ``contact_force`` (F, 3) N, zero out of contact.
 
@@ -629,7 +629,7 @@ def forces_step(
         f0 = k * (p0 - device_pos[i, 0])
         f1 = k * (p1 - device_pos[i, 1])
         f2 = k * (p2 - device_pos[i, 2])
-        if b != 0.0:  # the Python code's ``if b``: NaN damps too
+        if b != 0.0:  # NaN damps too
             v0, v1, v2 = device_vel[i, 0], device_vel[i, 1], device_vel[i, 2]
             if moving:  # relative to the object's material at the surface point
                 e0, e1, e2 = p0 - x0, p1 - x1, p2 - x2

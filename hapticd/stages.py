@@ -445,55 +445,28 @@ class Forces:
     """The full contact force on each finger: k (surface point - device) - b v_rel.
 
     Damping may slow the finger but never pull it into the object. Writes
-    ``contact_force``; zero for a finger out of contact.
+    ``contact_force``; zero for a finger out of contact. The physics is
+    hapticd.kernels.forces_step, compiled or not (``kernel``).
     """
 
     name = "forces"
     reads = ("in_contact", "device_pos", "device_vel", "surface_point", "contact_normal")
     writes = ("contact_force",)
+    kernel = _kernel("forces_step")
 
     def __init__(self, scene: Scene, kernel: Callable[..., None] | None = None) -> None:
         self.scene = scene
-        # hapticd.kernels.forces_step compiled (hapticd.jit), or None: the code below.
         self.kernel = kernel
         self._params = np.zeros(kernels.FORCES_PARAMS)
         self._params_for: tuple[Material, bool] | None = None
         self._still = np.zeros(kernels.STATE)  # a fixed object's motion: none is read
 
     def run(self, frame: Frame) -> None:
-        # Out of contact both paths return here: cheaper than a call to the kernel.
-        touching = frame.in_contact.tolist()
-        if not any(touching):
+        # Out of contact: zero, cheaper here than a call to the kernel.
+        if not any(frame.in_contact.tolist()):
             frame.contact_force.fill(0.0)
             return
         obj = self.scene.object
-        if self.kernel is not None:
-            self._run_kernel(frame, obj)
-            return
-        k, b = obj.material.stiffness, obj.material.damping
-        pos = frame.device_pos.tolist()
-        held = frame.surface_point.tolist()
-        normals = frame.contact_normal.tolist()
-        vel = frame.device_vel.tolist() if b else None
-        motion = None if obj.fixed or not b else self._motion()
-        forces = [ZERO3] * len(touching)
-        for i, on in enumerate(touching):
-            if not on:
-                continue
-            dev, pf, n = pos[i], held[i], normals[i]
-            f = (k * (pf[0] - dev[0]), k * (pf[1] - dev[1]), k * (pf[2] - dev[2]))
-            if vel is not None:
-                v = self._relative_velocity(vel[i], pf, motion)
-                f = (f[0] - b * v[0], f[1] - b * v[1], f[2] - b * v[2])
-                fn = f[0] * n[0] + f[1] * n[1] + f[2] * n[2]
-                if fn < 0.0:
-                    f = (f[0] - fn * n[0], f[1] - fn * n[1], f[2] - fn * n[2])
-            forces[i] = f
-        frame.contact_force[...] = forces
-
-    def _run_kernel(self, frame: Frame, obj: SceneObject) -> None:
-        """The same forces as ``run`` by the kernel, on the frame's arrays and (a free
-        object) the object's ``state``."""
         mat, fixed = obj.material, obj.fixed
         made = self._params_for
         if made is None or made[0] is not mat or made[1] != fixed:
@@ -501,7 +474,7 @@ class Forces:
             self._params[1] = mat.damping
             self._params[2] = 0.0 if fixed else 1.0
             self._params_for = (mat, fixed)
-        self.kernel(  # type: ignore[misc]
+        self._kernel(
             frame.in_contact,
             frame.device_pos,
             frame.device_vel,
@@ -510,34 +483,6 @@ class Forces:
             frame.contact_force,
             self._still if fixed else obj.state,
             self._params,
-        )
-
-    def _motion(self) -> tuple[list[float], list[float], list[float]]:
-        """The object's position (m), velocity (m/s) and angular velocity (rad/s)."""
-        obj = self.scene.object
-        return obj.position.tolist(), obj.velocity.tolist(), obj.omega.tolist()
-
-    @staticmethod
-    def _relative_velocity(
-        v_dev: list[float],
-        point: list[float],
-        motion: tuple[list[float], list[float], list[float]] | None,
-    ) -> V3:
-        """The device's velocity relative to the object's material at ``point`` (m/s):
-        elementwise on plain floats, the same sums numpy's 3-vectors made."""
-        if motion is None:
-            return (v_dev[0], v_dev[1], v_dev[2])
-        x, u, w = motion
-        rel = (point[0] - x[0], point[1] - x[1], point[2] - x[2])
-        spin = (
-            w[1] * rel[2] - w[2] * rel[1],
-            w[2] * rel[0] - w[0] * rel[2],
-            w[0] * rel[1] - w[1] * rel[0],
-        )
-        return (
-            v_dev[0] - u[0] - spin[0],
-            v_dev[1] - u[1] - spin[1],
-            v_dev[2] - u[2] - spin[2],
         )
 
 

@@ -201,15 +201,30 @@ def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked(compiled)
     assert profile.rendering.kernels == "auto"
     s = build_session(profile, paced=False, duration_s=0.01)
     assert list(s.renderer.kernels) == list(LIFT_KERNELS)
-    for name in ("dynamics", "allocation", "contact", "friction", "forces"):
-        assert s.renderer.stages[s.renderer.stage_names.index(name)].kernel is not None, name
-    assert s.renderer.stages[s.renderer.stage_names.index("contact")].planes_kernel is not None
+    stages = dict(zip(s.renderer.stage_names, s.renderer.stages, strict=True))
+    for name, kernel in STAGE_KERNELS.items():
+        assert stages[name].kernel is s.renderer.kernels[kernel], name
+    assert stages["contact"].planes_kernel is not None
     s.run()
     s = build_session(
         load_profile(LIFT, ["rendering.kernels=python"]), paced=False, duration_s=0.01
     )
     assert s.renderer.kernels == {}
+    stages = dict(zip(s.renderer.stage_names, s.renderer.stages, strict=True))
+    for name in ONE_SOURCE:  # the same functions, uncompiled
+        assert stages[name].kernel is kernels.uncompiled(STAGE_KERNELS[name]), name
     s.run()
+
+
+# The stages' kernels; the stages whose kernel is their only physics (compiled or not).
+STAGE_KERNELS = {
+    "dynamics": "free_body_step",
+    "allocation": "allocation_step",
+    "contact": "contact_step",
+    "friction": "friction_step",
+    "forces": "forces_step",
+}
+ONE_SOURCE = ("friction", "forces")
 
 
 NO_NUMBA = "import sys; sys.modules['numba'] = None\n"
