@@ -17,9 +17,9 @@ closed forms of ``hapticd.allocation.closed`` and ``accuracy`` themselves (writt
 once, for floats and arrays; ``KERNEL_HELPERS``); ``contact_step`` is
 ``hapticd.stages.Contact`` with ``hapticd.contact.proxy_step_multi`` on flat obstacles.
 
-``friction_step`` and ``forces_step`` have no twin: each is its stage's physics
-(hapticd.stages.Friction, Forces), compiled or, with ``rendering.kernels=python``, run
-uncompiled (``uncompiled``).
+``friction_step``, ``forces_step`` and ``safety_step`` have no twin: each is its stage's
+physics (hapticd.stages.Friction, Forces; hapticd.safety.SafetyChain's normal tick),
+compiled or, with ``rendering.kernels=python``, run uncompiled (``uncompiled``).
 
 Units: positions m, velocities m/s, angular velocities rad/s, forces N, torques
 N m, stiffness N/m, damping N s/m, mass kg, inertia kg m^2, times s.
@@ -1068,7 +1068,7 @@ _SPLIT = 134217729.0
 def _hypot3(x0: float, x1: float, x2: float) -> float:
     """``math.hypot(x0, x1, x2)`` as CPython 3.11 computes it (``vector_norm``: scaled by
     the largest magnitude, squares split with Veltkamp's constant, compensated sums, one
-    correction step), bit for bit; inf for an infinite argument."""
+    correction step), bit for bit, under any Python; inf for an infinite argument."""
     a0, a1, a2 = abs(x0), abs(x1), abs(x2)
     top = a0
     if a1 > top:
@@ -1125,18 +1125,18 @@ def _hypot3(x0: float, x1: float, x2: float) -> float:
 def safety_step(
     forces: np.ndarray, positions: np.ndarray, params: np.ndarray, out_prev: np.ndarray
 ) -> int:
-    """The normal path of ``hapticd.safety.SafetyChain.apply`` for F fingers: the finite
-    check, the workspace check, the magnitude clamp (direction kept), the ramp and deadman
-    gate, the rate limit; the same operations in the same order.
+    """The safety chain's normal tick (``hapticd.safety.SafetyChain``, its only code for
+    it, compiled or not) for F fingers: the finite check, the workspace check, the
+    magnitude clamp (direction kept), the ramp and deadman gate, the rate limit.
 
     ``forces`` (F, 3) N, ``positions`` (F, 3) m (read only with a finite workspace
     radius), ``params`` (SAFETY_PARAMS + 2 F,) as declared above; ``out_prev`` (2, F, 3)
     N: this tick's output, then last tick's, which becomes this tick's. Writes the
-    output and returns the SAFETY_CLAMPED and
-    SAFETY_LIMITED flags, or returns SAFETY_DEFER having written nothing: the caller then
-    runs the Python chain, which trips with its message (or, a finger within rounding of
-    the workspace's edge, decides). Magnitudes are CPython's ``math.hypot`` (Python 3.11,
-    ``vector_norm``: scaled, split squares with compensated sums), inlined twice.
+    output and returns the SAFETY_CLAMPED and SAFETY_LIMITED flags, or returns
+    SAFETY_DEFER having written nothing: the chain then checks what may trip, with its
+    messages (or, a finger within rounding of the workspace's edge, decides, and calls
+    this again without the workspace check). Magnitudes are ``_hypot3`` (CPython 3.11's
+    ``math.hypot``), the same on any Python, compiled or not.
     """
     n_fingers = forces.shape[0]
     for i in range(n_fingers):
