@@ -7,19 +7,19 @@ arithmetic, ``math``, loops and indexing of preallocated numpy arrays, no object
 functions when ``rendering.kernels`` asks for them. Run as plain Python they give
 the same numbers, only slower.
 
-The readable reference stays where it was, and each kernel evaluates its sums
-in the same order (so, without fused multiply-adds, the same bits):
-``free_body_step`` is ``hapticd.stages.Dynamics`` with
-``hapticd.dynamics.step_body_small``; ``allocation_step`` is
+For the kernels that still have one, the readable reference stays where it was, and
+each kernel evaluates its sums in the same order (so, without fused multiply-adds, the
+same bits): ``allocation_step`` is
 ``hapticd.stages.Allocation`` with ``ContactAllocator`` for one actuated
 direction per finger and at most two contacts (pinv, if, ef), and calls the
 closed forms of ``hapticd.allocation.closed`` and ``accuracy`` themselves (written
 once, for floats and arrays; ``KERNEL_HELPERS``); ``contact_step`` is
 ``hapticd.stages.Contact`` with ``hapticd.contact.proxy_step_multi`` on flat obstacles.
 
-``friction_step``, ``forces_step`` and ``safety_step`` have no twin: each is its stage's
-physics (hapticd.stages.Friction, Forces; hapticd.safety.SafetyChain's normal tick),
-compiled or, with ``rendering.kernels=python``, run uncompiled (``uncompiled``).
+``friction_step``, ``forces_step``, ``free_body_step`` and ``safety_step`` have no twin:
+each is its stage's physics (hapticd.stages.Friction, Forces, Dynamics;
+hapticd.safety.SafetyChain's normal tick), compiled or, with ``rendering.kernels=python``,
+run uncompiled (``uncompiled``).
 
 Units: positions m, velocities m/s, angular velocities rad/s, forces N, torques
 N m, stiffness N/m, damping N s/m, mass kg, inertia kg m^2, times s.
@@ -180,7 +180,8 @@ def free_body_step(
             Ty = Ty + (e2 * f0 - e0 * f2)
             Tz = Tz + (e0 * f1 - e1 * f0)
         if n_surf > 0:
-            # The surfaces' wrench (hapticd.dynamics.surface_wrench_small).
+            # The surfaces' wrench: a penalty spring-damper at each vertex inside a
+            # surface, Coulomb friction capped at what stops the vertex in one substep.
             sFx = sFy = sFz = sTx = sTy = sTz = 0.0
             ax = abs(x0) + abs(x1) + abs(x2)
             for js in range(n_surf):
@@ -280,7 +281,11 @@ def free_body_step(
         # q advanced by w over h: exp(w h / 2) * q, normalised.
         speed = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
         half = 0.5 * speed * h
-        if not half < 1e-15:
+        if half == math.inf:
+            # A spin whose square overflowed: NaN (compiled, cos gives it; uncompiled,
+            # math.cos would raise); the loop's object check then ends the run.
+            qw = qx = qy = qz = math.nan
+        elif not half < 1e-15:
             c, s = math.cos(half), math.sin(half) / speed
             a0, a1, a2, a3 = c, s * w0, s * w1, s * w2
             p0 = a0 * qw - a1 * qx - a2 * qy - a3 * qz

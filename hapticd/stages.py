@@ -29,17 +29,10 @@ from hapticd.contact import (
     Polytope,
     proxy_step_multi,
 )
-from hapticd.dynamics import (
-    SMALL_SHAPE,
-    SmallBody,
-    SurfaceSet,
-    auto_substeps,
-    step_body,
-    step_body_small,
-)
+from hapticd.dynamics import auto_substeps
 from hapticd.frame import Frame
 from hapticd.passivity import PassivityParams, control, observe, orthonormal, project
-from hapticd.scene import Material, Scene, SceneObject
+from hapticd.scene import Material, Scene, SceneObject, Surface
 
 V3 = tuple[float, float, float]
 ZERO3: V3 = (0.0, 0.0, 0.0)
@@ -790,12 +783,14 @@ class Dynamics:
 
     The fingers act as springs that move with the object during the tick's
     substeps; soft-finger contacts resist spin about their normals. Writes the
-    object's pose to the scene (the next tick's contact sees it).
+    object's pose to the scene (the next tick's contact sees it). The physics is
+    hapticd.kernels.free_body_step, compiled or not (``kernel``), for any shape.
     """
 
     name = "dynamics"
     reads = ("in_contact", "contact_point", "contact_force", "contact_normal")
     writes = ()  # the object's pose and motion (the scene's object)
+    kernel = _kernel("free_body_step")
 
     def __init__(
         self, scene: Scene, n_fingers: int, dt: float, kernel: Callable[..., None] | None = None
@@ -803,17 +798,13 @@ class Dynamics:
         self.scene = scene
         obj = scene.object
         self.dt = dt
-        # hapticd.kernels.free_body_step compiled (hapticd.jit), or None: the code below.
         self.kernel = kernel
         self.gravity = scene.gravity
-        self.surfaces = SurfaceSet(scene.surfaces) if scene.surfaces else None
         self.substeps = scene.substeps
         if scene.substeps == 0:  # auto
             self.substeps = auto_substeps(
                 obj, scene.surfaces, obj.material.stiffness, n_fingers, dt
             )
-        self.small = len(obj.shape.vertices) <= SMALL_SHAPE
-        self._prepared: SmallBody | None = None  # the small step's cache (shape, mass)
         self._arrays: _BodyArrays | None = None  # the kernel's (shape, mass, surfaces)
         self._scratch = np.zeros((n_fingers, kernels.SCRATCH_COLUMNS))
         self._gravity = np.zeros(3) if self.gravity is None else np.array(self.gravity, float)
@@ -826,73 +817,22 @@ class Dynamics:
     def effects(self) -> list[str]:
         """What moves the object besides the fingers."""
         return (["gravity"] if self.gravity is not None else []) + (
-            ["surfaces"] if self.surfaces else []
+            ["surfaces"] if self.scene.surfaces else []
         )
 
     def run(self, frame: Frame) -> None:
-        if self.kernel is not None:
-            self._run_kernel(frame)
-            return
-        obj = self.scene.object
-        k = obj.material.stiffness
-        touching = frame.in_contact.tolist()
-        contacts = [i for i, on in enumerate(touching) if on]
-        points = frame.contact_point.tolist()
-        forces = frame.contact_force.tolist()
-        # The object feels the reaction of the full (virtual) contact force.
-        springs = [(points[i], (-forces[i][0], -forces[i][1], -forces[i][2]), k) for i in contacts]
-        torsion = None
-        mu_t = obj.material.torsion
-        if mu_t > 0.0 and contacts:
-            normals = frame.contact_normal.tolist()
-            torsion = []
-            for i in contacts:
-                n, f = normals[i], forces[i]
-                fn = abs(f[0] * n[0] + f[1] * n[1] + f[2] * n[2])
-                if fn > 0.0:
-                    torsion.append((n, mu_t * fn))
-        if self.small:
-            prep = self._prepared
-            if prep is None or not prep.fits(obj, self.surfaces):
-                prep = self._prepared = SmallBody(obj, self.surfaces)
-            step_body_small(
-                obj,
-                (0.0, 0.0, 0.0),
-                (0.0, 0.0, 0.0),
-                self.dt,
-                gravity=self.gravity,
-                surfaces=self.surfaces,
-                substeps=self.substeps,
-                torsion=torsion,  # type: ignore[arg-type]
-                springs=springs,  # type: ignore[arg-type]
-                prepared=prep,
-            )
-        else:
-            step_body(
-                obj,
-                np.zeros(3),
-                np.zeros(3),
-                self.dt,
-                gravity=self.gravity,
-                surfaces=self.surfaces,
-                substeps=self.substeps,
-                torsion=torsion,  # type: ignore[arg-type]
-                springs=springs,  # type: ignore[arg-type]
-            )
-
-    def _run_kernel(self, frame: Frame) -> None:
-        """The same step as ``run`` by the kernel, on the frame's arrays and the object's
-        ``state`` (its position, velocity, omega and rotation are views of it)."""
+        """The step on the frame's arrays and the object's ``state`` (its position,
+        velocity, omega and rotation are views of it)."""
         obj = self.scene.object
         arr = self._arrays
-        if arr is None or not arr.fits(obj, self.surfaces):
-            arr = self._arrays = _BodyArrays(obj, self.surfaces, self.dt, self.substeps)
+        if arr is None or not arr.fits(obj):
+            arr = self._arrays = _BodyArrays(obj, self.scene.surfaces, self.dt, self.substeps)
             arr.params[6:9] = self._gravity
         mat = obj.material
         params = arr.params
         params[0] = mat.stiffness
         params[1] = mat.torsion
-        self.kernel(  # type: ignore[misc]
+        self._kernel(
             frame.in_contact,
             frame.contact_point,
             frame.contact_force,
@@ -908,25 +848,28 @@ class Dynamics:
 
 class _BodyArrays:
     """The free-body kernel's arrays for an object's shape and mass and the surfaces
-    (``SmallBody``'s numbers; hapticd.kernels.free_body_step says the layouts): params,
-    body (inertia, its inverse and the vertices) and surfaces. The object's state is its
-    ``state``."""
+    (hapticd.kernels.free_body_step says the layouts): params, body (inertia, its inverse
+    and the vertices, body frame) and surfaces (normal, offset, stiffness, damping, dynamic
+    friction). The object's state is its ``state``."""
 
-    def __init__(
-        self, obj: SceneObject, surfaces: SurfaceSet | None, dt: float, substeps: int
-    ) -> None:
-        small = SmallBody(obj, surfaces)
-        self.shape, self.mass, self.surfaces = small.shape, small.mass, surfaces
+    def __init__(self, obj: SceneObject, surfaces: list[Surface], dt: float, substeps: int) -> None:
+        self.shape, self.mass = obj.shape, obj.mass
+        local = obj.shape.vertices.tolist()
+        # The farthest vertex from the centre of mass (m): surfaces farther away are skipped.
+        reach = max((math.sqrt(x * x + y * y + z * z) for x, y, z in local), default=0.0)
         self.params = np.zeros(kernels.PARAMS)
-        self.params[2:6] = (small.mass, dt, substeps, small.reach)
-        self.body = np.array([*small.Ib, *small.Ib_inv, *small.local], dtype=float).reshape(-1, 3)
-        self.surf = np.array(
-            [(*n, d, m.stiffness, m.damping, m.mu_dynamic) for n, d, m in small.surf],
-            dtype=float,
-        ).reshape(-1, kernels.SURFACE_COLUMNS)
+        self.params[2:6] = (obj.mass, dt, substeps, reach)
+        inertia = obj.inertia_body
+        self.body = np.array(
+            [*inertia.tolist(), *np.linalg.inv(inertia).tolist(), *local], dtype=float
+        ).reshape(-1, 3)
+        self.surf = np.zeros((len(surfaces), kernels.SURFACE_COLUMNS))
+        for row, surface in zip(self.surf, surfaces, strict=True):
+            m = surface.material
+            row[:] = (*surface.normal, surface.offset, m.stiffness, m.damping, m.mu_dynamic)
 
-    def fits(self, obj: SceneObject, surfaces: SurfaceSet | None) -> bool:
-        return obj.shape is self.shape and obj.mass == self.mass and surfaces is self.surfaces
+    def fits(self, obj: SceneObject) -> bool:
+        return obj.shape is self.shape and obj.mass == self.mass
 
 
 class SceneState:
