@@ -57,17 +57,47 @@ from hapticd.contact import (
 @functools.cache
 def uncompiled(name: str) -> Callable[..., object]:
     """Kernel ``name`` of this module as plain Python (what ``rendering.kernels=python``
-    runs): the same function, called with numpy's floating-point warnings off. Its scalars
-    are numpy's, which give IEEE results (inf, NaN) where the compiled code does, and
-    would otherwise warn on the loop; one function per name."""
+    runs): the same function, given its arrays as memoryviews (``_items``), whose items are
+    Python's floats and ints: several times quicker in the interpreter than numpy's scalars,
+    and the same IEEE arithmetic as the compiled code (an overflow gives inf, a division by
+    zero raises as numba's does). One function per name."""
     fn = globals()[name]
 
     @functools.wraps(fn)
     def run(*args: object) -> object:
-        with np.errstate(all="ignore"):
-            return fn(*args)
+        items = [_items(a) for a in args]
+        if any(type(a) is np.ndarray for a in items):
+            # An array with no such view: numpy's scalars, which would warn on the loop.
+            with np.errstate(all="ignore"):
+                return fn(*items)
+        return fn(*items)
 
     return run
+
+
+# The memoryviews ``_items`` made, by the id of their array (kept alive beside them):
+# the stages hand the kernels the same arrays every tick.
+_VIEWS: dict[int, tuple[np.ndarray, memoryview]] = {}
+
+
+def _items(a: object) -> object:
+    """A C-contiguous numpy array as a memoryview of the same memory and shape (read and
+    written in place); anything else as it is."""
+    if type(a) is not np.ndarray:
+        return a
+    hit = _VIEWS.get(id(a))
+    if hit is not None and hit[0] is a:
+        return hit[1]
+    try:
+        # Through bytes: numpy exports a record's unaligned fields as "=d", which a
+        # memoryview does not index.
+        view = memoryview(a).cast("B").cast(a.dtype.char, a.shape)
+    except (TypeError, ValueError):  # not C-contiguous, or a format it cannot take
+        return a
+    if len(_VIEWS) >= 256:
+        _VIEWS.clear()
+    _VIEWS[id(a)] = (a, view)
+    return view
 
 
 SCRATCH_COLUMNS = 13  # per finger: c0 (3), body (3), f0 (3), torsion normal (3), cap (1)
@@ -143,12 +173,15 @@ def free_body_step(
             continue
         c0, c1, c2 = points[i, 0], points[i, 1], points[i, 2]
         d0, d1, d2 = c0 - x0, c1 - x1, c2 - x2
-        sp = scratch[n_springs]
-        sp[0], sp[1], sp[2] = c0, c1, c2
-        sp[3] = r00 * d0 + r10 * d1 + r20 * d2
-        sp[4] = r01 * d0 + r11 * d1 + r21 * d2
-        sp[5] = r02 * d0 + r12 * d1 + r22 * d2
-        sp[6], sp[7], sp[8] = -forces[i, 0], -forces[i, 1], -forces[i, 2]
+        scratch[n_springs, 0], scratch[n_springs, 1], scratch[n_springs, 2] = c0, c1, c2
+        scratch[n_springs, 3] = r00 * d0 + r10 * d1 + r20 * d2
+        scratch[n_springs, 4] = r01 * d0 + r11 * d1 + r21 * d2
+        scratch[n_springs, 5] = r02 * d0 + r12 * d1 + r22 * d2
+        scratch[n_springs, 6], scratch[n_springs, 7], scratch[n_springs, 8] = (
+            -forces[i, 0],
+            -forces[i, 1],
+            -forces[i, 2],
+        )
         n_springs += 1
         if mu_t > 0.0:
             fn = abs(
@@ -157,9 +190,12 @@ def free_body_step(
                 + forces[i, 2] * normals[i, 2]
             )
             if fn > 0.0:
-                st = scratch[n_tors]
-                st[9], st[10], st[11] = normals[i, 0], normals[i, 1], normals[i, 2]
-                st[12] = mu_t * fn
+                scratch[n_tors, 9], scratch[n_tors, 10], scratch[n_tors, 11] = (
+                    normals[i, 0],
+                    normals[i, 1],
+                    normals[i, 2],
+                )
+                scratch[n_tors, 12] = mu_t * fn
                 n_tors += 1
     n_surf = surf.shape[0]
     n_local = body.shape[0] - BODY_HEAD
@@ -167,14 +203,13 @@ def free_body_step(
         Fx, Fy, Fz = 0.0 + m * gx, 0.0 + m * gy, 0.0 + m * gz
         Tx, Ty, Tz = 0.0, 0.0, 0.0
         for j in range(n_springs):
-            sp = scratch[j]
-            b0, b1, b2 = sp[3], sp[4], sp[5]
+            b0, b1, b2 = scratch[j, 3], scratch[j, 4], scratch[j, 5]
             e0 = r00 * b0 + r01 * b1 + r02 * b2
             e1 = r10 * b0 + r11 * b1 + r12 * b2
             e2 = r20 * b0 + r21 * b1 + r22 * b2
-            f0 = sp[6] - k * (x0 + e0 - sp[0])
-            f1 = sp[7] - k * (x1 + e1 - sp[1])
-            f2 = sp[8] - k * (x2 + e2 - sp[2])
+            f0 = scratch[j, 6] - k * (x0 + e0 - scratch[j, 0])
+            f1 = scratch[j, 7] - k * (x1 + e1 - scratch[j, 1])
+            f2 = scratch[j, 8] - k * (x2 + e2 - scratch[j, 2])
             Fx, Fy, Fz = Fx + f0, Fy + f1, Fz + f2
             Tx = Tx + (e1 * f2 - e2 * f1)
             Ty = Ty + (e2 * f0 - e0 * f2)
@@ -240,8 +275,7 @@ def free_body_step(
             Tx, Ty, Tz = Tx + sTx, Ty + sTy, Tz + sTz
         # Euler's equations in the body frame, where the inertia is constant.
         for j in range(n_tors):
-            st = scratch[j]
-            n0, n1, n2, cap = st[9], st[10], st[11], st[12]
+            n0, n1, n2, cap = scratch[j, 9], scratch[j, 10], scratch[j, 11], scratch[j, 12]
             spin = w0 * n0 + w1 * n1 + w2 * n2
             if spin != 0.0:
                 nb0 = r00 * n0 + r10 * n1 + r20 * n2
@@ -1148,8 +1182,6 @@ def safety_step(
         for j in range(3):
             if not math.isfinite(forces[i, j]):
                 return SAFETY_DEFER
-    out = out_prev[0]
-    prev = out_prev[1]
     radius = params[2]
     if math.isfinite(radius):
         c0, c1, c2 = params[3], params[4], params[5]
@@ -1183,15 +1215,15 @@ def safety_step(
         elif scale_i < 1.0:
             f0, f1, f2 = f0 * scale_i, f1 * scale_i, f2 * scale_i
         if rate_limited and (f0 != 0.0 or f1 != 0.0 or f2 != 0.0):
-            p0, p1, p2 = prev[i, 0], prev[i, 1], prev[i, 2]
+            p0, p1, p2 = out_prev[1, i, 0], out_prev[1, i, 1], out_prev[1, i, 2]
             d0, d1, d2 = f0 - p0, f1 - p1, f2 - p2
             change = _hypot3(d0, d1, d2)
             if change > step:
                 k = step / change
                 f0, f1, f2 = p0 + k * d0, p1 + k * d1, p2 + k * d2
                 flags |= SAFETY_LIMITED
-        out[i, 0], out[i, 1], out[i, 2] = f0, f1, f2
-        prev[i, 0], prev[i, 1], prev[i, 2] = f0, f1, f2
+        out_prev[0, i, 0], out_prev[0, i, 1], out_prev[0, i, 2] = f0, f1, f2
+        out_prev[1, i, 0], out_prev[1, i, 1], out_prev[1, i, 2] = f0, f1, f2
     return flags
 
 
