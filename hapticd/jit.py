@@ -4,7 +4,8 @@
 ``rendering.kernels``, ``names`` the kernels the renderer's plan uses (none: then
 numba is not even imported; ``Renderer.kernel_names`` says which).
 
-- ``python``: never compile.
+- ``python``: never compile (a kernel that is its stage's only code runs uncompiled,
+  ``hapticd.kernels.uncompiled``).
 - ``compiled``: compile now (a first run on a machine waits for it: 2-8 s a kernel
   on this loaded 2-core machine), or load from the cache (0.3-0.6 s).
 - ``auto`` (the default): load from the cache when the kernels are in it;

@@ -7,17 +7,19 @@ arithmetic, ``math``, loops and indexing of preallocated numpy arrays, no object
 functions when ``rendering.kernels`` asks for them. Run as plain Python they give
 the same numbers, only slower.
 
-The readable reference stays where it was, and each kernel evaluates its sums
-in the same order (so, without fused multiply-adds, the same bits):
-``free_body_step`` is ``hapticd.stages.Dynamics`` with
-``hapticd.dynamics.step_body_small``; ``allocation_step`` is
+For the kernels that still have one, the readable reference stays where it was, and
+each kernel evaluates its sums in the same order (so, without fused multiply-adds, the
+same bits): ``allocation_step`` is
 ``hapticd.stages.Allocation`` with ``ContactAllocator`` for one actuated
 direction per finger and at most two contacts (pinv, if, ef), and calls the
 closed forms of ``hapticd.allocation.closed`` and ``accuracy`` themselves (written
 once, for floats and arrays; ``KERNEL_HELPERS``); ``contact_step`` is
-``hapticd.stages.Contact`` with ``hapticd.contact.proxy_step_multi`` on flat obstacles;
-``friction_step`` is ``hapticd.stages.Friction`` with
-``hapticd.friction.friction_proxy``; ``forces_step`` is ``hapticd.stages.Forces``.
+``hapticd.stages.Contact`` with ``hapticd.contact.proxy_step_multi`` on flat obstacles.
+
+``friction_step``, ``forces_step``, ``free_body_step`` and ``safety_step`` have no twin:
+each is its stage's physics (hapticd.stages.Friction, Forces, Dynamics;
+hapticd.safety.SafetyChain's normal tick), compiled or, with ``rendering.kernels=python``,
+run uncompiled (``uncompiled``).
 
 Units: positions m, velocities m/s, angular velocities rad/s, forces N, torques
 N m, stiffness N/m, damping N s/m, mass kg, inertia kg m^2, times s.
@@ -25,7 +27,9 @@ N m, stiffness N/m, damping N s/m, mass kg, inertia kg m^2, times s.
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -48,6 +52,53 @@ from hapticd.contact import (
     _T_EPS,
     _VECTOR_PLANES,
 )
+
+
+@functools.cache
+def uncompiled(name: str) -> Callable[..., object]:
+    """Kernel ``name`` of this module as plain Python (what ``rendering.kernels=python``
+    runs): the same function, given its arrays as memoryviews (``_items``), whose items are
+    Python's floats and ints: several times quicker in the interpreter than numpy's scalars,
+    and the same IEEE arithmetic as the compiled code (an overflow gives inf, a division by
+    zero raises as numba's does). One function per name."""
+    fn = globals()[name]
+
+    @functools.wraps(fn)
+    def run(*args: object) -> object:
+        items = [_items(a) for a in args]
+        if any(type(a) is np.ndarray for a in items):
+            # An array with no such view: numpy's scalars, which would warn on the loop.
+            with np.errstate(all="ignore"):
+                return fn(*items)
+        return fn(*items)
+
+    return run
+
+
+# The memoryviews ``_items`` made, by the id of their array (kept alive beside them):
+# the stages hand the kernels the same arrays every tick.
+_VIEWS: dict[int, tuple[np.ndarray, memoryview]] = {}
+
+
+def _items(a: object) -> object:
+    """A C-contiguous numpy array as a memoryview of the same memory and shape (read and
+    written in place); anything else as it is."""
+    if type(a) is not np.ndarray:
+        return a
+    hit = _VIEWS.get(id(a))
+    if hit is not None and hit[0] is a:
+        return hit[1]
+    try:
+        # Through bytes: numpy exports a record's unaligned fields as "=d", which a
+        # memoryview does not index.
+        view = memoryview(a).cast("B").cast(a.dtype.char, a.shape)
+    except (TypeError, ValueError):  # not C-contiguous, or a format it cannot take
+        return a
+    if len(_VIEWS) >= 256:
+        _VIEWS.clear()
+    _VIEWS[id(a)] = (a, view)
+    return view
+
 
 SCRATCH_COLUMNS = 13  # per finger: c0 (3), body (3), f0 (3), torsion normal (3), cap (1)
 # free_body_step's params: k, mu_t, m, dt, substeps, reach, gravity (3)
@@ -122,12 +173,15 @@ def free_body_step(
             continue
         c0, c1, c2 = points[i, 0], points[i, 1], points[i, 2]
         d0, d1, d2 = c0 - x0, c1 - x1, c2 - x2
-        sp = scratch[n_springs]
-        sp[0], sp[1], sp[2] = c0, c1, c2
-        sp[3] = r00 * d0 + r10 * d1 + r20 * d2
-        sp[4] = r01 * d0 + r11 * d1 + r21 * d2
-        sp[5] = r02 * d0 + r12 * d1 + r22 * d2
-        sp[6], sp[7], sp[8] = -forces[i, 0], -forces[i, 1], -forces[i, 2]
+        scratch[n_springs, 0], scratch[n_springs, 1], scratch[n_springs, 2] = c0, c1, c2
+        scratch[n_springs, 3] = r00 * d0 + r10 * d1 + r20 * d2
+        scratch[n_springs, 4] = r01 * d0 + r11 * d1 + r21 * d2
+        scratch[n_springs, 5] = r02 * d0 + r12 * d1 + r22 * d2
+        scratch[n_springs, 6], scratch[n_springs, 7], scratch[n_springs, 8] = (
+            -forces[i, 0],
+            -forces[i, 1],
+            -forces[i, 2],
+        )
         n_springs += 1
         if mu_t > 0.0:
             fn = abs(
@@ -136,9 +190,12 @@ def free_body_step(
                 + forces[i, 2] * normals[i, 2]
             )
             if fn > 0.0:
-                st = scratch[n_tors]
-                st[9], st[10], st[11] = normals[i, 0], normals[i, 1], normals[i, 2]
-                st[12] = mu_t * fn
+                scratch[n_tors, 9], scratch[n_tors, 10], scratch[n_tors, 11] = (
+                    normals[i, 0],
+                    normals[i, 1],
+                    normals[i, 2],
+                )
+                scratch[n_tors, 12] = mu_t * fn
                 n_tors += 1
     n_surf = surf.shape[0]
     n_local = body.shape[0] - BODY_HEAD
@@ -146,20 +203,20 @@ def free_body_step(
         Fx, Fy, Fz = 0.0 + m * gx, 0.0 + m * gy, 0.0 + m * gz
         Tx, Ty, Tz = 0.0, 0.0, 0.0
         for j in range(n_springs):
-            sp = scratch[j]
-            b0, b1, b2 = sp[3], sp[4], sp[5]
+            b0, b1, b2 = scratch[j, 3], scratch[j, 4], scratch[j, 5]
             e0 = r00 * b0 + r01 * b1 + r02 * b2
             e1 = r10 * b0 + r11 * b1 + r12 * b2
             e2 = r20 * b0 + r21 * b1 + r22 * b2
-            f0 = sp[6] - k * (x0 + e0 - sp[0])
-            f1 = sp[7] - k * (x1 + e1 - sp[1])
-            f2 = sp[8] - k * (x2 + e2 - sp[2])
+            f0 = scratch[j, 6] - k * (x0 + e0 - scratch[j, 0])
+            f1 = scratch[j, 7] - k * (x1 + e1 - scratch[j, 1])
+            f2 = scratch[j, 8] - k * (x2 + e2 - scratch[j, 2])
             Fx, Fy, Fz = Fx + f0, Fy + f1, Fz + f2
             Tx = Tx + (e1 * f2 - e2 * f1)
             Ty = Ty + (e2 * f0 - e0 * f2)
             Tz = Tz + (e0 * f1 - e1 * f0)
         if n_surf > 0:
-            # The surfaces' wrench (hapticd.dynamics.surface_wrench_small).
+            # The surfaces' wrench: a penalty spring-damper at each vertex inside a
+            # surface, Coulomb friction capped at what stops the vertex in one substep.
             sFx = sFy = sFz = sTx = sTy = sTz = 0.0
             ax = abs(x0) + abs(x1) + abs(x2)
             for js in range(n_surf):
@@ -218,8 +275,7 @@ def free_body_step(
             Tx, Ty, Tz = Tx + sTx, Ty + sTy, Tz + sTz
         # Euler's equations in the body frame, where the inertia is constant.
         for j in range(n_tors):
-            st = scratch[j]
-            n0, n1, n2, cap = st[9], st[10], st[11], st[12]
+            n0, n1, n2, cap = scratch[j, 9], scratch[j, 10], scratch[j, 11], scratch[j, 12]
             spin = w0 * n0 + w1 * n1 + w2 * n2
             if spin != 0.0:
                 nb0 = r00 * n0 + r10 * n1 + r20 * n2
@@ -259,7 +315,11 @@ def free_body_step(
         # q advanced by w over h: exp(w h / 2) * q, normalised.
         speed = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
         half = 0.5 * speed * h
-        if not half < 1e-15:
+        if half == math.inf:
+            # A spin whose square overflowed: NaN (compiled, cos gives it; uncompiled,
+            # math.cos would raise); the loop's object check then ends the run.
+            qw = qx = qy = qz = math.nan
+        elif not half < 1e-15:
             c, s = math.cos(half), math.sin(half) / speed
             a0, a1, a2, a3 = c, s * w0, s * w1, s * w2
             p0 = a0 * qw - a1 * qx - a2 * qy - a3 * qz
@@ -498,8 +558,8 @@ def friction_step(
     state: np.ndarray,
     params: np.ndarray,
 ) -> None:
-    """Coulomb stick/slip at each fingertip in contact (``hapticd.stages.Friction`` with
-    ``hapticd.friction.friction_proxy``): from contact's frictionless surface point, proxy
+    """Coulomb stick/slip at each fingertip in contact (after CHAI3D's finger proxy; the
+    Friction stage's physics): from contact's frictionless surface point, proxy
     and contact point (``plain_surface``, ``plain_proxy``, ``plain_point``, (F, 3) m),
     writes the friction proxy to ``surface_point`` (F, 3) m, ``proxy_pos`` (F, 3) m moved
     with it, and ``contact_point`` (F, 3) m to match; rows of fingers out of contact are
@@ -510,6 +570,13 @@ def friction_step(
     and written, their set flags (1.0 or 0.0; cleared out of contact) and the radii (m).
     ``state`` (STATE,): the object's pose, x (m) and R (row by row) as free_body_step has
     them (velocities unread). ``params`` (FRICTION_PARAMS,): mu_static, mu_dynamic.
+
+    The frictionless point p lies on a face with unit normal n, at depth
+    d = n . (p - device) >= 0. A sticking contact keeps an anchor on the face (projected
+    onto the plane through p); the friction proxy stays at the anchor while it lies within
+    mu_s d of p (the static cone), else slips to the dynamic cone's edge, mu_d d from p
+    toward the anchor; a new contact, or one at depth <= 0, sticks at p. The force
+    k (proxy - device) then has normal part k d and tangential part at most mu k d.
     """
     mu_s, mu_d = params[0], params[1]
     x0, x1, x2 = state[0], state[1], state[2]
@@ -579,7 +646,7 @@ def forces_step(
     state: np.ndarray,
     params: np.ndarray,
 ) -> None:
-    """The full contact force on each finger (``hapticd.stages.Forces``): k (surface point
+    """The full contact force on each finger (the Forces stage's physics): k (surface point
     - device) - b v_rel, less any normal part that would pull the finger in; writes
     ``contact_force`` (F, 3) N, zero out of contact.
 
@@ -601,7 +668,7 @@ def forces_step(
         f0 = k * (p0 - device_pos[i, 0])
         f1 = k * (p1 - device_pos[i, 1])
         f2 = k * (p2 - device_pos[i, 2])
-        if b != 0.0:  # the Python code's ``if b``: NaN damps too
+        if b != 0.0:  # NaN damps too
             v0, v1, v2 = device_vel[i, 0], device_vel[i, 1], device_vel[i, 2]
             if moving:  # relative to the object's material at the surface point
                 e0, e1, e2 = p0 - x0, p1 - x1, p2 - x2
@@ -1040,7 +1107,7 @@ _SPLIT = 134217729.0
 def _hypot3(x0: float, x1: float, x2: float) -> float:
     """``math.hypot(x0, x1, x2)`` as CPython 3.11 computes it (``vector_norm``: scaled by
     the largest magnitude, squares split with Veltkamp's constant, compensated sums, one
-    correction step), bit for bit; inf for an infinite argument."""
+    correction step), bit for bit, under any Python; inf for an infinite argument."""
     a0, a1, a2 = abs(x0), abs(x1), abs(x2)
     top = a0
     if a1 > top:
@@ -1097,26 +1164,24 @@ def _hypot3(x0: float, x1: float, x2: float) -> float:
 def safety_step(
     forces: np.ndarray, positions: np.ndarray, params: np.ndarray, out_prev: np.ndarray
 ) -> int:
-    """The normal path of ``hapticd.safety.SafetyChain.apply`` for F fingers: the finite
-    check, the workspace check, the magnitude clamp (direction kept), the ramp and deadman
-    gate, the rate limit; the same operations in the same order.
+    """The safety chain's normal tick (``hapticd.safety.SafetyChain``, its only code for
+    it, compiled or not) for F fingers: the finite check, the workspace check, the
+    magnitude clamp (direction kept), the ramp and deadman gate, the rate limit.
 
     ``forces`` (F, 3) N, ``positions`` (F, 3) m (read only with a finite workspace
     radius), ``params`` (SAFETY_PARAMS + 2 F,) as declared above; ``out_prev`` (2, F, 3)
     N: this tick's output, then last tick's, which becomes this tick's. Writes the
-    output and returns the SAFETY_CLAMPED and
-    SAFETY_LIMITED flags, or returns SAFETY_DEFER having written nothing: the caller then
-    runs the Python chain, which trips with its message (or, a finger within rounding of
-    the workspace's edge, decides). Magnitudes are CPython's ``math.hypot`` (Python 3.11,
-    ``vector_norm``: scaled, split squares with compensated sums), inlined twice.
+    output and returns the SAFETY_CLAMPED and SAFETY_LIMITED flags, or returns
+    SAFETY_DEFER having written nothing: the chain then checks what may trip, with its
+    messages (or, a finger within rounding of the workspace's edge, decides, and calls
+    this again without the workspace check). Magnitudes are ``_hypot3`` (CPython 3.11's
+    ``math.hypot``), the same on any Python, compiled or not.
     """
     n_fingers = forces.shape[0]
     for i in range(n_fingers):
         for j in range(3):
             if not math.isfinite(forces[i, j]):
                 return SAFETY_DEFER
-    out = out_prev[0]
-    prev = out_prev[1]
     radius = params[2]
     if math.isfinite(radius):
         c0, c1, c2 = params[3], params[4], params[5]
@@ -1150,15 +1215,15 @@ def safety_step(
         elif scale_i < 1.0:
             f0, f1, f2 = f0 * scale_i, f1 * scale_i, f2 * scale_i
         if rate_limited and (f0 != 0.0 or f1 != 0.0 or f2 != 0.0):
-            p0, p1, p2 = prev[i, 0], prev[i, 1], prev[i, 2]
+            p0, p1, p2 = out_prev[1, i, 0], out_prev[1, i, 1], out_prev[1, i, 2]
             d0, d1, d2 = f0 - p0, f1 - p1, f2 - p2
             change = _hypot3(d0, d1, d2)
             if change > step:
                 k = step / change
                 f0, f1, f2 = p0 + k * d0, p1 + k * d1, p2 + k * d2
                 flags |= SAFETY_LIMITED
-        out[i, 0], out[i, 1], out[i, 2] = f0, f1, f2
-        prev[i, 0], prev[i, 1], prev[i, 2] = f0, f1, f2
+        out_prev[0, i, 0], out_prev[0, i, 1], out_prev[0, i, 2] = f0, f1, f2
+        out_prev[1, i, 0], out_prev[1, i, 1], out_prev[1, i, 2] = f0, f1, f2
     return flags
 
 

@@ -6,8 +6,9 @@ passivity, dynamics, scene. Stages the scene does not need are not in the plan
 and never run (a fixed cube has no dynamics stage, a frictionless one no
 friction stage, a renderer without ``passivity`` parameters no passivity stage).
 ``use_kernels`` hands it compiled kernels (hapticd.kernels, compiled by hapticd.jit)
-for the stages that have one; without them every stage runs its Python code, the
-readable reference. ``insert`` adds a stage after a named one; ``set_param`` changes a scene or
+for the stages that have one; without them dynamics, friction and the contact forces
+run the same kernels uncompiled (their only code), contact and allocation their
+readable Python code. ``insert`` adds a stage after a named one; ``set_param`` changes a scene or
 rendering parameter (those of hapticd.params the renderer owns) and re-plans.
 The same object renders off-line: ``step(device_pos, device_vel)`` runs one
 tick on the renderer's own frame, with no devices, timing or safety.
@@ -193,7 +194,7 @@ class Renderer:
         (the number of directions stays fixed while the renderer lives); the contact (every
         scene: the stage runs the Python code for what the kernel does not take); friction
         when the object's material has it (friction turned on later, by ``set_param``, runs
-        the Python code); the contact forces always; a free object's planes in the world
+        its kernel uncompiled); the contact forces always; a free object's planes in the world
         (for the contact kernel, from its pose each tick)."""
         obj = self.scene.object
         names = [] if obj.fixed else ["free_body_step"]
@@ -209,7 +210,7 @@ class Renderer:
 
     def use_kernels(self, kernels: dict[str, Callable[..., None]]) -> None:
         """Run the stages that have a kernel in ``kernels`` (name -> compiled function)
-        with it from the next tick on; an empty dict: the Python code everywhere."""
+        with it from the next tick on; an empty dict: none compiled."""
         self.kernels = dict(kernels)
         self.plan()
 

@@ -10,13 +10,13 @@ gets force only while that button is held. Forces in N, shape (F, 3).
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from hapticd import kernels
 from hapticd.frame import Frame
 from hapticd.kernels import SAFETY_CLAMPED, SAFETY_DEFER, SAFETY_LIMITED, SAFETY_PARAMS
 from hapticd.params import PARAMS, ParamError
@@ -77,15 +77,13 @@ class SafetyChain:
     devices' own limits (N, per finger), which a new ``force_limit_n`` never exceeds;
     without them, the starting ``limits_n``.
 
-    ``use_kernels`` gives it the compiled ``safety_step`` (hapticd.kernels) for the
-    normal path; whatever may trip (a non-finite force, the watchdog, a finger at the
-    workspace's edge) runs the Python code below, the reference, with its messages.
+    The clamp, ramp, gate and rate limit are hapticd.kernels.safety_step, compiled
+    (``use_kernels``) or not; whatever may trip (a non-finite force, the watchdog, a
+    finger at the workspace's edge) is checked by the code below, with its messages,
+    before that step runs.
     """
 
-    # safety_step inlines Python 3.11's math.hypot (CPython's own algorithm); 3.12 changed
-    # that algorithm, so under another Python the Python chain runs (the same limits, not
-    # always the same last bit).
-    kernel_names = ("safety_step",) if sys.version_info[:2] == (3, 11) else ()
+    kernel_names = ("safety_step",)
 
     def __init__(
         self,
@@ -98,8 +96,8 @@ class SafetyChain:
         if not limits_n or any(not (math.isfinite(v) and v > 0) for v in limits_n):
             raise ValueError(f"force limits must be positive and finite, got {limits_n}")
         F = len(limits_n)
-        # The compiled path's inputs in one array (each argument of a compiled call costs a
-        # type check): SAFETY_PARAMS parameters, then the F limits, then the F gates.
+        # The kernel's inputs in one array (each argument of a compiled call costs a type
+        # check): SAFETY_PARAMS parameters, then the F limits, then the F gates.
         self._step_params = np.zeros(SAFETY_PARAMS + 2 * F)
         self._limits_a = self._step_params[SAFETY_PARAMS : SAFETY_PARAMS + F]
         self.limits = [float(v) for v in limits_n]
@@ -123,12 +121,14 @@ class SafetyChain:
         self._held_since = [math.inf] * F
         self.gate = [0.0 if d is not None else 1.0 for d in self._deadman]
         self.dt = float(dt)
-        # The compiled normal path (None: Python) and its preallocated inputs.
-        self._step: Callable[..., int] | None = None
+        # safety_step, compiled or not (use_kernels), and its preallocated inputs.
+        self._step: Callable[..., int] = kernels.uncompiled("safety_step")
         self._params_of: SafetyParams | None = None  # the params _step_params holds
         self._gate_a = self._step_params[SAFETY_PARAMS + F :]
         self._gate_a[:] = self.gate
         self._fit: tuple[Any, Any] = (None, None)  # the last arrays found fit for it
+        # Copies of forces and positions given in another form than the kernel's.
+        self._copies = np.zeros((2, F, 3))
         self.fault: Fault | None = None
         self.clamped_ticks = 0
         self.rate_limited_ticks = 0
@@ -147,19 +147,19 @@ class SafetyChain:
 
     @property
     def limits(self) -> list[float]:
-        """Per-finger force limits, N (a copy: ``set_limits`` changes them, so that both
-        paths see the change)."""
+        """Per-finger force limits, N (a copy: ``set_limits`` changes them, so that the
+        kernel's copy follows)."""
         return list(self._limits)
 
     @limits.setter
     def limits(self, limits_n: list[float]) -> None:
         self._limits = [float(v) for v in limits_n]
-        self._limits_a[:] = self._limits  # the compiled path's copy
+        self._limits_a[:] = self._limits  # the kernel's copy
 
-    def use_kernels(self, kernels: dict[str, Callable[..., int]]) -> None:
-        """Run the normal path with ``kernels["safety_step"]`` (compiled by hapticd.jit)
-        from the next tick on; without it (an empty dict), the Python code."""
-        self._step = kernels.get("safety_step")
+    def use_kernels(self, compiled: dict[str, Callable[..., int]]) -> None:
+        """Run ``compiled["safety_step"]`` (compiled by hapticd.jit) from the next tick on;
+        without it (an empty dict), the same function uncompiled."""
+        self._step = compiled.get("safety_step") or kernels.uncompiled("safety_step")
 
     def start(self, t: float) -> None:
         """Forces were (re-)enabled at nominal time ``t`` (s): begin the ramp."""
@@ -221,12 +221,11 @@ class SafetyChain:
         feeds the watchdog."""
         t = float(frame.t)
         if (
-            self._step is not None
-            and not self._has_deadman
+            not self._has_deadman
             and self.fault is None
-            and self._compiled(frame.rendered_force, t, frame.device_pos, t_wall)
+            and self._normal(frame.rendered_force, t, frame.device_pos, t_wall)
         ):
-            # The normal tick, compiled: ``apply``'s path without its generic steps.
+            # The normal tick: ``apply``'s path without its generic steps.
             frame.device_force[...] = self.output
             return
         out = self.apply(
@@ -289,7 +288,7 @@ class SafetyChain:
         if self.fault is not None:
             out[:] = 0.0
             return out
-        if self._step is not None and self._compiled(forces, t, positions, t_wall):
+        if self._normal(forces, t, positions, t_wall):
             return out
         return self._apply(forces, tick, t, positions, t_wall)
 
@@ -303,15 +302,24 @@ class SafetyChain:
             ramp = min(ramp, self._down_factor(t))
         return ramp
 
-    def _compiled(self, forces: Any, t: float, positions: Any, t_wall: float | None) -> bool:
-        """The normal path through the compiled ``safety_step``; False (nothing changed) when
-        the Python code must run this tick: something may trip, or the arrays are not the
-        kernel's (a frame's are)."""
+    def _normal(self, forces: Any, t: float, positions: Any, t_wall: float | None) -> bool:
+        """The normal tick by ``safety_step``; False (nothing changed) when ``_apply`` must
+        run this tick: something may trip."""
         prm = self.params
         if t_wall is not None:
             last = self._last_wall
             if last is not None and t_wall - last > prm.watchdog_s:
                 return False
+        if not self._step_now(forces, t, positions):
+            return False
+        if t_wall is not None:
+            self._last_wall = t_wall
+        return True
+
+    def _step_now(self, forces: Any, t: float, positions: Any) -> bool:
+        """``safety_step`` on this tick's ``forces`` (and ``positions``, None: no workspace
+        check); False, nothing written, when it defers (something may trip)."""
+        prm = self.params
         out = self.output
         p = self._step_params
         if prm is not self._params_of:
@@ -330,27 +338,40 @@ class SafetyChain:
             p[0] = self._ramp(t)
         p[1] = prm.max_rate_n_per_s * self.dt
         if forces is not self._fit[0] or positions is not self._fit[1]:
-            # The kernel's types, checked once per pair of arrays (a frame's are the same
-            # arrays every tick).
-            if not all(
-                type(a) is np.ndarray
-                and a.dtype == np.float64
-                and a.shape == out.shape
-                and a.flags.c_contiguous
-                for a in (forces, positions)
-            ):
-                return False
-            self._fit = (forces, positions)
+            forces, positions = self._fitted(forces, positions)
         if self._has_deadman:
             self._gate_a[:] = self.gate
         flags = self._step(forces, positions, p, self._out_prev)
         if flags & SAFETY_DEFER:
             return False
-        if t_wall is not None:
-            self._last_wall = t_wall
         self.clamped_ticks += (flags & SAFETY_CLAMPED) != 0
         self.rate_limited_ticks += (flags & SAFETY_LIMITED) != 0
         return True
+
+    def _fitted(self, forces: Any, positions: Any) -> tuple[np.ndarray, np.ndarray]:
+        """``forces`` and ``positions`` as the kernel takes them (F, 3) float64, C order: the
+        arrays themselves when they are (checked once per pair: a frame's are the same
+        arrays every tick), else copies (a list, another dtype, a strided view)."""
+        shape = self.output.shape
+        fit = []
+        for a, copy in zip((forces, positions), self._copies, strict=True):
+            if not (
+                type(a) is np.ndarray
+                and a.dtype == np.float64
+                and a.shape == shape
+                and a.flags.c_contiguous
+            ):
+                got = np.asarray(a, dtype=float)
+                if got.shape != shape:
+                    raise ValueError(
+                        f"forces and positions must be {shape} arrays, not {got.shape}"
+                    )
+                copy[...] = got
+                a = copy
+            fit.append(a)
+        if fit[0] is forces and fit[1] is positions:
+            self._fit = (forces, positions)
+        return fit[0], fit[1]
 
     def _apply(
         self,
@@ -360,8 +381,8 @@ class SafetyChain:
         positions: Any,
         t_wall: float | None,
     ) -> np.ndarray:
-        """``apply`` in Python from the finite check on: the reference, and the path of every
-        trip."""
+        """``apply`` from the finite check on, for a tick that may trip: the checks with their
+        messages, then (nothing tripped) the normal step."""
         out = self.output
         prm = self.params
         # Plain floats: per-element numpy access would cost more than the checks themselves.
@@ -395,38 +416,8 @@ class SafetyChain:
                         "workspace",
                     )
                     return out
-        clamped = limited = False
-        step = prm.max_rate_n_per_s * self.dt
-        ramp = self._ramp(t)
-        prevs = self._prev.tolist() if step < math.inf else None
-        gate = self.gate
-        for i, limit in enumerate(self._limits):
-            f0, f1, f2 = rows[i]
-            mag = math.hypot(f0, f1, f2)
-            if mag > limit:
-                s = limit / mag
-                f0, f1, f2 = f0 * s, f1 * s, f2 * s
-                clamped = True
-            scale = ramp if ramp <= gate[i] else gate[i]
-            if scale <= 0.0:
-                # A released deadman (or the ramp's start): exactly zero, never -0.0; the
-                # rate limit never delays a drop to zero.
-                f0 = f1 = f2 = 0.0
-            elif scale < 1.0:
-                f0, f1, f2 = f0 * scale, f1 * scale, f2 * scale
-            if prevs is not None and (f0 or f1 or f2):
-                p0, p1, p2 = prevs[i]
-                d0, d1, d2 = f0 - p0, f1 - p1, f2 - p2
-                change = math.hypot(d0, d1, d2)
-                if change > step:
-                    k = step / change
-                    f0, f1, f2 = p0 + k * d0, p1 + k * d1, p2 + k * d2
-                    limited = True
-            rows[i] = (f0, f1, f2)
-        out[...] = rows
-        self._prev[...] = out
-        self.clamped_ticks += clamped
-        self.rate_limited_ticks += limited
+        # Nothing trips: the normal step, its workspace check done above.
+        self._step_now(rows, t, None)
         return out
 
 

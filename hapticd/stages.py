@@ -29,18 +29,10 @@ from hapticd.contact import (
     Polytope,
     proxy_step_multi,
 )
-from hapticd.dynamics import (
-    SMALL_SHAPE,
-    SmallBody,
-    SurfaceSet,
-    auto_substeps,
-    step_body,
-    step_body_small,
-)
+from hapticd.dynamics import auto_substeps
 from hapticd.frame import Frame
-from hapticd.friction import friction_proxy
 from hapticd.passivity import PassivityParams, control, observe, orthonormal, project
-from hapticd.scene import Material, Scene, SceneObject
+from hapticd.scene import Material, Scene, SceneObject, Surface
 
 V3 = tuple[float, float, float]
 ZERO3: V3 = (0.0, 0.0, 0.0)
@@ -91,10 +83,18 @@ def _unit(v: V3, fallback: V3) -> V3:
     return (v[0] / n, v[1] / n, v[2] / n) if n > 1e-15 else fallback
 
 
-def _shown(p: V3, held: V3, plain: V3) -> V3:
-    """The proxy shown for a finger: the god-object ``p`` moved as friction moved the
-    fingertip from ``plain`` (frictionless) to ``held``."""
-    return (p[0] + held[0] - plain[0], p[1] + held[1] - plain[1], p[2] + held[2] - plain[2])
+def _kernel(name: str) -> property:
+    """A stage's kernel ``name`` (a function of hapticd.kernels): the compiled function
+    hapticd.jit gave it, or, set to None, the very same function uncompiled
+    (``kernels.uncompiled``: ``rendering.kernels=python``). The stage calls ``_kernel``."""
+
+    def get(stage: object) -> Callable[..., object]:
+        return stage._kernel  # type: ignore[attr-defined]
+
+    def put(stage: object, fn: Callable[..., object] | None) -> None:
+        stage._kernel = kernels.uncompiled(name) if fn is None else fn  # type: ignore[attr-defined]
+
+    return property(get, put, doc=f"hapticd.kernels.{name}, compiled or not")
 
 
 def _projector(directions: list[V3]) -> np.ndarray:
@@ -353,8 +353,8 @@ class Friction:
     moves with the object); moves ``proxy_pos`` (the god-object proxy as contact
     wrote it) with the fingertip's point and updates ``contact_point`` to match.
     The anchors live in ``anchors`` (F, kernels.FRICTION_COLUMNS: the anchor (3, m, body
-    frame), 1.0 if it is set, the fingertip's radius (m)), which this code and the
-    compiled kernel (hapticd.kernels.friction_step) both read and write.
+    frame), 1.0 if it is set, the fingertip's radius (m)). The physics is
+    hapticd.kernels.friction_step, compiled or not (``kernel``).
 
     Reads contact's results from ``inputs`` (``FRICTIONLESS`` in the renderer's plan;
     ``HELD`` when run on its own: then it moves them in place) and writes ``HELD``.
@@ -362,13 +362,13 @@ class Friction:
 
     name = "friction"
     outputs = HELD
+    kernel = _kernel("friction_step")
 
     def __init__(
         self, scene: Scene, radii: list[float], kernel: Callable[..., None] | None = None
     ) -> None:
         self.scene = scene
         self.radii = radii
-        # hapticd.kernels.friction_step compiled (hapticd.jit), or None: the code below.
         self.kernel = kernel
         self.anchors = np.zeros((len(radii), kernels.FRICTION_COLUMNS))
         self.anchors[:, kernels.FINGER_RADIUS] = radii
@@ -400,9 +400,8 @@ class Friction:
         # Contact's results (its proxy, surface point and contact point), where friction
         # starts from.
         god_in, plain_in, point_in = self._in.of(frame, self._inputs)
-        # Out of contact both paths return here: cheaper than a call to the kernel.
-        touching = frame.in_contact.tolist()
-        if not any(touching):
+        # Out of contact the kernel would only copy them: cheaper here than a call.
+        if not any(frame.in_contact.tolist()):
             if self.holding:
                 self.anchors[:, kernels.ANCHOR_SET] = 0.0
                 self.holding = False
@@ -413,70 +412,13 @@ class Friction:
             return
         self.holding = True
         obj = self.scene.object
-        if self.kernel is not None:
-            self._run_kernel(frame, obj, god_in, plain_in, point_in)
-            return
-        mat = obj.material
-        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = obj.rotation.tolist()
-        x0, x1, x2 = obj.position.tolist()
-        anchors = self.anchors.tolist()
-        pos = frame.device_pos.tolist()
-        plain = plain_in.tolist()  # frictionless, as contact wrote them
-        held = list(plain)
-        normals = frame.contact_normal.tolist()
-        god = god_in.tolist()
-        shown = list(god)
-        points = point_in.tolist()
-        for i, on in enumerate(touching):
-            a = anchors[i]
-            if not on:
-                a[3] = 0.0
-                continue
-            aw = None
-            if a[3] != 0.0:
-                # R a + x in plain sums (each row's products left to right, then x), not
-                # numpy's R @ a, whose BLAS rounds differently: the kernel's sums, bit for bit.
-                aw = (
-                    r00 * a[0] + r01 * a[1] + r02 * a[2] + x0,
-                    r10 * a[0] + r11 * a[1] + r12 * a[2] + x1,
-                    r20 * a[0] + r21 * a[1] + r22 * a[2] + x2,
-                )
-            dev, n = pos[i], normals[i]
-            pf, _ = friction_proxy(held[i], dev, n, aw, mat.mu_static, mat.mu_dynamic)  # type: ignore[arg-type]
-            # The new anchor in the body frame: R^T (pf - x), each column's products left
-            # to right.
-            d0, d1, d2 = pf[0] - x0, pf[1] - x1, pf[2] - x2
-            a[0] = r00 * d0 + r10 * d1 + r20 * d2
-            a[1] = r01 * d0 + r11 * d1 + r21 * d2
-            a[2] = r02 * d0 + r12 * d1 + r22 * d2
-            a[3] = 1.0
-            held[i] = pf
-            p, po = god[i], plain[i]
-            shown[i] = _shown(p, pf, po)
-            r = self.radii[i]
-            points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
-        self.anchors[...] = anchors
-        frame.surface_point[...] = held
-        frame.proxy_pos[...] = shown
-        frame.contact_point[...] = points
-
-    def _run_kernel(
-        self,
-        frame: Frame,
-        obj: SceneObject,
-        god_in: np.ndarray,
-        plain_in: np.ndarray,
-        point_in: np.ndarray,
-    ) -> None:
-        """The same tick as ``run`` by the kernel, on the frame's arrays, the anchors and
-        the object's ``state``."""
         mat = obj.material
         params = self._params
         if mat is not self._params_for:  # a Material is frozen: a change is a new one
             params[0] = mat.mu_static
             params[1] = mat.mu_dynamic
             self._params_for = mat
-        self.kernel(  # type: ignore[misc]
+        self._kernel(
             frame.in_contact,
             frame.device_pos,
             plain_in,
@@ -496,55 +438,28 @@ class Forces:
     """The full contact force on each finger: k (surface point - device) - b v_rel.
 
     Damping may slow the finger but never pull it into the object. Writes
-    ``contact_force``; zero for a finger out of contact.
+    ``contact_force``; zero for a finger out of contact. The physics is
+    hapticd.kernels.forces_step, compiled or not (``kernel``).
     """
 
     name = "forces"
     reads = ("in_contact", "device_pos", "device_vel", "surface_point", "contact_normal")
     writes = ("contact_force",)
+    kernel = _kernel("forces_step")
 
     def __init__(self, scene: Scene, kernel: Callable[..., None] | None = None) -> None:
         self.scene = scene
-        # hapticd.kernels.forces_step compiled (hapticd.jit), or None: the code below.
         self.kernel = kernel
         self._params = np.zeros(kernels.FORCES_PARAMS)
         self._params_for: tuple[Material, bool] | None = None
         self._still = np.zeros(kernels.STATE)  # a fixed object's motion: none is read
 
     def run(self, frame: Frame) -> None:
-        # Out of contact both paths return here: cheaper than a call to the kernel.
-        touching = frame.in_contact.tolist()
-        if not any(touching):
+        # Out of contact: zero, cheaper here than a call to the kernel.
+        if not any(frame.in_contact.tolist()):
             frame.contact_force.fill(0.0)
             return
         obj = self.scene.object
-        if self.kernel is not None:
-            self._run_kernel(frame, obj)
-            return
-        k, b = obj.material.stiffness, obj.material.damping
-        pos = frame.device_pos.tolist()
-        held = frame.surface_point.tolist()
-        normals = frame.contact_normal.tolist()
-        vel = frame.device_vel.tolist() if b else None
-        motion = None if obj.fixed or not b else self._motion()
-        forces = [ZERO3] * len(touching)
-        for i, on in enumerate(touching):
-            if not on:
-                continue
-            dev, pf, n = pos[i], held[i], normals[i]
-            f = (k * (pf[0] - dev[0]), k * (pf[1] - dev[1]), k * (pf[2] - dev[2]))
-            if vel is not None:
-                v = self._relative_velocity(vel[i], pf, motion)
-                f = (f[0] - b * v[0], f[1] - b * v[1], f[2] - b * v[2])
-                fn = f[0] * n[0] + f[1] * n[1] + f[2] * n[2]
-                if fn < 0.0:
-                    f = (f[0] - fn * n[0], f[1] - fn * n[1], f[2] - fn * n[2])
-            forces[i] = f
-        frame.contact_force[...] = forces
-
-    def _run_kernel(self, frame: Frame, obj: SceneObject) -> None:
-        """The same forces as ``run`` by the kernel, on the frame's arrays and (a free
-        object) the object's ``state``."""
         mat, fixed = obj.material, obj.fixed
         made = self._params_for
         if made is None or made[0] is not mat or made[1] != fixed:
@@ -552,7 +467,7 @@ class Forces:
             self._params[1] = mat.damping
             self._params[2] = 0.0 if fixed else 1.0
             self._params_for = (mat, fixed)
-        self.kernel(  # type: ignore[misc]
+        self._kernel(
             frame.in_contact,
             frame.device_pos,
             frame.device_vel,
@@ -561,34 +476,6 @@ class Forces:
             frame.contact_force,
             self._still if fixed else obj.state,
             self._params,
-        )
-
-    def _motion(self) -> tuple[list[float], list[float], list[float]]:
-        """The object's position (m), velocity (m/s) and angular velocity (rad/s)."""
-        obj = self.scene.object
-        return obj.position.tolist(), obj.velocity.tolist(), obj.omega.tolist()
-
-    @staticmethod
-    def _relative_velocity(
-        v_dev: list[float],
-        point: list[float],
-        motion: tuple[list[float], list[float], list[float]] | None,
-    ) -> V3:
-        """The device's velocity relative to the object's material at ``point`` (m/s):
-        elementwise on plain floats, the same sums numpy's 3-vectors made."""
-        if motion is None:
-            return (v_dev[0], v_dev[1], v_dev[2])
-        x, u, w = motion
-        rel = (point[0] - x[0], point[1] - x[1], point[2] - x[2])
-        spin = (
-            w[1] * rel[2] - w[2] * rel[1],
-            w[2] * rel[0] - w[0] * rel[2],
-            w[0] * rel[1] - w[1] * rel[0],
-        )
-        return (
-            v_dev[0] - u[0] - spin[0],
-            v_dev[1] - u[1] - spin[1],
-            v_dev[2] - u[2] - spin[2],
         )
 
 
@@ -896,12 +783,14 @@ class Dynamics:
 
     The fingers act as springs that move with the object during the tick's
     substeps; soft-finger contacts resist spin about their normals. Writes the
-    object's pose to the scene (the next tick's contact sees it).
+    object's pose to the scene (the next tick's contact sees it). The physics is
+    hapticd.kernels.free_body_step, compiled or not (``kernel``), for any shape.
     """
 
     name = "dynamics"
     reads = ("in_contact", "contact_point", "contact_force", "contact_normal")
     writes = ()  # the object's pose and motion (the scene's object)
+    kernel = _kernel("free_body_step")
 
     def __init__(
         self, scene: Scene, n_fingers: int, dt: float, kernel: Callable[..., None] | None = None
@@ -909,17 +798,13 @@ class Dynamics:
         self.scene = scene
         obj = scene.object
         self.dt = dt
-        # hapticd.kernels.free_body_step compiled (hapticd.jit), or None: the code below.
         self.kernel = kernel
         self.gravity = scene.gravity
-        self.surfaces = SurfaceSet(scene.surfaces) if scene.surfaces else None
         self.substeps = scene.substeps
         if scene.substeps == 0:  # auto
             self.substeps = auto_substeps(
                 obj, scene.surfaces, obj.material.stiffness, n_fingers, dt
             )
-        self.small = len(obj.shape.vertices) <= SMALL_SHAPE
-        self._prepared: SmallBody | None = None  # the small step's cache (shape, mass)
         self._arrays: _BodyArrays | None = None  # the kernel's (shape, mass, surfaces)
         self._scratch = np.zeros((n_fingers, kernels.SCRATCH_COLUMNS))
         self._gravity = np.zeros(3) if self.gravity is None else np.array(self.gravity, float)
@@ -932,73 +817,22 @@ class Dynamics:
     def effects(self) -> list[str]:
         """What moves the object besides the fingers."""
         return (["gravity"] if self.gravity is not None else []) + (
-            ["surfaces"] if self.surfaces else []
+            ["surfaces"] if self.scene.surfaces else []
         )
 
     def run(self, frame: Frame) -> None:
-        if self.kernel is not None:
-            self._run_kernel(frame)
-            return
-        obj = self.scene.object
-        k = obj.material.stiffness
-        touching = frame.in_contact.tolist()
-        contacts = [i for i, on in enumerate(touching) if on]
-        points = frame.contact_point.tolist()
-        forces = frame.contact_force.tolist()
-        # The object feels the reaction of the full (virtual) contact force.
-        springs = [(points[i], (-forces[i][0], -forces[i][1], -forces[i][2]), k) for i in contacts]
-        torsion = None
-        mu_t = obj.material.torsion
-        if mu_t > 0.0 and contacts:
-            normals = frame.contact_normal.tolist()
-            torsion = []
-            for i in contacts:
-                n, f = normals[i], forces[i]
-                fn = abs(f[0] * n[0] + f[1] * n[1] + f[2] * n[2])
-                if fn > 0.0:
-                    torsion.append((n, mu_t * fn))
-        if self.small:
-            prep = self._prepared
-            if prep is None or not prep.fits(obj, self.surfaces):
-                prep = self._prepared = SmallBody(obj, self.surfaces)
-            step_body_small(
-                obj,
-                (0.0, 0.0, 0.0),
-                (0.0, 0.0, 0.0),
-                self.dt,
-                gravity=self.gravity,
-                surfaces=self.surfaces,
-                substeps=self.substeps,
-                torsion=torsion,  # type: ignore[arg-type]
-                springs=springs,  # type: ignore[arg-type]
-                prepared=prep,
-            )
-        else:
-            step_body(
-                obj,
-                np.zeros(3),
-                np.zeros(3),
-                self.dt,
-                gravity=self.gravity,
-                surfaces=self.surfaces,
-                substeps=self.substeps,
-                torsion=torsion,  # type: ignore[arg-type]
-                springs=springs,  # type: ignore[arg-type]
-            )
-
-    def _run_kernel(self, frame: Frame) -> None:
-        """The same step as ``run`` by the kernel, on the frame's arrays and the object's
-        ``state`` (its position, velocity, omega and rotation are views of it)."""
+        """The step on the frame's arrays and the object's ``state`` (its position,
+        velocity, omega and rotation are views of it)."""
         obj = self.scene.object
         arr = self._arrays
-        if arr is None or not arr.fits(obj, self.surfaces):
-            arr = self._arrays = _BodyArrays(obj, self.surfaces, self.dt, self.substeps)
+        if arr is None or not arr.fits(obj):
+            arr = self._arrays = _BodyArrays(obj, self.scene.surfaces, self.dt, self.substeps)
             arr.params[6:9] = self._gravity
         mat = obj.material
         params = arr.params
         params[0] = mat.stiffness
         params[1] = mat.torsion
-        self.kernel(  # type: ignore[misc]
+        self._kernel(
             frame.in_contact,
             frame.contact_point,
             frame.contact_force,
@@ -1014,25 +848,28 @@ class Dynamics:
 
 class _BodyArrays:
     """The free-body kernel's arrays for an object's shape and mass and the surfaces
-    (``SmallBody``'s numbers; hapticd.kernels.free_body_step says the layouts): params,
-    body (inertia, its inverse and the vertices) and surfaces. The object's state is its
-    ``state``."""
+    (hapticd.kernels.free_body_step says the layouts): params, body (inertia, its inverse
+    and the vertices, body frame) and surfaces (normal, offset, stiffness, damping, dynamic
+    friction). The object's state is its ``state``."""
 
-    def __init__(
-        self, obj: SceneObject, surfaces: SurfaceSet | None, dt: float, substeps: int
-    ) -> None:
-        small = SmallBody(obj, surfaces)
-        self.shape, self.mass, self.surfaces = small.shape, small.mass, surfaces
+    def __init__(self, obj: SceneObject, surfaces: list[Surface], dt: float, substeps: int) -> None:
+        self.shape, self.mass = obj.shape, obj.mass
+        local = obj.shape.vertices.tolist()
+        # The farthest vertex from the centre of mass (m): surfaces farther away are skipped.
+        reach = max((math.sqrt(x * x + y * y + z * z) for x, y, z in local), default=0.0)
         self.params = np.zeros(kernels.PARAMS)
-        self.params[2:6] = (small.mass, dt, substeps, small.reach)
-        self.body = np.array([*small.Ib, *small.Ib_inv, *small.local], dtype=float).reshape(-1, 3)
-        self.surf = np.array(
-            [(*n, d, m.stiffness, m.damping, m.mu_dynamic) for n, d, m in small.surf],
-            dtype=float,
-        ).reshape(-1, kernels.SURFACE_COLUMNS)
+        self.params[2:6] = (obj.mass, dt, substeps, reach)
+        inertia = obj.inertia_body
+        self.body = np.array(
+            [*inertia.tolist(), *np.linalg.inv(inertia).tolist(), *local], dtype=float
+        ).reshape(-1, 3)
+        self.surf = np.zeros((len(surfaces), kernels.SURFACE_COLUMNS))
+        for row, surface in zip(self.surf, surfaces, strict=True):
+            m = surface.material
+            row[:] = (*surface.normal, surface.offset, m.stiffness, m.damping, m.mu_dynamic)
 
-    def fits(self, obj: SceneObject, surfaces: SurfaceSet | None) -> bool:
-        return obj.shape is self.shape and obj.mass == self.mass and surfaces is self.surfaces
+    def fits(self, obj: SceneObject) -> bool:
+        return obj.shape is self.shape and obj.mass == self.mass
 
 
 class SceneState:

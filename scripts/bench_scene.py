@@ -10,9 +10,9 @@
 2. Mesh resolution: a 25 mm sphere as a box-like coarse hull up to ~20k faces:
    tick time against the surface-distance error (how far the hull's faces lie
    inside the true sphere).
-3. Substeps 1, 2, 4, 8: dynamics time per tick against energy drift of a
-   free-falling cube (1 s, no ground) and the creep of a cube resting on the
-   ground (1 s).
+3. Substeps 1, 2, 4, 8: dynamics time per tick (the Dynamics stage, compiled)
+   against energy drift of a free-falling cube (1 s, no ground) and the creep
+   of a cube resting on the ground (1 s).
 
 Timings are medians and p99 over repeated runs, interleaved per section.
 Usage: python scripts/bench_scene.py [--rounds 3] [--plot PATH]
@@ -35,10 +35,12 @@ import yaml
 from hapticd import jit, recording
 from hapticd.actuation import Actuation
 from hapticd.build import build_scene, builtin_trajectory
-from hapticd.dynamics import SurfaceSet, kinetic_energy, step_body, step_body_small
+from hapticd.dynamics import kinetic_energy, step_body
+from hapticd.frame import Frame
 from hapticd.profile import parse_profile
 from hapticd.render import Renderer
-from hapticd.scene import ConvexShape, Material, SceneObject, Surface
+from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
+from hapticd.stages import Dynamics
 
 ROOT = Path(__file__).resolve().parent.parent
 # Outside the repository: a run never overwrites the docs' figure unless asked to.
@@ -242,9 +244,14 @@ def bench_meshes(rounds: int, tmp: Path) -> list[dict]:
 
 def bench_substeps(rounds: int) -> list[dict]:
     g = np.array([0.0, 0.0, -9.81])
-    ground = SurfaceSet(
-        [Surface("ground", (0.0, 0.0, 1.0), -0.025, Material(2000.0, 5.0, 0.6, 0.5))]
-    )
+    ground = [Surface("ground", (0.0, 0.0, 1.0), -0.025, Material(2000.0, 5.0, 0.6, 0.5))]
+    step = jit.compile_kernels(["free_body_step"])["free_body_step"]
+    no_contact = Frame(1, 1)
+
+    def dynamics(c: SceneObject, surfaces: list[Surface], k: int) -> Dynamics:
+        """The loop's Dynamics stage (compiled) for ``c`` with gravity, no finger touching."""
+        return Dynamics(Scene(c, surfaces, g, k), 1, 1e-3, step)
+
     rows = []
     times: dict[int, list[float]] = {k: [] for k in (1, 2, 4, 8)}
     drift: dict[int, float] = {}
@@ -265,12 +272,13 @@ def bench_substeps(rounds: int) -> list[dict]:
         for k in times:
             # Free fall with a tumble, no contact: total energy must stay constant.
             c = cube(0.0, True)
+            stage = dynamics(c, [], k)
             e0 = kinetic_energy(c) - c.mass * float(g @ c.position)
             clock = time.perf_counter
             worst = 0.0
             for _ in range(1000):
                 t0 = clock()
-                step_body_small(c, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1e-3, gravity=g, substeps=k)
+                stage.run(no_contact)
                 times[k].append(clock() - t0)
                 e = kinetic_energy(c) - c.mass * float(g @ c.position)
                 worst = max(worst, abs(e - e0))
@@ -278,16 +286,9 @@ def bench_substeps(rounds: int) -> list[dict]:
             # Resting on the ground: it must not creep or jitter.
             c = cube(-0.06 * 9.81 / (4 * 2000.0), False)
             z0 = c.position.copy()
+            stage = dynamics(c, ground, k)
             for _ in range(1000):
-                step_body_small(
-                    c,
-                    (0.0, 0.0, 0.0),
-                    (0.0, 0.0, 0.0),
-                    1e-3,
-                    gravity=g,
-                    surfaces=ground,
-                    substeps=k,
-                )
+                stage.run(no_contact)
             creep[k] = float(np.linalg.norm(c.position - z0))
     base = None
     for k in times:
@@ -303,7 +304,8 @@ def bench_substeps(rounds: int) -> list[dict]:
                 "rest_creep_m": creep[k],
             }
         )
-    # The numpy path (meshes with many vertices) beside it, one substep.
+    # hapticd.dynamics.step_body (the same model in numpy, the tests' cross-check) beside
+    # it, one substep.
     c = cube(0.0, True)
     ts = []
     for _ in range(1000):
@@ -313,7 +315,7 @@ def bench_substeps(rounds: int) -> list[dict]:
     med, p99 = stats(ts)
     rows.append(
         {
-            "substeps": "1 (numpy path)",
+            "substeps": "1 (numpy step_body)",
             "median_us": med,
             "p99_us": p99,
             "ratio": med / base,

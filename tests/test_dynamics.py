@@ -1,13 +1,19 @@
-"""The free-body step on plain floats (``step_body_small``, the Dynamics stage's path for
-shapes of up to SMALL_SHAPE vertices) against the numpy step (``step_body``): one model,
-so the same results on every output, whatever the state, forces, contacts and substeps."""
+"""The free-body step (hapticd.kernels.free_body_step, the Dynamics stage's physics) against
+``hapticd.dynamics.step_body``, the same model written independently in numpy: the same
+results to rounding on every output, whatever the state, contacts, surfaces, gravity and
+substeps; a spin that overflows gives a non-finite pose (for the loop's object check), not
+an error, compiled or not. tests/test_kernels.py compares compiled and uncompiled."""
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hapticd.dynamics import SurfaceSet, step_body, step_body_small
-from hapticd.scene import ConvexShape, Material, SceneObject, Surface
+from hapticd import jit
+from hapticd.dynamics import SurfaceSet, step_body
+from hapticd.frame import Frame
+from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
+from hapticd.stages import Dynamics
 from tests.strategies import unit_vectors
 
 DT = 1e-3  # s, one tick at 1 kHz
@@ -42,93 +48,152 @@ def materials(draw) -> Material:
 
 
 @st.composite
-def cases(draw) -> dict:
+def stage_cases(draw) -> dict:
+    """A free box (principal axes turned), its fingers' contacts as the frame has them,
+    surfaces near it, gravity or none, substeps."""
     size = draw(vec(0.01, 0.1))
     box = ConvexShape.box(size)
-    # Principal axes turned away from the box's: the float path's full inertia matrix.
     Q = draw(rotations())
     shape = ConvexShape(
         box.normals, box.offsets, box.vertices, box.volume, Q @ box.inertia_unit_mass @ Q.T
     )
-    state = {
+    material = Material(
+        draw(floats(50.0, 1000.0)),
+        draw(floats(0.0, 5.0)),
+        torsion=draw(st.just(0.0) | floats(1e-4, 0.05)),
+    )
+    position = draw(vec(-0.05, 0.05))
+    obj = {
         "shape": shape,
-        "material": Material(draw(floats(50.0, 1000.0))),
-        "position": draw(vec(-0.05, 0.05)),
+        "material": material,
+        "position": position,
         "rotation": draw(rotations()),
         "mass": draw(floats(0.05, 2.0)),
-        "velocity": draw(vec(-0.5, 0.5)),
+        "velocity": draw(vec(-1.0, 1.0)),
         "omega": draw(vec(-10.0, 10.0)),
     }
-    # Ground and walls: planes through or near the object, so vertices often touch them.
     surfaces = []
     for i in range(draw(st.integers(0, 3))):
         n = draw(unit_vectors())
-        offset = float(n @ state["position"]) + draw(floats(-0.06, 0.03))
+        offset = float(n @ position) + draw(floats(-0.06, 0.03))
         surfaces.append(Surface(f"surface {i}", tuple(n), offset, draw(materials())))
-    springs = [
-        (state["position"] + draw(vec(-0.05, 0.05)), draw(vec(-5.0, 5.0)), draw(floats(10, 1e3)))
-        for _ in range(draw(st.integers(0, 2)))
-    ]
-    torsion = [
-        (draw(unit_vectors()), draw(floats(0.0, 0.05))) for _ in range(draw(st.integers(0, 2)))
-    ]
+    n_fingers = draw(st.integers(1, 3))
+    frame = {
+        "in_contact": [draw(st.booleans()) for _ in range(n_fingers)],
+        "contact_point": [position + draw(vec(-0.05, 0.05)) for _ in range(n_fingers)],
+        "contact_force": [draw(vec(-5.0, 5.0)) for _ in range(n_fingers)],
+        "contact_normal": [draw(unit_vectors()) for _ in range(n_fingers)],
+    }
     return {
-        "state": state,
-        "force": draw(vec(-5.0, 5.0)),
-        "torque": draw(vec(-0.1, 0.1)),
+        "object": obj,
+        "surfaces": surfaces,
         "gravity": draw(st.none() | vec(-10.0, 10.0)),
-        "surfaces": SurfaceSet(surfaces) if surfaces else None,
         "substeps": draw(st.integers(1, 8)),
-        "springs": springs or None,
-        "torsion": torsion or None,
+        "frame": frame,
+        "ticks": draw(st.integers(1, 3)),
     }
 
 
-def _object(state: dict) -> SceneObject:
-    return SceneObject(
-        state["shape"],
-        state["material"],
-        state["position"].copy(),
-        state["rotation"].copy(),
+def dynamics_stage(case: dict, kernel) -> tuple[Dynamics, Frame]:
+    """The Dynamics stage for a ``stage_cases`` case (``kernel``: compiled, or None) and
+    its frame."""
+    o = case["object"]
+    obj = SceneObject(
+        o["shape"],
+        o["material"],
+        o["position"].copy(),
+        o["rotation"].copy(),
         fixed=False,
-        mass=state["mass"],
-        velocity=state["velocity"].copy(),
-        omega=state["omega"].copy(),
+        mass=o["mass"],
+        velocity=o["velocity"].copy(),
+        omega=o["omega"].copy(),
     )
+    gravity = None if case["gravity"] is None else case["gravity"].copy()
+    scene = Scene(obj, list(case["surfaces"]), gravity, case["substeps"])
+    f = case["frame"]
+    frame = Frame(len(f["in_contact"]), 3)
+    for name, value in f.items():
+        getattr(frame, name)[...] = value
+    return Dynamics(scene, frame.n_fingers, DT, kernel), frame
 
 
-def run_both(case: dict) -> tuple[SceneObject, SceneObject]:
-    big, small = _object(case["state"]), _object(case["state"])
-    kw = {k: case[k] for k in ("gravity", "surfaces", "substeps", "springs", "torsion")}
-    step_body(big, case["force"], case["torque"], DT, **kw)
-    step_body_small(small, tuple(case["force"]), tuple(case["torque"]), DT, **kw)
-    return big, small
+def run_dynamics(case: dict, kernel) -> SceneObject:
+    """The case's object after its ticks of the Dynamics stage."""
+    stage, frame = dynamics_stage(case, kernel)
+    for _ in range(case["ticks"]):
+        stage.run(frame)
+    return stage.scene.object
 
 
-# Both paths evaluate one model in a different order (forces summed in another order,
-# Euler's equations in the world frame or the body frame, Rodrigues with a Bjorck step or
-# a quaternion exponential): rounding of about 1e-16 per operation, grown over up to 8
+STATE = ("position", "velocity", "omega", "rotation")
+
+
+@pytest.fixture(scope="module")
+def compiled():
+    """The compiled free-body kernel (numba is a dependency: no skip without it)."""
+    return jit.compile_kernels(["free_body_step"])["free_body_step"]
+
+
+def numpy_step(case: dict) -> SceneObject:
+    """One tick of ``step_body`` for the case's object and the frame's contacts as the stage
+    reads them: each finger in contact a spring of the object's stiffness at its contact
+    point, carrying the reaction of its force; with torsional friction mu_t, a cap of
+    mu_t |f . n| on the spin about its normal."""
+    stage, frame = dynamics_stage(case, None)
+    obj = stage.scene.object
+    k, mu_t = obj.material.stiffness, obj.material.torsion
+    springs, torsion = [], []
+    for on, point, f, n in zip(
+        frame.in_contact,
+        frame.contact_point,
+        frame.contact_force,
+        frame.contact_normal,
+        strict=True,
+    ):
+        if not on:
+            continue
+        springs.append((point.copy(), -f, k))
+        if mu_t > 0.0 and abs(f @ n) > 0.0:
+            torsion.append((n.copy(), mu_t * abs(float(f @ n))))
+    step_body(
+        obj,
+        np.zeros(3),
+        np.zeros(3),
+        DT,
+        gravity=case["gravity"],
+        surfaces=SurfaceSet(case["surfaces"]) if case["surfaces"] else None,
+        substeps=stage.substeps,
+        torsion=torsion or None,
+        springs=springs or None,
+    )
+    return obj
+
+
+# Both evaluate one model in a different order (forces summed in another order, Euler's
+# equations in the world frame or the body frame, Rodrigues with a Bjorck step or a
+# quaternion exponential): rounding of about 1e-16 per operation, grown over up to 8
 # substeps of stiff springs. Over 2000 generated cases the largest difference was 2.4e-14
 # of the quantity's size; 1e-12 leaves a margin of 40, and any difference in the model (a
 # term left out, another friction cap, a wrong frame) shows at 1e-6 or more.
 RTOL = 1e-12
 
 
-@given(cases())
-def test_the_float_step_equals_the_numpy_step(case):
-    big, small = run_both(case)
-    for name in ("position", "velocity", "omega", "rotation"):
-        a, b = getattr(big, name), getattr(small, name)
+@given(stage_cases())
+def test_the_step_equals_the_numpy_model(case):
+    want = numpy_step(case)
+    got = run_dynamics({**case, "ticks": 1}, None)  # uncompiled: the reference
+    for name in STATE:
+        a, b = getattr(want, name), getattr(got, name)
         # The size of the quantity, before or after the step (either may be near zero).
-        scale = max(np.abs(a).max(), np.abs(case["state"][name]).max())
+        scale = max(np.abs(a).max(), np.abs(case["object"][name]).max())
         diff = np.abs(a - b).max()
         assert diff <= RTOL * scale, f"{name}: differs by {diff:.3g} (size {scale:.3g})"
     # The world-frame shape the next tick's contact sees, from the new pose.
     np.testing.assert_allclose(
-        big.polytope.offsets,
-        small.polytope.offsets,
+        want.polytope.offsets,
+        got.polytope.offsets,
         rtol=0,
-        atol=RTOL * (1 + np.abs(big.polytope.offsets).max()),
+        atol=RTOL * (1 + np.abs(want.polytope.offsets).max()),
     )
 
 
@@ -139,14 +204,15 @@ def huge(limit: float):
     )
 
 
+@pytest.mark.parametrize("path", ["uncompiled", "compiled"])
 @given(
     omega=st.tuples(huge(1.7e308), huge(1.7e308), huge(1.7e308)),
-    torque=st.tuples(huge(1.7e308), huge(1.7e308), huge(1.7e308)),
+    force=st.tuples(huge(1.7e308), huge(1.7e308), huge(1.7e308)),
 )
-def test_the_float_step_never_raises_on_finite_input(omega, torque):
-    """A spin whose square overflows (|w| above about 1e154 rad/s, or a torque that makes
-    one) gives a non-finite pose, as the compiled step does, instead of a math error; the
-    loop's object check then sees the spin beyond its limit and ends the run."""
+def test_the_step_never_raises_on_finite_input(compiled, path, omega, force):
+    """A spin whose square overflows (|w| above about 1e154 rad/s, or a finger's force whose
+    torque makes one) gives a non-finite pose instead of a math error; the loop's object
+    check then sees the spin beyond its limit and ends the run."""
     from hapticd.servo import MAX_OBJECT_SPIN_RAD_PER_S
 
     obj = SceneObject(
@@ -159,7 +225,13 @@ def test_the_float_step_never_raises_on_finite_input(omega, torque):
         velocity=np.zeros(3),
         omega=np.array(omega),
     )
-    step_body_small(obj, (0.0, 0.0, 0.0), torque, DT, substeps=2)
+    frame = Frame(1, 1)
+    frame.in_contact[0] = 1
+    frame.contact_point[0] = (0.025, 0.02, 0.0)
+    frame.contact_force[0] = force
+    frame.contact_normal[0] = (1.0, 0.0, 0.0)
+    stage = Dynamics(Scene(obj, [], None, 2), 1, DT, compiled if path == "compiled" else None)
+    stage.run(frame)
     if not np.all(np.isfinite(obj.rotation)):
         spin = np.hypot.reduce(np.abs(obj.omega)) if np.all(np.isfinite(obj.omega)) else np.inf
         assert not spin <= MAX_OBJECT_SPIN_RAD_PER_S  # NaN counts as beyond: the check's way

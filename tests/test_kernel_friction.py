@@ -1,11 +1,12 @@
-"""The compiled Friction and Forces kernels (hapticd.kernels.friction_step, forces_step)
-against the stages' Python code: the same bits for generated contacts (sticking, slipping,
-new contacts, fingers pulled out of the face), normals, anchors, fixed and free objects,
-damping on and off, over several ticks; the anchors are one state both paths share, so a
-run may switch paths between ticks; the object's state array is shared with the Dynamics
-kernel; hostile values through the compiled path end in zero force and a latched fault.
+"""The Friction and Forces stages' one source (hapticd.kernels.friction_step, forces_step)
+compiled against the same functions uncompiled: the same bits for generated contacts
+(sticking, slipping, new contacts, fingers pulled out of the face), normals, anchors, fixed
+and free objects, damping on and off, over several ticks; the anchors are one state both
+share, so a run may switch between them between ticks; the object's state array is shared
+with the Dynamics kernel; hostile values through either end in zero force and a latched
+fault.
 
-Whole runs of the bundled profiles on both paths are compared with the stored reference
+Whole runs of the bundled profiles both ways are compared with the stored reference
 in tests/test_reference_output.py (the compiled runs use these kernels: checked below)."""
 
 from __future__ import annotations
@@ -135,7 +136,7 @@ def _scene(case: dict) -> Scene:
 
 def _run(case: dict, paths: list) -> list[dict[str, np.ndarray]]:
     """Run Friction then Forces on each tick of ``case``, tick k with ``paths[k]`` (None: the
-    Python code, else the two kernels by name); what they wrote, tick by tick."""
+    kernels uncompiled, else the two kernels by name); what they wrote, tick by tick."""
     scene = _scene(case)
     n = case["n"]
     radii = [0.008 + 0.001 * i for i in range(n)]
@@ -178,25 +179,17 @@ def _assert_same(ref: list, got: list) -> None:
 
 
 @given(cases())
-def test_the_compiled_friction_and_forces_equal_the_python_stages_bit_for_bit(compiled, case):
-    """The kernels evaluate the stages' sums in the same order (numba neither fuses
-    multiply-adds nor reorders without fastmath; sqrt is correctly rounded): the same bits
-    on every output, the anchors and the object's state."""
+def test_friction_and_forces_compiled_and_uncompiled_agree_bit_for_bit(compiled, case):
+    """numba neither fuses multiply-adds nor reorders without fastmath, and sqrt is
+    correctly rounded: the same bits on every output, the anchors and the object's state."""
     ticks = len(case["ticks"])
     _assert_same(_run(case, [None] * ticks), _run(case, [compiled] * ticks))
 
 
-@given(cases())
-def test_the_kernels_as_plain_python_are_the_stages_bit_for_bit(case):
-    plain = {name: getattr(kernels, name) for name in NAMES}
-    ticks = len(case["ticks"])
-    _assert_same(_run(case, [None] * ticks), _run(case, [plain] * ticks))
-
-
 @given(cases(), st.data())
 def test_switching_paths_between_ticks_keeps_the_anchors(compiled, case, data):
-    """The anchors are one array both paths read and write: any mix of paths over a run
-    gives the all-Python run's numbers."""
+    """The anchors are one array both read and write: any mix of compiled and uncompiled
+    ticks over a run gives the uncompiled run's numbers."""
     ticks = len(case["ticks"])
     assume(ticks >= 2)
     paths = [data.draw(st.sampled_from([None, compiled])) for _ in range(ticks)]
@@ -352,8 +345,9 @@ def _poisoned_run(mode: str, field: str, value: float) -> tuple[np.ndarray, dict
     session = build_session(profile, paced=False, duration_s=3.2)
     renderer = session.renderer
     stages = dict(zip(renderer.stage_names, renderer.stages, strict=True))
-    assert (stages["friction"].kernel is not None) == (mode == "compiled")
-    assert (stages["forces"].kernel is not None) == (mode == "compiled")
+    for name in ("friction", "forces"):
+        uncompiled = kernels.uncompiled(f"{name}_step")
+        assert (stages[name].kernel is uncompiled) == (mode == "python")
     renderer.insert(Poison(session.loop, field, value, 3.0), after="contact")
     written = capture_writes(session)
     summary = session.run()

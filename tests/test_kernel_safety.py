@@ -1,9 +1,10 @@
-"""The safety chain's compiled normal path (hapticd.kernels.safety_step) against the Python
-chain: the same output bits, faults, causes and counters for generated streams, limits,
-ramps, rate limits, workspaces and deadman buttons; hostile forces through a whole run on
-the compiled path end in zero force, a latched fault and the devices disabled.
+"""The safety chain's normal tick (hapticd.kernels.safety_step, its one source) compiled
+against uncompiled: the same output bits, faults, causes and counters for generated
+streams, limits, ramps, rate limits, workspaces and deadman buttons; its norm is Python
+3.11's math.hypot to the last bit; hostile forces through a whole run on the compiled
+path end in zero force, a latched fault and the devices disabled.
 
-tests/test_safety.py runs every one of its tests on both paths as well."""
+tests/test_safety.py runs every one of its tests compiled and uncompiled as well."""
 
 from __future__ import annotations
 
@@ -23,11 +24,6 @@ from hapticd.profile import load_profile
 from hapticd.safety import Deadman, SafetyChain, SafetyParams
 from tests.conftest import ROOT, capture_writes
 
-# The kernel inlines Python 3.11's math.hypot: elsewhere the chain runs in Python.
-pytestmark = pytest.mark.skipif(
-    sys.version_info[:2] != (3, 11), reason="safety_step is Python 3.11's hypot"
-)
-
 LIFT = ROOT / "configs" / "lift-weight.yaml"
 GRASP = ROOT / "configs" / "grasp-stiffness.yaml"
 
@@ -38,12 +34,12 @@ def compiled():
     return jit.compile_kernels(["safety_step"])
 
 
-# The kernel compiled, and the same function run as plain Python (what the compiler is given).
+# The kernel compiled, and the same function uncompiled (the chain's own without a kernel).
 PATHS = ["compiled", "plain"]
 
 
 def kernel_for(path: str, compiled) -> dict:
-    return compiled if path == "compiled" else {"safety_step": kernels.safety_step}
+    return compiled if path == "compiled" else {}
 
 
 # Every scale a force can have: tiny (subnormal), ordinary, huge but finite, and the
@@ -94,11 +90,12 @@ def cases(draw) -> dict:
 
 
 def run_both(case: dict, kernel: dict) -> tuple[SafetyChain, SafetyChain, int]:
-    """Feed both chains the case's ticks; every output compared bit for bit. Returns the
-    chains and how many ticks the kernel made safe itself."""
+    """Feed both chains the case's ticks, the first with the kernel uncompiled, the second
+    with ``kernel`` (compiled, or empty: uncompiled); every output compared bit for bit.
+    Returns the chains and how many ticks the second's kernel made safe itself."""
     dt = 1e-3
     chains = [SafetyChain(case["limits"], case["params"], dt=dt) for _ in range(2)]
-    step = kernel["safety_step"]
+    step = kernel.get("safety_step") or kernels.uncompiled("safety_step")
     calls = []
 
     def counting(*a):
@@ -136,18 +133,16 @@ def run_both(case: dict, kernel: dict) -> tuple[SafetyChain, SafetyChain, int]:
     return chains[0], chains[1], by_kernel
 
 
-# The plain kernel computes on numpy scalars, which warn where C overflows quietly to inf
-# (a magnitude beyond the largest float: Python's hypot gives inf too).
-@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
-@pytest.mark.parametrize("path", PATHS)
 @given(case=cases())
-def test_the_compiled_chain_gives_the_python_chains_bits(compiled, path, case):
-    _, b, by_kernel = run_both(case, kernel_for(path, compiled))
+def test_the_chain_compiled_and_uncompiled_gives_the_same_bits(compiled, case):
+    _, b, by_kernel = run_both(case, compiled)
     event(f"ticks made safe by the kernel: {min(by_kernel, 3)}+")
     event(f"fault: {b.fault.kind if b.fault else None}")
 
 
-@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
+@pytest.mark.skipif(
+    sys.version_info[:2] != (3, 11), reason="the kernel's norm is Python 3.11's hypot"
+)
 @pytest.mark.parametrize("path", PATHS)
 @given(
     forces=arrays(float, (2, 3), elements=magnitudes.filter(lambda x: x != 0.0)),
@@ -178,8 +173,8 @@ def test_clamped_forces_keep_pythons_hypot_to_the_last_bit(compiled, path, force
 
 
 def test_the_kernel_makes_the_normal_tick_safe_and_defers_every_trip(compiled):
-    """Ordinary ticks never reach the Python chain; a non-finite force, the watchdog and a
-    finger at (within rounding of) the workspace's edge do, and trip with its message."""
+    """Ordinary ticks never reach the chain's checks; a non-finite force, the watchdog and
+    a finger at (within rounding of) the workspace's edge do, and trip with its message."""
     chain = SafetyChain(
         [2.0, 2.0],
         SafetyParams(max_rate_n_per_s=500.0, workspace_radius_m=0.1, watchdog_s=0.05),
@@ -199,7 +194,7 @@ def test_the_kernel_makes_the_normal_tick_safe_and_defers_every_trip(compiled):
         chain.apply(f, k, k * 1e-3, pos, 1.0 + k * 1e-3)
     assert python_ticks == [] and chain.clamped_ticks == 20 and chain.rate_limited_ticks > 0
     edge = pos.copy()
-    edge[1, 0] = -0.1  # exactly at the radius: inside, decided by the Python chain
+    edge[1, 0] = -0.1  # exactly at the radius: inside, decided by the chain's check
     chain.apply(f, 20, 0.02, edge, 1.02)
     assert python_ticks == [20] and chain.fault is None
     chain.apply(f, 21, 0.021, pos, 1.2)  # 179 ms since the last tick
@@ -212,8 +207,9 @@ def test_the_kernel_makes_the_normal_tick_safe_and_defers_every_trip(compiled):
     assert chain.fault.cause == "non-finite force for finger(s) [1]"
 
 
-def test_arrays_the_kernel_cannot_take_run_the_python_chain(compiled):
-    """A list, another dtype, a non-contiguous view: the same output, from Python."""
+def test_arrays_the_kernel_cannot_take_are_copied_for_it(compiled):
+    """A list, another dtype, a non-contiguous view: the same output, from the kernel; a
+    shape that is not (F, 3) is refused."""
     chain = SafetyChain([2.0, 2.0])
     called = []
     step = compiled["safety_step"]
@@ -227,9 +223,11 @@ def test_arrays_the_kernel_cannot_take_run_the_python_chain(compiled):
         strided[:, ::2],
     ):
         assert chain.apply(forces, 0, 0.0).tolist() == want
-    assert called == []
+    assert called == [1, 1, 1]
     chain.apply(np.array([[3.0, 0.0, 0.0], [0.0, 2.0, 0.0]]), 1, 0.001)
-    assert called == [1]
+    assert called == [1, 1, 1, 1]
+    with pytest.raises(ValueError, match=r"\(2, 3\) arrays"):
+        chain.apply([3.0, 0.0, 0.0], 2, 0.002)
 
 
 class Poison:
@@ -256,7 +254,7 @@ def test_hostile_forces_through_the_compiled_safety_path(compiled, path, value):
     profile = load_profile(path, ["rendering.kernels=compiled"])
     session = build_session(profile, paced=False, duration_s=1.2)
     loop = session.loop
-    assert session.safety._step is not None
+    assert session.safety._step is not kernels.uncompiled("safety_step")
     last = session.renderer.stage_names[-1]
     session.renderer.insert(Poison(loop, value, 1.0), after=last)
     written = capture_writes(session)
@@ -281,11 +279,10 @@ def test_hostile_forces_through_the_compiled_safety_path(compiled, path, value):
     assert all(not dev.enabled for dev in session.devices)
 
 
-@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
 @given(case=cases())
-def test_the_stage_on_a_frame_is_the_python_chain(compiled, case):
+def test_the_stage_on_a_frame_is_the_uncompiled_chain(compiled, case):
     """``run`` (the loop's call: the compiled normal path straight from the frame) against
-    the Python chain's ``apply``, tick by tick."""
+    the uncompiled chain's ``apply``, tick by tick."""
     n = len(case["limits"])
     dt = 1e-3
     ref = SafetyChain(case["limits"], case["params"], dt=dt)
@@ -315,7 +312,7 @@ def test_the_stage_on_a_frame_is_the_python_chain(compiled, case):
 
 
 @pytest.mark.parametrize("path", ["python", "compiled"])
-def test_new_limits_reach_both_paths_and_a_copy_changes_nothing(compiled, path):
+def test_new_limits_reach_the_kernel_and_a_copy_changes_nothing(compiled, path):
     chain = SafetyChain([5.0, 5.0])
     chain.use_kernels(compiled if path == "compiled" else {})
     push = np.array([[10.0, 0.0, 0.0], [0.0, 0.0, -10.0]])

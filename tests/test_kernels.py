@@ -24,14 +24,12 @@ from hypothesis import strategies as st
 
 from hapticd import jit, kernels
 from hapticd.daemon.session import build_session
-from hapticd.frame import Frame
 from hapticd.profile import load_profile
 from hapticd.safety import SafetyChain
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
-from hapticd.stages import Dynamics
+from hapticd.scene import ConvexShape, Material, SceneObject
 from tests.conftest import ROOT, capture_writes
 from tests.strategies import unit_vectors
-from tests.test_dynamics import floats, materials, rotations, vec
+from tests.test_dynamics import STATE, dynamics_stage, rotations, run_dynamics, stage_cases, vec
 
 LIFT = ROOT / "configs" / "lift-weight.yaml"
 GRASP = ROOT / "configs" / "grasp-stiffness.yaml"
@@ -53,102 +51,15 @@ def compiled():
     return jit.compile_kernels(["free_body_step"])["free_body_step"]
 
 
-@st.composite
-def stage_cases(draw) -> dict:
-    """A free box (principal axes turned), its fingers' contacts as the frame has them,
-    surfaces near it, gravity or none, substeps."""
-    size = draw(vec(0.01, 0.1))
-    box = ConvexShape.box(size)
-    Q = draw(rotations())
-    shape = ConvexShape(
-        box.normals, box.offsets, box.vertices, box.volume, Q @ box.inertia_unit_mass @ Q.T
-    )
-    material = Material(
-        draw(floats(50.0, 1000.0)),
-        draw(floats(0.0, 5.0)),
-        torsion=draw(st.just(0.0) | floats(1e-4, 0.05)),
-    )
-    position = draw(vec(-0.05, 0.05))
-    obj = {
-        "shape": shape,
-        "material": material,
-        "position": position,
-        "rotation": draw(rotations()),
-        "mass": draw(floats(0.05, 2.0)),
-        "velocity": draw(vec(-1.0, 1.0)),
-        "omega": draw(vec(-10.0, 10.0)),
-    }
-    surfaces = []
-    for i in range(draw(st.integers(0, 3))):
-        n = draw(unit_vectors())
-        offset = float(n @ position) + draw(floats(-0.06, 0.03))
-        surfaces.append(Surface(f"surface {i}", tuple(n), offset, draw(materials())))
-    n_fingers = draw(st.integers(1, 3))
-    frame = {
-        "in_contact": [draw(st.booleans()) for _ in range(n_fingers)],
-        "contact_point": [position + draw(vec(-0.05, 0.05)) for _ in range(n_fingers)],
-        "contact_force": [draw(vec(-5.0, 5.0)) for _ in range(n_fingers)],
-        "contact_normal": [draw(unit_vectors()) for _ in range(n_fingers)],
-    }
-    return {
-        "object": obj,
-        "surfaces": surfaces,
-        "gravity": draw(st.none() | vec(-10.0, 10.0)),
-        "substeps": draw(st.integers(1, 8)),
-        "frame": frame,
-        "ticks": draw(st.integers(1, 3)),
-    }
-
-
-def _stage(case: dict, kernel) -> tuple[Dynamics, Frame]:
-    o = case["object"]
-    obj = SceneObject(
-        o["shape"],
-        o["material"],
-        o["position"].copy(),
-        o["rotation"].copy(),
-        fixed=False,
-        mass=o["mass"],
-        velocity=o["velocity"].copy(),
-        omega=o["omega"].copy(),
-    )
-    gravity = None if case["gravity"] is None else case["gravity"].copy()
-    scene = Scene(obj, list(case["surfaces"]), gravity, case["substeps"])
-    f = case["frame"]
-    frame = Frame(len(f["in_contact"]), 3)
-    for name, value in f.items():
-        getattr(frame, name)[...] = value
-    return Dynamics(scene, frame.n_fingers, DT, kernel), frame
-
-
-def _run(case: dict, kernel) -> SceneObject:
-    stage, frame = _stage(case, kernel)
-    for _ in range(case["ticks"]):
-        stage.run(frame)
-    return stage.scene.object
-
-
-STATE = ("position", "velocity", "omega", "rotation")
-
-
 @given(stage_cases())
-def test_the_compiled_free_body_step_equals_the_python_stage(compiled, case):
-    """The kernel evaluates the Python stage's sums in the same order, and numba neither
-    fuses multiply-adds nor reorders without fastmath; sin, cos and sqrt are the same C
-    library's: the same bits."""
-    ref, got = _run(case, None), _run(case, compiled)
+def test_the_free_body_step_compiled_and_uncompiled_agree_bit_for_bit(compiled, case):
+    """numba neither fuses multiply-adds nor reorders without fastmath; sin, cos and sqrt
+    are the same C library's: the same bits, on the state and the world-frame shape."""
+    ref, got = run_dynamics(case, None), run_dynamics(case, compiled)
     for name in STATE:
         np.testing.assert_array_equal(getattr(ref, name), getattr(got, name), err_msg=name)
     np.testing.assert_array_equal(ref.polytope.offsets, got.polytope.offsets)
     np.testing.assert_array_equal(ref.polytope.normals, got.polytope.normals)
-
-
-@given(stage_cases())
-def test_the_kernel_as_plain_python_is_the_stage_bit_for_bit(case):
-    """The kernel's source, run by the interpreter: the very same floating-point sums."""
-    ref, got = _run(case, None), _run(case, kernels.free_body_step)
-    for name in STATE:
-        np.testing.assert_array_equal(getattr(ref, name), getattr(got, name), err_msg=name)
 
 
 def test_the_kernel_writes_the_objects_state_in_place_and_takes_what_is_set(compiled):
@@ -171,7 +82,7 @@ def test_the_kernel_writes_the_objects_state_in_place_and_takes_what_is_set(comp
         "frame": {"in_contact": [False], "contact_point": [np.zeros(3)]},
         "ticks": 1,
     }
-    stage, frame = _stage(case, compiled)
+    stage, frame = dynamics_stage(case, compiled)
     obj = stage.scene.object
     given_velocity, state = obj.velocity, obj.state
     stage.run(frame)
@@ -201,15 +112,30 @@ def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked(compiled)
     assert profile.rendering.kernels == "auto"
     s = build_session(profile, paced=False, duration_s=0.01)
     assert list(s.renderer.kernels) == list(LIFT_KERNELS)
-    for name in ("dynamics", "allocation", "contact", "friction", "forces"):
-        assert s.renderer.stages[s.renderer.stage_names.index(name)].kernel is not None, name
-    assert s.renderer.stages[s.renderer.stage_names.index("contact")].planes_kernel is not None
+    stages = dict(zip(s.renderer.stage_names, s.renderer.stages, strict=True))
+    for name, kernel in STAGE_KERNELS.items():
+        assert stages[name].kernel is s.renderer.kernels[kernel], name
+    assert stages["contact"].planes_kernel is not None
     s.run()
     s = build_session(
         load_profile(LIFT, ["rendering.kernels=python"]), paced=False, duration_s=0.01
     )
     assert s.renderer.kernels == {}
+    stages = dict(zip(s.renderer.stage_names, s.renderer.stages, strict=True))
+    for name in ONE_SOURCE:  # the same functions, uncompiled
+        assert stages[name].kernel is kernels.uncompiled(STAGE_KERNELS[name]), name
     s.run()
+
+
+# The stages' kernels; the stages whose kernel is their only physics (compiled or not).
+STAGE_KERNELS = {
+    "dynamics": "free_body_step",
+    "allocation": "allocation_step",
+    "contact": "contact_step",
+    "friction": "friction_step",
+    "forces": "forces_step",
+}
+ONE_SOURCE = ("friction", "forces")
 
 
 NO_NUMBA = "import sys; sys.modules['numba'] = None\n"

@@ -33,7 +33,6 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.contact",
         "hapticd.dynamics",
         "hapticd.frame",
-        "hapticd.friction",
         "hapticd.grasp",
         "hapticd.kernels",
         "hapticd.mount",

@@ -6,25 +6,23 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from hapticd import jit
+from hapticd import jit, kernels
 from hapticd.safety import SafetyChain
 
 
 @pytest.fixture(scope="module", autouse=True, params=["python", "compiled"])
 def safety_path(request):
-    """Every test here on both paths: the Python chain, and the chain with its compiled
-    normal path (hapticd.kernels.safety_step; tests/test_kernel_safety.py compares them)."""
+    """Every test here both ways: the chain's normal tick (hapticd.kernels.safety_step)
+    uncompiled and compiled (tests/test_kernel_safety.py compares them)."""
     if request.param == "python":
         yield request.param
         return
-    if not SafetyChain.kernel_names:
-        pytest.skip("safety_step is Python 3.11's hypot: no compiled path here")
-    kernels = jit.compile_kernels(["safety_step"])
+    compiled = jit.compile_kernels(["safety_step"])
     init = SafetyChain.__init__
 
     def compiled_init(self, *args, **kwargs):
         init(self, *args, **kwargs)
-        self.use_kernels(kernels)
+        self.use_kernels(compiled)
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(SafetyChain, "__init__", compiled_init)
@@ -209,4 +207,5 @@ def test_an_unpaced_simulation_paused_by_the_machine_is_not_a_stalled_loop():
 
 
 def test_each_path_is_the_one_tested(safety_path):
-    assert (SafetyChain([1.0])._step is not None) == (safety_path == "compiled")
+    uncompiled = SafetyChain([1.0])._step is kernels.uncompiled("safety_step")
+    assert uncompiled == (safety_path == "python")
