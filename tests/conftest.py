@@ -5,7 +5,9 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+import select
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -307,6 +309,19 @@ def live(tmp_path):
         session.loop.request_stop("test over")
         runner.join(timeout=10)
         server.close()
+
+
+def kill_writer(rec) -> None:
+    """SIGKILL a Recorder's writer process and wait until it has ended (the recorder reaps
+    it, as it would a writer that died); fail after 10 s."""
+    pid = rec.status()["writer_pid"]
+    fd = os.pidfd_open(pid)
+    try:
+        os.kill(pid, signal.SIGKILL)
+        ended, _, _ = select.select([fd], [], [], 10.0)
+        assert ended, f"the writer process {pid} outlived SIGKILL for 10 s"
+    finally:
+        os.close(fd)
 
 
 class ServerHold:
