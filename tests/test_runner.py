@@ -690,9 +690,9 @@ def test_a_refused_parameter_and_a_daemon_not_ready_for_the_experiment(live, tmp
         # Two directions per finger where the running profile has one: the daemon refuses.
         two = [[[0.8660254, 0.0, 0.5], [0.0, 1.0, 0.0]], [[-0.8660254, 0.0, 0.5], [0.0, 1.0, 0.0]]]
         with pytest.raises(rn.RunnerError, match="the daemon refused actuated_directions"):
-            p._change({"allocator": "pinv", "actuated_directions": two})
+            p.change({"allocator": "pinv", "actuated_directions": two})
         assert c.get("allocator") == "pinv"  # what came before the refusal was applied
-        p._change({"allocator": "if", "stiffness_n_per_m": 45.0})
+        p.change({"allocator": "if", "stiffness_n_per_m": 45.0})
         assert (c.get("allocator"), c.get("stiffness_n_per_m")) == ("if", 45.0)
 
 
@@ -767,10 +767,10 @@ def test_an_interval_held_past_its_limit_ends_there(live, ends_on):
     out = io.StringIO()
     with ControlClient(sock) as c:
         p = rn.PersonPresenter(c, subject="s1", out=out)
-        p._explore(exp)  # waits for the first touch (about 1.9 s into the run)
+        p.explore(exp)  # waits for the first touch (about 1.9 s into the run)
         began = time.monotonic()
         assert p.contacts == {0, 1}
-        p._explore(exp)  # still touching: the interval begins at once
+        p.explore(exp)  # still touching: the interval begins at once
         assert time.monotonic() - began >= 0.3
     assert out.getvalue().count("time: please release the object") == 2
 
