@@ -101,8 +101,6 @@ class FalconEmulator:
         self.grip = 0
         self.commands = 0
         self.rejected = 0
-        # The largest end-effector force its motors exerted after a command, N.
-        self.peak_force_n = 0.0
         self._force = np.zeros(3)
         # Fault injection: counts of upcoming answers to drop, break or jump; firmware
         # bytes to echo wrong; answer nothing from now on.
@@ -194,12 +192,8 @@ class FalconEmulator:
             self._force = fm.force_from_motor(np.array(self.hand.x), self.motor)
         if self.drop_next:
             self.drop_next -= 1
-        else:
-            self._held.append([self.latency_polls, self._answer()])
-        # At the pose the answer reported (the last one reached): moving the hand is the
-        # host's reads' business, not this bookkeeping's.
-        force = fm.force_from_motor(self._last_reached, self.motor)
-        self.peak_force_n = max(self.peak_force_n, float(np.linalg.norm(force)))
+            return
+        self._held.append([self.latency_polls, self._answer()])
 
     def _firmware_bytes(self) -> None:
         buf = self._from_host

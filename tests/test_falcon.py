@@ -472,7 +472,10 @@ def test_bringup_pulses_each_actuated_direction_through_the_falcons(tmp_path, ca
     build = bringup.build_session
 
     def build_and_keep(*a, **kw):
+        # Each emulated Falcon is held by a hand that follows its path and feels its motors.
         sessions.append(build(*a, **kw))
+        for emu in sessions[-1].emulators:
+            emu.hand = FeelingHand(emu.path)
         return sessions[-1]
 
     monkeypatch.setattr(bringup, "build_session", build_and_keep)
@@ -487,8 +490,22 @@ def test_bringup_pulses_each_actuated_direction_through_the_falcons(tmp_path, ca
     (session,) = sessions
     assert len(session.emulators) == 2
     for emu in session.emulators:
-        assert isinstance(emu, FalconEmulator)
-        assert 0.45 < emu.peak_force_n <= MAX_PULSE_N * 1.02
+        assert isinstance(emu, FalconEmulator) and len(emu.hand.felt) > 1000
+        mags = np.linalg.norm(np.array(emu.hand.felt), axis=1)
+        assert 0.45 < mags.max() <= MAX_PULSE_N * 1.02
+
+
+class FeelingHand:
+    """A hand on an emulated device (its ``hand`` seam) that follows the device's path and
+    keeps each force (3,) N the motors exert on it."""
+
+    def __init__(self, path):
+        self.path, self.felt = path, []
+        self.x = tuple(path.at(0.0)[0])
+
+    def advance(self, now, force):
+        self.felt.append(force)
+        self.x = tuple(self.path.at(now)[0])
 
 
 class TickingClock:
