@@ -145,7 +145,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-realtime", action="store_true", help="as hapticd run --no-realtime")
 
 
-# -- output ------------------------------------------------------------------------------------
+# -- the workspaces and the stiffness (hapticd check prints them too) ---------------------------
 
 
 def _mm(v: Any) -> str:
@@ -236,6 +236,9 @@ def workspace_report(profile: Any, devices: list[Any]) -> list[str]:
     lines = ["workspaces (the object at its starting pose):"]
     lines += [reach_line(*w) for w in workspace_reaches(profile, devices)]
     return lines
+
+
+# -- output ------------------------------------------------------------------------------------
 
 
 class Report:
