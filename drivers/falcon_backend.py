@@ -310,10 +310,10 @@ class FalconDevice(Device):
 
     # -- the device -------------------------------------------------------------------------------
 
-    def open(self) -> None:
-        self._open(require_homed=True)
-
-    def _open(self, require_homed: bool) -> None:
+    def open(self, require_homed: bool = True) -> None:
+        """Connect (loading the firmware if it runs none) and read it once. A Falcon not
+        homed since power-up is refused unless ``require_homed`` is False (to home it:
+        ``home``); until homed it gets zero force whatever it is sent."""
         image = read_firmware(self.firmware) if self.firmware is not None else None
         self._connect()
         try:
@@ -535,7 +535,7 @@ def calibrate(
         usb_backend=usb_backend,
         clock=clock,
     )
-    dev._open(require_homed=False)
+    dev.open(require_homed=False)
     try:
         was = dev.homed == fm.ALL_HOMED
         if not was:

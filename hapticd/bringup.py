@@ -27,6 +27,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import Enum
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
@@ -34,11 +35,10 @@ import numpy as np
 from hapticd_drivers import BackendUnavailableError, Device, registry
 
 from hapticd import __version__
-from hapticd.build import build_mounts
-from hapticd.cli import common as cli_common
-from hapticd.cli import run as cli_run
+from hapticd.build import build_mounts, build_scene
 from hapticd.commands import Command
 from hapticd.daemon.session import Session, build_session, record_directory
+from hapticd.mount import Mount, Reach, workspace_reach
 from hapticd.profile import ProfileError, load_profile
 from hapticd.pulse import MAX_PULSE_N, PulseStage
 from hapticd.recording import RecordingError
@@ -56,6 +56,15 @@ MIN_SENT_SHARE = 0.9
 LIVE_REFRESH_S = 0.1
 START_TIMEOUT_S = 10.0  # wall time for the loop to open the devices and run a tick
 STOP_TIMEOUT_S = 10.0  # beyond the stop ramp
+
+
+class Outcome(Enum):
+    """How a bring-up ended (the command line turns it into its exit code)."""
+
+    PASS = "pass"
+    FAIL = "fail"  # a check failed, or the report could not be saved
+    BAD_INPUT = "bad input"  # the profile, a backend or the recording directory
+    FAULT = "fault"  # a fault latched
 
 
 def parse_answers(text: str) -> str:
@@ -134,6 +143,99 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="run the loop as fast as it can (simulated and emulated devices: tests)",
     )
     p.add_argument("--no-realtime", action="store_true", help="as hapticd run --no-realtime")
+
+
+# -- the workspaces and the stiffness (hapticd check prints them too) ---------------------------
+
+
+def _mm(v: Any) -> str:
+    return "(" + ", ".join(f"{1e3 * float(c):.1f}" for c in v) + ") mm"
+
+
+def reach_line(name: str, r: Reach, where: str) -> str:
+    """One finger's (or the safety sphere's) workspace against the object, as text."""
+    if not math.isfinite(r.workspace_radius_m):
+        return (
+            f"  {name}: {where}; its workspace is not known until the device is opened and "
+            "identified (name its model in the device key 'model' to check it here)"
+        )
+    if r.contained:
+        verdict = "the whole object is inside"
+    elif r.reachable:
+        verdict = "the object is reachable (part of it lies outside)"
+    else:
+        verdict = "WARNING: the object is out of reach"
+    pad = " " * (len(name) + 4)
+    return (
+        f"  {name}: {where}, radius {1e3 * r.workspace_radius_m:.1f} mm; the object's centre is "
+        f"at {_mm(r.center_device_m)} in its coordinates\n{pad}"
+        f"({1e3 * r.center_distance_m:.1f} mm from its centre; nearest object point "
+        f"{1e3 * r.nearest_m:.1f} mm, farthest {1e3 * r.farthest_m:.1f} mm): {verdict}"
+    )
+
+
+def workspace_reaches(profile: Any, devices: list[Any]) -> list[tuple[str, Reach, str]]:
+    """Per finger, then the safety section's sphere (if set): (name, how the workspace
+    meets the object at its starting pose, where the workspace is)."""
+    obj = build_scene(profile.scene, profile).object
+    poly, verts = obj.polytope, obj.vertices_world()
+    out = []
+    for f, dev, mount in zip(profile.fingers, devices, build_mounts(profile), strict=True):
+        r = workspace_reach(
+            mount,
+            dev.info.workspace_radius_m,
+            poly.normals,
+            poly.offsets,
+            verts,
+            obj.center,
+            f.radius_m,
+        )
+        out.append((f.name, r, f"device workspace about {_mm(mount.position)} (world)"))
+    sc = profile.safety
+    if sc.workspace_radius_m is not None:
+        safety = Mount(position=np.array(sc.workspace_center_m, dtype=float))
+        r = workspace_reach(
+            safety, sc.workspace_radius_m, poly.normals, poly.offsets, verts, obj.center, 0.0
+        )
+        out.append(("safety", r, "workspace (world)"))
+    return out
+
+
+def rendering_limits(profile: Any, devices: list[Any]) -> list[tuple[str, bool]]:
+    """Per finger whose device model recommends a largest stiffness and damping
+    (hapticd_drivers.models): the scene's stiffest surface and largest damping as the
+    hand feels them (times the mount's workspace scale) against them: (line, within)."""
+    scene = profile.scene
+    surfaces = [("object", scene.object)] + [
+        (name, s) for name in ("ground", "walls") if (s := getattr(scene, name)) is not None
+    ]
+    k_at, k = max(((n, s.stiffness_n_per_m) for n, s in surfaces), key=lambda x: x[1])
+    c_at, c = max(((n, s.damping_n_s_per_m) for n, s in surfaces), key=lambda x: x[1])
+    out = []
+    for f, dev in zip(profile.fingers, devices, strict=True):
+        info = dev.info
+        k_max, c_max = info.max_stiffness_n_per_m, info.max_damping_n_s_per_m
+        if not (math.isfinite(k_max) or math.isfinite(c_max)):
+            continue
+        scale = f.device.mount.workspace_scale
+        ok = k * scale <= k_max and c * scale <= c_max
+        out.append(
+            (
+                f"  {f.name}: the {info.model} renders at most {k_max:g} N/m and {c_max:g} "
+                f"N s/m; the scene asks {k * scale:g} N/m ({k_at}) and {c * scale:g} N s/m "
+                f"({c_at}): {'within' if ok else 'WARNING: above what the device renders stably'}",
+                ok,
+            )
+        )
+    return out
+
+
+def workspace_report(profile: Any, devices: list[Any]) -> list[str]:
+    """Per finger, how its device's workspace sphere (from the device description, placed
+    by its mount) and the safety section's sphere meet the object at its starting pose."""
+    lines = ["workspaces (the object at its starting pose):"]
+    lines += [reach_line(*w) for w in workspace_reaches(profile, devices)]
+    return lines
 
 
 # -- output ------------------------------------------------------------------------------------
@@ -317,15 +419,15 @@ def show_limits(session: Session, report: Report) -> bool:
             f"  {f.name} mount: position {_v(m.position, 1e3)} mm, roll/pitch/yaw "
             f"{_v(cfg.orientation_rpy_rad, 1.0, '{:+.4f}')} rad, workspace scale {m.scale:g}"
         )
-    reaches = cli_run.workspace_reaches(prof, session.devices)
+    reaches = workspace_reaches(prof, session.devices)
     ok = True
-    report.say("  " + cli_run.workspace_report(prof, session.devices)[0])
+    report.say("  " + workspace_report(prof, session.devices)[0])
     for name, r, where in reaches:
-        report.say("  " + cli_run._reach_line(name, r, where).replace("\n", "\n  "))
+        report.say("  " + reach_line(name, r, where).replace("\n", "\n  "))
         if not r.reachable:
             ok = False
             report.fail(f"{name}: the object is out of reach of the workspace")
-    for line, within in cli_run.rendering_limits(prof, session.devices):
+    for line, within in rendering_limits(prof, session.devices):
         report.say("  " + line)
         if not within:
             ok = False
@@ -551,12 +653,12 @@ def _save(report: Report, profile: Any, where: Path, stamp: datetime.datetime) -
     return paths
 
 
-def bringup(args: argparse.Namespace, stdin: IO[str] | None = None) -> int:
-    """Run the bring-up check; 0 PASS, 1 FAIL, 2 bad input, 3 a fault latched."""
+def bringup(args: argparse.Namespace, stdin: IO[str] | None = None) -> Outcome:
+    """Run the bring-up check (``args`` as add_arguments and ``--set`` parse them)."""
     stdin = stdin if stdin is not None else sys.stdin
     report = Report(sys.stdout)
     try:
-        profile = load_profile(args.profile, cli_common._overrides(args))
+        profile = load_profile(args.profile, list(args.set or []))
         session = build_session(
             profile,
             paced=not args.unpaced,
@@ -565,7 +667,7 @@ def bringup(args: argparse.Namespace, stdin: IO[str] | None = None) -> int:
         )
     except (ProfileError, BackendUnavailableError, RecordingError) as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
-        return cli_common.EXIT_BAD_INPUT
+        return Outcome.BAD_INPUT
     stamp = datetime.datetime.now(datetime.UTC).replace(microsecond=0)
     loop = session.loop
     loop.duration_s = None  # ended by the bring-up (an emulated run would end with its path)
@@ -653,11 +755,11 @@ def bringup(args: argparse.Namespace, stdin: IO[str] | None = None) -> int:
         paths = _save(report, profile, Path(where), stamp)
     except OSError as exc:
         print(f"hapticd: cannot save the bring-up report in {where}: {exc}", file=sys.stderr)
-        return cli_common.EXIT_ERROR
+        return Outcome.FAIL
     print(f"saved: {paths[0]} and {paths[1].name}", file=report.stream, flush=True)
     if fault is not None:
-        return cli_common.EXIT_FAULT
-    return cli_common.EXIT_OK if passed else cli_common.EXIT_ERROR
+        return Outcome.FAULT
+    return Outcome.PASS if passed else Outcome.FAIL
 
 
 def _interrupt(_signum: int, _frame: object) -> None:

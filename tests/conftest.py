@@ -5,7 +5,9 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+import select
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -285,7 +287,8 @@ def write_profile(tmp_path):
 @pytest.fixture
 def live(tmp_path):
     """A paced grasp run serving its control socket in a thread (recording directory: tmp_path):
-    session, socket, recording, out."""
+    session, socket, recording, out (its control server as "server"; the run's summary as
+    "summary" when it ends)."""
     sock = tmp_path / "hapticd.sock"
     rec = tmp_path / "live.hrec"
     session = build_session(
@@ -297,7 +300,7 @@ def live(tmp_path):
     )
     server = ControlServer(session, sock)
     server.start()
-    out = {}
+    out = {"server": server}
     runner = threading.Thread(target=lambda: out.update(summary=session.run()), name="test-loop")
     runner.start()
     try:
@@ -306,6 +309,45 @@ def live(tmp_path):
         session.loop.request_stop("test over")
         runner.join(timeout=10)
         server.close()
+
+
+def kill_writer(rec) -> None:
+    """SIGKILL a Recorder's writer process and wait until it has ended (the recorder reaps
+    it, as it would a writer that died); fail after 10 s."""
+    pid = rec.status()["writer_pid"]
+    fd = os.pidfd_open(pid)
+    try:
+        os.kill(pid, signal.SIGKILL)
+        ended, _, _ = select.select([fd], [], [], 10.0)
+        assert ended, f"the writer process {pid} outlived SIGKILL for 10 s"
+    finally:
+        os.close(fd)
+
+
+class ServerHold:
+    """Holds a control server's thread (appended to its ``periodic`` tasks, run in that
+    thread): ``hold()`` and the thread stops at its next periodic round, nothing served
+    or drained, until ``release()``; ``held`` is set while it waits."""
+
+    def __init__(self, server) -> None:
+        self.armed, self.held, self.released = (threading.Event() for _ in range(3))
+        server.periodic.append(self)
+
+    def __call__(self) -> None:
+        if self.armed.is_set():
+            self.armed.clear()
+            self.held.set()
+            self.released.wait(10)
+
+    def hold(self) -> None:
+        """Hold the server at its next periodic round (within about 0.1 s); wait till then."""
+        self.released.clear()
+        self.armed.set()
+        assert self.held.wait(10), "the server thread did not reach its periodic tasks"
+
+    def release(self) -> None:
+        self.held.clear()
+        self.released.set()
 
 
 def wait_for(read, what, *, until=bool, timeout_s=20.0, poll_s=0.02):

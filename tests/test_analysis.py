@@ -268,7 +268,7 @@ def test_a_state_carries_the_frame_intact():
     x, _ = pipe.grasp_configuration()
     state = pipe.settle(x)
     again = pipe.settle(x + 1e-4, state)
-    frame = again._renderer.frame
+    frame = again.frame
     np.testing.assert_array_equal(frame.record["device_pos"], x + 1e-4)
     assert frame.device_pos.base is not None  # still a view into the record
 

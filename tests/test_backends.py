@@ -129,12 +129,13 @@ def test_renders_the_requested_force_within_quantisation(backend):
 @pytest.mark.parametrize("backend", PROTOCOL)
 def test_saturation_keeps_the_force_direction(backend):
     dev, _, clock = proto_dev(backend)
-    run(dev, clock, 5)
+    st = run(dev, clock, 5)
     f = np.array([12.0, 0.0, 0.0])  # at the limit, in a direction the motors cannot all reach
     current = dev.currents_for(f)
     assert np.abs(current).max() <= DESC.max_current + 1e-12
+    theta = dev.delta.inverse(st.position)  # the last read pose's joint angles
     produced = np.linalg.solve(
-        dev.delta.jacobian(dev._theta).T, current * DESC.torque_constant * DESC.gear_ratio
+        dev.delta.jacobian(theta).T, current * DESC.torque_constant * DESC.gear_ratio
     )
     np.testing.assert_allclose(produced / np.linalg.norm(produced), [1, 0, 0], atol=1e-9)
 

@@ -391,7 +391,8 @@ def test_on_a_terminal_positions_refresh_until_enter_and_answers_are_typed(tmp_p
         os.close(master)
     assert time.monotonic() - t0 < 30  # Enter ended the live view, not --live-s
     text = out.getvalue()
-    assert code == 1 and "index direction 1: not felt in that direction" in text
+    assert code is bringup_module.Outcome.FAIL
+    assert "index direction 1: not felt in that direction" in text
     assert "(live for 60 s; Enter goes on)" in text
     assert text.count("\x1b[2F") >= 2  # redrawn in place, two lines up
     saved = next(tmp_path.glob("*.txt")).read_text()

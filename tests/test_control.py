@@ -22,7 +22,7 @@ from hapticd.control import ControlClient
 from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
 from hapticd.protocol import MAX_LINE_BYTES, ProtocolError, parse_request
-from tests.conftest import GRASP_PROFILE, IN_PROCESS, wait_for, wait_for_tick
+from tests.conftest import GRASP_PROFILE, IN_PROCESS, ServerHold, wait_for, wait_for_tick
 
 
 @pytest.mark.parametrize(
@@ -229,7 +229,7 @@ def test_the_loop_writes_one_gate_byte_per_tick_before_it_sleeps():
 @pytest.mark.timing(
     "the server's wait is bounded by the monotonic clock: the test checks when it returns"
 )
-def test_the_control_thread_waits_for_the_loop_to_sleep(monkeypatch):
+def test_the_control_thread_waits_for_the_loop_to_sleep():
     import hapticd.daemon.server as control
 
     class FakeLoop:
@@ -244,20 +244,15 @@ def test_the_control_thread_waits_for_the_loop_to_sleep(monkeypatch):
         def close_sleep_gate(self):
             os.close(self.w)
 
-    class FakeSession:
-        loop = FakeLoop()
-
-    server = control.ControlServer(FakeSession(), None)
-    server._gate_r = FakeSession.loop.open_sleep_gate()
-    loop = FakeSession.loop
+    loop = FakeLoop()
+    gate = loop.open_sleep_gate()
     try:
         # No sleep announced: it gives up after WINDOW_MAX_WAIT_S, never sooner.
         t0 = time.monotonic()
-        server._await_window()
+        control.await_window(loop, gate)
         assert time.monotonic() - t0 >= control.WINDOW_MAX_WAIT_S
-        # The loop announces a sleep 20 ms from now: the thread works only after that.
-        monkeypatch.setattr(control, "WINDOW_MAX_WAIT_S", 5.0)
 
+        # The loop announces a sleep 20 ms from now: the thread works only after that.
         def sleep_soon():
             time.sleep(0.02)
             loop.sleep_until = time.monotonic() + 0.5
@@ -266,7 +261,7 @@ def test_the_control_thread_waits_for_the_loop_to_sleep(monkeypatch):
         t = threading.Thread(target=sleep_soon, name="fake-loop")
         t0 = time.monotonic()
         t.start()
-        server._await_window()
+        control.await_window(loop, gate, max_wait_s=5.0)
         back = time.monotonic()
         t.join()
         assert 0.02 <= back - t0 < 5.0 and back < loop.sleep_until - control.WINDOW_S
@@ -274,11 +269,11 @@ def test_the_control_thread_waits_for_the_loop_to_sleep(monkeypatch):
         loop.running = False
         loop.sleep_until = 0.0
         t0 = time.monotonic()
-        server._await_window()
+        control.await_window(loop, gate, max_wait_s=5.0)
         assert time.monotonic() - t0 < 1.0
     finally:
         loop.close_sleep_gate()
-        os.close(server._gate_r)
+        os.close(gate)
 
 
 def test_every_command_of_the_protocol_has_a_server_handler():
@@ -383,23 +378,12 @@ def test_a_hundred_clients_connect_at_once(live):
     assert len(results) == 100 and not failures, failures[:3]
 
 
-def test_a_pipelined_burst_does_not_make_other_clients_wait_for_all_of_it(live, monkeypatch):
-    """Order, not time: a burst and another client's request wait together (the server is
-    held inside a request meanwhile); when the other client's reply arrives, most of the
-    burst must still be unanswered (each client is served a few requests per turn)."""
-    from hapticd.daemon.server import ControlServer
-
-    _, sock, _, _ = live
-    held, release = threading.Event(), threading.Event()
-    handle = ControlServer._handle
-
-    def holding(self, conn, line):
-        if b'"hold"' in line:
-            held.set()
-            release.wait(10)
-        return handle(self, conn, line)
-
-    monkeypatch.setattr(ControlServer, "_handle", holding)
+def test_a_pipelined_burst_does_not_make_other_clients_wait_for_all_of_it(live):
+    """Order, not time: a burst and another client's request wait together (the server's
+    thread is held meanwhile); when the other client's reply arrives, most of the burst
+    must still be unanswered (each client is served a few requests per turn)."""
+    _, sock, _, out = live
+    hold = ServerHold(out["server"])
     burst = 1200  # about 55 KB: all of it fits in the socket's buffer at once
     a = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     a.settimeout(10)
@@ -410,22 +394,21 @@ def test_a_pipelined_burst_does_not_make_other_clients_wait_for_all_of_it(live, 
         while b"\n" not in got:  # the greeting
             got += a.recv(4096)
         got = got.partition(b"\n")[2]
-        a.sendall(b'{"id": "hold", "cmd": "get", "param": "mass_kg"}\n')
-        assert held.wait(10)
+        hold.hold()
         a.sendall(
             b"".join(b'{"id": %d, "cmd": "get", "param": "mass_kg"}\n' % i for i in range(burst))
         )
         b.sendall(b'{"id": "b", "cmd": "get", "param": "mass_kg"}\n')
         time.sleep(0.05)  # both are in the daemon's socket buffers
-        release.set()
+        hold.release()
         assert reply_b()["id"] == "b"
         a.setblocking(False)
         with contextlib.suppress(BlockingIOError):
             while chunk := a.recv(1 << 20):
                 got += chunk
         a.settimeout(10)
-        answered = got.count(b"\n") - 1  # the held request's reply
-        while got.count(b"\n") < burst + 1:  # the rest of the burst is answered too
+        answered = got.count(b"\n")
+        while got.count(b"\n") < burst:  # the rest of the burst is answered too
             got += a.recv(1 << 20)
     assert answered < burst // 3, f"the other client waited for {answered} of the burst"
 

@@ -24,7 +24,7 @@ from hapticd.daemon.session import build_session
 from hapticd.event_ring import EventRing, FrameEvents
 from hapticd.frame import Frame
 from hapticd.profile import load_profile
-from tests.conftest import ROOT, AtTick, wait_for, wait_for_tick
+from tests.conftest import ROOT, AtTick, ServerHold, wait_for, wait_for_tick
 
 BUNDLED = ROOT / "hapticd" / "data" / "trajectories" / "grasp-stiffness.hrec"
 
@@ -375,7 +375,7 @@ def test_a_stalled_subscriber_is_dropped_and_the_loop_goes_on(daemon, tmp_path, 
 
 
 def test_an_overflowing_ring_is_reported_as_lost_events_in_place(
-    daemon, tmp_path, grasp_data, write_profile, monkeypatch
+    daemon, tmp_path, grasp_data, write_profile
 ):
     """A ring of 2048 events (256 ticks' worth: far more than the server lets wait when it
     runs), four buttons per finger toggling every tick (8 events a tick) and the server
@@ -386,27 +386,15 @@ def test_an_overflowing_ring_is_reported_as_lost_events_in_place(
     d = daemon(profile_on(grasp_data, traj, write_profile), event_capacity=2048)
     loop = d.session.loop
     d.server.events_backlog_bytes = 64 << 20  # the subscriber reads late, and is not dropped
-    held, release = threading.Event(), threading.Event()
-    handle = ControlServer._handle
-
-    def holding(self, conn, line):
-        if b'"param":"mass_kg"' in line:  # the server thread stops here: nothing drains
-            held.set()
-            release.wait(10)
-        return handle(self, conn, line)
-
-    monkeypatch.setattr(ControlServer, "_handle", holding)
+    hold = ServerHold(d.server)  # the server thread stops: nothing drains
     with ControlClient(d.sock) as sub, ControlClient(d.sock) as ctl:
         first = sub.events_subscribe()["tick"]
         d.start()
         wait_for_tick(ctl, 200)
-        holder = threading.Thread(target=ctl.get, args=("mass_kg",), name="test-hold")
-        holder.start()
-        assert held.wait(10)
+        hold.hold()
         k = loop.stats.ticks
         wait_for(lambda: loop.stats.ticks, "400 held ticks", until=lambda n: n > k + 400)
-        release.set()
-        holder.join(timeout=10)
+        hold.release()
         got = collect(sub, lambda e: e["event"] == "events_lost", "events_lost")
         lost = got[-1]
         end = lost["tick"] + 20
@@ -445,7 +433,7 @@ def test_hapticd_events_json_shows_the_grasps_contacts_at_the_recordings_transit
     def start_when_subscribed() -> None:
         try:
             deadline = time.monotonic() + 20
-            while not any(c.event_kinds is not None for c in list(d.server._conns.values())):
+            while not d.server.event_subscribers:
                 if time.monotonic() > deadline:
                     return  # the command fails below: it printed nothing
                 time.sleep(0.005)

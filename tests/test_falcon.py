@@ -302,7 +302,7 @@ def test_homing_while_the_user_sweeps_the_grip_then_the_falcon_opens():
     clock = Clock()
     _, emu = falcon(clock, homed=False)
     dev = FalconDevice(serial_number="EMU-1", usb_backend=EmulatedFalconBackend([emu]), clock=clock)
-    dev._open(require_homed=False)
+    dev.open(require_homed=False)
     assert emu.leds == fm.LED_RED
     dev.enable_forces(True)
     dev.write_force(np.array([1.0, 0.0, 0.0]))  # not homed: zero reaches the motors
@@ -329,7 +329,7 @@ def test_homing_that_never_completes_times_out():
     from hapticd_drivers.falcon_backend import FalconDevice
 
     dev = FalconDevice(serial_number="EMU-1", usb_backend=EmulatedFalconBackend([emu]), clock=clock)
-    dev._open(require_homed=False)
+    dev.open(require_homed=False)
 
     def sleep(s):
         clock.t += s
@@ -464,17 +464,21 @@ def test_bringup_pulses_each_actuated_direction_through_the_falcons(tmp_path, ca
     """hapticd bringup on emulated Falcons: both pass as homed, each actuated direction is
     pulsed, and the force the emulated motors exert stays at most 0.5 N (plus a motor
     unit's quantisation)."""
+    from hapticd import bringup
     from hapticd.cli import main
     from hapticd.pulse import MAX_PULSE_N
 
-    felt: dict[int, list] = {}
-    real = FalconEmulator._command
+    sessions = []
+    build = bringup.build_session
 
-    def spy(self, packet):
-        real(self, packet)
-        felt.setdefault(id(self), []).append(self.end_effector_force())
+    def build_and_keep(*a, **kw):
+        # Each emulated Falcon is held by a hand that follows its path and feels its motors.
+        sessions.append(build(*a, **kw))
+        for emu in sessions[-1].emulators:
+            emu.hand = FeelingHand(emu.path)
+        return sessions[-1]
 
-    monkeypatch.setattr(FalconEmulator, "_command", spy)
+    monkeypatch.setattr(bringup, "build_session", build_and_keep)
     args = ["bringup", str(GRASP_PROFILE), "--unpaced", "--no-realtime", "--live-s", "0"]
     code = main(
         [*args, "--device", "falcon", "--emulate", "--answers", "yy", "--out", str(tmp_path)]
@@ -483,10 +487,25 @@ def test_bringup_pulses_each_actuated_direction_through_the_falcons(tmp_path, ca
     assert code == 0, out
     assert "thumb: falcon Falcon EMU-thumb: calibrated" in out
     assert "RESULT: PASS (devices, limits and workspace, 2 of 2 directions)" in out
-    assert len(felt) == 2
-    for forces in felt.values():
-        mags = np.linalg.norm(np.array(forces), axis=1)
+    (session,) = sessions
+    assert len(session.emulators) == 2
+    for emu in session.emulators:
+        assert isinstance(emu, FalconEmulator) and len(emu.hand.felt) > 1000
+        mags = np.linalg.norm(np.array(emu.hand.felt), axis=1)
         assert 0.45 < mags.max() <= MAX_PULSE_N * 1.02
+
+
+class FeelingHand:
+    """A hand on an emulated device (its ``hand`` seam) that follows the device's path and
+    keeps each force (3,) N the motors exert on it."""
+
+    def __init__(self, path):
+        self.path, self.felt = path, []
+        self.x = tuple(path.at(0.0)[0])
+
+    def advance(self, now, force):
+        self.felt.append(force)
+        self.x = tuple(self.path.at(now)[0])
 
 
 class TickingClock:

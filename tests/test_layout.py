@@ -142,16 +142,28 @@ def _categories(module: str) -> list[str]:
     return [c for c, patterns in CATEGORIES.items() if any(matches(p) for p in patterns)]
 
 
-def _imports(module: str) -> set[str]:
-    """The modules ``module`` imports, anywhere in its source (also inside functions and
-    TYPE_CHECKING blocks), as absolute dotted names: ``from a import b`` is a.b when that
-    is a module of ours, else a. (Parent packages load too: the package __init__s are
-    categorised like any module.)"""
+def _type_checking_only(tree: ast.Module) -> set[int]:
+    """The ids of the import nodes inside ``if TYPE_CHECKING:`` blocks (never run)."""
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            out.update(id(n) for stmt in node.body for n in ast.walk(stmt))
+    return out
+
+
+def _imports(module: str, *, run_only: bool = False) -> set[str]:
+    """The modules ``module`` imports, anywhere in its source (also inside functions and,
+    unless ``run_only``, TYPE_CHECKING blocks), as absolute dotted names: ``from a import
+    b`` is a.b when that is a module of ours, else a. (Parent packages load too: the
+    package __init__s are categorised like any module.)"""
     path = MODULES[module]
     tree = ast.parse(path.read_text(), str(path))
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    skip = _type_checking_only(tree) if run_only else set()
     out: set[str] = set()
     for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
         if isinstance(node, ast.Import):
             out.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -308,3 +320,86 @@ def test_an_experiment_script_loads_no_numpy_pydantic_or_yaml():
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
     )
     assert out.stdout.split() == ["False", "False", "False"], out.stdout + out.stderr
+
+
+# Import cycles kept on purpose: frozenset of the cycle's modules -> why it is harmless.
+# Empty: a cycle means two modules each need the other, so what they share belongs in
+# one of them (or in a third that both import).
+ALLOWED_CYCLES: dict[frozenset[str], str] = {}
+
+
+def _packages(module: str) -> set[str]:
+    """The packages ``module`` is in: hapticd.cli.run -> {hapticd, hapticd.cli}."""
+    parts = module.split(".")
+    return {".".join(parts[:i]) for i in range(1, len(parts))}
+
+
+def _loads(module: str) -> set[str]:
+    """The modules of ours that importing ``module`` can run: each import it executes
+    (at module level or in a function; not under TYPE_CHECKING) and that module's
+    packages, except the packages ``module`` is in (they were loaded before it)."""
+    out = set()
+    for name in _imports(module, run_only=True) & MODULES.keys():
+        out |= {name, *(_packages(name) - _packages(module))}
+    return out & MODULES.keys() - {module}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """One cycle per strongly connected group of modules (Tarjan's algorithm), as a
+    shortest path from the group's first module back to it: [a, b, ..., a]."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    groups: list[set[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = set(stack[stack.index(v) :])
+            del stack[stack.index(v) :]
+            if len(group) > 1:
+                groups.append(group)
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    out = []
+    for group in groups:
+        start = min(group)
+        paths = {start: [start]}
+        frontier = [start]
+        while start not in {w for v in frontier for w in graph[v]}:
+            frontier = [
+                paths.setdefault(w, [*paths[v], w])[-1]
+                for v in frontier
+                for w in sorted(graph[v] & group)
+                if w not in paths
+            ]
+        last = next(v for v in frontier if start in graph[v])
+        out.append([*paths[last], start])
+    return out
+
+
+def test_the_cycle_finder_finds_a_cycle_and_only_a_cycle():
+    graph = {"a": {"b"}, "b": {"c", "d"}, "c": {"a"}, "d": set(), "e": {"d"}}
+    assert _cycles(graph) == [["a", "b", "c", "a"]]
+    assert _cycles({**graph, "c": set()}) == []
+
+
+def test_no_import_cycles():
+    graph = {m: _loads(m) for m in MODULES}
+    found = [c for c in _cycles(graph) if frozenset(c) not in ALLOWED_CYCLES]
+    stale = [
+        sorted(c) for c in ALLOWED_CYCLES if not any(frozenset(f) == c for f in _cycles(graph))
+    ]
+    assert not found and not stale, "\n".join(
+        [f"import cycle: {' -> '.join(c)}" for c in found]
+        + [f"ALLOWED_CYCLES names {c}, which is no longer a cycle" for c in stale]
+    )

@@ -266,7 +266,7 @@ def test_at_rest_the_stage_adds_nothing_so_the_analysis_leaves_it_out():
     bare = _wall_renderer(None).step(x, np.zeros((1, 3)))
     np.testing.assert_array_equal(f.rendered_force, bare.rendered_force)
     pipe = Pipeline.from_renderer(r, allocators=["pinv"])
-    assert "passivity" not in pipe._renderer("pinv").stage_names
+    assert "passivity" not in pipe.renderer("pinv").stage_names
 
 
 # -- the plan and the profile -------------------------------------------------------------------

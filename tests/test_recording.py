@@ -11,7 +11,7 @@ import pytest
 
 from hapticd import recording
 from hapticd.recording import MAGIC, Field, Recorder, RecordingError, loop_fields, read, ring
-from tests.conftest import wait_for
+from tests.conftest import kill_writer, wait_for
 
 
 def _fields():
@@ -130,13 +130,13 @@ def test_a_paced_recorder_drops_ticks_rather_than_wait_or_overwrite(tmp_path):
     fields = loop_fields(2, 2)
     rec = Recorder(tmp_path / "x.hrec", fields, ["a", "b"], capacity=32)
     rec.wait_running()
-    os.kill(rec._proc.pid, signal.SIGSTOP)  # the writer stalls (e.g. a slow disk)
+    os.kill(rec.status()["writer_pid"], signal.SIGSTOP)  # the writer stalls (e.g. a slow disk)
     try:
         for i in range(40):
             rec.append(rec.as_record(_loop_row(fields, i)))
         assert rec.dropped == 8
     finally:
-        os.kill(rec._proc.pid, signal.SIGCONT)
+        os.kill(rec.status()["writer_pid"], signal.SIGCONT)
     status = rec.close()
     assert status["dropped"] == 8 and status["written"] == 32
     # The unread records were never overwritten by the dropped ones.
@@ -147,8 +147,7 @@ def test_recorder_reports_a_writer_that_died(tmp_path):
     fields = _fields()
     rec = Recorder(tmp_path / "x.hrec", fields, ["a", "b"], capacity=16)
     rec.wait_running()
-    os.kill(rec._proc.pid, signal.SIGKILL)
-    rec._proc.wait()
+    kill_writer(rec)
     for i in range(20):
         rec.append(rec.as_record((float(i), np.zeros((2, 3)), [0, 0])))
     with pytest.raises(RecordingError, match=r"writer process .* ended .killed by signal 9"):
@@ -159,14 +158,14 @@ def test_the_ring_writer_reports_a_write_failure(tmp_path):
     fields = _fields()
     rec = Recorder(tmp_path / "x.hrec", fields, ["a", "b"], capacity=16)
     rec.wait_running()
-    os.kill(rec._proc.pid, signal.SIGSTOP)
+    os.kill(rec.status()["writer_pid"], signal.SIGSTOP)
     for i in range(5):
         rec.append(rec.as_record((float(i), np.zeros((2, 3)), [0, 0])))
     rec._words[ring.W_CLOSED // 8] = 1
     # The writer's own code, in this process, on a disk that is full.
     ring.drain(rec._ring_fd, os.open("/dev/full", os.O_WRONLY), "/dev/full", os.getppid())
     assert "writing /dev/full failed" in rec.error
-    os.kill(rec._proc.pid, signal.SIGKILL)
+    os.kill(rec.status()["writer_pid"], signal.SIGKILL)
     with pytest.raises(RecordingError, match="writing /dev/full failed"):
         rec.close()
 
@@ -237,13 +236,13 @@ def test_a_paced_recorder_takes_a_stale_drained_count_for_what_it_is(tmp_path):
     drained(4)
     rec.append(rec.as_record((4.0, np.zeros((2, 3)), [0, 0])))  # the loop sees 4 drained
     drained(5)
-    os.kill(rec._proc.pid, signal.SIGSTOP)  # nothing stores the count while we look
+    os.kill(rec.status()["writer_pid"], signal.SIGSTOP)  # nothing stores the count while we look
     try:
         rec._words[ring.W_DRAINED // 8] = 0  # what a half-written store showed
         rec.append(rec.as_record((5.0, np.zeros((2, 3)), [0, 0])))
         rec._words[ring.W_DRAINED // 8] = 5
     finally:
-        os.kill(rec._proc.pid, signal.SIGCONT)
+        os.kill(rec.status()["writer_pid"], signal.SIGCONT)
     status = rec.close()
     assert status["dropped"] == 0 and status["written"] == 6
     np.testing.assert_array_equal(read(tmp_path / "x.hrec")["t"], np.arange(6))

@@ -6,7 +6,6 @@ from __future__ import annotations
 import mmap
 import os
 import shutil
-import signal
 import stat
 import subprocess
 import sys
@@ -17,6 +16,7 @@ import numpy as np
 import pytest
 
 from hapticd.recording import Field, Recorder, RecordingError, read, ring
+from tests.conftest import kill_writer
 
 
 def _fields():
@@ -86,8 +86,7 @@ def test_a_killed_writer_shows_in_status_at_once_not_when_the_ring_fills(tmp_pat
     rec = Recorder(tmp_path / "x.hrec", _fields(), ["a", "b"], capacity=4096)
     rec.wait_running()
     _append(rec, 10)
-    os.kill(rec._proc.pid, signal.SIGKILL)
-    rec._proc.wait()
+    kill_writer(rec)
     _append(rec, 10, 10)
     st = rec.status()
     assert rec.dropped == 0 and st["ticks"] == 20  # the ring is far from full

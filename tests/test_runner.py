@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import signal
+import socket
 import sqlite3
 import subprocess
 import sys
@@ -79,11 +80,13 @@ def test_a_prompt_is_shown_answered_once_and_cleared(server):
         watcher.events_subscribe(["prompt", "response"])
         assert c.status()["prompt"] is None
         assert _error(c, cmd="respond", prompt=3, choice="yes")["code"] == "no_prompt"
+        before = c.request("get", param="mass_kg")["id"]  # the client numbers its requests
         reply = c.request(
             "prompt", prompt=3, question="Was the second cube stiffer?", choices=["no", "yes"]
         )
-        # The request's own id stays the client's (replies are matched by it).
-        assert reply == {"id": c._next, "ok": True, "result": {}}
+        # The request's own id stays the client's (replies are matched by it), not the
+        # prompt's (3).
+        assert before + 1 != 3 and reply == {"id": before + 1, "ok": True, "result": {}}
         want = {"id": 3, "question": "Was the second cube stiffer?", "choices": ["no", "yes"]}
         assert c.status()["prompt"] == want
         assert watcher.next_event(5)["prompt"] == 3
@@ -162,16 +165,20 @@ def test_malformed_responses_and_prompts_without_an_id(req, code):
 
 
 def test_malformed_prompt_lines_get_error_replies_and_change_nothing(server):
-    with ControlClient(server.path) as c:
+    raw = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)  # lines no client would send
+    raw.settimeout(10)
+    with ControlClient(server.path) as c, raw, raw.makefile("rb") as replies:
         c.prompt(2, "Stiffer?", ["no", "yes"])
+        raw.connect(str(server.path))
+        assert "protocol" in json.loads(replies.readline())  # the greeting
         for line in (
             b'{"cmd":"prompt","prompt":3,"question":"","choices":["no","yes"]}\n',
             b'{"cmd":"prompt","prompt":3,"question":"q","choices":[[[["x"]]]]}\n',
             b'{"cmd":"respond","prompt":2,"choice":null}\n',
             b'{"cmd":"respond","prompt":2,"choice":"yes","extra":NaN}\n',
         ):
-            c.sock.sendall(line)
-            reply = c._line()
+            raw.sendall(line)
+            reply = json.loads(replies.readline())
             assert reply["ok"] is False and reply["error"]["code"] in ("bad_value", "malformed")
         assert c.status()["prompt"]["id"] == 2
         assert c.prompt(2, "Stiffer?", ["no", "yes"]) == {}
@@ -683,9 +690,9 @@ def test_a_refused_parameter_and_a_daemon_not_ready_for_the_experiment(live, tmp
         # Two directions per finger where the running profile has one: the daemon refuses.
         two = [[[0.8660254, 0.0, 0.5], [0.0, 1.0, 0.0]], [[-0.8660254, 0.0, 0.5], [0.0, 1.0, 0.0]]]
         with pytest.raises(rn.RunnerError, match="the daemon refused actuated_directions"):
-            p._change({"allocator": "pinv", "actuated_directions": two})
+            p.change({"allocator": "pinv", "actuated_directions": two})
         assert c.get("allocator") == "pinv"  # what came before the refusal was applied
-        p._change({"allocator": "if", "stiffness_n_per_m": 45.0})
+        p.change({"allocator": "if", "stiffness_n_per_m": 45.0})
         assert (c.get("allocator"), c.get("stiffness_n_per_m")) == ("if", 45.0)
 
 
@@ -760,10 +767,10 @@ def test_an_interval_held_past_its_limit_ends_there(live, ends_on):
     out = io.StringIO()
     with ControlClient(sock) as c:
         p = rn.PersonPresenter(c, subject="s1", out=out)
-        p._explore(exp)  # waits for the first touch (about 1.9 s into the run)
+        p.explore(exp)  # waits for the first touch (about 1.9 s into the run)
         began = time.monotonic()
         assert p.contacts == {0, 1}
-        p._explore(exp)  # still touching: the interval begins at once
+        p.explore(exp)  # still touching: the interval begins at once
         assert time.monotonic() - began >= 0.3
     assert out.getvalue().count("time: please release the object") == 2
 

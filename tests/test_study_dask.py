@@ -55,12 +55,17 @@ from distributed import Client
 from hapticd.experiment import study
 from hapticd.experiment.cluster import loopback_cluster
 
+
+def setup(dask_worker):
+    return dask_worker.state.nthreads, "profile" in dask_worker.periodic_callbacks
+
+
 folder, db = sys.argv[1], sys.argv[2]
 with loopback_cluster(2, folder, start_s=90) as address:
     assert address.startswith("tcp://127.0.0.1:"), address
     with Client(address, timeout="60s") as client:
         # Single-threaded, no profiler: set up as the docs advise, so no advice.
-        assert set(client.run(study._worker_setup).values()) == {{(1, False)}}
+        assert set(client.run(setup).values()) == {{(1, False)}}
         assert study.dask_advice(client) == []
     study.run_study({exp!r}, 2, db, scheduler=address, seed=9, standards=[90.0], repetitions=1)
 """

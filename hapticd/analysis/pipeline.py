@@ -61,6 +61,7 @@ from hapticd.allocation import (
     AdaptiveState,
     Robustness,
 )
+from hapticd.frame import Frame
 from hapticd.render import Renderer
 from hapticd.scene import Material, Scene, SceneObject
 
@@ -183,6 +184,11 @@ class State:
     def in_contact(self) -> np.ndarray:
         """Which fingers touch the object, (p,) bool."""
         return self._renderer.frame.in_contact.astype(bool)
+
+    @property
+    def frame(self) -> Frame:
+        """The settled tick's frame (read it; the state is reused as it is)."""
+        return self._renderer.frame
 
 
 def _still(v: np.ndarray) -> np.ndarray:
@@ -486,7 +492,9 @@ class Pipeline:
 
     # -- settling --------------------------------------------------------------------------
 
-    def _renderer(self, allocator: str, scene: Scene | None = None) -> Renderer:
+    def renderer(self, allocator: str, scene: Scene | None = None) -> Renderer:
+        """A fresh renderer as the pipeline ticks it, rendering with ``allocator`` (the
+        pipeline's scene unless ``scene``)."""
         # tau = 0: the adaptive allocator's alpha sits at its target (quasi-static). The
         # object is fixed, so renderers may share the scene unless it is to be moved.
         return Renderer(
@@ -522,7 +530,7 @@ class Pipeline:
 
     def _settle(self, x: np.ndarray, state: State | None) -> Renderer:
         if state is None:
-            r = self._renderer(self.allocators[0])
+            r = self.renderer(self.allocators[0])
             r.step(self._outside(x), _still(x))
             self._hold(r, x)
             return r
@@ -792,7 +800,7 @@ class Pipeline:
         ticks = list(range(0, P.shape[0], every))
         carry = None
         if self.has_friction:  # its own scene: the recorded poses move it
-            carry = self._renderer(self.allocators[0], copy.deepcopy(self.scene))
+            carry = self.renderer(self.allocators[0], copy.deepcopy(self.scene))
         carry_from = None
         out: list[Sample] = []
         last = -1

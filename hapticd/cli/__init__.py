@@ -45,14 +45,11 @@ from hapticd.cli.offline import _add_analyze, _add_plot, cmd_export
 from hapticd.cli.run import (
     _add_bringup,
     _add_schema,
-    _reach_line,
     cmd_calibrate,
     cmd_check,
     cmd_devices,
     cmd_run,
     cmd_udev_rules,
-    workspace_reaches,
-    workspace_report,
 )
 from hapticd.cli.service import _add_service
 
@@ -63,13 +60,10 @@ __all__ = [
     "EXIT_FAULT",
     "EXIT_OK",
     "_overrides",
-    "_reach_line",
     "build_parser",
     "cmd_check",
     "format_status",
     "main",
-    "workspace_reaches",
-    "workspace_report",
 ]
 
 log = logging.getLogger("hapticd")

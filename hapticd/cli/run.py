@@ -7,7 +7,6 @@ import argparse
 import grp
 import json
 import logging
-import math
 import signal
 import sys
 import tempfile
@@ -15,12 +14,11 @@ import threading
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from hapticd_drivers import BackendUnavailableError, DeviceError, registry
 from hapticd_drivers.registry import discover
 
 from hapticd import bringup
-from hapticd.build import build_devices, build_mounts, build_scene, load_trajectories
+from hapticd.build import build_devices, build_scene, load_trajectories
 from hapticd.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_ERROR,
@@ -38,7 +36,6 @@ from hapticd.daemon.sdnotify import ServiceNotifier
 from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
 from hapticd.daemon.summary import status, summarize
-from hapticd.mount import Mount, Reach, workspace_reach
 from hapticd.profile import ProfileError, load_profile
 from hapticd.recording import RecordingError
 from hapticd.servo import ServoLoop
@@ -292,95 +289,6 @@ def _service_status(loop: ServoLoop) -> str:
     )
 
 
-def _mm(v: Any) -> str:
-    return "(" + ", ".join(f"{1e3 * float(c):.1f}" for c in v) + ") mm"
-
-
-def _reach_line(name: str, r: Reach, where: str) -> str:
-    if not math.isfinite(r.workspace_radius_m):
-        return (
-            f"  {name}: {where}; its workspace is not known until the device is opened and "
-            "identified (name its model in the device key 'model' to check it here)"
-        )
-    if r.contained:
-        verdict = "the whole object is inside"
-    elif r.reachable:
-        verdict = "the object is reachable (part of it lies outside)"
-    else:
-        verdict = "WARNING: the object is out of reach"
-    pad = " " * (len(name) + 4)
-    return (
-        f"  {name}: {where}, radius {1e3 * r.workspace_radius_m:.1f} mm; the object's centre is "
-        f"at {_mm(r.center_device_m)} in its coordinates\n{pad}"
-        f"({1e3 * r.center_distance_m:.1f} mm from its centre; nearest object point "
-        f"{1e3 * r.nearest_m:.1f} mm, farthest {1e3 * r.farthest_m:.1f} mm): {verdict}"
-    )
-
-
-def workspace_reaches(profile: Any, devices: list[Any]) -> list[tuple[str, Reach, str]]:
-    """Per finger, then the safety section's sphere (if set): (name, how the workspace
-    meets the object at its starting pose, where the workspace is)."""
-    obj = build_scene(profile.scene, profile).object
-    poly, verts = obj.polytope, obj.vertices_world()
-    out = []
-    for f, dev, mount in zip(profile.fingers, devices, build_mounts(profile), strict=True):
-        r = workspace_reach(
-            mount,
-            dev.info.workspace_radius_m,
-            poly.normals,
-            poly.offsets,
-            verts,
-            obj.center,
-            f.radius_m,
-        )
-        out.append((f.name, r, f"device workspace about {_mm(mount.position)} (world)"))
-    sc = profile.safety
-    if sc.workspace_radius_m is not None:
-        safety = Mount(position=np.array(sc.workspace_center_m, dtype=float))
-        r = workspace_reach(
-            safety, sc.workspace_radius_m, poly.normals, poly.offsets, verts, obj.center, 0.0
-        )
-        out.append(("safety", r, "workspace (world)"))
-    return out
-
-
-def rendering_limits(profile: Any, devices: list[Any]) -> list[tuple[str, bool]]:
-    """Per finger whose device model recommends a largest stiffness and damping
-    (hapticd_drivers.models): the scene's stiffest surface and largest damping as the
-    hand feels them (times the mount's workspace scale) against them: (line, within)."""
-    scene = profile.scene
-    surfaces = [("object", scene.object)] + [
-        (name, s) for name in ("ground", "walls") if (s := getattr(scene, name)) is not None
-    ]
-    k_at, k = max(((n, s.stiffness_n_per_m) for n, s in surfaces), key=lambda x: x[1])
-    c_at, c = max(((n, s.damping_n_s_per_m) for n, s in surfaces), key=lambda x: x[1])
-    out = []
-    for f, dev in zip(profile.fingers, devices, strict=True):
-        info = dev.info
-        k_max, c_max = info.max_stiffness_n_per_m, info.max_damping_n_s_per_m
-        if not (math.isfinite(k_max) or math.isfinite(c_max)):
-            continue
-        scale = f.device.mount.workspace_scale
-        ok = k * scale <= k_max and c * scale <= c_max
-        out.append(
-            (
-                f"  {f.name}: the {info.model} renders at most {k_max:g} N/m and {c_max:g} "
-                f"N s/m; the scene asks {k * scale:g} N/m ({k_at}) and {c * scale:g} N s/m "
-                f"({c_at}): {'within' if ok else 'WARNING: above what the device renders stably'}",
-                ok,
-            )
-        )
-    return out
-
-
-def workspace_report(profile: Any, devices: list[Any]) -> list[str]:
-    """Per finger, how its device's workspace sphere (from the device description, placed
-    by its mount) and the safety section's sphere meet the object at its starting pose."""
-    lines = ["workspaces (the object at its starting pose):"]
-    lines += [_reach_line(*w) for w in workspace_reaches(profile, devices)]
-    return lines
-
-
 def cmd_check(args: argparse.Namespace) -> int:
     try:
         profile = load_profile(args.profile, _overrides(args))
@@ -399,8 +307,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"{args.profile}: OK: profile {profile.name!r}, {profile.loop.rate_hz:g} Hz, "
         f"allocator {profile.rendering.allocator}, fingers: {fingers}"
     )
-    print("\n".join(workspace_report(profile, devices)))
-    limits = rendering_limits(profile, devices)
+    print("\n".join(bringup.workspace_report(profile, devices)))
+    limits = bringup.rendering_limits(profile, devices)
     if limits:
         print("stiffness and damping (the device models' recommended maxima):")
         print("\n".join(line for line, _ in limits))
@@ -548,7 +456,20 @@ def _add_bringup(sub: Any) -> None:
     )
     bringup.add_arguments(p)
     _add_set_option(p)
-    p.set_defaults(func=bringup.bringup)
+    p.set_defaults(func=cmd_bringup)
+
+
+# 0 PASS, 1 FAIL, 2 bad input, 3 a fault latched.
+BRINGUP_EXIT = {
+    bringup.Outcome.PASS: EXIT_OK,
+    bringup.Outcome.FAIL: EXIT_ERROR,
+    bringup.Outcome.BAD_INPUT: EXIT_BAD_INPUT,
+    bringup.Outcome.FAULT: EXIT_FAULT,
+}
+
+
+def cmd_bringup(args: argparse.Namespace) -> int:
+    return BRINGUP_EXIT[bringup.bringup(args)]
 
 
 def _add_schema(sub: Any) -> None:

@@ -90,6 +90,25 @@ ACCEPT_BACKOFF_S = 0.1
 _OUT_OF_FDS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
 
 
+def await_window(loop: Any, gate_fd: int, max_wait_s: float = WINDOW_MAX_WAIT_S) -> None:
+    """Wait, without holding the GIL, until the servo ``loop`` (running and paced) has just
+    gone to sleep with at least WINDOW_S left, so Python work in the calling thread does
+    not make the loop wait for the GIL (measured in docs/daemon.md). ``gate_fd`` is the
+    read end of the loop's sleep gate (``loop.open_sleep_gate()``: a byte each time it goes
+    to sleep); gives up after ``max_wait_s`` s."""
+    if not loop.running or not loop.paced:
+        return
+    give_up = time.monotonic() + max_wait_s
+    while True:
+        with contextlib.suppress(BlockingIOError):
+            while os.read(gate_fd, 4096):
+                pass
+        now = time.monotonic()
+        if now < loop.sleep_until - WINDOW_S or now >= give_up:
+            return
+        select.select([gate_fd], [], [], give_up - now)
+
+
 class SocketInUseError(OSError):
     """Another live hapticd already serves this socket."""
 
@@ -175,6 +194,21 @@ class ControlServer:
         self._accept_paused_until: float | None = None  # out of file descriptors
         self.accept_failures = 0  # accept() calls that failed so, since the last success
 
+    @property
+    def clients(self) -> int:
+        """The connections served now (at most max_clients)."""
+        return len(self._conns)
+
+    @property
+    def event_subscribers(self) -> int:
+        """The connections subscribed to events now."""
+        return sum(c.event_kinds is not None for c in list(self._conns.values()))
+
+    @property
+    def serving(self) -> bool:
+        """Whether the server thread runs (from start until close)."""
+        return self._thread is not None and self._thread.is_alive()
+
     # -- lifecycle ---------------------------------------------------------------------
 
     def start(self) -> None:
@@ -259,21 +293,7 @@ class ControlServer:
             os.write(self._wake_w, what)
 
     def _await_window(self) -> None:
-        """Wait, without holding the GIL, until the servo loop has just gone to sleep with
-        at least WINDOW_S left, so Python work here does not make the loop wait for the
-        GIL (measured in docs/daemon.md). Gives up after WINDOW_MAX_WAIT_S."""
-        loop = self.loop
-        if not loop.running or not loop.paced:
-            return
-        give_up = time.monotonic() + WINDOW_MAX_WAIT_S
-        while True:
-            with contextlib.suppress(BlockingIOError):
-                while os.read(self._gate_r, 4096):
-                    pass
-            now = time.monotonic()
-            if now < loop.sleep_until - WINDOW_S or now >= give_up:
-                return
-            select.select([self._gate_r], [], [], give_up - now)
+        await_window(self.loop, self._gate_r)
 
     def request_reload(self) -> None:
         """Reload the profile from its file in the server thread (safe in a signal handler)."""

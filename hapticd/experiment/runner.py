@@ -611,8 +611,8 @@ class PersonPresenter:
                 # Recording first: starting it takes a while (its writer process), and it
                 # must hold the whole touch that follows the change.
                 recordings.append(self._record_start(exp, trial, k + 1))
-                self._change({**params_, exp.varied.param: value})
-                self._explore(exp)
+                self.change({**params_, exp.varied.param: value})
+                self.explore(exp)
                 with self._talking():
                     self.client.record_stop()
             answer, rt, source = self._ask(exp, trial)
@@ -634,9 +634,10 @@ class PersonPresenter:
                 elif self.client.status().get("recording"):
                     self.client.record_stop()
 
-    def _change(self, values: Mapping[str, Any]) -> None:
-        """Set ``values`` while nobody touches the object: wait for the release, set, and
-        do it again if a touch began before the change was applied."""
+    def change(self, values: Mapping[str, Any]) -> None:
+        """An interval's first step: set ``values`` while nobody touches the object (wait
+        for the release, set, and do it again if a touch began before the change was
+        applied); RunnerError if the daemon refuses one."""
         for _ in range(MAX_CHANGE_TRIES):
             self._await_release()
             last = -1
@@ -682,8 +683,8 @@ class PersonPresenter:
                 raise RunnerError(f"cannot record {name}: {exc.code}: {exc}") from None
         raise RunnerError(f"cannot record {base}: 99 files of that name exist")
 
-    def _explore(self, exp: Experiment) -> None:
-        """One interval: from the first touch to the release (every finger's contact
+    def explore(self, exp: Experiment) -> None:
+        """An interval's second step: from the first touch to the release (every finger's contact
         ended) or the exploration limit, as ``interval.ends_on`` says."""
         iv = exp.interval
         self.say("touch the object")
