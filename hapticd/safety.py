@@ -132,6 +132,9 @@ class SafetyChain:
         self.fault: Fault | None = None
         self.clamped_ticks = 0
         self.rate_limited_ticks = 0
+        # Ticks the kernel deferred to the chain's own checks (something might trip: a
+        # non-finite force, the watchdog, the workspace's edge); ordinary ticks never are.
+        self.checked_ticks = 0
         # This tick's output and the last one's, in one array for the compiled path.
         self._out_prev = np.zeros((2, F, 3))
         self.output = self._out_prev[0]
@@ -290,6 +293,7 @@ class SafetyChain:
             return out
         if self._normal(forces, t, positions, t_wall):
             return out
+        self.checked_ticks += 1
         return self._apply(forces, tick, t, positions, t_wall)
 
     def _ramp(self, t: float) -> float:

@@ -243,6 +243,7 @@ class ServoLoop:
             safety.fault = old.fault
         safety.clamped_ticks += old.clamped_ticks
         safety.rate_limited_ticks += old.rate_limited_ticks
+        safety.checked_ticks += old.checked_ticks
         safety.start(t)
         self.bank.max_speed_m_per_s = safety.params.max_device_speed_m_per_s
         self.renderer, self.safety = renderer, safety
