@@ -114,7 +114,7 @@ class Delta:
 
     Scalar arithmetic on 3-vectors (the math module), not numpy: a device's read and
     write run these every tick, and numpy's per-call overhead on (3,) arrays made them
-    about ten times slower (forward kinematics 155 us against about 15)."""
+    four to eight times slower (forward kinematics 71 us against 9, torques 124 against 20)."""
 
     def __init__(self, desc: DeltaDescription) -> None:
         self.desc = desc

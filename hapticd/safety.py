@@ -421,7 +421,7 @@ class SafetyChain:
                     )
                     return out
         # Nothing trips: the normal step, its workspace check done above.
-        self._step_now(rows, t, None)
+        self._step_now(forces, t, None)
         return out
 
 

@@ -15,8 +15,8 @@ install from the locks, so the same install works next month.
 After ``--upgrade``, keep the new locks if the suite passed (commit requirements/), or go
 back with ``git checkout requirements/``. uv comes with the dev install (requirements/dev.txt).
 ``requirements/uv.txt`` is the dev lock's own pin of uv, with its hashes, alone: the README's
-test command installs it with pip first, then the dev lock with uv (which installs it in a
-third of pip's time, its downloads and bytecode in parallel).
+test command installs it with pip first, then the dev lock with uv (which installs it in under
+half of pip's time, its downloads and bytecode in parallel).
 """
 
 from __future__ import annotations

@@ -142,7 +142,7 @@ def _compile_kernels_once() -> None:
             proc.wait()
 
 
-if _CACHE_MADE_HERE or os.environ.get("PYTEST_XDIST_WORKER") is None:
+if os.environ.get("PYTEST_XDIST_WORKER") is None:  # the run's first process, not a worker
     _compile_kernels_once()
 
 
