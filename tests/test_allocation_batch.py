@@ -1,4 +1,6 @@
-"""allocate_many: a batch of grasps gives what allocate() gives one by one, for every method."""
+"""allocate_many: a batch of grasps gives what the independent oracle (tests.allocation_oracle:
+the robust methods by SVD, grasp by grasp) or the seed's formula gives one by one, for every
+method; allocate() is the same definition with a batch of one."""
 
 import numpy as np
 import pytest
@@ -7,6 +9,7 @@ from hypothesis import strategies as st
 
 from hapticd.allocation import (
     METHODS,
+    ROBUST_METHODS,
     AllocationError,
     Robustness,
     allocate,
@@ -16,6 +19,7 @@ from hapticd.allocation import (
 )
 from hapticd.allocation.cases import SWEEPS, block_actuation, sweep
 from hapticd.grasp import grasp_matrix
+from tests.allocation_oracle import robust_allocation
 
 KINDS = (
     "none",
@@ -87,11 +91,15 @@ def batches(draw, min_p=1, max_p=3, counts=None):
 
 
 def one_by_one(method, G, M, lam, alpha=0.0, robust=None):
-    kw = {} if robust is None else {"robust": robust}
+    """The oracle grasp by grasp: the SVD definition (robust methods) or the seed's formula."""
+    rb = Robustness() if robust is None else robust
     a = np.broadcast_to(np.asarray(alpha, dtype=float), (G.shape[0],))
     Ms = np.broadcast_to(M, (G.shape[0], *M.shape[-2:]))
     rows = [
-        allocate(method, G[i], Ms[i], lam[i], alpha=float(a[i]), **kw) for i in range(G.shape[0])
+        robust_allocation(method, G[i], Ms[i], lam[i], rb, float(a[i]))
+        if method in ROBUST_METHODS
+        else allocate(method, G[i], Ms[i], lam[i])
+        for i in range(G.shape[0])
     ]
     return np.array(rows).reshape(G.shape[0], M.shape[-1])
 
@@ -104,7 +112,7 @@ def assert_rows_equal(got, ref, lam):
     assert np.all(err <= 1e-9 * scale + 1e-300), (err, scale)
 
 
-# -- equal to allocate() one by one ----------------------------------------------------------
+# -- equal to the oracle one by one -----------------------------------------------------------
 
 
 @pytest.mark.parametrize("method", METHODS)

@@ -25,6 +25,7 @@ from hapticd.allocation.cases import block_actuation as block_m
 from hapticd.grasp import grasp_matrix, internal_projector
 from hapticd.render import Renderer
 from hapticd.scene import ConvexShape, Material, SceneObject
+from tests.allocation_oracle import svd_internal_projector, svd_pinv
 
 EPS = DEFAULT_ROBUSTNESS.eps
 ROBUST = ("pinv", "if", "ef")
@@ -247,6 +248,18 @@ def test_filtered_gain_is_continuous_and_bounded():
     np.testing.assert_allclose(filtered_gain(np.array([0.5, 2.0]), EPS), [2.0, 0.5])
     A = np.array([[1.0, 0.0], [0.0, 1e-12]])
     np.testing.assert_allclose(filtered_pinv(A, EPS), [[1.0, 0], [0, 1e-12 / EPS**2]])
+
+
+@given(grasps(degenerate=True), st.sampled_from([0.01, 0.2, 0.9]))
+def test_filtered_pinv_and_soft_projector_equal_their_svd_definition(g, eps):
+    """The Gram-matrix forms the allocators run against the definitions by SVD (the
+    independent oracle), near singular configurations included."""
+    G, M, _ = g
+    rb = Robustness(eps=eps)
+    for A in (M, G @ M):
+        np.testing.assert_allclose(filtered_pinv(A, eps), svd_pinv(A, eps), rtol=0, atol=1e-9 / eps)
+    want = svd_internal_projector(G, rb)
+    np.testing.assert_allclose(soft_internal_projector(G, rb), want, rtol=0, atol=1e-9)
 
 
 def test_soft_internal_projector_is_exact_apart_and_full_when_coincident():

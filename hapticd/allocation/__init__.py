@@ -3,7 +3,9 @@
 Solves lam ~= M_a @ lam_a for the actuator forces lam_a. Shapes: G (6, 3p),
 M_a (3p, r), lam (3p,), lam_a (r,); forces in N. ``allocate_many`` does the
 same for a batch of N grasps (G (N, 6, 3p), lam (N, 3p), M_a per grasp or
-shared), equal to ``allocate`` one by one (``hapticd.allocation.batch``).
+shared); both run the one definition of each method in ``hapticd.allocation.batch``
+(``allocate`` with N = 1), whose two-contact closed forms are ``closed``'s, the
+same functions the servo loop's kernel compiles.
 ``lam`` may be the force on the object (the seed's convention) or on the
 finger (hapticd's): every allocator is linear, so flipping its sign flips lam_a.
 
@@ -37,8 +39,6 @@ to all opposing pairs when they coincide).
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
 from hapticd import params
@@ -49,7 +49,12 @@ from hapticd.allocation.accuracy import (
     two_contact_accuracy,
 )
 from hapticd.allocation.adaptive import AdaptiveState, external_ratio, smoothstep
-from hapticd.allocation.batch import allocate_many
+from hapticd.allocation.batch import (
+    allocate_many,
+    filtered_pinv,
+    soft_internal_projector,
+    solve,
+)
 from hapticd.allocation.closed import (
     adaptive_mix,
     one_contact,
@@ -67,13 +72,8 @@ from hapticd.allocation.robust import (
     DEFAULT_ROBUSTNESS,
     AllocationError,
     Robustness,
-    _ef_general,
-    _if_general,
-    _pinv_general,
     contact_offsets,
     filtered_gain,
-    filtered_pinv,
-    soft_internal_projector,
 )
 
 # Declared with the other settable parameters (the control client reads them too).
@@ -95,31 +95,6 @@ def _check(G: np.ndarray, M_a: np.ndarray, lam: np.ndarray) -> None:
     for name, arr in (("G", G), ("M_a", M_a), ("lam", lam)):
         if not np.all(np.isfinite(arr)):
             raise AllocationError(f"{name} contains NaN or inf; refusing to compute a force")
-
-
-_GENERAL: dict[str, Callable[..., np.ndarray]] = {
-    "pinv": _pinv_general,
-    "if": _if_general,
-    "ef": _ef_general,
-}
-_EXACT: dict[str, Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]] = {
-    "pinv_exact": pinv_exact,
-    "if_exact": if_exact,
-    "ef_exact": ef_exact,
-}
-
-
-def _robust(
-    method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness, fast: bool
-) -> np.ndarray:
-    st = two_contact_structure(G, M) if fast else None
-    if st is None:
-        return _GENERAL[method](G, M, lam, robust)
-    r1, r2, d1, d2 = st
-    l1 = (float(lam[0]), float(lam[1]), float(lam[2]))
-    l2 = (float(lam[3]), float(lam[4]), float(lam[5]))
-    out = two_contact(method, r1, r2, d1, d2, l1, l2, robust.eps, robust.min_separation_m)
-    return np.array(out)
 
 
 def allocate(
@@ -145,18 +120,12 @@ def allocate(
     M_a = np.asarray(M_a, dtype=float)
     lam = np.asarray(lam, dtype=float).reshape(-1)
     _check(G, M_a, lam)
-    if M_a.shape[1] == 0:
-        return np.zeros(0)
-    if method in _EXACT:
-        return _EXACT[method](G, M_a, lam)
-    if method == "adaptive":
-        if not (0.0 <= alpha <= 1.0):
-            raise AllocationError(f"adaptive alpha must be in [0, 1], got {alpha}")
-        x_if = _robust("if", G, M_a, lam, robust, fast)
-        if alpha == 0.0:
-            return x_if
-        return adaptive_mix(x_if, _robust("ef", G, M_a, lam, robust, fast), alpha)
-    return _robust(method, G, M_a, lam, robust, fast)
+    if M_a.shape[1] == 0 or G.shape[1] == 0:
+        return np.zeros(M_a.shape[1])
+    a = np.array([alpha], dtype=float)
+    if method == "adaptive" and not (0.0 <= alpha <= 1.0):
+        raise AllocationError(f"adaptive alpha must be in [0, 1], got {alpha}")
+    return solve(method, G[None], M_a, lam[None], a, robust, fast)[0]
 
 
 __all__ = [

@@ -1,13 +1,13 @@
-"""Batched allocation for offline work: N grasps at once, equal to ``allocate()`` one by one.
+"""The one definition of the robust allocators' general path, on stacks of grasps.
 
 Shapes: G (N, 6, 3p), M_a (N, 3p, r) or shared (3p, r), lam (N, 3p) -> lam_a (N, r);
-forces in N, lengths in m. Pure: numpy in, numpy out.
+forces in N, lengths in m. Pure: numpy in, numpy out. ``allocate()`` is this with
+N = 1; ``allocate_many`` runs it on a batch (in chunks); the servo loop's Allocation
+stage runs it for the grasps its kernel does not take.
 
-Same methods and the same filtered-gain scheme as ``allocate()``:
-
-- two contacts with one direction each (the closed form ``allocate()`` takes) run
-  the closed forms of ``hapticd.allocation.closed`` themselves, elementwise over
-  the batch (the same code on arrays);
+- two contacts with one direction each run the closed forms of
+  ``hapticd.allocation.closed``, elementwise over the batch (the same code the
+  kernel compiles, on arrays);
 - every other grasp takes the general path on Gram matrices: a filtered
   pseudoinverse g(s) = 1/s or s/eps^2 of A is F(A^T A) A^T with F the spectral
   function 1/max(l, eps^2) of the Gram matrix. Where every eigenvalue is at
@@ -15,11 +15,8 @@ Same methods and the same filtered-gain scheme as ``allocate()``:
   the rest take a stacked ``eigh`` (never an SVD). The soft internal projector
   is I - (1/p) sum of force blocks - Gm^T F(Gm Gm^T) Gm, since about the
   contacts' centroid the weighted G's Gram matrix is block diagonal
-  (p I3, Gm Gm^T); for two contacts at least min_separation_m apart it is
-  n n^T and IF needs no eigendecomposition at all (``_if_two``);
-- the exact (seed) methods repeat exact.py's numpy calls on stacks, grouped by
-  the ranks that pick their null-space bases, so they jump and blow up exactly
-  where the one-by-one ones do.
+  (p I3, Gm Gm^T);
+- the exact (seed) methods call ``hapticd.allocation.exact`` grasp by grasp.
 """
 
 from __future__ import annotations
@@ -27,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from hapticd import params
+from hapticd.allocation import exact
 from hapticd.allocation.closed import adaptive_mix, two_contact
 from hapticd.allocation.robust import (
     DEFAULT_ROBUSTNESS,
@@ -225,13 +223,12 @@ def _general(
     if method == "ef":
         A = G @ M
         return _finv_apply(_gram(A), _mv(_tr(A), _mv(G, lam)), eps2)
-    if G.shape[-1] == 6 and M.shape[-1] <= 3:
-        return _if_two(G, M, lam, robust)
     return _if_soft(G, M, lam, robust)
 
 
 def _if_soft(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) -> np.ndarray:
-    """Robust IF, ``_if_general`` on stacks."""
+    """Robust IF: lam_a = x1 + P (M_a P)^+ (lam - M_a x1), x1 = B^+ P_int lam, B = P_int M_a,
+    P = I - B^+ B, with filtered pseudoinverses and the soft internal projector P_int."""
     eps2 = robust.eps * robust.eps
     P_int = _soft_internal_projector_v(G, robust)
     B = P_int @ M
@@ -246,103 +243,54 @@ def _if_soft(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) 
     return x1 + _mv(P, _finv_apply(_gram(MP), _mv(_tr(MP), rest), eps2))
 
 
-def _if_two(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) -> np.ndarray:
-    """Robust IF for two contacts at least min_separation_m apart, any r <= 3 directions.
+# -- the exact (seed) formulas, grasp by grasp ---------------------------------------------------
 
-    There P_int = n n^T with n = (e, -e)/sqrt(2), e the grasp line, so B = n b^T with
-    b = M^T n: B's filtered pseudoinverse is h(|b|^2) b n^T and P = I - h(|b|^2) b b^T,
-    h(l) = 1/max(l, eps^2). When |b| >= eps, P projects b out, and M P's Gram matrix
-    gets b b^T / |b|^2 added (an eigenvalue 1 on b, where nothing is applied) so
-    that it can be inverted. Grasps with closer contacts, or a Gram matrix with an
-    eigenvalue below eps^2, take ``_if_soft``.
-    """
-    eps2 = robust.eps * robust.eps
-    dvec = np.stack([G[:, 5, 4] - G[:, 5, 1], G[:, 3, 5] - G[:, 3, 2], G[:, 4, 3] - G[:, 4, 0]], -1)
-    dist = np.sqrt(np.einsum("ni,ni->n", dvec, dvec))
-    apart = dist >= robust.min_separation_m
-    e = dvec / np.where(apart, dist, 1.0)[:, None]
-    n = np.concatenate([e, -e], axis=-1) * np.sqrt(0.5)
-    b = _mv(_tr(M), n)
-    bb = np.einsum("ni,ni->n", b, b)
-    hb = 1.0 / np.maximum(bb, eps2)
-    x1 = (hb * np.einsum("ni,ni->n", n, lam))[:, None] * b
-    bbt = b[:, :, None] * b[:, None, :]
-    P = np.eye(M.shape[-1]) - hb[:, None, None] * bbt
-    MP = M @ P
-    K2 = _gram(MP)
-    full = bb >= eps2
-    K2 = K2 + (full / np.where(full, bb, 1.0))[:, None, None] * bbt
-    rest = lam - _mv(M, x1)
-    y2, regular = _solve_regular(K2, _mv(_tr(MP), rest), eps2)
-    out = x1 + _mv(P, y2)
-    odd = np.flatnonzero(~(apart & regular))
-    if odd.size:
-        out[odd] = _if_soft(G[odd], M if M.ndim == 2 else M[odd], lam[odd], robust)
-    return out
-
-
-# -- the exact (seed) formulas on stacks -------------------------------------------------------
-
-
-def _null_bases(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(rank, vt) per stacked matrix with hapticd.grasp.null_space_basis's tolerance."""
-    _, s, vt = np.linalg.svd(A, full_matrices=True)
-    tol = s.max(axis=-1) * max(A.shape[-2:]) * np.finfo(float).eps
-    return np.sum(s > tol[:, None], axis=-1), vt
-
-
-def _basis(vt: np.ndarray, k: int) -> np.ndarray:
-    """null_space_basis's layout: vt[k:].T copied C-contiguous, (g, n, n - k)."""
-    return np.ascontiguousarray(_tr(vt[:, k:, :]))
-
-
-def _if_exact_v(G: np.ndarray, M: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    N, _, n = G.shape
-    r = M.shape[-1]
-    M = np.broadcast_to(M, (N, n, r))
-    out = np.empty((N, r))
-    kG, vtG = _null_bases(G)
-    for k in np.unique(kG):
-        idx = np.flatnonzero(kG == k)
-        Mi, li = np.ascontiguousarray(M[idx]), lam[idx]
-        if k == n:  # N(G) = {0}: B is empty, IF is the pseudoinverse of M_a
-            out[idx] = _mv(np.linalg.pinv(Mi), li)
-            continue
-        NG = _basis(vtG[idx], int(k))
-        B = _tr(NG) @ Mi
-        first = _mv(np.linalg.pinv(B), _mv(_tr(NG), li))
-        kB, vtB = _null_bases(B)
-        for kb in np.unique(kB):
-            jdx = np.flatnonzero(kB == kb)
-            if kb == r:
-                out[idx[jdx]] = first[jdx]
-                continue
-            NB = _basis(vtB[jdx], int(kb))
-            Mj = Mi[jdx]
-            rest = li[jdx] - _mv(Mj, first[jdx])
-            out[idx[jdx]] = first[jdx] + _mv(NB, _mv(np.linalg.pinv(Mj @ NB), rest))
-    return out
+_SEED = {"pinv_exact": exact.pinv_exact, "if_exact": exact.if_exact, "ef_exact": exact.ef_exact}
 
 
 def _exact(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    if method == "pinv_exact":
-        return _mv(np.linalg.pinv(M), lam)
-    if method == "ef_exact":
-        return _mv(np.linalg.pinv(G @ M), _mv(G, lam))
-    return _if_exact_v(G, M, lam)
+    """The seed's formula (hapticd.allocation.exact) on each grasp."""
+    fn = _SEED[method]
+    Ms = np.broadcast_to(M, (G.shape[0], *M.shape[-2:]))
+    return np.array([fn(G[k], Ms[k], lam[k]) for k in range(G.shape[0])])
+
+
+def filtered_pinv(A: np.ndarray, eps: float) -> np.ndarray:
+    """Filtered pseudoinverse of A (m, n): sum g(s_i) v_i u_i^T, shape (n, m)."""
+    A = np.atleast_2d(np.asarray(A, dtype=float))
+    if A.size == 0:
+        return np.zeros((A.shape[1], A.shape[0]))
+    return _finv_eigh(_gram(A), eps * eps) @ A.T
+
+
+def soft_internal_projector(G: np.ndarray, robust: Robustness = DEFAULT_ROBUSTNESS) -> np.ndarray:
+    """Soft projector onto the internal forces N(G), (3p, 3p), of one grasp G (6, 3p).
+
+    Exact (N N^T) when every singular value of the weighted G is 0 or at least eps:
+    for two contacts, when they are at least min_separation_m apart; three or more
+    contacts also need to be far from collinear (a rotation about their near-common
+    line has almost no lever). As contacts approach such a configuration, directions
+    whose moment lever vanishes blend in continuously. Computed about the contacts'
+    centroid with moments weighted by 1/L (N(G) depends on neither).
+    """
+    G = np.asarray(G, dtype=float)
+    if G.shape[1] == 0:
+        return np.zeros((0, 0))
+    return _soft_internal_projector_v(G[None], robust)[0]
 
 
 # -- public API -------------------------------------------------------------------------------
 
 
 def _robust_many(
-    method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness
+    method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness, fast: bool
 ) -> np.ndarray:
-    """Robust pinv / if / ef: the closed form where allocate() takes it, else the general path."""
+    """Robust pinv / if / ef: the closed form for two contacts with one direction each
+    (two_contact_structure's case; ``fast`` False: never), else the general path."""
     N, _, n = G.shape
     r = M.shape[-1]
-    if n == 6 and r == 2:
-        # allocate()'s two_contact_structure: one direction per finger, block by block.
+    if fast and n == 6 and r == 2:
+        # two_contact_structure's case: one direction per finger, block by block.
         cross = M[..., [3, 4, 5, 0, 1, 2], [0, 0, 0, 1, 1, 1]]  # each column on the other finger
         simple = np.broadcast_to(~cross.any(axis=-1), (N,))
         if simple.all():
@@ -382,31 +330,38 @@ def allocate_many(
     if N == 0 or r == 0 or n == 0:
         return np.zeros((N, r))
     if N <= CHUNK:
-        return _allocate_chunk(method, G, M, lam, a, robust)
+        return solve(method, G, M, lam, a, robust)
     # In chunks, so that a chunk's temporaries (about 150 arrays of CHUNK floats for the
     # closed forms) stay in cache: one pass over 1e4 grasps costs more per grasp than 1e3.
     out = np.empty((N, r))
     for k in range(0, N, CHUNK):
         s = slice(k, k + CHUNK)
-        out[s] = _allocate_chunk(method, G[s], M if M.ndim == 2 else M[s], lam[s], a[s], robust)
+        out[s] = solve(method, G[s], M if M.ndim == 2 else M[s], lam[s], a[s], robust)
     return out
 
 
-def _allocate_chunk(
-    method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, a: np.ndarray, robust: Robustness
+def solve(
+    method: str,
+    G: np.ndarray,
+    M: np.ndarray,
+    lam: np.ndarray,
+    a: np.ndarray,
+    robust: Robustness,
+    fast: bool = True,
 ) -> np.ndarray:
-    """allocate_many on validated input."""
+    """allocate_many on validated input (a: alpha per grasp, (N,)), in one pass; ``fast``
+    False keeps two contacts with one direction each on the general path too."""
     if method in _EXACT:
         return _exact(method, G, M, lam)
     if method != "adaptive":
-        return _robust_many(method, G, M, lam, robust)
-    x_if = _robust_many("if", G, M, lam, robust)
+        return _robust_many(method, G, M, lam, robust, fast)
+    x_if = _robust_many("if", G, M, lam, robust, fast)
     mix = a != 0.0
     if not mix.any():
         return x_if
     idx = np.flatnonzero(mix)
     Mi = M if M.ndim == 2 else M[idx]
-    x_ef = _robust_many("ef", G[idx], Mi, lam[idx], robust)
+    x_ef = _robust_many("ef", G[idx], Mi, lam[idx], robust, fast)
     ai = a[idx, None]
     x_if[idx] = adaptive_mix(x_if[idx], x_ef, ai)
     return x_if

@@ -19,8 +19,9 @@ from hapticd.actuation import Actuation
 from hapticd.allocation import EXACT_METHODS, allocate
 from hapticd.allocation.accuracy import accuracy, one_contact_accuracy, two_contact_accuracy
 from hapticd.allocation.adaptive import AdaptiveState, external_ratio, smoothstep
+from hapticd.allocation.batch import soft_internal_projector
 from hapticd.allocation.closed import one_contact, two_contact
-from hapticd.allocation.robust import AllocationError, Robustness, soft_internal_projector
+from hapticd.allocation.robust import AllocationError, Robustness
 from hapticd.grasp import grasp_matrix
 
 V3 = tuple[float, float, float]
