@@ -7,16 +7,17 @@ arithmetic, ``math``, loops and indexing of preallocated numpy arrays, no object
 functions when ``rendering.kernels`` asks for them. Run as plain Python they give
 the same numbers, only slower.
 
-For the kernels that still have one, the readable reference stays where it was, and
-each kernel evaluates its sums in the same order (so, without fused multiply-adds, the
-same bits): ``allocation_step`` is
-``hapticd.stages.Allocation`` with ``ContactAllocator`` for one actuated
-direction per finger and at most two contacts (pinv, if, ef), and calls the
-closed forms of ``hapticd.allocation.closed`` and ``accuracy`` themselves (written
-once, for floats and arrays; ``KERNEL_HELPERS``); ``contact_step`` is
-``hapticd.stages.Contact`` with ``hapticd.contact.proxy_step_multi`` on flat obstacles.
+For the kernel that still has one, the readable reference stays where it was, and
+the kernel evaluates its sums in the same order (so, without fused multiply-adds, the
+same bits): ``contact_step`` is ``hapticd.stages.Contact`` with
+``hapticd.contact.proxy_step_multi`` on flat obstacles.
 
-``friction_step``, ``forces_step``, ``free_body_step`` and ``safety_step`` have no twin:
+``allocation_step`` is the allocation of one or two contacts with one actuated
+direction per finger by a robust method (pinv, if, ef, adaptive), compiled or not: it
+calls the closed forms of ``hapticd.allocation.closed`` and ``accuracy`` themselves
+(written once, for floats and arrays, shared with ``allocate`` and ``allocate_many``;
+``KERNEL_HELPERS``). ``friction_step``, ``forces_step``, ``free_body_step`` and
+``safety_step`` have no twin either:
 each is its stage's physics (hapticd.stages.Friction, Forces, Dynamics;
 hapticd.safety.SafetyChain's normal tick), compiled or, with ``rendering.kernels=python``,
 run uncompiled (``uncompiled``).
@@ -36,13 +37,7 @@ import numpy as np
 from hapticd import contact
 from hapticd.allocation import closed
 from hapticd.allocation.accuracy import one_contact_residuals, two_contact_residuals
-from hapticd.allocation.closed import (
-    one_contact_ef,
-    one_contact_pinv,
-    two_contact_ef,
-    two_contact_if,
-    two_contact_pinv,
-)
+from hapticd.allocation.closed import one_contact, two_contact
 from hapticd.contact import (
     _FREE_TOL,
     _GRAM_MIN,
@@ -346,10 +341,11 @@ def free_body_step(
 
 
 # allocation_step's params: method (ALLOCATION_METHODS' index), eps, min_separation_m,
-# contact_onset_n, grasp frame (1.0) or world frame (0.0), the grasp's reference point (3)
-ALLOCATION_PARAMS = 8
+# contact_onset_n, grasp frame (1.0) or world frame (0.0), the grasp's reference point (3),
+# the adaptive allocator's external weight alpha (0..1; the others ignore it)
+ALLOCATION_PARAMS = 9
 # The robust allocators allocation_step computes (hapticd.allocation.closed's closed forms).
-ALLOCATION_METHODS = ("pinv", "if", "ef")
+ALLOCATION_METHODS = closed.CODES
 # allocation_step's outcomes: allocated; three or more contacts (the caller runs the
 # general path; nothing written); a non-finite contact point, direction or force; a
 # non-finite actuator force (nothing written either way).
@@ -385,9 +381,10 @@ def allocation_step(
     acc: np.ndarray,
 ) -> int:
     """One tick's allocation for F fingers with one actuated direction each and at most two
-    in contact: ``hapticd.allocation.contacts.ContactAllocator.allocate`` (the closed forms
-    of ``hapticd.allocation.closed`` with contact onset, and their accuracy) and the
-    Allocation stage's rendered rows, the same sums in the same order.
+    in contact, by a robust method: the closed forms of ``hapticd.allocation.closed``
+    with contact onset, their accuracy and M_a lam_a per finger (the one definition of
+    this case: ``hapticd.allocation.contacts.ContactAllocator`` runs it, compiled or
+    not, and runs ``hapticd.allocation.allocate`` on MANY_CONTACTS).
 
     The frame's fields: ``in_contact`` (F,) u1, ``device_pos`` (F, 3) m (the grasp
     frame's axes come from fingers 0 and 1), ``points`` (F, 3) contact points m,
@@ -420,6 +417,7 @@ def allocation_step(
     method = int(params[0])
     eps, min_sep, onset = params[1], params[2], params[3]
     ox, oy, oz = params[5], params[6], params[7]
+    alpha = params[8]
     # The world directions (hapticd.actuation.grasp_axes in the grasp frame).
     ax0, ax1, ax2 = 1.0, 0.0, 0.0
     ay0, ay1, ay2 = 0.0, 1.0, 0.0
@@ -477,14 +475,10 @@ def allocation_step(
     # The closed forms (hapticd.allocation.closed, compiled in by hapticd.jit).
     x0 = 0.0  # contact 1's actuator force, N
     x1 = 0.0  # contact 2's
-    if n == 2 and method == 0:
-        x0, x1 = two_contact_pinv(d1, d2, l1, l2, eps)
-    elif n == 2 and method == 2:
-        x0, x1 = two_contact_ef(r1, r2, d1, d2, l1, l2, eps)
-    elif n == 2:
-        x0, x1 = two_contact_if(r1, r2, d1, d2, l1, l2, eps, min_sep)
+    if n == 2:
+        x0, x1 = two_contact(method, r1, r2, d1, d2, l1, l2, eps, min_sep, alpha)
     # One contact alone, or the other one while the weaker of two is being made or broken
-    # (contact onset: ContactAllocator.allocate's blend with the rest alone).
+    # (contact onset: the allocation blended with that of the rest alone).
     beta = 1.0
     alone = c0  # the finger whose one-contact allocation is needed
     if n == 2 and onset > 0.0:
@@ -498,7 +492,7 @@ def allocation_step(
     y = 0.0
     if n == 1 or beta < 1.0:
         r, d, m = (r1, d1, l1) if alone == c0 else (r2, d2, l2)
-        y = one_contact_ef(r, d, m, eps) if method == 2 else one_contact_pinv(d, m, eps)
+        y = one_contact(method, r, d, m, eps, alpha)
     if n == 1:
         x0 = y
     elif beta < 1.0:

@@ -6,8 +6,8 @@ passivity, dynamics, scene. Stages the scene does not need are not in the plan
 and never run (a fixed cube has no dynamics stage, a frictionless one no
 friction stage, a renderer without ``passivity`` parameters no passivity stage).
 ``use_kernels`` hands it compiled kernels (hapticd.kernels, compiled by hapticd.jit)
-for the stages that have one; without them dynamics, friction and the contact forces
-run the same kernels uncompiled (their only code), contact and allocation their
+for the stages that have one; without them dynamics, friction, the contact forces and
+the allocation run the same kernels uncompiled (their only code), contact its
 readable Python code. ``insert`` adds a stage after a named one; ``set_param`` changes a scene or
 rendering parameter (those of hapticd.params the renderer owns) and re-plans.
 The same object renders off-line: ``step(device_pos, device_vel)`` runs one

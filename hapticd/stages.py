@@ -21,7 +21,6 @@ import numpy as np
 from hapticd import kernels
 from hapticd.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
-from hapticd.allocation.robust import AllocationError
 from hapticd.contact import (
     _VECTOR_PLANES,
     MultiResult,
@@ -495,16 +494,20 @@ class Allocation:
     ) -> None:
         self.scene = scene
         self.allocator = allocator
-        # hapticd.kernels.allocation_step compiled (hapticd.jit), or None: the code below.
-        # It takes the robust allocators with one direction per finger and at most two
-        # contacts (every tick of the bundled profiles); anything else runs the code below.
         self.kernel = kernel
-        self._params = np.zeros(kernels.ALLOCATION_PARAMS)
-        self._accuracy = np.zeros(kernels.ACCURACY)
-        self._local: np.ndarray | None = None  # the kernel's directions, for _local_for
-        self._local_for: tuple[Actuation, object] | None = None
         self._out = _Fields()
         self._output = ("rendered_force",)
+
+    @property
+    def kernel(self) -> Callable[..., int]:
+        """hapticd.kernels.allocation_step, compiled (hapticd.jit) or, set to None, not: the
+        allocator's (it takes the robust methods with one direction per finger and at most
+        two contacts, every tick of the bundled profiles; the rest run allocate())."""
+        return self.allocator.kernel
+
+    @kernel.setter
+    def kernel(self, fn: Callable[..., int] | None) -> None:
+        self.allocator.kernel = fn
 
     @property
     def output(self) -> str:
@@ -537,90 +540,21 @@ class Allocation:
         return self.allocator.actuation
 
     def run(self, frame: Frame) -> None:
-        if self.kernel is not None and self._run_kernel(frame):
-            return
-        touching = frame.in_contact.tolist()
-        contacts = [i for i, on in enumerate(touching) if on]
-        act = self.allocator.actuation
-        points: list = []
-        forces: list = []
-        world: list = []
-        if contacts:  # out of contact the allocator reads none of them
-            points = frame.contact_point.tolist()
-            forces = frame.contact_force.tolist()
-            world = act.world_directions(frame.device_pos.tolist())
-        center = tuple(self.scene.object.position.tolist())
-        lam_a, acc = self.allocator.allocate(contacts, world, points, forces, center)
-        frame.alpha[()] = self.allocator.alpha
-        frame.residual_internal[()] = acc[0]
-        frame.residual_external[()] = acc[1]
-        frame.residual_total[()] = acc[2]
-        frame.amplification[()] = acc[3]
-        out = self._out.of(frame, self._output)[0]
-        if lam_a is None:
-            out.fill(0.0)
-            frame.lam_a.fill(0.0)
-            return
-        frame.lam_a[...] = lam_a
-        rows = [ZERO3] * len(touching)
-        for i in contacts:
-            f = [0.0, 0.0, 0.0]
-            for col, d in zip(act.columns[i], world[i], strict=True):
-                x = lam_a[col]
-                f[0] += x * d[0]
-                f[1] += x * d[1]
-                f[2] += x * d[2]
-            rows[i] = (f[0], f[1], f[2])
-        out[...] = rows
-
-    def _run_kernel(self, frame: Frame) -> bool:
-        """The same allocation as ``run`` by the kernel, on the frame's arrays; False (and
-        nothing written) for a case the kernel does not take (``run`` then takes it)."""
         alloc = self.allocator
-        act = alloc.actuation
-        method = alloc.method
-        if method not in kernels.ALLOCATION_METHODS:
-            return False
-        params = self._params
-        made_for = self._local_for
-        if made_for is None or made_for[0] is not act or made_for[1] is not alloc.robust:
-            if any(c != 1 for c in act.counts):
-                return False
-            self._local = np.array([ds[0] for ds in act.local], dtype=float).reshape(-1, 3)
-            rb = alloc.robust
-            params[1:5] = (
-                rb.eps,
-                rb.min_separation_m,
-                rb.contact_onset_n,
-                1.0 if act.frame == "grasp" else 0.0,
-            )
-            self._local_for = (act, rb)
-        params[0] = kernels.ALLOCATION_METHODS.index(method)
-        params[5:8] = self.scene.object.position
-        acc = self._accuracy
-        outcome = self.kernel(  # type: ignore[misc]
+        acc = alloc.allocate(
             frame.in_contact,
             frame.device_pos,
             frame.contact_point,
             frame.contact_force,
-            self._local,
-            params,
+            self.scene.object.position,
             frame.lam_a,
             self._out.of(frame, self._output)[0],
-            acc,
         )
-        if outcome == kernels.MANY_CONTACTS:
-            return False
-        if outcome == kernels.NON_FINITE_INPUT:
-            raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-        if outcome == kernels.NON_FINITE_OUTPUT:
-            raise AllocationError(f"allocator {method!r} produced a non-finite force")
         frame.alpha[()] = alloc.alpha
         frame.residual_internal[()] = acc[0]
         frame.residual_external[()] = acc[1]
         frame.residual_total[()] = acc[2]
         frame.amplification[()] = acc[3]
-        return True
 
 
 class Environment:

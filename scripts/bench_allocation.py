@@ -6,7 +6,7 @@ profile's geometry, grasp-frame actuation), (2) sweeps through every kind of
 singular configuration (hapticd.allocation_cases). Variants:
 
 - numpy seed   : the seed's formulas in plain numpy with np.linalg.pinv (the baseline)
-- robust SVD   : the robust allocators' general path (filtered SVD pseudoinverses)
+- robust general: the robust allocators' general path (allocate_many's, a batch of one)
 - robust closed: the robust allocators through allocate(), two-contact closed form
 - loop closed  : the closed form called as the servo loop calls it (floats in, floats out)
 - cached 0.5 mm: the robust map lam -> lam_a (r x 3p) kept while no contact point moves
@@ -119,7 +119,7 @@ def variants() -> list[Variant]:
         prep, call = _api(method + "_exact", True)
         out.append(Variant("numpy seed", method, prep, call))
         prep, call = _api(method, False)
-        out.append(Variant("robust SVD", method, prep, call))
+        out.append(Variant("robust general", method, prep, call))
         prep, call = _api(method, True)
         out.append(Variant("robust closed", method, prep, call, _two_simple))
     loop = {

@@ -124,34 +124,33 @@ def test_unknown_method_and_bad_shapes_raise():
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 @pytest.mark.parametrize("where", ["point", "force", "direction"])
-def test_contact_allocator_refuses_non_finite_geometry(bad, where):
-    """The per-tick closed forms (one and two contacts) refuse a NaN or inf anywhere in a
-    contact's point, force or direction, and take large finite values."""
+@pytest.mark.parametrize("method", ["ef", "if_exact"])
+def test_contact_allocator_refuses_non_finite_geometry(bad, where, method):
+    """The per-tick allocation (the kernel's closed forms, and allocate() for the methods
+    it does not take) refuses a NaN or inf anywhere in a contact's point, force or
+    direction, and takes large finite values."""
     from hapticd.actuation import Actuation
     from hapticd.allocation import DEFAULT_ROBUSTNESS, AdaptiveState
     from hapticd.allocation.contacts import ContactAllocator
 
-    alloc = ContactAllocator(
-        Actuation([[[1.0, 0.0, 0.0]], [[-1.0, 0.0, 0.0]]], "world"),
-        "ef",
-        DEFAULT_ROBUSTNESS,
-        AdaptiveState(),
-        1e-3,
-    )
-    world = [[(1.0, 0.0, 0.0)], [(-1.0, 0.0, 0.0)]]
-    points = [(-A, 0.0, 0.0), (A, 0.0, 0.0)]
-    forces = [(2.0, 0.0, 0.4), (-2.0, 0.0, 0.4)]
-    big = [(1e300, -1e300, 1e300), (-1e300, 1e300, 1e300)]
-    for contacts in ([0], [0, 1]):
-        lam_a, _ = alloc.allocate(contacts, world, points, big, (0.0, 0.0, 0.0))
-        assert lam_a is not None
-        for i in contacts:
-            w, p, f = list(world), list(points), list(forces)
-            if where == "point":
-                p[i] = (p[i][0], bad, p[i][2])
-            elif where == "force":
-                f[i] = (f[i][0], f[i][1], bad)
-            else:
-                w[i] = [(bad, 0.0, 0.0)]
-            with pytest.raises(AllocationError, match="non-finite"):
-                alloc.allocate(contacts, w, p, f, (0.0, 0.0, 0.0))
+    def allocator(direction):
+        act = Actuation([[direction], [[-1.0, 0.0, 0.0]]], "world")
+        return ContactAllocator(act, method, DEFAULT_ROBUSTNESS, AdaptiveState(), 1e-3)
+
+    points = np.array([(-A, 0.0, 0.0), (A, 0.0, 0.0)])
+    forces = np.array([(2.0, 0.0, 0.4), (-2.0, 0.0, 0.4)])
+    big = np.array([(1e300, -1e300, 1e300), (-1e300, 1e300, 1e300)])
+    lam_a, rendered, center = np.zeros(2), np.zeros((2, 3)), np.zeros(3)
+    for contacts in ([1, 0], [1, 1]):
+        touching = np.array(contacts, dtype=np.uint8)
+        allocator([1.0, 0.0, 0.0]).allocate(touching, points, points, big, center, lam_a, rendered)
+        assert np.all(np.isfinite(lam_a))
+        p, f, d = points.copy(), forces.copy(), [1.0, 0.0, 0.0]
+        if where == "point":
+            p[0, 1] = bad
+        elif where == "force":
+            f[0, 2] = bad
+        else:
+            d = [bad, 0.0, 0.0]
+        with pytest.raises(AllocationError, match="non-finite"):
+            allocator(d).allocate(touching, points, p, f, center, lam_a, rendered)

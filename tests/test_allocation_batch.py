@@ -370,10 +370,10 @@ def test_the_closed_forms_on_arrays_are_the_closed_forms_on_floats(grasps):
     """allocate_many's two-contact path and the loop run the same closed forms; only the
     filtered inverse, gain and grasp line have a float and an array form: bit for bit the
     same on every grasp, whichever branch each takes."""
-    from hapticd.allocation.closed import two_contact
+    from hapticd.allocation.closed import EF, IF, PINV, two_contact
 
     cols = [tuple(np.array([g[k][i] for g in grasps]) for i in range(3)) for k in range(6)]
-    for method in ("pinv", "if", "ef"):
-        x0, x1 = two_contact(method, *cols, 0.2, 0.005)
+    for code in (PINV, IF, EF):
+        x0, x1 = two_contact(code, *cols, 0.2, 0.005, 0.0)
         for j, g in enumerate(grasps):
-            assert (x0[j], x1[j]) == two_contact(method, *g, 0.2, 0.005), (method, g)
+            assert (x0[j], x1[j]) == two_contact(code, *g, 0.2, 0.005, 0.0), (code, g)

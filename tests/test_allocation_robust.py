@@ -385,12 +385,13 @@ def test_adaptive_state_targets():
 @given(grasps(min_p=1, max_p=1, degenerate=True), st.floats(0, 1))
 def test_one_contact_closed_form_equals_general_path(method, g, alpha):
     from hapticd.allocation import contact_offsets, one_contact, one_contact_accuracy
+    from hapticd.allocation.closed import CODES
 
     G, M, lam = g
     M = block_m([[M[0:3, 0]]])
     r = tuple(contact_offsets(G)[0])
     d = tuple(M[0:3, 0])
-    x = one_contact(method, r, d, tuple(lam), EPS, alpha)
+    x = one_contact(CODES.index(method), r, d, tuple(lam), EPS, alpha)
     general = allocate(method, G, M, lam, alpha=alpha, fast=False)
     np.testing.assert_allclose([x], general, rtol=0, atol=1e-9 * max(np.abs(lam).max(), 1e-300))
     a, b = accuracy(G, M, lam, np.array([x])), one_contact_accuracy(r, d, tuple(lam), x)

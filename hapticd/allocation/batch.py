@@ -25,7 +25,7 @@ import numpy as np
 
 from hapticd import params
 from hapticd.allocation import exact
-from hapticd.allocation.closed import adaptive_mix, two_contact
+from hapticd.allocation.closed import CODES, adaptive_mix, two_contact
 from hapticd.allocation.robust import (
     DEFAULT_ROBUSTNESS,
     AllocationError,
@@ -96,16 +96,20 @@ def _check(
 
 
 def _two_contact_v(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust) -> tuple:
-    """(x1, x2) arrays for two contacts with one direction each, robust ``method``."""
+    """(x1, x2) arrays (N,) for two contacts with one direction each, robust ``method``."""
     # Components as contiguous rows (strided columns make every elementwise op slow).
     # contact_offsets: (S[2, 1], S[0, 2], S[1, 0]) of each contact's moment block.
     r = G[:, [5, 3, 4, 5, 3, 4], [1, 2, 0, 4, 5, 3]].T.copy()
     d = M[:, [0, 1, 2, 3, 4, 5], [0, 0, 0, 1, 1, 1]].T.copy()
     f = lam.T.copy()
+    if G.shape[0] == 1:  # on floats (what compiled code runs): far quicker for one grasp
+        r, d, f = r[:, 0].tolist(), d[:, 0].tolist(), f[:, 0].tolist()
     r1, r2 = (r[0], r[1], r[2]), (r[3], r[4], r[5])
     d1, d2 = (d[0], d[1], d[2]), (d[3], d[4], d[5])
     l1, l2 = (f[0], f[1], f[2]), (f[3], f[4], f[5])
-    return two_contact(method, r1, r2, d1, d2, l1, l2, robust.eps, robust.min_separation_m)
+    eps, sep = robust.eps, robust.min_separation_m
+    x0, x1 = two_contact(CODES.index(method), r1, r2, d1, d2, l1, l2, eps, sep, 0.0)
+    return np.reshape(x0, -1), np.reshape(x1, -1)
 
 
 # -- the general path on Gram matrices --------------------------------------------------------
@@ -223,6 +227,8 @@ def _general(
     if method == "ef":
         A = G @ M
         return _finv_apply(_gram(A), _mv(_tr(A), _mv(G, lam)), eps2)
+    if G.shape[-1] == 6 and M.shape[-1] <= 3:
+        return _if_two(G, M, lam, robust)
     return _if_soft(G, M, lam, robust)
 
 
@@ -241,6 +247,41 @@ def _if_soft(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) 
     MP = M @ P
     rest = lam - _mv(M, x1)
     return x1 + _mv(P, _finv_apply(_gram(MP), _mv(_tr(MP), rest), eps2))
+
+
+def _if_two(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) -> np.ndarray:
+    """Robust IF for two contacts at least min_separation_m apart, any r <= 3 directions.
+
+    There P_int = n n^T with n = (e, -e)/sqrt(2), e the grasp line, so B = n b^T with
+    b = M^T n: B's filtered pseudoinverse is h(|b|^2) b n^T and P = I - h(|b|^2) b b^T,
+    h(l) = 1/max(l, eps^2). When |b| >= eps, P projects b out, and M P's Gram matrix
+    gets b b^T / |b|^2 added (an eigenvalue 1 on b, where nothing is applied) so
+    that it can be inverted. Grasps with closer contacts, or a Gram matrix with an
+    eigenvalue below eps^2, take ``_if_soft``.
+    """
+    eps2 = robust.eps * robust.eps
+    dvec = np.stack([G[:, 5, 4] - G[:, 5, 1], G[:, 3, 5] - G[:, 3, 2], G[:, 4, 3] - G[:, 4, 0]], -1)
+    dist = np.sqrt(np.einsum("ni,ni->n", dvec, dvec))
+    apart = dist >= robust.min_separation_m
+    e = dvec / np.where(apart, dist, 1.0)[:, None]
+    n = np.concatenate([e, -e], axis=-1) * np.sqrt(0.5)
+    b = _mv(_tr(M), n)
+    bb = np.einsum("ni,ni->n", b, b)
+    hb = 1.0 / np.maximum(bb, eps2)
+    x1 = (hb * np.einsum("ni,ni->n", n, lam))[:, None] * b
+    bbt = b[:, :, None] * b[:, None, :]
+    P = np.eye(M.shape[-1]) - hb[:, None, None] * bbt
+    MP = M @ P
+    K2 = _gram(MP)
+    full = bb >= eps2
+    K2 = K2 + (full / np.where(full, bb, 1.0))[:, None, None] * bbt
+    rest = lam - _mv(M, x1)
+    y2, regular = _solve_regular(K2, _mv(_tr(MP), rest), eps2)
+    out = x1 + _mv(P, y2)
+    odd = np.flatnonzero(~(apart & regular))
+    if odd.size:
+        out[odd] = _if_soft(G[odd], M if M.ndim == 2 else M[odd], lam[odd], robust)
+    return out
 
 
 # -- the exact (seed) formulas, grasp by grasp ---------------------------------------------------

@@ -171,18 +171,24 @@ def one_contact_ef(r: V3, d: V3, lam: V3, eps: float) -> float:
     return (_dot(d, lam) + _dot(m, _cross(r, lam))) / (K if eps2 <= K else eps2)
 
 
-def one_contact(method: str, r: V3, d: V3, lam: V3, eps: float, alpha: float = 0.0) -> float:
-    """Robust allocation for one contact with one direction (closed form of the general path).
+# The robust methods by code: what one_contact and two_contact take (compiled code has no
+# strings); hapticd.kernels passes these codes.
+CODES = ("pinv", "if", "ef", "adaptive")
+PINV, IF, EF, ADAPTIVE = 0, 1, 2, 3
+
+
+def one_contact(code: int, r: V3, d: V3, lam: V3, eps: float, alpha: float) -> float:
+    """Robust allocation by method ``code`` (CODES) for one contact with one direction;
+    ``alpha`` the adaptive allocator's external weight (the others ignore it).
 
     With one contact N(G) = {0}, so IF is pinv; EF matches the contact's wrench.
     """
-    x_pinv = one_contact_pinv(d, lam, eps)
-    if method in ("pinv", "if") or (method == "adaptive" and alpha == 0.0):
-        return x_pinv
-    x_ef = one_contact_ef(r, d, lam, eps)
-    if method == "ef":
-        return x_ef
-    return adaptive_mix(x_pinv, x_ef, alpha)
+    if code == EF:
+        return one_contact_ef(r, d, lam, eps)
+    x = one_contact_pinv(d, lam, eps)
+    if code == ADAPTIVE and alpha != 0.0:
+        return adaptive_mix(x, one_contact_ef(r, d, lam, eps), alpha)
+    return x
 
 
 def _grasp_line_floats(r1: V3, r2: V3, min_sep: float) -> tuple[V3, float]:
@@ -266,7 +272,7 @@ def two_contact_structure(G: np.ndarray, M_a: np.ndarray) -> tuple[V3, V3, V3, V
 
 
 def two_contact(
-    method: str,
+    code: int,
     r1: V3,
     r2: V3,
     d1: V3,
@@ -275,19 +281,20 @@ def two_contact(
     l2: V3,
     eps: float,
     min_sep: float,
-    alpha: float = 0.0,
+    alpha: float,
 ) -> tuple[float, float]:
-    """(x1, x2) N for two contacts with one direction each, by robust ``method``
-    (pinv, if, ef, adaptive with external weight ``alpha``)."""
-    if method == "pinv":
+    """(x1, x2) N for two contacts with one direction each, by robust method ``code``
+    (CODES); ``alpha`` the adaptive allocator's external weight, a float (the others
+    ignore it; on arrays, mix ``if`` and ``ef`` yourself)."""
+    if code == PINV:
         return two_contact_pinv(d1, d2, l1, l2, eps)
-    if method == "ef":
+    if code == EF:
         return two_contact_ef(r1, r2, d1, d2, l1, l2, eps)
-    x_if = two_contact_if(r1, r2, d1, d2, l1, l2, eps, min_sep)
-    if method != "adaptive" or alpha == 0.0:
-        return x_if
-    y0, y1 = two_contact_ef(r1, r2, d1, d2, l1, l2, eps)
-    return adaptive_mix(x_if[0], y0, alpha), adaptive_mix(x_if[1], y1, alpha)
+    x0, x1 = two_contact_if(r1, r2, d1, d2, l1, l2, eps, min_sep)
+    if code == ADAPTIVE and alpha != 0.0:
+        y0, y1 = two_contact_ef(r1, r2, d1, d2, l1, l2, eps)
+        return adaptive_mix(x0, y0, alpha), adaptive_mix(x1, y1, alpha)
+    return x0, x1
 
 
 # What compiled code calls (hapticd.jit makes them callable from a kernel). Those that
@@ -307,5 +314,8 @@ KERNEL_HELPERS = (
     two_contact_if,
     one_contact_pinv,
     one_contact_ef,
+    adaptive_mix,
+    one_contact,
+    two_contact,
 )
 FLOAT_FORMS = {_finv2: _finv2_floats, _gain: _gain_floats, _grasp_line: _grasp_line_floats}

@@ -1,53 +1,45 @@
-"""One tick's allocation for F fingertips: which contacts, which closed form, contact onset.
+"""One tick's allocation for F fingertips: which contacts, which definition, contact onset.
 
-``ContactAllocator.allocate`` takes the fingers in contact, their contact
-points (m), full contact forces (N, on the finger) and the world directions
-each finger may render, and returns lam_a (r,) N with the accuracy of the
-result. One contact with one direction, and two contacts with one direction
-each, run the closed forms on plain floats; anything else takes the general
-numpy path (``hapticd.allocation.allocate``). Both give the same numbers (a
-test checks). A contact being made or broken joins the grasp gradually.
+``ContactAllocator.allocate`` takes the frame's arrays (which fingers touch, where
+the devices are, the contact points in m and full contact forces in N, on the
+finger) and writes lam_a (r,) N and M_a lam_a per finger, returning the accuracy of
+the result. With one actuated direction per finger and a robust method, the kernel
+``hapticd.kernels.allocation_step`` (compiled, or the same function uncompiled)
+takes one or two contacts: the closed forms of ``hapticd.allocation.closed``.
+Everything else (three or more contacts, several directions on a finger, the
+seed's exact formulas) runs ``hapticd.allocation.allocate``, the batch definition
+with N = 1. Both blend a contact being made or broken into the grasp gradually.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
+from hapticd import kernels
 from hapticd.actuation import Actuation
-from hapticd.allocation import EXACT_METHODS, allocate
-from hapticd.allocation.accuracy import accuracy, one_contact_accuracy, two_contact_accuracy
+from hapticd.allocation import allocate
+from hapticd.allocation.accuracy import accuracy
 from hapticd.allocation.adaptive import AdaptiveState, external_ratio, smoothstep
 from hapticd.allocation.batch import soft_internal_projector
-from hapticd.allocation.closed import one_contact, two_contact
 from hapticd.allocation.robust import AllocationError, Robustness
 from hapticd.grasp import grasp_matrix
 
 V3 = tuple[float, float, float]
-Accuracy4 = tuple[float, float, float, float]
-NO_ACCURACY: Accuracy4 = (0.0, 0.0, 0.0, 0.0)
 
 
 def _norm(v: V3) -> float:
     return math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
 
 
-def _finite(*vecs: V3) -> bool:
-    """True if every component of the 3-vectors is finite: 0 x c is 0 for a finite c and
-    NaN for inf or NaN, so the sum of those products is finite exactly then (and cannot
-    overflow); a third of a generator's cost here."""
-    s = 0.0
-    for v in vecs:
-        s += 0.0 * v[0] + 0.0 * v[1] + 0.0 * v[2]
-    return math.isfinite(s)
-
-
 class ContactAllocator:
     """Allocates contact forces onto ``actuation``'s directions with ``method``.
 
     Holds the adaptive allocator's state (alpha follows the task over ticks of
-    ``dt`` s); everything else is computed from the arguments.
+    ``dt`` s) and the allocation kernel: ``kernel`` is the compiled
+    ``allocation_step`` (hapticd.jit) or, set to None, the same function uncompiled.
     """
 
     def __init__(
@@ -57,6 +49,7 @@ class ContactAllocator:
         robust: Robustness,
         adaptive: AdaptiveState,
         dt: float,
+        kernel: Callable[..., int] | None = None,
     ) -> None:
         self.actuation = actuation
         self.method = method
@@ -64,41 +57,62 @@ class ContactAllocator:
         self.adaptive = adaptive
         self.dt = dt
         self.alpha = 0.0
+        self.kernel = kernel
+        self.accuracy = np.zeros(kernels.ACCURACY)  # the last tick's (N, N, N, 1)
+        self._params = np.zeros(kernels.ALLOCATION_PARAMS)
+        self._local = np.zeros((actuation.n_fingers, 3))  # the kernel's directions
+        self._local_for: tuple[Actuation, Robustness] | None = None
+
+    @property
+    def kernel(self) -> Callable[..., int]:
+        """hapticd.kernels.allocation_step, compiled or not."""
+        return self._kernel
+
+    @kernel.setter
+    def kernel(self, fn: Callable[..., int] | None) -> None:
+        self._kernel = kernels.uncompiled("allocation_step") if fn is None else fn
 
     def allocate(
         self,
-        contacts: list[int],
-        world: list[list[V3]],
-        points: list[V3],
-        forces: list[V3],
-        center: V3,
-    ) -> tuple[np.ndarray | None, Accuracy4]:
-        """(lam_a (r,) N, accuracy) for the fingers in ``contacts`` (lam_a None: no contact).
+        in_contact: np.ndarray,
+        device_pos: np.ndarray,
+        points: np.ndarray,
+        forces: np.ndarray,
+        center: np.ndarray,
+        lam_a: np.ndarray,
+        rendered: np.ndarray,
+    ) -> np.ndarray:
+        """Write lam_a (r,) N and ``rendered`` (F, 3) N, M_a lam_a per finger (zero out of
+        contact), and return the accuracy (internal, external, total, amplification).
 
-        ``world`` holds each finger's actuated directions in the world frame,
-        ``points`` (m) and ``forces`` (N) are per finger, ``center`` is the grasp's
-        reference point (m). Updates ``alpha`` of the adaptive allocator.
+        ``in_contact`` (F,) u1, ``device_pos`` (F, 3) m (the grasp frame follows fingers 0
+        and 1), ``points`` (F, 3) m and ``forces`` (F, 3) N per finger, ``center`` (3,) m
+        the grasp's reference point; C-contiguous float64 (the kernel's types). Updates
+        ``alpha`` of the adaptive allocator. Raises AllocationError on non-finite contact
+        geometry or forces, or a non-finite result.
         """
-        if self.method == "adaptive":
-            rho = self._external_ratio(points, forces, contacts, center)
+        method = self.method
+        if method == "adaptive":
+            rho = self._external_ratio(in_contact, points, forces, center)
             self.alpha = self.adaptive.update(rho, self.dt)
-        if not contacts:
-            return None, NO_ACCURACY
-        lam_a = self._solve(contacts, world, points, forces, center)
-        onset = self.robust.contact_onset_n
-        if len(contacts) >= 2 and onset > 0.0:
-            # A contact that is just being made or broken joins the grasp gradually: without
-            # this, the grasp matrix (and IF's squeeze) would jump when it appears or leaves.
-            weakest = min(contacts, key=lambda i: _norm(forces[i]))
-            beta = smoothstep(_norm(forces[weakest]) / onset)
-            if beta < 1.0:
-                rest = [i for i in contacts if i != weakest]
-                lam_a = beta * lam_a + (1.0 - beta) * self._solve(
-                    rest, world, points, forces, center
-                )
-        if not all(map(math.isfinite, lam_a.tolist())):  # a tenth of np.isfinite's cost here
-            raise AllocationError(f"allocator {self.method!r} produced a non-finite force")
-        return lam_a, self._measure(contacts, world, points, forces, center, lam_a)
+        if self._kernel_takes():
+            params = self._params
+            params[0] = kernels.ALLOCATION_METHODS.index(method)
+            params[5:8] = center
+            params[8] = self.alpha
+            outcome = self._kernel(
+                in_contact, device_pos, points, forces, self._local, params, lam_a, rendered,
+                self.accuracy,
+            )  # fmt: skip
+            if outcome == kernels.ALLOCATED:
+                return self.accuracy
+            if outcome == kernels.NON_FINITE_INPUT:
+                raise AllocationError("non-finite contact geometry or force; refusing to allocate")
+            if outcome == kernels.NON_FINITE_OUTPUT:
+                raise AllocationError(f"allocator {method!r} produced a non-finite force")
+        with np.errstate(over="ignore"):  # finite forces whose residuals overflow: inf
+            self._general(in_contact, device_pos, points, forces, center, lam_a, rendered)
+        return self.accuracy
 
     def replay(
         self,
@@ -115,117 +129,112 @@ class ContactAllocator:
         (N, F, 3) are the frame's fields per tick; ``centers`` (N, 3) m the grasp's
         reference point the tick allocated about (the object's position before the tick's
         dynamics moved it)."""
-        n = len(in_contact)
-        out = np.zeros((n, self.actuation.n_actuators))
-        touching, pos = np.asarray(in_contact).tolist(), np.asarray(device_pos).tolist()
-        pts, lam, ctr = np.asarray(points).tolist(), np.asarray(forces).tolist(), centers.tolist()
-        for k in range(n):
-            contacts = [i for i, on in enumerate(touching[k]) if on]
-            world = self.actuation.world_directions(pos[k]) if contacts else []
-            lam_a, _ = self.allocate(contacts, world, pts[k], lam[k], tuple(ctr[k]))
-            if lam_a is not None:
-                out[k] = lam_a
+        touching = np.ascontiguousarray(in_contact, dtype=np.uint8)
+        pos, pts, lam, ctr = (
+            np.ascontiguousarray(a, dtype=float) for a in (device_pos, points, forces, centers)
+        )
+        out = np.zeros((len(touching), self.actuation.n_actuators))
+        rendered = np.zeros((self.actuation.n_fingers, 3))
+        for k in range(len(touching)):
+            self.allocate(touching[k], pos[k], pts[k], lam[k], ctr[k], out[k], rendered)
         return out
 
-    def _offsets(self, points: list[V3], contacts: list[int], center: V3) -> list[V3]:
-        ox, oy, oz = center
-        return [(points[i][0] - ox, points[i][1] - oy, points[i][2] - oz) for i in contacts]
-
-    def _is_two_simple(self, contacts: list[int]) -> bool:
-        counts = self.actuation.counts
-        return len(contacts) == 2 and counts[contacts[0]] == 1 and counts[contacts[1]] == 1
+    def _kernel_takes(self) -> bool:
+        """True if the kernel takes this method and actuation (one direction per finger);
+        its directions and robustness parameters follow the actuation's and ours."""
+        act, rb = self.actuation, self.robust
+        if self.method not in kernels.ALLOCATION_METHODS:
+            return False
+        made_for = self._local_for
+        if made_for is None or made_for[0] is not act or made_for[1] is not rb:
+            if any(c != 1 for c in act.counts):
+                return False
+            self._local = np.array([ds[0] for ds in act.local], dtype=float).reshape(-1, 3)
+            grasp = 1.0 if act.frame == "grasp" else 0.0
+            self._params[1:5] = (rb.eps, rb.min_separation_m, rb.contact_onset_n, grasp)
+            self._local_for = (act, rb)
+        return True
 
     def _general(
-        self, contacts: list[int], points: list[V3], forces: list[V3], center: V3
-    ) -> tuple[np.ndarray, np.ndarray]:
-        G = grasp_matrix(np.array([points[i] for i in contacts]), np.array(center))
-        lam = np.array([c for i in contacts for c in forces[i]])
-        return G, lam
+        self,
+        in_contact: np.ndarray,
+        device_pos: np.ndarray,
+        points: np.ndarray,
+        forces: np.ndarray,
+        center: np.ndarray,
+        lam_a: np.ndarray,
+        rendered: np.ndarray,
+    ) -> None:
+        """``allocate`` for what the kernel does not take: hapticd.allocation.allocate."""
+        contacts = np.flatnonzero(in_contact).tolist()
+        lam_a.fill(0.0)
+        rendered.fill(0.0)
+        self.accuracy.fill(0.0)
+        if not contacts:
+            return
+        act = self.actuation
+        world = act.world_directions(device_pos.tolist())
+        M, cols = act.submatrix(world, contacts)
+        geometry = (points[contacts], forces[contacts], center, M)
+        if not all(np.all(np.isfinite(a)) for a in geometry):
+            raise AllocationError("non-finite contact geometry or force; refusing to allocate")
+        x = self._solve(contacts, world, points, forces, center)
+        onset = self.robust.contact_onset_n
+        if len(contacts) >= 2 and onset > 0.0:
+            # A contact that is just being made or broken joins the grasp gradually: without
+            # this, the grasp matrix (and IF's squeeze) would jump when it appears or leaves.
+            norms = np.linalg.norm(forces[contacts], axis=1)
+            weakest = int(np.argmin(norms))
+            beta = smoothstep(float(norms[weakest]) / onset)
+            if beta < 1.0:
+                rest = contacts[:weakest] + contacts[weakest + 1 :]
+                x = beta * x + (1.0 - beta) * self._solve(rest, world, points, forces, center)
+        if not np.all(np.isfinite(x)):
+            raise AllocationError(f"allocator {self.method!r} produced a non-finite force")
+        lam_a[...] = x
+        rendered[contacts] = (M @ x[cols]).reshape(-1, 3)
+        G = grasp_matrix(points[contacts], center)
+        a = accuracy(G, M, forces[contacts].reshape(-1), x[cols])
+        self.accuracy[:] = (a.internal, a.external, a.total, a.amplification)
 
     def _solve(
         self,
         contacts: list[int],
         world: list[list[V3]],
-        points: list[V3],
-        forces: list[V3],
-        center: V3,
+        points: np.ndarray,
+        forces: np.ndarray,
+        center: np.ndarray,
     ) -> np.ndarray:
         """lam_a over all r actuators (zero for fingers not in ``contacts``)."""
         act = self.actuation
         out = np.zeros(act.n_actuators)
-        method = self.method
-        rb = self.robust
-        if len(contacts) == 1 and act.counts[contacts[0]] == 1 and method not in EXACT_METHODS:
-            (i,) = contacts
-            (r1,) = self._offsets(points, contacts, center)
-            d1, l1 = world[i][0], forces[i]
-            if not _finite(r1, d1, l1):
-                raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-            out[act.columns[i][0]] = one_contact(method, r1, d1, l1, rb.eps, self.alpha)
-            return out
-        if self._is_two_simple(contacts) and method not in EXACT_METHODS:
-            i, j = contacts
-            r1, r2 = self._offsets(points, contacts, center)
-            d1, d2 = world[i][0], world[j][0]
-            l1, l2 = forces[i], forces[j]
-            if not _finite(r1, r2, d1, d2, l1, l2):
-                raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-            x0, x1 = two_contact(
-                method, r1, r2, d1, d2, l1, l2, rb.eps, rb.min_separation_m, self.alpha
-            )
-            out[act.columns[i][0]] = x0
-            out[act.columns[j][0]] = x1
-            return out
         M, cols = act.submatrix(world, contacts)
         if cols:
-            G, lam = self._general(contacts, points, forces, center)
-            out[cols] = allocate(method, G, M, lam, robust=rb, alpha=self.alpha)
+            G = grasp_matrix(points[contacts], center)
+            lam = forces[contacts].reshape(-1)
+            out[cols] = allocate(self.method, G, M, lam, robust=self.robust, alpha=self.alpha)
         return out
 
-    def _measure(
-        self,
-        contacts: list[int],
-        world: list[list[V3]],
-        points: list[V3],
-        forces: list[V3],
-        center: V3,
-        lam_a: np.ndarray,
-    ) -> Accuracy4:
-        act = self.actuation
-        if len(contacts) == 1 and act.counts[contacts[0]] == 1:
-            (i,) = contacts
-            (r1,) = self._offsets(points, contacts, center)
-            x = float(lam_a[act.columns[i][0]])
-            a = one_contact_accuracy(r1, world[i][0], forces[i], x)
-        elif self._is_two_simple(contacts):
-            i, j = contacts
-            r1, r2 = self._offsets(points, contacts, center)
-            x0, x1 = float(lam_a[act.columns[i][0]]), float(lam_a[act.columns[j][0]])
-            a = two_contact_accuracy(r1, r2, world[i][0], world[j][0], forces[i], forces[j], x0, x1)
-        else:
-            M, cols = act.submatrix(world, contacts)
-            G, lam = self._general(contacts, points, forces, center)
-            a = accuracy(G, M, lam, lam_a[cols])
-        return (a.internal, a.external, a.total, a.amplification)
-
     def _external_ratio(
-        self, points: list[V3], forces: list[V3], contacts: list[int], center: V3
+        self, in_contact: np.ndarray, points: np.ndarray, forces: np.ndarray, center: np.ndarray
     ) -> float:
         """The adaptive allocator's task state: |net force| / (|net force| + squeeze)."""
+        contacts = [i for i, on in enumerate(in_contact.tolist()) if on]
         if not contacts:
             return 0.0
-        net = [sum(forces[i][k] for i in contacts) for k in range(3)]
+        pts, lam = points.tolist(), forces.tolist()
+        net = [sum(lam[i][k] for i in contacts) for k in range(3)]
         if len(contacts) == 1:
             squeeze = 0.0
         elif len(contacts) == 2:
-            c1, c2 = points[contacts[0]], points[contacts[1]]
-            l1, l2 = forces[contacts[0]], forces[contacts[1]]
+            c1, c2 = pts[contacts[0]], pts[contacts[1]]
+            l1, l2 = lam[contacts[0]], lam[contacts[1]]
             e = (c2[0] - c1[0], c2[1] - c1[1], c2[2] - c1[2])
             ne = _norm(e)
             q = (l1[0] - l2[0], l1[1] - l2[1], l1[2] - l2[2])
             squeeze = abs(e[0] * q[0] + e[1] * q[1] + e[2] * q[2]) / (2.0 * ne) if ne > 0 else 0.0
         else:
-            G, lam = self._general(contacts, points, forces, center)
+            G = grasp_matrix(points[contacts], center)
             P = soft_internal_projector(G, self.robust)
-            squeeze = float(np.linalg.norm(P @ lam)) / math.sqrt(2.0)
+            squeeze = float(np.linalg.norm(P @ forces[contacts].reshape(-1))) / math.sqrt(2.0)
         return external_ratio(_norm((net[0], net[1], net[2])), squeeze)
