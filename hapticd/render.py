@@ -334,7 +334,11 @@ class OneCall:
         self._fn = fn
         self._frame: Frame | None = None
         self._args: tuple[np.ndarray, ...] = ()
-        self._key: tuple[object, ...] = ()
+        self._scene = renderer.scene
+        self._obj: SceneObject | None = None
+        self._material: Material | None = None
+        self._free = False
+        self._started = False
         self._params = np.zeros(kn.TICK_PARAMS)
 
     @classmethod
@@ -349,12 +353,6 @@ class OneCall:
             return None
         one = cls(r, fn)
         return one if one._bind(r.frame) else None
-
-    def _state_key(self) -> tuple[object, ...]:
-        """What the bound arrays were made from; a change makes them again."""
-        obj = self.renderer.scene.object
-        alloc = self.renderer.allocator
-        return (obj, obj.material, obj.shape, obj.mass, alloc.method, alloc.actuation)
 
     def _bind(self, frame: Frame) -> bool:
         """Make the call's arguments for ``frame`` (False: a case the kernel cannot take)."""
@@ -428,20 +426,26 @@ class OneCall:
         frame.mass_kg[()] = obj.mass
         frame.allocator[()] = METHODS.index(r.allocator.method)
         self._frame = frame
-        self._key = self._state_key()
+        self._obj, self._material = obj, mat
         self._free = free
         return True
 
     def run(self, frame: Frame) -> None:
-        stale = frame is not self._frame or self._state_key() != self._key
-        if stale and not self._bind(frame):
+        # Set without a new plan (set_param plans anew): the object, or its material (an
+        # analysis replaying a recording's stiffness tick by tick).
+        obj = self._scene.object
+        if (
+            frame is not self._frame or obj is not self._obj or obj.material is not self._material
+        ) and not self._bind(frame):
             self._by_stages(frame, 0)
             return
-        self.renderer._contact.start(frame)
+        if not self._started:  # every proxy starts at its device, on the first tick run
+            self.renderer._contact.start(frame)
+            self._started = True
         outcome = self._fn(*self._args)
         if outcome == kn.TICK_DONE:
             if self._free:
-                self.renderer.scene.object.update_world()
+                obj.update_world()
             return
         if outcome == kn.TICK_NON_FINITE_INPUT:
             raise AllocationError("non-finite contact geometry or force; refusing to allocate")
