@@ -178,10 +178,20 @@ class Contact:
         self._built_for = poly
         return self._sets
 
-    def run(self, frame: Frame) -> None:
+    def start(self, frame: Frame) -> None:
+        """On the first tick: every proxy starts at its device."""
         if not self._started:
             self._proxies[...] = frame.device_pos
             self._started = True
+
+    def forget(self) -> None:
+        """Forget which frame's normals and env_force this stage left all zero: another
+        writer (the renderer's one call) has written them since."""
+        self._untouched = None
+        self._off_surfaces = None
+
+    def run(self, frame: Frame) -> None:
+        self.start(frame)
         if self.kernel is not None and self._run_kernel(frame):
             return
         pos: list[V3] = [tuple(p) for p in frame.device_pos.tolist()]  # type: ignore[misc]
@@ -273,9 +283,7 @@ class Contact:
         )
         if outcome != kernels.CONTACT_DONE:
             return False
-        # The kernel wrote every field: the Python path's "already zero" marks are stale.
-        self._untouched = None
-        self._off_surfaces = None
+        self.forget()  # the kernel wrote every field: the "already zero" marks are stale
         return True
 
     def _kernel_planes(self) -> np.ndarray | None:
@@ -556,6 +564,11 @@ class Allocation:
         frame.residual_total[()] = acc[2]
         frame.amplification[()] = acc[3]
 
+    def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """allocation_step's ``local`` and ``params`` for one call per tick, or None
+        (``ContactAllocator.kernel_inputs``)."""
+        return self.allocator.kernel_inputs()
+
 
 class Environment:
     """Renders the ground's and walls' force through each finger's own actuated directions:
@@ -754,18 +767,24 @@ class Dynamics:
             ["surfaces"] if self.scene.surfaces else []
         )
 
-    def run(self, frame: Frame) -> None:
-        """The step on the frame's arrays and the object's ``state`` (its position,
-        velocity, omega and rotation are views of it)."""
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """free_body_step's params, body, surfaces and scratch for the object as it is now
+        (its shape, mass and material)."""
         obj = self.scene.object
         arr = self._arrays
         if arr is None or not arr.fits(obj):
             arr = self._arrays = _BodyArrays(obj, self.scene.surfaces, self.dt, self.substeps)
             arr.params[6:9] = self._gravity
         mat = obj.material
-        params = arr.params
-        params[0] = mat.stiffness
-        params[1] = mat.torsion
+        arr.params[0] = mat.stiffness
+        arr.params[1] = mat.torsion
+        return arr.params, arr.body, arr.surf, self._scratch
+
+    def run(self, frame: Frame) -> None:
+        """The step on the frame's arrays and the object's ``state`` (its position,
+        velocity, omega and rotation are views of it)."""
+        obj = self.scene.object
+        params, body, surf, scratch = self.arrays()
         self._kernel(
             frame.in_contact,
             frame.contact_point,
@@ -773,9 +792,9 @@ class Dynamics:
             frame.contact_normal,
             params,
             obj.state,
-            arr.body,
-            arr.surf,
-            self._scratch,
+            body,
+            surf,
+            scratch,
         )
         obj.update_world()
 
@@ -850,9 +869,17 @@ class SceneState:
 def _object_fields(frame: Frame) -> np.ndarray:
     """The frame's object_pos, object_vel, object_omega and object_rot as one (18,) float
     view, in SceneObject.state's order (they are adjacent in the record)."""
+    return adjacent(frame, ("object_pos", "object_vel", "object_omega", "object_rot"))
+
+
+def adjacent(frame: Frame, names: tuple[str, ...]) -> np.ndarray:
+    """The frame's float64 fields ``names``, adjacent in the record in this order, as one
+    flat view (RuntimeError if they are not)."""
     fields = frame.dtype.fields
-    start = fields["object_pos"][1]
-    if fields["object_rot"][1] != start + 9 * 8:
-        raise RuntimeError("frame fields: object_pos, _vel, _omega and _rot must be adjacent")
-    raw = frame.record.reshape(1).view(np.uint8)[start : start + 18 * 8]
+    start = at = fields[names[0]][1]
+    for name in names:
+        if fields[name][1] != at or fields[name][0].base != np.float64:
+            raise RuntimeError(f"frame fields: {', '.join(names)} must be adjacent float64")
+        at += fields[name][0].itemsize
+    raw = frame.record.reshape(1).view(np.uint8)[start:at]
     return raw.view("<f8")

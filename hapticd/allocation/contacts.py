@@ -139,6 +139,17 @@ class ContactAllocator:
             self.allocate(touching[k], pos[k], pts[k], lam[k], ctr[k], out[k], rendered)
         return out
 
+    def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """allocation_step's ``local`` directions (F, 3) and ``params`` for the allocator as
+        it is now (the object's position in params[5:8] is the caller's), or None when the
+        kernel does not take it, or takes it only after ``allocate`` has moved adaptive's
+        alpha (whose task ratio reads this tick's contact forces)."""
+        if self.method == "adaptive" or not self._kernel_takes():
+            return None
+        self._params[0] = kernels.ALLOCATION_METHODS.index(self.method)
+        self._params[8] = self.alpha
+        return self._local, self._params
+
     def _kernel_takes(self) -> bool:
         """True if the kernel takes this method and actuation (one direction per finger);
         its directions and robustness parameters follow the actuation's and ours."""
