@@ -154,3 +154,32 @@ def test_contact_allocator_refuses_non_finite_geometry(bad, where, method):
             d = [bad, 0.0, 0.0]
         with pytest.raises(AllocationError, match="non-finite"):
             allocator(d).allocate(touching, points, p, f, center, lam_a, rendered)
+
+
+def test_adaptive_alpha_survives_a_refused_tick():
+    """A tick with a NaN force (refused) or forces whose task ratio overflows leaves the
+    adaptive allocator's alpha as it was: the next good tick allocates as if it never came."""
+    from hapticd.actuation import Actuation
+    from hapticd.allocation import DEFAULT_ROBUSTNESS, AdaptiveState
+    from hapticd.allocation.contacts import ContactAllocator
+
+    def allocator():
+        act = Actuation([[[0.866, 0.0, 0.5]], [[-0.866, 0.0, 0.5]]], "world")
+        return ContactAllocator(act, "adaptive", DEFAULT_ROBUSTNESS, AdaptiveState(), 1e-3)
+
+    touching, center = np.ones(2, dtype=np.uint8), np.zeros(3)
+    points = np.array([(-A, 0.0, 0.0), (A, 0.0, 0.0)])
+    push = np.array([(2.0, 0.0, 3.0), (-1.0, 0.0, 3.0)])  # mostly external: alpha rises
+    lam_a, rendered = np.zeros(2), np.zeros((2, 3))
+    clean, spoiled = allocator(), allocator()
+    for alloc in (clean, spoiled):
+        alloc.allocate(touching, points, points, push, center, lam_a, rendered)
+    bad = push.copy()
+    bad[1, 2] = np.nan
+    with pytest.raises(AllocationError, match="non-finite"):
+        spoiled.allocate(touching, points, points, bad, center, lam_a, rendered)
+    spoiled.allocate(touching, points, points, push * 1e300, center, lam_a, rendered)
+    assert 0.0 < spoiled.alpha == clean.alpha
+    want = clean.allocate(touching, points, points, push, center, np.zeros(2), np.zeros((2, 3)))
+    got = spoiled.allocate(touching, points, points, push, center, lam_a, rendered)
+    np.testing.assert_array_equal(got, want)

@@ -91,10 +91,25 @@ class ContactAllocator:
         ``alpha`` of the adaptive allocator. Raises AllocationError on non-finite contact
         geometry or forces, or a non-finite result.
         """
-        method = self.method
-        if method == "adaptive":
-            rho = self._external_ratio(in_contact, points, forces, center)
+        tick = (in_contact, device_pos, points, forces, center, lam_a, rendered)
+        if self.method != "adaptive":
+            return self._allocate(*tick)
+        # A refused tick, or forces whose task ratio overflows (inf / inf), leaves alpha as
+        # it was: the allocator's state stays that of the last good tick.
+        before = self.alpha
+        rho = self._external_ratio(in_contact, points, forces, center)
+        if math.isfinite(rho):
             self.alpha = self.adaptive.update(rho, self.dt)
+        try:
+            return self._allocate(*tick)
+        except AllocationError:
+            self.alpha = self.adaptive.alpha = before
+            raise
+
+    def _allocate(self, *tick: np.ndarray) -> np.ndarray:
+        """``allocate`` (its arguments: ``tick``) with alpha as it is now."""
+        in_contact, device_pos, points, forces, center, lam_a, rendered = tick
+        method = self.method
         if self._kernel_takes():
             params = self._params
             params[0] = kernels.ALLOCATION_METHODS.index(method)
@@ -111,7 +126,7 @@ class ContactAllocator:
             if outcome == kernels.NON_FINITE_OUTPUT:
                 raise AllocationError(f"allocator {method!r} produced a non-finite force")
         with np.errstate(over="ignore"):  # finite forces whose residuals overflow: inf
-            self._general(in_contact, device_pos, points, forces, center, lam_a, rendered)
+            self._general(*tick)
         return self.accuracy
 
     def replay(
@@ -166,17 +181,10 @@ class ContactAllocator:
             self._local_for = (act, rb)
         return True
 
-    def _general(
-        self,
-        in_contact: np.ndarray,
-        device_pos: np.ndarray,
-        points: np.ndarray,
-        forces: np.ndarray,
-        center: np.ndarray,
-        lam_a: np.ndarray,
-        rendered: np.ndarray,
-    ) -> None:
-        """``allocate`` for what the kernel does not take: hapticd.allocation.allocate."""
+    def _general(self, *tick: np.ndarray) -> None:
+        """``allocate`` (its arguments: ``tick``) for what the kernel does not take:
+        hapticd.allocation.allocate."""
+        in_contact, device_pos, points, forces, center, lam_a, rendered = tick
         contacts = np.flatnonzero(in_contact).tolist()
         lam_a.fill(0.0)
         rendered.fill(0.0)
