@@ -96,14 +96,14 @@ class ContactAllocator:
             return self._allocate(*tick)
         # A refused tick, or forces whose task ratio overflows (inf / inf), leaves alpha as
         # it was: the allocator's state stays that of the last good tick.
-        before = self.alpha
+        before = self.alpha, self.adaptive.alpha
         rho = self._external_ratio(in_contact, points, forces, center)
         if math.isfinite(rho):
             self.alpha = self.adaptive.update(rho, self.dt)
         try:
             return self._allocate(*tick)
         except AllocationError:
-            self.alpha = self.adaptive.alpha = before
+            self.alpha, self.adaptive.alpha = before
             raise
 
     def _allocate(self, *tick: np.ndarray) -> np.ndarray:
