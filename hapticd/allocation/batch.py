@@ -204,15 +204,14 @@ def _soft_internal_projector_v(G: np.ndarray, robust: Robustness) -> np.ndarray:
     pts = np.stack([G[:, 5, 1::3], G[:, 3, 2::3], G[:, 4, 0::3]], axis=-1)  # (N, p, 3)
     c = (pts - pts.mean(axis=1, keepdims=True)) / robust.length_scale_m
     x, y, z = c[..., 0], c[..., 1], c[..., 2]
-    zero = np.zeros_like(x)
-    # Moment rows of Gw: block i is S(c_i); Gm (N, 3, 3p).
-    S = np.stack(
-        [np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)],
-        axis=1,
-    )  # (N, 3, p, 3)
+    # Moment rows of Gw: block i is S(c_i) = [[0, -z, y], [z, 0, -x], [-y, x, 0]].
+    S = np.zeros((N, 3, p, 3))
+    S[:, 0, :, 1], S[:, 0, :, 2] = -z, y
+    S[:, 1, :, 0], S[:, 1, :, 2] = z, -x
+    S[:, 2, :, 0], S[:, 2, :, 1] = -y, x
     Gm = S.reshape(N, 3, n)
     eps2 = robust.eps * robust.eps
-    out = np.eye(n) - np.kron(np.ones((p, p)) / p, np.eye(3))
+    out = np.eye(n) - np.tile(np.eye(3) / p, (p, p))  # minus the mean of the force blocks
     return out - _tr(Gm) @ _finv_eigh(_gram(_tr(Gm)), eps2) @ Gm
 
 

@@ -197,7 +197,7 @@ class ContactAllocator:
         geometry = (points[contacts], forces[contacts], center, M)
         if not all(np.all(np.isfinite(a)) for a in geometry):
             raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-        x = self._solve(contacts, world, points, forces, center)
+        x, G, lam = self._solve(contacts, world, points, forces, center)
         onset = self.robust.contact_onset_n
         if len(contacts) >= 2 and onset > 0.0:
             # A contact that is just being made or broken joins the grasp gradually: without
@@ -207,13 +207,12 @@ class ContactAllocator:
             beta = smoothstep(float(norms[weakest]) / onset)
             if beta < 1.0:
                 rest = contacts[:weakest] + contacts[weakest + 1 :]
-                x = beta * x + (1.0 - beta) * self._solve(rest, world, points, forces, center)
+                x = beta * x + (1.0 - beta) * self._solve(rest, world, points, forces, center)[0]
         if not np.all(np.isfinite(x)):
             raise AllocationError(f"allocator {self.method!r} produced a non-finite force")
         lam_a[...] = x
         rendered[contacts] = (M @ x[cols]).reshape(-1, 3)
-        G = grasp_matrix(points[contacts], center)
-        a = accuracy(G, M, forces[contacts].reshape(-1), x[cols])
+        a = accuracy(G, M, lam, x[cols])
         self.accuracy[:] = (a.internal, a.external, a.total, a.amplification)
 
     def _solve(
@@ -223,16 +222,17 @@ class ContactAllocator:
         points: np.ndarray,
         forces: np.ndarray,
         center: np.ndarray,
-    ) -> np.ndarray:
-        """lam_a over all r actuators (zero for fingers not in ``contacts``)."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """lam_a over all r actuators (zero for fingers not in ``contacts``), and the
+        contacts' G (6, 3p) and lam (3p,) N."""
         act = self.actuation
         out = np.zeros(act.n_actuators)
         M, cols = act.submatrix(world, contacts)
+        G = grasp_matrix(points[contacts], center)
+        lam = forces[contacts].reshape(-1)
         if cols:
-            G = grasp_matrix(points[contacts], center)
-            lam = forces[contacts].reshape(-1)
             out[cols] = allocate(self.method, G, M, lam, robust=self.robust, alpha=self.alpha)
-        return out
+        return out, G, lam
 
     def _external_ratio(
         self, in_contact: np.ndarray, points: np.ndarray, forces: np.ndarray, center: np.ndarray
