@@ -309,16 +309,6 @@ class Renderer:
         self.plan()
 
 
-# allocation_step's accuracy and the allocator's alpha: adjacent in the frame's record
-_ACCURACY_AND_ALPHA = (
-    "residual_internal",
-    "residual_external",
-    "residual_total",
-    "amplification",
-    "alpha",
-)
-
-
 class OneCall:
     """The renderer's plan as one call per tick: hapticd.kernels.tick_step, compiled or (with
     ``rendering.kernels=python``) the same function uncompiled, over the frame's fields
@@ -340,6 +330,7 @@ class OneCall:
         self._free = False
         self._started = False
         self._params = np.zeros(kn.TICK_PARAMS)
+        self._at = np.zeros(len(kn.TICK_FIELDS), dtype=np.int64)
 
     @classmethod
     def of(cls, r: Renderer) -> OneCall | None:
@@ -390,33 +381,27 @@ class OneCall:
             p[kn.TICK_BODY_AT :] = body_params
         else:
             body, surf, scratch = np.zeros((1, 3)), np.zeros((0, 7)), np.zeros((n, 13))
-        plain = ("frictionless_proxy", "frictionless_point", "frictionless_contact_point")
-        held = ("proxy_pos", "surface_point", "contact_point")
-        f = frame
+        at = {name: _float_offset(frame, name) for name in kn.TICK_FIELDS}
+        if not friction:  # contact writes the final fields itself
+            at.update({plain: at[held] for plain, held in zip(FRICTIONLESS, HELD, strict=True)})
+        if not total:  # allocation writes the rendered force itself
+            at["allocated_force"] = at["rendered_force"]
+        # The kernel reads these as runs of floats from their first.
+        adjacent(frame, ("residual_internal", "residual_external", "residual_total"))
+        adjacent(frame, ("residual_total", "amplification", "alpha"))
+        adjacent(frame, ("object_pos", "object_vel", "object_omega", "object_rot"))
+        self._at[:] = [at[name] for name in kn.TICK_FIELDS]
         self._args = (
-            f.device_pos,
-            f.device_vel,
-            f.in_contact,
+            frame.record.reshape(1).view(np.uint8).view(np.float64),
+            frame.in_contact,
+            self._at,
             obj.state,
-            obj.rotation,
-            obj.position,
             np.ascontiguousarray(obj.shape.normals, dtype=float),
             np.ascontiguousarray(obj.shape.offsets, dtype=float),
             planes,
             contact.state,
-            *(getattr(f, name) for name in (plain if friction else held)),
-            f.contact_normal,
-            f.env_force,
-            *(getattr(f, name) for name in held),
             r._friction.anchors,
-            f.contact_force,
             local,
-            f.lam_a,
-            f.allocated_force if total else f.rendered_force,
-            adjacent(f, _ACCURACY_AND_ALPHA),
-            f.env_rendered,
-            f.rendered_force,
-            adjacent(f, ("object_pos", "object_vel", "object_omega", "object_rot")),
             p,
             body,
             surf,
@@ -465,6 +450,14 @@ class OneCall:
             if isinstance(stage, Environment):
                 stage.zero_on = None
             stage.run(frame)
+
+
+def _float_offset(frame: Frame, name: str) -> int:
+    """Where field ``name`` starts in the frame's record, in float64 items."""
+    start = frame.dtype.fields[name][1]
+    if start % 8:
+        raise RuntimeError(f"frame field {name!r} is not aligned to 8 bytes")
+    return start // 8
 
 
 def _own(name: str) -> str:
