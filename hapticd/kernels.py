@@ -376,6 +376,7 @@ KERNEL_HELPERS = (
     "free_body_step",
     "_axes",
     "_rows",
+    "safety_step",
 )
 # The sources whose code or constants the kernels compile in: numba's cache knows only
 # this file's, so hapticd.jit keys its record of compiled kernels on all of them.
@@ -1270,19 +1271,30 @@ def world_planes(
 
 
 # tick_step's params: what the plan has (1.0 or 0.0: friction, a free object, surfaces, a
-# sum of contributions into rendered_force), the allocator's alpha, then the friction,
-# forces, allocation and free-body params at their offsets (each kernel's layout above)
-TICK_FRICTION, TICK_FREE, TICK_SURFACES, TICK_SUM, TICK_ALPHA = 0, 1, 2, 3, 4
-TICK_FRICTION_AT = 5
+# sum of contributions into rendered_force), the allocator's alpha, whether the safety
+# chain's normal tick runs in the call (set per tick), then the friction, forces,
+# allocation and free-body params at their offsets (each kernel's layout above)
+TICK_FRICTION, TICK_FREE, TICK_SURFACES, TICK_SUM, TICK_ALPHA, TICK_SAFETY = range(6)
+TICK_FRICTION_AT = 6
 TICK_FORCES_AT = TICK_FRICTION_AT + FRICTION_PARAMS
 TICK_ALLOCATION_AT = TICK_FORCES_AT + FORCES_PARAMS
 TICK_BODY_AT = TICK_ALLOCATION_AT + ALLOCATION_PARAMS
 TICK_PARAMS = TICK_BODY_AT + PARAMS
 # tick_step's outcomes: done; stopped before contact or before allocation, having written
 # what came before (the renderer runs that stage and the rest one by one); allocation
-# refused a non-finite input or produced a non-finite output (nothing after it written)
+# refused a non-finite input or produced a non-finite output (nothing after it written);
+# with the safety chain's tick: a free object's state beyond MAX_OBJECT_* (the chain not
+# run: the loop latches the fault), or the chain's kernel deferred (the chain runs its
+# checks); TICK_SAFE + safety_step's flags: done, the safety chain's tick too.
 TICK_DONE, TICK_FROM_CONTACT, TICK_FROM_ALLOCATION = 0, 1, 2
-TICK_NON_FINITE_INPUT, TICK_NON_FINITE_OUTPUT = 3, 4
+TICK_NON_FINITE_INPUT, TICK_NON_FINITE_OUTPUT, TICK_OBJECT, TICK_SAFETY_DEFER = 3, 4, 5, 6
+TICK_SAFE = 16
+# A free object beyond these has left any scene a hand can reach (a free fall of a day
+# stays below them), and well before float overflow breaks its dynamics: the loop's
+# backstop (hapticd.servo) latches a fault.
+MAX_OBJECT_DISTANCE_M = 1e12
+MAX_OBJECT_SPEED_M_PER_S = 1e7
+MAX_OBJECT_SPIN_RAD_PER_S = 1e7
 
 
 # tick_step's frame fields: each one's offset in the frame's record, in float64 items
@@ -1306,6 +1318,7 @@ TICK_FIELDS = (
     "env_rendered",
     "rendered_force",
     "object_pos",  # then object_vel, object_omega, object_rot: STATE floats
+    "device_force",
 )
 (
     _AT_POS,
@@ -1325,6 +1338,7 @@ TICK_FIELDS = (
     _AT_ENV_RENDERED,
     _AT_RENDERED,
     _AT_OBJECT,
+    _AT_DEVICE_FORCE,
 ) = range(len(TICK_FIELDS))
 
 
@@ -1357,6 +1371,8 @@ def tick_step(
     body: np.ndarray,
     surf: np.ndarray,
     scratch: np.ndarray,
+    safety_params: np.ndarray,
+    out_prev: np.ndarray,
 ) -> int:
     """One whole tick of the renderer's plan in one call: the object's planes at its pose,
     contact, friction, the contact forces, allocation, the environment's force through each
@@ -1369,7 +1385,9 @@ def tick_step(
     (STATE,), its shape's ``body_normals`` (M, 3) and ``body_offsets`` (M,) m; contact's
     ``planes`` and ``contact_state``; friction's ``anchors``; allocation's ``local``;
     ``params`` (TICK_PARAMS,) as declared above; the free body's ``body``, ``surf`` and
-    ``scratch``. Returns a TICK_ outcome.
+    ``scratch``; with params[TICK_SAFETY], the safety chain's normal tick on the rendered
+    force into ``device_force``: a free object's state checked first, then safety_step
+    with the chain's ``safety_params`` and ``out_prev``. Returns a TICK_ outcome.
     """
     n = in_contact.shape[0]
     device_pos = _rows(record, at[_AT_POS], n)
@@ -1481,7 +1499,22 @@ def tick_step(
     o = at[_AT_OBJECT]
     for k in range(STATE):
         record[o + k] = obj_state[k]
-    return TICK_DONE
+    if params[TICK_SAFETY] == 0.0:
+        return TICK_DONE
+    # NaN fails every comparison; _hypot3 is math.hypot's (the loop's backstop's) sum.
+    if params[TICK_FREE] != 0.0 and not (
+        _hypot3(obj_state[0], obj_state[1], obj_state[2]) <= MAX_OBJECT_DISTANCE_M
+        and _hypot3(obj_state[3], obj_state[4], obj_state[5]) <= MAX_OBJECT_SPEED_M_PER_S
+        and _hypot3(obj_state[6], obj_state[7], obj_state[8]) <= MAX_OBJECT_SPIN_RAD_PER_S
+    ):
+        return TICK_OBJECT
+    flags = safety_step(rendered, device_pos, safety_params, out_prev)
+    if flags & SAFETY_DEFER:
+        return TICK_SAFETY_DEFER
+    out = _rows(record, at[_AT_DEVICE_FORCE], n)
+    for i in range(n):
+        out[i, 0], out[i, 1], out[i, 2] = out_prev[0, i, 0], out_prev[0, i, 1], out_prev[0, i, 2]
+    return TICK_SAFE + flags
 
 
 def _axes(device_pos: np.ndarray, grasp: bool) -> tuple[float, ...]:
