@@ -192,7 +192,7 @@ class Renderer:
         """The kernels (names in hapticd.kernels) this scene's stages can use: the free-body
         step when the object is free; the allocation with one actuated direction per finger
         (the number of directions stays fixed while the renderer lives); the contact (every
-        scene: the stage runs the Python code for what the kernel does not take); friction
+        scene); friction
         when the object's material has it (friction turned on later, by ``set_param``, runs
         its kernel uncompiled); the contact forces always; a free object's planes in the world
         (for the contact kernel, from its pose each tick)."""
