@@ -70,27 +70,30 @@ class Proxy:
         self.kernel = compiled() if kernel is None else kernel
         self.planes = planes_of(obstacles)
         self.state = np.zeros((1, kernels.CONTACT_STATE))
-        self.out = {
-            name: np.zeros((1, 3))
-            for name in ("pos", "vel", "proxy", "surface", "point", "normal", "env")
-        }
+        self.device = np.zeros((1, 3))
         self.touch = np.zeros(1, dtype=np.uint8)
+        self.normal = np.zeros((1, 3))
+        # contact_step's arguments: the device (position, velocity), the planes, the state,
+        # then the frame's fields it writes (proxy, in_contact, surface point, contact
+        # point, normal, env_force).
+        self.args = (
+            self.device, np.zeros((1, 3)), self.planes, self.state, np.zeros((1, 3)),
+            self.touch, np.zeros((1, 3)), np.zeros((1, 3)), self.normal, np.zeros((1, 3)),
+        )  # fmt: skip
 
     def step(self, proxy_prev: Sequence[float], device: Sequence[float]) -> Step:
         """The proxy moved from ``proxy_prev`` toward ``device`` (m)."""
-        o, st = self.out, self.state
+        st = self.state
         st[0, :3] = proxy_prev
-        o["pos"][0] = device
-        outcome = self.kernel(
-            o["pos"], o["vel"], self.planes, st, o["proxy"], self.touch,
-            o["surface"], o["point"], o["normal"], o["env"],
-        )  # fmt: skip
-        assert outcome == kernels.CONTACT_DONE
-        rows = [int(q) for q in st[0, kernels._C_ACTIVE : kernels._C_ACTIVE + 3] if q >= 0]
-        mu = st[0, kernels._C_MU : kernels._C_MU + len(rows)].tolist()
+        self.device[0] = device
+        assert self.kernel(*self.args) == kernels.CONTACT_DONE
+        row = st[0].tolist()
+        a = kernels._C_ACTIVE
+        rows = [int(q) for q in row[a : a + 3] if q >= 0]
+        mu = row[kernels._C_MU : kernels._C_MU + len(rows)]
         pl = self.planes
         active = [(int(pl[q, 4]), q - int(pl[q, 5])) for q in rows]
-        return Step(st[0, :3].copy(), active, mu, bool(self.touch[0]), o["normal"][0].copy())
+        return Step(st[0, :3].copy(), active, mu, bool(self.touch[0]), self.normal[0].copy())
 
     def walk(self, start: Sequence[float], devices: Sequence[Sequence[float]]) -> list[Step]:
         """Steps along ``devices`` from a proxy at ``start``."""

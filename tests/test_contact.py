@@ -229,7 +229,8 @@ def gram(ns, rhs) -> list[float]:
     state = np.zeros((1, kernels.CONTACT_STATE))
     state[0, kernels._C_ACTIVE : kernels._C_ACTIVE + k] = range(k)
     state[0, kernels._C_RHS : kernels._C_RHS + k] = rhs
-    kernels._gram_mu(planes, state, 0, k, kernels._C_ACTIVE)
+    # As the uncompiled kernel runs it: on memoryviews (Python floats, not numpy scalars).
+    kernels._gram_mu(kernels._items(planes), kernels._items(state), 0, k, kernels._C_ACTIVE)
     return state[0, kernels._C_MU : kernels._C_MU + k].tolist()
 
 
