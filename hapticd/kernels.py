@@ -876,6 +876,9 @@ def contact_step(
                     v = (planes[kk, 0] * p0 + planes[kk, 1] * p1 + planes[kk, 2] * p2) - (
                         planes[kk, 3] + r
                     )
+                    if v >= 0.0:  # outside (or on) this plane: not inside the obstacle
+                        best = v
+                        break
                     if v > best:
                         best = v
                         arg = kk - lo
@@ -1033,6 +1036,8 @@ def contact_step(
                     )
                     if v > dist:
                         dist = v
+                        if v > _FREE_TOL:  # off this obstacle: the rest cannot change that
+                            break
                 m = state[i, _C_MU + q]
                 if dist <= _FREE_TOL and m >= 0.0:
                     state[i, _C_ACTIVE + w] = qq
