@@ -56,7 +56,6 @@ FIELDS: tuple[FrameField, ...] = (
     FrameField("device_pos", "<f8", F3, "m", "device (fingertip centre) positions, world frame"),
     FrameField("device_vel", "<f8", F3, "m/s", "device velocities, world frame"),
     FrameField("proxy_pos", "<f8", F3, "m", "proxy (god-object) positions"),
-    FrameField("in_contact", "u1", ("F",), "", "finger in contact (0/1)"),
     FrameField("contact_force", "<f8", F3, "N", "full contact force lam_i on the finger"),
     FrameField(
         "rendered_force", "<f8", F3, "N", "finger i's rows of M_a lam_a, plus ground and walls"
@@ -82,21 +81,9 @@ FIELDS: tuple[FrameField, ...] = (
     FrameField("object_vel", "<f8", (3,), "m/s", "object velocity (0 for a fixed object)"),
     FrameField("object_omega", "<f8", (3,), "rad/s", "object angular velocity, world frame"),
     FrameField("object_rot", "<f8", (3, 3), "", "object orientation (columns: body axes in world)"),
-    FrameField("fault", "u1", (), "", "a safety fault is latched (0/1)"),
-    FrameField(
-        "control_seq",
-        "<u4",
-        (),
-        "",
-        "control changes applied so far: steps at the tick a change landed",
-    ),
     FrameField("stiffness_n_per_m", "<f8", (), "N/m", "the object's stiffness on this tick"),
     FrameField("mass_kg", "<f8", (), "kg", "the object's mass on this tick"),
-    FrameField(
-        "allocator", "u1", (), "", "index into meta.allocators of the allocator on this tick"
-    ),
     FrameField("tick", "<u8", (), "", "tick number from the run's start"),
-    FrameField("buttons", "<u4", ("F",), "", "each device's buttons, bit i for button i"),
     FrameField(
         "contact_point",
         "<f8",
@@ -126,6 +113,21 @@ FIELDS: tuple[FrameField, ...] = (
         "N s/m",
         "damping the passivity controller added along each finger's actuated directions; "
         "0 without the passivity stage",
+    ),
+    # The 4- and 1-byte fields after the 8-byte ones: every field stays aligned in the
+    # record (a compiled kernel takes an aligned array at its fast door).
+    FrameField(
+        "control_seq",
+        "<u4",
+        (),
+        "",
+        "control changes applied so far: steps at the tick a change landed",
+    ),
+    FrameField("buttons", "<u4", ("F",), "", "each device's buttons, bit i for button i"),
+    FrameField("in_contact", "u1", ("F",), "", "finger in contact (0/1)"),
+    FrameField("fault", "u1", (), "", "a safety fault is latched (0/1)"),
+    FrameField(
+        "allocator", "u1", (), "", "index into meta.allocators of the allocator on this tick"
     ),
     # Hand-offs within a tick, not recorded.
     FrameField("surface_point", "<f8", F3, "m", "fingertip centre held on the object", False),
@@ -290,6 +292,23 @@ def _dtype(fields: Sequence[tuple[FrameField, tuple[int, ...]]]) -> np.dtype:
     return np.dtype([(f.name, f.dtype, shape) for f, shape in fields])
 
 
+def _record_dtype(fields: Sequence[tuple[FrameField, tuple[int, ...]]]) -> np.dtype:
+    """The frame's record: the recorded fields packed (the recording's bytes), then the
+    others from the next multiple of 8 bytes, so that each field is aligned."""
+    names, formats, offsets = [], [], []
+    at = 0
+    recorded = True
+    for f, shape in fields:
+        if recorded and not f.recorded:
+            at = -(-at // 8) * 8
+            recorded = False
+        names.append(f.name)
+        formats.append((f.dtype, shape))
+        offsets.append(at)
+        at += np.dtype((f.dtype, shape)).itemsize
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": at})
+
+
 class Frame:
     """One tick's data for F fingers and r actuated directions (see ``FIELDS``).
 
@@ -302,7 +321,7 @@ class Frame:
         self.n_fingers = n_fingers
         self.n_actuators = n_actuators
         resolved = fields_for(n_fingers, n_actuators)
-        self.dtype = _dtype(resolved)
+        self.dtype = _record_dtype(resolved)
         self.recorded_dtype = _dtype([(f, s) for f, s in resolved if f.recorded])
         self.record = np.zeros((), dtype=self.dtype)
         for f, _ in resolved:

@@ -76,6 +76,12 @@ SIGNATURES = {
     ),
     "safety_step": "i8(f8[:, ::1], f8[:, ::1], f8[::1], f8[:, :, ::1])",
     "world_planes": "void(f8[:, ::1], f8[::1], f8[:, ::1], f8[::1], f8[:, ::1])",
+    "tick_step": (
+        "i8(f8[:, ::1], f8[:, ::1], u1[::1], f8[::1], f8[:, ::1], f8[::1], f8[:, ::1], f8[::1],"
+        + " f8[:, ::1]," * 13
+        + " f8[::1], f8[:, ::1], f8[::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[:, ::1],"
+        " f8[:, ::1], f8[:, ::1])"
+    ),
 }
 
 # Compiled kernels of this process, by name: a reload compiles nothing again.

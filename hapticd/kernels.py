@@ -355,6 +355,14 @@ KERNEL_HELPERS = (
     two_contact_residuals,
     "_gram_mu",
     "_hypot3",
+    # tick_step's stages: compiled into it, one call per tick
+    "world_planes",
+    "contact_step",
+    "friction_step",
+    "forces_step",
+    "allocation_step",
+    "free_body_step",
+    "_axes",
 )
 # The sources whose code or constants the kernels compile in: numba's cache knows only
 # this file's, so hapticd.jit keys its record of compiled kernels on all of them.
@@ -1308,3 +1316,194 @@ def world_planes(
         planes[i, 1] = n1
         planes[i, 2] = n2
         planes[i, 3] = body_offsets[i] + (n0 * x0 + n1 * x1 + n2 * x2)
+
+
+# tick_step's params: what the plan has (1.0 or 0.0: friction, a free object, surfaces, a
+# sum of contributions into rendered_force), the allocator's alpha, then the friction,
+# forces, allocation and free-body params at their offsets (each kernel's layout above)
+TICK_FRICTION, TICK_FREE, TICK_SURFACES, TICK_SUM, TICK_ALPHA = 0, 1, 2, 3, 4
+TICK_FRICTION_AT = 5
+TICK_FORCES_AT = TICK_FRICTION_AT + FRICTION_PARAMS
+TICK_ALLOCATION_AT = TICK_FORCES_AT + FORCES_PARAMS
+TICK_BODY_AT = TICK_ALLOCATION_AT + ALLOCATION_PARAMS
+TICK_PARAMS = TICK_BODY_AT + PARAMS
+# tick_step's outcomes: done; stopped before contact or before allocation, having written
+# what came before (the renderer runs that stage and the rest one by one); allocation
+# refused a non-finite input or produced a non-finite output (nothing after it written)
+TICK_DONE, TICK_FROM_CONTACT, TICK_FROM_ALLOCATION = 0, 1, 2
+TICK_NON_FINITE_INPUT, TICK_NON_FINITE_OUTPUT = 3, 4
+
+
+def tick_step(
+    device_pos: np.ndarray,
+    device_vel: np.ndarray,
+    in_contact: np.ndarray,
+    obj_state: np.ndarray,
+    obj_rot: np.ndarray,
+    obj_pos: np.ndarray,
+    body_normals: np.ndarray,
+    body_offsets: np.ndarray,
+    planes: np.ndarray,
+    contact_state: np.ndarray,
+    plain_proxy: np.ndarray,
+    plain_surface: np.ndarray,
+    plain_point: np.ndarray,
+    contact_normal: np.ndarray,
+    env_force: np.ndarray,
+    proxy_pos: np.ndarray,
+    surface_point: np.ndarray,
+    contact_point: np.ndarray,
+    anchors: np.ndarray,
+    contact_force: np.ndarray,
+    local: np.ndarray,
+    lam_a: np.ndarray,
+    allocated: np.ndarray,
+    scalars: np.ndarray,
+    env_rendered: np.ndarray,
+    rendered_force: np.ndarray,
+    object_fields: np.ndarray,
+    params: np.ndarray,
+    body: np.ndarray,
+    surf: np.ndarray,
+    scratch: np.ndarray,
+) -> int:
+    """One whole tick of the renderer's plan in one call: the object's planes at its pose,
+    contact, friction, the contact forces, allocation, the environment's force through each
+    finger's actuated direction, their sum, the free object's step and the scene's state,
+    each by its kernel above (the stages' physics; hapticd.render.Renderer's plan says which
+    run and with which of the frame's fields).
+
+    The frame's fields: ``device_pos``, ``device_vel`` (F, 3) m, m/s; ``in_contact`` (F,)
+    u1; contact's results ``plain_proxy``, ``plain_surface``, ``plain_point`` (the
+    frictionless ones with friction, else the same arrays as ``proxy_pos``,
+    ``surface_point``, ``contact_point``); ``contact_normal``, ``env_force`` N,
+    ``contact_force`` N, ``lam_a`` (F,) N, ``allocated`` (F, 3) N (``allocated_force``
+    with a sum, else ``rendered_force``), ``scalars`` (5,): residual_internal,
+    residual_external, residual_total, amplification and alpha; ``env_rendered``,
+    ``rendered_force`` (F, 3) N; ``object_fields`` (STATE,): object_pos to object_rot.
+    The object's ``obj_state`` (STATE,) with its views ``obj_rot`` (3, 3) and ``obj_pos``
+    (3,), its shape's ``body_normals`` (M, 3) and ``body_offsets`` (M,) m; contact's
+    ``planes`` and ``contact_state``; friction's ``anchors``; allocation's ``local``;
+    ``params`` (TICK_PARAMS,) as declared above; the free body's ``body``, ``surf`` and
+    ``scratch``. Returns a TICK_ outcome.
+    """
+    world_planes(obj_rot, obj_pos, body_normals, body_offsets, planes)
+    if (
+        contact_step(
+            device_pos,
+            device_vel,
+            planes,
+            contact_state,
+            plain_proxy,
+            in_contact,
+            plain_surface,
+            plain_point,
+            contact_normal,
+            env_force,
+        )
+        != CONTACT_DONE
+    ):
+        return TICK_FROM_CONTACT
+    if params[TICK_FRICTION] != 0.0:
+        friction_step(
+            in_contact,
+            device_pos,
+            plain_surface,
+            plain_proxy,
+            plain_point,
+            surface_point,
+            contact_normal,
+            proxy_pos,
+            contact_point,
+            anchors,
+            obj_state,
+            params[TICK_FRICTION_AT:TICK_FORCES_AT],
+        )
+    forces_step(
+        in_contact,
+        device_pos,
+        device_vel,
+        surface_point,
+        contact_normal,
+        contact_force,
+        obj_state,
+        params[TICK_FORCES_AT:TICK_ALLOCATION_AT],
+    )
+    at = TICK_ALLOCATION_AT
+    params[at + 5], params[at + 6], params[at + 7] = obj_state[0], obj_state[1], obj_state[2]
+    outcome = allocation_step(
+        in_contact,
+        device_pos,
+        contact_point,
+        contact_force,
+        local,
+        params[at:TICK_BODY_AT],
+        lam_a,
+        allocated,
+        scalars,
+    )
+    if outcome == MANY_CONTACTS:
+        return TICK_FROM_ALLOCATION
+    if outcome == NON_FINITE_INPUT:
+        return TICK_NON_FINITE_INPUT
+    if outcome == NON_FINITE_OUTPUT:
+        return TICK_NON_FINITE_OUTPUT
+    scalars[ACCURACY] = params[TICK_ALPHA]
+    n_fingers = in_contact.shape[0]
+    if params[TICK_SURFACES] != 0.0:
+        # Each finger's own actuated direction d in the world: env_force projected on it.
+        grasp = params[at + 4] != 0.0
+        ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, grasp)
+        for i in range(n_fingers):
+            e0, e1, e2 = env_force[i, 0], env_force[i, 1], env_force[i, 2]
+            if e0 == 0.0 and e1 == 0.0 and e2 == 0.0:
+                env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = 0.0, 0.0, 0.0
+                continue
+            p0, p1, p2 = local[i, 0], local[i, 1], local[i, 2]
+            d0 = ax0 * p0 + ay0 * p1 + az0 * p2
+            d1 = ax1 * p0 + ay1 * p1 + az1 * p2
+            d2 = ax2 * p0 + ay2 * p1 + az2 * p2
+            s = (d0 * e0 + d1 * e1 + d2 * e2) / (d0 * d0 + d1 * d1 + d2 * d2)
+            env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = s * d0, s * d1, s * d2
+    if params[TICK_SUM] != 0.0:
+        for i in range(n_fingers):
+            for j in range(3):
+                rendered_force[i, j] = allocated[i, j] + env_rendered[i, j]
+    if params[TICK_FREE] != 0.0:
+        free_body_step(
+            in_contact,
+            contact_point,
+            contact_force,
+            contact_normal,
+            params[TICK_BODY_AT:TICK_PARAMS],
+            obj_state,
+            body,
+            surf,
+            scratch,
+        )
+    for k in range(STATE):
+        object_fields[k] = obj_state[k]
+    return TICK_DONE
+
+
+def _axes(device_pos: np.ndarray, grasp: bool) -> tuple[float, ...]:
+    """The actuation frame's axes x, y, z in the world (9 floats): the world's, or the grasp
+    frame of fingers 0 and 1 (hapticd.actuation.grasp_axes)."""
+    if not grasp:
+        return 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
+    ax0, ax1, ax2 = 1.0, 0.0, 0.0
+    ex = device_pos[1, 0] - device_pos[0, 0]
+    ey = device_pos[1, 1] - device_pos[0, 1]
+    ez = device_pos[1, 2] - device_pos[0, 2]
+    nx = math.sqrt(ex * ex + ey * ey + ez * ez)
+    if nx > 1e-9:
+        ax0, ax1, ax2 = ex / nx, ey / nx, ez / nx
+    f0, f1, f2 = (0.0, 0.0, 1.0) if abs(ax2) < 1.0 - 1e-6 else (1.0, 0.0, 0.0)
+    c = f0 * ax0 + f1 * ax1 + f2 * ax2
+    az0, az1, az2 = f0 - c * ax0, f1 - c * ax1, f2 - c * ax2
+    nz = math.sqrt(az0 * az0 + az1 * az1 + az2 * az2)
+    az0, az1, az2 = az0 / nz, az1 / nz, az2 / nz
+    ay0 = az1 * ax2 - az2 * ax1
+    ay1 = az2 * ax0 - az0 * ax2
+    ay2 = az0 * ax1 - az1 * ax0
+    return ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2

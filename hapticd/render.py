@@ -21,9 +21,11 @@ from typing import Any
 
 import numpy as np
 
+from hapticd import kernels as kn
 from hapticd.actuation import Actuation
 from hapticd.allocation import DEFAULT_ROBUSTNESS, METHODS, AdaptiveState, Robustness
 from hapticd.allocation.contacts import ContactAllocator
+from hapticd.allocation.robust import AllocationError
 from hapticd.frame import LOOP_WRITERS, NAMES, STATE_WRITERS, Frame
 from hapticd.params import PARAMS, ParamError
 from hapticd.passivity import PassivityParams
@@ -41,6 +43,7 @@ from hapticd.stages import (
     Passivity,
     SceneState,
     Stage,
+    adjacent,
 )
 
 
@@ -186,6 +189,7 @@ class Renderer:
             stages.insert(names.index(after) + 1, stage)
         self.writers = check_plan(stages)
         self.stages: list[Stage] = stages
+        self.one_call = OneCall.of(self)
 
     @property
     def kernel_names(self) -> list[str]:
@@ -206,6 +210,8 @@ class Renderer:
         names.append("forces_step")
         if not obj.fixed:
             names.append("world_planes")
+        if "allocation_step" in names:
+            names.append("tick_step")
         return names
 
     def use_kernels(self, kernels: dict[str, Callable[..., None]]) -> None:
@@ -255,7 +261,11 @@ class Renderer:
     # -- the tick -------------------------------------------------------------------------
 
     def run(self, frame: Frame) -> None:
-        """One tick on ``frame``, whose device_pos (F, 3) m and device_vel (F, 3) m/s are set."""
+        """One tick on ``frame``, whose device_pos (F, 3) m and device_vel (F, 3) m/s are set:
+        the plan in one call (``OneCall``) when it can, else stage by stage."""
+        if self.one_call is not None:
+            self.one_call.run(frame)
+            return
         for stage in self.stages:
             stage.run(frame)
 
@@ -297,6 +307,164 @@ class Renderer:
         """
         _SETTERS[_own(name)](self, value)
         self.plan()
+
+
+# allocation_step's accuracy and the allocator's alpha: adjacent in the frame's record
+_ACCURACY_AND_ALPHA = (
+    "residual_internal",
+    "residual_external",
+    "residual_total",
+    "amplification",
+    "alpha",
+)
+
+
+class OneCall:
+    """The renderer's plan as one call per tick: hapticd.kernels.tick_step, compiled or (with
+    ``rendering.kernels=python``) the same function uncompiled, over the frame's fields
+    and the stages' carried state (their own arrays: the proxies, the anchors, the object's
+    state). ``of(renderer)`` makes one for a plan it can take: contact, friction, the
+    forces, allocation by a kernel method with one direction per finger, the environment,
+    their sum, the free object's step and the scene's state; not a plan with passivity,
+    an inserted stage or another output. A tick the kernel stops early (more than two
+    contacts; a non-finite input to contact, which the contact stage then refuses by name)
+    runs the rest stage by stage."""
+
+    def __init__(self, renderer: Renderer, fn: Callable[..., int]) -> None:
+        self.renderer = renderer
+        self._fn = fn
+        self._frame: Frame | None = None
+        self._args: tuple[np.ndarray, ...] = ()
+        self._scene = renderer.scene
+        self._obj: SceneObject | None = None
+        self._material: Material | None = None
+        self._free = False
+        self._started = False
+        self._params = np.zeros(kn.TICK_PARAMS)
+
+    @classmethod
+    def of(cls, r: Renderer) -> OneCall | None:
+        names = [s.name for s in r.stages]
+        if r._inserted or r._output is not None or "passivity" in names:
+            return None
+        if r._allocation.kernel_inputs() is None:
+            return None
+        fn = r.kernels.get("tick_step")
+        if fn is None:
+            return None
+        one = cls(r, fn)
+        return one if one._bind(r.frame) else None
+
+    def _bind(self, frame: Frame) -> bool:
+        """Make the call's arguments for ``frame`` (False: a case the kernel cannot take)."""
+        r = self.renderer
+        sc = r.scene
+        obj = sc.object
+        contact = r._contact
+        planes = contact._kernel_planes()
+        inputs = r._allocation.kernel_inputs()
+        if inputs is None:
+            return False
+        local, alloc_params = inputs
+        names = {s.name: s for s in r.stages}
+        friction = "friction" in names
+        free = "dynamics" in names
+        total = "output" in names
+        mat = obj.material
+        p = self._params
+        p[:] = 0.0
+        p[kn.TICK_FRICTION] = float(friction)
+        p[kn.TICK_FREE] = float(free)
+        p[kn.TICK_SURFACES] = float(bool(sc.surfaces))
+        p[kn.TICK_SUM] = float(total)
+        p[kn.TICK_ALPHA] = r.allocator.alpha
+        p[kn.TICK_FRICTION_AT : kn.TICK_FORCES_AT] = (mat.mu_static, mat.mu_dynamic)
+        p[kn.TICK_FORCES_AT : kn.TICK_ALLOCATION_AT] = (
+            mat.stiffness,
+            mat.damping,
+            0.0 if obj.fixed else 1.0,
+        )
+        p[kn.TICK_ALLOCATION_AT : kn.TICK_BODY_AT] = alloc_params
+        n = r.n_fingers
+        if free:
+            body_params, body, surf, scratch = names["dynamics"].arrays()
+            p[kn.TICK_BODY_AT :] = body_params
+        else:
+            body, surf, scratch = np.zeros((1, 3)), np.zeros((0, 7)), np.zeros((n, 13))
+        plain = ("frictionless_proxy", "frictionless_point", "frictionless_contact_point")
+        held = ("proxy_pos", "surface_point", "contact_point")
+        f = frame
+        self._args = (
+            f.device_pos,
+            f.device_vel,
+            f.in_contact,
+            obj.state,
+            obj.rotation,
+            obj.position,
+            np.ascontiguousarray(obj.shape.normals, dtype=float),
+            np.ascontiguousarray(obj.shape.offsets, dtype=float),
+            planes,
+            contact.state,
+            *(getattr(f, name) for name in (plain if friction else held)),
+            f.contact_normal,
+            f.env_force,
+            *(getattr(f, name) for name in held),
+            r._friction.anchors,
+            f.contact_force,
+            local,
+            f.lam_a,
+            f.allocated_force if total else f.rendered_force,
+            adjacent(f, _ACCURACY_AND_ALPHA),
+            f.env_rendered,
+            f.rendered_force,
+            adjacent(f, ("object_pos", "object_vel", "object_omega", "object_rot")),
+            p,
+            body,
+            surf,
+            scratch,
+        )
+        frame.stiffness_n_per_m[()] = mat.stiffness
+        frame.mass_kg[()] = obj.mass
+        frame.allocator[()] = METHODS.index(r.allocator.method)
+        self._frame = frame
+        self._obj, self._material = obj, mat
+        self._free = free
+        return True
+
+    def run(self, frame: Frame) -> None:
+        # Set without a new plan (set_param plans anew): the object, or its material (an
+        # analysis replaying a recording's stiffness tick by tick).
+        obj = self._scene.object
+        if (
+            frame is not self._frame or obj is not self._obj or obj.material is not self._material
+        ) and not self._bind(frame):
+            self._by_stages(frame, 0)
+            return
+        if not self._started:  # every proxy starts at its device, on the first tick run
+            self.renderer._contact.start(frame)
+            self._started = True
+        outcome = self._fn(*self._args)
+        if outcome == kn.TICK_DONE:
+            if self._free:
+                obj.update_world()
+            return
+        if outcome == kn.TICK_NON_FINITE_INPUT:
+            raise AllocationError("non-finite contact geometry or force; refusing to allocate")
+        if outcome == kn.TICK_NON_FINITE_OUTPUT:
+            method = self.renderer.allocator.method
+            raise AllocationError(f"allocator {method!r} produced a non-finite force")
+        names = [s.name for s in self.renderer.stages]
+        start = "contact" if outcome == kn.TICK_FROM_CONTACT else "allocation"
+        self._by_stages(frame, names.index(start))
+
+    def _by_stages(self, frame: Frame, first: int) -> None:
+        """The plan's stages from ``first`` on, one by one, after ticks this call wrote."""
+        r = self.renderer
+        r._friction.holding = True  # an anchor may be set: cleared out of contact
+        for stage in r.stages[first:]:
+            if isinstance(stage, Environment):
+                stage.zero_on = None
+            stage.run(frame)
 
 
 def _own(name: str) -> str:

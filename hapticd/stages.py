@@ -141,9 +141,14 @@ class Contact:
     def writes(self) -> tuple[str, ...]:
         return ("in_contact", "contact_normal", "env_force", *self.outputs)
 
-    def run(self, frame: Frame) -> None:
+    def start(self, frame: Frame) -> None:
+        """Until a tick with finite device positions: every proxy starts at its device."""
         if not self._started:
             self._proxies[...] = frame.device_pos
+            self._started = bool(np.all(np.isfinite(self._proxies)))
+
+    def run(self, frame: Frame) -> None:
+        self.start(frame)
         planes = self._kernel_planes()
         out_proxy, out_surface, out_point = self._out.of(frame, self.outputs)
         outcome = self._kernel(
@@ -160,7 +165,6 @@ class Contact:
         )
         if outcome != kernels.CONTACT_DONE:
             raise ValueError(self._non_finite(frame, planes))
-        self._started = True
 
     def _non_finite(self, frame: Frame, planes: np.ndarray) -> str:
         """What the kernel refused: the first non-finite input, named."""
@@ -455,19 +459,20 @@ class Allocation:
             rows[i] = (f[0], f[1], f[2])
         out[...] = rows
 
-    def _run_kernel(self, frame: Frame) -> bool:
-        """The same allocation as ``run`` by the kernel, on the frame's arrays; False (and
-        nothing written) for a case the kernel does not take (``run`` then takes it)."""
+    def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """allocation_step's ``local`` directions (F, 3) and ``params`` for the allocator as
+        it is now (the object's position in params[5:8] is the caller's), or None when the
+        kernel does not take it (a method it has not, or not one direction per finger)."""
         alloc = self.allocator
         act = alloc.actuation
         method = alloc.method
         if method not in kernels.ALLOCATION_METHODS:
-            return False
+            return None
         params = self._params
         made_for = self._local_for
         if made_for is None or made_for[0] is not act or made_for[1] is not alloc.robust:
             if any(c != 1 for c in act.counts):
-                return False
+                return None
             self._local = np.array([ds[0] for ds in act.local], dtype=float).reshape(-1, 3)
             rb = alloc.robust
             params[1:5] = (
@@ -478,6 +483,17 @@ class Allocation:
             )
             self._local_for = (act, rb)
         params[0] = kernels.ALLOCATION_METHODS.index(method)
+        return self._local, params  # type: ignore[return-value]
+
+    def _run_kernel(self, frame: Frame) -> bool:
+        """The same allocation as ``run`` by the kernel, on the frame's arrays; False (and
+        nothing written) for a case the kernel does not take (``run`` then takes it)."""
+        inputs = self.kernel_inputs()
+        if inputs is None:
+            return False
+        alloc = self.allocator
+        method = alloc.method
+        params = inputs[1]
         params[5:8] = self.scene.object.position
         acc = self._accuracy
         outcome = self.kernel(  # type: ignore[misc]
@@ -485,7 +501,7 @@ class Allocation:
             frame.device_pos,
             frame.contact_point,
             frame.contact_force,
-            self._local,
+            inputs[0],
             params,
             frame.lam_a,
             self._out.of(frame, self._output)[0],
@@ -702,18 +718,24 @@ class Dynamics:
             ["surfaces"] if self.scene.surfaces else []
         )
 
-    def run(self, frame: Frame) -> None:
-        """The step on the frame's arrays and the object's ``state`` (its position,
-        velocity, omega and rotation are views of it)."""
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """free_body_step's params, body, surfaces and scratch for the object as it is now
+        (its shape, mass and material)."""
         obj = self.scene.object
         arr = self._arrays
         if arr is None or not arr.fits(obj):
             arr = self._arrays = _BodyArrays(obj, self.scene.surfaces, self.dt, self.substeps)
             arr.params[6:9] = self._gravity
         mat = obj.material
-        params = arr.params
-        params[0] = mat.stiffness
-        params[1] = mat.torsion
+        arr.params[0] = mat.stiffness
+        arr.params[1] = mat.torsion
+        return arr.params, arr.body, arr.surf, self._scratch
+
+    def run(self, frame: Frame) -> None:
+        """The step on the frame's arrays and the object's ``state`` (its position,
+        velocity, omega and rotation are views of it)."""
+        obj = self.scene.object
+        params, body, surf, scratch = self.arrays()
         self._kernel(
             frame.in_contact,
             frame.contact_point,
@@ -721,9 +743,9 @@ class Dynamics:
             frame.contact_normal,
             params,
             obj.state,
-            arr.body,
-            arr.surf,
-            self._scratch,
+            body,
+            surf,
+            scratch,
         )
         obj.update_world()
 
@@ -798,9 +820,17 @@ class SceneState:
 def _object_fields(frame: Frame) -> np.ndarray:
     """The frame's object_pos, object_vel, object_omega and object_rot as one (18,) float
     view, in SceneObject.state's order (they are adjacent in the record)."""
+    return adjacent(frame, ("object_pos", "object_vel", "object_omega", "object_rot"))
+
+
+def adjacent(frame: Frame, names: tuple[str, ...]) -> np.ndarray:
+    """The frame's float64 fields ``names``, adjacent in the record in this order, as one
+    flat view (RuntimeError if they are not)."""
     fields = frame.dtype.fields
-    start = fields["object_pos"][1]
-    if fields["object_rot"][1] != start + 9 * 8:
-        raise RuntimeError("frame fields: object_pos, _vel, _omega and _rot must be adjacent")
-    raw = frame.record.reshape(1).view(np.uint8)[start : start + 18 * 8]
+    start = at = fields[names[0]][1]
+    for name in names:
+        if fields[name][1] != at or fields[name][0].base != np.float64:
+            raise RuntimeError(f"frame fields: {', '.join(names)} must be adjacent float64")
+        at += fields[name][0].itemsize
+    raw = frame.record.reshape(1).view(np.uint8)[start:at]
     return raw.view("<f8")

@@ -42,6 +42,7 @@ LIFT_KERNELS = (
     "friction_step",
     "forces_step",
     "world_planes",
+    "tick_step",
 )
 
 
@@ -116,6 +117,7 @@ def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked(compiled)
     for name, kernel in STAGE_KERNELS.items():
         assert stages[name].kernel is s.renderer.kernels[kernel], name
     assert stages["contact"].planes_kernel is not None
+    assert s.renderer.one_call is not None  # the plan in one call
     s.run()
     s = build_session(
         load_profile(LIFT, ["rendering.kernels=python"]), paced=False, duration_s=0.01

@@ -1,0 +1,178 @@
+"""The renderer's plan as one call per tick (hapticd.render.OneCall, hapticd.kernels.tick_step)
+against the same plan stage by stage: the same frame, tick after tick, for the bundled
+profiles' scenes, a free object pushed onto the ground, three fingers (whose ticks with
+three contacts the call hands back to the stages) and a material set between ticks.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from hapticd import jit
+from hapticd.actuation import Actuation
+from hapticd.allocation.robust import AllocationError
+from hapticd.build import build_renderer, load_trajectories
+from hapticd.frame import FIELDS
+from hapticd.profile import load_profile
+from hapticd.render import OneCall, Renderer
+from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
+from tests.conftest import ROOT
+
+COMPARED = [f.name for f in FIELDS if f.name not in ("t", "t_wall", "compute_s", "tick")]
+
+
+@pytest.fixture(scope="module")
+def compiled():
+    """Every kernel the renderers below name, compiled (loaded from the run's cache)."""
+    return jit.compile_kernels(list(jit.SIGNATURES))
+
+
+def _staged(r: Renderer, monkeypatch: pytest.MonkeyPatch) -> Renderer:
+    """``r``'s plan stage by stage (no one call)."""
+    with monkeypatch.context() as m:
+        m.setattr(OneCall, "of", classmethod(lambda cls, renderer: None))
+        r.plan()
+    assert r.one_call is None
+    return r
+
+
+def _pair(make, kernels, monkeypatch):
+    one, staged = make(), make()
+    one.use_kernels(kernels)
+    staged.use_kernels(kernels)
+    assert one.one_call is not None
+    return one, _staged(staged, monkeypatch)
+
+
+def _same(
+    one: Renderer, staged: Renderer, pos: np.ndarray, vel: np.ndarray, k: int, skip=()
+) -> None:
+    a = one.step(pos, vel)
+    b = staged.step(pos, vel)
+    for name in (n for n in COMPARED if n not in skip):
+        np.testing.assert_allclose(
+            a.get(name), b.get(name), rtol=0, atol=1e-12, err_msg=f"{name} at tick {k}"
+        )
+
+
+@pytest.mark.parametrize("profile", ["lift-weight", "grasp-stiffness"])
+def test_the_bundled_profiles_render_the_same_in_one_call(profile, compiled, monkeypatch):
+    prof = load_profile(ROOT / "configs" / f"{profile}.yaml")
+    kernels = {n: compiled[n] for n in build_renderer(prof).kernel_names}
+    assert "tick_step" in kernels
+    one, staged = _pair(lambda: build_renderer(prof), kernels, monkeypatch)
+    paths = [p for p in load_trajectories(prof) if p is not None]
+    times, pos = paths[0][0], np.stack([p[1] for p in paths], axis=1)
+    dt = float(times[1] - times[0])
+    touched = 0
+    for k in range(0, len(times) - 1, 3):
+        vel = (pos[k + 1] - pos[k]) / dt
+        _same(one, staged, pos[k], vel, k)
+        touched += bool(one.frame.in_contact.any())
+    assert touched > 20  # the comparison saw contact, not only free air
+
+
+def _box(fixed: bool) -> SceneObject:
+    return SceneObject(
+        ConvexShape.box(np.array([0.04, 0.04, 0.04])),
+        Material(400.0, 2.0, 0.6, 0.4, 0.002),
+        np.array([0.0, 0.0, 0.02]),
+        np.eye(3),
+        fixed=fixed,
+        mass=0.2,
+    )
+
+
+def _scene(fixed: bool) -> Scene:
+    ground = Surface("ground", (0.0, 0.0, 1.0), 0.0, Material(2000.0, 5.0, 0.5, 0.4))
+    return Scene(_box(fixed), [ground], np.array([0.0, 0.0, -9.81]), substeps=2)
+
+
+def _squeeze(n_fingers: int, ticks: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Fingers around the box pressing in and lifting, then one pushing into the ground."""
+    angles = np.linspace(0.0, 2 * np.pi, n_fingers, endpoint=False)
+    out = []
+    for k in range(ticks):
+        s = min(1.0, k / (ticks / 2))
+        r = 0.035 - 0.01 * s
+        pos = np.stack(
+            [r * np.cos(angles), r * np.sin(angles), np.full(n_fingers, 0.02 + 0.01 * s)], axis=1
+        )
+        if k > ticks * 3 // 4:
+            pos[0] = (0.1, 0.0, -0.002)  # into the ground, away from the box
+        out.append((pos, np.full((n_fingers, 3), 0.01)))
+    return out
+
+
+@pytest.mark.parametrize("n_fingers", [2, 3])
+@pytest.mark.parametrize("fixed", [True, False])
+def test_a_grasp_on_the_ground_renders_the_same_in_one_call(
+    n_fingers, fixed, compiled, monkeypatch
+):
+    """Friction, the ground's force through the actuated directions and their sum, the free
+    body's step; with three fingers the ticks with three contacts are the stages' (the
+    call hands them back at allocation) and the call takes the next tick again."""
+    directions = [[(0.6, 0.0, 0.8)], [(0.0, 1.0, 0.0)], [(0.0, 0.6, 0.8)]][:n_fingers]
+
+    def make() -> Renderer:
+        act = Actuation(copy.deepcopy(directions), "world")
+        return Renderer(_scene(fixed), [0.008] * n_fingers, act, "if", dt=1e-3)
+
+    names = make().kernel_names
+    one, staged = _pair(make, {n: compiled[n] for n in names}, monkeypatch)
+    assert "output" in one.stage_names and ("dynamics" in one.stage_names) is not fixed
+    contacts = set()
+    for k, (pos, vel) in enumerate(_squeeze(n_fingers, 240)):
+        _same(one, staged, pos, vel, k)
+        contacts.add(int(one.frame.in_contact.sum()))
+        assert np.isfinite(one.frame.rendered_force).all()
+    assert max(contacts) == n_fingers and 0 in contacts
+    assert one.one_call is not None
+
+
+def test_a_material_set_between_ticks_is_the_next_ticks(compiled, monkeypatch):
+    """An analysis sets the object's material tick by tick without a new plan."""
+    act = Actuation([[(1.0, 0.0, 0.0)], [(-1.0, 0.0, 0.0)]], "world")
+
+    def make() -> Renderer:
+        return Renderer(_box(True), [0.008, 0.008], act, "pinv", dt=1e-3)
+
+    one, staged = _pair(make, {n: compiled[n] for n in make().kernel_names}, monkeypatch)
+    pos = np.array([[-0.025, 0.0, 0.02], [0.025, 0.0, 0.02]])
+    vel = np.zeros((2, 3))
+    _same(one, staged, pos, vel, 0)
+    before = one.frame.rendered_force.copy()
+    for r in (one, staged):
+        r.obj.material = Material(800.0, 2.0, 0.6, 0.4, 0.002)
+    # The stages publish the stiffness once per plan; the call, on every tick it changed.
+    _same(one, staged, pos, vel, 1, skip=("stiffness_n_per_m",))
+    np.testing.assert_allclose(one.frame.rendered_force, 2 * before, rtol=1e-9)
+    assert float(one.frame.stiffness_n_per_m) == 800.0
+
+
+def test_a_non_finite_contact_force_is_refused_with_the_stages_message(compiled):
+    act = Actuation([[(1.0, 0.0, 0.0)], [(-1.0, 0.0, 0.0)]], "world")
+    r = Renderer(_box(True), [0.008, 0.008], act, "if", dt=1e-3)
+    r.use_kernels({n: compiled[n] for n in r.kernel_names})
+    r.obj.material = Material(float("inf"))
+    pos = np.array([[-0.025, 0.0, 0.02], [0.025, 0.0, 0.02]])
+    with pytest.raises(AllocationError, match="non-finite contact geometry or force"):
+        r.step(pos, np.zeros((2, 3)))
+
+
+def test_plans_the_call_cannot_take_run_stage_by_stage(compiled):
+    act = Actuation([[(1.0, 0.0, 0.0), (0.0, 1.0, 0.0)], [(-1.0, 0.0, 0.0)]], "world")
+    two_directions = Renderer(_box(True), [0.008, 0.008], act, "if", dt=1e-3)
+    two_directions.use_kernels({n: compiled[n] for n in two_directions.kernel_names})
+    assert "tick_step" not in two_directions.kernel_names and two_directions.one_call is None
+    act = Actuation([[(1.0, 0.0, 0.0)], [(-1.0, 0.0, 0.0)]], "world")
+    r = Renderer(_box(True), [0.008, 0.008], act, "if", dt=1e-3)
+    r.use_kernels({n: compiled[n] for n in r.kernel_names})
+    assert r.one_call is not None
+    r.set_param("allocator", "adaptive")  # no kernel of it
+    assert r.one_call is None
+    r.set_param("allocator", "ef")
+    assert r.one_call is not None
