@@ -2,8 +2,9 @@
 uncompiled, through the Contact stage: the same bits in every output field and in the
 proxies, tick after tick, for generated boxes (turned, moving between ticks), grounds and
 walls, fingers inside, outside, at edges and corners, fast ones and first ticks; a large
-mesh; a non-finite input refused by name with nothing written; hostile device positions
-end in zero force and a latched fault."""
+mesh (stage by stage and in the renderer's one call); a non-finite input refused by name
+with nothing written (in the one call too); hostile device positions end in zero force
+and a latched fault."""
 
 from __future__ import annotations
 
@@ -16,9 +17,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hapticd import jit, kernels
+from hapticd.actuation import Actuation
 from hapticd.daemon.session import build_session
 from hapticd.frame import Frame
 from hapticd.profile import load_profile
+from hapticd.render import Renderer
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
 from hapticd.stages import Contact
 from tests.conftest import ROOT
@@ -366,3 +369,75 @@ def test_hostile_positions_past_the_device_bank_fault_alike_both_ways(compiled, 
     if not math.isfinite(value):
         assert "contact: finger 0's device_pos is not finite" in summary["fault"]["cause"]
         assert np.all(forces[-n:] == 0.0)
+
+
+def _one_call_renderer(shape: ConvexShape, calls: list | None = None) -> Renderer:
+    """A fixed frictionless object of ``shape`` on the ground, two fingers, IF, every kernel
+    compiled: the plan runs as one call (hapticd.render.OneCall), counted in ``calls``."""
+    obj = SceneObject(shape, Material(500.0), np.zeros(3), np.eye(3))
+    ground = Surface("ground", (0.0, 0.0, 1.0), -0.03, Material(1000.0, 5.0))
+    r = Renderer(Scene(obj, [ground], None), [0.008] * 2, Actuation([[(1.0, 0, 0)]] * 2), "if")
+    fns = jit.compile_kernels(r.kernel_names)
+    if calls is not None:
+        tick = fns["tick_step"]
+
+        def counted(*args):
+            outcome = tick(*args)
+            calls.append(outcome)
+            return outcome
+
+        fns["tick_step"] = counted
+    r.use_kernels(fns)
+    assert r.one_call is not None
+    return r
+
+
+def test_the_one_call_refuses_a_non_finite_sample_by_name_and_goes_on():
+    r = _one_call_renderer(ConvexShape.box(np.full(3, 0.05)))
+    ref = _one_call_renderer(ConvexShape.box(np.full(3, 0.05)))
+    pos = np.array([[-0.03, 0.0, 0.0], [0.03, 0.0, 0.0]])
+    for x in (pos * 2.0, pos):
+        r.step(x, np.zeros((2, 3)))
+        ref.step(x, np.zeros((2, 3)))
+    bad = pos.copy()
+    bad[1, 2] = math.nan
+    with pytest.raises(ValueError, match=r"^contact: finger 1's device_pos is not finite"):
+        r.step(bad, np.zeros((2, 3)))
+    a = r.step(pos * 0.99, np.zeros((2, 3)))
+    b = ref.step(pos * 0.99, np.zeros((2, 3)))
+    for name in (*OUTPUTS, "contact_force", "rendered_force"):
+        np.testing.assert_array_equal(a.get(name), b.get(name), err_msg=name)
+    assert np.all(a.in_contact == 1)
+
+
+def test_a_large_mesh_runs_in_the_one_call():
+    """A 1000-sided prism (any number of planes): in one call, tick after tick, the same
+    forces as the plan stage by stage."""
+    k = 1000
+    angles = np.linspace(0.0, 2.0 * np.pi, k, endpoint=False)
+    normals = np.stack([np.cos(angles), np.sin(angles), np.zeros(k)], axis=1)
+    prism = dataclasses.replace(
+        ConvexShape.box(np.full(3, 0.05)), normals=normals, offsets=np.full(k, 0.02)
+    )
+    calls: list[int] = []
+    one = _one_call_renderer(prism, calls)
+    staged = _one_call_renderer(prism)
+    staged.insert(Nothing(), after="scene")  # a plan with an inserted stage: one by one
+    assert staged.one_call is None
+    for s in np.linspace(0.0, 1.0, 20):
+        x = np.array([[-0.03 + 0.01 * s, 0.003 * s, 0.0], [0.03 - 0.01 * s, 0.0, -0.002 * s]])
+        a, b = one.step(x, np.zeros((2, 3))), staged.step(x, np.zeros((2, 3)))
+        for name in (*OUTPUTS, "contact_force", "rendered_force"):
+            np.testing.assert_array_equal(a.get(name), b.get(name), err_msg=name)
+    assert calls == [kernels.TICK_DONE] * 20 and np.all(a.in_contact == 1)
+
+
+class Nothing:
+    """A stage that reads and writes nothing."""
+
+    name = "nothing"
+    reads: tuple[str, ...] = ()
+    writes: tuple[str, ...] = ()
+
+    def run(self, frame: Frame) -> None:
+        pass
