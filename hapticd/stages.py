@@ -178,7 +178,9 @@ class Contact:
                 if not np.all(np.isfinite(row)):
                     return f"contact: finger {i}'s {name} is not finite ({row.tolist()})"
         bad = np.flatnonzero(~np.all(np.isfinite(planes[:, :4]), axis=1))
-        j = int(planes[bad[0], 4]) if len(bad) else 0
+        if not len(bad):
+            return "contact: the kernel refused the tick with no input non-finite"
+        j = int(planes[bad[0], 4])
         what = "the object" if j == 0 else f"surface {self.scene.surfaces[j - 1].name!r}"
         return f"contact: a plane of {what} is not finite (its pose or offset)"
 

@@ -251,6 +251,15 @@ def test_a_non_finite_input_is_refused_by_name_with_nothing_written(
         np.testing.assert_array_equal(getattr(frame, name), getattr(rframe, name))
 
 
+@pytest.mark.parametrize("mode", ["compiled", "uncompiled"])
+def test_a_non_finite_surface_is_named(compiled, mode):
+    obj = SceneObject(ConvexShape.box(np.full(3, 0.05)), Material(500.0), np.zeros(3), np.eye(3))
+    wall = Surface("wall", (1.0, 0.0, 0.0), math.inf, Material(1000.0))
+    stage = Contact(Scene(obj, [wall], None), [0.008], compiled if mode == "compiled" else None)
+    with pytest.raises(ValueError, match=r"^contact: a plane of surface 'wall' is not finite"):
+        stage.run(Frame(1, 1))
+
+
 def test_a_non_finite_first_tick_starts_the_proxies_at_the_next_one(compiled):
     stage, _ = _edge_case(compiled, [])
     frame = Frame(1, 1)
