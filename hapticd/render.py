@@ -197,7 +197,7 @@ class Renderer:
         """The kernels (names in hapticd.kernels) this scene's stages can use: the free-body
         step when the object is free; the allocation with one actuated direction per finger
         (the number of directions stays fixed while the renderer lives); the contact (every
-        scene: the stage runs the Python code for what the kernel does not take); friction
+        scene); friction
         when the object's material has it (friction turned on later, by ``set_param``, runs
         its kernel uncompiled); the contact forces always; a free object's planes in the world
         (for the contact kernel, from its pose each tick)."""
@@ -323,7 +323,8 @@ class OneCall:
     forces, allocation by a kernel method with one direction per finger, the environment,
     their sum, the free object's step and the scene's state; not a plan with passivity,
     an inserted stage or another output. A tick the kernel stops early (more than two
-    contacts, an obstacle too large for the contact kernel) runs the rest stage by stage."""
+    contacts; a non-finite input to contact, which the contact stage then refuses by name)
+    runs the rest stage by stage."""
 
     def __init__(self, renderer: Renderer, fn: Callable[..., int]) -> None:
         self.renderer = renderer
@@ -359,7 +360,7 @@ class OneCall:
         contact = r._contact
         planes = contact._kernel_planes()
         inputs = r._allocation.kernel_inputs()
-        if planes is None or inputs is None:
+        if inputs is None:
             return False
         local, alloc_params = inputs
         names = {s.name: s for s in r.stages}
@@ -465,7 +466,6 @@ class OneCall:
     def _by_stages(self, frame: Frame, first: int) -> None:
         """The plan's stages from ``first`` on, one by one, after ticks this call wrote."""
         r = self.renderer
-        r._contact.forget()
         r._friction.holding = True  # an anchor may be set: cleared out of contact
         for stage in r.stages[first:]:
             if isinstance(stage, Environment):
