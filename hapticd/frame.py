@@ -205,8 +205,9 @@ STATE: tuple[StateField, ...] = (
         "Contact.state",
         "(F, kernels.CONTACT_STATE)",
         "m",
-        "each finger's god-object proxy (columns 0-2), its radius and the contact "
-        "kernel's work space; the first tick puts each proxy at its device",
+        "each finger's god-object proxy (columns 0-2), its radius, its active planes "
+        "(-1 past the last) and their multipliers, and the contact kernel's work space; "
+        "the first finite tick puts each proxy at its device",
     ),
     StateField(
         "friction_anchors",

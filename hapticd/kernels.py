@@ -7,18 +7,14 @@ arithmetic, ``math``, loops and indexing of preallocated numpy arrays, no object
 functions when ``rendering.kernels`` asks for them. Run as plain Python they give
 the same numbers, only slower.
 
-For the kernel that still has one, the readable reference stays where it was, and
-the kernel evaluates its sums in the same order (so, without fused multiply-adds, the
-same bits): ``contact_step`` is ``hapticd.stages.Contact`` with
-``hapticd.contact.proxy_step_multi`` on flat obstacles.
-
 ``allocation_step`` is the allocation of one or two contacts with one actuated
-direction per finger by a robust method (pinv, if, ef, adaptive), compiled or not: it
-calls the closed forms of ``hapticd.allocation.closed`` and ``accuracy`` themselves
-(written once, for floats and arrays, shared with ``allocate`` and ``allocate_many``;
-``KERNEL_HELPERS``). ``friction_step``, ``forces_step``, ``free_body_step`` and
-``safety_step`` have no twin either:
-each is its stage's physics (hapticd.stages.Friction, Forces, Dynamics;
+direction per finger by a robust method (pinv, if, ef, adaptive): it calls the closed
+forms of ``hapticd.allocation.closed`` and ``accuracy`` themselves (written once, for
+floats and arrays, shared with ``allocate`` and ``allocate_many``; ``KERNEL_HELPERS``).
+
+``allocation_step``, ``contact_step``, ``friction_step``, ``forces_step``,
+``free_body_step`` and ``safety_step`` have no twin: each is its stage's physics
+(hapticd.stages.Allocation, Contact, Friction, Forces, Dynamics;
 hapticd.safety.SafetyChain's normal tick), compiled or, with ``rendering.kernels=python``,
 run uncompiled (``uncompiled``).
 
@@ -34,19 +30,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hapticd import contact
 from hapticd.allocation import closed
 from hapticd.allocation.accuracy import one_contact_residuals, two_contact_residuals
 from hapticd.allocation.closed import one_contact, two_contact
-from hapticd.contact import (
-    _FREE_TOL,
-    _GRAM_MIN,
-    _MAX_CONSTRAINTS,
-    _MAX_ITER,
-    _ON_PLANE,
-    _T_EPS,
-    _VECTOR_PLANES,
-)
 
 
 @functools.cache
@@ -372,10 +358,11 @@ KERNEL_HELPERS = (
     "free_body_step",
     "_axes",
     "_rows",
+    "safety_step",
 )
 # The sources whose code or constants the kernels compile in: numba's cache knows only
 # this file's, so hapticd.jit keys its record of compiled kernels on all of them.
-SOURCES = (__file__, closed.__file__, one_contact_residuals.__code__.co_filename, contact.__file__)
+SOURCES = (__file__, closed.__file__, one_contact_residuals.__code__.co_filename)
 
 
 def allocation_step(
@@ -672,42 +659,81 @@ def forces_step(
 # stiffness (N/m) and damping (N s/m) (zeros for the object's rows)
 PLANE_COLUMNS = 9
 # contact_step's state columns per finger: the proxy (3, m; the stage's one copy), the
-# fingertip radius (m), then work space: active planes (3), multipliers (3), planes pushed
-# through (3), right-hand sides (3)
+# fingertip radius (m), the active planes (3: rows of ``planes``, -1 past the last) and
+# their multipliers (3, m: proxy - device = sum mu n over them), then work space: planes
+# pushed through (3), right-hand sides (3)
 CONTACT_STATE = 16
 _C_RADIUS, _C_ACTIVE, _C_MU, _C_PUSHED, _C_RHS = 3, 4, 7, 10, 13
-# contact_step's outcomes: done; not taken (an obstacle of more than _VECTOR_PLANES planes
-# or a non-finite input: the stage runs its Python code; nothing written).
+# contact_step's outcomes: done; not taken (a non-finite plane, device sample, proxy or
+# radius: nothing written; the stage says which and refuses the tick).
 CONTACT_DONE, CONTACT_NOT_TAKEN = 0, 1
+# A point within this distance (m) of a plane counts as on it. A proxy that slides on a
+# face lies on its plane only to rounding (some 1e-17 m at hand scale, whatever the face's
+# orientation), and so does the projection of the device onto it: a path between two such
+# points lies on the plane, it does not enter the object through it.
+_ON_PLANE = 1e-13
+# Segment parameters closer than this count as touching, not entering: keeps a path that
+# grazes an edge from capturing the proxy there.
+_T_EPS = 1e-12
+# Active planes at most (face, edge, corner).
+_MAX_CONSTRAINTS = 3
+# Proxy moves per tick: each face a fast finger crosses on a convex mesh takes two (slide
+# off, re-enter), and 2 cm per tick over a sphere of 5 mm faces took up to 14.
+_MAX_ITER = 16
+# A proxy within this distance (m) of an obstacle still touches it.
+_FREE_TOL = 1e-12
+# Below this Gram determinant (two planes: sin^2 of their angle, within 3e-5 rad of
+# parallel; three: the squared volume their normals span) the Gram system counts as
+# singular and ``_gram_mu`` takes its minimum-norm rule instead of the inverse.
+_GRAM_MIN = 1e-9
 
 
-def _gram_mu(planes: np.ndarray, sc: np.ndarray, k: int, base: int) -> None:
-    """``hapticd.contact._gram_solve`` on contact_step's work row ``sc``: the multipliers
-    sc[_C_MU:_C_MU + k] of the k (2 or 3) planes whose rows in ``planes`` are
-    sc[base:base + k], for the right-hand sides sc[_C_RHS:_C_RHS + k] (m). The one
-    function a kernel calls: hapticd.jit compiles it into contact_step
-    (``KERNEL_HELPERS``); as plain Python it is called as it is."""
-    q0 = int(sc[base])
-    q1 = int(sc[base + 1])
+def _gram_mu(planes: np.ndarray, state: np.ndarray, i: int, k: int, base: int) -> None:
+    """The multipliers state[i, _C_MU:_C_MU + k] solving G mu = rhs for the Gram matrix
+    G = N N^T of the k (2 or 3) unit normals whose rows in ``planes`` are
+    state[i, base:base + k], rhs = state[i, _C_RHS:_C_RHS + k] (m). The one function
+    contact_step calls: hapticd.jit compiles it in (``KERNEL_HELPERS``).
+
+    Plain float sums in a fixed order: the 2 x 2 and 3 x 3 systems by their adjugates
+    (Cramer's rule), the unit diagonal taken as exactly 1. A singular system (determinant
+    <= ``_GRAM_MIN``) takes a closed-form minimum-norm rule instead of an inverse that
+    would throw the proxy far away:
+
+    - two (nearly) parallel or antiparallel planes (cosine c, s its sign): G's
+      pseudo-inverse with its small eigenvalue 1 - |c| dropped, mu = (m, s m) with
+      m = (r0 + s r1) / (2 (1 + |c|)) (numpy's ``lstsq`` for exactly parallel planes).
+      Parallel planes share the push; antiparallel ones (a finger between two faces
+      that face each other) get multipliers of opposite signs, so one is released;
+    - three planes of which two, u and v, are (nearly) parallel: those two act as one
+      plane (normal n_u, right-hand side (r_u + s r_v) / 2), solved with the third;
+      their multiplier a is split evenly, (a / 2, s a / 2). All three parallel: the
+      rank-one pseudo-inverse, mu_i = s_i (sum_j s_j r_j) / 9;
+    - three pairwise distinct normals in (nearly) one plane: the best-conditioned
+      pair (the largest 2 x 2 determinant, the first on a tie), the third's multiplier 0.
+
+    Multipliers keep their meaning: mu_i > 0 where plane i pushes outward.
+    """
+    q0 = int(state[i, base])
+    q1 = int(state[i, base + 1])
     n0x, n0y, n0z = planes[q0, 0], planes[q0, 1], planes[q0, 2]
     n1x, n1y, n1z = planes[q1, 0], planes[q1, 1], planes[q1, 2]
-    r0 = sc[_C_RHS]
-    r1 = sc[_C_RHS + 1]
+    r0 = state[i, _C_RHS]
+    r1 = state[i, _C_RHS + 1]
     if k == 2:
         c = n0x * n1x + n0y * n1y + n0z * n1z
         det = 1.0 - c * c
         if det > _GRAM_MIN:
-            sc[_C_MU] = (r0 - c * r1) / det
-            sc[_C_MU + 1] = (r1 - c * r0) / det
+            state[i, _C_MU] = (r0 - c * r1) / det
+            state[i, _C_MU + 1] = (r1 - c * r0) / det
         else:
             s = 1.0 if c >= 0.0 else -1.0
             m = (r0 + s * r1) / (2.0 * (1.0 + abs(c)))
-            sc[_C_MU] = m
-            sc[_C_MU + 1] = s * m
+            state[i, _C_MU] = m
+            state[i, _C_MU + 1] = s * m
     else:
-        q2 = int(sc[base + 2])
+        q2 = int(state[i, base + 2])
         n2x, n2y, n2z = planes[q2, 0], planes[q2, 1], planes[q2, 2]
-        r2 = sc[_C_RHS + 2]
+        r2 = state[i, _C_RHS + 2]
         a = n0x * n1x + n0y * n1y + n0z * n1z
         b = n0x * n2x + n0y * n2y + n0z * n2z
         c = n1x * n2x + n1y * n2y + n1z * n2z
@@ -719,13 +745,13 @@ def _gram_mu(planes: np.ndarray, sc: np.ndarray, k: int, base: int) -> None:
         a12 = a * b - c
         det = a00 + a * a01 + b * a02
         if det > _GRAM_MIN:
-            sc[_C_MU] = (a00 * r0 + a01 * r1 + a02 * r2) / det
-            sc[_C_MU + 1] = (a01 * r0 + a11 * r1 + a12 * r2) / det
-            sc[_C_MU + 2] = (a02 * r0 + a12 * r1 + a22 * r2) / det
+            state[i, _C_MU] = (a00 * r0 + a01 * r1 + a02 * r2) / det
+            state[i, _C_MU + 1] = (a01 * r0 + a11 * r1 + a12 * r2) / det
+            state[i, _C_MU + 2] = (a02 * r0 + a12 * r1 + a22 * r2) / det
         else:
-            sc[_C_MU] = 0.0
-            sc[_C_MU + 1] = 0.0
-            sc[_C_MU + 2] = 0.0
+            state[i, _C_MU] = 0.0
+            state[i, _C_MU + 1] = 0.0
+            state[i, _C_MU + 2] = 0.0
             if a22 <= _GRAM_MIN or a11 <= _GRAM_MIN or a00 <= _GRAM_MIN:
                 if a22 <= a11 and a22 <= a00:
                     iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 1, 2, a, b, r0, r1, r2
@@ -738,15 +764,15 @@ def _gram_mu(planes: np.ndarray, sc: np.ndarray, k: int, base: int) -> None:
                 dp = 1.0 - cuw * cuw
                 if dp > _GRAM_MIN:
                     am = (rm - cuw * rw) / dp
-                    sc[_C_MU + iw] = (rw - cuw * rm) / dp
-                    sc[_C_MU + iu] = am / 2.0
-                    sc[_C_MU + iv] = s * am / 2.0
+                    state[i, _C_MU + iw] = (rw - cuw * rm) / dp
+                    state[i, _C_MU + iu] = am / 2.0
+                    state[i, _C_MU + iv] = s * am / 2.0
                 else:
                     t = 1.0 if cuw >= 0.0 else -1.0
                     m = (ru + s * rv + t * rw) / 9.0
-                    sc[_C_MU + iu] = m
-                    sc[_C_MU + iv] = s * m
-                    sc[_C_MU + iw] = t * m
+                    state[i, _C_MU + iu] = m
+                    state[i, _C_MU + iv] = s * m
+                    state[i, _C_MU + iw] = t * m
             else:
                 if a22 >= a11 and a22 >= a00:
                     iu, iv, cc, ru, rv = 0, 1, a, r0, r1
@@ -755,8 +781,8 @@ def _gram_mu(planes: np.ndarray, sc: np.ndarray, k: int, base: int) -> None:
                 else:
                     iu, iv, cc, ru, rv = 1, 2, c, r1, r2
                 dp = 1.0 - cc * cc
-                sc[_C_MU + iu] = (ru - cc * rv) / dp
-                sc[_C_MU + iv] = (rv - cc * ru) / dp
+                state[i, _C_MU + iu] = (ru - cc * rv) / dp
+                state[i, _C_MU + iv] = (rv - cc * ru) / dp
 
 
 def contact_step(
@@ -771,23 +797,34 @@ def contact_step(
     contact_normal: np.ndarray,
     env_force: np.ndarray,
 ) -> int:
-    """One tick of the Contact stage for F fingers: ``hapticd.stages.Contact.run`` with
-    ``hapticd.contact.proxy_step_multi`` (push-out, first entry, sliding on up to three
-    planes, ``_gram_solve``'s closed forms) on flat, non-vectorised obstacles, the same
-    sums in the same order.
+    """One tick of god-object (proxy) contact for F spherical fingertips against convex
+    obstacles (the object, the ground, walls): the Contact stage's physics.
+
+    The proxy is the sphere centre the finger *should* have: it follows the device but
+    never enters an obstacle inflated by the radius. A proxy inside one (a first tick, a
+    moved object) is first pushed out through the nearest plane (onto the projection on
+    the planes pushed through, in a crease). Then it moves toward the device, stops where
+    the path first enters an obstacle and slides on up to three active planes (face,
+    edge, corner; of any obstacles), after Zilles & Salisbury (1995), releasing planes
+    that would pull and obstacles it slid off. A fast finger cannot pop through a thin
+    part; the proxy ends on the device's projection onto its active planes, so proxy -
+    device is their multipliers times their normals and frictionless contact is
+    conservative on any face. A path that runs along a plane to rounding (within
+    ``_ON_PLANE``) does not enter through it. Any number of planes per obstacle.
 
     ``device_pos``, ``device_vel`` (F, 3) m, m/s. ``planes`` (P, PLANE_COLUMNS): the
-    object's planes then each surface's, as declared above; each finger inflates the
-    offsets by its radius. ``state`` (F, CONTACT_STATE): the proxies (read, overwritten),
-    the radii, work space. Writes the frame's ``proxy_pos``, ``in_contact`` (u1),
-    ``surface_point``, ``contact_point``, ``contact_normal`` and, with surfaces,
-    ``env_force`` (N); returns CONTACT_DONE, or CONTACT_NOT_TAKEN having written nothing.
+    object's planes (n . x <= d, unit outward n) then each surface's, as declared above;
+    each finger inflates the offsets by its radius. ``state`` (F, CONTACT_STATE): the
+    proxies (read, overwritten), the radii, the active planes and multipliers (written),
+    work space. Writes the frame's ``proxy_pos``, ``in_contact`` (u1: touching the
+    object), ``surface_point`` (the device moved out by the object's planes alone),
+    ``contact_point``, ``contact_normal`` and, with surfaces, ``env_force`` (N: each
+    active surface plane's max(k mu - b v . n, 0) along n). Returns CONTACT_DONE, or
+    CONTACT_NOT_TAKEN for a non-finite input, having written nothing.
     """
     n_fingers = device_pos.shape[0]
     n_planes = planes.shape[0]
     for kk in range(n_planes):
-        if int(planes[kk, 6]) - int(planes[kk, 5]) > _VECTOR_PLANES:
-            return CONTACT_NOT_TAKEN
         for col in range(4):
             if not math.isfinite(planes[kk, col]):
                 return CONTACT_NOT_TAKEN
@@ -804,11 +841,10 @@ def contact_step(
     n_obst = int(planes[n_planes - 1, 4]) + 1
     surfaces = n_obst > 1
     for i in range(n_fingers):
-        sc = state[i]
-        r = sc[_C_RADIUS]
+        r = state[i, _C_RADIUS]
         d0, d1, d2 = device_pos[i, 0], device_pos[i, 1], device_pos[i, 2]
-        p0, p1, p2 = sc[0], sc[1], sc[2]
-        # -- out of every obstacle the proxy is inside (hapticd.contact._push_out_of)
+        p0, p1, p2 = state[i, 0], state[i, 1], state[i, 2]
+        # -- out of every obstacle the proxy is inside
         s0, s1, s2 = p0, p1, p2
         npushed = 0
         for _ in range(n_obst + 1):
@@ -822,6 +858,9 @@ def contact_step(
                     v = (planes[kk, 0] * p0 + planes[kk, 1] * p1 + planes[kk, 2] * p2) - (
                         planes[kk, 3] + r
                     )
+                    if v >= 0.0:  # outside (or on) this plane: not inside the obstacle
+                        best = v
+                        break
                     if v > best:
                         best = v
                         arg = kk - lo
@@ -830,29 +869,29 @@ def contact_step(
                     kk = lo + arg
                     found = False
                     for q in range(npushed):
-                        if int(sc[_C_PUSHED + q]) == kk:
+                        if int(state[i, _C_PUSHED + q]) == kk:
                             found = True
                     if not found and npushed < _MAX_CONSTRAINTS:
-                        sc[_C_PUSHED + npushed] = kk
+                        state[i, _C_PUSHED + npushed] = kk
                         npushed += 1
                     projected = False
                     if npushed > 1:
                         k = npushed
                         for q in range(k):
-                            qq = int(sc[_C_PUSHED + q])
-                            sc[_C_RHS + q] = (planes[qq, 3] + r) - (
+                            qq = int(state[i, _C_PUSHED + q])
+                            state[i, _C_RHS + q] = (planes[qq, 3] + r) - (
                                 planes[qq, 0] * s0 + planes[qq, 1] * s1 + planes[qq, 2] * s2
                             )
-                        _gram_mu(planes, sc, k, _C_PUSHED)
-                        mn = sc[_C_MU]
+                        _gram_mu(planes, state, i, k, _C_PUSHED)
+                        mn = state[i, _C_MU]
                         for q in range(1, k):
-                            if sc[_C_MU + q] < mn:
-                                mn = sc[_C_MU + q]
+                            if state[i, _C_MU + q] < mn:
+                                mn = state[i, _C_MU + q]
                         if mn >= 0.0:
                             x0, x1, x2 = s0, s1, s2
                             for q in range(k):
-                                qq = int(sc[_C_PUSHED + q])
-                                m = sc[_C_MU + q]
+                                qq = int(state[i, _C_PUSHED + q])
+                                m = state[i, _C_MU + q]
                                 x0 += m * planes[qq, 0]
                                 x1 += m * planes[qq, 1]
                                 x2 += m * planes[qq, 2]
@@ -865,38 +904,42 @@ def contact_step(
                 lo = hi
             if not moved:
                 break
-        # -- toward the device, sliding on up to three planes (proxy_step_multi)
+        # -- toward the device, sliding on up to three planes
         nact = 0
         held = False
         for _ in range(_MAX_ITER):
             if nact == 0:
                 t0, t1, t2 = d0, d1, d2
             elif nact == 1:
-                qq = int(sc[_C_ACTIVE])
+                qq = int(state[i, _C_ACTIVE])
                 m = (planes[qq, 3] + r) - (
                     planes[qq, 0] * d0 + planes[qq, 1] * d1 + planes[qq, 2] * d2
                 )
-                sc[_C_MU] = m
+                state[i, _C_MU] = m
                 t0 = d0 + m * planes[qq, 0]
                 t1 = d1 + m * planes[qq, 1]
                 t2 = d2 + m * planes[qq, 2]
             else:
                 k = nact
                 for q in range(k):
-                    qq = int(sc[_C_ACTIVE + q])
-                    sc[_C_RHS + q] = (planes[qq, 3] + r) - (
+                    qq = int(state[i, _C_ACTIVE + q])
+                    state[i, _C_RHS + q] = (planes[qq, 3] + r) - (
                         planes[qq, 0] * d0 + planes[qq, 1] * d1 + planes[qq, 2] * d2
                     )
-                _gram_mu(planes, sc, k, _C_ACTIVE)
+                _gram_mu(planes, state, i, k, _C_ACTIVE)
                 t0, t1, t2 = d0, d1, d2
                 for q in range(k):
-                    qq = int(sc[_C_ACTIVE + q])
-                    m = sc[_C_MU + q]
+                    qq = int(state[i, _C_ACTIVE + q])
+                    m = state[i, _C_MU + q]
                     t0 += m * planes[qq, 0]
                     t1 += m * planes[qq, 1]
                     t2 += m * planes[qq, 2]
             e0, e1, e2 = t0 - p0, t1 - p1, t2 - p2
-            # The first obstacle the path p + t e enters (_first_entry_any, _first_entry).
+            # The first obstacle the path p + t e (t in [0, 1)) enters, and the plane: a
+            # path whose two ends are outside or on one plane of an obstacle never enters
+            # it; a crossing time is computed only on the segment (no ratio of two
+            # rounding errors); inside every plane (a push-out could not clear another
+            # obstacle): in at once, through the nearest.
             hit = False
             bt = 0.0
             bk = -1
@@ -954,11 +997,11 @@ def contact_step(
                 p2 = p2 + bt * e2
                 again = False
                 for q in range(nact):
-                    if int(sc[_C_ACTIVE + q]) == bk:
+                    if int(state[i, _C_ACTIVE + q]) == bk:
                         again = True
                 if again or nact == _MAX_CONSTRAINTS:
                     break  # numerically stuck in a corner: stay at the contact point
-                sc[_C_ACTIVE + nact] = bk
+                state[i, _C_ACTIVE + nact] = bk
                 nact += 1
                 continue
             p0, p1, p2 = t0, t1, t2
@@ -967,7 +1010,7 @@ def contact_step(
             # Slid off an obstacle into free space: its planes no longer hold the proxy.
             w = 0
             for q in range(nact):
-                qq = int(sc[_C_ACTIVE + q])
+                qq = int(state[i, _C_ACTIVE + q])
                 dist = -math.inf
                 for kk in range(int(planes[qq, 5]), int(planes[qq, 6])):
                     v = (planes[kk, 0] * p0 + planes[kk, 1] * p1 + planes[kk, 2] * p2) - (
@@ -975,10 +1018,12 @@ def contact_step(
                     )
                     if v > dist:
                         dist = v
-                m = sc[_C_MU + q]
+                        if v > _FREE_TOL:  # off this obstacle: the rest cannot change that
+                            break
+                m = state[i, _C_MU + q]
                 if dist <= _FREE_TOL and m >= 0.0:
-                    sc[_C_ACTIVE + w] = qq
-                    sc[_C_MU + w] = m
+                    state[i, _C_ACTIVE + w] = qq
+                    state[i, _C_MU + w] = m
                     w += 1
             if w == nact:
                 held = True
@@ -988,40 +1033,44 @@ def contact_step(
             # The planes that push (mu > 0).
             w = 0
             for q in range(nact):
-                m = sc[_C_MU + q]
+                m = state[i, _C_MU + q]
                 if m > 0.0:
-                    sc[_C_ACTIVE + w] = sc[_C_ACTIVE + q]
-                    sc[_C_MU + w] = m
+                    state[i, _C_ACTIVE + w] = state[i, _C_ACTIVE + q]
+                    state[i, _C_MU + w] = m
                     w += 1
             nact = w
         else:
             # Stopped short of a projection: a plane the device is outside of does not push.
             w = 0
             for q in range(nact):
-                qq = int(sc[_C_ACTIVE + q])
+                qq = int(state[i, _C_ACTIVE + q])
                 if planes[qq, 0] * d0 + planes[qq, 1] * d1 + planes[qq, 2] * d2 < (
                     planes[qq, 3] + r
                 ):
-                    sc[_C_ACTIVE + w] = qq
+                    state[i, _C_ACTIVE + w] = qq
                     w += 1
             nact = w
             f0, f1, f2 = p0 - d0, p1 - d1, p2 - d2
             if nact == 1:
-                qq = int(sc[_C_ACTIVE])
-                sc[_C_MU] = f0 * planes[qq, 0] + f1 * planes[qq, 1] + f2 * planes[qq, 2]
+                qq = int(state[i, _C_ACTIVE])
+                state[i, _C_MU] = f0 * planes[qq, 0] + f1 * planes[qq, 1] + f2 * planes[qq, 2]
             elif nact > 1:
                 k = nact
                 for q in range(k):
-                    qq = int(sc[_C_ACTIVE + q])
-                    sc[_C_RHS + q] = f0 * planes[qq, 0] + f1 * planes[qq, 1] + f2 * planes[qq, 2]
-                _gram_mu(planes, sc, k, _C_ACTIVE)
-        # -- the stage's outputs for this finger (Contact.run, Contact._env_force)
-        sc[0], sc[1], sc[2] = p0, p1, p2
+                    qq = int(state[i, _C_ACTIVE + q])
+                    state[i, _C_RHS + q] = (
+                        f0 * planes[qq, 0] + f1 * planes[qq, 1] + f2 * planes[qq, 2]
+                    )
+                _gram_mu(planes, state, i, k, _C_ACTIVE)
+        # -- this finger's outputs: the proxy, its active planes (-1 past the last)
+        state[i, 0], state[i, 1], state[i, 2] = p0, p1, p2
+        for q in range(nact, _MAX_CONSTRAINTS):
+            state[i, _C_ACTIVE + q] = -1.0
         proxy_pos[i, 0], proxy_pos[i, 1], proxy_pos[i, 2] = p0, p1, p2
         n_obj = 0
         first = -1
         for q in range(nact):
-            qq = int(sc[_C_ACTIVE + q])
+            qq = int(state[i, _C_ACTIVE + q])
             if planes[qq, 4] == 0.0:
                 if n_obj == 0:
                     first = qq
@@ -1031,12 +1080,12 @@ def contact_step(
             if n_obj < nact:
                 v0, v1, v2 = device_vel[i, 0], device_vel[i, 1], device_vel[i, 2]
                 for q in range(nact):
-                    qq = int(sc[_C_ACTIVE + q])
+                    qq = int(state[i, _C_ACTIVE + q])
                     if planes[qq, 4] == 0.0:
                         continue
                     nx, ny, nz = planes[qq, 0], planes[qq, 1], planes[qq, 2]
                     vn = v0 * nx + v1 * ny + v2 * nz
-                    mag = planes[qq, 7] * sc[_C_MU + q] - planes[qq, 8] * vn
+                    mag = planes[qq, 7] * state[i, _C_MU + q] - planes[qq, 8] * vn
                     if mag < 0.0:  # max(mag, 0.0): NaN stays, as with Python's max
                         mag = 0.0
                     g0 += mag * nx
@@ -1052,9 +1101,9 @@ def contact_step(
         # The proxy's displacement due to the object's planes alone.
         x0, x1, x2 = d0, d1, d2
         for q in range(nact):
-            qq = int(sc[_C_ACTIVE + q])
+            qq = int(state[i, _C_ACTIVE + q])
             if planes[qq, 4] == 0.0:
-                m = sc[_C_MU + q]
+                m = state[i, _C_MU + q]
                 x0 += m * planes[qq, 0]
                 x1 += m * planes[qq, 1]
                 x2 += m * planes[qq, 2]
@@ -1244,19 +1293,30 @@ def world_planes(
 
 
 # tick_step's params: what the plan has (1.0 or 0.0: friction, a free object, surfaces, a
-# sum of contributions into rendered_force), the allocator's alpha, then the friction,
-# forces, allocation and free-body params at their offsets (each kernel's layout above)
-TICK_FRICTION, TICK_FREE, TICK_SURFACES, TICK_SUM, TICK_ALPHA = 0, 1, 2, 3, 4
-TICK_FRICTION_AT = 5
+# sum of contributions into rendered_force), the allocator's alpha, whether the safety
+# chain's normal tick runs in the call (set per tick), then the friction, forces,
+# allocation and free-body params at their offsets (each kernel's layout above)
+TICK_FRICTION, TICK_FREE, TICK_SURFACES, TICK_SUM, TICK_ALPHA, TICK_SAFETY = range(6)
+TICK_FRICTION_AT = 6
 TICK_FORCES_AT = TICK_FRICTION_AT + FRICTION_PARAMS
 TICK_ALLOCATION_AT = TICK_FORCES_AT + FORCES_PARAMS
 TICK_BODY_AT = TICK_ALLOCATION_AT + ALLOCATION_PARAMS
 TICK_PARAMS = TICK_BODY_AT + PARAMS
 # tick_step's outcomes: done; stopped before contact or before allocation, having written
 # what came before (the renderer runs that stage and the rest one by one); allocation
-# refused a non-finite input or produced a non-finite output (nothing after it written)
+# refused a non-finite input or produced a non-finite output (nothing after it written);
+# with the safety chain's tick: a free object's state beyond MAX_OBJECT_* (the chain not
+# run: the loop latches the fault), or the chain's kernel deferred (the chain runs its
+# checks); TICK_SAFE + safety_step's flags: done, the safety chain's tick too.
 TICK_DONE, TICK_FROM_CONTACT, TICK_FROM_ALLOCATION = 0, 1, 2
-TICK_NON_FINITE_INPUT, TICK_NON_FINITE_OUTPUT = 3, 4
+TICK_NON_FINITE_INPUT, TICK_NON_FINITE_OUTPUT, TICK_OBJECT, TICK_SAFETY_DEFER = 3, 4, 5, 6
+TICK_SAFE = 16
+# A free object beyond these has left any scene a hand can reach (a free fall of a day
+# stays below them), and well before float overflow breaks its dynamics: the loop's
+# backstop (hapticd.servo) latches a fault.
+MAX_OBJECT_DISTANCE_M = 1e12
+MAX_OBJECT_SPEED_M_PER_S = 1e7
+MAX_OBJECT_SPIN_RAD_PER_S = 1e7
 
 
 # tick_step's frame fields: each one's offset in the frame's record, in float64 items
@@ -1280,6 +1340,7 @@ TICK_FIELDS = (
     "env_rendered",
     "rendered_force",
     "object_pos",  # then object_vel, object_omega, object_rot: STATE floats
+    "device_force",
 )
 (
     _AT_POS,
@@ -1299,6 +1360,7 @@ TICK_FIELDS = (
     _AT_ENV_RENDERED,
     _AT_RENDERED,
     _AT_OBJECT,
+    _AT_DEVICE_FORCE,
 ) = range(len(TICK_FIELDS))
 
 
@@ -1331,6 +1393,8 @@ def tick_step(
     body: np.ndarray,
     surf: np.ndarray,
     scratch: np.ndarray,
+    safety_params: np.ndarray,
+    out_prev: np.ndarray,
 ) -> int:
     """One whole tick of the renderer's plan in one call: the object's planes at its pose,
     contact, friction, the contact forces, allocation, the environment's force through each
@@ -1343,7 +1407,9 @@ def tick_step(
     (STATE,), its shape's ``body_normals`` (M, 3) and ``body_offsets`` (M,) m; contact's
     ``planes`` and ``contact_state``; friction's ``anchors``; allocation's ``local``;
     ``params`` (TICK_PARAMS,) as declared above; the free body's ``body``, ``surf`` and
-    ``scratch``. Returns a TICK_ outcome.
+    ``scratch``; with params[TICK_SAFETY], the safety chain's normal tick on the rendered
+    force into ``device_force``: a free object's state checked first, then safety_step
+    with the chain's ``safety_params`` and ``out_prev``. Returns a TICK_ outcome.
     """
     n = in_contact.shape[0]
     device_pos = _rows(record, at[_AT_POS], n)
@@ -1455,7 +1521,22 @@ def tick_step(
     o = at[_AT_OBJECT]
     for k in range(STATE):
         record[o + k] = obj_state[k]
-    return TICK_DONE
+    if params[TICK_SAFETY] == 0.0:
+        return TICK_DONE
+    # NaN fails every comparison; _hypot3 is math.hypot's (the loop's backstop's) sum.
+    if params[TICK_FREE] != 0.0 and not (
+        _hypot3(obj_state[0], obj_state[1], obj_state[2]) <= MAX_OBJECT_DISTANCE_M
+        and _hypot3(obj_state[3], obj_state[4], obj_state[5]) <= MAX_OBJECT_SPEED_M_PER_S
+        and _hypot3(obj_state[6], obj_state[7], obj_state[8]) <= MAX_OBJECT_SPIN_RAD_PER_S
+    ):
+        return TICK_OBJECT
+    flags = safety_step(rendered, device_pos, safety_params, out_prev)
+    if flags & SAFETY_DEFER:
+        return TICK_SAFETY_DEFER
+    out = _rows(record, at[_AT_DEVICE_FORCE], n)
+    for i in range(n):
+        out[i, 0], out[i, 1], out[i, 2] = out_prev[0, i, 0], out_prev[0, i, 1], out_prev[0, i, 2]
+    return TICK_SAFE + flags
 
 
 def _axes(device_pos: np.ndarray, grasp: bool) -> tuple[float, ...]:

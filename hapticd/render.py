@@ -29,6 +29,7 @@ from hapticd.allocation.robust import AllocationError
 from hapticd.frame import LOOP_WRITERS, NAMES, STATE_WRITERS, Frame
 from hapticd.params import PARAMS, ParamError
 from hapticd.passivity import PassivityParams
+from hapticd.safety import SafetyChain
 from hapticd.scene import Material, Scene, SceneObject
 from hapticd.stages import (
     FRICTIONLESS,
@@ -196,7 +197,7 @@ class Renderer:
         """The kernels (names in hapticd.kernels) this scene's stages can use: the free-body
         step when the object is free; the allocation with one actuated direction per finger
         (the number of directions stays fixed while the renderer lives); the contact (every
-        scene: the stage runs the Python code for what the kernel does not take); friction
+        scene); friction
         when the object's material has it (friction turned on later, by ``set_param``, runs
         its kernel uncompiled); the contact forces always; a free object's planes in the world
         (for the contact kernel, from its pose each tick)."""
@@ -260,14 +261,19 @@ class Renderer:
 
     # -- the tick -------------------------------------------------------------------------
 
-    def run(self, frame: Frame) -> None:
+    def run(self, frame: Frame, safety: SafetyChain | None = None) -> int | None:
         """One tick on ``frame``, whose device_pos (F, 3) m and device_vel (F, 3) m/s are set:
-        the plan in one call (``OneCall``) when it can, else stage by stage."""
+        the plan in one call (``OneCall``) when it can, else stage by stage.
+
+        ``safety``: a chain ``ready`` for this tick, whose normal tick the one call makes
+        too (device_force), after checking a free object's state: then its safety_step
+        flags, for ``SafetyChain.done``; None when the call did not (the caller checks the
+        object and runs the chain)."""
         if self.one_call is not None:
-            self.one_call.run(frame)
-            return
+            return self.one_call.run(frame, safety)
         for stage in self.stages:
             stage.run(frame)
+        return None
 
     def step(self, device_pos: np.ndarray, device_vel: np.ndarray) -> Frame:
         """One tick for device positions (F, 3) m and velocities (F, 3) m/s on the renderer's
@@ -317,7 +323,8 @@ class OneCall:
     forces, allocation by a kernel method with one direction per finger, the environment,
     their sum, the free object's step and the scene's state; not a plan with passivity,
     an inserted stage or another output. A tick the kernel stops early (more than two
-    contacts, an obstacle too large for the contact kernel) runs the rest stage by stage."""
+    contacts; a non-finite input to contact, which the contact stage then refuses by name)
+    runs the rest stage by stage."""
 
     def __init__(self, renderer: Renderer, fn: Callable[..., int]) -> None:
         self.renderer = renderer
@@ -353,7 +360,7 @@ class OneCall:
         contact = r._contact
         planes = contact._kernel_planes()
         inputs = r._allocation.kernel_inputs()
-        if planes is None or inputs is None:
+        if inputs is None:
             return False
         local, alloc_params = inputs
         names = {s.name: s for s in r.stages}
@@ -406,6 +413,7 @@ class OneCall:
             body,
             surf,
             scratch,
+            *_NO_SAFETY,
         )
         frame.stiffness_n_per_m[()] = mat.stiffness
         frame.mass_kg[()] = obj.mass
@@ -415,7 +423,8 @@ class OneCall:
         self._free = free
         return True
 
-    def run(self, frame: Frame) -> None:
+    def run(self, frame: Frame, safety: SafetyChain | None = None) -> int | None:
+        """The tick (``Renderer.run``): the safety chain's flags when it ran too, else None."""
         # Set without a new plan (set_param plans anew): the object, or its material (an
         # analysis replaying a recording's stiffness tick by tick).
         obj = self._scene.object
@@ -423,15 +432,27 @@ class OneCall:
             frame is not self._frame or obj is not self._obj or obj.material is not self._material
         ) and not self._bind(frame):
             self._by_stages(frame, 0)
-            return
+            return None
         if not self._started:  # every proxy starts at its device, on the first tick run
             self.renderer._contact.start(frame)
             self._started = True
-        outcome = self._fn(*self._args)
-        if outcome == kn.TICK_DONE:
+        args = self._args
+        if safety is None:
+            self._params[kn.TICK_SAFETY] = 0.0
+        else:
+            arrays = safety.kernel_arrays
+            if arrays[0] is not args[-2] or arrays[1] is not args[-1]:
+                args = self._args = (*args[:-2], *arrays)
+            self._params[kn.TICK_SAFETY] = 1.0
+        outcome = self._fn(*args)
+        if outcome == kn.TICK_DONE or outcome >= kn.TICK_SAFE:
             if self._free:
                 obj.update_world()
-            return
+            return None if outcome == kn.TICK_DONE else outcome - kn.TICK_SAFE
+        if outcome in (kn.TICK_OBJECT, kn.TICK_SAFETY_DEFER):
+            if self._free:
+                obj.update_world()
+            return None  # the caller's own checks
         if outcome == kn.TICK_NON_FINITE_INPUT:
             raise AllocationError("non-finite contact geometry or force; refusing to allocate")
         if outcome == kn.TICK_NON_FINITE_OUTPUT:
@@ -440,16 +461,20 @@ class OneCall:
         names = [s.name for s in self.renderer.stages]
         start = "contact" if outcome == kn.TICK_FROM_CONTACT else "allocation"
         self._by_stages(frame, names.index(start))
+        return None
 
     def _by_stages(self, frame: Frame, first: int) -> None:
         """The plan's stages from ``first`` on, one by one, after ticks this call wrote."""
         r = self.renderer
-        r._contact.forget()
         r._friction.holding = True  # an anchor may be set: cleared out of contact
         for stage in r.stages[first:]:
             if isinstance(stage, Environment):
                 stage.zero_on = None
             stage.run(frame)
+
+
+# tick_step's safety arrays when the safety chain does not run in the call (never read).
+_NO_SAFETY = (np.zeros(kn.SAFETY_PARAMS), np.zeros((2, 1, 3)))
 
 
 def _float_offset(frame: Frame, name: str) -> int:

@@ -128,7 +128,8 @@ class SceneObject:
 
     def update_world(self) -> None:
         """Say the pose changed: the world-frame polytope is made again on its next use (a
-        free object moves every tick; its polytope is read only by the Python contact)."""
+        free object moves every tick; the contact stage reads its polytope only without a
+        compiled planes kernel)."""
         self.__dict__["_polytope"] = None  # past __setattr__: every tick of a free object
 
     @property

@@ -21,13 +21,7 @@ import numpy as np
 from hapticd import kernels
 from hapticd.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
-from hapticd.contact import (
-    _VECTOR_PLANES,
-    MultiResult,
-    ObstacleSet,
-    Polytope,
-    proxy_step_multi,
-)
+from hapticd.contact import Polytope
 from hapticd.dynamics import auto_substeps
 from hapticd.frame import Frame
 from hapticd.passivity import PassivityParams, control, observe, orthonormal, project
@@ -77,11 +71,6 @@ class _Fields:
         return self.views
 
 
-def _unit(v: V3, fallback: V3) -> V3:
-    n = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-    return (v[0] / n, v[1] / n, v[2] / n) if n > 1e-15 else fallback
-
-
 def _kernel(name: str) -> property:
     """A stage's kernel ``name`` (a function of hapticd.kernels): the compiled function
     hapticd.jit gave it, or, set to None, the very same function uncompiled
@@ -111,165 +100,57 @@ class Contact:
     object's active planes only (frictionless) and the contact point into ``outputs``
     (``HELD``: ``proxy_pos``, ``surface_point``, ``contact_point``; in a plan with friction
     the renderer makes them ``FRICTIONLESS``), and ``contact_normal``, ``in_contact`` and
-    ``env_force`` (the ground and walls' spring-damper force on each finger).
+    ``env_force`` (the ground and walls' spring-damper force on each finger). The physics
+    is hapticd.kernels.contact_step, compiled or not (``kernel``); a non-finite input
+    raises ValueError naming it, with nothing written.
     """
 
     name = "contact"
     reads = ("device_pos", "device_vel")
+    kernel = _kernel("contact_step")
 
     def __init__(
         self, scene: Scene, radii: list[float], kernel: Callable[..., int] | None = None
     ) -> None:
         self.scene = scene
         self.radii = radii
-        # hapticd.kernels.contact_step compiled (hapticd.jit), or None: the code below. It
-        # takes flat obstacles (up to _VECTOR_PLANES planes each) with finite inputs;
-        # anything else runs the code below, on the same proxies.
         self.kernel = kernel
         # hapticd.kernels.world_planes compiled, or None: a free object's planes for the
         # kernel each tick from its pose, without making its polytope.
         self.planes_kernel: Callable[..., None] | None = None
         self._body: tuple[object, np.ndarray, np.ndarray] | None = None  # shape, N, d
-        self._surfaces = [[s.polytope.inflated(r) for s in scene.surfaces] for r in radii]
-        # The proxies (m) and radii, and the kernel's work space: one copy both paths
-        # read and write (the proxies are the first three columns).
+        # The proxies (m), the radii, the active planes and the kernel's work space.
         self._state = np.zeros((len(radii), kernels.CONTACT_STATE))
         self._state[:, kernels._C_RADIUS] = radii
         self._proxies = self._state[:, :3]
         self._started = False  # the first tick: every proxy starts at its device
         self._planes: np.ndarray | None = None  # the kernel's planes (PLANE_COLUMNS)
         self._planes_for: Polytope | None = None
-        self._built_for: Polytope | None = None
-        self._sets: list[ObstacleSet] = []
-        self._untouched: Frame | None = None  # the frame whose contact normals are all zero
-        self._off_surfaces: Frame | None = None  # the frame whose env_force is all zero
         self.outputs = HELD
         self._out = _Fields()
         self.carries = {"proxies": self._state}  # hapticd.frame.STATE
 
     @property
     def state(self) -> np.ndarray:
-        """The proxies (columns 0-2, m), the radii and the kernel's work space (F,
-        kernels.CONTACT_STATE), carried from tick to tick."""
+        """The proxies (columns 0-2, m), the radii, the active planes and their multipliers,
+        and the kernel's work space (F, kernels.CONTACT_STATE), carried from tick to tick."""
         return self._state
 
     @property
     def writes(self) -> tuple[str, ...]:
         return ("in_contact", "contact_normal", "env_force", *self.outputs)
 
-    def _obstacles(self) -> list[ObstacleSet]:
-        """The obstacle sets per finger, rebuilt when the object has moved."""
-        poly = self.scene.object.polytope
-        if poly is self._built_for:
-            return self._sets
-        normals = poly.normals_list
-        if not self._sets:
-            for i, r in enumerate(self.radii):
-                # Inflated in plain floats: the same sums as Polytope.inflated, bit for bit.
-                obstacles = [(normals, [d + r for d in poly.offsets_list])]
-                obstacles += [(p.normals_list, p.offsets_list) for p in self._surfaces[i]]
-                self._sets.append(ObstacleSet(obstacles))
-        else:
-            # The object moved: only its planes change; the ground's and walls' stay.
-            self._sets = [
-                oset.with_first(normals, [d + r for d in poly.offsets_list])
-                for oset, r in zip(self._sets, self.radii, strict=True)
-            ]
-        self._built_for = poly
-        return self._sets
-
     def start(self, frame: Frame) -> None:
-        """On the first tick: every proxy starts at its device."""
+        """Until a tick with finite device positions: every proxy starts at its device."""
         if not self._started:
             self._proxies[...] = frame.device_pos
-            self._started = True
-
-    def forget(self) -> None:
-        """Forget which frame's normals and env_force this stage left all zero: another
-        writer (the renderer's one call) has written them since."""
-        self._untouched = None
-        self._off_surfaces = None
+            self._started = bool(np.all(np.isfinite(self._proxies)))
 
     def run(self, frame: Frame) -> None:
         self.start(frame)
-        if self.kernel is not None and self._run_kernel(frame):
-            return
-        pos: list[V3] = [tuple(p) for p in frame.device_pos.tolist()]  # type: ignore[misc]
-        sets = self._obstacles()
-        proxies = self._proxies.tolist()
-        n_fingers = len(pos)
-        points = list(pos)
-        held = list(pos)
-        normals = [ZERO3] * n_fingers
-        env = [ZERO3] * n_fingers
-        on_surface = False
-        touching = [False] * n_fingers
-        vel = frame.device_vel
-        for i in range(n_fingers):
-            dev = pos[i]
-            oset = sets[i]
-            res = proxy_step_multi(oset, proxies[i], dev)
-            p = res.proxy
-            proxies[i] = p
-            points[i] = p
-            held[i] = p
-            obj_planes = [(pl, m) for (j, pl), m in zip(res.active, res.mu, strict=True) if j == 0]
-            if len(obj_planes) < len(res.active):
-                env[i] = self._env_force(oset, res, vel[i])
-                on_surface = True
-            if not obj_planes:
-                continue
-            # The proxy's displacement due to the object's planes alone.
-            onorm = oset.obstacles[0][0]
-            po = [dev[0], dev[1], dev[2]]
-            for pl, m in obj_planes:
-                nv = onorm[pl]
-                po[0] += m * nv[0]
-                po[1] += m * nv[1]
-                po[2] += m * nv[2]
-            pf: V3 = (po[0], po[1], po[2])
-            if len(obj_planes) == 1:
-                n = onorm[obj_planes[0][0]]
-            else:
-                n = _unit((pf[0] - dev[0], pf[1] - dev[1], pf[2] - dev[2]), onorm[obj_planes[0][0]])
-            held[i] = pf
-            normals[i] = n
-            touching[i] = True
-            r = self.radii[i]
-            points[i] = (pf[0] - r * n[0], pf[1] - r * n[1], pf[2] - r * n[2])
-        # Assignment through [...] is the cheapest way numpy takes a list of tuples.
-        out_proxy, out_surface, out_point = self._out.of(frame, self.outputs)
-        self._proxies[...] = proxies
-        out_proxy[...] = self._proxies
-        frame.in_contact[...] = touching
-        if any(touching):
-            out_surface[...] = held
-            out_point[...] = points
-            frame.contact_normal[...] = normals
-            self._untouched = None
-        else:
-            # Nothing touches the object: every point is the proxy and every normal zero
-            # (still zero if this frame was written so last tick). Array copies are cheaper.
-            out_surface[...] = out_proxy
-            out_point[...] = out_proxy
-            if frame is not self._untouched:
-                frame.contact_normal.fill(0.0)
-                self._untouched = frame
-        if on_surface:
-            frame.env_force[...] = env
-            self._off_surfaces = None
-        elif self._surfaces[0] and frame is not self._off_surfaces:
-            frame.env_force.fill(0.0)  # zero until a finger touches the ground or a wall
-            self._off_surfaces = frame
-
-    def _run_kernel(self, frame: Frame) -> bool:
-        """The same tick as ``run`` by the kernel, on the frame's arrays and the proxies'
-        state; False (and nothing written) for a case the kernel does not take."""
         planes = self._kernel_planes()
-        if planes is None:
-            return False
         out_proxy, out_surface, out_point = self._out.of(frame, self.outputs)
-        outcome = self.kernel(  # type: ignore[misc]
+        outcome = self._kernel(
             frame.device_pos,
             frame.device_vel,
             planes,
@@ -282,15 +163,30 @@ class Contact:
             frame.env_force,
         )
         if outcome != kernels.CONTACT_DONE:
-            return False
-        self.forget()  # the kernel wrote every field: the "already zero" marks are stale
-        return True
+            raise ValueError(self._non_finite(frame, planes))
 
-    def _kernel_planes(self) -> np.ndarray | None:
+    def _non_finite(self, frame: Frame, planes: np.ndarray) -> str:
+        """What the kernel refused: the first non-finite input, named."""
+        for i in range(len(self.radii)):
+            for name, row in (
+                ("device_pos", frame.device_pos[i]),
+                ("device_vel", frame.device_vel[i]),
+                ("proxy", self._proxies[i]),
+                ("radius", self._state[i, kernels._C_RADIUS : kernels._C_RADIUS + 1]),
+            ):
+                if not np.all(np.isfinite(row)):
+                    return f"contact: finger {i}'s {name} is not finite ({row.tolist()})"
+        bad = np.flatnonzero(~np.all(np.isfinite(planes[:, :4]), axis=1))
+        if not len(bad):
+            return "contact: the kernel refused the tick with no input non-finite"
+        j = int(planes[bad[0], 4])
+        what = "the object" if j == 0 else f"surface {self.scene.surfaces[j - 1].name!r}"
+        return f"contact: a plane of {what} is not finite (its pose or offset)"
+
+    def _kernel_planes(self) -> np.ndarray:
         """The kernel's planes (hapticd.kernels.PLANE_COLUMNS): the object's, copied again
         only when its polytope changed (a free object's: from its pose, by the planes
-        kernel, when there is one), then the surfaces'; None with an obstacle too large for
-        the kernel."""
+        kernel, when there is one), then the surfaces'."""
         obj = self.scene.object
         planes = self._planes
         body = self._body
@@ -306,24 +202,23 @@ class Contact:
         if poly is self._planes_for and planes is not None:
             return planes
         m = len(poly.offsets)
-        if m > _VECTOR_PLANES:
-            return None
         if planes is None or int(planes[0, 6]) != m:
-            rows = [
-                (*n, d, 0, 0, m, 0.0, 0.0)
-                for n, d in zip(poly.normals_list, poly.offsets_list, strict=True)
+            blocks = [(poly, 0, 0.0, 0.0)]
+            blocks += [
+                (sf.polytope, j, sf.material.stiffness, sf.material.damping)
+                for j, sf in enumerate(self.scene.surfaces, start=1)
             ]
-            lo = m
-            for j, surface in enumerate(self.scene.surfaces, start=1):
-                sp = surface.polytope
-                hi = lo + len(sp.offsets)
-                mat = surface.material
-                rows += [
-                    (*n, d, j, lo, hi, mat.stiffness, mat.damping)
-                    for n, d in zip(sp.normals_list, sp.offsets_list, strict=True)
-                ]
+            rows = []
+            lo = 0
+            for p, j, k, b in blocks:
+                hi = lo + len(p.offsets)
+                block = np.empty((hi - lo, kernels.PLANE_COLUMNS))
+                block[:, 0:3] = p.normals
+                block[:, 3] = p.offsets
+                block[:, 4:] = (j, lo, hi, k, b)
+                rows.append(block)
                 lo = hi
-            planes = self._planes = np.array(rows, dtype=float).reshape(-1, kernels.PLANE_COLUMNS)
+            planes = self._planes = np.ascontiguousarray(np.vstack(rows))
         else:
             planes[:m, 0:3] = poly.normals
             planes[:m, 3] = poly.offsets
@@ -336,21 +231,6 @@ class Contact:
                 np.ascontiguousarray(shape.offsets, dtype=float),
             )
         return planes
-
-    def _env_force(self, oset: ObstacleSet, res: MultiResult, v_dev: np.ndarray) -> V3:
-        """Force on a finger from the ground and walls it touches, N."""
-        f = [0.0, 0.0, 0.0]
-        for (j, pl), m in zip(res.active, res.mu, strict=True):
-            if j == 0:
-                continue
-            n = oset.obstacles[j][0][pl]
-            mat = self.scene.surfaces[j - 1].material
-            vn = float(v_dev[0] * n[0] + v_dev[1] * n[1] + v_dev[2] * n[2])
-            mag = max(mat.stiffness * m - mat.damping * vn, 0.0)
-            f[0] += mag * n[0]
-            f[1] += mag * n[1]
-            f[2] += mag * n[2]
-        return (f[0], f[1], f[2])
 
 
 class Friction:

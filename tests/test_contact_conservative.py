@@ -19,9 +19,9 @@ from hypothesis.extra.numpy import arrays
 
 from hapticd.actuation import Actuation
 from hapticd.build import mesh_shape
-from hapticd.contact import ObstacleSet, Polytope, proxy_step_multi, spring_force, update_proxy
 from hapticd.render import Renderer
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject, rpy_matrix
+from tests.proxies import Obstacle, Proxy
 
 K = 200.0  # N/m
 RADIUS = 0.008  # m
@@ -36,8 +36,8 @@ weights = arrays(float, (12, 8), elements=st.floats(0.0, 1.0))
 
 @pytest.fixture(scope="module")
 def meshes(tmp_path_factory) -> dict[str, ConvexShape]:
-    """Convex shapes read by hapticd.build.mesh_shape: 80 planes (the scalar entry test),
-    1280 planes (the vectorised one) and an irregular hull."""
+    """Convex shapes read by hapticd.build.mesh_shape: 80 planes, 1280 planes and an
+    irregular hull."""
     d = tmp_path_factory.mktemp("meshes")
     rng = np.random.default_rng(7)
     made = {
@@ -69,25 +69,21 @@ def _face_points(obj: SceneObject, face: int, w: np.ndarray) -> tuple[np.ndarray
     return c + 0.9 * (q - c) + RADIUS * n, n
 
 
-def _slide(poly: Polytope, start: np.ndarray, devices: np.ndarray) -> list:
-    """update_proxy along ``devices`` from a proxy at ``start``."""
-    p, out = start, []
-    for x in devices:
-        res = update_proxy(poly, p, x)
-        p = res.proxy
-        out.append(res)
-    return out
+def _inflated(obj: SceneObject) -> Obstacle:
+    """The object's planes grown by the fingertip's radius."""
+    poly = obj.polytope
+    return poly.normals, poly.offsets + RADIUS
 
 
 def _check_face(obj: SceneObject, face: int, w: np.ndarray, depth: float) -> None:
-    poly = obj.polytope.inflated(RADIUS)
+    normals, offsets = _inflated(obj)
     pts, n = _face_points(obj, face, w)
     devices = pts - depth * n
     # Every device point inside every plane: the contact is with this face alone.
-    assume(np.all(devices @ poly.normals.T - poly.offsets < -1e-6))
+    assume(np.all(devices @ normals.T - offsets < -1e-6))
     start = pts.mean(axis=0) + 0.02 * n  # outside, above the face: enters through it
-    for x, res in zip(devices, _slide(poly, start, devices), strict=True):
-        f = spring_force(K, 0.0, res.proxy, x, np.zeros(3))
+    for x, res in zip(devices, Proxy([(normals, offsets)]).walk(start, devices), strict=True):
+        f = K * (res.proxy - x)
         assert res.n_active == 1
         assert np.linalg.norm(f - K * depth * n) <= REL * K * depth
 
@@ -157,19 +153,18 @@ def test_around_a_convex_corner_the_proxy_is_the_projection_onto_its_active_plan
     # A device wandering in and out around a corner of a rotated box, up to 4 mm per tick.
     R = rpy_matrix(tuple(angles))
     obj = SceneObject(ConvexShape.box(np.array([0.05, 0.03, 0.04])), Material(K), np.zeros(3), R)
-    poly = obj.polytope.inflated(RADIUS)
-    obs = ObstacleSet([(poly.normals_list, poly.offsets_list)])
+    normals, offsets = _inflated(obj)
+    proxy = Proxy([(normals, offsets)])
     c = obj.vertices_world()[corner]
     c = c + RADIUS * (c / np.linalg.norm(c))  # near the inflated corner
     x = c * 1.3
     p = tuple(x)
     for step in walk:
         x = c + np.clip(x + step - c, -0.008, 0.008)
-        res = proxy_step_multi(obs, p, tuple(x.tolist()))
-        p = res.proxy
-        pa = np.array(p)
-        inside = float(np.max(poly.normals @ x - poly.offsets))
-        assert float(np.max(poly.normals @ pa - poly.offsets)) >= -1e-13  # never inside
+        res = proxy.step(p, x)
+        p = pa = res.proxy
+        inside = float(np.max(normals @ x - offsets))
+        assert float(np.max(normals @ pa - offsets)) >= -1e-13  # never inside
         if not res.active:
             assert inside >= -1e-13  # no contact only when the device is outside
             np.testing.assert_array_equal(pa, x)
@@ -177,31 +172,26 @@ def test_around_a_convex_corner_the_proxy_is_the_projection_onto_its_active_plan
         # A convex object holds the proxy with one plane; the force is k (projection - device).
         assert len(res.active) == 1 and res.mu[0] > 0.0
         i = res.active[0][1]
-        want = _projection(x, poly.normals[[i]], poly.offsets[[i]])
+        want = _projection(x, normals[[i]], offsets[[i]])
         np.testing.assert_allclose(pa, want, rtol=0, atol=1e-15)
-        np.testing.assert_allclose(x + res.mu[0] * poly.normals[i], pa, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(x + res.mu[0] * normals[i], pa, rtol=0, atol=1e-15)
 
 
-def _corner_scene(yaw: float, wall_turn: float) -> tuple[ObstacleSet, np.ndarray, np.ndarray]:
+def _corner_scene(yaw: float, wall_turn: float) -> tuple[list[Obstacle], np.ndarray, np.ndarray]:
     """A cube turned by ``yaw`` about z standing on the ground, and a wall facing its +x face
     turned by ``wall_turn`` more: a concave corner of three planes (cube face, ground,
     wall), inflated by the radius. Returns the obstacles and the corner's three outward
     planes (normals (3, 3), offsets (3,)) whose intersection is the free region there."""
     R = rpy_matrix((0.0, 0.0, yaw))
     cube = SceneObject(ConvexShape.box(np.array([0.05] * 3)), Material(K), np.zeros(3), R)
-    poly = cube.polytope.inflated(RADIUS)
     ground_z = -0.025 + RADIUS
     m = np.array([np.cos(yaw + wall_turn), np.sin(yaw + wall_turn), 0.0])
     w = 0.045 - RADIUS  # the wall's plane, m . x = w, solid beyond it
-    obstacles = [
-        (poly.normals_list, poly.offsets_list),
-        ([(0.0, 0.0, 1.0)], [ground_z]),
-        ([tuple(-m)], [-w]),
-    ]
+    obstacles = [_inflated(cube), ([(0.0, 0.0, 1.0)], [ground_z]), ([-m], [-w])]
     # Free: outside the cube's +x face, above the ground, before the wall.
     free_n = np.array([R[:, 0], [0.0, 0.0, 1.0], -m])
     free_d = np.array([0.025 + RADIUS, ground_z, -w])
-    return ObstacleSet(obstacles), free_n, free_d
+    return obstacles, free_n, free_d
 
 
 def _into_free(corner: np.ndarray, n: np.ndarray) -> np.ndarray:
@@ -239,11 +229,12 @@ def test_in_a_concave_corner_the_proxy_is_the_projection_onto_the_free_region(ya
     R = rpy_matrix((0.0, 0.0, yaw))
     assume(abs(R[:, 1] @ corner) < 0.033 - 0.012)  # the corner well inside the cube's face
     x = _into_free(corner, n)
-    p = tuple(x)
-    n_obs = [np.array(o[0]) for o in obs.obstacles]
+    p = x
+    n_obs = [np.asarray(o[0], dtype=float) for o in obs]
+    proxy = Proxy(obs)
     for step in walk:
         x = corner + np.clip(x + step - corner, -0.006, 0.006)
-        res = proxy_step_multi(obs, p, tuple(x.tolist()))
+        res = proxy.step(p, x)
         p = res.proxy
         np.testing.assert_allclose(p, _project_on_free(x, n, d), rtol=0, atol=1e-15)
         # The force is the active planes' multipliers times their normals: k (proxy - device).
@@ -260,10 +251,10 @@ def test_a_proxy_inside_the_wall_of_an_acute_corner_is_pushed_out_of_everything(
     corner = np.linalg.solve(n, d)
     dev = corner + np.array([0.0, 0.005, 0.0])
     start = dev + 0.01 * (n[0] + n[1] + n[2])
-    wall_n, wall_d = np.array(obs.obstacles[2][0]), np.array(obs.obstacles[2][1])
+    wall_n, wall_d = np.array(obs[2][0]), np.array(obs[2][1])
     assert float(np.max(wall_n @ start - wall_d)) < -5e-4
-    res = proxy_step_multi(obs, tuple(start.tolist()), tuple(dev.tolist()))
-    for normals, offsets in obs.obstacles:
+    res = Proxy(obs).step(start, dev)
+    for normals, offsets in obs:
         assert float(np.max(np.array(normals) @ np.array(res.proxy) - offsets)) >= -1e-13
     np.testing.assert_allclose(res.proxy, _project_on_free(dev, n, d), rtol=0, atol=1e-15)
 
@@ -304,13 +295,15 @@ def _polygon(corners: np.ndarray, per_side: int) -> np.ndarray:
     return np.vstack([*sides, corners[:1]])
 
 
-def _stepper_single(poly: Polytope, start: np.ndarray):
+def _stepper(obstacles: list[Obstacle], start: np.ndarray):
+    """One step of a proxy carried from step to step: (proxy, its active planes)."""
     state = {"p": start}
+    proxy = Proxy(obstacles)
 
     def step(x: np.ndarray) -> tuple[np.ndarray, tuple]:
-        res = update_proxy(poly, state["p"], x)
+        res = proxy.step(state["p"], x)
         state["p"] = res.proxy
-        return res.proxy, (res.n_active, tuple(np.round(res.normal, 9)))
+        return res.proxy, tuple(sorted(res.active))
 
     return step
 
@@ -323,11 +316,10 @@ loop_corners = arrays(float, (5, 3), elements=st.floats(0.0, 1.0))
 def test_a_closed_loop_inside_a_face_does_no_work(angles, face, c):
     R = rpy_matrix(tuple(angles))
     obj = SceneObject(ConvexShape.box(np.array([0.05, 0.03, 0.04])), Material(K), np.zeros(3), R)
-    poly = obj.polytope.inflated(RADIUS)
     pts, n = _face_points(obj, face, np.column_stack([c[:, :2], 1 - c[:, :2]]))
     corners = pts - (0.0002 + 0.006 * c[:, 2:3]) * n  # 0.2 to 6.2 mm deep
     path = _polygon(corners, 200)
-    step = _stepper_single(poly, path[0] + 0.01 * n)
+    step = _stepper([_inflated(obj)], path[0] + 0.01 * n)
     step(path[0])  # in through the face
     work, tol = _loop_work(step, path)
     assert abs(work) <= tol, (work, tol)
@@ -341,7 +333,6 @@ def test_a_closed_loop_across_an_edge_does_no_work(angles, edge, swap, c):
     R = rpy_matrix(tuple(angles))
     size = np.array([0.05, 0.03, 0.04])
     obj = SceneObject(ConvexShape.box(size), Material(K), np.zeros(3), R)
-    poly = obj.polytope.inflated(RADIUS)
     a, b = [(0, 1), (1, 2), (2, 0)][edge % 3]
     if swap:
         a, b = b, a
@@ -355,7 +346,7 @@ def test_a_closed_loop_across_an_edge_does_no_work(angles, edge, swap, c):
     gamma = (c[:, 2] - 0.5) * 0.02  # along the edge, clear of its ends
     corners = e - np.outer(alpha, na) - np.outer(beta, nb) + np.outer(gamma, along)
     path = _polygon(corners, 250)  # back to the first corner: out through A
-    step = _stepper_single(poly, path[0])
+    step = _stepper([_inflated(obj)], path[0])
     work, tol = _loop_work(step, path)
     assert abs(work) <= tol, (work, tol)
 
@@ -369,13 +360,7 @@ def test_a_closed_loop_around_a_concave_corner_does_no_work(yaw, turn, c):
     R = rpy_matrix((0.0, 0.0, yaw))
     assume(abs(R[:, 1] @ corner) < 0.033 - 0.012)
     path = _polygon(corner + 0.005 * c, 300)  # in and out of the cube, ground and wall
-    state = {"p": tuple(_into_free(corner, n))}
-
-    def step(x: np.ndarray) -> tuple[np.ndarray, tuple]:
-        res = proxy_step_multi(obs, state["p"], tuple(x.tolist()))
-        state["p"] = res.proxy
-        return np.array(res.proxy), tuple(sorted(res.active))
-
+    step = _stepper(obs, _into_free(corner, n))
     step(path[0])
     work, tol = _loop_work(step, path)
     assert abs(work) <= tol, (work, tol)

@@ -1,9 +1,10 @@
-"""The compiled contact kernel (hapticd.kernels.contact_step) against the Contact stage's
-Python code: the same bits in every output field and in the proxies, tick after tick, for
-generated boxes (turned, moving between ticks), grounds and walls, fingers inside,
-outside, at edges and corners, fast ones and first ticks; the cases it does not take run
-the Python code on the same proxies; hostile device positions end in zero force and a
-latched fault on the compiled path."""
+"""Contact's one source (hapticd.kernels.contact_step) compiled against the same function
+uncompiled, through the Contact stage: the same bits in every output field and in the
+proxies, tick after tick, for generated boxes (turned, moving between ticks), grounds and
+walls, fingers inside, outside, at edges and corners, fast ones and first ticks; a large
+mesh (stage by stage and in the renderer's one call); a non-finite input refused by name
+with nothing written (in the one call too); hostile device positions end in zero force
+and a latched fault."""
 
 from __future__ import annotations
 
@@ -16,10 +17,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hapticd import jit, kernels
-from hapticd.contact import _VECTOR_PLANES
+from hapticd.actuation import Actuation
 from hapticd.daemon.session import build_session
 from hapticd.frame import Frame
 from hapticd.profile import load_profile
+from hapticd.render import Renderer
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
 from hapticd.stages import Contact
 from tests.conftest import ROOT
@@ -101,7 +103,7 @@ def contact_cases(draw) -> dict:
 
 
 def _run(case: dict, kernel) -> list[dict[str, np.ndarray]]:
-    """Every tick's outputs and proxies of a Contact stage (``kernel`` None: Python)."""
+    """Every tick's outputs and proxies of a Contact stage (``kernel`` None: uncompiled)."""
     obj = SceneObject(
         ConvexShape.box(case["size"]), Material(500.0), case["center"], case["R"], fixed=False
     )
@@ -117,13 +119,12 @@ def _run(case: dict, kernel) -> list[dict[str, np.ndarray]]:
             obj.update_world()
         frame.device_pos[...] = pos
         frame.device_vel[...] = vel
-        # Yesterday's numbers: a path that forgets to write a field is caught (the normals
-        # and env_force only before the first tick: the Python code leaves zeros it wrote).
-        for name in OUTPUTS if not out else OUTPUTS[:4]:
+        # Yesterday's numbers: a path that forgets to write a field is caught.
+        for name in OUTPUTS:
             getattr(frame, name)[...] = 7
         stage.run(frame)
         got = {name: getattr(frame, name).copy() for name in OUTPUTS}
-        got["proxies"] = stage.state[:, :3].copy()
+        got["state"] = stage.state[:, : kernels._C_PUSHED].copy()
         out.append(got)
     return out
 
@@ -136,18 +137,13 @@ def _assert_same(ref: list[dict], got: list[dict]) -> None:
 
 
 @given(contact_cases())
-def test_the_compiled_contact_equals_the_python_stage_bit_for_bit(compiled, case):
-    """The kernel evaluates the stage's sums in the same order (numba neither fuses
-    multiply-adds nor reorders without fastmath; sqrt is correctly rounded)."""
+def test_the_compiled_contact_equals_the_uncompiled_bit_for_bit(compiled, case):
+    """One source: numba neither fuses multiply-adds nor reorders without fastmath, and
+    sqrt is correctly rounded; the proxies, active planes and multipliers too."""
     _assert_same(_run(case, None), _run(case, compiled))
 
 
-@given(contact_cases())
-def test_the_contact_kernel_as_plain_python_is_the_stage_bit_for_bit(case):
-    _assert_same(_run(case, None), _run(case, kernels.contact_step))
-
-
-def test_the_cases_reach_contacts_creases_and_surfaces():
+def test_the_cases_reach_contacts_creases_and_surfaces(compiled):
     """The generated cases are not all out of contact: over 150 derandomized ones, fingers
     touch the object, the surfaces, and both at once (a crease between obstacles)."""
     seen: set[str] = set()
@@ -155,7 +151,7 @@ def test_the_cases_reach_contacts_creases_and_surfaces():
     @settings(max_examples=150, derandomize=True, database=None)
     @given(contact_cases())
     def collect(case):
-        for tick in _run(case, None):
+        for tick in _run(case, compiled):
             on_object = tick["in_contact"] != 0
             on_surface = np.any(tick["env_force"] != 0.0, axis=1)
             if np.any(on_object):
@@ -188,7 +184,7 @@ def _edge_case(kernel, device: list) -> Contact:
         [(0.001, 0.002, 0.0), (0.1, 0.0, 0.0)],
     ],
 )
-def test_hand_made_paths_give_the_same_bits(compiled, path):
+def test_hand_made_paths_give_the_same_bits_both_ways(compiled, path):
     outs = []
     for kernel in (None, compiled):
         stage, _ = _edge_case(kernel, path)
@@ -204,46 +200,102 @@ def test_hand_made_paths_give_the_same_bits(compiled, path):
     assert any(t["in_contact"][0] for t in outs[0])
 
 
-def test_what_the_kernel_does_not_take_runs_the_python_code_on_the_same_proxies(compiled):
-    """A non-finite device position, and an object of more than _VECTOR_PLANES planes: the
-    kernel writes nothing, the stage's Python code runs, and both share the proxies."""
-    stage, obj = _edge_case(compiled, [])
-    ref, _ = _edge_case(None, [])
+@pytest.mark.parametrize("mode", ["compiled", "uncompiled"])
+@pytest.mark.parametrize(
+    ("field", "where"),
+    [("device_pos", 0), ("device_pos", 2), ("device_vel", 1), ("radius", 0), ("plane", 0)],
+)
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_a_non_finite_input_is_refused_by_name_with_nothing_written(
+    compiled, mode, field, where, bad
+):
+    """The stage raises ValueError naming the finger and field (or the obstacle); the frame
+    and the proxies are as they were, and a finite tick after goes on from them as if the
+    bad one had never come."""
+    stage, obj = _edge_case(compiled if mode == "compiled" else None, [])
+    ref, _ = _edge_case(compiled, [])
     frame, rframe = Frame(1, 1), Frame(1, 1)
-    path = [(0.06, 0.0, 0.0), (0.02, 0.0, 0.0), (math.nan, 0.0, 0.0), (0.01, 0.0, 0.0)]
-    for p in path:
+    for p in [(0.06, 0.0, 0.0), (0.02, 0.0, 0.0)]:
         for s, f in ((stage, frame), (ref, rframe)):
             f.device_pos[0] = p
             s.run(f)
-        state = stage.state.copy()
-        for name in OUTPUTS:
-            np.testing.assert_array_equal(getattr(frame, name), getattr(rframe, name))
-        np.testing.assert_array_equal(stage.state[:, :3], ref.state[:, :3])
-        assert np.array_equal(state, stage.state, equal_nan=True)
-    # The kernel itself, handed the NaN: not taken, nothing written.
-    frame.device_pos[0] = (math.nan, 0.0, 0.0)
     before = {name: getattr(frame, name).copy() for name in OUTPUTS}
-    planes = stage._kernel_planes()
     state = stage.state.copy()
-    outcome = compiled(
-        frame.device_pos, frame.device_vel, planes, stage.state, frame.proxy_pos,
-        frame.in_contact, frame.surface_point, frame.contact_point, frame.contact_normal,
-        frame.env_force,
-    )  # fmt: skip
-    assert outcome == kernels.CONTACT_NOT_TAKEN
+    if field == "radius":
+        stage.state[0, kernels._C_RADIUS] = bad
+        want = "finger 0's radius is not finite"
+    elif field == "plane":
+        shape = obj.shape
+        obj.shape = dataclasses.replace(shape, offsets=np.full(6, bad))
+        obj.update_world()
+        want = "a plane of the object is not finite"
+    else:
+        getattr(frame, field)[0, where] = bad
+        want = f"finger 0's {field} is not finite"
+    with pytest.raises(ValueError, match=f"^contact: {want}"):
+        stage.run(frame)
     for name in OUTPUTS:
         np.testing.assert_array_equal(getattr(frame, name), before[name])
-    assert np.array_equal(stage.state, state, equal_nan=True)
-    # A large mesh: vectorised in Python, not the kernel's.
-    k = _VECTOR_PLANES + 1
+    if field != "radius":
+        np.testing.assert_array_equal(stage.state, state)
+    # Put right: the next tick is the reference's.
+    stage.state[0, kernels._C_RADIUS] = 0.008
+    if field == "plane":
+        obj.shape = shape
+        obj.update_world()
+    for s, f in ((stage, frame), (ref, rframe)):
+        f.device_pos[0] = (0.015, 0.001, 0.0)
+        f.device_vel[0] = 0.0
+        s.run(f)
+    for name in OUTPUTS:
+        np.testing.assert_array_equal(getattr(frame, name), getattr(rframe, name))
+
+
+@pytest.mark.parametrize("mode", ["compiled", "uncompiled"])
+def test_a_non_finite_surface_is_named(compiled, mode):
+    obj = SceneObject(ConvexShape.box(np.full(3, 0.05)), Material(500.0), np.zeros(3), np.eye(3))
+    wall = Surface("wall", (1.0, 0.0, 0.0), math.inf, Material(1000.0))
+    stage = Contact(Scene(obj, [wall], None), [0.008], compiled if mode == "compiled" else None)
+    with pytest.raises(ValueError, match=r"^contact: a plane of surface 'wall' is not finite"):
+        stage.run(Frame(1, 1))
+
+
+def test_a_non_finite_first_tick_starts_the_proxies_at_the_next_one(compiled):
+    stage, _ = _edge_case(compiled, [])
+    frame = Frame(1, 1)
+    frame.device_pos[0] = (math.nan, 0.0, 0.0)
+    with pytest.raises(ValueError, match="finger 0's device_pos"):
+        stage.run(frame)
+    frame.device_pos[0] = (0.0, 0.0, 0.1)
+    stage.run(frame)
+    np.testing.assert_array_equal(frame.proxy_pos[0], [0.0, 0.0, 0.1])
+
+
+def test_a_large_mesh_runs_on_the_kernel_both_ways(compiled):
+    """Any number of planes per obstacle: a 1000-sided prism, compiled and not alike."""
+    k = 1000
     angles = np.linspace(0.0, 2.0 * np.pi, k, endpoint=False)
     normals = np.stack([np.cos(angles), np.sin(angles), np.zeros(k)], axis=1)
-    obj.shape = dataclasses.replace(obj.shape, normals=normals, offsets=np.full(k, 0.02))
-    obj.update_world()
-    assert stage._kernel_planes() is None
-    frame.device_pos[0] = (0.015, 0.0, 0.0)
-    stage.run(frame)
-    assert frame.in_contact[0] == 1
+    outs = []
+    for kernel in (None, compiled):
+        stage, obj = _edge_case(kernel, [])
+        obj.shape = dataclasses.replace(obj.shape, normals=normals, offsets=np.full(k, 0.02))
+        obj.update_world()
+        frame = Frame(1, 1)
+        ticks = []
+        for x in [(0.04, 0.0, 0.0), (0.015, 0.002, 0.0), (0.0, 0.015, 0.01), (-0.02, 0.0, 0.0)]:
+            frame.device_pos[0] = x
+            stage.run(frame)
+            ticks.append({name: getattr(frame, name).copy() for name in OUTPUTS})
+        outs.append(ticks)
+        # Slid over the fine faces to the one nearest the device (within a face's angle),
+        # the device projected onto it (28 mm out).
+        assert ticks[1]["in_contact"][0] == 1
+        n = ticks[1]["contact_normal"][0]
+        u = np.array([0.015, 0.002, 0.0]) / math.hypot(0.015, 0.002)
+        assert n @ u > math.cos(2.0 * math.pi / k)
+        assert n @ ticks[1]["surface_point"][0] == pytest.approx(0.028, abs=1e-12)
+    _assert_same(*outs)
 
 
 @pytest.mark.parametrize("path", [LIFT, GRASP], ids=["lift", "grasp"])
@@ -312,14 +364,89 @@ def test_hostile_device_positions_end_in_zero_force_and_a_fault_on_the_compiled_
 
 @pytest.mark.parametrize("value", [math.nan, math.inf, -1e300, 1e6])
 @pytest.mark.parametrize("path", [LIFT, GRASP], ids=["lift", "grasp"])
-def test_hostile_positions_past_the_device_bank_give_the_python_paths_forces(compiled, path, value):
-    """The same positions put straight into the frame (past the bank's check): the kernel
-    takes the finite ones, the Python code the rest; every force written is finite, within
-    the limit and the Python path's, bit for bit, and so is how the run ends."""
+def test_hostile_positions_past_the_device_bank_fault_alike_both_ways(compiled, path, value):
+    """The same positions put straight into the frame (past the bank's check): every force
+    written is finite, within the limit and the uncompiled run's, bit for bit, and so is
+    how the run ends; a non-finite one faults the contact stage by name."""
     jit.compile_kernels(list(jit.SIGNATURES))
-    summary, forces, limit, _ = _hostile_run(path, "compiled", value, "frame")
+    summary, forces, limit, n = _hostile_run(path, "compiled", value, "frame")
     ref, ref_forces, _, _ = _hostile_run(path, "python", value, "frame")
     assert np.all(np.isfinite(forces))
     assert np.all(np.linalg.norm(forces, axis=1) <= limit + 1e-12)
     assert summary["fault"] == ref["fault"]
     np.testing.assert_array_equal(forces, ref_forces)
+    if not math.isfinite(value):
+        assert "contact: finger 0's device_pos is not finite" in summary["fault"]["cause"]
+        assert np.all(forces[-n:] == 0.0)
+
+
+def _one_call_renderer(shape: ConvexShape, calls: list | None = None) -> Renderer:
+    """A fixed frictionless object of ``shape`` on the ground, two fingers, IF, every kernel
+    compiled: the plan runs as one call (hapticd.render.OneCall), counted in ``calls``."""
+    obj = SceneObject(shape, Material(500.0), np.zeros(3), np.eye(3))
+    ground = Surface("ground", (0.0, 0.0, 1.0), -0.03, Material(1000.0, 5.0))
+    r = Renderer(Scene(obj, [ground], None), [0.008] * 2, Actuation([[(1.0, 0, 0)]] * 2), "if")
+    fns = jit.compile_kernels(r.kernel_names)
+    if calls is not None:
+        tick = fns["tick_step"]
+
+        def counted(*args):
+            outcome = tick(*args)
+            calls.append(outcome)
+            return outcome
+
+        fns["tick_step"] = counted
+    r.use_kernels(fns)
+    assert r.one_call is not None
+    return r
+
+
+def test_the_one_call_refuses_a_non_finite_sample_by_name_and_goes_on():
+    r = _one_call_renderer(ConvexShape.box(np.full(3, 0.05)))
+    ref = _one_call_renderer(ConvexShape.box(np.full(3, 0.05)))
+    pos = np.array([[-0.03, 0.0, 0.0], [0.03, 0.0, 0.0]])
+    for x in (pos * 2.0, pos):
+        r.step(x, np.zeros((2, 3)))
+        ref.step(x, np.zeros((2, 3)))
+    bad = pos.copy()
+    bad[1, 2] = math.nan
+    with pytest.raises(ValueError, match=r"^contact: finger 1's device_pos is not finite"):
+        r.step(bad, np.zeros((2, 3)))
+    a = r.step(pos * 0.99, np.zeros((2, 3)))
+    b = ref.step(pos * 0.99, np.zeros((2, 3)))
+    for name in (*OUTPUTS, "contact_force", "rendered_force"):
+        np.testing.assert_array_equal(a.get(name), b.get(name), err_msg=name)
+    assert np.all(a.in_contact == 1)
+
+
+def test_a_large_mesh_runs_in_the_one_call():
+    """A 1000-sided prism (any number of planes): in one call, tick after tick, the same
+    forces as the plan stage by stage."""
+    k = 1000
+    angles = np.linspace(0.0, 2.0 * np.pi, k, endpoint=False)
+    normals = np.stack([np.cos(angles), np.sin(angles), np.zeros(k)], axis=1)
+    prism = dataclasses.replace(
+        ConvexShape.box(np.full(3, 0.05)), normals=normals, offsets=np.full(k, 0.02)
+    )
+    calls: list[int] = []
+    one = _one_call_renderer(prism, calls)
+    staged = _one_call_renderer(prism)
+    staged.insert(Nothing(), after="scene")  # a plan with an inserted stage: one by one
+    assert staged.one_call is None
+    for s in np.linspace(0.0, 1.0, 20):
+        x = np.array([[-0.03 + 0.01 * s, 0.003 * s, 0.0], [0.03 - 0.01 * s, 0.0, -0.002 * s]])
+        a, b = one.step(x, np.zeros((2, 3))), staged.step(x, np.zeros((2, 3)))
+        for name in (*OUTPUTS, "contact_force", "rendered_force"):
+            np.testing.assert_array_equal(a.get(name), b.get(name), err_msg=name)
+    assert calls == [kernels.TICK_DONE] * 20 and np.all(a.in_contact == 1)
+
+
+class Nothing:
+    """A stage that reads and writes nothing."""
+
+    name = "nothing"
+    reads: tuple[str, ...] = ()
+    writes: tuple[str, ...] = ()
+
+    def run(self, frame: Frame) -> None:
+        pass

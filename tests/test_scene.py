@@ -15,10 +15,10 @@ from hapticd.actuation import Actuation
 from hapticd.allocation import Robustness
 from hapticd.build import build_scene
 from hapticd.cli import main
-from hapticd.contact import ObstacleSet, proxy_step_multi
 from hapticd.profile import ProfileError, parse_profile
 from hapticd.render import Renderer
 from tests.conftest import ROOT
+from tests.proxies import Proxy
 
 LIFT = ROOT / "configs" / "lift-weight.yaml"
 R = 0.008
@@ -129,7 +129,7 @@ def test_corner_of_cube_ground_and_wall_has_three_constraints():
         ([(0, 1.0, 0)], [0.0]),  # solid y <= 0
         ([(0, 0, 1.0)], [0.0]),  # solid z <= 0
     ]
-    res = proxy_step_multi(ObstacleSet(obstacles), (0.01, 0.01, 0.01), (-0.002, -0.003, -0.001))
+    res = Proxy(obstacles).step((0.01, 0.01, 0.01), (-0.002, -0.003, -0.001))
     assert sorted(j for j, _ in res.active) == [0, 1, 2]
     np.testing.assert_allclose(res.proxy, [0, 0, 0], atol=1e-15)
     mu = dict(zip((j for j, _ in res.active), res.mu, strict=True))
@@ -151,12 +151,11 @@ def test_a_finger_pressed_into_the_ground_under_an_overhang_is_pushed_by_both():
     # proxy - device is their multipliers times their normals.
     b = math.radians(30.0)
     block = ([(-math.cos(b), 0.0, -math.sin(b))], [0.0])
-    obs = ObstacleSet([block, ([(0.0, 0.0, 1.0)], [0.0])])
     dev = np.array([0.002, 0.0, -0.01])
-    p = (-0.02, 0.0, 0.01)
-    for x in np.linspace([-0.02, 0.0, -0.01], dev, 40):
-        res = proxy_step_multi(obs, p, tuple(x.tolist()))
-        p = res.proxy
+    res = Proxy([block, ([(0.0, 0.0, 1.0)], [0.0])]).walk(
+        (-0.02, 0.0, 0.01), np.linspace([-0.02, 0.0, -0.01], dev, 40)
+    )[-1]
+    p = res.proxy
     np.testing.assert_allclose(p, [0.0, 0.0, 0.0], atol=1e-15)
     mu = dict(zip(res.active, res.mu, strict=True))
     assert set(mu) == {(0, 0), (1, 0)}
@@ -167,12 +166,12 @@ def test_a_finger_pressed_into_the_ground_under_an_overhang_is_pushed_by_both():
 
 @given(arrays(float, (200, 3), elements=st.floats(-0.04, 0.04)))
 def test_proxy_never_inside_any_obstacle_over_fast_random_paths(steps):
-    obs = ObstacleSet([box_obstacle, ground, wall])
+    proxy = Proxy([box_obstacle, ground, wall])
     x = np.array([0.06, 0.06, 0.06])
-    p = tuple(x)
+    p = x
     for s in steps:
         x = np.clip(x + s, -0.1, 0.1)
-        res = proxy_step_multi(obs, p, tuple(x))
+        res = proxy.step(p, x)
         p = res.proxy
         for normals, offsets in (box_obstacle, ground, wall):
             depth = max(
@@ -402,19 +401,18 @@ def test_missing_mesh_file_is_a_profile_error(tmp_path):
 
 @settings(max_examples=60)
 @given(arrays(float, (150, 3), elements=st.floats(-0.02, 0.02)))
-def test_proxy_never_inside_a_fine_mesh_with_the_vectorised_tests(steps):
+def test_proxy_never_inside_a_fine_mesh(steps):
     import trimesh
 
-    m = trimesh.creation.icosphere(subdivisions=3, radius=0.033)  # 1280 planes: numpy path
+    m = trimesh.creation.icosphere(subdivisions=3, radius=0.033)  # 1280 planes
     N = m.face_normals
     off = np.einsum("ij,ij->i", N, m.vertices[m.faces[:, 0]])
-    obs = ObstacleSet([([tuple(n) for n in N.tolist()], off.tolist()), ground])
-    assert obs.arrays[0] is not None and obs.arrays[1] is None
+    proxy = Proxy([(N, off), ground])
     x = np.array([0.05, 0.0, 0.0])
-    p = tuple(x)
+    p = x
     for s in steps:
         x = np.clip(x + s, -0.06, 0.06)
-        p = proxy_step_multi(obs, p, tuple(x)).proxy
+        p = proxy.step(p, x).proxy
         assert float(np.max(N @ np.array(p) - off)) >= -1e-12
         assert p[2] >= -0.017 - 1e-12
 
