@@ -348,7 +348,9 @@ class OneCall:
             return None
         fn = r.kernels.get("tick_step")
         if fn is None:
-            return None
+            if r.kernels:  # compiled kernels without this one: the stages' compiled ones
+                return None
+            fn = kn.uncompiled("tick_step")  # rendering.kernels=python: the same function
         one = cls(r, fn)
         return one if one._bind(r.frame) else None
 
