@@ -6,10 +6,10 @@ passivity, dynamics, scene. Stages the scene does not need are not in the plan
 and never run (a fixed cube has no dynamics stage, a frictionless one no
 friction stage, a renderer without ``passivity`` parameters no passivity stage).
 ``use_kernels`` hands it compiled kernels (hapticd.kernels, compiled by hapticd.jit)
-for the stages that have one; without them dynamics, friction, the contact forces and
-the allocation run the same kernels uncompiled (their only code), contact its
-readable Python code. ``insert`` adds a stage after a named one; ``set_param`` changes a scene or
-rendering parameter (those of hapticd.params the renderer owns) and re-plans.
+for the stages that have one; without them every stage with a kernel runs the same
+kernel uncompiled (its only code). ``insert`` adds a stage after a named one;
+``set_param`` changes a scene or rendering parameter (those of hapticd.params the
+renderer owns) and re-plans.
 The same object renders off-line: ``step(device_pos, device_vel)`` runs one
 tick on the renderer's own frame, with no devices, timing or safety.
 """
@@ -348,7 +348,9 @@ class OneCall:
             return None
         fn = r.kernels.get("tick_step")
         if fn is None:
-            return None
+            if r.kernels:  # compiled kernels without this one: the stages' compiled ones
+                return None
+            fn = kn.uncompiled("tick_step")  # rendering.kernels=python: the same function
         one = cls(r, fn)
         return one if one._bind(r.frame) else None
 

@@ -208,3 +208,21 @@ def test_the_safety_chain_in_the_call_clamps_and_limits_as_the_chain(tmp_path, m
     assert one.rate_limited_ticks == chain.rate_limited_ticks > 10
     np.testing.assert_array_equal(a["device_force"], b["device_force"])
     assert np.abs(a["device_force"]).max() > 0.1
+
+
+@pytest.mark.parametrize("profile", ["lift-weight", "grasp-stiffness"])
+def test_python_mode_runs_the_same_call_uncompiled(profile, monkeypatch):
+    """rendering.kernels=python: the one call is the same function, uncompiled; its ticks
+    equal the stages' (uncompiled) ones."""
+    prof = load_profile(ROOT / "configs" / f"{profile}.yaml", ["rendering.kernels=python"])
+    one, staged = build_renderer(prof), build_renderer(prof)
+    assert one.kernels == {} and one.one_call is not None
+    _staged(staged, monkeypatch)
+    paths = [p for p in load_trajectories(prof) if p is not None]
+    times, pos = paths[0][0], np.stack([p[1] for p in paths], axis=1)
+    dt = float(times[1] - times[0])
+    touched = 0
+    for k in range(0, len(times) - 1, 40):
+        _same(one, staged, pos[k], (pos[k + 1] - pos[k]) / dt, k)
+        touched += bool(one.frame.in_contact.any())
+    assert touched > 5
