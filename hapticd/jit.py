@@ -77,10 +77,9 @@ SIGNATURES = {
     "safety_step": "i8(f8[:, ::1], f8[:, ::1], f8[::1], f8[:, :, ::1])",
     "world_planes": "void(f8[:, ::1], f8[::1], f8[:, ::1], f8[::1], f8[:, ::1])",
     "tick_step": (
-        "i8(f8[:, ::1], f8[:, ::1], u1[::1], f8[::1], f8[:, ::1], f8[::1], f8[:, ::1], f8[::1],"
-        + " f8[:, ::1]," * 13
-        + " f8[::1], f8[:, ::1], f8[::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[:, ::1],"
-        " f8[:, ::1], f8[:, ::1])"
+        "i8(f8[::1], u1[::1], i8[::1], f8[::1], f8[:, ::1], f8[::1], f8[:, ::1], f8[:, ::1],"
+        " f8[:, ::1], f8[:, ::1], f8[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1],"
+        " f8[:, :, ::1])"
     ),
 }
 
@@ -215,13 +214,15 @@ def _register_helpers(numba, kernels) -> None:
 
         from hapticd.allocation.closed import FLOAT_FORMS
 
+        forms = {**FLOAT_FORMS, **kernels.COMPILED_FORMS}
         for helper in kernels.KERNEL_HELPERS:
             fn = getattr(kernels, helper) if isinstance(helper, str) else helper
             if fn in _HELPERS:
                 continue
-            if fn in FLOAT_FORMS:
-                # Chooses its form by the argument's type: compiled code runs the float one.
-                floats = register_jitable(FLOAT_FORMS[fn])
+            if fn in forms:
+                # Its compiled form is another function (the float one of a helper that
+                # chooses its form by the argument's type): compiled code runs that.
+                floats = register_jitable(forms[fn])
                 overload(fn, strict=False)(lambda *args, _f=floats, **kw: _f)
             else:
                 register_jitable(fn)

@@ -363,6 +363,8 @@ KERNEL_HELPERS = (
     "allocation_step",
     "free_body_step",
     "_axes",
+    "_rows",
+    "safety_step",
 )
 # The sources whose code or constants the kernels compile in: numba's cache knows only
 # this file's, so hapticd.jit keys its record of compiled kernels on all of them.
@@ -1319,53 +1321,108 @@ def world_planes(
 
 
 # tick_step's params: what the plan has (1.0 or 0.0: friction, a free object, surfaces, a
-# sum of contributions into rendered_force), the allocator's alpha, then the friction,
-# forces, allocation and free-body params at their offsets (each kernel's layout above)
-TICK_FRICTION, TICK_FREE, TICK_SURFACES, TICK_SUM, TICK_ALPHA = 0, 1, 2, 3, 4
-TICK_FRICTION_AT = 5
+# sum of contributions into rendered_force), the allocator's alpha, whether the safety
+# chain's normal tick runs in the call (set per tick), then the friction, forces,
+# allocation and free-body params at their offsets (each kernel's layout above)
+TICK_FRICTION, TICK_FREE, TICK_SURFACES, TICK_SUM, TICK_ALPHA, TICK_SAFETY = range(6)
+TICK_FRICTION_AT = 6
 TICK_FORCES_AT = TICK_FRICTION_AT + FRICTION_PARAMS
 TICK_ALLOCATION_AT = TICK_FORCES_AT + FORCES_PARAMS
 TICK_BODY_AT = TICK_ALLOCATION_AT + ALLOCATION_PARAMS
 TICK_PARAMS = TICK_BODY_AT + PARAMS
 # tick_step's outcomes: done; stopped before contact or before allocation, having written
 # what came before (the renderer runs that stage and the rest one by one); allocation
-# refused a non-finite input or produced a non-finite output (nothing after it written)
+# refused a non-finite input or produced a non-finite output (nothing after it written);
+# with the safety chain's tick: a free object's state beyond MAX_OBJECT_* (the chain not
+# run: the loop latches the fault), or the chain's kernel deferred (the chain runs its
+# checks); TICK_SAFE + safety_step's flags: done, the safety chain's tick too.
 TICK_DONE, TICK_FROM_CONTACT, TICK_FROM_ALLOCATION = 0, 1, 2
-TICK_NON_FINITE_INPUT, TICK_NON_FINITE_OUTPUT = 3, 4
+TICK_NON_FINITE_INPUT, TICK_NON_FINITE_OUTPUT, TICK_OBJECT, TICK_SAFETY_DEFER = 3, 4, 5, 6
+TICK_SAFE = 16
+# A free object beyond these has left any scene a hand can reach (a free fall of a day
+# stays below them), and well before float overflow breaks its dynamics: the loop's
+# backstop (hapticd.servo) latches a fault.
+MAX_OBJECT_DISTANCE_M = 1e12
+MAX_OBJECT_SPEED_M_PER_S = 1e7
+MAX_OBJECT_SPIN_RAD_PER_S = 1e7
+
+
+# tick_step's frame fields: each one's offset in the frame's record, in float64 items
+# (``at``), in this order. With friction contact writes the frictionless ones and friction
+# the final three; without, the frictionless ones are the final ones (the same offsets).
+TICK_FIELDS = (
+    "device_pos",
+    "device_vel",
+    "frictionless_proxy",
+    "frictionless_point",
+    "frictionless_contact_point",
+    "contact_normal",
+    "env_force",
+    "proxy_pos",
+    "surface_point",
+    "contact_point",
+    "contact_force",
+    "lam_a",
+    "allocated_force",
+    "residual_internal",  # then residual_external, residual_total, amplification, alpha
+    "env_rendered",
+    "rendered_force",
+    "object_pos",  # then object_vel, object_omega, object_rot: STATE floats
+    "device_force",
+)
+(
+    _AT_POS,
+    _AT_VEL,
+    _AT_PLAIN_PROXY,
+    _AT_PLAIN_SURFACE,
+    _AT_PLAIN_POINT,
+    _AT_NORMAL,
+    _AT_ENV,
+    _AT_PROXY,
+    _AT_SURFACE,
+    _AT_POINT,
+    _AT_FORCE,
+    _AT_LAM,
+    _AT_ALLOCATED,
+    _AT_SCALARS,
+    _AT_ENV_RENDERED,
+    _AT_RENDERED,
+    _AT_OBJECT,
+    _AT_DEVICE_FORCE,
+) = range(len(TICK_FIELDS))
+
+
+def _rows(a: np.ndarray, start: int, n: int) -> np.ndarray:
+    """Items ``start`` to ``start + 3 n`` of the flat ``a`` as an (n, 3) view (a
+    memoryview's, uncompiled; ``_rows_compiled`` in compiled code)."""
+    return a[start : start + 3 * n].cast("B").cast("d", (n, 3))  # type: ignore[attr-defined]
+
+
+def _rows_compiled(a: np.ndarray, start: int, n: int) -> np.ndarray:
+    return a[start : start + 3 * n].reshape((n, 3))
+
+
+# Helpers whose compiled form is another function (hapticd.jit compiles that one in).
+COMPILED_FORMS = {_rows: _rows_compiled}
 
 
 def tick_step(
-    device_pos: np.ndarray,
-    device_vel: np.ndarray,
+    record: np.ndarray,
     in_contact: np.ndarray,
+    at: np.ndarray,
     obj_state: np.ndarray,
-    obj_rot: np.ndarray,
-    obj_pos: np.ndarray,
     body_normals: np.ndarray,
     body_offsets: np.ndarray,
     planes: np.ndarray,
     contact_state: np.ndarray,
-    plain_proxy: np.ndarray,
-    plain_surface: np.ndarray,
-    plain_point: np.ndarray,
-    contact_normal: np.ndarray,
-    env_force: np.ndarray,
-    proxy_pos: np.ndarray,
-    surface_point: np.ndarray,
-    contact_point: np.ndarray,
     anchors: np.ndarray,
-    contact_force: np.ndarray,
     local: np.ndarray,
-    lam_a: np.ndarray,
-    allocated: np.ndarray,
-    scalars: np.ndarray,
-    env_rendered: np.ndarray,
-    rendered_force: np.ndarray,
-    object_fields: np.ndarray,
     params: np.ndarray,
     body: np.ndarray,
     surf: np.ndarray,
     scratch: np.ndarray,
+    safety_params: np.ndarray,
+    out_prev: np.ndarray,
 ) -> int:
     """One whole tick of the renderer's plan in one call: the object's planes at its pose,
     contact, friction, the contact forces, allocation, the environment's force through each
@@ -1373,21 +1430,30 @@ def tick_step(
     each by its kernel above (the stages' physics; hapticd.render.Renderer's plan says which
     run and with which of the frame's fields).
 
-    The frame's fields: ``device_pos``, ``device_vel`` (F, 3) m, m/s; ``in_contact`` (F,)
-    u1; contact's results ``plain_proxy``, ``plain_surface``, ``plain_point`` (the
-    frictionless ones with friction, else the same arrays as ``proxy_pos``,
-    ``surface_point``, ``contact_point``); ``contact_normal``, ``env_force`` N,
-    ``contact_force`` N, ``lam_a`` (F,) N, ``allocated`` (F, 3) N (``allocated_force``
-    with a sum, else ``rendered_force``), ``scalars`` (5,): residual_internal,
-    residual_external, residual_total, amplification and alpha; ``env_rendered``,
-    ``rendered_force`` (F, 3) N; ``object_fields`` (STATE,): object_pos to object_rot.
-    The object's ``obj_state`` (STATE,) with its views ``obj_rot`` (3, 3) and ``obj_pos``
-    (3,), its shape's ``body_normals`` (M, 3) and ``body_offsets`` (M,) m; contact's
+    ``record``: the frame's record as float64 items, whose fields ``TICK_FIELDS`` start
+    at ``at`` (int64); ``in_contact`` (F,) u1, the frame's. The object's ``obj_state``
+    (STATE,), its shape's ``body_normals`` (M, 3) and ``body_offsets`` (M,) m; contact's
     ``planes`` and ``contact_state``; friction's ``anchors``; allocation's ``local``;
     ``params`` (TICK_PARAMS,) as declared above; the free body's ``body``, ``surf`` and
-    ``scratch``. Returns a TICK_ outcome.
+    ``scratch``; with params[TICK_SAFETY], the safety chain's normal tick on the rendered
+    force into ``device_force``: a free object's state checked first, then safety_step
+    with the chain's ``safety_params`` and ``out_prev``. Returns a TICK_ outcome.
     """
-    world_planes(obj_rot, obj_pos, body_normals, body_offsets, planes)
+    n = in_contact.shape[0]
+    device_pos = _rows(record, at[_AT_POS], n)
+    device_vel = _rows(record, at[_AT_VEL], n)
+    plain_proxy = _rows(record, at[_AT_PLAIN_PROXY], n)
+    plain_surface = _rows(record, at[_AT_PLAIN_SURFACE], n)
+    plain_point = _rows(record, at[_AT_PLAIN_POINT], n)
+    normal = _rows(record, at[_AT_NORMAL], n)
+    env_force = _rows(record, at[_AT_ENV], n)
+    surface_point = _rows(record, at[_AT_SURFACE], n)
+    contact_point = _rows(record, at[_AT_POINT], n)
+    contact_force = _rows(record, at[_AT_FORCE], n)
+    allocated = _rows(record, at[_AT_ALLOCATED], n)
+    env_rendered = _rows(record, at[_AT_ENV_RENDERED], n)
+    rendered = _rows(record, at[_AT_RENDERED], n)
+    world_planes(_rows(obj_state, 9, 3), obj_state[0:3], body_normals, body_offsets, planes)
     if (
         contact_step(
             device_pos,
@@ -1398,7 +1464,7 @@ def tick_step(
             in_contact,
             plain_surface,
             plain_point,
-            contact_normal,
+            normal,
             env_force,
         )
         != CONTACT_DONE
@@ -1412,8 +1478,8 @@ def tick_step(
             plain_proxy,
             plain_point,
             surface_point,
-            contact_normal,
-            proxy_pos,
+            normal,
+            _rows(record, at[_AT_PROXY], n),
             contact_point,
             anchors,
             obj_state,
@@ -1424,21 +1490,22 @@ def tick_step(
         device_pos,
         device_vel,
         surface_point,
-        contact_normal,
+        normal,
         contact_force,
         obj_state,
         params[TICK_FORCES_AT:TICK_ALLOCATION_AT],
     )
-    at = TICK_ALLOCATION_AT
-    params[at + 5], params[at + 6], params[at + 7] = obj_state[0], obj_state[1], obj_state[2]
+    a = TICK_ALLOCATION_AT
+    params[a + 5], params[a + 6], params[a + 7] = obj_state[0], obj_state[1], obj_state[2]
+    scalars = record[at[_AT_SCALARS] : at[_AT_SCALARS] + ACCURACY + 1]
     outcome = allocation_step(
         in_contact,
         device_pos,
         contact_point,
         contact_force,
         local,
-        params[at:TICK_BODY_AT],
-        lam_a,
+        params[a:TICK_BODY_AT],
+        record[at[_AT_LAM] : at[_AT_LAM] + n],
         allocated,
         scalars,
     )
@@ -1449,12 +1516,10 @@ def tick_step(
     if outcome == NON_FINITE_OUTPUT:
         return TICK_NON_FINITE_OUTPUT
     scalars[ACCURACY] = params[TICK_ALPHA]
-    n_fingers = in_contact.shape[0]
     if params[TICK_SURFACES] != 0.0:
         # Each finger's own actuated direction d in the world: env_force projected on it.
-        grasp = params[at + 4] != 0.0
-        ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, grasp)
-        for i in range(n_fingers):
+        ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, params[a + 4] != 0.0)
+        for i in range(n):
             e0, e1, e2 = env_force[i, 0], env_force[i, 1], env_force[i, 2]
             if e0 == 0.0 and e1 == 0.0 and e2 == 0.0:
                 env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = 0.0, 0.0, 0.0
@@ -1466,24 +1531,40 @@ def tick_step(
             s = (d0 * e0 + d1 * e1 + d2 * e2) / (d0 * d0 + d1 * d1 + d2 * d2)
             env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = s * d0, s * d1, s * d2
     if params[TICK_SUM] != 0.0:
-        for i in range(n_fingers):
+        for i in range(n):
             for j in range(3):
-                rendered_force[i, j] = allocated[i, j] + env_rendered[i, j]
+                rendered[i, j] = allocated[i, j] + env_rendered[i, j]
     if params[TICK_FREE] != 0.0:
         free_body_step(
             in_contact,
             contact_point,
             contact_force,
-            contact_normal,
+            normal,
             params[TICK_BODY_AT:TICK_PARAMS],
             obj_state,
             body,
             surf,
             scratch,
         )
+    o = at[_AT_OBJECT]
     for k in range(STATE):
-        object_fields[k] = obj_state[k]
-    return TICK_DONE
+        record[o + k] = obj_state[k]
+    if params[TICK_SAFETY] == 0.0:
+        return TICK_DONE
+    # NaN fails every comparison; _hypot3 is math.hypot's (the loop's backstop's) sum.
+    if params[TICK_FREE] != 0.0 and not (
+        _hypot3(obj_state[0], obj_state[1], obj_state[2]) <= MAX_OBJECT_DISTANCE_M
+        and _hypot3(obj_state[3], obj_state[4], obj_state[5]) <= MAX_OBJECT_SPEED_M_PER_S
+        and _hypot3(obj_state[6], obj_state[7], obj_state[8]) <= MAX_OBJECT_SPIN_RAD_PER_S
+    ):
+        return TICK_OBJECT
+    flags = safety_step(rendered, device_pos, safety_params, out_prev)
+    if flags & SAFETY_DEFER:
+        return TICK_SAFETY_DEFER
+    out = _rows(record, at[_AT_DEVICE_FORCE], n)
+    for i in range(n):
+        out[i, 0], out[i, 1], out[i, 2] = out_prev[0, i, 0], out_prev[0, i, 1], out_prev[0, i, 2]
+    return TICK_SAFE + flags
 
 
 def _axes(device_pos: np.ndarray, grasp: bool) -> tuple[float, ...]:

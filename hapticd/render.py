@@ -29,6 +29,7 @@ from hapticd.allocation.robust import AllocationError
 from hapticd.frame import LOOP_WRITERS, NAMES, STATE_WRITERS, Frame
 from hapticd.params import PARAMS, ParamError
 from hapticd.passivity import PassivityParams
+from hapticd.safety import SafetyChain
 from hapticd.scene import Material, Scene, SceneObject
 from hapticd.stages import (
     FRICTIONLESS,
@@ -260,14 +261,19 @@ class Renderer:
 
     # -- the tick -------------------------------------------------------------------------
 
-    def run(self, frame: Frame) -> None:
+    def run(self, frame: Frame, safety: SafetyChain | None = None) -> int | None:
         """One tick on ``frame``, whose device_pos (F, 3) m and device_vel (F, 3) m/s are set:
-        the plan in one call (``OneCall``) when it can, else stage by stage."""
+        the plan in one call (``OneCall``) when it can, else stage by stage.
+
+        ``safety``: a chain ``ready`` for this tick, whose normal tick the one call makes
+        too (device_force), after checking a free object's state: then its safety_step
+        flags, for ``SafetyChain.done``; None when the call did not (the caller checks the
+        object and runs the chain)."""
         if self.one_call is not None:
-            self.one_call.run(frame)
-            return
+            return self.one_call.run(frame, safety)
         for stage in self.stages:
             stage.run(frame)
+        return None
 
     def step(self, device_pos: np.ndarray, device_vel: np.ndarray) -> Frame:
         """One tick for device positions (F, 3) m and velocities (F, 3) m/s on the renderer's
@@ -309,16 +315,6 @@ class Renderer:
         self.plan()
 
 
-# allocation_step's accuracy and the allocator's alpha: adjacent in the frame's record
-_ACCURACY_AND_ALPHA = (
-    "residual_internal",
-    "residual_external",
-    "residual_total",
-    "amplification",
-    "alpha",
-)
-
-
 class OneCall:
     """The renderer's plan as one call per tick: hapticd.kernels.tick_step, compiled or (with
     ``rendering.kernels=python``) the same function uncompiled, over the frame's fields
@@ -341,6 +337,7 @@ class OneCall:
         self._free = False
         self._started = False
         self._params = np.zeros(kn.TICK_PARAMS)
+        self._at = np.zeros(len(kn.TICK_FIELDS), dtype=np.int64)
 
     @classmethod
     def of(cls, r: Renderer) -> OneCall | None:
@@ -391,37 +388,32 @@ class OneCall:
             p[kn.TICK_BODY_AT :] = body_params
         else:
             body, surf, scratch = np.zeros((1, 3)), np.zeros((0, 7)), np.zeros((n, 13))
-        plain = ("frictionless_proxy", "frictionless_point", "frictionless_contact_point")
-        held = ("proxy_pos", "surface_point", "contact_point")
-        f = frame
+        at = {name: _float_offset(frame, name) for name in kn.TICK_FIELDS}
+        if not friction:  # contact writes the final fields itself
+            at.update({plain: at[held] for plain, held in zip(FRICTIONLESS, HELD, strict=True)})
+        if not total:  # allocation writes the rendered force itself
+            at["allocated_force"] = at["rendered_force"]
+        # The kernel reads these as runs of floats from their first.
+        adjacent(frame, ("residual_internal", "residual_external", "residual_total"))
+        adjacent(frame, ("residual_total", "amplification", "alpha"))
+        adjacent(frame, ("object_pos", "object_vel", "object_omega", "object_rot"))
+        self._at[:] = [at[name] for name in kn.TICK_FIELDS]
         self._args = (
-            f.device_pos,
-            f.device_vel,
-            f.in_contact,
+            frame.record.reshape(1).view(np.uint8).view(np.float64),
+            frame.in_contact,
+            self._at,
             obj.state,
-            obj.rotation,
-            obj.position,
             np.ascontiguousarray(obj.shape.normals, dtype=float),
             np.ascontiguousarray(obj.shape.offsets, dtype=float),
             planes,
             contact.state,
-            *(getattr(f, name) for name in (plain if friction else held)),
-            f.contact_normal,
-            f.env_force,
-            *(getattr(f, name) for name in held),
             r._friction.anchors,
-            f.contact_force,
             local,
-            f.lam_a,
-            f.allocated_force if total else f.rendered_force,
-            adjacent(f, _ACCURACY_AND_ALPHA),
-            f.env_rendered,
-            f.rendered_force,
-            adjacent(f, ("object_pos", "object_vel", "object_omega", "object_rot")),
             p,
             body,
             surf,
             scratch,
+            *_NO_SAFETY,
         )
         frame.stiffness_n_per_m[()] = mat.stiffness
         frame.mass_kg[()] = obj.mass
@@ -431,7 +423,8 @@ class OneCall:
         self._free = free
         return True
 
-    def run(self, frame: Frame) -> None:
+    def run(self, frame: Frame, safety: SafetyChain | None = None) -> int | None:
+        """The tick (``Renderer.run``): the safety chain's flags when it ran too, else None."""
         # Set without a new plan (set_param plans anew): the object, or its material (an
         # analysis replaying a recording's stiffness tick by tick).
         obj = self._scene.object
@@ -439,15 +432,27 @@ class OneCall:
             frame is not self._frame or obj is not self._obj or obj.material is not self._material
         ) and not self._bind(frame):
             self._by_stages(frame, 0)
-            return
+            return None
         if not self._started:  # every proxy starts at its device, on the first tick run
             self.renderer._contact.start(frame)
             self._started = True
-        outcome = self._fn(*self._args)
-        if outcome == kn.TICK_DONE:
+        args = self._args
+        if safety is None:
+            self._params[kn.TICK_SAFETY] = 0.0
+        else:
+            arrays = safety.kernel_arrays
+            if arrays[0] is not args[-2] or arrays[1] is not args[-1]:
+                args = self._args = (*args[:-2], *arrays)
+            self._params[kn.TICK_SAFETY] = 1.0
+        outcome = self._fn(*args)
+        if outcome == kn.TICK_DONE or outcome >= kn.TICK_SAFE:
             if self._free:
                 obj.update_world()
-            return
+            return None if outcome == kn.TICK_DONE else outcome - kn.TICK_SAFE
+        if outcome in (kn.TICK_OBJECT, kn.TICK_SAFETY_DEFER):
+            if self._free:
+                obj.update_world()
+            return None  # the caller's own checks
         if outcome == kn.TICK_NON_FINITE_INPUT:
             raise AllocationError("non-finite contact geometry or force; refusing to allocate")
         if outcome == kn.TICK_NON_FINITE_OUTPUT:
@@ -456,6 +461,7 @@ class OneCall:
         names = [s.name for s in self.renderer.stages]
         start = "contact" if outcome == kn.TICK_FROM_CONTACT else "allocation"
         self._by_stages(frame, names.index(start))
+        return None
 
     def _by_stages(self, frame: Frame, first: int) -> None:
         """The plan's stages from ``first`` on, one by one, after ticks this call wrote."""
@@ -465,6 +471,18 @@ class OneCall:
             if isinstance(stage, Environment):
                 stage.zero_on = None
             stage.run(frame)
+
+
+# tick_step's safety arrays when the safety chain does not run in the call (never read).
+_NO_SAFETY = (np.zeros(kn.SAFETY_PARAMS), np.zeros((2, 1, 3)))
+
+
+def _float_offset(frame: Frame, name: str) -> int:
+    """Where field ``name`` starts in the frame's record, in float64 items."""
+    start = frame.dtype.fields[name][1]
+    if start % 8:
+        raise RuntimeError(f"frame field {name!r} is not aligned to 8 bytes")
+    return start // 8
 
 
 def _own(name: str) -> str:

@@ -241,6 +241,34 @@ class SafetyChain:
         )
         frame.device_force[...] = out
 
+    def ready(self, t: float) -> bool:
+        """Whether this tick (nominal time ``t``, s) may be the normal one, made by
+        ``safety_step`` outside the chain (the renderer's one call, with ``kernel_arrays``;
+        then ``done``): no deadman, no latched fault. Sets the kernel's parameters for ``t``
+        when it may."""
+        if self._has_deadman or self.fault is not None:
+            return False
+        self._step_inputs(t, True)
+        return True
+
+    @property
+    def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """safety_step's ``params`` and ``out_prev`` (this tick's output and the last)."""
+        return self._step_params, self._out_prev
+
+    def done(self, flags: int, t_wall: float | None) -> bool:
+        """After ``safety_step`` made this tick's output with the parameters ``ready`` set,
+        at monotonic time ``t_wall`` (s; None: no watchdog): its ``flags`` counted; False
+        when the watchdog must trip (the caller then runs the chain: ``run``)."""
+        if t_wall is not None:
+            last = self._last_wall
+            if last is not None and t_wall - last > self.params.watchdog_s:
+                return False
+            self._last_wall = t_wall
+        self.clamped_ticks += (flags & SAFETY_CLAMPED) != 0
+        self.rate_limited_ticks += (flags & SAFETY_LIMITED) != 0
+        return True
+
     def deadman_status(self) -> list[dict[str, Any] | None]:
         """Per finger: its deadman button, whether it is held and the gate's factor (0 to 1)
         on the last tick; None for a finger without one."""
@@ -323,24 +351,9 @@ class SafetyChain:
     def _step_now(self, forces: Any, t: float, positions: Any) -> bool:
         """``safety_step`` on this tick's ``forces`` (and ``positions``, None: no workspace
         check); False, nothing written, when it defers (something may trip)."""
-        prm = self.params
-        out = self.output
-        p = self._step_params
-        if prm is not self._params_of:
-            self._params_of = prm
-            p[3:6] = prm.workspace_center_m
-        if positions is None or not math.isfinite(prm.workspace_radius_m):
-            p[2] = math.inf  # no workspace check
-            positions = out  # never read
-        else:
-            p[2] = prm.workspace_radius_m
-        # Past the enable ramp and before any ramp-down the factor is exactly 1 (the
-        # division in ``_ramp`` cannot fall below 1 there); otherwise ``_ramp`` says.
-        if t < self._t_down and (prm.ramp_s <= 0.0 or t - self._t_enabled >= prm.ramp_s):
-            p[0] = 1.0
-        else:
-            p[0] = self._ramp(t)
-        p[1] = prm.max_rate_n_per_s * self.dt
+        p = self._step_inputs(t, positions is not None)
+        if positions is None or not math.isfinite(p[2]):
+            positions = self.output  # never read
         if forces is not self._fit[0] or positions is not self._fit[1]:
             forces, positions = self._fitted(forces, positions)
         if self._has_deadman:
@@ -348,9 +361,26 @@ class SafetyChain:
         flags = self._step(forces, positions, p, self._out_prev)
         if flags & SAFETY_DEFER:
             return False
-        self.clamped_ticks += (flags & SAFETY_CLAMPED) != 0
-        self.rate_limited_ticks += (flags & SAFETY_LIMITED) != 0
+        self.done(flags, None)
         return True
+
+    def _step_inputs(self, t: float, workspace: bool) -> np.ndarray:
+        """safety_step's parameters for nominal time ``t`` (s), with the workspace check
+        (when the params have a finite radius) or without."""
+        prm = self.params
+        p = self._step_params
+        if prm is not self._params_of:
+            self._params_of = prm
+            p[3:6] = prm.workspace_center_m
+        p[2] = prm.workspace_radius_m if workspace else math.inf  # inf: no check
+        # Past the enable ramp and before any ramp-down the factor is exactly 1 (the
+        # division in ``_ramp`` cannot fall below 1 there); otherwise ``_ramp`` says.
+        if t < self._t_down and (prm.ramp_s <= 0.0 or t - self._t_enabled >= prm.ramp_s):
+            p[0] = 1.0
+        else:
+            p[0] = self._ramp(t)
+        p[1] = prm.max_rate_n_per_s * self.dt
+        return p
 
     def _fitted(self, forces: Any, positions: Any) -> tuple[np.ndarray, np.ndarray]:
         """``forces`` and ``positions`` as the kernel takes them (F, 3) float64, C order: the

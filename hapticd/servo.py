@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from hapticd_drivers import Device
 
-from hapticd import realtime
+from hapticd import kernels, realtime
 from hapticd.commands import Command
 from hapticd.device_bank import DeviceBank
 from hapticd.event_ring import DEFAULT_CAPACITY, EventRing, FrameEvents
@@ -50,11 +50,10 @@ TRAJECTORY_END = CODES["trajectory_end"]
 RECORDING_STARTED = CODES["recording_started"]
 OTHER_CAUSE = CAUSE_CODES["other"]
 TRAJECTORY_ENDED = "trajectory ended"
-# A free object beyond these has left any scene a hand can reach (a free fall of a day
-# stays below them), and well before float overflow breaks its dynamics: a fault.
-MAX_OBJECT_DISTANCE_M = 1e12
-MAX_OBJECT_SPEED_M_PER_S = 1e7
-MAX_OBJECT_SPIN_RAD_PER_S = 1e7
+# hapticd.kernels.MAX_OBJECT_*: a free object beyond them has diverged.
+MAX_OBJECT_DISTANCE_M = kernels.MAX_OBJECT_DISTANCE_M
+MAX_OBJECT_SPEED_M_PER_S = kernels.MAX_OBJECT_SPEED_M_PER_S
+MAX_OBJECT_SPIN_RAD_PER_S = kernels.MAX_OBJECT_SPIN_RAD_PER_S
 
 
 class Applied(threading.Event):
@@ -280,9 +279,17 @@ class ServoLoop:
         self._t_view[()] = t
         self._t_wall_view[()] = start - self.pacer.t0
         self.bank.read(frame, k, t)
-        self.renderer.run(frame)
-        self._check_object(frame, k, t)
-        self.safety.run(frame, self.watchdog_clock() if self.wall_watchdog else None)
+        safety = self.safety
+        # The safety chain's normal tick runs in the renderer's one call when it can: then
+        # the object was checked there too, and device_force is written. The watchdog's
+        # clock is read after it: a stalled tick trips before its force is sent.
+        flags = self.renderer.run(frame, safety if safety.ready(t) else None)
+        t_wall = self.watchdog_clock() if self.wall_watchdog else None
+        if flags is None:
+            self._check_object(frame, k, t)
+            safety.run(frame, t_wall)
+        elif not safety.done(flags, t_wall):
+            safety.run(frame, t_wall)  # the watchdog trips: zero force
         self.bank.write(frame, k, t)
         if self.safety.fault is not None and not self.forces_off:
             # A latched fault: after the zero force just written, the devices' forces go off

@@ -33,6 +33,7 @@ sets this tree's rendering.kernels otherwise; DIR's tree runs its own defaults.
     python scripts/bench_tick.py --compare-kernels --rounds 5
     python scripts/bench_tick.py --compare /tmp/hapticd-before --compare-kernels --rounds 3
     python scripts/bench_tick.py --profile-stages --kernels compiled
+    python scripts/bench_tick.py --fingers 2 3 5 --rounds 3
 
 Prints Markdown tables and saves a plot in the system temp dir unless --plot PATH.
 """
@@ -119,6 +120,10 @@ def child(args: argparse.Namespace) -> dict:
             setattr(obj, attr, timed)
 
         wrap(loop.bank, "read", "device read")
+        # The plan's one call (physics and the safety chain's normal tick) when it has one;
+        # its stages and the chain then run only on ticks the call hands back.
+        if loop.renderer.one_call is not None:
+            wrap(loop.renderer.one_call, "run", "one call (renderer + safety)")
         for stage in loop.renderer.stages:
             wrap(stage, "run", f"stage {stage.name}")
         wrap(loop.safety, "run", "safety")
@@ -377,6 +382,91 @@ def compare(args: argparse.Namespace) -> list[dict]:
     return rows
 
 
+# -- cost against the number of fingers ---------------------------------------------------
+
+FINGERS_CHILD = r"""
+import json, sys, time
+import numpy as np
+from hapticd import jit
+from hapticd.actuation import Actuation
+from hapticd.render import Renderer
+from hapticd.safety import SafetyChain
+from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
+
+n, ticks = int(sys.argv[1]), int(sys.argv[2])
+cube = SceneObject(ConvexShape.box(np.array([0.04] * 3)), Material(400.0, 2.0, 0.6, 0.4, 0.002),
+                   np.array([0.0, 0.0, 0.02]), np.eye(3), fixed=False, mass=0.05)
+ground = Surface("ground", (0.0, 0.0, 1.0), 0.0, Material(2000.0, 5.0, 0.5, 0.4))
+angles = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+# Each finger pushes toward the cube's centre: its one actuated direction, in the world.
+dirs = [[(float(-np.cos(a)), float(-np.sin(a)), 0.0)] for a in angles]
+r = Renderer(Scene(cube, [ground], np.array([0.0, 0.0, -9.81]), substeps=2), [0.008] * n,
+             Actuation(dirs, "world"), "if", dt=1e-3)
+r.use_kernels({k: f for k, f in jit.compile_kernels(r.kernel_names).items()})
+safety = SafetyChain([8.0] * n, dt=1e-3)
+safety.use_kernels(jit.compile_kernels(SafetyChain.kernel_names))
+safety.start(0.0)
+frame = r.frame
+ns, out, contacts, handed = time.perf_counter_ns, [], [], 0
+for k in range(ticks):
+    # Fingers close in on the cube, then hold it (every finger in contact).
+    rad = 0.035 - 0.012 * min(1.0, k / (ticks / 4))
+    frame.device_pos[:, 0] = rad * np.cos(angles)
+    frame.device_pos[:, 1] = rad * np.sin(angles)
+    frame.device_pos[:, 2] = 0.02
+    frame.t[()] = k * 1e-3
+    t0 = ns()
+    flags = r.run(frame, safety if safety.ready(k * 1e-3) else None)
+    if flags is None:
+        handed += 1
+        safety.run(frame, None)
+    else:
+        safety.done(flags, None)
+    out.append(ns() - t0)
+    contacts.append(int(frame.in_contact.sum()))
+us = np.array(out[ticks // 4:]) / 1e3  # holding: every finger in contact
+print(json.dumps({"p50": float(np.median(us)), "p99": float(np.percentile(us, 99)),
+                  "contacts": max(contacts), "handed_back": handed,
+                  "one_call": r.one_call is not None}))
+"""
+
+
+def fingers(args: argparse.Namespace) -> list[dict]:
+    """The renderer's tick with the safety chain's (the one call, or the stages) against
+    the number of fingers holding a free cube on the ground, one actuated direction each
+    (IF): medians over rounds of each run's p50 and p99, in interleaved rounds."""
+    got: dict[int, list[dict]] = {n: [] for n in args.fingers}
+    for rnd in range(args.rounds):
+        for n in args.fingers:
+            res = subprocess.run(
+                [sys.executable, "-c", FINGERS_CHILD, str(n), str(args.ticks)],
+                capture_output=True,
+                text=True,
+                timeout=600,
+                cwd=ROOT,
+            )
+            if res.returncode != 0:
+                raise RuntimeError(res.stderr[-2000:])
+            got[n].append(json.loads(res.stdout.strip().splitlines()[-1]))
+            print(f"round {rnd + 1}: {n} fingers: {got[n][-1]['p50']:.1f} us", file=sys.stderr)
+    print(
+        "\n### renderer + safety tick against fingers (a free cube held on the ground, IF; "
+        f"median over {args.rounds} rounds of each run's p50 / p99, us)\n"
+    )
+    print("| fingers | in contact | one call | ticks handed back | p50 | p99 | p50 per finger |")
+    print("|---|---|---|---|---|---|---|")
+    rows = []
+    for n, runs in got.items():
+        p50, p99 = med([r["p50"] for r in runs]), med([r["p99"] for r in runs])
+        last = runs[-1]
+        print(
+            f"| {n} | {last['contacts']} | {'yes' if last['one_call'] else 'no'} | "
+            f"{last['handed_back']} | {p50:.1f} | {p99:.1f} | {p50 / n:.2f} |"
+        )
+        rows.append({"fingers": n, "p50": p50, "p99": p99})
+    return rows
+
+
 def plot(path: Path, rows: list[dict]) -> None:
     import matplotlib
 
@@ -421,6 +511,13 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=5.0, help="length of a paced run, s")
     ap.add_argument("--rates", type=int, nargs="+", default=[1000, 4000, 8000])
     ap.add_argument("--plot", type=Path, default=DEFAULT_PLOT)
+    ap.add_argument(
+        "--fingers",
+        type=int,
+        nargs="+",
+        help="the renderer's and safety's tick against these numbers of fingers",
+    )
+    ap.add_argument("--ticks", type=int, default=4000, help="ticks of a --fingers run")
     # One run (the subprocess's side).
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--profile", default="lift-weight", help=argparse.SUPPRESS)
@@ -438,8 +535,10 @@ def main() -> None:
         profile_stages(args)
     if args.compare or args.compare_kernels:
         plot(args.plot, compare(args))
-    if not (args.profile_stages or args.compare or args.compare_kernels):
-        ap.error("give --profile-stages, --compare DIR or --compare-kernels")
+    if args.fingers:
+        fingers(args)
+    if not (args.profile_stages or args.compare or args.compare_kernels or args.fingers):
+        ap.error("give --profile-stages, --compare DIR, --compare-kernels or --fingers N...")
 
 
 if __name__ == "__main__":

@@ -228,9 +228,11 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
     assert f"compiling {', '.join(names)} in the background" in err, err
     assert "compiled or loaded" not in err
     marker = cache / jit.COMPILED
-    deadline = time.monotonic() + 120.0
+    # Numba's code is there, but not hapticd's record of it: the compiler compiles (the
+    # one call, every stage's kernel in one function, is half of it): 40 s quiet.
+    deadline = time.monotonic() + 300.0
     while not marker.exists() or (cache / jit.COMPILING).exists():
-        assert time.monotonic() < deadline, "the background compiler did not finish in 120 s"
+        assert time.monotonic() < deadline, "the background compiler did not finish in 300 s"
         time.sleep(0.2)
     err, _ = _run_lift(tmp_path, "", "auto", cache)
     assert f"kernels {names} compiled or loaded" in err, err

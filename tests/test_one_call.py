@@ -176,3 +176,35 @@ def test_plans_the_call_cannot_take_run_stage_by_stage(compiled):
     assert r.one_call is None
     r.set_param("allocator", "ef")
     assert r.one_call is not None
+
+
+def _lift_run(tmp_path, overrides, monkeypatch, one_call: bool):
+    """The lift profile's loop, unpaced, recorded; with the one call or stage by stage."""
+    from hapticd import recording
+    from hapticd.daemon.session import build_session
+
+    prof = load_profile(ROOT / "configs" / "lift-weight.yaml", overrides)
+    path = tmp_path / f"{one_call}.hrec"
+    with monkeypatch.context() as m:
+        if not one_call:
+            m.setattr(OneCall, "of", classmethod(lambda cls, renderer: None))
+        s = build_session(prof, paced=False, duration_s=3.0, record_path=path)
+        assert (s.renderer.one_call is not None) is one_call
+        s.run()
+    return s.loop.safety, recording.read(path)
+
+
+def test_the_safety_chain_in_the_call_clamps_and_limits_as_the_chain(tmp_path, monkeypatch):
+    """The safety chain's normal tick made in the one call: the same forces sent, tick by
+    tick, and the same counts of clamped and rate-limited ticks, as the chain's own."""
+    low = [
+        "rendering.kernels=compiled",
+        "safety.max_force_n=0.5",
+        "safety.max_force_rate_n_per_s=5",
+    ]
+    (one, a), (chain, b) = (_lift_run(tmp_path, low, monkeypatch, flag) for flag in (True, False))
+    assert one.fault is None and chain.fault is None
+    assert one.clamped_ticks == chain.clamped_ticks > 100
+    assert one.rate_limited_ticks == chain.rate_limited_ticks > 10
+    np.testing.assert_array_equal(a["device_force"], b["device_force"])
+    assert np.abs(a["device_force"]).max() > 0.1

@@ -238,22 +238,32 @@ class ControlServer:
                 raise SocketInUseError(f"another hapticd is serving {path}")
             finally:
                 probe.close()
+        # Bound under a name of its own, given its mode and group, listening, and only then
+        # linked at ``path``: a client never finds the socket there before its group may
+        # connect. link(), unlike rename(), fails if another daemon took ``path`` meanwhile.
+        made = path.with_name(f".{path.name}.{os.getpid()}")
+        with contextlib.suppress(FileNotFoundError):
+            made.unlink()
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         old = os.umask(0o177)  # created 0600: only this user may connect
         try:
-            sock.bind(str(path))
+            try:
+                sock.bind(str(made))
+            finally:
+                os.umask(old)
+            if group is not None:
+                share_socket(made, group)  # then 0660 for that group only
+            sock.listen(BACKLOG)
+            try:
+                os.link(made, path)
+            except FileExistsError:
+                raise SocketInUseError(f"another hapticd is serving {path}") from None
         except OSError:
             sock.close()
             raise
         finally:
-            os.umask(old)
-        if group is not None:
-            try:
-                share_socket(path, group)  # then 0660 for that group only
-            except OSError:
-                sock.close()
-                raise
-        sock.listen(BACKLOG)
+            with contextlib.suppress(OSError):
+                made.unlink()
         sock.setblocking(False)
         return sock
 
