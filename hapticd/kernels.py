@@ -358,6 +358,7 @@ KERNEL_HELPERS = (
     "free_body_step",
     "_axes",
     "_rows",
+    "_block",
     "safety_step",
 )
 # The sources whose code or constants the kernels compile in: numba's cache knows only
@@ -1365,17 +1366,35 @@ TICK_FIELDS = (
 
 
 def _rows(a: np.ndarray, start: int, n: int) -> np.ndarray:
-    """Items ``start`` to ``start + 3 n`` of the flat ``a`` as an (n, 3) view (a
-    memoryview's, uncompiled; ``_rows_compiled`` in compiled code)."""
-    return a[start : start + 3 * n].cast("B").cast("d", (n, 3))  # type: ignore[attr-defined]
+    """Items ``start`` to ``start + 3 n`` of the flat ``a`` as an (n, 3) view (``_block``)."""
+    return _block(a, start, n, 3)
 
 
-def _rows_compiled(a: np.ndarray, start: int, n: int) -> np.ndarray:
-    return a[start : start + 3 * n].reshape((n, 3))
+def _block(a: np.ndarray, start: int, n: int, cols: int) -> np.ndarray:
+    """Items ``start`` to ``start + n cols`` of the flat ``a`` as an (n, cols) view (a
+    memoryview's, uncompiled; ``_block_compiled`` in compiled code)."""
+    if n == 0:
+        return np.zeros((0, cols))  # a memoryview has no empty shape
+    return a[start : start + n * cols].cast("B").cast("d", (n, cols))  # type: ignore[attr-defined]
+
+
+def _block_compiled(a: np.ndarray, start: int, n: int, cols: int) -> np.ndarray:
+    return a[start : start + n * cols].reshape((n, cols))
 
 
 # Helpers whose compiled form is another function (hapticd.jit compiles that one in).
-COMPILED_FORMS = {_rows: _rows_compiled}
+COMPILED_FORMS = {_block: _block_compiled}
+
+
+# tick_step's plan: one float64 array, the params (TICK_PARAMS) then these blocks, each
+# at the item ``at`` gives after TICK_FIELDS' (with its rows where they vary): contact's
+# planes (P, PLANE_COLUMNS), allocation's directions (F, 3), the free body's body (K, 3)
+# and surfaces (S, SURFACE_COLUMNS), the shape's normals (M, 3) and offsets (M,), the free
+# body's scratch (F, SCRATCH_COLUMNS)
+TICK_PLAN = ("planes", "rows", "local", "body", "rows", "surf", "rows", "normals", "rows")
+TICK_PLAN += ("offsets", "scratch")
+_AT_PLAN = len(TICK_FIELDS)
+TICK_AT = _AT_PLAN + len(TICK_PLAN)
 
 
 def tick_step(
@@ -1383,16 +1402,9 @@ def tick_step(
     in_contact: np.ndarray,
     at: np.ndarray,
     obj_state: np.ndarray,
-    body_normals: np.ndarray,
-    body_offsets: np.ndarray,
-    planes: np.ndarray,
     contact_state: np.ndarray,
     anchors: np.ndarray,
-    local: np.ndarray,
-    params: np.ndarray,
-    body: np.ndarray,
-    surf: np.ndarray,
-    scratch: np.ndarray,
+    plan: np.ndarray,
     safety_params: np.ndarray,
     out_prev: np.ndarray,
 ) -> int:
@@ -1403,15 +1415,23 @@ def tick_step(
     run and with which of the frame's fields).
 
     ``record``: the frame's record as float64 items, whose fields ``TICK_FIELDS`` start
-    at ``at`` (int64); ``in_contact`` (F,) u1, the frame's. The object's ``obj_state``
-    (STATE,), its shape's ``body_normals`` (M, 3) and ``body_offsets`` (M,) m; contact's
-    ``planes`` and ``contact_state``; friction's ``anchors``; allocation's ``local``;
-    ``params`` (TICK_PARAMS,) as declared above; the free body's ``body``, ``surf`` and
-    ``scratch``; with params[TICK_SAFETY], the safety chain's normal tick on the rendered
-    force into ``device_force``: a free object's state checked first, then safety_step
-    with the chain's ``safety_params`` and ``out_prev``. Returns a TICK_ outcome.
+    at ``at`` (int64, TICK_AT); ``in_contact`` (F,) u1, the frame's. The carried state:
+    the object's ``obj_state`` (STATE,), contact's ``contact_state``, friction's
+    ``anchors``. ``plan``: the params and blocks ``TICK_PLAN`` declares. With
+    params[TICK_SAFETY], the safety chain's normal tick on the rendered force into
+    ``device_force``: a free object's state checked first, then safety_step with the
+    chain's ``safety_params`` and ``out_prev``. Returns a TICK_ outcome.
     """
     n = in_contact.shape[0]
+    k = _AT_PLAN
+    params = plan[0:TICK_PARAMS]
+    planes = _block(plan, at[k], at[k + 1], PLANE_COLUMNS)
+    local = _rows(plan, at[k + 2], n)
+    body = _rows(plan, at[k + 3], at[k + 4])
+    surf = _block(plan, at[k + 5], at[k + 6], SURFACE_COLUMNS)
+    body_normals = _rows(plan, at[k + 7], at[k + 8])
+    body_offsets = plan[at[k + 9] : at[k + 9] + at[k + 8]]
+    scratch = _block(plan, at[k + 10], n, SCRATCH_COLUMNS)
     device_pos = _rows(record, at[_AT_POS], n)
     device_vel = _rows(record, at[_AT_VEL], n)
     plain_proxy = _rows(record, at[_AT_PLAIN_PROXY], n)

@@ -336,8 +336,8 @@ class OneCall:
         self._material: Material | None = None
         self._free = False
         self._started = False
-        self._params = np.zeros(kn.TICK_PARAMS)
-        self._at = np.zeros(len(kn.TICK_FIELDS), dtype=np.int64)
+        self._plan = np.zeros(0)  # tick_step's plan (kernels.TICK_PLAN), made by _bind
+        self._at = np.zeros(kn.TICK_AT, dtype=np.int64)
 
     @classmethod
     def of(cls, r: Renderer) -> OneCall | None:
@@ -370,7 +370,35 @@ class OneCall:
         free = "dynamics" in names
         total = "output" in names
         mat = obj.material
-        p = self._params
+        n = r.n_fingers
+        if free:
+            body_params, body, surf, _ = names["dynamics"].arrays()
+        else:
+            body_params, body, surf = np.zeros(kn.PARAMS), np.zeros((0, 3)), np.zeros((0, 7))
+        blocks = {
+            "planes": planes,
+            "local": local,
+            "body": body,
+            "surf": surf,
+            "normals": np.asarray(obj.shape.normals, dtype=float).reshape(-1, 3),
+            "offsets": np.asarray(obj.shape.offsets, dtype=float).reshape(-1),
+            "scratch": np.zeros((n, kn.SCRATCH_COLUMNS)),
+        }
+        size = kn.TICK_PARAMS + sum(b.size for b in blocks.values())
+        if self._plan.size != size:
+            self._plan = np.zeros(size)
+        plan = self._plan
+        layout: list[int] = []
+        start = rows = kn.TICK_PARAMS
+        for name in kn.TICK_PLAN:
+            if name == "rows":  # the rows of the block before
+                layout.append(rows)
+                continue
+            block = blocks[name]
+            plan[start : start + block.size] = block.reshape(-1)
+            layout.append(start)
+            start, rows = start + block.size, len(block)
+        p = plan[: kn.TICK_PARAMS]
         p[:] = 0.0
         p[kn.TICK_FRICTION] = float(friction)
         p[kn.TICK_FREE] = float(free)
@@ -384,12 +412,7 @@ class OneCall:
             0.0 if obj.fixed else 1.0,
         )
         p[kn.TICK_ALLOCATION_AT : kn.TICK_BODY_AT] = alloc_params
-        n = r.n_fingers
-        if free:
-            body_params, body, surf, scratch = names["dynamics"].arrays()
-            p[kn.TICK_BODY_AT :] = body_params
-        else:
-            body, surf, scratch = np.zeros((1, 3)), np.zeros((0, 7)), np.zeros((n, 13))
+        p[kn.TICK_BODY_AT :] = body_params
         at = {name: _float_offset(frame, name) for name in kn.TICK_FIELDS}
         if not friction:  # contact writes the final fields itself
             at.update({plain: at[held] for plain, held in zip(FRICTIONLESS, HELD, strict=True)})
@@ -399,22 +422,15 @@ class OneCall:
         adjacent(frame, ("residual_internal", "residual_external", "residual_total"))
         adjacent(frame, ("residual_total", "amplification", "alpha"))
         adjacent(frame, ("object_pos", "object_vel", "object_omega", "object_rot"))
-        self._at[:] = [at[name] for name in kn.TICK_FIELDS]
+        self._at[:] = [*(at[name] for name in kn.TICK_FIELDS), *layout]
         self._args = (
             frame.record.reshape(1).view(np.uint8).view(np.float64),
             frame.in_contact,
             self._at,
             obj.state,
-            np.ascontiguousarray(obj.shape.normals, dtype=float),
-            np.ascontiguousarray(obj.shape.offsets, dtype=float),
-            planes,
             contact.state,
             r._friction.anchors,
-            local,
-            p,
-            body,
-            surf,
-            scratch,
+            plan,
             *_NO_SAFETY,
         )
         frame.stiffness_n_per_m[()] = mat.stiffness
@@ -440,12 +456,12 @@ class OneCall:
             self._started = True
         args = self._args
         if safety is None:
-            self._params[kn.TICK_SAFETY] = 0.0
+            self._plan[kn.TICK_SAFETY] = 0.0
         else:
             arrays = safety.kernel_arrays
             if arrays[0] is not args[-2] or arrays[1] is not args[-1]:
                 args = self._args = (*args[:-2], *arrays)
-            self._params[kn.TICK_SAFETY] = 1.0
+            self._plan[kn.TICK_SAFETY] = 1.0
         outcome = self._fn(*args)
         if outcome == kn.TICK_DONE or outcome >= kn.TICK_SAFE:
             if self._free:

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from hapticd import recording
+from hapticd import jit, recording
 from hapticd.actuation import Actuation
 from hapticd.allocation import Robustness
 from hapticd.build import build_scene
@@ -40,7 +40,7 @@ def make_renderer(
     if full_actuation:
         dirs = [[(1.0, 0, 0), (0, 1.0, 0), (0, 0, 1.0)]] * len(prof.fingers)
         frame = "world"
-    return Renderer(
+    r = Renderer(
         scene,
         [f.radius_m for f in prof.fingers],
         Actuation(dirs, frame),
@@ -48,6 +48,10 @@ def make_renderer(
         robust=Robustness(contact_onset_n=0.0),
         dt=1.0 / prof.loop.rate_hz,
     )
+    # The compiled kernels (loaded from the run's cache): what the daemon runs. The same
+    # functions uncompiled give the same bits (tests/test_kernel_*.py, test_one_call.py).
+    r.use_kernels(jit.compile_kernels(r.kernel_names))
+    return r
 
 
 def drive(r: Renderer, positions: np.ndarray) -> list[dict]:
