@@ -339,6 +339,11 @@ class OneCall:
         self._plan = np.zeros(0)  # tick_step's plan (kernels.TICK_PLAN), made by _bind
         self._at = np.zeros(kn.TICK_AT, dtype=np.int64)
 
+    def __getstate__(self) -> dict[str, object]:
+        # A copy (a deep copy, a pickle) binds its own frame's fields on its first tick:
+        # the arguments are views of this one's frame, which a copy would detach.
+        return {**self.__dict__, "_frame": None, "_args": (), "_obj": None, "_material": None}
+
     @classmethod
     def of(cls, r: Renderer) -> OneCall | None:
         names = [s.name for s in r.stages]
