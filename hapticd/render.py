@@ -336,13 +336,15 @@ class OneCall:
         self._material: Material | None = None
         self._free = False
         self._started = False
+        self._safety: SafetyChain | None = None  # the chain whose tick the call makes
         self._plan = np.zeros(0)  # tick_step's plan (kernels.TICK_PLAN), made by _bind
         self._at = np.zeros(kn.TICK_AT, dtype=np.int64)
 
     def __getstate__(self) -> dict[str, object]:
         # A copy (a deep copy, a pickle) binds its own frame's fields on its first tick:
         # the arguments are views of this one's frame, which a copy would detach.
-        return {**self.__dict__, "_frame": None, "_args": (), "_obj": None, "_material": None}
+        unbound = {"_frame": None, "_args": (), "_obj": None, "_material": None}
+        return {**self.__dict__, **unbound, "_safety": None}
 
     @classmethod
     def of(cls, r: Renderer) -> OneCall | None:
@@ -444,6 +446,7 @@ class OneCall:
         self._frame = frame
         self._obj, self._material = obj, mat
         self._free = free
+        self._safety = None  # the arguments hold no chain's arrays
         return True
 
     def run(self, frame: Frame, safety: SafetyChain | None = None) -> int | None:
@@ -459,19 +462,17 @@ class OneCall:
         if not self._started:  # every proxy starts at its device, on the first tick run
             self.renderer._contact.start(frame)
             self._started = True
-        args = self._args
-        if safety is None:
-            self._plan[kn.TICK_SAFETY] = 0.0
-        else:
-            arrays = safety.kernel_arrays
-            if arrays[0] is not args[-2] or arrays[1] is not args[-1]:
-                args = self._args = (*args[:-2], *arrays)
-            self._plan[kn.TICK_SAFETY] = 1.0
-        outcome = self._fn(*args)
-        if outcome == kn.TICK_DONE or outcome >= kn.TICK_SAFE:
+        if safety is not self._safety:  # the chain in the call changed (None: no chain)
+            self._with(safety)
+        outcome = self._fn(*self._args)
+        if outcome >= _SAFE:
             if self._free:
                 obj.update_world()
-            return None if outcome == kn.TICK_DONE else outcome - kn.TICK_SAFE
+            return outcome - _SAFE
+        if outcome == kn.TICK_DONE:
+            if self._free:
+                obj.update_world()
+            return None
         if outcome in (kn.TICK_OBJECT, kn.TICK_SAFETY_DEFER):
             if self._free:
                 obj.update_world()
@@ -486,6 +487,13 @@ class OneCall:
         self._by_stages(frame, names.index(start))
         return None
 
+    def _with(self, safety: SafetyChain | None) -> None:
+        """Run ``safety``'s normal tick in the call from now on (None: no chain's)."""
+        self._safety = safety
+        arrays = _NO_SAFETY if safety is None else safety.kernel_arrays
+        self._args = (*self._args[:-2], *arrays)
+        self._plan[kn.TICK_SAFETY] = 0.0 if safety is None else 1.0
+
     def _by_stages(self, frame: Frame, first: int) -> None:
         """The plan's stages from ``first`` on, one by one, after ticks this call wrote."""
         r = self.renderer
@@ -498,6 +506,7 @@ class OneCall:
 
 # tick_step's safety arrays when the safety chain does not run in the call (never read).
 _NO_SAFETY = (np.zeros(kn.SAFETY_PARAMS), np.zeros((2, 1, 3)))
+_SAFE = kn.TICK_SAFE
 
 
 def _float_offset(frame: Frame, name: str) -> int:
