@@ -211,7 +211,7 @@ class Renderer:
         names.append("forces_step")
         if not obj.fixed:
             names.append("world_planes")
-        if "allocation_step" in names:
+        if "allocation_step" in names and self._passivity is None:  # the one call's plans
             names.append("tick_step")
         return names
 

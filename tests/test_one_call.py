@@ -176,6 +176,14 @@ def test_plans_the_call_cannot_take_run_stage_by_stage(compiled):
     assert r.one_call is None
     r.set_param("allocator", "ef")
     assert r.one_call is not None
+    from hapticd.passivity import PassivityParams
+
+    passive = Renderer(
+        _box(True), [0.008, 0.008], act, "if", dt=1e-3, passivity=PassivityParams(0.01, 5.0)
+    )
+    assert "tick_step" not in passive.kernel_names  # nothing compiled it would not use
+    passive.use_kernels({n: compiled[n] for n in passive.kernel_names})
+    assert passive.one_call is None and "passivity" in passive.stage_names
 
 
 def _lift_run(tmp_path, overrides, monkeypatch, one_call: bool):
