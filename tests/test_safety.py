@@ -173,6 +173,32 @@ def test_a_stalled_servo_loop_ends_in_zero_force():
         assert np.any(dev.forces[:2999] != 0)
 
 
+def test_a_stall_in_the_renderers_one_call_ends_in_zero_force():
+    """The same with the safety chain's tick made in the renderer's one call (no stage
+    inserted: the plan is one call): the chain takes the watchdog's time after the call,
+    and the stalled tick's force, already made, is not sent: zero from that tick on."""
+    from hapticd.daemon.session import build_session
+    from hapticd.profile import load_profile
+    from tests.conftest import GRASP_PROFILE
+
+    s = build_session(load_profile(GRASP_PROFILE, ["rendering.kernels=compiled"]), paced=False)
+    assert s.renderer.one_call is not None
+    s.loop.wall_watchdog = True
+    readings = [0]
+
+    def clock() -> float:  # 1 ms a tick (one reading each), 0.15 s more at tick 2999
+        readings[0] += 1
+        return readings[0] * 1e-3 + (0.15 if readings[0] > 2999 else 0.0)
+
+    s.loop.watchdog_clock = clock
+    out = s.run()
+    assert out["fault"] is not None and "151.0 ms between ticks" in out["fault"]["cause"]
+    assert out["fault"]["tick"] == 2999
+    for dev in s.devices:
+        assert np.all(dev.forces[2999:] == 0)
+        assert np.any(dev.forces[2990:2999] != 0)
+
+
 def test_a_ramp_down_ends_at_exactly_zero_despite_rounded_tick_times():
     from hapticd.safety import SafetyChain
 
