@@ -1309,8 +1309,10 @@ TICK_PARAMS = TICK_BODY_AT + PARAMS
 # with the safety chain's tick: a free object's state beyond MAX_OBJECT_* (the chain not
 # run: the loop latches the fault), or the chain's kernel deferred (the chain runs its
 # checks); TICK_SAFE + safety_step's flags: done, the safety chain's tick too.
-TICK_DONE, TICK_FROM_CONTACT, TICK_FROM_ALLOCATION = 0, 1, 2
-TICK_NON_FINITE_INPUT, TICK_NON_FINITE_OUTPUT, TICK_OBJECT, TICK_SAFETY_DEFER = 3, 4, 5, 6
+# From TICK_FINISHED on, every stage of the plan has run.
+TICK_FROM_CONTACT, TICK_FROM_ALLOCATION, TICK_NON_FINITE_INPUT, TICK_NON_FINITE_OUTPUT = 1, 2, 3, 4
+TICK_FINISHED = TICK_DONE = 5
+TICK_OBJECT, TICK_SAFETY_DEFER = 6, 7
 TICK_SAFE = 16
 # A free object beyond these has left any scene a hand can reach (a free fall of a day
 # stays below them), and well before float overflow breaks its dynamics: the loop's

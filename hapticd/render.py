@@ -426,8 +426,10 @@ class OneCall:
         if not total:  # allocation writes the rendered force itself
             at["allocated_force"] = at["rendered_force"]
         # The kernel reads these as runs of floats from their first.
-        adjacent(frame, ("residual_internal", "residual_external", "residual_total"))
-        adjacent(frame, ("residual_total", "amplification", "alpha"))
+        adjacent(
+            frame,
+            ("residual_internal", "residual_external", "residual_total", "amplification", "alpha"),
+        )
         adjacent(frame, ("object_pos", "object_vel", "object_omega", "object_rot"))
         self._at[:] = [*(at[name] for name in kn.TICK_FIELDS), *layout]
         self._args = (
@@ -465,18 +467,11 @@ class OneCall:
         if safety is not self._safety:  # the chain in the call changed (None: no chain)
             self._with(safety)
         outcome = self._fn(*self._args)
-        if outcome >= _SAFE:
+        if outcome >= _FINISHED:  # the physics done (the object moved, if it is free)
             if self._free:
                 obj.update_world()
-            return outcome - _SAFE
-        if outcome == kn.TICK_DONE:
-            if self._free:
-                obj.update_world()
-            return None
-        if outcome in (kn.TICK_OBJECT, kn.TICK_SAFETY_DEFER):
-            if self._free:
-                obj.update_world()
-            return None  # the caller's own checks
+            # The chain's flags, or None: no chain, or its own checks to run.
+            return outcome - _SAFE if outcome >= _SAFE else None
         if outcome == kn.TICK_NON_FINITE_INPUT:
             raise AllocationError("non-finite contact geometry or force; refusing to allocate")
         if outcome == kn.TICK_NON_FINITE_OUTPUT:
@@ -507,6 +502,7 @@ class OneCall:
 # tick_step's safety arrays when the safety chain does not run in the call (never read).
 _NO_SAFETY = (np.zeros(kn.SAFETY_PARAMS), np.zeros((2, 1, 3)))
 _SAFE = kn.TICK_SAFE
+_FINISHED = kn.TICK_FINISHED
 
 
 def _float_offset(frame: Frame, name: str) -> int:
