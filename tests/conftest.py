@@ -35,7 +35,8 @@ GRASP_PROFILE = ROOT / "configs" / "grasp-stiffness.yaml"
 # test's threads) share the loop's process and GIL, and on a loaded machine stalled it
 # past the rig's 0.1 s watchdog (102 ms, seen). A 1 s stall still latches a fault. The
 # watchdog itself is tested in tests/test_safety.py.
-IN_PROCESS = ["safety.watchdog_s=1.0"]
+IN_PROCESS_WATCHDOG_S = 1.0
+IN_PROCESS = [f"safety.watchdog_s={IN_PROCESS_WATCHDOG_S}"]
 
 pytest_plugins = ["pytester"]
 

@@ -16,7 +16,7 @@ import yaml
 
 from hapticd import recording
 from hapticd.cli import main
-from tests.conftest import AtTick
+from tests.conftest import IN_PROCESS_WATCHDOG_S, AtTick
 
 ROOT = Path(__file__).resolve().parent.parent
 RIG = ROOT / "configs" / "rigs" / "two-omega3.yaml"
@@ -32,6 +32,9 @@ def _rig(tmp_path: Path, lib_path: str, serials: bool = False) -> Path:
         if not serials:
             del finger["device"]["serial_number"]
             finger["device"]["index"] = i
+    # The fake SDK's devices are not on the loop's nominal clock, so an unpaced run keeps
+    # its wall-clock watchdog: a loaded machine's pause is not this file's subject.
+    data["safety"]["watchdog_s"] = IN_PROCESS_WATCHDOG_S
     path = tmp_path / "rig.yaml"
     path.write_text(yaml.safe_dump(data))
     return path

@@ -14,7 +14,7 @@ from hapticd_drivers.trajectory import Trajectory
 from hapticd import recording
 from hapticd.cli import main
 from hapticd.mount import Mount
-from tests.conftest import GRASP_PROFILE
+from tests.conftest import GRASP_PROFILE, IN_PROCESS_WATCHDOG_S
 from tests.test_mount import MOUNTS, _trajectories
 
 RATE_HZ = 1000.0
@@ -37,6 +37,9 @@ def _dhd_profile(tmp_path, lib_path: str, serials=False) -> tuple[dict, str]:
             "mount": MOUNTS[finger["name"]],
         }
         finger["device"].update({"serial_number": 10001 + i} if serials else {"index": i})
+    # The fake SDK's devices are not on the loop's nominal clock, so an unpaced run keeps
+    # its wall-clock watchdog: a loaded machine's pause is not this file's subject.
+    data["safety"]["watchdog_s"] = IN_PROCESS_WATCHDOG_S
     path = tmp_path / "rig.yaml"
     path.write_text(yaml.safe_dump(data))
     return data, str(path)
