@@ -33,6 +33,7 @@ import numpy as np
 from hapticd.allocation import closed
 from hapticd.allocation.accuracy import one_contact_residuals, two_contact_residuals
 from hapticd.allocation.closed import one_contact, two_contact
+from hapticd.passivity import DEPENDENT, authority, control, observe
 
 
 @functools.cache
@@ -357,13 +358,23 @@ KERNEL_HELPERS = (
     "allocation_step",
     "free_body_step",
     "_axes",
+    "_passivity",
+    "_span_project",
+    observe,
+    control,
+    authority,
     "_rows",
     "_block",
     "safety_step",
 )
 # The sources whose code or constants the kernels compile in: numba's cache knows only
 # this file's, so hapticd.jit keys its record of compiled kernels on all of them.
-SOURCES = (__file__, closed.__file__, one_contact_residuals.__code__.co_filename)
+SOURCES = (
+    __file__,
+    closed.__file__,
+    one_contact_residuals.__code__.co_filename,
+    observe.__code__.co_filename,
+)
 
 
 def allocation_step(
@@ -1294,15 +1305,38 @@ def world_planes(
 
 
 # tick_step's params: what the plan has (1.0 or 0.0: friction, a free object, surfaces, a
-# sum of contributions into rendered_force), the allocator's alpha, whether the safety
-# chain's normal tick runs in the call (set per tick), then the friction, forces,
-# allocation and free-body params at their offsets (each kernel's layout above)
+# sum of contributions into rendered_force, passivity), the allocator's alpha, whether the
+# safety chain's normal tick runs in the call (set per tick), the stages this call runs
+# (STAGE_ indices, from first to before last), then the passivity, friction, forces,
+# allocation and free-body params at their offsets (each one's layout above; passivity's:
+# velocity threshold m/s, most damping N s/m, the tick's period s)
 TICK_FRICTION, TICK_FREE, TICK_SURFACES, TICK_SUM, TICK_ALPHA, TICK_SAFETY = range(6)
-TICK_FRICTION_AT = 6
+TICK_FIRST, TICK_LAST, TICK_PASSIVITY = 6, 7, 8
+TICK_PASSIVITY_AT = 9
+PASSIVITY_PARAMS = 3
+TICK_FRICTION_AT = TICK_PASSIVITY_AT + PASSIVITY_PARAMS
 TICK_FORCES_AT = TICK_FRICTION_AT + FRICTION_PARAMS
 TICK_ALLOCATION_AT = TICK_FORCES_AT + FORCES_PARAMS
 TICK_BODY_AT = TICK_ALLOCATION_AT + ALLOCATION_PARAMS
 TICK_PARAMS = TICK_BODY_AT + PARAMS
+# The stages of a tick, in order, as tick_step runs them (hapticd.stages names each
+# stage's), then the safety chain's normal tick (when the call makes it).
+(
+    STAGE_CONTACT,
+    STAGE_FRICTION,
+    STAGE_FORCES,
+    STAGE_ALLOCATION,
+    STAGE_ENVIRONMENT,
+    STAGE_PASSIVITY,
+    STAGE_SUM,
+    STAGE_DYNAMICS,
+    STAGE_SCENE,
+    STAGE_SAFETY,
+    STAGE_END,
+) = range(11)
+# The passivity stage's carried state per finger: its observed energy (J), its position on
+# the last tick (3, m) and 1.0 once it has one (the first tick sees no motion).
+PASSIVITY_STATE = 5
 # tick_step's outcomes: done; stopped before contact or before allocation, having written
 # what came before (the renderer runs that stage and the rest one by one); allocation
 # refused a non-finite input or produced a non-finite output (nothing after it written);
@@ -1341,6 +1375,9 @@ TICK_FIELDS = (
     "allocated_force",
     "residual_internal",  # then residual_external, residual_total, amplification, alpha
     "env_rendered",
+    "passivity_force",
+    "passivity_energy",
+    "passivity_damping",
     "rendered_force",
     "object_pos",  # then object_vel, object_omega, object_rot: STATE floats
     "device_force",
@@ -1361,6 +1398,9 @@ TICK_FIELDS = (
     _AT_ALLOCATED,
     _AT_SCALARS,
     _AT_ENV_RENDERED,
+    _AT_DAMPING_FORCE,
+    _AT_ENERGY,
+    _AT_DAMPING,
     _AT_RENDERED,
     _AT_OBJECT,
     _AT_DEVICE_FORCE,
@@ -1392,9 +1432,10 @@ COMPILED_FORMS = {_block: _block_compiled}
 # at the item ``at`` gives after TICK_FIELDS' (with its rows where they vary): contact's
 # planes (P, PLANE_COLUMNS), allocation's directions (F, 3), the free body's body (K, 3)
 # and surfaces (S, SURFACE_COLUMNS), the shape's normals (M, 3) and offsets (M,), the free
-# body's scratch (F, SCRATCH_COLUMNS)
+# body's scratch (F, SCRATCH_COLUMNS), every finger's actuated directions in the actuation's
+# frame (D, 3), finger by finger, and how many each finger has (F,)
 TICK_PLAN = ("planes", "rows", "local", "body", "rows", "surf", "rows", "normals", "rows")
-TICK_PLAN += ("offsets", "scratch")
+TICK_PLAN += ("offsets", "scratch", "directions", "rows", "counts")
 _AT_PLAN = len(TICK_FIELDS)
 TICK_AT = _AT_PLAN + len(TICK_PLAN)
 
@@ -1406,27 +1447,32 @@ def tick_step(
     obj_state: np.ndarray,
     contact_state: np.ndarray,
     anchors: np.ndarray,
+    passive: np.ndarray,
     plan: np.ndarray,
     safety_params: np.ndarray,
     out_prev: np.ndarray,
 ) -> int:
     """One whole tick of the renderer's plan in one call: the object's planes at its pose,
     contact, friction, the contact forces, allocation, the environment's force through each
-    finger's actuated direction, their sum, the free object's step and the scene's state,
-    each by its kernel above (the stages' physics; hapticd.render.Renderer's plan says which
-    run and with which of the frame's fields).
+    finger's actuated directions, the passivity controller, their sum, the free object's
+    step and the scene's state, each by its kernel or helper (the stages' physics;
+    hapticd.render.Renderer's plan says which run, and a plan with a stage of its own in
+    Python runs the call in parts: the STAGE_ indices params[TICK_FIRST] to before
+    params[TICK_LAST]).
 
     ``record``: the frame's record as float64 items, whose fields ``TICK_FIELDS`` start
     at ``at`` (int64, TICK_AT); ``in_contact`` (F,) u1, the frame's. The carried state:
     the object's ``obj_state`` (STATE,), contact's ``contact_state``, friction's
-    ``anchors``. ``plan``: the params and blocks ``TICK_PLAN`` declares. With
-    params[TICK_SAFETY], the safety chain's normal tick on the rendered force into
-    ``device_force``: a free object's state checked first, then safety_step with the
-    chain's ``safety_params`` and ``out_prev``. Returns a TICK_ outcome.
+    ``anchors``, passivity's ``passive`` (F, PASSIVITY_STATE). ``plan``: the params and
+    blocks ``TICK_PLAN`` declares. With params[TICK_SAFETY], after the last stage, the
+    safety chain's normal tick on the rendered force into ``device_force``: a free
+    object's state checked first, then safety_step with the chain's ``safety_params``
+    and ``out_prev``. Returns a TICK_ outcome.
     """
     n = in_contact.shape[0]
     k = _AT_PLAN
     params = plan[0:TICK_PARAMS]
+    first, last = params[TICK_FIRST], params[TICK_LAST]
     planes = _block(plan, at[k], at[k + 1], PLANE_COLUMNS)
     local = _rows(plan, at[k + 2], n)
     body = _rows(plan, at[k + 3], at[k + 4])
@@ -1434,6 +1480,8 @@ def tick_step(
     body_normals = _rows(plan, at[k + 7], at[k + 8])
     body_offsets = plan[at[k + 9] : at[k + 9] + at[k + 8]]
     scratch = _block(plan, at[k + 10], n, SCRATCH_COLUMNS)
+    directions = _rows(plan, at[k + 11], at[k + 12])
+    counts = plan[at[k + 13] : at[k + 13] + n]
     device_pos = _rows(record, at[_AT_POS], n)
     device_vel = _rows(record, at[_AT_VEL], n)
     plain_proxy = _rows(record, at[_AT_PLAIN_PROXY], n)
@@ -1446,25 +1494,27 @@ def tick_step(
     contact_force = _rows(record, at[_AT_FORCE], n)
     allocated = _rows(record, at[_AT_ALLOCATED], n)
     env_rendered = _rows(record, at[_AT_ENV_RENDERED], n)
+    damping_force = _rows(record, at[_AT_DAMPING_FORCE], n)
     rendered = _rows(record, at[_AT_RENDERED], n)
-    world_planes(_rows(obj_state, 9, 3), obj_state[0:3], body_normals, body_offsets, planes)
-    if (
-        contact_step(
-            device_pos,
-            device_vel,
-            planes,
-            contact_state,
-            plain_proxy,
-            in_contact,
-            plain_surface,
-            plain_point,
-            normal,
-            env_force,
-        )
-        != CONTACT_DONE
-    ):
-        return TICK_FROM_CONTACT
-    if params[TICK_FRICTION] != 0.0:
+    if first <= STAGE_CONTACT < last:
+        world_planes(_rows(obj_state, 9, 3), obj_state[0:3], body_normals, body_offsets, planes)
+        if (
+            contact_step(
+                device_pos,
+                device_vel,
+                planes,
+                contact_state,
+                plain_proxy,
+                in_contact,
+                plain_surface,
+                plain_point,
+                normal,
+                env_force,
+            )
+            != CONTACT_DONE
+        ):
+            return TICK_FROM_CONTACT
+    if params[TICK_FRICTION] != 0.0 and first <= STAGE_FRICTION < last:
         friction_step(
             in_contact,
             device_pos,
@@ -1479,56 +1529,82 @@ def tick_step(
             obj_state,
             params[TICK_FRICTION_AT:TICK_FORCES_AT],
         )
-    forces_step(
-        in_contact,
-        device_pos,
-        device_vel,
-        surface_point,
-        normal,
-        contact_force,
-        obj_state,
-        params[TICK_FORCES_AT:TICK_ALLOCATION_AT],
-    )
+    if first <= STAGE_FORCES < last:
+        forces_step(
+            in_contact,
+            device_pos,
+            device_vel,
+            surface_point,
+            normal,
+            contact_force,
+            obj_state,
+            params[TICK_FORCES_AT:TICK_ALLOCATION_AT],
+        )
     a = TICK_ALLOCATION_AT
-    params[a + 5], params[a + 6], params[a + 7] = obj_state[0], obj_state[1], obj_state[2]
-    scalars = record[at[_AT_SCALARS] : at[_AT_SCALARS] + ACCURACY + 1]
-    outcome = allocation_step(
-        in_contact,
+    if first <= STAGE_ALLOCATION < last:
+        params[a + 5], params[a + 6], params[a + 7] = obj_state[0], obj_state[1], obj_state[2]
+        scalars = record[at[_AT_SCALARS] : at[_AT_SCALARS] + ACCURACY + 1]
+        outcome = allocation_step(
+            in_contact,
+            device_pos,
+            contact_point,
+            contact_force,
+            local,
+            params[a:TICK_BODY_AT],
+            record[at[_AT_LAM] : at[_AT_LAM] + n],
+            allocated,
+            scalars,
+        )
+        if outcome == MANY_CONTACTS:
+            return TICK_FROM_ALLOCATION
+        if outcome == NON_FINITE_INPUT:
+            return TICK_NON_FINITE_INPUT
+        if outcome == NON_FINITE_OUTPUT:
+            return TICK_NON_FINITE_OUTPUT
+        scalars[ACCURACY] = params[TICK_ALPHA]
+    # The actuation frame's axes in the world (the grasp's moves with the fingers).
+    ax = _axes(
         device_pos,
-        contact_point,
-        contact_force,
-        local,
-        params[a:TICK_BODY_AT],
-        record[at[_AT_LAM] : at[_AT_LAM] + n],
-        allocated,
-        scalars,
+        params[a + 4] != 0.0 and (params[TICK_SURFACES] != 0.0 or params[TICK_PASSIVITY] != 0.0),
     )
-    if outcome == MANY_CONTACTS:
-        return TICK_FROM_ALLOCATION
-    if outcome == NON_FINITE_INPUT:
-        return TICK_NON_FINITE_INPUT
-    if outcome == NON_FINITE_OUTPUT:
-        return TICK_NON_FINITE_OUTPUT
-    scalars[ACCURACY] = params[TICK_ALPHA]
-    if params[TICK_SURFACES] != 0.0:
-        # Each finger's own actuated direction d in the world: env_force projected on it.
-        ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, params[a + 4] != 0.0)
+    if params[TICK_SURFACES] != 0.0 and first <= STAGE_ENVIRONMENT < last:
+        # The environment's force projected onto the span of each finger's own directions.
+        start = 0
         for i in range(n):
+            c = int(counts[i])
             e0, e1, e2 = env_force[i, 0], env_force[i, 1], env_force[i, 2]
             if e0 == 0.0 and e1 == 0.0 and e2 == 0.0:
                 env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = 0.0, 0.0, 0.0
-                continue
-            p0, p1, p2 = local[i, 0], local[i, 1], local[i, 2]
-            d0 = ax0 * p0 + ay0 * p1 + az0 * p2
-            d1 = ax1 * p0 + ay1 * p1 + az1 * p2
-            d2 = ax2 * p0 + ay2 * p1 + az2 * p2
-            s = (d0 * e0 + d1 * e1 + d2 * e2) / (d0 * d0 + d1 * d1 + d2 * d2)
-            env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = s * d0, s * d1, s * d2
-    if params[TICK_SUM] != 0.0:
+            else:
+                p0, p1, p2 = _span_project(directions, start, c, ax, e0, e1, e2)
+                env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = p0, p1, p2
+            start += c
+    if params[TICK_PASSIVITY] != 0.0 and first <= STAGE_PASSIVITY < last:
+        _passivity(
+            device_pos,
+            allocated,
+            env_rendered,
+            params[TICK_SURFACES] != 0.0,
+            directions,
+            counts,
+            ax,
+            params[TICK_PASSIVITY_AT:TICK_FRICTION_AT],
+            passive,
+            damping_force,
+            record[at[_AT_ENERGY] : at[_AT_ENERGY] + n],
+            record[at[_AT_DAMPING] : at[_AT_DAMPING] + n],
+        )
+    if params[TICK_SUM] != 0.0 and first <= STAGE_SUM < last:
+        # The contributions in the plan's order: allocated, environment's, passivity's.
         for i in range(n):
             for j in range(3):
-                rendered[i, j] = allocated[i, j] + env_rendered[i, j]
-    if params[TICK_FREE] != 0.0:
+                f = allocated[i, j]
+                if params[TICK_SURFACES] != 0.0:
+                    f = f + env_rendered[i, j]
+                if params[TICK_PASSIVITY] != 0.0:
+                    f = f + damping_force[i, j]
+                rendered[i, j] = f
+    if params[TICK_FREE] != 0.0 and first <= STAGE_DYNAMICS < last:
         free_body_step(
             in_contact,
             contact_point,
@@ -1540,10 +1616,11 @@ def tick_step(
             surf,
             scratch,
         )
-    o = at[_AT_OBJECT]
-    for k in range(STATE):
-        record[o + k] = obj_state[k]
-    if params[TICK_SAFETY] == 0.0:
+    if first <= STAGE_SCENE < last:
+        o = at[_AT_OBJECT]
+        for k in range(STATE):
+            record[o + k] = obj_state[k]
+    if params[TICK_SAFETY] == 0.0 or not first <= STAGE_SAFETY < last:
         return TICK_DONE
     # NaN fails every comparison; _hypot3 is math.hypot's (the loop's backstop's) sum.
     if params[TICK_FREE] != 0.0 and not (
@@ -1559,6 +1636,102 @@ def tick_step(
     for i in range(n):
         out[i, 0], out[i, 1], out[i, 2] = out_prev[0, i, 0], out_prev[0, i, 1], out_prev[0, i, 2]
     return TICK_SAFE + flags
+
+
+def _passivity(
+    device_pos: np.ndarray,
+    allocated: np.ndarray,
+    env_rendered: np.ndarray,
+    surfaces: bool,
+    directions: np.ndarray,
+    counts: np.ndarray,
+    ax: tuple[float, ...],
+    params: np.ndarray,
+    passive: np.ndarray,
+    damping_force: np.ndarray,
+    energy: np.ndarray,
+    damping: np.ndarray,
+) -> None:
+    """The passivity stage (hapticd.passivity's observer and controller) on every finger:
+    observes the energy of the force before it (the allocated force, plus the environment's
+    with ``surfaces``) over the finger's motion since the last tick, and writes the damping
+    force along the finger's actuated directions, the energy and the damping (N s/m).
+    ``passive`` (F, PASSIVITY_STATE) is its carried state; ``params`` PASSIVITY_PARAMS."""
+    threshold, most, dt = params[0], params[1], params[2]
+    start = 0
+    for i in range(damping_force.shape[0]):
+        c = int(counts[i])
+        x0, x1, x2 = device_pos[i, 0], device_pos[i, 1], device_pos[i, 2]
+        d0 = d1 = d2 = 0.0
+        if passive[i, 4] != 0.0:  # the first tick sees no motion
+            d0, d1, d2 = x0 - passive[i, 1], x1 - passive[i, 2], x2 - passive[i, 3]
+        passive[i, 1], passive[i, 2], passive[i, 3], passive[i, 4] = x0, x1, x2, 1.0
+        f0, f1, f2 = allocated[i, 0], allocated[i, 1], allocated[i, 2]
+        if surfaces:
+            f0, f1, f2 = f0 + env_rendered[i, 0], f1 + env_rendered[i, 1], f2 + env_rendered[i, 2]
+        e = observe(passive[i, 0], (f0, f1, f2), (d0, d1, d2))
+        alpha = 0.0
+        damping_force[i, 0], damping_force[i, 1], damping_force[i, 2] = 0.0, 0.0, 0.0
+        if e < 0.0:  # only then the controller needs the actuated motion
+            u = _span_project(directions, start, c, ax, d0, d1, d2)
+            e, alpha = control(e, u, dt, threshold, most)
+            if alpha > 0.0:
+                g = alpha / dt  # the damping force is -alpha P_a v, v = dx / T
+                damping_force[i, 0], damping_force[i, 1] = -(g * u[0]), -(g * u[1])
+                damping_force[i, 2] = -(g * u[2])
+        elif not e >= 0.0:  # NaN: a non-finite position or force; keep the last energy
+            e = passive[i, 0]
+        passive[i, 0] = e
+        energy[i] = e
+        damping[i] = alpha
+        start += c
+
+
+def _span_project(
+    directions: np.ndarray,
+    start: int,
+    count: int,
+    ax: tuple[float, ...],
+    v0: float,
+    v1: float,
+    v2: float,
+) -> tuple[float, float, float]:
+    """(v0, v1, v2) projected onto the span of a finger's ``count`` actuated directions
+    (rows ``start`` on of ``directions``, in the actuation's frame, whose axes in the world
+    are ``ax``: _axes'), by Gram-Schmidt in order: a direction whose part orthogonal to the
+    ones before is shorter than DEPENDENT of it adds nothing; three independent ones span
+    everything (v itself)."""
+    k = 0
+    b0 = b1 = b2 = c0 = c1 = c2 = 0.0  # the first two unit vectors of the basis
+    p0 = p1 = p2 = 0.0
+    for j in range(start, start + count):
+        l0, l1, l2 = directions[j, 0], directions[j, 1], directions[j, 2]
+        x = ax[0] * l0 + ax[3] * l1 + ax[6] * l2
+        y = ax[1] * l0 + ax[4] * l1 + ax[7] * l2
+        z = ax[2] * l0 + ax[5] * l1 + ax[8] * l2
+        n0 = math.sqrt(x * x + y * y + z * z)
+        if not n0 > 0.0:  # also false for NaN
+            continue
+        if k > 0:
+            d = x * b0 + y * b1 + z * b2
+            x, y, z = x - d * b0, y - d * b1, z - d * b2
+        if k > 1:
+            d = x * c0 + y * c1 + z * c2
+            x, y, z = x - d * c0, y - d * c1, z - d * c2
+        m = math.sqrt(x * x + y * y + z * z)
+        if not m > DEPENDENT * n0:
+            continue
+        if k == 2:
+            return v0, v1, v2
+        x, y, z = x / m, y / m, z / m
+        d = v0 * x + v1 * y + v2 * z
+        p0, p1, p2 = p0 + d * x, p1 + d * y, p2 + d * z
+        if k == 0:
+            b0, b1, b2 = x, y, z
+        else:
+            c0, c1, c2 = x, y, z
+        k += 1
+    return p0, p1, p2
 
 
 def _axes(device_pos: np.ndarray, grasp: bool) -> tuple[float, ...]:

@@ -42,7 +42,8 @@ U(x_n) - U(x_(n-1))), never negative from outside contact, so the controller
 provably leaves such a rendering alone. An instantaneous velocity would pair
 with f(n) with an error of order T^2 k |v|^2 of either sign.
 
-Units: m, m/s, N, N s/m, J, s. Pure: plain floats, no I/O.
+Units: m, m/s, N, N s/m, J, s. Pure: plain floats, no I/O. ``observe``, ``control`` and
+``authority`` are compiled into the tick's one call (hapticd.kernels.tick_step).
 """
 
 from __future__ import annotations
@@ -50,8 +51,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-
-V3 = tuple[float, float, float]
 
 DEPENDENT = 1e-9
 """A direction whose part orthogonal to the previous ones is shorter than this (of a unit
@@ -79,38 +78,6 @@ class PassivityParams:
             )
 
 
-def orthonormal(directions: Sequence[Sequence[float]]) -> list[V3]:
-    """An orthonormal basis (at most 3 unit vectors) of the span of ``directions`` (3-vectors),
-    by Gram-Schmidt in order; directions dependent on earlier ones are dropped."""
-    basis: list[V3] = []
-    for d in directions:
-        x, y, z = float(d[0]), float(d[1]), float(d[2])
-        n0 = math.sqrt(x * x + y * y + z * z)
-        if not n0 > 0.0:  # also false for NaN
-            continue
-        for b in basis:
-            c = x * b[0] + y * b[1] + z * b[2]
-            x, y, z = x - c * b[0], y - c * b[1], z - c * b[2]
-        n = math.sqrt(x * x + y * y + z * z)
-        if n > DEPENDENT * n0:
-            basis.append((x / n, y / n, z / n))
-    return basis
-
-
-def project(basis: Sequence[V3], v: Sequence[float]) -> V3:
-    """P v (3,): ``v`` projected onto the span of the orthonormal ``basis``."""
-    vx, vy, vz = float(v[0]), float(v[1]), float(v[2])
-    if len(basis) == 3:
-        return (vx, vy, vz)
-    px = py = pz = 0.0
-    for b in basis:
-        c = vx * b[0] + vy * b[1] + vz * b[2]
-        px += c * b[0]
-        py += c * b[1]
-        pz += c * b[2]
-    return (px, py, pz)
-
-
 def authority(speed: float, threshold: float) -> float:
     """The controller's authority in [0, 1] at actuated speed ``speed`` (m/s): 0 up to
     ``threshold``, rising linearly to 1 at twice it."""
@@ -125,20 +92,25 @@ def observe(energy: float, force: Sequence[float], dx: Sequence[float]) -> float
 
 
 def control(
-    observed: float, dx_actuated: Sequence[float], dt: float, params: PassivityParams
+    observed: float,
+    dx_actuated: Sequence[float],
+    dt: float,
+    velocity_threshold: float,
+    max_damping: float,
 ) -> tuple[float, float]:
     """The controller: (E(n) J, alpha(n) N s/m) for the observed energy E_pre(n) (J) and the
     finger's motion projected onto its actuated directions, ``dx_actuated`` = P_a dx (3,) m,
-    over a tick of ``dt`` s. The force to display is f(n) - alpha(n) P_a dx / T."""
+    over a tick of ``dt`` s, with PassivityParams' limits. The force to display is
+    f(n) - alpha(n) P_a dx / T."""
     if not observed < 0.0:  # also for NaN: nothing to pay back, or nothing sound to pay
         return observed, 0.0
     ua2 = dx_actuated[0] ** 2 + dx_actuated[1] ** 2 + dx_actuated[2] ** 2  # |P_a v|^2 T^2
-    w = authority(math.sqrt(ua2) / dt, params.velocity_threshold)  # 0 for NaN too
+    w = authority(math.sqrt(ua2) / dt, velocity_threshold)  # 0 for NaN too
     if not w > 0.0:
         return observed, 0.0
     # T alpha |P_a v|^2 = alpha ua2 / T: the damping's dissipation over the tick.
     need = -observed * dt / ua2
-    cap = w * params.max_damping
+    cap = w * max_damping
     if need <= cap:
         return 0.0, need  # exactly what brings E back to zero
     return observed + cap * ua2 / dt, cap
@@ -163,4 +135,4 @@ def step(
     observed = observe(energy, force, dx)
     if not math.isfinite(observed):
         return energy, 0.0
-    return control(observed, dx_actuated, dt, params)
+    return control(observed, dx_actuated, dt, params.velocity_threshold, params.max_damping)

@@ -133,9 +133,7 @@ class Renderer:
         self._contact = Contact(self.scene, self.radii)
         self._friction = Friction(self.scene, self.radii)
         self._allocation = Allocation(self.scene, self.allocator)
-        self._passivity = (
-            None if passivity is None else Passivity(self.allocator, passivity, self.n_fingers, dt)
-        )
+        self._passivity = None if passivity is None else Passivity(passivity, self.n_fingers, dt)
         self._inserted: list[tuple[str, Stage]] = []
         self._output: Stage | None = None  # a stage writing rendered_force instead of the sum
         self.kernels: dict[str, Callable[..., None]] = {}
@@ -156,26 +154,22 @@ class Renderer:
         of ``rendered_force`` in the sum's place."""
         sc = self.scene
         obj = sc.object
-        self._contact.kernel = self.kernels.get("contact_step")
-        self._contact.planes_kernel = self.kernels.get("world_planes")
         stages: list[Stage] = [self._contact]
         friction = obj.material.has_friction
         self._contact.outputs = FRICTIONLESS if friction else HELD
         self._friction.inputs = FRICTIONLESS
         if friction:
             stages.append(self._friction)
-        self._friction.kernel = self.kernels.get("friction_step")
         self._allocation.kernel = self.kernels.get("allocation_step")
-        stages += [Forces(sc, self.kernels.get("forces_step")), self._allocation]
-        parts: list[tuple[str, Environment | Passivity]] = []
+        stages += [Forces(sc), self._allocation]
+        parts: list[str] = []
         if sc.surfaces:
-            environment = Environment(self.allocator.actuation)
-            stages.append(environment)
-            parts.append(("env_rendered", environment))
+            stages.append(Environment())
+            parts.append("env_rendered")
         if self._passivity is not None:  # it sees every other contribution
-            self._passivity.inputs = ("allocated_force", *(name for name, _ in parts))
+            self._passivity.inputs = ("allocated_force", *parts)
             stages.append(self._passivity)
-            parts.append(("passivity_force", self._passivity))
+            parts.append("passivity_force")
         output = self._output
         if output is None and parts:
             output = Output(parts)
@@ -183,36 +177,24 @@ class Renderer:
         if output is not None:
             stages.append(output)
         if not obj.fixed:
-            stages.append(Dynamics(sc, self.n_fingers, self.dt, self.kernels.get("free_body_step")))
-        stages.append(SceneState(sc, self.allocator, METHODS))
+            stages.append(Dynamics(sc, self.n_fingers, self.dt))
+        stages.append(SceneState())
         for after, stage in self._inserted:
             names = [s.name for s in stages]
             stages.insert(names.index(after) + 1, stage)
         self.writers = check_plan(stages)
         self.stages: list[Stage] = stages
-        self.one_call = OneCall.of(self)
+        self.one_call = OneCall(self, self.kernels.get("tick_step"))
 
     @property
     def kernel_names(self) -> list[str]:
-        """The kernels (names in hapticd.kernels) this scene's stages can use: the free-body
-        step when the object is free; the allocation with one actuated direction per finger
-        (the number of directions stays fixed while the renderer lives); the contact (every
-        scene); friction
-        when the object's material has it (friction turned on later, by ``set_param``, runs
-        its kernel uncompiled); the contact forces always; a free object's planes in the world
-        (for the contact kernel, from its pose each tick)."""
-        obj = self.scene.object
-        names = [] if obj.fixed else ["free_body_step"]
+        """The kernels (names in hapticd.kernels) this renderer runs: the tick's one call,
+        and the allocation's own when each finger has one actuated direction (its stage
+        runs it on ticks the call hands back; the number of directions stays fixed while
+        the renderer lives)."""
+        names = ["tick_step"]
         if all(c == 1 for c in self.actuation.counts):
             names.append("allocation_step")
-        names.append("contact_step")
-        if obj.material.has_friction:
-            names.append("friction_step")
-        names.append("forces_step")
-        if not obj.fixed:
-            names.append("world_planes")
-        if "allocation_step" in names and self._passivity is None:  # the one call's plans
-            names.append("tick_step")
         return names
 
     def use_kernels(self, kernels: dict[str, Callable[..., None]]) -> None:
@@ -263,17 +245,13 @@ class Renderer:
 
     def run(self, frame: Frame, safety: SafetyChain | None = None) -> int | None:
         """One tick on ``frame``, whose device_pos (F, 3) m and device_vel (F, 3) m/s are set:
-        the plan in one call (``OneCall``) when it can, else stage by stage.
+        the plan in one call (``OneCall``; in parts around a stage of its own in Python).
 
         ``safety``: a chain ``ready`` for this tick, whose normal tick the one call makes
         too (device_force), after checking a free object's state: then its safety_step
         flags, for ``SafetyChain.done``; None when the call did not (the caller checks the
         object and runs the chain)."""
-        if self.one_call is not None:
-            return self.one_call.run(frame, safety)
-        for stage in self.stages:
-            stage.run(frame)
-        return None
+        return self.one_call.run(frame, safety)
 
     def step(self, device_pos: np.ndarray, device_vel: np.ndarray) -> Frame:
         """One tick for device positions (F, 3) m and velocities (F, 3) m/s on the renderer's
@@ -317,18 +295,19 @@ class Renderer:
 
 class OneCall:
     """The renderer's plan as one call per tick: hapticd.kernels.tick_step, compiled or (with
-    ``rendering.kernels=python``) the same function uncompiled, over the frame's fields
-    and the stages' carried state (their own arrays: the proxies, the anchors, the object's
-    state). ``of(renderer)`` makes one for a plan it can take: contact, friction, the
-    forces, allocation by a kernel method with one direction per finger, the environment,
-    their sum, the free object's step and the scene's state; not a plan with passivity,
-    an inserted stage or another output. A tick the kernel stops early (more than two
-    contacts; a non-finite input to contact, which the contact stage then refuses by name)
-    runs the rest stage by stage."""
+    ``rendering.kernels=python``, or until the compiler is done) the same function
+    uncompiled, over the frame's fields and the stages' carried state (their own arrays:
+    the proxies, the anchors, the object's state, passivity's).
 
-    def __init__(self, renderer: Renderer, fn: Callable[..., int]) -> None:
+    A stage the call does not run (one inserted into the plan, another writer of the
+    rendered force, allocation by a method or actuation its kernel does not take) runs in
+    Python between the call's parts, each part a run of the kernel's stages. A tick the
+    kernel stops early goes on: with more than two contacts the allocation stage allocates
+    and the call goes on after it; a non-finite input to contact is refused by name."""
+
+    def __init__(self, renderer: Renderer, fn: Callable[..., int] | None) -> None:
         self.renderer = renderer
-        self._fn = fn
+        self._fn = kn.uncompiled("tick_step") if fn is None else fn
         self._frame: Frame | None = None
         self._args: tuple[np.ndarray, ...] = ()
         self._scene = renderer.scene
@@ -338,7 +317,11 @@ class OneCall:
         self._started = False
         self._safety: SafetyChain | None = None  # the chain whose tick the call makes
         self._plan = np.zeros(0)  # tick_step's plan (kernels.TICK_PLAN), made by _bind
+        self._planes = np.zeros((0, kn.PLANE_COLUMNS))  # the plan's planes block (a view)
         self._at = np.zeros(kn.TICK_AT, dtype=np.int64)
+        # The tick in parts: runs of the kernel's stages (first, last) and Python stages.
+        self._parts = _parts(renderer.stages)
+        self._single = len(self._parts) == 1  # one part: the whole tick
 
     def __getstate__(self) -> dict[str, object]:
         # A copy (a deep copy, a pickle) binds its own frame's fields on its first tick:
@@ -346,50 +329,38 @@ class OneCall:
         unbound = {"_frame": None, "_args": (), "_obj": None, "_material": None}
         return {**self.__dict__, **unbound, "_safety": None}
 
-    @classmethod
-    def of(cls, r: Renderer) -> OneCall | None:
-        names = [s.name for s in r.stages]
-        if r._inserted or r._output is not None or "passivity" in names:
-            return None
-        if r._allocation.kernel_inputs() is None:
-            return None
-        fn = r.kernels.get("tick_step")
-        if fn is None:
-            if r.kernels:  # compiled kernels without this one: the stages' compiled ones
-                return None
-            fn = kn.uncompiled("tick_step")  # rendering.kernels=python: the same function
-        one = cls(r, fn)
-        return one if one._bind(r.frame) else None
-
-    def _bind(self, frame: Frame) -> bool:
-        """Make the call's arguments for ``frame`` (False: a case the kernel cannot take)."""
+    def _bind(self, frame: Frame) -> None:
+        """Make the call's arguments for ``frame`` and the plan as it is now."""
         r = self.renderer
         sc = r.scene
         obj = sc.object
         contact = r._contact
-        planes = contact._kernel_planes()
+        act = r.allocator.actuation
+        n = r.n_fingers
         inputs = r._allocation.kernel_inputs()
-        if inputs is None:
-            return False
+        if inputs is None:  # allocation runs in Python, between the call's parts
+            inputs = (np.zeros((n, 3)), np.zeros(kn.ALLOCATION_PARAMS))
         local, alloc_params = inputs
         names = {s.name: s for s in r.stages}
         friction = "friction" in names
         free = "dynamics" in names
         total = "output" in names
+        passivity = r._passivity if "passivity" in names else None
         mat = obj.material
-        n = r.n_fingers
         if free:
             body_params, body, surf, _ = names["dynamics"].arrays()
         else:
             body_params, body, surf = np.zeros(kn.PARAMS), np.zeros((0, 3)), np.zeros((0, 7))
         blocks = {
-            "planes": planes,
+            "planes": contact._kernel_planes(),
             "local": local,
             "body": body,
             "surf": surf,
             "normals": np.asarray(obj.shape.normals, dtype=float).reshape(-1, 3),
             "offsets": np.asarray(obj.shape.offsets, dtype=float).reshape(-1),
             "scratch": np.zeros((n, kn.SCRATCH_COLUMNS)),
+            "directions": np.array([d for ds in act.local for d in ds], dtype=float),
+            "counts": np.array(act.counts, dtype=float),
         }
         size = kn.TICK_PARAMS + sum(b.size for b in blocks.values())
         if self._plan.size != size:
@@ -405,13 +376,20 @@ class OneCall:
             plan[start : start + block.size] = block.reshape(-1)
             layout.append(start)
             start, rows = start + block.size, len(block)
+        at_planes = layout[kn.TICK_PLAN.index("planes")]
+        self._planes = plan[at_planes : at_planes + blocks["planes"].size].reshape(
+            -1, kn.PLANE_COLUMNS
+        )
         p = plan[: kn.TICK_PARAMS]
         p[:] = 0.0
         p[kn.TICK_FRICTION] = float(friction)
         p[kn.TICK_FREE] = float(free)
         p[kn.TICK_SURFACES] = float(bool(sc.surfaces))
         p[kn.TICK_SUM] = float(total)
+        p[kn.TICK_PASSIVITY] = float(passivity is not None)
         p[kn.TICK_ALPHA] = r.allocator.alpha
+        if passivity is not None:
+            p[kn.TICK_PASSIVITY_AT : kn.TICK_FRICTION_AT] = passivity.kernel_params
         p[kn.TICK_FRICTION_AT : kn.TICK_FORCES_AT] = (mat.mu_static, mat.mu_dynamic)
         p[kn.TICK_FORCES_AT : kn.TICK_ALLOCATION_AT] = (
             mat.stiffness,
@@ -419,12 +397,13 @@ class OneCall:
             0.0 if obj.fixed else 1.0,
         )
         p[kn.TICK_ALLOCATION_AT : kn.TICK_BODY_AT] = alloc_params
+        # The actuation's frame, for the environment and passivity as for allocation.
+        p[kn.TICK_ALLOCATION_AT + 4] = 1.0 if act.frame == "grasp" else 0.0
         p[kn.TICK_BODY_AT :] = body_params
         at = {name: _float_offset(frame, name) for name in kn.TICK_FIELDS}
         if not friction:  # contact writes the final fields itself
             at.update({plain: at[held] for plain, held in zip(FRICTIONLESS, HELD, strict=True)})
-        if not total:  # allocation writes the rendered force itself
-            at["allocated_force"] = at["rendered_force"]
+        at["allocated_force"] = at[r._allocation.output]
         # The kernel reads these as runs of floats from their first.
         adjacent(
             frame,
@@ -439,9 +418,12 @@ class OneCall:
             obj.state,
             contact.state,
             r._friction.anchors,
+            _NO_PASSIVITY if passivity is None else passivity.state,
             plan,
             *_NO_SAFETY,
         )
+        if self._single:
+            p[kn.TICK_FIRST], p[kn.TICK_LAST] = self._parts[0]  # type: ignore[misc]
         frame.stiffness_n_per_m[()] = mat.stiffness
         frame.mass_kg[()] = obj.mass
         frame.allocator[()] = METHODS.index(r.allocator.method)
@@ -449,38 +431,65 @@ class OneCall:
         self._obj, self._material = obj, mat
         self._free = free
         self._safety = None  # the arguments hold no chain's arrays
-        return True
 
     def run(self, frame: Frame, safety: SafetyChain | None = None) -> int | None:
         """The tick (``Renderer.run``): the safety chain's flags when it ran too, else None."""
         # Set without a new plan (set_param plans anew): the object, or its material (an
         # analysis replaying a recording's stiffness tick by tick).
         obj = self._scene.object
-        if (
-            frame is not self._frame or obj is not self._obj or obj.material is not self._material
-        ) and not self._bind(frame):
-            self._by_stages(frame, 0)
-            return None
+        if frame is not self._frame or obj is not self._obj or obj.material is not self._material:
+            self._bind(frame)
         if not self._started:  # every proxy starts at its device, on the first tick run
             self.renderer._contact.start(frame)
             self._started = True
         if safety is not self._safety:  # the chain in the call changed (None: no chain)
             self._with(safety)
-        outcome = self._fn(*self._args)
-        if outcome >= _FINISHED:  # the physics done (the object moved, if it is free)
+        if self._single:
+            outcome = self._fn(*self._args)
+            if outcome < _FINISHED:
+                outcome = self._stopped(frame, outcome, kn.STAGE_END)
             if self._free:
                 obj.update_world()
-            # The chain's flags, or None: no chain, or its own checks to run.
-            return outcome - _SAFE if outcome >= _SAFE else None
+        else:
+            outcome = self._in_parts(frame)
+        # The chain's flags, or None: no chain, or its own checks to run.
+        return outcome - _SAFE if outcome >= _SAFE else None
+
+    def _in_parts(self, frame: Frame) -> int:
+        """The tick in its parts: the kernel's runs of stages and the Python stages."""
+        p = self._plan
+        outcome = kn.TICK_DONE
+        for part in self._parts:
+            if isinstance(part, tuple):
+                p[kn.TICK_FIRST], p[kn.TICK_LAST] = part
+                outcome = self._fn(*self._args)
+                if outcome < _FINISHED:
+                    outcome = self._stopped(frame, outcome, part[1])
+                if self._free and part[0] <= kn.STAGE_DYNAMICS < part[1]:
+                    self._scene.object.update_world()
+            else:
+                part.run(frame)
+        return outcome
+
+    def _stopped(self, frame: Frame, outcome: int, last: int) -> int:
+        """A tick the kernel stopped: refused (ValueError or AllocationError, by name), or
+        allocated by the allocation stage and the call gone on after it up to ``last``."""
+        r = self.renderer
+        if outcome == kn.TICK_FROM_CONTACT:
+            raise ValueError(r._contact._non_finite(frame, self._planes))
         if outcome == kn.TICK_NON_FINITE_INPUT:
             raise AllocationError("non-finite contact geometry or force; refusing to allocate")
         if outcome == kn.TICK_NON_FINITE_OUTPUT:
-            method = self.renderer.allocator.method
+            method = r.allocator.method
             raise AllocationError(f"allocator {method!r} produced a non-finite force")
-        names = [s.name for s in self.renderer.stages]
-        start = "contact" if outcome == kn.TICK_FROM_CONTACT else "allocation"
-        self._by_stages(frame, names.index(start))
-        return None
+        r._allocation.run(frame)
+        p = self._plan
+        first, then = p[kn.TICK_FIRST], p[kn.TICK_LAST]
+        p[kn.TICK_FIRST], p[kn.TICK_LAST] = kn.STAGE_ALLOCATION + 1, last
+        try:
+            return self._fn(*self._args)
+        finally:
+            p[kn.TICK_FIRST], p[kn.TICK_LAST] = first, then
 
     def _with(self, safety: SafetyChain | None) -> None:
         """Run ``safety``'s normal tick in the call from now on (None: no chain's)."""
@@ -489,18 +498,30 @@ class OneCall:
         self._args = (*self._args[:-2], *arrays)
         self._plan[kn.TICK_SAFETY] = 0.0 if safety is None else 1.0
 
-    def _by_stages(self, frame: Frame, first: int) -> None:
-        """The plan's stages from ``first`` on, one by one, after ticks this call wrote."""
-        r = self.renderer
-        r._friction.holding = True  # an anchor may be set: cleared out of contact
-        for stage in r.stages[first:]:
-            if isinstance(stage, Environment):
-                stage.zero_on = None
-            stage.run(frame)
+
+def _parts(stages: list[Stage]) -> list[tuple[int, int] | Stage]:
+    """The plan as the call's parts: each run of stages the kernel has (their
+    ``kernel_stage``), as (first, last) STAGE_ indices, and each other stage itself. The
+    last part is the kernel's, to the end: the safety chain's tick, when the call makes it."""
+    parts: list[tuple[int, int] | Stage] = []
+    run: list[int] = []
+    for stage in stages:
+        k = getattr(stage, "kernel_stage", None)
+        if k is not None:
+            run.append(k)
+            continue
+        if run:
+            parts.append((run[0], run[-1] + 1))
+            run = []
+        parts.append(stage)
+    parts.append((run[0] if run else kn.STAGE_SAFETY, kn.STAGE_END))
+    return parts
 
 
 # tick_step's safety arrays when the safety chain does not run in the call (never read).
 _NO_SAFETY = (np.zeros(kn.SAFETY_PARAMS), np.zeros((2, 1, 3)))
+# tick_step's passivity state without the passivity stage (never read).
+_NO_PASSIVITY = np.zeros((0, kn.PASSIVITY_STATE))
 _SAFE = kn.TICK_SAFE
 _FINISHED = kn.TICK_FINISHED
 

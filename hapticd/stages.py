@@ -1,11 +1,15 @@
 """The renderer's stages: each does one job on the tick frame (``hapticd.frame``).
 
-A stage reads the frame fields earlier stages wrote and writes its own; a stage
-that carries state from tick to tick (proxies, friction anchors, the adaptive
-allocator, the passivity observer, the object's motion) keeps it itself.
+A stage declares the frame fields it reads and writes, the state it carries from tick
+to tick (``carries``: hapticd.frame.STATE) and its part of the tick's one call
+(``kernel_stage``, a ``hapticd.kernels.STAGE_`` index: the call runs its physics).
 ``Renderer`` (hapticd.render) puts the stages a scene needs in order:
 
-    contact -> friction -> forces -> allocation -> environment -> passivity -> dynamics -> scene
+    contact -> friction -> forces -> allocation -> environment -> passivity -> output
+    -> dynamics -> scene
+
+Contact, Friction, Forces and Dynamics also run alone on a frame (``run``: their
+kernel, compiled or not); Allocation runs in Python for what its kernel does not take.
 
 Units: positions m, velocities m/s, forces N, stiffness N/m, damping N s/m.
 """
@@ -24,11 +28,8 @@ from hapticd.allocation.contacts import ContactAllocator
 from hapticd.contact import Polytope
 from hapticd.dynamics import auto_substeps
 from hapticd.frame import Frame
-from hapticd.passivity import PassivityParams, control, observe, orthonormal, project
+from hapticd.passivity import PassivityParams
 from hapticd.scene import Material, Scene, SceneObject, Surface
-
-V3 = tuple[float, float, float]
-ZERO3: V3 = (0.0, 0.0, 0.0)
 
 
 class Stage(Protocol):
@@ -85,14 +86,6 @@ def _kernel(name: str) -> property:
     return property(get, put, doc=f"hapticd.kernels.{name}, compiled or not")
 
 
-def _projector(directions: list[V3]) -> np.ndarray:
-    """Orthogonal projector (3, 3) onto the span of a finger's actuated directions."""
-    if not directions:
-        return np.zeros((3, 3))
-    D = np.array(directions).T
-    return D @ np.linalg.pinv(D)
-
-
 class Contact:
     """God-object contact of spherical fingertips with the object, the ground and the walls.
 
@@ -107,6 +100,7 @@ class Contact:
 
     name = "contact"
     reads = ("device_pos", "device_vel")
+    kernel_stage = kernels.STAGE_CONTACT
     kernel = _kernel("contact_step")
 
     def __init__(
@@ -185,19 +179,10 @@ class Contact:
 
     def _kernel_planes(self) -> np.ndarray:
         """The kernel's planes (hapticd.kernels.PLANE_COLUMNS): the object's, copied again
-        only when its polytope changed (a free object's: from its pose, by the planes
-        kernel, when there is one), then the surfaces'."""
+        only when its polytope changed, then the surfaces'. (The one call moves a free
+        object's planes itself, each tick: kernels.world_planes.)"""
         obj = self.scene.object
         planes = self._planes
-        body = self._body
-        move = self.planes_kernel
-        if move is not None and not obj.fixed and planes is not None and body is not None:
-            try:
-                if body[0] is obj.shape:
-                    move(obj.rotation, obj.position, body[1], body[2], planes)
-                    return planes
-            except TypeError:  # a pose the signature does not take: the polytope's way
-                pass
         poly = obj.polytope
         if poly is self._planes_for and planes is not None:
             return planes
@@ -223,13 +208,6 @@ class Contact:
             planes[:m, 0:3] = poly.normals
             planes[:m, 3] = poly.offsets
         self._planes_for = poly
-        shape = obj.shape
-        if body is None or body[0] is not shape:
-            self._body = (
-                shape,
-                np.ascontiguousarray(shape.normals, dtype=float),
-                np.ascontiguousarray(shape.offsets, dtype=float),
-            )
         return planes
 
 
@@ -249,6 +227,7 @@ class Friction:
 
     name = "friction"
     outputs = HELD
+    kernel_stage = kernels.STAGE_FRICTION
     kernel = _kernel("friction_step")
 
     def __init__(
@@ -332,6 +311,7 @@ class Forces:
     name = "forces"
     reads = ("in_contact", "device_pos", "device_vel", "surface_point", "contact_normal")
     writes = ("contact_force",)
+    kernel_stage = kernels.STAGE_FORCES
     kernel = _kernel("forces_step")
 
     def __init__(self, scene: Scene, kernel: Callable[..., None] | None = None) -> None:
@@ -444,6 +424,12 @@ class Allocation:
         frame.residual_total[()] = acc[2]
         frame.amplification[()] = acc[3]
 
+    @property
+    def kernel_stage(self) -> int | None:
+        """kernels.STAGE_ALLOCATION when the one call allocates for this allocator (its
+        ``kernel_inputs``), else None: the stage runs here, between the call's parts."""
+        return None if self.kernel_inputs() is None else kernels.STAGE_ALLOCATION
+
     def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray] | None:
         """allocation_step's ``local`` and ``params`` for one call per tick, or None
         (``ContactAllocator.kernel_inputs``)."""
@@ -451,63 +437,29 @@ class Allocation:
 
 
 class Environment:
-    """Renders the ground's and walls' force through each finger's own actuated directions:
-    writes ``env_rendered`` (the output stage adds it to the rendered force)."""
+    """Renders the ground's and walls' force through each finger's own actuated directions
+    (its projection onto their span): writes ``env_rendered`` (the sum adds it to the
+    rendered force). Its physics is in the tick's one call (hapticd.kernels.tick_step)."""
 
     name = "environment"
     reads = ("env_force", "device_pos")
     writes = ("env_rendered",)
-
-    def __init__(self, actuation: Actuation) -> None:
-        self.actuation = actuation
-        self.zero_on: Frame | None = None  # the frame whose env_rendered is all zero
-
-    def run(self, frame: Frame) -> None:
-        env = frame.env_force.tolist()
-        if not any(any(e) for e in env):  # plain floats: numpy's any() costs more here
-            if frame is not self.zero_on:
-                frame.env_rendered.fill(0.0)
-                self.zero_on = frame
-            return
-        self.zero_on = None
-        out = frame.env_rendered
-        world = self.actuation.world_directions(frame.device_pos.tolist())
-        for i, e in enumerate(env):
-            if any(e):
-                out[i] = _projector(world[i]) @ np.array(e)
-            else:
-                out[i] = 0.0
+    kernel_stage = kernels.STAGE_ENVIRONMENT
 
 
 class Output:
     """The rendered force: the allocated force plus the other contributions the plan has
-    (``parts``: field and stage, the environment's, then the passivity controller's), in
-    that order; the only writer of ``rendered_force``. A contribution whose stage says it
-    is all zero on this frame (its ``zero_on``) is not added: the same numbers."""
+    (``parts``: the environment's, then the passivity controller's fields), in that order;
+    the only writer of ``rendered_force``. Its sum is in the tick's one call."""
 
     name = "output"
     writes = ("rendered_force",)
+    kernel_stage = kernels.STAGE_SUM
 
-    def __init__(self, parts: list[tuple[str, Environment | Passivity]]) -> None:
+    def __init__(self, parts: list[str]) -> None:
         if not parts:
             raise ValueError("the output stage sums two or more contributions")
-        self.reads = ("allocated_force", *(name for name, _ in parts))
-        self._parts = parts
-        self._frame: Frame | None = None
-        self._more: list[tuple[np.ndarray, Environment | Passivity]] = []
-
-    def run(self, frame: Frame) -> None:
-        if frame is not self._frame:
-            self._frame = frame
-            self._more = [(getattr(frame, name), stage) for name, stage in self._parts]
-        out = frame.rendered_force
-        total = frame.allocated_force
-        for view, stage in self._more:
-            if stage.zero_on is not frame:
-                np.add(total, view, out=out)
-                total = out
-        if total is not out:
-            out[...] = total
+        self.reads = ("allocated_force", *parts)
 
 
 class Passivity:
@@ -518,28 +470,20 @@ class Passivity:
     Observes the sum of the contributions before it (``inputs``: the allocated force, and
     the environment's with ground or walls), the whole rendered force but its own;
     writes its damping force to ``passivity_force`` (the output stage adds it),
-    ``passivity_energy`` (J) and ``passivity_damping`` (N s/m) every tick. Keeps each
-    finger's observed energy and last position; the first tick sees no motion.
+    ``passivity_energy`` (J) and ``passivity_damping`` (N s/m) every tick. Its physics is
+    in the tick's one call (hapticd.kernels.tick_step); it carries ``state`` (F,
+    kernels.PASSIVITY_STATE): each finger's observed energy and last position.
     """
 
     name = "passivity"
     writes = ("passivity_force", "passivity_energy", "passivity_damping")
+    kernel_stage = kernels.STAGE_PASSIVITY
 
-    def __init__(
-        self, allocator: ContactAllocator, params: PassivityParams, n_fingers: int, dt: float
-    ) -> None:
-        self.allocator = allocator  # its actuation is read every tick: it may change live
+    def __init__(self, params: PassivityParams, n_fingers: int, dt: float) -> None:
         self.params = params
         self.dt = dt
-        # The state it carries (hapticd.frame.STATE): each finger's observed energy (J) and
-        # last position (m; None before the first tick, which sees no motion).
-        self.energy = [0.0] * n_fingers
-        self._damping = [0.0] * n_fingers
-        self.last_pos: list[list[float]] | None = None
-        self._basis_for: Actuation | None = None
-        self._basis: list[list[V3]] = []
+        self.state = np.zeros((n_fingers, kernels.PASSIVITY_STATE))
         self.inputs: tuple[str, ...] = ("allocated_force",)
-        self.zero_on: Frame | None = None  # the frame whose passivity_force is all zero
 
     @property
     def reads(self) -> tuple[str, ...]:
@@ -550,59 +494,27 @@ class Passivity:
         # hapticd.frame.STATE
         return {"passivity_energy": self.energy, "passivity_last_pos": self.last_pos}
 
-    def _bases(self, pos: list[list[float]]) -> list[list[V3]]:
-        """Orthonormal bases of each finger's actuated directions in the world (cached while
-        they cannot change: world-frame directions of the same actuation)."""
-        act = self.allocator.actuation
-        if act is self._basis_for:
-            return self._basis
-        world = act.world_directions(pos)  # type: ignore[arg-type]
-        self._basis = [orthonormal(ds) for ds in world]
-        self._basis_for = act if act.frame == "world" else None
-        return self._basis
+    @property
+    def energy(self) -> np.ndarray:
+        """Each finger's observed energy (F,) J: a view of ``state``, settable."""
+        return self.state[:, 0]
 
-    def run(self, frame: Frame) -> None:
-        pos = frame.device_pos.tolist()
-        prev = self.last_pos if self.last_pos is not None else pos
-        self.last_pos = pos
-        first, *rest = self.inputs
-        forces = getattr(frame, first).tolist()
-        for name in rest:  # the same sums the output stage makes
-            more = getattr(frame, name).tolist()
-            forces = [
-                [a[0] + b[0], a[1] + b[1], a[2] + b[2]] for a, b in zip(forces, more, strict=True)
-            ]
-        added = [ZERO3] * len(forces)
-        energy, damping = self.energy, self._damping
-        dt, params = self.dt, self.params
-        bases = None
-        damped = False
-        for i, f in enumerate(forces):
-            x, xp = pos[i], prev[i]
-            dx = (x[0] - xp[0], x[1] - xp[1], x[2] - xp[2])
-            e = observe(energy[i], f, dx)
-            alpha = 0.0
-            if e < 0.0:  # only then the controller needs the actuated motion
-                if bases is None:
-                    bases = self._bases(pos)
-                du = project(bases[i], dx)
-                e, alpha = control(e, du, dt, params)
-                if alpha > 0.0:
-                    c = alpha / dt  # the damping force is -alpha P_a v, v = dx / T
-                    added[i] = (-(c * du[0]), -(c * du[1]), -(c * du[2]))
-                    damped = True
-            elif not e >= 0.0:  # NaN: a non-finite position or force; keep the last energy
-                e = energy[i]
-            energy[i] = e
-            damping[i] = alpha
-        frame.passivity_energy[...] = energy
-        frame.passivity_damping[...] = damping
-        if damped:
-            frame.passivity_force[...] = added
-            self.zero_on = None
-        elif frame is not self.zero_on:  # zero once per frame (a reload keeps the loop's)
-            frame.passivity_force.fill(0.0)
-            self.zero_on = frame
+    @property
+    def last_pos(self) -> np.ndarray | None:
+        """Each finger's position on the last tick (F, 3) m, None before the first."""
+        return self.state[:, 1:4] if self.state[:, 4].all() else None
+
+    @last_pos.setter
+    def last_pos(self, pos: object) -> None:
+        self.state[:, 4] = 0.0 if pos is None else 1.0
+        if pos is not None:
+            self.state[:, 1:4] = pos
+
+    @property
+    def kernel_params(self) -> tuple[float, float, float]:
+        """Its params in the one call: velocity threshold (m/s), most damping (N s/m), dt (s)."""
+        p = self.params
+        return (p.velocity_threshold, p.max_damping, self.dt)
 
 
 class Dynamics:
@@ -617,6 +529,7 @@ class Dynamics:
     name = "dynamics"
     reads = ("in_contact", "contact_point", "contact_force", "contact_normal")
     writes = ()  # the object's pose and motion (the scene's object)
+    kernel_stage = kernels.STAGE_DYNAMICS
     kernel = _kernel("free_body_step")
 
     def __init__(
@@ -707,11 +620,8 @@ class _BodyArrays:
 
 class SceneState:
     """Publishes the scene's state after the tick: the object's pose and motion (its state,
-    in one copy), stiffness and mass, and the allocator in use (an index into ``methods``).
-
-    Made anew whenever the plan changes, so the parameters are written once per frame
-    and the pose on every tick only when the object can move.
-    """
+    in one copy, by the one call), stiffness and mass, and the allocator in use (an index
+    into hapticd.allocation.METHODS; written when the call binds the frame)."""
 
     name = "scene"
     reads = ()
@@ -724,32 +634,7 @@ class SceneState:
         "mass_kg",
         "allocator",
     )
-
-    def __init__(self, scene: Scene, allocator: ContactAllocator, methods: tuple[str, ...]) -> None:
-        self.scene = scene
-        self.allocator = allocator
-        self.methods = methods
-        self._written: Frame | None = None
-        self._state = np.zeros(18)
-
-    def run(self, frame: Frame) -> None:
-        obj = self.scene.object
-        if frame is self._written and obj.fixed:
-            return
-        if frame is not self._written:
-            self._state = _object_fields(frame)
-        self._state[...] = obj.state
-        if frame is not self._written:
-            frame.stiffness_n_per_m[()] = obj.material.stiffness
-            frame.mass_kg[()] = obj.mass
-            frame.allocator[()] = self.methods.index(self.allocator.method)
-            self._written = frame
-
-
-def _object_fields(frame: Frame) -> np.ndarray:
-    """The frame's object_pos, object_vel, object_omega and object_rot as one (18,) float
-    view, in SceneObject.state's order (they are adjacent in the record)."""
-    return adjacent(frame, ("object_pos", "object_vel", "object_omega", "object_rot"))
+    kernel_stage = kernels.STAGE_SCENE
 
 
 def adjacent(frame: Frame, names: tuple[str, ...]) -> np.ndarray:

@@ -304,8 +304,8 @@ def test_the_bundled_profiles_render_their_contact_with_the_kernel(compiled, pat
     s = build_session(
         load_profile(path, ["rendering.kernels=compiled"]), paced=False, duration_s=0.01
     )
-    assert "contact_step" in s.renderer.kernel_names
-    assert s.renderer.stages[s.renderer.stage_names.index("contact")].kernel is not None
+    assert s.renderer.one_call._fn is s.renderer.kernels["tick_step"]
+    assert "contact" in s.renderer.stage_names and len(s.renderer.one_call._parts) == 1
 
 
 def _hostile_run(path, mode: str, value: float, where: str) -> tuple[dict, np.ndarray, float, int]:
@@ -315,7 +315,7 @@ def _hostile_run(path, mode: str, value: float, where: str) -> tuple[dict, np.nd
     summary, every force written, the force limit and the number of devices."""
     profile = load_profile(path, [f"rendering.kernels={mode}"])
     session = build_session(profile, paced=False, duration_s=1.2)
-    assert ("contact_step" in session.renderer.kernels) == (mode == "compiled")
+    assert ("tick_step" in session.renderer.kernels) == (mode == "compiled")
     loop = session.loop
     if where == "device":
         dev0 = session.devices[0]
@@ -421,7 +421,7 @@ def test_the_one_call_refuses_a_non_finite_sample_by_name_and_goes_on():
 
 def test_a_large_mesh_runs_in_the_one_call():
     """A 1000-sided prism (any number of planes): in one call, tick after tick, the same
-    forces as the plan stage by stage."""
+    forces as the plan in parts (a stage inserted after contact)."""
     k = 1000
     angles = np.linspace(0.0, 2.0 * np.pi, k, endpoint=False)
     normals = np.stack([np.cos(angles), np.sin(angles), np.zeros(k)], axis=1)
@@ -431,8 +431,8 @@ def test_a_large_mesh_runs_in_the_one_call():
     calls: list[int] = []
     one = _one_call_renderer(prism, calls)
     staged = _one_call_renderer(prism)
-    staged.insert(Nothing(), after="scene")  # a plan with an inserted stage: one by one
-    assert staged.one_call is None
+    staged.insert(Nothing(), after="contact")  # a plan with an inserted stage: in parts
+    assert len(staged.one_call._parts) == 3
     for s in np.linspace(0.0, 1.0, 20):
         x = np.array([[-0.03 + 0.01 * s, 0.003 * s, 0.0], [0.03 - 0.01 * s, 0.0, -0.002 * s]])
         a, b = one.step(x, np.zeros((2, 3))), staged.step(x, np.zeros((2, 3)))

@@ -306,17 +306,13 @@ def test_the_kernels_share_one_object_state_with_the_dynamics_kernel(compiled):
 @pytest.mark.parametrize("path", [LIFT, GRASP], ids=["lift", "grasp"])
 def test_compiled_runs_of_the_bundled_profiles_use_these_kernels(compiled, path):
     """tests/test_reference_output.py's compiled runs (rendering.kernels=compiled) go
-    through friction_step (the lift has friction) and forces_step (both)."""
+    through the compiled call, with friction (the lift has it) and forces (both)."""
     s = build_session(
         load_profile(path, ["rendering.kernels=compiled"]), paced=False, duration_s=0.01
     )
     r: Renderer = s.renderer
-    stages = dict(zip(r.stage_names, r.stages, strict=True))
-    assert stages["forces"].kernel is r.kernels["forces_step"]
-    if path == LIFT:
-        assert stages["friction"].kernel is r.kernels["friction_step"]
-    else:
-        assert "friction" not in stages and "friction_step" not in r.kernel_names
+    assert r.one_call._fn is r.kernels["tick_step"]
+    assert "forces" in r.stage_names and ("friction" in r.stage_names) is (path == LIFT)
     s.run()
 
 
@@ -344,10 +340,7 @@ def _poisoned_run(mode: str, field: str, value: float) -> tuple[np.ndarray, dict
     profile = load_profile(LIFT, [f"rendering.kernels={mode}"])
     session = build_session(profile, paced=False, duration_s=3.2)
     renderer = session.renderer
-    stages = dict(zip(renderer.stage_names, renderer.stages, strict=True))
-    for name in ("friction", "forces"):
-        uncompiled = kernels.uncompiled(f"{name}_step")
-        assert (stages[name].kernel is uncompiled) == (mode == "python")
+    assert (renderer.one_call._fn is kernels.uncompiled("tick_step")) == (mode == "python")
     renderer.insert(Poison(session.loop, field, value, 3.0), after="contact")
     written = capture_writes(session)
     summary = session.run()

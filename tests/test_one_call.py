@@ -1,7 +1,10 @@
 """The renderer's plan as one call per tick (hapticd.render.OneCall, hapticd.kernels.tick_step)
-against the same plan stage by stage: the same frame, tick after tick, for the bundled
+against the same plan in parts (a probe stage inserted after every stage, so that the call
+runs each stage as a part of its own): the same frame, tick after tick, for the bundled
 profiles' scenes, a free object pushed onto the ground, three fingers (whose ticks with
-three contacts the call hands back to the stages) and a material set between ticks.
+three contacts the allocation stage allocates between the call's parts) and a material set
+between ticks; the environment's and the passivity controller's forces against their
+definitions (a projector onto the span of the actuated directions, hapticd.passivity.step).
 """
 
 from __future__ import annotations
@@ -12,12 +15,14 @@ import numpy as np
 import pytest
 
 from hapticd import jit
+from hapticd import kernels as kn
 from hapticd.actuation import Actuation
 from hapticd.allocation.robust import AllocationError
 from hapticd.build import build_renderer, load_trajectories
-from hapticd.frame import FIELDS
+from hapticd.frame import FIELDS, Frame
+from hapticd.passivity import PassivityParams
 from hapticd.profile import load_profile
-from hapticd.render import OneCall, Renderer
+from hapticd.render import Renderer
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
 from tests.conftest import ROOT
 
@@ -30,40 +35,51 @@ def compiled():
     return jit.compile_kernels(list(jit.SIGNATURES))
 
 
-def _staged(r: Renderer, monkeypatch: pytest.MonkeyPatch) -> Renderer:
-    """``r``'s plan stage by stage (no one call)."""
-    with monkeypatch.context() as m:
-        m.setattr(OneCall, "of", classmethod(lambda cls, renderer: None))
-        r.plan()
-    assert r.one_call is None
+class Probe:
+    """A stage that does nothing: inserted after a stage, it splits the call there."""
+
+    def __init__(self, after: str) -> None:
+        self.name = f"probe {after}"
+        self.runs = 0
+
+    def run(self, frame) -> None:
+        self.runs += 1
+
+
+def _in_parts(r: Renderer) -> Renderer:
+    """``r``'s plan with a probe after every stage: the call runs each stage on its own."""
+    for name in r.stage_names:
+        r.insert(Probe(name), after=name)
     return r
 
 
-def _pair(make, kernels, monkeypatch):
-    one, staged = make(), make()
+def _pair(make, kernels):
+    one, parts = make(), make()
     one.use_kernels(kernels)
-    staged.use_kernels(kernels)
-    assert one.one_call is not None
-    return one, _staged(staged, monkeypatch)
+    parts.use_kernels(kernels)
+    return one, _in_parts(parts)
 
 
 def _same(
-    one: Renderer, staged: Renderer, pos: np.ndarray, vel: np.ndarray, k: int, skip=()
+    one: Renderer, staged: Renderer, pos: np.ndarray, vel: np.ndarray, k: int, skip=(), atol=0.0
 ) -> None:
     a = one.step(pos, vel)
     b = staged.step(pos, vel)
     for name in (n for n in COMPARED if n not in skip):
         np.testing.assert_allclose(
-            a.get(name), b.get(name), rtol=0, atol=1e-12, err_msg=f"{name} at tick {k}"
+            a.get(name), b.get(name), rtol=0, atol=atol, err_msg=f"{name} at tick {k}"
         )
 
 
 @pytest.mark.parametrize("profile", ["lift-weight", "grasp-stiffness"])
-def test_the_bundled_profiles_render_the_same_in_one_call(profile, compiled, monkeypatch):
-    prof = load_profile(ROOT / "configs" / f"{profile}.yaml")
+def test_the_bundled_profiles_render_the_same_in_one_call(profile, compiled):
+    """Bit for bit: each stage's part runs the same code on the same numbers."""
+    prof = load_profile(ROOT / "configs" / f"{profile}.yaml", ["rendering.passivity.enabled=true"])
     kernels = {n: compiled[n] for n in build_renderer(prof).kernel_names}
     assert "tick_step" in kernels
-    one, staged = _pair(lambda: build_renderer(prof), kernels, monkeypatch)
+    one, staged = _pair(lambda: build_renderer(prof), kernels)
+    assert len(one.one_call._parts) == 1
+    assert len(staged.one_call._parts) == 2 * len(one.stage_names) + 1
     paths = [p for p in load_trajectories(prof) if p is not None]
     times, pos = paths[0][0], np.stack([p[1] for p in paths], axis=1)
     dt = float(times[1] - times[0])
@@ -107,97 +123,168 @@ def _squeeze(n_fingers: int, ticks: int) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
+def _projected(frame: Frame, act: Actuation, force: np.ndarray) -> np.ndarray:
+    """``force`` (F, 3) N projected onto the span of each finger's actuated directions in the
+    world: D pinv(D) f, the projector's definition."""
+    world = act.world_directions(frame.device_pos.tolist())
+    out = np.zeros_like(force)
+    for i, ds in enumerate(world):
+        D = np.array(ds).T
+        out[i] = D @ np.linalg.pinv(D) @ force[i]
+    return out
+
+
 @pytest.mark.parametrize("n_fingers", [2, 3])
 @pytest.mark.parametrize("fixed", [True, False])
-def test_a_grasp_on_the_ground_renders_the_same_in_one_call(
-    n_fingers, fixed, compiled, monkeypatch
-):
-    """Friction, the ground's force through the actuated directions and their sum, the free
-    body's step; with three fingers the ticks with three contacts are the stages' (the
-    call hands them back at allocation) and the call takes the next tick again."""
-    directions = [[(0.6, 0.0, 0.8)], [(0.0, 1.0, 0.0)], [(0.0, 0.6, 0.8)]][:n_fingers]
+def test_a_grasp_on_the_ground_renders_the_same_in_one_call(n_fingers, fixed, compiled):
+    """Friction, the ground's force through the actuated directions (two of them for the
+    first finger) and their sum, the free body's step; with three fingers the ticks with
+    three contacts are allocated by the allocation stage between the call's parts, and the
+    call takes the next tick whole again. The environment's force is its projection."""
+    directions = [[(0.6, 0.0, 0.8), (0.0, 1.0, 0.0)], [(0.0, 1.0, 0.0)], [(0.0, 0.6, 0.8)]]
+    directions[0] = directions[0][:1] if n_fingers == 3 else directions[0]
+    act = Actuation(copy.deepcopy(directions[:n_fingers]), "world")
 
     def make() -> Renderer:
-        act = Actuation(copy.deepcopy(directions), "world")
         return Renderer(_scene(fixed), [0.008] * n_fingers, act, "if", dt=1e-3)
 
     names = make().kernel_names
-    one, staged = _pair(make, {n: compiled[n] for n in names}, monkeypatch)
+    one, staged = _pair(make, {n: compiled[n] for n in names})
     assert "output" in one.stage_names and ("dynamics" in one.stage_names) is not fixed
+    assert (len(one.one_call._parts) == 1) is (n_fingers == 3)  # else two directions on one
     contacts = set()
+    ground = 0
     for k, (pos, vel) in enumerate(_squeeze(n_fingers, 240)):
         _same(one, staged, pos, vel, k)
-        contacts.add(int(one.frame.in_contact.sum()))
-        assert np.isfinite(one.frame.rendered_force).all()
-    assert max(contacts) == n_fingers and 0 in contacts
-    assert one.one_call is not None
+        f = one.frame
+        contacts.add(int(f.in_contact.sum()))
+        assert np.isfinite(f.rendered_force).all()
+        expected = _projected(f, act, f.env_force)
+        np.testing.assert_allclose(f.env_rendered, expected, rtol=0, atol=1e-12)
+        ground += bool(np.abs(f.env_force).max() > 0.01)
+    assert max(contacts) == n_fingers and 0 in contacts and ground > 10
 
 
-def test_a_material_set_between_ticks_is_the_next_ticks(compiled, monkeypatch):
+def test_a_material_set_between_ticks_is_the_next_ticks(compiled):
     """An analysis sets the object's material tick by tick without a new plan."""
     act = Actuation([[(1.0, 0.0, 0.0)], [(-1.0, 0.0, 0.0)]], "world")
 
     def make() -> Renderer:
         return Renderer(_box(True), [0.008, 0.008], act, "pinv", dt=1e-3)
 
-    one, staged = _pair(make, {n: compiled[n] for n in make().kernel_names}, monkeypatch)
+    one, staged = _pair(make, {n: compiled[n] for n in make().kernel_names})
     pos = np.array([[-0.025, 0.0, 0.02], [0.025, 0.0, 0.02]])
     vel = np.zeros((2, 3))
     _same(one, staged, pos, vel, 0)
     before = one.frame.rendered_force.copy()
     for r in (one, staged):
         r.obj.material = Material(800.0, 2.0, 0.6, 0.4, 0.002)
-    # The stages publish the stiffness once per plan; the call, on every tick it changed.
-    _same(one, staged, pos, vel, 1, skip=("stiffness_n_per_m",))
+    _same(one, staged, pos, vel, 1)
     np.testing.assert_allclose(one.frame.rendered_force, 2 * before, rtol=1e-9)
     assert float(one.frame.stiffness_n_per_m) == 800.0
 
 
-def test_a_non_finite_contact_force_is_refused_with_the_stages_message(compiled):
+def test_non_finite_inputs_are_refused_by_name(compiled):
     act = Actuation([[(1.0, 0.0, 0.0)], [(-1.0, 0.0, 0.0)]], "world")
     r = Renderer(_box(True), [0.008, 0.008], act, "if", dt=1e-3)
     r.use_kernels({n: compiled[n] for n in r.kernel_names})
-    r.obj.material = Material(float("inf"))
     pos = np.array([[-0.025, 0.0, 0.02], [0.025, 0.0, 0.02]])
+    r.step(pos, np.zeros((2, 3)))
+    with pytest.raises(ValueError, match=r"contact: finger 1's device_vel is not finite"):
+        r.step(pos, np.array([[0.0, 0.0, 0.0], [0.0, np.nan, 0.0]]))
+    r.obj.material = Material(float("inf"))
     with pytest.raises(AllocationError, match="non-finite contact geometry or force"):
         r.step(pos, np.zeros((2, 3)))
 
 
-def test_plans_the_call_cannot_take_run_stage_by_stage(compiled):
+def test_every_plan_runs_as_the_call_with_its_python_stages_between_parts(compiled):
+    """Allocation the kernel does not take (two directions on a finger, adaptive, the seed's
+    exact formulas) runs between the call's parts; passivity is in the call."""
+    end = kn.STAGE_END
     act = Actuation([[(1.0, 0.0, 0.0), (0.0, 1.0, 0.0)], [(-1.0, 0.0, 0.0)]], "world")
     two_directions = Renderer(_box(True), [0.008, 0.008], act, "if", dt=1e-3)
+    assert two_directions.kernel_names == ["tick_step"]
     two_directions.use_kernels({n: compiled[n] for n in two_directions.kernel_names})
-    assert "tick_step" not in two_directions.kernel_names and two_directions.one_call is None
+    parts = two_directions.one_call._parts
+    two_directions.step(np.zeros((2, 3)), np.zeros((2, 3)))
+    parts = two_directions.one_call._parts
+    assert parts[0] == (kn.STAGE_CONTACT, kn.STAGE_ALLOCATION) and parts[2][1] == end
+    assert parts[1].name == "allocation"
     act = Actuation([[(1.0, 0.0, 0.0)], [(-1.0, 0.0, 0.0)]], "world")
     r = Renderer(_box(True), [0.008, 0.008], act, "if", dt=1e-3)
     r.use_kernels({n: compiled[n] for n in r.kernel_names})
-    assert r.one_call is not None
-    r.set_param("allocator", "adaptive")  # no kernel of it
-    assert r.one_call is None
-    r.set_param("allocator", "ef")
-    assert r.one_call is not None
-    from hapticd.passivity import PassivityParams
-
+    for method, whole in (("if", True), ("adaptive", False), ("ef_exact", False), ("ef", True)):
+        r.set_param("allocator", method)
+        r.step(np.zeros((2, 3)), np.zeros((2, 3)))
+        assert (len(r.one_call._parts) == 1) is whole, method
     passive = Renderer(
         _box(True), [0.008, 0.008], act, "if", dt=1e-3, passivity=PassivityParams(0.01, 5.0)
     )
-    assert "tick_step" not in passive.kernel_names  # nothing compiled it would not use
     passive.use_kernels({n: compiled[n] for n in passive.kernel_names})
-    assert passive.one_call is None and "passivity" in passive.stage_names
+    passive.step(np.zeros((2, 3)), np.zeros((2, 3)))
+    assert passive.one_call._parts == [(kn.STAGE_CONTACT, end)]
+    assert "passivity" in passive.stage_names
 
 
-def _lift_run(tmp_path, overrides, monkeypatch, one_call: bool):
-    """The lift profile's loop, unpaced, recorded; with the one call or stage by stage."""
+@pytest.mark.parametrize("mode", ["compiled", "python"])
+def test_the_passivity_controller_in_the_call_is_its_definition(mode, compiled):
+    """Every tick of a lift with passivity (a low threshold, so that it acts), each finger's
+    energy, damping and damping force are hapticd.passivity.step's on the force before it
+    (allocated plus the environment's) and the finger's motion projected onto its actuated
+    directions (grasp frame)."""
+    from hapticd import passivity
+
+    over = [
+        f"rendering.kernels={mode}",
+        "rendering.passivity.enabled=true",
+        "rendering.passivity.velocity_threshold_m_per_s=0.001",
+    ]
+    prof = load_profile(ROOT / "configs" / "lift-weight.yaml", over)
+    r = build_renderer(prof)
+    if mode == "compiled":
+        r.use_kernels({n: compiled[n] for n in r.kernel_names})
+    params = r.passivity.params
+    paths = [p for p in load_trajectories(prof) if p is not None]
+    times, pos = paths[0][0], np.stack([p[1] for p in paths], axis=1)
+    dt = r.dt
+    energy = np.zeros(2)
+    last = None
+    acted = 0
+    for k in range(len(times) - 1):
+        f = r.step(pos[k], (pos[k + 1] - pos[k]) / float(times[1] - times[0]))
+        x = f.device_pos.copy()
+        dx = np.zeros((2, 3)) if last is None else x - last
+        last = x
+        before = f.allocated_force + f.env_rendered
+        moved = _projected(f, r.actuation, dx)
+        for i in range(2):
+            e, alpha = passivity.step(
+                energy[i], before[i].tolist(), dx[i].tolist(), moved[i].tolist(), dt, params
+            )
+            energy[i] = e
+            assert f.passivity_energy[i] == pytest.approx(e, abs=1e-12, rel=1e-9), (k, i)
+            assert f.passivity_damping[i] == pytest.approx(alpha, abs=1e-9, rel=1e-9), (k, i)
+            np.testing.assert_allclose(
+                f.passivity_force[i], -alpha / dt * moved[i], rtol=1e-9, atol=1e-12
+            )
+            acted += alpha > 0.0
+        np.testing.assert_allclose(f.rendered_force, before + f.passivity_force, rtol=0, atol=1e-15)
+    assert acted > 5
+
+
+def _lift_run(tmp_path, overrides, monkeypatch, in_call: bool):
+    """The lift profile's loop, unpaced, recorded; the safety chain's normal tick in the
+    one call, or (the chain never ``ready`` for it) the chain's own."""
     from hapticd import recording
     from hapticd.daemon.session import build_session
+    from hapticd.safety import SafetyChain
 
     prof = load_profile(ROOT / "configs" / "lift-weight.yaml", overrides)
-    path = tmp_path / f"{one_call}.hrec"
+    path = tmp_path / f"{in_call}.hrec"
     with monkeypatch.context() as m:
-        if not one_call:
-            m.setattr(OneCall, "of", classmethod(lambda cls, renderer: None))
+        if not in_call:
+            m.setattr(SafetyChain, "ready", lambda self, t: False)
         s = build_session(prof, paced=False, duration_s=3.0, record_path=path)
-        assert (s.renderer.one_call is not None) is one_call
         s.run()
     return s.loop.safety, recording.read(path)
 
@@ -219,19 +306,22 @@ def test_the_safety_chain_in_the_call_clamps_and_limits_as_the_chain(tmp_path, m
 
 
 @pytest.mark.parametrize("profile", ["lift-weight", "grasp-stiffness"])
-def test_python_mode_runs_the_same_call_uncompiled(profile, monkeypatch):
+def test_python_mode_runs_the_same_call_uncompiled(profile, compiled):
     """rendering.kernels=python: the one call is the same function, uncompiled; its ticks
-    equal the stages' (uncompiled) ones."""
+    equal the compiled call's to 1e-9 (N, m; numba may contract and reorder float ops)."""
     prof = load_profile(ROOT / "configs" / f"{profile}.yaml", ["rendering.kernels=python"])
-    one, staged = build_renderer(prof), build_renderer(prof)
-    assert one.kernels == {} and one.one_call is not None
-    _staged(staged, monkeypatch)
+    one, fast = build_renderer(prof), build_renderer(prof)
+    assert one.kernels == {}
+    fast.use_kernels({n: compiled[n] for n in fast.kernel_names})
+    assert (
+        one.one_call._fn is kn.uncompiled("tick_step") and fast.one_call._fn is not one.one_call._fn
+    )
     paths = [p for p in load_trajectories(prof) if p is not None]
     times, pos = paths[0][0], np.stack([p[1] for p in paths], axis=1)
     dt = float(times[1] - times[0])
     touched = 0
     for k in range(0, len(times) - 1, 40):
-        _same(one, staged, pos[k], (pos[k + 1] - pos[k]) / dt, k)
+        _same(one, fast, pos[k], (pos[k + 1] - pos[k]) / dt, k, atol=1e-9)
         touched += bool(one.frame.in_contact.any())
     assert touched > 5
 

@@ -9,14 +9,14 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from hapticd import passivity
+from hapticd import kernels, passivity
 from hapticd.actuation import Actuation
 from hapticd.analysis import Pipeline, examples
 from hapticd.build import build_renderer
 from hapticd.cli import format_status
 from hapticd.daemon.session import build_session
 from hapticd.daemon.summary import status
-from hapticd.passivity import PassivityParams, authority, orthonormal, project
+from hapticd.passivity import PassivityParams, authority
 from hapticd.profile import ProfileError, load_profile, parse_profile
 from hapticd.render import Renderer
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject
@@ -57,16 +57,32 @@ def test_authority_ramps_from_the_threshold_to_twice_it():
     assert alpha == pytest.approx(5.0) and e == pytest.approx(-0.015e-3 + 5.0 * 0.015**2 * DT)
 
 
+def _project(directions, v) -> tuple[float, float, float]:
+    """``v`` projected onto the span of ``directions`` (world frame), as the call does it."""
+    d = np.array(directions, dtype=float).reshape(-1, 3)
+    world = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    return kernels._span_project(d, 0, len(d), world, *map(float, v))
+
+
 def test_the_projector_onto_the_actuated_directions():
     s = math.sqrt(0.5)
-    basis = orthonormal([(s, 0.0, s)])
-    np.testing.assert_allclose(project(basis, (1.0, 2.0, 0.0)), (0.5, 0.0, 0.5), atol=1e-15)
+    np.testing.assert_allclose(
+        _project([(s, 0.0, s)], (1.0, 2.0, 0.0)), (0.5, 0.0, 0.5), atol=1e-15
+    )
+    # Not unit: the span is the same.
+    np.testing.assert_allclose(
+        _project([(3.0, 0.0, 3.0)], (1.0, 2.0, 0.0)), (0.5, 0.0, 0.5), atol=1e-15
+    )
     # Two directions span a plane; a third dependent one adds nothing.
-    basis = orthonormal([(1.0, 0.0, 0.0), (1.0, 1.0, 0.0), (2.0, 1.0, 0.0)])
-    assert len(basis) == 2
-    np.testing.assert_allclose(project(basis, (1.0, 2.0, 3.0)), (1.0, 2.0, 0.0), atol=1e-15)
-    assert project(orthonormal([]), (1.0, 2.0, 3.0)) == (0.0, 0.0, 0.0)
-    assert project(orthonormal(np.eye(3)), (1.0, 2.0, 3.0)) == (1.0, 2.0, 3.0)
+    planar = [(1.0, 0.0, 0.0), (1.0, 1.0, 0.0), (2.0, 1.0, 0.0)]
+    np.testing.assert_allclose(_project(planar, (1.0, 2.0, 3.0)), (1.0, 2.0, 0.0), atol=1e-15)
+    assert _project([], (1.0, 2.0, 3.0)) == (0.0, 0.0, 0.0)
+    assert _project([(0.0, 0.0, 0.0)], (1.0, 2.0, 3.0)) == (0.0, 0.0, 0.0)
+    assert _project(np.eye(3), (1.0, 2.0, 3.0)) == (1.0, 2.0, 3.0)
+    # A direction in a grasp frame (its axes, by rows x, y, z, given as _axes gives them).
+    yz = (0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0)  # x -> world y, y -> z, z -> x
+    got = kernels._span_project(np.array([[1.0, 0.0, 0.0]]), 0, 1, yz, 1.0, 2.0, 3.0)
+    np.testing.assert_allclose(got, (0.0, 2.0, 0.0), atol=1e-15)
 
 
 @pytest.mark.parametrize(

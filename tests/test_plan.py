@@ -233,39 +233,58 @@ class Carries:
         raise AssertionError("a refused stage never runs")
 
 
+class Probe:
+    """A stage inserted after ``after``: what the frame's fields and the carried state
+    became since the probe before it (the stage ``after`` ran between them)."""
+
+    def __init__(self, after: str, stages, log: dict) -> None:
+        self.name, self.after, self.stages, self.log = f"probe {after}", after, stages, log
+
+    def run(self, frame) -> None:
+        before, held = self.log["last"]
+        now = _carried(self.stages())
+        changed = {n for n in held if not _same(held[n], now[n])}
+        self.log["written"][self.after] |= _frame_changes(before, frame.record)
+        self.log["carried"][self.after] |= changed
+        self.log["last"] = (frame.record.copy(), now)
+
+
 @pytest.mark.parametrize("profile", ["grasp-stiffness", "lift-weight"])
 def test_each_stage_writes_only_what_it_declares(profile):
-    """On the bundled run's device positions (every 5th tick, 1e-3 s apart here), with
-    the passivity controller on: the fields each stage changes are among those it declares,
-    and the state carried to the next tick changes only while its writer runs."""
+    """On the bundled run's device positions (every 6th tick, 1e-3 s apart here), with
+    the passivity controller on, a probe inserted after every stage (so the one call runs
+    each stage as a part of its own): the fields each stage changes are among those it
+    declares, and the state carried to the next tick changes only while its writer runs."""
     data = np.load(REFERENCE)
     pos = data[f"{profile}/replay/device_pos"]
     vel = data[f"{profile}/replay/device_vel"]
     r = _renderer(ROOT / "configs" / f"{profile}.yaml", **{"rendering.passivity.enabled": True})
+    names = r.stage_names
+    # The call publishes the scene's parameters (the scene stage's stiffness, mass and
+    # allocator) when it binds a frame, before its first part: bound here first.
+    r.frame.device_pos[:] = pos[0]
+    r.run(r.frame)
+    log: dict = {"written": {n: set() for n in names}, "carried": {n: set() for n in names}}
+    for name in names:
+        r.insert(Probe(name, lambda: r.stages, log), after=name)
+    assert r.stage_names[1::2] == [f"probe {n}" for n in names]
     frame = r.frame
-    written: dict[str, set[str]] = {s.name: set() for s in r.stages}
     touched = 0
-    carried_changed: set[str] = set()
     for k in range(0, len(pos), 6):
         frame.device_pos[:] = pos[k]
         frame.device_vel[:] = vel[k]
         frame.tick[()] = k
-        for stage in r.stages:
-            before = frame.record.copy()
-            held = _carried(r.stages)
-            stage.run(frame)
-            written[stage.name] |= _frame_changes(before, frame.record)
-            mine = getattr(stage, "carries", {})
-            now = _carried(r.stages)
-            changed = {n for n in held if not _same(held[n], now[n])}
-            assert changed <= set(mine), (stage.name, changed)
-            carried_changed.update(changed)
+        log["last"] = (frame.record.copy(), _carried(r.stages))
+        r.run(frame)
         touched += int(frame.in_contact.all())
-    for stage in r.stages:
-        assert written[stage.name] <= set(stage.writes), stage.name
+    stages = {s.name: s for s in r.stages}
+    for name in names:
+        assert log["written"][name] <= set(stages[name].writes), name
+        assert log["carried"][name] <= set(getattr(stages[name], "carries", {})), name
     # The run touched the object: the check saw the stages at work.
-    assert {"contact_force", "rendered_force", "proxy_pos"} <= set().union(*written.values())
+    assert {"contact_force", "rendered_force", "proxy_pos"} <= set().union(*log["written"].values())
     assert touched > 50
+    carried_changed = set().union(*log["carried"].values())
     assert {"proxies", "passivity_energy", "passivity_last_pos"} <= carried_changed
     if profile == "lift-weight":
         assert {"friction_anchors", "object_state"} <= carried_changed
