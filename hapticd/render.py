@@ -319,12 +319,13 @@ class OneCall:
     """The renderer's plan as one call per tick: hapticd.kernels.tick_step, compiled or (with
     ``rendering.kernels=python``) the same function uncompiled, over the frame's fields
     and the stages' carried state (their own arrays: the proxies, the anchors, the object's
-    state). ``of(renderer)`` makes one for a plan it can take: contact, friction, the
-    forces, allocation by a kernel method with one direction per finger, the environment,
+    state, the allocator's alpha and workspace). ``of(renderer)`` makes one for a plan it
+    can take: contact, friction, the forces, allocation by a kernel method (pinv, if, ef,
+    adaptive) with one direction per finger, any number of contacts, the environment,
     their sum, the free object's step and the scene's state; not a plan with passivity,
-    an inserted stage or another output. A tick the kernel stops early (more than two
-    contacts; a non-finite input to contact, which the contact stage then refuses by name)
-    runs the rest stage by stage."""
+    an inserted stage or another output. A tick the kernel stops early (a non-finite input
+    to contact, which the contact stage then refuses by name) runs the rest stage by
+    stage."""
 
     def __init__(self, renderer: Renderer, fn: Callable[..., int]) -> None:
         self.renderer = renderer
@@ -411,7 +412,6 @@ class OneCall:
         p[kn.TICK_FREE] = float(free)
         p[kn.TICK_SURFACES] = float(bool(sc.surfaces))
         p[kn.TICK_SUM] = float(total)
-        p[kn.TICK_ALPHA] = r.allocator.alpha
         p[kn.TICK_FRICTION_AT : kn.TICK_FORCES_AT] = (mat.mu_static, mat.mu_dynamic)
         p[kn.TICK_FORCES_AT : kn.TICK_ALLOCATION_AT] = (
             mat.stiffness,
@@ -439,6 +439,8 @@ class OneCall:
             obj.state,
             contact.state,
             r._friction.anchors,
+            r.allocator.state,
+            r.allocator.work,
             plan,
             *_NO_SAFETY,
         )

@@ -1,8 +1,9 @@
-"""The compiled allocation kernel (hapticd.kernels.allocation_step) against the Allocation
-stage's Python code: the same bits for generated grasps, near-singular ones included
-(coincident and nearly coincident contacts, directions along the grasp line or nearly
-parallel, forces at contact onset, a vertical grasp line in the grasp frame); the cases it
-does not take run the Python code; non-finite input raises the same error."""
+"""The compiled allocation kernel (hapticd.kernels.allocation_step) against the same function
+uncompiled: the same bits for generated grasps of two to five fingers, near-singular ones
+included (coincident and nearly coincident contacts, directions along the grasp line or
+nearly parallel, forces at contact onset, a vertical grasp line in the grasp frame); and
+against allocate() with contact onset; the cases it does not take run allocate();
+non-finite input raises the same error and leaves alpha as it was."""
 
 from __future__ import annotations
 
@@ -10,14 +11,15 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import assume, given
+from hypothesis import given
 from hypothesis import strategies as st
 
 from hapticd import jit, kernels
 from hapticd.actuation import Actuation
-from hapticd.allocation import AdaptiveState, AllocationError, Robustness
+from hapticd.allocation import AdaptiveState, AllocationError, Robustness, allocate, smoothstep
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.frame import Frame
+from hapticd.grasp import grasp_matrix
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject
 from hapticd.stages import Allocation
 from tests.strategies import unit_vectors
@@ -52,11 +54,11 @@ def directions(draw, other: np.ndarray | None) -> np.ndarray:
 
 @st.composite
 def grasps(draw) -> dict:
-    """A tick's frame for 2 or 3 fingers with one direction each, the allocator's method and
+    """A tick's frame for 2 to 5 fingers with one direction each, the allocator's method and
     robustness, the object's position. Contacts are often close (below min_separation_m,
     down to coincident), forces often below the contact onset, directions often along the
     grasp line or nearly parallel: the allocators' singular configurations."""
-    n_fingers = draw(st.integers(2, 3))
+    n_fingers = draw(st.integers(2, 5))
     rb = Robustness(
         draw(st.sampled_from([0.01, 0.05]) | floats(0.01, 0.9)),
         draw(floats(1e-3, 0.02)),
@@ -151,28 +153,62 @@ def test_the_allocation_kernel_as_plain_python_is_the_stage_bit_for_bit(case):
     _assert_same(_outputs(case, None), _outputs(case, kernels.allocation_step))
 
 
+def _allocate_with_onset(case: dict, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    """lam_a and M_a lam_a per finger by allocate() on the contacts, with contact onset: the
+    weakest contact blended in by smoothstep(|force| / contact_onset_n)."""
+    fields, rb = case["frame_fields"], case["robust"]
+    act = Actuation([[d] for d in case["local"]], case["frame"])
+    world = act.world_directions(np.asarray(fields["device_pos"], dtype=float).tolist())
+    points = np.asarray(fields["contact_point"], dtype=float)
+    forces = np.asarray(fields["contact_force"], dtype=float)
+
+    def solve(contacts: list[int]) -> np.ndarray:
+        out = np.zeros(case["n"])
+        if contacts:
+            M, cols = act.submatrix(world, contacts)
+            G = grasp_matrix(points[contacts], case["center"])
+            lam = forces[contacts].reshape(-1)
+            out[cols] = allocate(case["method"], G, M, lam, robust=rb, alpha=alpha)
+        return out
+
+    contacts = [i for i, on in enumerate(fields["in_contact"]) if on]
+    x = solve(contacts)
+    if len(contacts) >= 2 and rb.contact_onset_n > 0.0:
+        norms = np.linalg.norm(forces[contacts], axis=1)
+        weakest = int(np.argmin(norms))
+        beta = smoothstep(float(norms[weakest]) / rb.contact_onset_n)
+        if beta < 1.0:
+            rest = contacts[:weakest] + contacts[weakest + 1 :]
+            x = beta * x + (1.0 - beta) * solve(rest)
+    rendered = np.zeros((case["n"], 3))
+    for i in contacts:
+        rendered[i] = x[i] * np.asarray(world[i][0])
+    return x, rendered
+
+
 @given(grasps(), st.sampled_from(kernels.ALLOCATION_METHODS), st.floats(0.0, 1.0))
-def test_the_kernel_equals_the_general_path(case, method, alpha):
-    """The kernel's closed forms, grasp frame and contact onset against allocate() (the
-    Gram-matrix general path, with the world directions of hapticd.actuation), which runs
-    when the kernel declines (a kernel that always returns MANY_CONTACTS): the same forces
-    to rounding, near singular configurations too."""
+def test_the_kernel_equals_allocate_with_contact_onset(case, method, alpha):
+    """The kernel's closed forms and general path, grasp frame and contact onset against
+    allocate() (with the world directions of hapticd.actuation) on the contacts, blended
+    at onset: the same forces to rounding, near singular configurations too; adaptive with
+    the kernel's alpha of the tick."""
     case = {**case, "method": method}
-    got = {}
-    for name, kernel in (("kernel", None), ("general", lambda *a: kernels.MANY_CONTACTS)):
-        stage, frame = _stage(case, kernel)
-        stage.allocator.adaptive = AdaptiveState(alpha=alpha, time_constant_s=1e9)
-        try:
-            stage.run(frame)
-        except AllocationError as e:
-            got[name] = str(e)
-            continue
-        got[name] = (frame.lam_a.copy(), frame.rendered_force.copy())
-    if isinstance(got["kernel"], str) or isinstance(got["general"], str):
-        assert got["kernel"] == got["general"]
+    stage, frame = _stage(case, None)
+    stage.allocator.adaptive = AdaptiveState(alpha=alpha, time_constant_s=1e9)
+    try:
+        stage.run(frame)
+    except AllocationError:  # then allocate() refuses, or gives a non-finite force
+        with np.errstate(all="ignore"):
+            try:
+                x, _ = _allocate_with_onset(case, stage.allocator.alpha)
+            except AllocationError:
+                return
+        assert not np.all(np.isfinite(x))
         return
+    assert abs(stage.allocator.alpha - alpha) <= 1e-11
+    x, rendered = _allocate_with_onset(case, stage.allocator.alpha)
     lam = np.abs(np.array(case["frame_fields"]["contact_force"])).max()
-    for k, g in zip(got["kernel"], got["general"], strict=True):
+    for k, g in ((frame.lam_a, x), (frame.rendered_force, rendered)):
         scale = max(lam, np.abs(g).max(), 1e-300)
         np.testing.assert_allclose(k, g, rtol=0, atol=1e-9 * scale)
 
@@ -183,9 +219,10 @@ def test_methods_the_kernel_does_not_compute_run_the_general_path(compiled, case
     _assert_same(_outputs(case, None), _outputs(case, compiled))
 
 
-def test_three_contacts_and_several_directions_run_the_general_path(compiled):
-    """Three contacts: the kernel returns without writing and the stage's Python code runs;
-    two directions on a finger: the kernel is not even called."""
+def test_three_contacts_run_in_the_kernel_and_several_directions_run_allocate(compiled):
+    """Three contacts: the kernel allocates them (the squeeze along x whole, nothing for
+    the third finger's vertical actuator to render), compiled and not alike; two directions
+    on a finger: the kernel is not even called."""
     case = {
         "n": 3,
         "robust": Robustness(),
@@ -201,20 +238,20 @@ def test_three_contacts_and_several_directions_run_the_general_path(compiled):
         },
     }
     ref = _outputs(case, None)
-    # The squeeze along x is rendered whole; the third finger's vertical actuator has no
-    # vertical force to render (0 within rounding: its exact value is the library's).
     assert not isinstance(ref, str)
     np.testing.assert_allclose(ref["lam_a"], [1.0, 1.0, 0.0], rtol=0, atol=1e-12)
     _assert_same(ref, _outputs(case, compiled))
     calls = []
     stage, three = _stage(case, lambda *a: calls.append(a) or kernels.ALLOCATED)
+    stage.run(three)
+    assert len(calls) == 1
     stage.allocator.actuation = Actuation([[(1, 0, 0), (0, 1, 0)], [(1, 0, 0)], [(0, 0, 1)]])
     frame = Frame(3, 4)
     for name in case["frame_fields"]:
         getattr(frame, name)[...] = getattr(three, name)
     frame.in_contact[2] = 0
     stage.run(frame)
-    assert calls == []
+    assert len(calls) == 1
     # thumb x, thumb y, index x, the third finger (not in contact): the squeeze whole, no
     # y force to render, nothing for a finger out of contact.
     np.testing.assert_allclose(frame.lam_a, [1.0, 0.0, -1.0, 0.0], rtol=0, atol=1e-12)
@@ -331,26 +368,31 @@ def test_rare_branches_of_the_closed_forms_give_the_same_bits(compiled, name):
     _assert_same(ref, _outputs(BRANCHES[name], compiled))
 
 
-@given(grasps())
-def test_the_kernels_outcomes_leave_the_frame_untouched_when_they_refuse(compiled, case):
-    """MANY_CONTACTS and the non-finite outcomes write nothing: the Python code (or the
-    error) has the frame as the stages before left it."""
-    n = case["n"]
-    assume(n == 3)
-    fields = {**case["frame_fields"], "in_contact": [1, 1, 1]}
-    _, frame = _stage({**case, "frame_fields": fields}, compiled)
+@given(grasps(), st.sampled_from([math.nan, math.inf]), st.floats(0.0, 1.0))
+def test_the_kernels_refusals_leave_the_frame_and_alpha_untouched(compiled, case, bad, alpha):
+    """A non-finite contact force refused (two to five contacts, adaptive): nothing written,
+    alpha as it was."""
+    fields = {**case["frame_fields"], "in_contact": [1] * case["n"]}
+    stage, frame = _stage({**case, "method": "adaptive", "frame_fields": fields}, compiled)
+    frame.contact_force[-1, 0] = bad
     for name in OUTPUTS:
         getattr(frame, name)[...] = 7.0
+    alloc = stage.allocator
+    alloc.alpha = alpha
+    local, params = alloc.kernel_inputs()
     outcome = compiled(
         frame.in_contact,
         frame.device_pos,
         frame.contact_point,
         frame.contact_force,
-        np.array(case["local"], dtype=float),
-        np.zeros(kernels.ALLOCATION_PARAMS),
+        local,
+        params,
+        alloc.state,
         frame.lam_a,
         frame.rendered_force,
         np.zeros(kernels.ACCURACY),
+        alloc.work,
     )
-    assert outcome == kernels.MANY_CONTACTS
+    assert outcome == kernels.NON_FINITE_INPUT
     assert np.all(frame.lam_a == 7.0) and np.all(frame.rendered_force == 7.0)
+    assert alloc.alpha == alpha
