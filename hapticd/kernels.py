@@ -1641,8 +1641,9 @@ def _block_compiled(a: np.ndarray, start: int, n: int, cols: int) -> np.ndarray:
     return a[start : start + n * cols].reshape((n, cols))
 
 
-# Helpers whose compiled form is another function (hapticd.jit compiles that one in).
-COMPILED_FORMS = {_block: _block_compiled}
+# Helpers whose compiled form is another function (hapticd.jit compiles that one in): the
+# general path's float forms too.
+COMPILED_FORMS = {_block: _block_compiled, **general.FLOAT_FORMS}
 
 
 # tick_step's plan: one float64 array, the params (TICK_PARAMS) then these blocks, each

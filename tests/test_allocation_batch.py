@@ -130,6 +130,24 @@ def test_equals_allocate_one_by_one(method, b, data):
     assert_rows_equal(got, one_by_one(method, G, M, lam, alpha), lam)
 
 
+@pytest.fixture(scope="module")
+def compiled_grasps():
+    """allocate_many's general path compiled (hapticd.kernels.allocate_grasps)."""
+    from hapticd import jit
+
+    return jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]
+
+
+@pytest.mark.parametrize("method", ROBUST_METHODS)
+@given(batches(), st.floats(0, 1))
+def test_the_compiled_general_path_equals_the_oracle(compiled_grasps, method, b, alpha):
+    """kernel=: the same general path compiled, grasp by grasp (the one the servo loop's
+    kernel runs for three or more contacts)."""
+    G, M, lam = b
+    got = allocate_many(method, G, M, lam, alpha=alpha, kernel=compiled_grasps)
+    assert_rows_equal(got, one_by_one(method, G, M, lam, alpha), lam)
+
+
 @pytest.mark.parametrize("method", METHODS)
 @given(batches(min_p=2, max_p=2, counts=[1, 1]))
 def test_other_robustness_parameters(method, b):

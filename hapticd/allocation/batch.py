@@ -10,8 +10,9 @@ N = 1; ``allocate_many`` runs it on a batch (in chunks).
 - every other grasp takes the general path, ``hapticd.allocation.general`` (the
   filtered pseudoinverses on Gram matrices, the soft internal projector, IF's
   projector form: the same function the servo loop's kernel calls for three or
-  more contacts), grasp by grasp: compiled with ``kernel``
-  (``hapticd.kernels.allocate_grasps``), else uncompiled;
+  more contacts): on the whole batch elementwise (each workspace entry an (N,)
+  array), on floats for one grasp, or compiled grasp by grasp with ``kernel``
+  (``hapticd.kernels.allocate_grasps``);
 - the exact (seed) methods call ``hapticd.allocation.exact`` grasp by grasp.
 """
 
@@ -127,10 +128,15 @@ def _general(
     robust: Robustness,
     kernel: Callable[..., None] | None,
 ) -> np.ndarray:
-    """Robust pinv / ef / if on stacks, M (N, n, r) or shared (n, r): ``general.general``
-    on each grasp (``kernel``: hapticd.kernels.allocate_grasps compiled; None: uncompiled)."""
+    """Robust pinv / ef / if on stacks, M (N, n, r) or shared (n, r): ``general.general``,
+    compiled grasp by grasp (``kernel``: hapticd.kernels.allocate_grasps), else on the whole
+    batch elementwise (one grasp: on floats)."""
     N, _, n = G.shape
     r = M.shape[-1]
+    code = CODES.index(method)
+    eps, sep = robust.eps, robust.min_separation_m
+    if kernel is None and N > 1:  # the whole batch at once, elementwise
+        return general.solve_stack(code, G, M, lam, eps, sep)
     args = [
         np.ascontiguousarray(G),
         np.ascontiguousarray(M if M.ndim == 3 else M[None]),
@@ -138,11 +144,9 @@ def _general(
         np.zeros(N),
     ]
     out, work = np.zeros((N, r)), np.zeros(general.work_shape(n, r))
-    code = CODES.index(method)
-    eps, sep = robust.eps, robust.min_separation_m
     if kernel is not None:
         kernel(code, *args, eps, sep, out, work)
-    else:
+    else:  # one grasp, on floats (as the kernel runs it)
         general.solve_grasps(code, *map(_items, args), eps, sep, _items(out), _items(work))
     return out
 

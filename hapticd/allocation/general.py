@@ -6,9 +6,11 @@ lam (n,) in row ``LAM`` (``n = 3p`` for p contacts, forces in N, lengths in m);
 ``general`` writes lam_a (r,) N into row ``XO``. Plain loops over small matrices
 and a cyclic Jacobi eigensolver on the workspace: nothing is allocated, so the
 servo loop's kernel (``hapticd.kernels.allocation_step``, three or more contacts)
-calls it every tick; ``allocate()`` and ``allocate_many`` run the same function
-grasp by grasp (``solve_grasps``, uncompiled or compiled as
-``hapticd.kernels.allocate_grasps``).
+calls it every tick; ``allocate()`` runs the same function on floats, and
+``allocate_many`` on a whole batch at once, each workspace entry an (N,) array
+(``solve_stack``: the five helpers that branch on a value have a float form and an
+elementwise form, chosen by the argument's type, as in ``hapticd.allocation.closed``),
+or compiled grasp by grasp (``solve_grasps``, ``hapticd.kernels.allocate_grasps``).
 
 - a filtered pseudoinverse g(s) = 1/s or s/eps^2 of A is F(A^T A) A^T, F the
   spectral function l -> 1/max(l, eps^2) of the Gram matrix;
@@ -65,6 +67,100 @@ def layout(n: int, r: int) -> tuple[int, ...]:
             t1 + 3, t1 + 4, t1 + 5)  # fmt: skip
 
 
+def _converged_floats(off: float, diag: float) -> bool:
+    return off <= 1e-32 * diag or off == 0.0
+
+
+def _converged_arrays(off: np.ndarray, diag: np.ndarray) -> bool:
+    return bool(np.all((off <= 1e-32 * diag) | (off == 0.0)))
+
+
+def _converged(off, diag) -> bool:
+    """Whether the off-diagonal square sum ``off`` is negligible against the diagonal's
+    (every grasp's, on arrays)."""
+    if isinstance(diag, np.ndarray):  # off is 0.0 for a 1 x 1
+        return _converged_arrays(off, diag)
+    return _converged_floats(off, diag)
+
+
+def _is_zero_floats(x: float) -> bool:
+    return x == 0.0
+
+
+def _is_zero_arrays(x: np.ndarray) -> bool:
+    return bool(np.all(x == 0.0))
+
+
+def _is_zero(x) -> bool:
+    """x == 0 (every grasp's, on arrays)."""
+    if isinstance(x, np.ndarray):
+        return _is_zero_arrays(x)
+    return _is_zero_floats(x)
+
+
+def _rotation_floats(app: float, aqq: float, apq: float) -> tuple[float, float]:
+    theta = (aqq - app) / (2.0 * apq)
+    if abs(theta) > 1e150:  # theta^2 would overflow: t = 1 / (2 theta)
+        t = 0.5 / theta
+    else:
+        t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+        if theta < 0.0:
+            t = -t
+    c = 1.0 / math.sqrt(t * t + 1.0)
+    return c, t * c
+
+
+def _rotation_arrays(app: np.ndarray, aqq: np.ndarray, apq: np.ndarray) -> tuple:
+    zero = apq == 0.0
+    theta = (aqq - app) / (2.0 * np.where(zero, 1.0, apq))
+    big = np.abs(theta) > 1e150
+    small = np.where(big, 0.0, theta)
+    t = 1.0 / (np.abs(small) + np.sqrt(small * small + 1.0))
+    t = np.where(theta < 0.0, -t, t)
+    t = np.where(big, 0.5 / np.where(big, theta, 1.0), t)
+    t = np.where(zero, 0.0, t)  # nothing to rotate: the identity
+    c = 1.0 / np.sqrt(t * t + 1.0)
+    return c, t * c
+
+
+def _rotation(app, aqq, apq):
+    """(cos, sin) of the Jacobi rotation that zeroes apq of [[app, apq], [apq, aqq]]; on
+    floats or elementwise on arrays (where apq = 0: the identity)."""
+    if isinstance(apq, np.ndarray):
+        return _rotation_arrays(app, aqq, apq)
+    return _rotation_floats(app, aqq, apq)
+
+
+def _floor_floats(x: float, lo: float) -> float:
+    return x if x >= lo else lo
+
+
+def _floor_arrays(x: np.ndarray, lo: float) -> np.ndarray:
+    return np.maximum(x, lo)
+
+
+def _floor(x, lo: float):
+    """max(x, lo): an eigenvalue's filtered denominator; floats or arrays."""
+    if isinstance(x, np.ndarray):
+        return _floor_arrays(x, lo)
+    return _floor_floats(x, lo)
+
+
+def _clip01_floats(x: float) -> float:
+    return 0.0 if x < 0.0 else (1.0 if x > 1.0 else x)
+
+
+def _clip01_arrays(x: np.ndarray) -> np.ndarray:
+    return np.clip(x, 0.0, 1.0)
+
+
+def _clip01(x):
+    """x clipped to [0, 1]; floats or arrays."""
+    if isinstance(x, np.ndarray):
+        return _clip01_arrays(x)
+    return _clip01_floats(x)
+
+
 def _jacobi(w: np.ndarray, a: int, v: int, k: int) -> None:
     """Eigendecomposition of the symmetric k x k matrix in rows a..a+k of w (columns 0..k),
     in place: its eigenvalues end on its diagonal, the eigenvectors in the columns of the
@@ -79,22 +175,14 @@ def _jacobi(w: np.ndarray, a: int, v: int, k: int) -> None:
             diag += w[a + i, i] * w[a + i, i]
             for j in range(i + 1, k):
                 off += w[a + i, j] * w[a + i, j]
-        if off <= 1e-32 * diag or off == 0.0:
+        if _converged(off, diag):
             return
         for p in range(k - 1):
             for q in range(p + 1, k):
                 apq = w[a + p, q]
-                if apq == 0.0:
+                if _is_zero(apq):
                     continue
-                theta = (w[a + q, q] - w[a + p, p]) / (2.0 * apq)
-                if abs(theta) > 1e150:  # theta^2 would overflow: t = 1 / (2 theta)
-                    t = 0.5 / theta
-                else:
-                    t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                    if theta < 0.0:
-                        t = -t
-                c = 1.0 / math.sqrt(t * t + 1.0)
-                s = t * c
+                c, s = _rotation(w[a + p, p], w[a + q, q], apq)
                 for i in range(k):  # columns p, q
                     x, y = w[a + i, p], w[a + i, q]
                     w[a + i, p], w[a + i, q] = c * x - s * y, s * x + c * y
@@ -135,8 +223,7 @@ def _finv_apply(w: np.ndarray, a: int, v: int, k: int, vec: int, eps2: float, tm
         s = 0.0
         for t in range(k):
             s += w[v + t, j] * w[vec, t]
-        lj = w[a + j, j]
-        w[tmp, j] = s / (lj if lj >= eps2 else eps2)
+        w[tmp, j] = s / _floor(w[a + j, j], eps2)
     for t in range(k):
         s = 0.0
         for j in range(k):
@@ -198,7 +285,7 @@ def soft_apply(w: np.ndarray, n: int, eps2: float, src: int, dst: int) -> None:
     for j in range(3):
         lj = w[a3 + j, j]
         c = w[v3, j] * g0 + w[v3 + 1, j] * g1 + w[v3 + 2, j] * g2
-        c = c / (lj if lj >= eps2 else eps2)
+        c = c / _floor(lj, eps2)
         h0 += w[v3, j] * c
         h1 += w[v3 + 1, j] * c
         h2 += w[v3 + 2, j] * c
@@ -266,8 +353,7 @@ def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -
         for j in range(r):
             s = 0.0
             for k in range(r):
-                lk = w[kb + k, k] / eps2
-                lk = 0.0 if lk < 0.0 else (1.0 if lk > 1.0 else lk)
+                lk = _clip01(w[kb + k, k] / eps2)
                 s += w[vb + i, k] * lk * w[vb + j, k]
             w[pp + i, j] = (1.0 if i == j else 0.0) - s
     for i in range(r):
@@ -277,8 +363,8 @@ def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -
             w[pp + j, i] = s
     for t in range(n):  # M P, and the rest lam - M x1
         s = w[lam, t]
-        for j in range(r):
-            s -= w[m0 + t, j] * w[x1, j]
+        for j in range(r):  # (not -=: on arrays w's rows are views)
+            s = s - w[m0 + t, j] * w[x1, j]
             q = 0.0
             for k in range(r):
                 q += w[m0 + t, k] * w[pp + k, j]
@@ -291,7 +377,7 @@ def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -
     for i in range(r):  # x1 + P y
         s = w[x1, i]
         for j in range(r):
-            s += w[pp + i, j] * w[y, j]
+            s = s + w[pp + i, j] * w[y, j]
         w[xo, i] = s
 
 
@@ -403,14 +489,39 @@ def residuals(w: np.ndarray, n: int, r: int) -> tuple[float, float, float, float
     for t in range(n):
         s = w[t1, t]
         for i in range(6):
-            s -= w[i, t] * w[coef + 1, i]
+            s = s - w[i, t] * w[coef + 1, i]
         internal += s * s
     amp = math.sqrt(norm_out) / math.sqrt(norm_lam) if norm_lam > 0.0 else 0.0
     return math.sqrt(internal), math.sqrt(external), math.sqrt(total), amp
 
 
-# What compiled code calls (hapticd.jit makes them callable from a kernel).
+def solve_stack(
+    code: int, G: np.ndarray, M: np.ndarray, lam: np.ndarray, eps: float, min_sep: float
+) -> np.ndarray:
+    """``general`` (not adaptive's mix) for N grasps at once, elementwise: every workspace
+    entry an (N,) array (the helpers that branch on a value take their array forms). G (N, 6,
+    n), M (N, n, r) or shared (n, r), lam (N, n) N; returns lam_a (N, r) N."""
+    N, n = lam.shape
+    r = M.shape[-1]
+    rows, cols = work_shape(n, r)
+    w = np.zeros((rows, cols, N))
+    lay = layout(n, r)
+    w[0:6, :n] = np.moveaxis(G, 0, -1)
+    w[lay[1] : lay[1] + n, :r] = M[..., None] if M.ndim == 2 else np.moveaxis(M, 0, -1)
+    w[lay[2], :n] = lam.T
+    with np.errstate(all="ignore"):  # np.where's discarded branches
+        general(code, w, n, r, eps, min_sep, 0.0)
+    return w[lay[19], :r].T.copy()
+
+
+# What compiled code calls (hapticd.jit makes them callable from a kernel). Those that
+# branch on the argument's type run their float form there (``FLOAT_FORMS``).
 KERNEL_HELPERS = (
+    _converged,
+    _is_zero,
+    _rotation,
+    _floor,
+    _clip01,
     _jacobi,
     _gram_cols,
     _t_apply,
@@ -424,3 +535,10 @@ KERNEL_HELPERS = (
     residuals,
     solve_grasps,
 )
+FLOAT_FORMS = {
+    _converged: _converged_floats,
+    _is_zero: _is_zero_floats,
+    _rotation: _rotation_floats,
+    _floor: _floor_floats,
+    _clip01: _clip01_floats,
+}
