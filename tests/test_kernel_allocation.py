@@ -23,6 +23,7 @@ from hapticd.grasp import grasp_matrix
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject
 from hapticd.stages import Allocation
 from tests.strategies import unit_vectors
+from tests.test_allocation_robust import bound
 from tests.test_dynamics import floats, vec
 
 OUTPUTS = (
@@ -191,7 +192,8 @@ def test_the_kernel_equals_allocate_with_contact_onset(case, method, alpha):
     """The kernel's closed forms and general path, grasp frame and contact onset against
     allocate() (with the world directions of hapticd.actuation) on the contacts, blended
     at onset: the same forces to rounding, near singular configurations too; adaptive with
-    the kernel's alpha of the tick."""
+    the kernel's alpha of the tick; within the documented bounds (compiled, the same bits:
+    the tests above)."""
     case = {**case, "method": method}
     stage, frame = _stage(case, None)
     stage.allocator.adaptive = AdaptiveState(alpha=alpha, time_constant_s=1e9)
@@ -211,6 +213,18 @@ def test_the_kernel_equals_allocate_with_contact_onset(case, method, alpha):
     for k, g in ((frame.lam_a, x), (frame.rendered_force, rendered)):
         scale = max(lam, np.abs(g).max(), 1e-300)
         np.testing.assert_allclose(k, g, rtol=0, atol=1e-9 * scale)
+    # Finite, and within docs/allocation.md's bound (adaptive: the larger of IF's and EF's)
+    # of the whole grasp: the onset blend, a mix of two allocations, stays within it too.
+    contacts = [i for i, on in enumerate(case["frame_fields"]["in_contact"]) if on]
+    if contacts:
+        fields = case["frame_fields"]
+        G = grasp_matrix(np.asarray(fields["contact_point"], dtype=float)[contacts], case["center"])
+        M = np.eye(3 * len(contacts))  # sigma_max of one unit direction per finger: 1
+        forces = np.asarray(fields["contact_force"], dtype=float)[contacts]
+        names = ["if", "ef"] if method == "adaptive" else [method]
+        limit = max(bound(name, G, M) for name in names) * np.linalg.norm(forces)
+        assert np.all(np.isfinite(frame.lam_a))
+        assert np.linalg.norm(frame.rendered_force) <= limit * (1 + 1e-9) + 1e-300
 
 
 @given(grasps(), st.sampled_from(["pinv_exact", "if_exact"]))
@@ -396,3 +410,68 @@ def test_the_kernels_refusals_leave_the_frame_and_alpha_untouched(compiled, case
     assert outcome == kernels.NON_FINITE_INPUT
     assert np.all(frame.lam_a == 7.0) and np.all(frame.rendered_force == 7.0)
     assert alloc.alpha == alpha
+
+
+def _three_finger_sweep(name: str, t: float) -> dict:
+    """Three fingers on a 50 mm grasp through a rank change at t = 0: the third contact
+    crossing the line of the other two ("collinear": the soft internal projector blends),
+    or every direction turning vertical ("vertical": B = P_int M_a loses rank)."""
+    points = [[-0.025, 0.0, 0.0], [0.025, 0.0, 0.0], [0.0, 0.02, 0.0]]
+    inward = [(1.0, 0.0), (-1.0, 0.0), (0.0, -1.0)]
+    tilt = 0.6
+    if name == "collinear":
+        points[2][1] = t
+    else:
+        tilt = np.sin(t)
+    local = [np.array([tilt * x, tilt * y, np.sqrt(1.0 - tilt * tilt)]) for x, y in inward]
+    return {
+        "n": 3,
+        "robust": Robustness(),
+        "method": "if",
+        "frame": "world",
+        "local": local,
+        "center": np.zeros(3),
+        "frame_fields": {
+            "in_contact": [1, 1, 1],
+            "device_pos": points,
+            "contact_point": points,
+            "contact_force": [[1.0, 0.2, 0.3], [-1.0, 0.1, 0.3], [0.1, -0.8, 0.3]],
+        },
+    }
+
+
+@pytest.mark.parametrize("method", ["if", "ef", "adaptive"])  # pinv: no G, one M per finger
+@pytest.mark.parametrize("name", ["collinear", "vertical"])
+def test_the_kernel_is_continuous_through_rank_changes_of_three_contacts(compiled, name, method):
+    """Compiled, through t = 0 on a coarse grid and one ten times finer around it: a
+    continuous map's largest step shrinks with the grid, a jump would not; uncompiled, the
+    same bits on every tenth point."""
+
+    def sweep(ts, kernel) -> np.ndarray:
+        stage, frame = _stage({**_three_finger_sweep(name, 0.0), "method": method}, kernel)
+        local, params = stage.allocator.kernel_inputs()
+        params[5:8] = 0.0  # the grasp's reference point
+        rows = []
+        for t in ts:
+            case = _three_finger_sweep(name, float(t))
+            frame.contact_point[...] = case["frame_fields"]["contact_point"]
+            local[...] = case["local"]
+            stage.allocator.alpha = 0.0  # each point its own first tick
+            outcome = stage.kernel(
+                frame.in_contact, frame.device_pos, frame.contact_point, frame.contact_force,
+                local, params, stage.allocator.state, frame.lam_a, frame.rendered_force,
+                np.zeros(kernels.ACCURACY), stage.allocator.work,
+            )  # fmt: skip
+            assert outcome == kernels.ALLOCATED
+            rows.append(frame.lam_a.copy())
+        return np.array(rows)
+
+    coarse = np.linspace(-0.05, 0.05, 1001)
+    fine = np.linspace(-0.005, 0.005, 1001)
+    vals, near = sweep(coarse, compiled), sweep(fine, compiled)
+    assert np.all(np.isfinite(vals)) and np.abs(vals).max() < 10.0
+    jump_coarse = np.abs(np.diff(vals, axis=0)).max()
+    jump_fine = np.abs(np.diff(near, axis=0)).max()
+    assert jump_fine < 0.2 * jump_coarse + 1e-12
+    assert jump_coarse < 0.05
+    np.testing.assert_array_equal(sweep(fine[::10], kernels.allocation_step), near[::10])
