@@ -373,6 +373,7 @@ KERNEL_HELPERS = (
     "_fill_grasp",
     "_task_alpha",
     "_many_contacts",
+    "_write_many",
     "_gram_mu",
     "_hypot3",
     # tick_step's stages: compiled into it, one call per tick
@@ -563,16 +564,26 @@ def allocation_step(
             acc[i] = 0.0
         state[0] = alpha
         return ALLOCATED
-    if n > 2:
-        return _many_contacts(
-            in_contact, device_pos, points, forces, local, params, state, lam_a, rendered,
-            acc, work, alpha,
-        )  # fmt: skip
     eps, min_sep, onset = params[1], params[2], params[3]
     ox, oy, oz = params[5], params[6], params[7]
     # The world directions (hapticd.actuation.grasp_axes in the grasp frame).
     grasp = params[4] != 0.0
     ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, grasp)
+    if n > 2:  # every finger's world direction into the workspace, then the general path
+        dirs = work.shape[0] - n_fingers - 1
+        for i in range(n_fingers):
+            p0, p1, p2 = local[i, 0], local[i, 1], local[i, 2]
+            if grasp:
+                work[dirs + i, 0] = ax0 * p0 + ay0 * p1 + az0 * p2
+                work[dirs + i, 1] = ax1 * p0 + ay1 * p1 + az1 * p2
+                work[dirs + i, 2] = ax2 * p0 + ay2 * p1 + az2 * p2
+            else:
+                work[dirs + i, 0], work[dirs + i, 1], work[dirs + i, 2] = p0, p1, p2
+        outcome = _many_contacts(in_contact, points, forces, params, alpha, work)
+        if outcome == ALLOCATED:
+            _write_many(in_contact, work, lam_a, rendered, acc)
+            state[0] = alpha
+        return outcome
     # Contact 1 (c0) and, with two, contact 2 (c1): offset r, direction d, force l.
     r1 = (points[c0, 0] - ox, points[c0, 1] - oy, points[c0, 2] - oz)
     l1 = (forces[c0, 0], forces[c0, 1], forces[c0, 2])
@@ -661,38 +672,27 @@ def allocation_step(
 
 def _many_contacts(
     in_contact: np.ndarray,
-    device_pos: np.ndarray,
     points: np.ndarray,
     forces: np.ndarray,
-    local: np.ndarray,
     params: np.ndarray,
-    state: np.ndarray,
-    lam_a: np.ndarray,
-    rendered: np.ndarray,
-    acc: np.ndarray,
-    work: np.ndarray,
     alpha: float,
+    work: np.ndarray,
 ) -> int:
-    """allocation_step for three or more contacts (its arguments, and this tick's alpha):
-    hapticd.allocation.general on the grasp, blended with the grasp without its weakest
-    contact while that one is being made or broken (contact onset)."""
+    """allocation_step's three or more contacts (its arguments; this tick's alpha; each
+    finger's world direction in ``work``'s rows after general's): hapticd.allocation.general
+    on the grasp, blended with the grasp without its weakest contact while that one is
+    being made or broken (contact onset); lam_a and the accuracy left in ``work`` for
+    ``_write_many``. Returns an outcome (nothing is written outside ``work``).
+    """
     n_fingers = in_contact.shape[0]
     method = int(params[0])
     eps, min_sep, onset = params[1], params[2], params[3]
-    ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, params[4] != 0.0)
     dirs = work.shape[0] - n_fingers - 1
     xk = work.shape[0] - 1  # the allocation of all contacts, by finger
     s = 0.0
     weak = -1
     weakest = 0.0
     for i in range(n_fingers):
-        p0, p1, p2 = local[i, 0], local[i, 1], local[i, 2]
-        if params[4] != 0.0:
-            work[dirs + i, 0] = ax0 * p0 + ay0 * p1 + az0 * p2
-            work[dirs + i, 1] = ax1 * p0 + ay1 * p1 + az1 * p2
-            work[dirs + i, 2] = ax2 * p0 + ay2 * p1 + az2 * p2
-        else:
-            work[dirs + i, 0], work[dirs + i, 1], work[dirs + i, 2] = p0, p1, p2
         if in_contact[i] == 0:
             continue
         for c in range(3):
@@ -744,7 +744,28 @@ def _many_contacts(
             if not math.isfinite(x):
                 return NON_FINITE_OUTPUT
             s += 1
-    acc[0], acc[1], acc[2], acc[3] = residuals(work, n, r)
+    work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = residuals(work, n, r)
+    return ALLOCATED
+
+
+def _write_many(
+    in_contact: np.ndarray,
+    work: np.ndarray,
+    lam_a: np.ndarray,
+    rendered: np.ndarray,
+    acc: np.ndarray,
+) -> None:
+    """What ``_many_contacts`` left in ``work`` into lam_a, M_a lam_a per finger (zero out
+    of contact) and the accuracy."""
+    n_fingers = in_contact.shape[0]
+    dirs = work.shape[0] - n_fingers - 1
+    xk = work.shape[0] - 1
+    k = 0
+    for i in range(n_fingers):
+        k += 1 if in_contact[i] != 0 else 0
+    xo = layout(3 * k, k)[XO_ROW]
+    for i in range(ACCURACY):
+        acc[i] = work[xk, i]
     s = 0
     for i in range(n_fingers):
         lam_a[i] = 0.0
@@ -756,8 +777,6 @@ def _many_contacts(
             rendered[i, 1] = 0.0 + x * work[dirs + i, 1]
             rendered[i, 2] = 0.0 + x * work[dirs + i, 2]
             s += 1
-    state[0] = alpha
-    return ALLOCATED
 
 
 # The Friction stage's per-finger array (F, FRICTION_COLUMNS), shared by its Python code
