@@ -7,10 +7,12 @@ arithmetic, ``math``, loops and indexing of preallocated numpy arrays, no object
 functions when ``rendering.kernels`` asks for them. Run as plain Python they give
 the same numbers, only slower.
 
-``allocation_step`` is the allocation of one or two contacts with one actuated
-direction per finger by a robust method (pinv, if, ef, adaptive): it calls the closed
-forms of ``hapticd.allocation.closed`` and ``accuracy`` themselves (written once, for
-floats and arrays, shared with ``allocate`` and ``allocate_many``; ``KERNEL_HELPERS``).
+``allocation_step`` is the allocation of any number of contacts with one actuated
+direction per finger by a robust method (pinv, if, ef, adaptive, whose alpha it moves):
+it calls the closed forms of ``hapticd.allocation.closed`` and ``accuracy`` for one or
+two contacts and the general path of ``hapticd.allocation.general`` for more (written
+once, shared with ``allocate`` and ``allocate_many``; ``KERNEL_HELPERS``).
+``allocate_grasps`` is that general path for a batch (``allocate_many``'s ``kernel=``).
 
 ``allocation_step``, ``contact_step``, ``friction_step``, ``forces_step``,
 ``free_body_step`` and ``safety_step`` have no twin: each is its stage's physics
