@@ -139,13 +139,22 @@ def compiled_grasps():
 
 
 @pytest.mark.parametrize("method", ROBUST_METHODS)
+@settings(max_examples=25)  # each example a whole elementwise pass (2-20 ms)
 @given(batches(), st.floats(0, 1))
-def test_the_compiled_general_path_equals_the_oracle(compiled_grasps, method, b, alpha):
-    """kernel=: the same general path compiled, grasp by grasp (the one the servo loop's
-    kernel runs for three or more contacts)."""
+def test_the_general_path_elementwise_and_compiled_equals_the_oracle(
+    compiled_grasps, method, b, alpha
+):
+    """The general path on the whole batch at once (general.solve_stack, what batches of
+    STACK_MIN grasps or more take; here on the small batches generated) and compiled grasp
+    by grasp (kernel=: the function the servo loop's kernel runs for three or more
+    contacts)."""
     G, M, lam = b
+    ref = one_by_one(method, G, M, lam, alpha)
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(batch, "STACK_MIN", 1)
+        assert_rows_equal(allocate_many(method, G, M, lam, alpha=alpha), ref, lam)
     got = allocate_many(method, G, M, lam, alpha=alpha, kernel=compiled_grasps)
-    assert_rows_equal(got, one_by_one(method, G, M, lam, alpha), lam)
+    assert_rows_equal(got, ref, lam)
 
 
 @pytest.mark.parametrize("method", METHODS)

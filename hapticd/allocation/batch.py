@@ -34,6 +34,10 @@ from hapticd.allocation.robust import (
 _METHODS: tuple[str, ...] = tuple(params.ALLOCATORS)
 _EXACT = tuple(m for m in _METHODS if m.endswith("_exact"))
 CHUNK = 1024  # grasps per internal pass of allocate_many
+# From this many grasps on, the general path runs on the whole batch elementwise; fewer run
+# one by one on floats (cheaper below about 10 grasps here: the elementwise pass costs 2-20
+# ms whatever the batch, a grasp on floats 0.3-2 ms).
+STACK_MIN = 10
 
 # -- validation -------------------------------------------------------------------------------
 
@@ -130,12 +134,12 @@ def _general(
 ) -> np.ndarray:
     """Robust pinv / ef / if on stacks, M (N, n, r) or shared (n, r): ``general.general``,
     compiled grasp by grasp (``kernel``: hapticd.kernels.allocate_grasps), else on the whole
-    batch elementwise (one grasp: on floats)."""
+    batch elementwise (fewer than STACK_MIN grasps: one by one on floats)."""
     N, _, n = G.shape
     r = M.shape[-1]
     code = CODES.index(method)
     eps, sep = robust.eps, robust.min_separation_m
-    if kernel is None and N > 1:  # the whole batch at once, elementwise
+    if kernel is None and N >= STACK_MIN:  # the whole batch at once, elementwise
         return general.solve_stack(code, G, M, lam, eps, sep)
     args = [
         np.ascontiguousarray(G),
@@ -146,7 +150,7 @@ def _general(
     out, work = np.zeros((N, r)), np.zeros(general.work_shape(n, r))
     if kernel is not None:
         kernel(code, *args, eps, sep, out, work)
-    else:  # one grasp, on floats (as the kernel runs it)
+    else:  # a few grasps, one by one on floats (as the kernel runs it)
         general.solve_grasps(code, *map(_items, args), eps, sep, _items(out), _items(work))
     return out
 
