@@ -7,10 +7,12 @@ arithmetic, ``math``, loops and indexing of preallocated numpy arrays, no object
 functions when ``rendering.kernels`` asks for them. Run as plain Python they give
 the same numbers, only slower.
 
-``allocation_step`` is the allocation of one or two contacts with one actuated
-direction per finger by a robust method (pinv, if, ef, adaptive): it calls the closed
-forms of ``hapticd.allocation.closed`` and ``accuracy`` themselves (written once, for
-floats and arrays, shared with ``allocate`` and ``allocate_many``; ``KERNEL_HELPERS``).
+``allocation_step`` is the allocation of any number of contacts with one actuated
+direction per finger by a robust method (pinv, if, ef, adaptive, whose alpha it moves):
+it calls the closed forms of ``hapticd.allocation.closed`` and ``accuracy`` for one or
+two contacts and the general path of ``hapticd.allocation.general`` for more (written
+once, shared with ``allocate`` and ``allocate_many``; ``KERNEL_HELPERS``).
+``allocate_grasps`` is that general path for a batch (``allocate_many``'s ``kernel=``).
 
 ``allocation_step``, ``contact_step``, ``friction_step``, ``forces_step``,
 ``free_body_step`` and ``safety_step`` have no twin: each is its stage's physics
@@ -30,9 +32,20 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hapticd.allocation import closed
+from hapticd.allocation import closed, general
 from hapticd.allocation.accuracy import one_contact_residuals, two_contact_residuals
 from hapticd.allocation.closed import one_contact, two_contact
+from hapticd.allocation.general import (
+    LAM_ROW,
+    T1_ROW,
+    XO_ROW,
+    layout,
+    residuals,
+    soft_apply,
+    soft_prepare,
+    solve_grasps,
+)
+from hapticd.allocation.general import general as general_path
 from hapticd.passivity import DEPENDENT, authority, control, observe
 
 
@@ -329,25 +342,41 @@ def free_body_step(
 
 # allocation_step's params: method (ALLOCATION_METHODS' index), eps, min_separation_m,
 # contact_onset_n, grasp frame (1.0) or world frame (0.0), the grasp's reference point (3),
-# the adaptive allocator's external weight alpha (0..1; the others ignore it)
-ALLOCATION_PARAMS = 9
-# The robust allocators allocation_step computes (hapticd.allocation.closed's closed forms).
+# the adaptive allocator's ratio_low, ratio_high and its gain per tick (min(1, dt /
+# time_constant_s), 1 without a lag)
+ALLOCATION_PARAMS = 11
+# allocation_step's carried state: the adaptive allocator's external weight alpha (0..1)
+ALLOCATION_STATE = 1
+# The robust allocators allocation_step computes (closed forms for one and two contacts,
+# hapticd.allocation.general for more).
 ALLOCATION_METHODS = closed.CODES
-# allocation_step's outcomes: allocated; three or more contacts (the caller runs the
-# general path; nothing written); a non-finite contact point, direction or force; a
-# non-finite actuator force (nothing written either way).
-ALLOCATED, MANY_CONTACTS, NON_FINITE_INPUT, NON_FINITE_OUTPUT = 0, 1, 2, 3
+# allocation_step's outcomes: allocated; a non-finite contact point, direction or force; a
+# non-finite actuator force (nothing written, alpha unchanged, either way).
+ALLOCATED, NON_FINITE_INPUT, NON_FINITE_OUTPUT = 0, 2, 3
 ACCURACY = 4  # allocation_step's accuracy: internal, external, total, amplification
 
 
+def allocation_work_shape(n_fingers: int) -> tuple[int, int]:
+    """The shape of allocation_step's workspace for ``n_fingers`` fingers (float64, which
+    the caller preallocates): hapticd.allocation.general's rows for every finger in
+    contact, then each finger's world direction and the allocation of all contacts."""
+    rows, cols = general.work_shape(3 * n_fingers, n_fingers)
+    return rows + n_fingers + 1, cols
+
+
 # Functions the kernels call (everything else a kernel does is inline): this module's and
-# the allocation's closed forms (hapticd.allocation.closed and accuracy, written once for
-# the loop, allocate() and allocate_many). hapticd.jit compiles them into the kernels that
-# call them.
+# the allocation's closed forms and general path (hapticd.allocation.closed, general and
+# accuracy, written once for the loop, allocate() and allocate_many). hapticd.jit compiles
+# them into the kernels that call them.
 KERNEL_HELPERS = (
     *closed.KERNEL_HELPERS,
+    *general.KERNEL_HELPERS,
     one_contact_residuals,
     two_contact_residuals,
+    "_fill_grasp",
+    "_task_alpha",
+    "_many_contacts",
+    "_write_many",
     "_gram_mu",
     "_hypot3",
     # tick_step's stages: compiled into it, one call per tick
@@ -372,9 +401,129 @@ KERNEL_HELPERS = (
 SOURCES = (
     __file__,
     closed.__file__,
+    general.__file__,
     one_contact_residuals.__code__.co_filename,
     observe.__code__.co_filename,
 )
+
+
+def allocate_grasps(
+    code: int,
+    G: np.ndarray,
+    M: np.ndarray,
+    lam: np.ndarray,
+    alpha: np.ndarray,
+    eps: float,
+    min_sep: float,
+    out: np.ndarray,
+    work: np.ndarray,
+) -> None:
+    """hapticd.allocation.general.solve_grasps as a kernel (``allocate_many``'s general path
+    compiled): G (N, 6, n), M (N or 1, n, r), lam (N, n) N, alpha (N,) into out (N, r) N."""
+    solve_grasps(code, G, M, lam, alpha, eps, min_sep, out, work)
+
+
+def _fill_grasp(
+    in_contact: np.ndarray,
+    points: np.ndarray,
+    forces: np.ndarray,
+    params: np.ndarray,
+    skip: int,
+    work: np.ndarray,
+) -> int:
+    """The grasp of the fingers in contact but ``skip`` into ``work`` (general's G, M_a with
+    one direction each from the world directions in work's rows after general's, lam); its
+    number of contacts."""
+    n_fingers = in_contact.shape[0]
+    k = 0
+    for i in range(n_fingers):
+        if in_contact[i] != 0 and i != skip:
+            k += 1
+    n, r = 3 * k, k
+    m0, lam = 6, 6 + n
+    dirs = work.shape[0] - n_fingers - 1
+    for t in range(n):
+        for j in range(r):
+            work[m0 + t, j] = 0.0
+    s = 0
+    for i in range(n_fingers):
+        if in_contact[i] == 0 or i == skip:
+            continue
+        x = points[i, 0] - params[5]
+        y = points[i, 1] - params[6]
+        z = points[i, 2] - params[7]
+        j = 3 * s
+        for row in range(3):
+            for col in range(3):
+                work[row, j + col] = 1.0 if row == col else 0.0
+        work[3, j], work[3, j + 1], work[3, j + 2] = 0.0, -z, y
+        work[4, j], work[4, j + 1], work[4, j + 2] = z, 0.0, -x
+        work[5, j], work[5, j + 1], work[5, j + 2] = -y, x, 0.0
+        for c in range(3):
+            work[m0 + j + c, s] = work[dirs + i, c]
+            work[lam, j + c] = forces[i, c]
+        s += 1
+    return k
+
+
+def _task_alpha(
+    in_contact: np.ndarray,
+    points: np.ndarray,
+    forces: np.ndarray,
+    params: np.ndarray,
+    alpha: float,
+    work: np.ndarray,
+) -> float:
+    """The adaptive allocator's alpha after this tick (hapticd.allocation.AdaptiveState):
+    alpha moved by params' gain toward smoothstep((rho - ratio_low) / (ratio_high -
+    ratio_low)) of the task's external ratio rho = |net force| / (|net force| + squeeze)
+    of the contact forces; unchanged when rho is not finite. The squeeze: none for one
+    contact, the force along the grasp line for two, |P_int lam| / sqrt(2) for more."""
+    n_fingers = in_contact.shape[0]
+    k = 0
+    c0 = -1
+    c1 = -1
+    n0, n1, n2 = 0.0, 0.0, 0.0
+    for i in range(n_fingers):
+        if in_contact[i] != 0:
+            if k == 0:
+                c0 = i
+            elif k == 1:
+                c1 = i
+            n0 += forces[i, 0]
+            n1 += forces[i, 1]
+            n2 += forces[i, 2]
+            k += 1
+    squeeze = 0.0
+    if k == 2:
+        e0 = points[c1, 0] - points[c0, 0]
+        e1 = points[c1, 1] - points[c0, 1]
+        e2 = points[c1, 2] - points[c0, 2]
+        ne = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        q0 = forces[c0, 0] - forces[c1, 0]
+        q1 = forces[c0, 1] - forces[c1, 1]
+        q2 = forces[c0, 2] - forces[c1, 2]
+        if ne > 0:
+            squeeze = abs(e0 * q0 + e1 * q1 + e2 * q2) / (2.0 * ne)
+    elif k > 2:
+        n = 3 * _fill_grasp(in_contact, points, forces, params, -1, work)
+        eps = params[1]
+        soft_prepare(work, n, eps, params[2])
+        lay = layout(n, n // 3)
+        out = lay[T1_ROW]
+        soft_apply(work, n, eps * eps, lay[LAM_ROW], out)
+        s = 0.0
+        for t in range(n):
+            s += work[out, t] * work[out, t]
+        squeeze = math.sqrt(s) / math.sqrt(2.0)
+    net = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    total = net + squeeze
+    rho = net / total if total > 0.0 else 0.0
+    if not math.isfinite(rho):
+        return alpha
+    z = (rho - params[8]) / (params[9] - params[8])
+    z = 0.0 if z < 0.0 else (1.0 if z > 1.0 else z)
+    return alpha + params[10] * (z * z * (3.0 - 2.0 * z) - alpha)
 
 
 def allocation_step(
@@ -384,25 +533,33 @@ def allocation_step(
     forces: np.ndarray,
     local: np.ndarray,
     params: np.ndarray,
+    state: np.ndarray,
     lam_a: np.ndarray,
     rendered: np.ndarray,
     acc: np.ndarray,
+    work: np.ndarray,
 ) -> int:
-    """One tick's allocation for F fingers with one actuated direction each and at most two
-    in contact, by a robust method: the closed forms of ``hapticd.allocation.closed``
-    with contact onset, their accuracy and M_a lam_a per finger (the one definition of
-    this case: ``hapticd.allocation.contacts.ContactAllocator`` runs it, compiled or
-    not, and runs ``hapticd.allocation.allocate`` on MANY_CONTACTS).
+    """One tick's allocation for F fingers with one actuated direction each, by a robust
+    method, with contact onset: the closed forms of ``hapticd.allocation.closed`` for one
+    or two contacts, hapticd.allocation.general for more, their accuracy and M_a lam_a
+    per finger (the one definition of this case: ``hapticd.allocation.contacts.
+    ContactAllocator`` runs it, compiled or not). The adaptive allocator's alpha
+    (``state``) follows this tick's task first (``_task_alpha``).
 
     The frame's fields: ``in_contact`` (F,) u1, ``device_pos`` (F, 3) m (the grasp
     frame's axes come from fingers 0 and 1), ``points`` (F, 3) contact points m,
     ``forces`` (F, 3) full contact forces N. ``local`` (F, 3): each finger's unit
     direction in its frame (world or grasp). ``params`` (ALLOCATION_PARAMS,) as declared
-    above. Writes ``lam_a`` (F,) N, ``rendered`` (F, 3) N (M_a lam_a per finger, zero
-    out of contact) and ``acc`` (ACCURACY,) (N, N, N, 1) and returns ALLOCATED, or
-    returns another outcome having written nothing.
+    above; ``state`` (ALLOCATION_STATE,) carried from tick to tick; ``work`` the
+    workspace (allocation_work_shape(F)). Writes ``lam_a`` (F,) N, ``rendered`` (F, 3) N
+    (M_a lam_a per finger, zero out of contact), ``acc`` (ACCURACY,) (N, N, N, 1) and
+    alpha, and returns ALLOCATED, or returns another outcome having written nothing.
     """
     n_fingers = in_contact.shape[0]
+    method = int(params[0])
+    alpha = state[0]
+    if method == closed.ADAPTIVE:
+        alpha = _task_alpha(in_contact, points, forces, params, alpha, work)
     n = 0
     c0 = -1
     c1 = -1
@@ -413,22 +570,34 @@ def allocation_step(
             elif n == 1:
                 c1 = i
             n += 1
-    if n > 2:
-        return MANY_CONTACTS
     if n == 0:
         for i in range(n_fingers):
             lam_a[i] = 0.0
             rendered[i, 0], rendered[i, 1], rendered[i, 2] = 0.0, 0.0, 0.0
         for i in range(ACCURACY):
             acc[i] = 0.0
+        state[0] = alpha
         return ALLOCATED
-    method = int(params[0])
     eps, min_sep, onset = params[1], params[2], params[3]
     ox, oy, oz = params[5], params[6], params[7]
-    alpha = params[8]
     # The world directions (hapticd.actuation.grasp_axes in the grasp frame).
     grasp = params[4] != 0.0
     ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, grasp)
+    if n > 2:  # every finger's world direction into the workspace, then the general path
+        dirs = work.shape[0] - n_fingers - 1
+        for i in range(n_fingers):
+            p0, p1, p2 = local[i, 0], local[i, 1], local[i, 2]
+            if grasp:
+                work[dirs + i, 0] = ax0 * p0 + ay0 * p1 + az0 * p2
+                work[dirs + i, 1] = ax1 * p0 + ay1 * p1 + az1 * p2
+                work[dirs + i, 2] = ax2 * p0 + ay2 * p1 + az2 * p2
+            else:
+                work[dirs + i, 0], work[dirs + i, 1], work[dirs + i, 2] = p0, p1, p2
+        outcome = _many_contacts(in_contact, points, forces, params, alpha, work)
+        if outcome == ALLOCATED:
+            _write_many(in_contact, work, lam_a, rendered, acc)
+            state[0] = alpha
+        return outcome
     # Contact 1 (c0) and, with two, contact 2 (c1): offset r, direction d, force l.
     r1 = (points[c0, 0] - ox, points[c0, 1] - oy, points[c0, 2] - oz)
     l1 = (forces[c0, 0], forces[c0, 1], forces[c0, 2])
@@ -511,7 +680,117 @@ def allocation_step(
         rendered[c1, 0] = 0.0 + x1 * d2[0]
         rendered[c1, 1] = 0.0 + x1 * d2[1]
         rendered[c1, 2] = 0.0 + x1 * d2[2]
+    state[0] = alpha
     return ALLOCATED
+
+
+def _many_contacts(
+    in_contact: np.ndarray,
+    points: np.ndarray,
+    forces: np.ndarray,
+    params: np.ndarray,
+    alpha: float,
+    work: np.ndarray,
+) -> int:
+    """allocation_step's three or more contacts (its arguments; this tick's alpha; each
+    finger's world direction in ``work``'s rows after general's): hapticd.allocation.general
+    on the grasp, blended with the grasp without its weakest contact while that one is
+    being made or broken (contact onset); lam_a and the accuracy left in ``work`` for
+    ``_write_many``. Returns an outcome (nothing is written outside ``work``).
+    """
+    n_fingers = in_contact.shape[0]
+    method = int(params[0])
+    eps, min_sep, onset = params[1], params[2], params[3]
+    dirs = work.shape[0] - n_fingers - 1
+    xk = work.shape[0] - 1  # the allocation of all contacts, by finger
+    s = 0.0
+    weak = -1
+    weakest = 0.0
+    for i in range(n_fingers):
+        if in_contact[i] == 0:
+            continue
+        for c in range(3):
+            s += 0.0 * (points[i, c] - params[5 + c]) + 0.0 * work[dirs + i, c]
+            s += 0.0 * forces[i, c]
+        f = math.sqrt(forces[i, 0] ** 2 + forces[i, 1] ** 2 + forces[i, 2] ** 2)
+        if weak < 0 or f < weakest:
+            weak, weakest = i, f
+    if not math.isfinite(s):
+        return NON_FINITE_INPUT
+    beta = 1.0
+    if onset > 0.0:
+        z = weakest / onset
+        z = 0.0 if z < 0.0 else (1.0 if z > 1.0 else z)
+        beta = z * z * (3.0 - 2.0 * z)
+    k = 0
+    if beta < 1.0:  # the rest alone: two contacts by their closed form, more by general
+        k = _fill_grasp(in_contact, points, forces, params, weak, work)
+        xo = layout(3 * k, k)[XO_ROW]
+        if k == 2:
+            r1 = (work[5, 1], work[3, 2], work[4, 0])  # (x, y, z) off G's moment rows
+            r2 = (work[5, 4], work[3, 5], work[4, 3])
+            d1 = (work[6, 0], work[7, 0], work[8, 0])
+            d2 = (work[9, 1], work[10, 1], work[11, 1])
+            la = 6 + 6
+            l1 = (work[la, 0], work[la, 1], work[la, 2])
+            l2 = (work[la, 3], work[la, 4], work[la, 5])
+            x0, x1 = two_contact(method, r1, r2, d1, d2, l1, l2, eps, min_sep, alpha)
+            work[xo, 0], work[xo, 1] = x0, x1
+        else:
+            general_path(method, work, 3 * k, k, eps, min_sep, alpha)
+        s = 0
+        for i in range(n_fingers):
+            work[xk, i] = 0.0
+            if in_contact[i] != 0 and i != weak:
+                work[xk, i] = (1.0 - beta) * work[xo, s]
+                s += 1
+    k = _fill_grasp(in_contact, points, forces, params, -1, work)
+    n, r = 3 * k, k
+    xo = layout(n, r)[XO_ROW]
+    general_path(method, work, n, r, eps, min_sep, alpha)
+    s = 0
+    for i in range(n_fingers):
+        if in_contact[i] != 0:
+            x = work[xo, s]
+            if beta < 1.0:
+                x = beta * x + work[xk, i]
+            work[xo, s] = x
+            if not math.isfinite(x):
+                return NON_FINITE_OUTPUT
+            s += 1
+    work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = residuals(work, n, r)
+    return ALLOCATED
+
+
+def _write_many(
+    in_contact: np.ndarray,
+    work: np.ndarray,
+    lam_a: np.ndarray,
+    rendered: np.ndarray,
+    acc: np.ndarray,
+) -> None:
+    """What ``_many_contacts`` left in ``work`` into lam_a, M_a lam_a per finger (zero out
+    of contact) and the accuracy."""
+    n_fingers = in_contact.shape[0]
+    dirs = work.shape[0] - n_fingers - 1
+    xk = work.shape[0] - 1
+    k = 0
+    for i in range(n_fingers):
+        k += 1 if in_contact[i] != 0 else 0
+    xo = layout(3 * k, k)[XO_ROW]
+    for i in range(ACCURACY):
+        acc[i] = work[xk, i]
+    s = 0
+    for i in range(n_fingers):
+        lam_a[i] = 0.0
+        rendered[i, 0], rendered[i, 1], rendered[i, 2] = 0.0, 0.0, 0.0
+        if in_contact[i] != 0:
+            x = work[xo, s]
+            lam_a[i] = x
+            rendered[i, 0] = 0.0 + x * work[dirs + i, 0]
+            rendered[i, 1] = 0.0 + x * work[dirs + i, 1]
+            rendered[i, 2] = 0.0 + x * work[dirs + i, 2]
+            s += 1
 
 
 # The Friction stage's per-finger array (F, FRICTION_COLUMNS), shared by its Python code
@@ -1305,14 +1584,14 @@ def world_planes(
 
 
 # tick_step's params: what the plan has (1.0 or 0.0: friction, a free object, surfaces, a
-# sum of contributions into rendered_force, passivity), the allocator's alpha, whether the
-# safety chain's normal tick runs in the call (set per tick), the stages this call runs
-# (STAGE_ indices, from first to before last), then the passivity, friction, forces,
-# allocation and free-body params at their offsets (each one's layout above; passivity's:
-# velocity threshold m/s, most damping N s/m, the tick's period s)
-TICK_FRICTION, TICK_FREE, TICK_SURFACES, TICK_SUM, TICK_ALPHA, TICK_SAFETY = range(6)
-TICK_FIRST, TICK_LAST, TICK_PASSIVITY = 6, 7, 8
-TICK_PASSIVITY_AT = 9
+# sum of contributions into rendered_force, passivity), whether the safety chain's normal
+# tick runs in the call (set per tick), the stages this call runs (STAGE_ indices, from
+# first to before last), then the passivity, friction, forces, allocation and free-body
+# params at their offsets (each one's layout above; passivity's: velocity threshold m/s,
+# most damping N s/m, the tick's period s)
+TICK_FRICTION, TICK_FREE, TICK_SURFACES, TICK_SUM, TICK_SAFETY = range(5)
+TICK_FIRST, TICK_LAST, TICK_PASSIVITY = 5, 6, 7
+TICK_PASSIVITY_AT = 8
 PASSIVITY_PARAMS = 3
 TICK_FRICTION_AT = TICK_PASSIVITY_AT + PASSIVITY_PARAMS
 TICK_FORCES_AT = TICK_FRICTION_AT + FRICTION_PARAMS
@@ -1337,14 +1616,14 @@ TICK_PARAMS = TICK_BODY_AT + PARAMS
 # The passivity stage's carried state per finger: its observed energy (J), its position on
 # the last tick (3, m) and 1.0 once it has one (the first tick sees no motion).
 PASSIVITY_STATE = 5
-# tick_step's outcomes: done; stopped before contact or before allocation, having written
-# what came before (the renderer runs that stage and the rest one by one); allocation
-# refused a non-finite input or produced a non-finite output (nothing after it written);
-# with the safety chain's tick: a free object's state beyond MAX_OBJECT_* (the chain not
-# run: the loop latches the fault), or the chain's kernel deferred (the chain runs its
-# checks); TICK_SAFE + safety_step's flags: done, the safety chain's tick too.
-# From TICK_FINISHED on, every stage of the plan has run.
-TICK_FROM_CONTACT, TICK_FROM_ALLOCATION, TICK_NON_FINITE_INPUT, TICK_NON_FINITE_OUTPUT = 1, 2, 3, 4
+# tick_step's outcomes: done; stopped at contact, a non-finite input (nothing of it
+# written: the contact stage names it); allocation refused a non-finite input or produced
+# a non-finite output (nothing after it written); with the safety chain's tick: a free
+# object's state beyond MAX_OBJECT_* (the chain not run: the loop latches the fault), or
+# the chain's kernel deferred (the chain runs its checks); TICK_SAFE + safety_step's
+# flags: done, the safety chain's tick too. From TICK_FINISHED on, every stage of the
+# plan has run.
+TICK_FROM_CONTACT, TICK_NON_FINITE_INPUT, TICK_NON_FINITE_OUTPUT = 1, 3, 4
 TICK_FINISHED = TICK_DONE = 5
 TICK_OBJECT, TICK_SAFETY_DEFER = 6, 7
 TICK_SAFE = 16
@@ -1424,8 +1703,9 @@ def _block_compiled(a: np.ndarray, start: int, n: int, cols: int) -> np.ndarray:
     return a[start : start + n * cols].reshape((n, cols))
 
 
-# Helpers whose compiled form is another function (hapticd.jit compiles that one in).
-COMPILED_FORMS = {_block: _block_compiled}
+# Helpers whose compiled form is another function (hapticd.jit compiles that one in): the
+# general path's float forms too.
+COMPILED_FORMS = {_block: _block_compiled, **general.FLOAT_FORMS}
 
 
 # tick_step's plan: one float64 array, the params (TICK_PARAMS) then these blocks, each
@@ -1448,6 +1728,8 @@ def tick_step(
     contact_state: np.ndarray,
     anchors: np.ndarray,
     passive: np.ndarray,
+    alloc_state: np.ndarray,
+    alloc_work: np.ndarray,
     plan: np.ndarray,
     safety_params: np.ndarray,
     out_prev: np.ndarray,
@@ -1463,8 +1745,9 @@ def tick_step(
     ``record``: the frame's record as float64 items, whose fields ``TICK_FIELDS`` start
     at ``at`` (int64, TICK_AT); ``in_contact`` (F,) u1, the frame's. The carried state:
     the object's ``obj_state`` (STATE,), contact's ``contact_state``, friction's
-    ``anchors``, passivity's ``passive`` (F, PASSIVITY_STATE). ``plan``: the params and
-    blocks ``TICK_PLAN`` declares. With params[TICK_SAFETY], after the last stage, the
+    ``anchors``, passivity's ``passive`` (F, PASSIVITY_STATE), the allocation's
+    ``alloc_state`` (ALLOCATION_STATE,; its workspace ``alloc_work``). ``plan``: the params
+    and blocks ``TICK_PLAN`` declares. With params[TICK_SAFETY], after the last stage, the
     safety chain's normal tick on the rendered force into ``device_force``: a free
     object's state checked first, then safety_step with the chain's ``safety_params``
     and ``out_prev``. Returns a TICK_ outcome.
@@ -1551,17 +1834,17 @@ def tick_step(
             contact_force,
             local,
             params[a:TICK_BODY_AT],
+            alloc_state,
             record[at[_AT_LAM] : at[_AT_LAM] + n],
             allocated,
             scalars,
+            alloc_work,
         )
-        if outcome == MANY_CONTACTS:
-            return TICK_FROM_ALLOCATION
         if outcome == NON_FINITE_INPUT:
             return TICK_NON_FINITE_INPUT
         if outcome == NON_FINITE_OUTPUT:
             return TICK_NON_FINITE_OUTPUT
-        scalars[ACCURACY] = params[TICK_ALPHA]
+        scalars[ACCURACY] = alloc_state[0]
     # The actuation frame's axes in the world (the grasp's moves with the fingers).
     ax = _axes(
         device_pos,

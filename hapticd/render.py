@@ -297,13 +297,13 @@ class OneCall:
     """The renderer's plan as one call per tick: hapticd.kernels.tick_step, compiled or (with
     ``rendering.kernels=python``, or until the compiler is done) the same function
     uncompiled, over the frame's fields and the stages' carried state (their own arrays:
-    the proxies, the anchors, the object's state, passivity's).
+    the proxies, the anchors, the object's state, passivity's, the allocator's alpha and
+    workspace).
 
     A stage the call does not run (one inserted into the plan, another writer of the
     rendered force, allocation by a method or actuation its kernel does not take) runs in
-    Python between the call's parts, each part a run of the kernel's stages. A tick the
-    kernel stops early goes on: with more than two contacts the allocation stage allocates
-    and the call goes on after it; a non-finite input to contact is refused by name."""
+    Python between the call's parts, each part a run of the kernel's stages. A non-finite
+    input to contact stops the call, and the contact stage names it."""
 
     def __init__(self, renderer: Renderer, fn: Callable[..., int] | None) -> None:
         self.renderer = renderer
@@ -387,7 +387,6 @@ class OneCall:
         p[kn.TICK_SURFACES] = float(bool(sc.surfaces))
         p[kn.TICK_SUM] = float(total)
         p[kn.TICK_PASSIVITY] = float(passivity is not None)
-        p[kn.TICK_ALPHA] = r.allocator.alpha
         if passivity is not None:
             p[kn.TICK_PASSIVITY_AT : kn.TICK_FRICTION_AT] = passivity.kernel_params
         p[kn.TICK_FRICTION_AT : kn.TICK_FORCES_AT] = (mat.mu_static, mat.mu_dynamic)
@@ -419,6 +418,8 @@ class OneCall:
             contact.state,
             r._friction.anchors,
             _NO_PASSIVITY if passivity is None else passivity.state,
+            r.allocator.state,
+            r.allocator.work,
             plan,
             *_NO_SAFETY,
         )
@@ -447,7 +448,7 @@ class OneCall:
         if self._single:
             outcome = self._fn(*self._args)
             if outcome < _FINISHED:
-                outcome = self._stopped(frame, outcome, kn.STAGE_END)
+                self._stopped(frame, outcome)
             if self._free:
                 obj.update_world()
         else:
@@ -464,32 +465,22 @@ class OneCall:
                 p[kn.TICK_FIRST], p[kn.TICK_LAST] = part
                 outcome = self._fn(*self._args)
                 if outcome < _FINISHED:
-                    outcome = self._stopped(frame, outcome, part[1])
+                    self._stopped(frame, outcome)
                 if self._free and part[0] <= kn.STAGE_DYNAMICS < part[1]:
                     self._scene.object.update_world()
             else:
                 part.run(frame)
         return outcome
 
-    def _stopped(self, frame: Frame, outcome: int, last: int) -> int:
-        """A tick the kernel stopped: refused (ValueError or AllocationError, by name), or
-        allocated by the allocation stage and the call gone on after it up to ``last``."""
+    def _stopped(self, frame: Frame, outcome: int) -> None:
+        """A tick the kernel refused: ValueError or AllocationError, by name."""
         r = self.renderer
         if outcome == kn.TICK_FROM_CONTACT:
             raise ValueError(r._contact._non_finite(frame, self._planes))
         if outcome == kn.TICK_NON_FINITE_INPUT:
             raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-        if outcome == kn.TICK_NON_FINITE_OUTPUT:
-            method = r.allocator.method
-            raise AllocationError(f"allocator {method!r} produced a non-finite force")
-        r._allocation.run(frame)
-        p = self._plan
-        first, then = p[kn.TICK_FIRST], p[kn.TICK_LAST]
-        p[kn.TICK_FIRST], p[kn.TICK_LAST] = kn.STAGE_ALLOCATION + 1, last
-        try:
-            return self._fn(*self._args)
-        finally:
-            p[kn.TICK_FIRST], p[kn.TICK_LAST] = first, then
+        method = r.allocator.method
+        raise AllocationError(f"allocator {method!r} produced a non-finite force")
 
     def _with(self, safety: SafetyChain | None) -> None:
         """Run ``safety``'s normal tick in the call from now on (None: no chain's)."""

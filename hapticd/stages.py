@@ -369,8 +369,8 @@ class Allocation:
     @property
     def kernel(self) -> Callable[..., int]:
         """hapticd.kernels.allocation_step, compiled (hapticd.jit) or, set to None, not: the
-        allocator's (it takes the robust methods with one direction per finger and at most
-        two contacts, every tick of the bundled profiles; the rest run allocate())."""
+        allocator's (it takes the robust methods with one direction per finger, any number
+        of contacts, and adaptive's alpha; the rest run allocate())."""
         return self.allocator.kernel
 
     @kernel.setter

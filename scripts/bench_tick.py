@@ -393,7 +393,7 @@ from hapticd.render import Renderer
 from hapticd.safety import SafetyChain
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
 
-n, ticks = int(sys.argv[1]), int(sys.argv[2])
+n, ticks, python = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "python"
 cube = SceneObject(ConvexShape.box(np.array([0.04] * 3)), Material(400.0, 2.0, 0.6, 0.4, 0.002),
                    np.array([0.0, 0.0, 0.02]), np.eye(3), fixed=False, mass=0.05)
 ground = Surface("ground", (0.0, 0.0, 1.0), 0.0, Material(2000.0, 5.0, 0.5, 0.4))
@@ -402,9 +402,9 @@ angles = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
 dirs = [[(float(-np.cos(a)), float(-np.sin(a)), 0.0)] for a in angles]
 r = Renderer(Scene(cube, [ground], np.array([0.0, 0.0, -9.81]), substeps=2), [0.008] * n,
              Actuation(dirs, "world"), "if", dt=1e-3)
-r.use_kernels({k: f for k, f in jit.compile_kernels(r.kernel_names).items()})
+r.use_kernels({} if python else jit.compile_kernels(r.kernel_names))
 safety = SafetyChain([8.0] * n, dt=1e-3)
-safety.use_kernels(jit.compile_kernels(SafetyChain.kernel_names))
+safety.use_kernels({} if python else jit.compile_kernels(SafetyChain.kernel_names))
 safety.start(0.0)
 frame = r.frame
 ns, out, contacts, handed = time.perf_counter_ns, [], [], 0
@@ -436,10 +436,11 @@ def fingers(args: argparse.Namespace) -> list[dict]:
     the number of fingers holding a free cube on the ground, one actuated direction each
     (IF): medians over rounds of each run's p50 and p99, in interleaved rounds."""
     got: dict[int, list[dict]] = {n: [] for n in args.fingers}
+    mode = "python" if args.kernels == "python" else "compiled"
     for rnd in range(args.rounds):
         for n in args.fingers:
             res = subprocess.run(
-                [sys.executable, "-c", FINGERS_CHILD, str(n), str(args.ticks)],
+                [sys.executable, "-c", FINGERS_CHILD, str(n), str(args.ticks), mode],
                 capture_output=True,
                 text=True,
                 timeout=600,
@@ -450,8 +451,8 @@ def fingers(args: argparse.Namespace) -> list[dict]:
             got[n].append(json.loads(res.stdout.strip().splitlines()[-1]))
             print(f"round {rnd + 1}: {n} fingers: {got[n][-1]['p50']:.1f} us", file=sys.stderr)
     print(
-        "\n### renderer + safety tick against fingers (a free cube held on the ground, IF; "
-        f"median over {args.rounds} rounds of each run's p50 / p99, us)\n"
+        "\n### renderer + safety tick against fingers (a free cube held on the ground, IF, "
+        f"{mode}; median over {args.rounds} rounds of each run's p50 / p99, us)\n"
     )
     print("| fingers | in contact | one call | ticks handed back | p50 | p99 | p50 per finger |")
     print("|---|---|---|---|---|---|---|")
@@ -505,7 +506,8 @@ def main() -> None:
         "--kernels",
         choices=("python", "compiled", "auto"),
         default=None,
-        help="rendering.kernels for --profile-stages and --compare (default: the profile's)",
+        help="rendering.kernels for --profile-stages, --compare and --fingers (python: the one"
+        " call uncompiled; default: the profile's, compiled for --fingers)",
     )
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--seconds", type=float, default=5.0, help="length of a paced run, s")

@@ -130,6 +130,33 @@ def test_equals_allocate_one_by_one(method, b, data):
     assert_rows_equal(got, one_by_one(method, G, M, lam, alpha), lam)
 
 
+@pytest.fixture(scope="module")
+def compiled_grasps():
+    """allocate_many's general path compiled (hapticd.kernels.allocate_grasps)."""
+    from hapticd import jit
+
+    return jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]
+
+
+@pytest.mark.parametrize("method", ROBUST_METHODS)
+@settings(max_examples=25)  # each example a whole elementwise pass (2-20 ms)
+@given(batches(), st.floats(0, 1))
+def test_the_general_path_elementwise_and_compiled_equals_the_oracle(
+    compiled_grasps, method, b, alpha
+):
+    """The general path on the whole batch at once (general.solve_stack, what batches of
+    STACK_MIN grasps or more take; here on the small batches generated) and compiled grasp
+    by grasp (kernel=: the function the servo loop's kernel runs for three or more
+    contacts)."""
+    G, M, lam = b
+    ref = one_by_one(method, G, M, lam, alpha)
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(batch, "STACK_MIN", 1)
+        assert_rows_equal(allocate_many(method, G, M, lam, alpha=alpha), ref, lam)
+    got = allocate_many(method, G, M, lam, alpha=alpha, kernel=compiled_grasps)
+    assert_rows_equal(got, ref, lam)
+
+
 @pytest.mark.parametrize("method", METHODS)
 @given(batches(min_p=2, max_p=2, counts=[1, 1]))
 def test_other_robustness_parameters(method, b):

@@ -1,8 +1,9 @@
-"""The compiled allocation kernel (hapticd.kernels.allocation_step) against the Allocation
-stage's Python code: the same bits for generated grasps, near-singular ones included
-(coincident and nearly coincident contacts, directions along the grasp line or nearly
-parallel, forces at contact onset, a vertical grasp line in the grasp frame); the cases it
-does not take run the Python code; non-finite input raises the same error."""
+"""The compiled allocation kernel (hapticd.kernels.allocation_step) against the same function
+uncompiled: the same bits for generated grasps of two to five fingers, near-singular ones
+included (coincident and nearly coincident contacts, directions along the grasp line or
+nearly parallel, forces at contact onset, a vertical grasp line in the grasp frame); and
+against allocate() with contact onset; the cases it does not take run allocate();
+non-finite input raises the same error and leaves alpha as it was."""
 
 from __future__ import annotations
 
@@ -10,17 +11,19 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import assume, given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hapticd import jit, kernels
 from hapticd.actuation import Actuation
-from hapticd.allocation import AdaptiveState, AllocationError, Robustness
+from hapticd.allocation import AdaptiveState, AllocationError, Robustness, allocate, smoothstep
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.frame import Frame
+from hapticd.grasp import grasp_matrix
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject
 from hapticd.stages import Allocation
 from tests.strategies import unit_vectors
+from tests.test_allocation_robust import bound
 from tests.test_dynamics import floats, vec
 
 OUTPUTS = (
@@ -51,12 +54,12 @@ def directions(draw, other: np.ndarray | None) -> np.ndarray:
 
 
 @st.composite
-def grasps(draw) -> dict:
-    """A tick's frame for 2 or 3 fingers with one direction each, the allocator's method and
+def grasps(draw, max_fingers: int = 5) -> dict:
+    """A tick's frame for 2 to ``max_fingers`` fingers with one direction each, the method and
     robustness, the object's position. Contacts are often close (below min_separation_m,
     down to coincident), forces often below the contact onset, directions often along the
     grasp line or nearly parallel: the allocators' singular configurations."""
-    n_fingers = draw(st.integers(2, 3))
+    n_fingers = draw(st.integers(2, max_fingers))
     rb = Robustness(
         draw(st.sampled_from([0.01, 0.05]) | floats(0.01, 0.9)),
         draw(floats(1e-3, 0.02)),
@@ -151,41 +154,89 @@ def test_the_allocation_kernel_as_plain_python_is_the_stage_bit_for_bit(case):
     _assert_same(_outputs(case, None), _outputs(case, kernels.allocation_step))
 
 
+def _allocate_with_onset(case: dict, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    """lam_a and M_a lam_a per finger by allocate() on the contacts, with contact onset: the
+    weakest contact blended in by smoothstep(|force| / contact_onset_n)."""
+    fields, rb = case["frame_fields"], case["robust"]
+    act = Actuation([[d] for d in case["local"]], case["frame"])
+    world = act.world_directions(np.asarray(fields["device_pos"], dtype=float).tolist())
+    points = np.asarray(fields["contact_point"], dtype=float)
+    forces = np.asarray(fields["contact_force"], dtype=float)
+
+    def solve(contacts: list[int]) -> np.ndarray:
+        out = np.zeros(case["n"])
+        if contacts:
+            M, cols = act.submatrix(world, contacts)
+            G = grasp_matrix(points[contacts], case["center"])
+            lam = forces[contacts].reshape(-1)
+            out[cols] = allocate(case["method"], G, M, lam, robust=rb, alpha=alpha)
+        return out
+
+    contacts = [i for i, on in enumerate(fields["in_contact"]) if on]
+    x = solve(contacts)
+    if len(contacts) >= 2 and rb.contact_onset_n > 0.0:
+        norms = np.linalg.norm(forces[contacts], axis=1)
+        weakest = int(np.argmin(norms))
+        beta = smoothstep(float(norms[weakest]) / rb.contact_onset_n)
+        if beta < 1.0:
+            rest = contacts[:weakest] + contacts[weakest + 1 :]
+            x = beta * x + (1.0 - beta) * solve(rest)
+    rendered = np.zeros((case["n"], 3))
+    for i in contacts:
+        rendered[i] = x[i] * np.asarray(world[i][0])
+    return x, rendered
+
+
 @given(grasps(), st.sampled_from(kernels.ALLOCATION_METHODS), st.floats(0.0, 1.0))
-def test_the_kernel_equals_the_general_path(case, method, alpha):
-    """The kernel's closed forms, grasp frame and contact onset against allocate() (the
-    Gram-matrix general path, with the world directions of hapticd.actuation), which runs
-    when the kernel declines (a kernel that always returns MANY_CONTACTS): the same forces
-    to rounding, near singular configurations too."""
+def test_the_kernel_equals_allocate_with_contact_onset(case, method, alpha):
+    """The kernel's closed forms and general path, grasp frame and contact onset against
+    allocate() (with the world directions of hapticd.actuation) on the contacts, blended
+    at onset: the same forces to rounding, near singular configurations too; adaptive with
+    the kernel's alpha of the tick; within the documented bounds (compiled, the same bits:
+    the tests above)."""
     case = {**case, "method": method}
-    got = {}
-    for name, kernel in (("kernel", None), ("general", lambda *a: kernels.MANY_CONTACTS)):
-        stage, frame = _stage(case, kernel)
-        stage.allocator.adaptive = AdaptiveState(alpha=alpha, time_constant_s=1e9)
-        try:
-            stage.run(frame)
-        except AllocationError as e:
-            got[name] = str(e)
-            continue
-        got[name] = (frame.lam_a.copy(), frame.rendered_force.copy())
-    if isinstance(got["kernel"], str) or isinstance(got["general"], str):
-        assert got["kernel"] == got["general"]
+    stage, frame = _stage(case, None)
+    stage.allocator.adaptive = AdaptiveState(alpha=alpha, time_constant_s=1e9)
+    try:
+        stage.run(frame)
+    except AllocationError:  # then allocate() refuses, or gives a non-finite force
+        with np.errstate(all="ignore"):
+            try:
+                x, _ = _allocate_with_onset(case, stage.allocator.alpha)
+            except AllocationError:
+                return
+        assert not np.all(np.isfinite(x))
         return
+    assert abs(stage.allocator.alpha - alpha) <= 1e-11
+    x, rendered = _allocate_with_onset(case, stage.allocator.alpha)
     lam = np.abs(np.array(case["frame_fields"]["contact_force"])).max()
-    for k, g in zip(got["kernel"], got["general"], strict=True):
+    for k, g in ((frame.lam_a, x), (frame.rendered_force, rendered)):
         scale = max(lam, np.abs(g).max(), 1e-300)
         np.testing.assert_allclose(k, g, rtol=0, atol=1e-9 * scale)
+    # Finite, and within docs/allocation.md's bound (adaptive: the larger of IF's and EF's)
+    # of the whole grasp: the onset blend, a mix of two allocations, stays within it too.
+    contacts = [i for i, on in enumerate(case["frame_fields"]["in_contact"]) if on]
+    if contacts:
+        fields = case["frame_fields"]
+        G = grasp_matrix(np.asarray(fields["contact_point"], dtype=float)[contacts], case["center"])
+        M = np.eye(3 * len(contacts))  # sigma_max of one unit direction per finger: 1
+        forces = np.asarray(fields["contact_force"], dtype=float)[contacts]
+        names = ["if", "ef"] if method == "adaptive" else [method]
+        limit = max(bound(name, G, M) for name in names) * np.linalg.norm(forces)
+        assert np.all(np.isfinite(frame.lam_a))
+        assert np.linalg.norm(frame.rendered_force) <= limit * (1 + 1e-9) + 1e-300
 
 
-@given(grasps(), st.sampled_from(["pinv_exact", "if_exact"]))
+@given(grasps(max_fingers=3), st.sampled_from(["pinv_exact", "if_exact"]))
 def test_methods_the_kernel_does_not_compute_run_the_general_path(compiled, case, method):
     case = {**case, "method": method}
     _assert_same(_outputs(case, None), _outputs(case, compiled))
 
 
-def test_three_contacts_and_several_directions_run_the_general_path(compiled):
-    """Three contacts: the kernel returns without writing and the stage's Python code runs;
-    two directions on a finger: the kernel is not even called."""
+def test_three_contacts_run_in_the_kernel_and_several_directions_run_allocate(compiled):
+    """Three contacts: the kernel allocates them (the squeeze along x whole, nothing for
+    the third finger's vertical actuator to render), compiled and not alike; two directions
+    on a finger: the kernel is not even called."""
     case = {
         "n": 3,
         "robust": Robustness(),
@@ -201,20 +252,20 @@ def test_three_contacts_and_several_directions_run_the_general_path(compiled):
         },
     }
     ref = _outputs(case, None)
-    # The squeeze along x is rendered whole; the third finger's vertical actuator has no
-    # vertical force to render (0 within rounding: its exact value is the library's).
     assert not isinstance(ref, str)
     np.testing.assert_allclose(ref["lam_a"], [1.0, 1.0, 0.0], rtol=0, atol=1e-12)
     _assert_same(ref, _outputs(case, compiled))
     calls = []
     stage, three = _stage(case, lambda *a: calls.append(a) or kernels.ALLOCATED)
+    stage.run(three)
+    assert len(calls) == 1
     stage.allocator.actuation = Actuation([[(1, 0, 0), (0, 1, 0)], [(1, 0, 0)], [(0, 0, 1)]])
     frame = Frame(3, 4)
     for name in case["frame_fields"]:
         getattr(frame, name)[...] = getattr(three, name)
     frame.in_contact[2] = 0
     stage.run(frame)
-    assert calls == []
+    assert len(calls) == 1
     # thumb x, thumb y, index x, the third finger (not in contact): the squeeze whole, no
     # y force to render, nothing for a finger out of contact.
     np.testing.assert_allclose(frame.lam_a, [1.0, 0.0, -1.0, 0.0], rtol=0, atol=1e-12)
@@ -331,26 +382,97 @@ def test_rare_branches_of_the_closed_forms_give_the_same_bits(compiled, name):
     _assert_same(ref, _outputs(BRANCHES[name], compiled))
 
 
-@given(grasps())
-def test_the_kernels_outcomes_leave_the_frame_untouched_when_they_refuse(compiled, case):
-    """MANY_CONTACTS and the non-finite outcomes write nothing: the Python code (or the
-    error) has the frame as the stages before left it."""
-    n = case["n"]
-    assume(n == 3)
-    fields = {**case["frame_fields"], "in_contact": [1, 1, 1]}
-    _, frame = _stage({**case, "frame_fields": fields}, compiled)
+@settings(max_examples=30)  # an early return: few cases cover it
+@given(grasps(), st.sampled_from([math.nan, math.inf]), st.floats(0.0, 1.0))
+def test_the_kernels_refusals_leave_the_frame_and_alpha_untouched(compiled, case, bad, alpha):
+    """A non-finite contact force refused (two to five contacts, adaptive): nothing written,
+    alpha as it was."""
+    fields = {**case["frame_fields"], "in_contact": [1] * case["n"]}
+    stage, frame = _stage({**case, "method": "adaptive", "frame_fields": fields}, compiled)
+    frame.contact_force[-1, 0] = bad
     for name in OUTPUTS:
         getattr(frame, name)[...] = 7.0
+    alloc = stage.allocator
+    alloc.alpha = alpha
+    local, params = alloc.kernel_inputs()
     outcome = compiled(
         frame.in_contact,
         frame.device_pos,
         frame.contact_point,
         frame.contact_force,
-        np.array(case["local"], dtype=float),
-        np.zeros(kernels.ALLOCATION_PARAMS),
+        local,
+        params,
+        alloc.state,
         frame.lam_a,
         frame.rendered_force,
         np.zeros(kernels.ACCURACY),
+        alloc.work,
     )
-    assert outcome == kernels.MANY_CONTACTS
+    assert outcome == kernels.NON_FINITE_INPUT
     assert np.all(frame.lam_a == 7.0) and np.all(frame.rendered_force == 7.0)
+    assert alloc.alpha == alpha
+
+
+def _three_finger_sweep(name: str, t: float) -> dict:
+    """Three fingers on a 50 mm grasp through a rank change at t = 0: the third contact
+    crossing the line of the other two ("collinear": the soft internal projector blends),
+    or every direction turning vertical ("vertical": B = P_int M_a loses rank)."""
+    points = [[-0.025, 0.0, 0.0], [0.025, 0.0, 0.0], [0.0, 0.02, 0.0]]
+    inward = [(1.0, 0.0), (-1.0, 0.0), (0.0, -1.0)]
+    tilt = 0.6
+    if name == "collinear":
+        points[2][1] = t
+    else:
+        tilt = np.sin(t)
+    local = [np.array([tilt * x, tilt * y, np.sqrt(1.0 - tilt * tilt)]) for x, y in inward]
+    return {
+        "n": 3,
+        "robust": Robustness(),
+        "method": "if",
+        "frame": "world",
+        "local": local,
+        "center": np.zeros(3),
+        "frame_fields": {
+            "in_contact": [1, 1, 1],
+            "device_pos": points,
+            "contact_point": points,
+            "contact_force": [[1.0, 0.2, 0.3], [-1.0, 0.1, 0.3], [0.1, -0.8, 0.3]],
+        },
+    }
+
+
+@pytest.mark.parametrize("method", ["if", "ef", "adaptive"])  # pinv: no G, one M per finger
+@pytest.mark.parametrize("name", ["collinear", "vertical"])
+def test_the_kernel_is_continuous_through_rank_changes_of_three_contacts(compiled, name, method):
+    """Compiled, through t = 0 on a coarse grid and one ten times finer around it: a
+    continuous map's largest step shrinks with the grid, a jump would not; uncompiled, the
+    same bits on every tenth point."""
+
+    def sweep(ts, kernel) -> np.ndarray:
+        stage, frame = _stage({**_three_finger_sweep(name, 0.0), "method": method}, kernel)
+        local, params = stage.allocator.kernel_inputs()
+        params[5:8] = 0.0  # the grasp's reference point
+        rows = []
+        for t in ts:
+            case = _three_finger_sweep(name, float(t))
+            frame.contact_point[...] = case["frame_fields"]["contact_point"]
+            local[...] = case["local"]
+            stage.allocator.alpha = 0.0  # each point its own first tick
+            outcome = stage.kernel(
+                frame.in_contact, frame.device_pos, frame.contact_point, frame.contact_force,
+                local, params, stage.allocator.state, frame.lam_a, frame.rendered_force,
+                np.zeros(kernels.ACCURACY), stage.allocator.work,
+            )  # fmt: skip
+            assert outcome == kernels.ALLOCATED
+            rows.append(frame.lam_a.copy())
+        return np.array(rows)
+
+    coarse = np.linspace(-0.05, 0.05, 1001)
+    fine = np.linspace(-0.005, 0.005, 1001)
+    vals, near = sweep(coarse, compiled), sweep(fine, compiled)
+    assert np.all(np.isfinite(vals)) and np.abs(vals).max() < 10.0
+    jump_coarse = np.abs(np.diff(vals, axis=0)).max()
+    jump_fine = np.abs(np.diff(near, axis=0)).max()
+    assert jump_fine < 0.2 * jump_coarse + 1e-12
+    assert jump_coarse < 0.05
+    np.testing.assert_array_equal(sweep(fine[::10], kernels.allocation_step), near[::10])

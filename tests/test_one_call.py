@@ -1,10 +1,11 @@
 """The renderer's plan as one call per tick (hapticd.render.OneCall, hapticd.kernels.tick_step)
 against the same plan in parts (a probe stage inserted after every stage, so that the call
 runs each stage as a part of its own): the same frame, tick after tick, for the bundled
-profiles' scenes, a free object pushed onto the ground, three fingers (whose ticks with
-three contacts the allocation stage allocates between the call's parts) and a material set
-between ticks; the environment's and the passivity controller's forces against their
-definitions (a projector onto the span of the actuated directions, hapticd.passivity.step).
+profiles' scenes, a free object pushed onto the ground, three fingers, the adaptive
+allocator and a material set between ticks; three and five fingers holding a cube run
+every tick as one call, their forces allocate()'s; the environment's and the passivity
+controller's forces against their definitions (a projector onto the span of the actuated
+directions, hapticd.passivity.step).
 """
 
 from __future__ import annotations
@@ -138,9 +139,9 @@ def _projected(frame: Frame, act: Actuation, force: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("fixed", [True, False])
 def test_a_grasp_on_the_ground_renders_the_same_in_one_call(n_fingers, fixed, compiled):
     """Friction, the ground's force through the actuated directions (two of them for the
-    first finger) and their sum, the free body's step; with three fingers the ticks with
-    three contacts are allocated by the allocation stage between the call's parts, and the
-    call takes the next tick whole again. The environment's force is its projection."""
+    first finger, whose allocation then runs between the call's parts) and their sum, the
+    free body's step; with three fingers, ticks with three contacts too. The environment's
+    force is its projection."""
     directions = [[(0.6, 0.0, 0.8), (0.0, 1.0, 0.0)], [(0.0, 1.0, 0.0)], [(0.0, 0.6, 0.8)]]
     directions[0] = directions[0][:1] if n_fingers == 3 else directions[0]
     act = Actuation(copy.deepcopy(directions[:n_fingers]), "world")
@@ -163,6 +164,69 @@ def test_a_grasp_on_the_ground_renders_the_same_in_one_call(n_fingers, fixed, co
         np.testing.assert_allclose(f.env_rendered, expected, rtol=0, atol=1e-12)
         ground += bool(np.abs(f.env_force).max() > 0.01)
     assert max(contacts) == n_fingers and 0 in contacts and ground > 10
+
+
+def test_an_adaptive_plan_runs_as_one_call_alpha_too(compiled):
+    """adaptive's alpha moves inside the call (on the tick's contact forces): the frame,
+    alpha included, equals the call in parts tick by tick, through three contacts and
+    release."""
+
+    def make() -> Renderer:
+        act = Actuation([[(0.6, 0.0, 0.8)], [(0.0, 1.0, 0.0)], [(0.0, 0.6, 0.8)]], "world")
+        return Renderer(_scene(False), [0.008] * 3, act, "adaptive", dt=1e-3)
+
+    one, staged = _pair(make, {n: compiled[n] for n in make().kernel_names})
+    assert len(one.one_call._parts) == 1
+    alphas = []
+    for k, (pos, vel) in enumerate(_squeeze(3, 240)):
+        _same(one, staged, pos, vel, k)
+        alphas.append(float(one.frame.alpha))
+    assert max(alphas) > 0.01  # alpha moved
+
+
+@pytest.mark.parametrize("n_fingers", [3, 5])
+def test_many_fingers_run_every_tick_as_one_call_with_allocates_forces(n_fingers, compiled):
+    """Fingers closing on a free cube and holding it (every finger in contact): no tick is
+    handed back (the safety chain's flags come back every tick), and lam_a and the
+    allocated force are allocate()'s on the same tick's contacts, with contact onset,
+    to 1e-9 N."""
+    from hapticd.safety import SafetyChain
+    from tests.test_kernel_allocation import _allocate_with_onset
+
+    angles = np.linspace(0.0, 2 * np.pi, n_fingers, endpoint=False)
+    dirs = [[(float(-0.8 * np.cos(a)), float(-0.8 * np.sin(a)), 0.6)] for a in angles]
+    r = Renderer(_scene(False), [0.008] * n_fingers, Actuation(dirs, "world"), "if", dt=1e-3)
+    r.use_kernels({n: compiled[n] for n in r.kernel_names})
+    safety = SafetyChain([8.0] * n_fingers, dt=1e-3)
+    safety.use_kernels({"safety_step": compiled["safety_step"]})
+    safety.start(0.0)
+    frame = r.frame
+    held = 0
+    for k, (pos, _) in enumerate(_squeeze(n_fingers, 200)):
+        frame.device_pos[...] = pos
+        center = r.obj.position.copy()  # the grasp's reference point: before the dynamics
+        flags = r.run(frame, safety if safety.ready(k * 1e-3) else None)
+        assert flags is not None, f"tick {k} handed back"
+        safety.done(flags, None)
+        case = {
+            "n": n_fingers,
+            "robust": r.allocator.robust,
+            "method": "if",
+            "frame": "world",
+            "local": [np.array(d[0]) for d in dirs],
+            "center": center,
+            "frame_fields": {
+                "in_contact": frame.in_contact.tolist(),
+                "device_pos": frame.device_pos.copy(),
+                "contact_point": frame.contact_point.copy(),
+                "contact_force": frame.contact_force.copy(),
+            },
+        }
+        x, rendered = _allocate_with_onset(case, 0.0)
+        np.testing.assert_allclose(frame.lam_a, x, rtol=0, atol=1e-9, err_msg=f"tick {k}")
+        np.testing.assert_allclose(frame.allocated_force, rendered, rtol=0, atol=1e-9)
+        held += bool(frame.in_contact.all())
+    assert held > 20
 
 
 def test_a_material_set_between_ticks_is_the_next_ticks(compiled):
@@ -198,8 +262,8 @@ def test_non_finite_inputs_are_refused_by_name(compiled):
 
 
 def test_every_plan_runs_as_the_call_with_its_python_stages_between_parts(compiled):
-    """Allocation the kernel does not take (two directions on a finger, adaptive, the seed's
-    exact formulas) runs between the call's parts; passivity is in the call."""
+    """Allocation the kernel does not take (two directions on a finger, the seed's exact
+    formulas) runs between the call's parts; adaptive and passivity are in the call."""
     end = kn.STAGE_END
     act = Actuation([[(1.0, 0.0, 0.0), (0.0, 1.0, 0.0)], [(-1.0, 0.0, 0.0)]], "world")
     two_directions = Renderer(_box(True), [0.008, 0.008], act, "if", dt=1e-3)
@@ -213,7 +277,7 @@ def test_every_plan_runs_as_the_call_with_its_python_stages_between_parts(compil
     act = Actuation([[(1.0, 0.0, 0.0)], [(-1.0, 0.0, 0.0)]], "world")
     r = Renderer(_box(True), [0.008, 0.008], act, "if", dt=1e-3)
     r.use_kernels({n: compiled[n] for n in r.kernel_names})
-    for method, whole in (("if", True), ("adaptive", False), ("ef_exact", False), ("ef", True)):
+    for method, whole in (("if", True), ("adaptive", True), ("ef_exact", False), ("ef", True)):
         r.set_param("allocator", method)
         r.step(np.zeros((2, 3)), np.zeros((2, 3)))
         assert (len(r.one_call._parts) == 1) is whole, method
@@ -326,23 +390,27 @@ def test_python_mode_runs_the_same_call_uncompiled(profile, compiled):
     assert touched > 5
 
 
-def test_the_call_with_the_safety_chain_allocates_nothing_a_tick(compiled):
+@pytest.mark.parametrize("n_fingers", [2, 5])
+def test_the_call_with_the_safety_chain_allocates_nothing_a_tick(n_fingers, compiled):
     """The hot path allocates no Python object a tick: over 500 ticks of a held free cube on
-    the ground (every stage, the safety chain's tick in the call), no memory block that
-    hapticd's code allocated is left or grew. (numba's own unboxing of each array argument
-    is C memory it frees on return, outside Python's allocator.)"""
+    the ground (every stage, the safety chain's tick in the call; with five fingers the
+    general path of allocation and adaptive's alpha), no memory block that hapticd's code
+    allocated is left or grew. (numba's own unboxing of each array argument is C memory
+    it frees on return, outside Python's allocator.)"""
     import tracemalloc
 
     from hapticd.safety import SafetyChain
 
-    act = Actuation([[(0.6, 0.0, 0.8)], [(0.0, 1.0, 0.0)]], "world")
-    r = Renderer(_scene(False), [0.008, 0.008], act, "if", dt=1e-3)
+    angles = np.linspace(0.0, 2 * np.pi, n_fingers, endpoint=False)
+    dirs = [[(float(-0.8 * np.cos(a)), float(-0.8 * np.sin(a)), 0.6)] for a in angles]
+    method = "if" if n_fingers == 2 else "adaptive"
+    r = Renderer(_scene(False), [0.008] * n_fingers, Actuation(dirs, "world"), method, dt=1e-3)
     r.use_kernels({n: compiled[n] for n in r.kernel_names})
-    safety = SafetyChain([8.0, 8.0], dt=1e-3)
+    safety = SafetyChain([8.0] * n_fingers, dt=1e-3)
     safety.use_kernels({"safety_step": compiled["safety_step"]})
     safety.start(0.0)
     frame = r.frame
-    path = _squeeze(2, 1000)  # both fingers hold the cube until tick 750
+    path = _squeeze(n_fingers, 1000)  # every finger holds the cube until tick 750
 
     def tick(k: int) -> None:
         frame.device_pos[...] = path[k][0]

@@ -4,8 +4,8 @@ Solves lam ~= M_a @ lam_a for the actuator forces lam_a. Shapes: G (6, 3p),
 M_a (3p, r), lam (3p,), lam_a (r,); forces in N. ``allocate_many`` does the
 same for a batch of N grasps (G (N, 6, 3p), lam (N, 3p), M_a per grasp or
 shared); both run the one definition of each method in ``hapticd.allocation.batch``
-(``allocate`` with N = 1), whose two-contact closed forms are ``closed``'s, the
-same functions the servo loop's kernel compiles.
+(``allocate`` with N = 1): the two-contact closed forms of ``closed`` and the general
+path of ``general``, the same functions the servo loop's kernel compiles.
 ``lam`` may be the force on the object (the seed's convention) or on the
 finger (hapticd's): every allocator is linear, so flipping its sign flips lam_a.
 

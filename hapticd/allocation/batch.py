@@ -2,29 +2,28 @@
 
 Shapes: G (N, 6, 3p), M_a (N, 3p, r) or shared (3p, r), lam (N, 3p) -> lam_a (N, r);
 forces in N, lengths in m. Pure: numpy in, numpy out. ``allocate()`` is this with
-N = 1; ``allocate_many`` runs it on a batch (in chunks); the servo loop's Allocation
-stage runs it for the grasps its kernel does not take.
+N = 1; ``allocate_many`` runs it on a batch (in chunks).
 
 - two contacts with one direction each run the closed forms of
   ``hapticd.allocation.closed``, elementwise over the batch (the same code the
   kernel compiles, on arrays);
-- every other grasp takes the general path on Gram matrices: a filtered
-  pseudoinverse g(s) = 1/s or s/eps^2 of A is F(A^T A) A^T with F the spectral
-  function 1/max(l, eps^2) of the Gram matrix. Where every eigenvalue is at
-  least eps^2 (most grasps) F is the plain inverse, by cofactors for r <= 3;
-  the rest take a stacked ``eigh`` (never an SVD). The soft internal projector
-  is I - (1/p) sum of force blocks - Gm^T F(Gm Gm^T) Gm, since about the
-  contacts' centroid the weighted G's Gram matrix is block diagonal
-  (p I3, Gm Gm^T);
+- every other grasp takes the general path, ``hapticd.allocation.general`` (the
+  filtered pseudoinverses on Gram matrices, the soft internal projector, IF's
+  projector form: the same function the servo loop's kernel calls for three or
+  more contacts): on the whole batch elementwise (each workspace entry an (N,)
+  array), on floats for one grasp, or compiled grasp by grasp with ``kernel``
+  (``hapticd.kernels.allocate_grasps``);
 - the exact (seed) methods call ``hapticd.allocation.exact`` grasp by grasp.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from hapticd import params
-from hapticd.allocation import exact
+from hapticd.allocation import exact, general
 from hapticd.allocation.closed import CODES, adaptive_mix, two_contact
 from hapticd.allocation.robust import (
     DEFAULT_ROBUSTNESS,
@@ -35,6 +34,10 @@ from hapticd.allocation.robust import (
 _METHODS: tuple[str, ...] = tuple(params.ALLOCATORS)
 _EXACT = tuple(m for m in _METHODS if m.endswith("_exact"))
 CHUNK = 1024  # grasps per internal pass of allocate_many
+# From this many grasps on, the general path runs on the whole batch elementwise; fewer run
+# one by one on floats (cheaper below about 10 grasps here: the elementwise pass costs 2-20
+# ms whatever the batch, a grasp on floats 0.3-2 ms).
+STACK_MIN = 10
 
 # -- validation -------------------------------------------------------------------------------
 
@@ -112,174 +115,43 @@ def _two_contact_v(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, r
     return np.reshape(x0, -1), np.reshape(x1, -1)
 
 
-# -- the general path on Gram matrices --------------------------------------------------------
+# -- the general path: hapticd.allocation.general's, grasp by grasp --------------------------
 
 
-def _tr(A: np.ndarray) -> np.ndarray:
-    return np.swapaxes(A, -1, -2)
-
-
-def _gram(A: np.ndarray) -> np.ndarray:
-    """A^T A on stacks (a contiguous A^T: matmul is twice as fast as with a transposed view)."""
-    return np.ascontiguousarray(_tr(A)) @ A
-
-
-def _spectral(f: np.ndarray, V: np.ndarray) -> np.ndarray:
-    """V diag(f) V^T on stacks."""
-    return (V * f[..., None, :]) @ _tr(V)
-
-
-def _finv_eigh(K: np.ndarray, eps2: float) -> np.ndarray:
-    lk, V = np.linalg.eigh(K)
-    return _spectral(1.0 / np.maximum(lk, eps2), V)
-
-
-def _solve_regular(K: np.ndarray, y: np.ndarray, eps2: float) -> tuple[np.ndarray, np.ndarray]:
-    """(K^-1 y, regular) for stacks of symmetric K (N, r, r), r <= 3, and y (N, r), by cofactors.
-
-    ``regular`` marks K - eps^2 I positive definite (Sylvester: leading minors > 0),
-    where the filtered inverse is the plain inverse; elsewhere the result is garbage.
-    """
-    N, r, _ = K.shape
-    k = K.reshape(N, r * r).T.copy()  # contiguous rows: strided columns are slow
-    v = y.T.copy()
-    if r == 1:
-        return (v[0] / np.maximum(k[0], eps2))[:, None], np.ones(N, dtype=bool)
-    if r == 2:
-        a, b, d = k[0], k[2], k[3]
-        ae = a - eps2
-        regular = (ae > 0.0) & (ae * (d - eps2) - b * b > 0.0)
-        det = np.where(regular, a * d - b * b, 1.0)
-        return np.stack([d * v[0] - b * v[1], a * v[1] - b * v[0]], -1) / det[:, None], regular
-    a, b, c, d, e, f = k[0], k[3], k[6], k[4], k[7], k[8]
-    ae, de, fe = a - eps2, d - eps2, f - eps2
-    m3 = ae * (de * fe - e * e) + b * (c * e - b * fe) + c * (b * e - c * de)
-    regular = (ae > 0.0) & (ae * de - b * b > 0.0) & (m3 > 0.0)
-    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
-    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = np.where(regular, a * c00 + b * c01 + c * c02, 1.0)
-    x = np.stack(
-        [
-            c00 * v[0] + c01 * v[1] + c02 * v[2],
-            c01 * v[0] + c11 * v[1] + c12 * v[2],
-            c02 * v[0] + c12 * v[1] + c22 * v[2],
-        ],
-        -1,
-    )
-    return x / det[:, None], regular
-
-
-def _finv_apply(K: np.ndarray, y: np.ndarray, eps2: float) -> np.ndarray:
-    """F(K) y for stacks of symmetric PSD K (N, r, r) or one shared (r, r), y (N, r).
-
-    F is the filtered inverse, eigenvalue l -> 1/max(l, eps^2); F(A^T A) A^T is the
-    filtered pseudoinverse sum g(s) v u^T of A, g(s) = 1/s or s/eps^2. Where every
-    eigenvalue is >= eps^2, F(K) = K^-1 (cofactors for r <= 3, much cheaper than a
-    stacked eigh); the others take the eigendecomposition.
-    """
-    if K.ndim == 2:
-        return y @ _finv_eigh(K, eps2).T
-    if K.shape[-1] > 3:
-        return _mv(_finv_eigh(K, eps2), y)
-    x, regular = _solve_regular(K, y, eps2)
-    if not regular.all():
-        odd = np.flatnonzero(~regular)
-        x[odd] = _mv(_finv_eigh(K[odd], eps2), y[odd])
-    return x
-
-
-def _mv(A: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """A @ x on stacks: A (..., m, n), x (..., n) -> (..., m)."""
-    return (A @ x[..., None])[..., 0]
-
-
-def _soft_internal_projector_v(G: np.ndarray, robust: Robustness) -> np.ndarray:
-    """Stacked soft_internal_projector (N, 3p, 3p), from the Gram matrix of the weighted G.
-
-    About the centroid Gw Gw^T = diag(p I3, Gm Gm^T), so the SVD form
-    V diag(1 - min(1, s^2/eps^2)) V^T equals I - (1/p) Gf^T Gf - Gm^T F(Gm Gm^T) Gm.
-    """
-    N, _, n = G.shape
-    p = n // 3
-    pts = np.stack([G[:, 5, 1::3], G[:, 3, 2::3], G[:, 4, 0::3]], axis=-1)  # (N, p, 3)
-    c = (pts - pts.mean(axis=1, keepdims=True)) / robust.length_scale_m
-    x, y, z = c[..., 0], c[..., 1], c[..., 2]
-    # Moment rows of Gw: block i is S(c_i) = [[0, -z, y], [z, 0, -x], [-y, x, 0]].
-    S = np.zeros((N, 3, p, 3))
-    S[:, 0, :, 1], S[:, 0, :, 2] = -z, y
-    S[:, 1, :, 0], S[:, 1, :, 2] = z, -x
-    S[:, 2, :, 0], S[:, 2, :, 1] = -y, x
-    Gm = S.reshape(N, 3, n)
-    eps2 = robust.eps * robust.eps
-    out = np.eye(n) - np.tile(np.eye(3) / p, (p, p))  # minus the mean of the force blocks
-    return out - _tr(Gm) @ _finv_eigh(_gram(_tr(Gm)), eps2) @ Gm
+def _items(a: np.ndarray) -> memoryview:
+    """A C-contiguous float64 array as a memoryview of its memory and shape: its items are
+    Python floats, several times quicker in the interpreter's loops than numpy's scalars."""
+    return memoryview(a).cast("B").cast("d", a.shape)
 
 
 def _general(
-    method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness
+    method: str,
+    G: np.ndarray,
+    M: np.ndarray,
+    lam: np.ndarray,
+    robust: Robustness,
+    kernel: Callable[..., None] | None,
 ) -> np.ndarray:
-    """Robust pinv / ef / if on stacks; M (N, n, r) or shared (n, r)."""
-    eps2 = robust.eps * robust.eps
-    if method == "pinv":
-        # M^T M is the same for every grasp when M_a is shared: one eigh for the batch.
-        return _finv_apply(_gram(M), lam @ M if M.ndim == 2 else _mv(_tr(M), lam), eps2)
-    if method == "ef":
-        A = G @ M
-        return _finv_apply(_gram(A), _mv(_tr(A), _mv(G, lam)), eps2)
-    if G.shape[-1] == 6 and M.shape[-1] <= 3:
-        return _if_two(G, M, lam, robust)
-    return _if_soft(G, M, lam, robust)
-
-
-def _if_soft(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) -> np.ndarray:
-    """Robust IF: lam_a = x1 + P (M_a P)^+ (lam - M_a x1), x1 = B^+ P_int lam, B = P_int M_a,
-    P = I - B^+ B, with filtered pseudoinverses and the soft internal projector P_int."""
-    eps2 = robust.eps * robust.eps
-    P_int = _soft_internal_projector_v(G, robust)
-    B = P_int @ M
-    lb, VB = np.linalg.eigh(_gram(B))
-    FB = _spectral(1.0 / np.maximum(lb, eps2), VB)
-    x1 = _mv(FB @ _tr(B), _mv(P_int, lam))
-    # P = I - B^+ B = I - phi(B^T B), phi(l) = min(1, l / eps^2): B^+ B's eigenvalues g(s) s.
-    P = np.eye(M.shape[-1]) - _spectral(np.clip(lb / eps2, 0.0, 1.0), VB)
-    P = 0.5 * (P + _tr(P))
-    MP = M @ P
-    rest = lam - _mv(M, x1)
-    return x1 + _mv(P, _finv_apply(_gram(MP), _mv(_tr(MP), rest), eps2))
-
-
-def _if_two(G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness) -> np.ndarray:
-    """Robust IF for two contacts at least min_separation_m apart, any r <= 3 directions.
-
-    There P_int = n n^T with n = (e, -e)/sqrt(2), e the grasp line, so B = n b^T with
-    b = M^T n: B's filtered pseudoinverse is h(|b|^2) b n^T and P = I - h(|b|^2) b b^T,
-    h(l) = 1/max(l, eps^2). When |b| >= eps, P projects b out, and M P's Gram matrix
-    gets b b^T / |b|^2 added (an eigenvalue 1 on b, where nothing is applied) so
-    that it can be inverted. Grasps with closer contacts, or a Gram matrix with an
-    eigenvalue below eps^2, take ``_if_soft``.
-    """
-    eps2 = robust.eps * robust.eps
-    dvec = np.stack([G[:, 5, 4] - G[:, 5, 1], G[:, 3, 5] - G[:, 3, 2], G[:, 4, 3] - G[:, 4, 0]], -1)
-    dist = np.sqrt(np.einsum("ni,ni->n", dvec, dvec))
-    apart = dist >= robust.min_separation_m
-    e = dvec / np.where(apart, dist, 1.0)[:, None]
-    n = np.concatenate([e, -e], axis=-1) * np.sqrt(0.5)
-    b = _mv(_tr(M), n)
-    bb = np.einsum("ni,ni->n", b, b)
-    hb = 1.0 / np.maximum(bb, eps2)
-    x1 = (hb * np.einsum("ni,ni->n", n, lam))[:, None] * b
-    bbt = b[:, :, None] * b[:, None, :]
-    P = np.eye(M.shape[-1]) - hb[:, None, None] * bbt
-    MP = M @ P
-    K2 = _gram(MP)
-    full = bb >= eps2
-    K2 = K2 + (full / np.where(full, bb, 1.0))[:, None, None] * bbt
-    rest = lam - _mv(M, x1)
-    y2, regular = _solve_regular(K2, _mv(_tr(MP), rest), eps2)
-    out = x1 + _mv(P, y2)
-    odd = np.flatnonzero(~(apart & regular))
-    if odd.size:
-        out[odd] = _if_soft(G[odd], M if M.ndim == 2 else M[odd], lam[odd], robust)
+    """Robust pinv / ef / if on stacks, M (N, n, r) or shared (n, r): ``general.general``,
+    compiled grasp by grasp (``kernel``: hapticd.kernels.allocate_grasps), else on the whole
+    batch elementwise (fewer than STACK_MIN grasps: one by one on floats)."""
+    N, _, n = G.shape
+    r = M.shape[-1]
+    code = CODES.index(method)
+    eps, sep = robust.eps, robust.min_separation_m
+    if kernel is None and N >= STACK_MIN:  # the whole batch at once, elementwise
+        return general.solve_stack(code, G, M, lam, eps, sep)
+    args = [
+        np.ascontiguousarray(G),
+        np.ascontiguousarray(M if M.ndim == 3 else M[None]),
+        np.ascontiguousarray(lam),
+        np.zeros(N),
+    ]
+    out, work = np.zeros((N, r)), np.zeros(general.work_shape(n, r))
+    if kernel is not None:
+        kernel(code, *args, eps, sep, out, work)
+    else:  # a few grasps, one by one on floats (as the kernel runs it)
+        general.solve_grasps(code, *map(_items, args), eps, sep, _items(out), _items(work))
     return out
 
 
@@ -296,11 +168,16 @@ def _exact(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray) -> np.nda
 
 
 def filtered_pinv(A: np.ndarray, eps: float) -> np.ndarray:
-    """Filtered pseudoinverse of A (m, n): sum g(s_i) v_i u_i^T, shape (n, m)."""
+    """Filtered pseudoinverse of A (m, n): sum g(s_i) v_i u_i^T, shape (n, m) (``general``'s
+    pinv applied to each unit vector)."""
     A = np.atleast_2d(np.asarray(A, dtype=float))
+    m, n = A.shape
     if A.size == 0:
-        return np.zeros((A.shape[1], A.shape[0]))
-    return _finv_eigh(_gram(A), eps * eps) @ A.T
+        return np.zeros((n, m))
+    G = np.zeros((m, 6, m))  # unused by pinv
+    lam = np.eye(m)
+    out = _general("pinv", G, A, lam, Robustness(eps=eps), None)
+    return out.T.copy()
 
 
 def soft_internal_projector(G: np.ndarray, robust: Robustness = DEFAULT_ROBUSTNESS) -> np.ndarray:
@@ -311,19 +188,37 @@ def soft_internal_projector(G: np.ndarray, robust: Robustness = DEFAULT_ROBUSTNE
     contacts also need to be far from collinear (a rotation about their near-common
     line has almost no lever). As contacts approach such a configuration, directions
     whose moment lever vanishes blend in continuously. Computed about the contacts'
-    centroid with moments weighted by 1/L (N(G) depends on neither).
+    centroid with moments weighted by 1/L (N(G) depends on neither): ``general``'s.
     """
     G = np.asarray(G, dtype=float)
-    if G.shape[1] == 0:
+    n = G.shape[1]
+    if n == 0:
         return np.zeros((0, 0))
-    return _soft_internal_projector_v(G[None], robust)[0]
+    w = np.zeros(general.work_shape(n, 1))
+    w[0:6, :n] = G
+    general.soft_prepare(w, n, robust.eps, robust.min_separation_m)
+    out = np.empty((n, n))
+    eps2 = robust.eps * robust.eps
+    src, dst = w.shape[0] - 2, w.shape[0] - 1
+    for k in range(n):
+        w[src, :n] = 0.0
+        w[src, k] = 1.0
+        general.soft_apply(w, n, eps2, src, dst)
+        out[:, k] = w[dst, :n]
+    return out
 
 
 # -- public API -------------------------------------------------------------------------------
 
 
 def _robust_many(
-    method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, robust: Robustness, fast: bool
+    method: str,
+    G: np.ndarray,
+    M: np.ndarray,
+    lam: np.ndarray,
+    robust: Robustness,
+    fast: bool,
+    kernel: Callable[..., None] | None = None,
 ) -> np.ndarray:
     """Robust pinv / if / ef: the closed form for two contacts with one direction each
     (two_contact_structure's case; ``fast`` False: never), else the general path."""
@@ -342,9 +237,9 @@ def _robust_many(
             Ms = np.broadcast_to(M, (N, 6, 2))[idx]
             out[idx] = np.stack(_two_contact_v(method, G[idx], Ms, lam[idx], robust), -1)
         Mr = M if M.ndim == 2 else M[rest]
-        out[rest] = _general(method, G[rest], Mr, lam[rest], robust)
+        out[rest] = _general(method, G[rest], Mr, lam[rest], robust, kernel)
         return out
-    return _general(method, G, M, lam, robust)
+    return _general(method, G, M, lam, robust, kernel)
 
 
 def allocate_many(
@@ -355,6 +250,7 @@ def allocate_many(
     *,
     robust: Robustness = DEFAULT_ROBUSTNESS,
     alpha: float | np.ndarray = 0.0,
+    kernel: Callable[..., None] | None = None,
 ) -> np.ndarray:
     """Actuator forces lam_a (N, r) N for a batch of N grasps, equal to ``allocate()`` one by one.
 
@@ -362,7 +258,9 @@ def allocate_many(
     (3p, r) actuated directions, lam (N, 3p) contact forces in N. ``alpha`` (a
     scalar or (N,), each in [0, 1]) is the external-force weight of ``adaptive``.
     Raises AllocationError (a ValueError) on an unknown method, a shape that does
-    not match, NaN or inf, or alpha outside [0, 1].
+    not match, NaN or inf, or alpha outside [0, 1]. ``kernel``: the general path compiled
+    (``hapticd.jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]``), far quicker
+    on grasps the two-contact closed forms do not take; None: the same code uncompiled.
     """
     G, M, lam, a = _check(method, G, M_a, lam, alpha)
     N, _, n = G.shape
@@ -370,13 +268,15 @@ def allocate_many(
     if N == 0 or r == 0 or n == 0:
         return np.zeros((N, r))
     if N <= CHUNK:
-        return solve(method, G, M, lam, a, robust)
+        return solve(method, G, M, lam, a, robust, kernel=kernel)
     # In chunks, so that a chunk's temporaries (about 150 arrays of CHUNK floats for the
     # closed forms) stay in cache: one pass over 1e4 grasps costs more per grasp than 1e3.
     out = np.empty((N, r))
     for k in range(0, N, CHUNK):
         s = slice(k, k + CHUNK)
-        out[s] = solve(method, G[s], M if M.ndim == 2 else M[s], lam[s], a[s], robust)
+        out[s] = solve(
+            method, G[s], M if M.ndim == 2 else M[s], lam[s], a[s], robust, kernel=kernel
+        )
     return out
 
 
@@ -388,20 +288,21 @@ def solve(
     a: np.ndarray,
     robust: Robustness,
     fast: bool = True,
+    kernel: Callable[..., None] | None = None,
 ) -> np.ndarray:
     """allocate_many on validated input (a: alpha per grasp, (N,)), in one pass; ``fast``
     False keeps two contacts with one direction each on the general path too."""
     if method in _EXACT:
         return _exact(method, G, M, lam)
     if method != "adaptive":
-        return _robust_many(method, G, M, lam, robust, fast)
-    x_if = _robust_many("if", G, M, lam, robust, fast)
+        return _robust_many(method, G, M, lam, robust, fast, kernel)
+    x_if = _robust_many("if", G, M, lam, robust, fast, kernel)
     mix = a != 0.0
     if not mix.any():
         return x_if
     idx = np.flatnonzero(mix)
     Mi = M if M.ndim == 2 else M[idx]
-    x_ef = _robust_many("ef", G[idx], Mi, lam[idx], robust, fast)
+    x_ef = _robust_many("ef", G[idx], Mi, lam[idx], robust, fast, kernel)
     ai = a[idx, None]
     x_if[idx] = adaptive_mix(x_if[idx], x_ef, ai)
     return x_if

@@ -1,6 +1,6 @@
 """Closed forms for one contact, and for two contacts with one direction each: written once.
 
-Equal to the general path (``hapticd.allocation.robust``) to rounding, and much
+Equal to the general path (``hapticd.allocation.general``) to rounding, and much
 cheaper per tick. Vectors are 3-tuples: offsets r (m), directions d (unit),
 forces l (N); their components are floats (one grasp) or arrays of equal shape
 (a batch, elementwise: ``hapticd.allocation.batch``). The servo loop's Python

@@ -5,15 +5,15 @@ the devices are, the contact points in m and full contact forces in N, on the
 finger) and writes lam_a (r,) N and M_a lam_a per finger, returning the accuracy of
 the result. With one actuated direction per finger and a robust method, the kernel
 ``hapticd.kernels.allocation_step`` (compiled, or the same function uncompiled)
-takes one or two contacts: the closed forms of ``hapticd.allocation.closed``.
-Everything else (three or more contacts, several directions on a finger, the
-seed's exact formulas) runs ``hapticd.allocation.allocate``, the batch definition
-with N = 1. Both blend a contact being made or broken into the grasp gradually.
+takes every tick: the closed forms of ``hapticd.allocation.closed`` for one or two
+contacts, ``hapticd.allocation.general`` for more, and adaptive's alpha. The rest
+(several directions on a finger, the seed's exact formulas) runs
+``hapticd.allocation.allocate``, the batch definition with N = 1, with the kernel's
+update of alpha. Both blend a contact being made or broken into the grasp gradually.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
@@ -22,24 +22,20 @@ from hapticd import kernels
 from hapticd.actuation import Actuation
 from hapticd.allocation import allocate
 from hapticd.allocation.accuracy import accuracy
-from hapticd.allocation.adaptive import AdaptiveState, external_ratio, smoothstep
-from hapticd.allocation.batch import soft_internal_projector
+from hapticd.allocation.adaptive import AdaptiveState, smoothstep
 from hapticd.allocation.robust import AllocationError, Robustness
 from hapticd.grasp import grasp_matrix
 
 V3 = tuple[float, float, float]
 
 
-def _norm(v: V3) -> float:
-    return math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-
-
 class ContactAllocator:
     """Allocates contact forces onto ``actuation``'s directions with ``method``.
 
-    Holds the adaptive allocator's state (alpha follows the task over ticks of
-    ``dt`` s) and the allocation kernel: ``kernel`` is the compiled
-    ``allocation_step`` (hapticd.jit) or, set to None, the same function uncompiled.
+    Carries the adaptive allocator's alpha (``state``, following the task over ticks of
+    ``dt`` s, from ``adaptive``'s alpha) and runs the allocation kernel: ``kernel`` is the
+    compiled ``allocation_step`` (hapticd.jit) or, set to None, the same function
+    uncompiled; ``work`` is its workspace.
     """
 
     def __init__(
@@ -54,14 +50,34 @@ class ContactAllocator:
         self.actuation = actuation
         self.method = method
         self.robust = robust
-        self.adaptive = adaptive
         self.dt = dt
-        self.alpha = 0.0
+        self.state = np.zeros(kernels.ALLOCATION_STATE)  # alpha
+        self.adaptive = adaptive
         self.kernel = kernel
         self.accuracy = np.zeros(kernels.ACCURACY)  # the last tick's (N, N, N, 1)
+        self.work = np.zeros((0, 0))  # the kernel's workspace, made by _kernel_takes
         self._params = np.zeros(kernels.ALLOCATION_PARAMS)
         self._local = np.zeros((actuation.n_fingers, 3))  # the kernel's directions
         self._local_for: tuple[Actuation, Robustness] | None = None
+
+    @property
+    def adaptive(self) -> AdaptiveState:
+        """The adaptive allocator's parameters; setting it starts alpha at its alpha."""
+        return self._adaptive
+
+    @adaptive.setter
+    def adaptive(self, value: AdaptiveState) -> None:
+        self._adaptive = value
+        self.state[0] = value.alpha
+
+    @property
+    def alpha(self) -> float:
+        """The adaptive allocator's external weight (0..1) after the last tick."""
+        return float(self.state[0])
+
+    @alpha.setter
+    def alpha(self, value: float) -> None:
+        self.state[0] = value
 
     @property
     def kernel(self) -> Callable[..., int]:
@@ -87,46 +103,30 @@ class ContactAllocator:
 
         ``in_contact`` (F,) u1, ``device_pos`` (F, 3) m (the grasp frame follows fingers 0
         and 1), ``points`` (F, 3) m and ``forces`` (F, 3) N per finger, ``center`` (3,) m
-        the grasp's reference point; C-contiguous float64 (the kernel's types). Updates
-        ``alpha`` of the adaptive allocator. Raises AllocationError on non-finite contact
-        geometry or forces, or a non-finite result.
+        the grasp's reference point; C-contiguous float64 (the kernel's types). Moves
+        ``alpha`` of the adaptive allocator (a refused tick leaves it as it was). Raises
+        AllocationError on non-finite contact geometry or forces, or a non-finite result.
         """
-        tick = (in_contact, device_pos, points, forces, center, lam_a, rendered)
-        if self.method != "adaptive":
-            return self._allocate(*tick)
-        # A refused tick, or forces whose task ratio overflows (inf / inf), leaves alpha as
-        # it was: the allocator's state stays that of the last good tick.
-        before = self.alpha, self.adaptive.alpha
-        rho = self._external_ratio(in_contact, points, forces, center)
-        if math.isfinite(rho):
-            self.alpha = self.adaptive.update(rho, self.dt)
-        try:
-            return self._allocate(*tick)
-        except AllocationError:
-            self.alpha, self.adaptive.alpha = before
-            raise
-
-    def _allocate(self, *tick: np.ndarray) -> np.ndarray:
-        """``allocate`` (its arguments: ``tick``) with alpha as it is now."""
-        in_contact, device_pos, points, forces, center, lam_a, rendered = tick
         method = self.method
-        if self._kernel_takes():
-            params = self._params
-            params[0] = kernels.ALLOCATION_METHODS.index(method)
-            params[5:8] = center
-            params[8] = self.alpha
+        takes = self._kernel_takes()
+        params = self._params
+        params[5:8] = center
+        if takes:
             outcome = self._kernel(
-                in_contact, device_pos, points, forces, self._local, params, lam_a, rendered,
-                self.accuracy,
+                in_contact, device_pos, points, forces, self._local, params, self.state,
+                lam_a, rendered, self.accuracy, self.work,
             )  # fmt: skip
             if outcome == kernels.ALLOCATED:
                 return self.accuracy
             if outcome == kernels.NON_FINITE_INPUT:
                 raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-            if outcome == kernels.NON_FINITE_OUTPUT:
-                raise AllocationError(f"allocator {method!r} produced a non-finite force")
+            raise AllocationError(f"allocator {method!r} produced a non-finite force")
+        alpha = self.alpha
+        if method == "adaptive":  # the kernel's own update of alpha
+            alpha = _TASK_ALPHA(in_contact, points, forces, params, alpha, self.work)
         with np.errstate(over="ignore"):  # finite forces whose residuals overflow: inf
-            self._general(*tick)
+            self._general(alpha, in_contact, device_pos, points, forces, center, lam_a, rendered)
+        self.state[0] = alpha
         return self.accuracy
 
     def replay(
@@ -157,33 +157,33 @@ class ContactAllocator:
     def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray] | None:
         """allocation_step's ``local`` directions (F, 3) and ``params`` for the allocator as
         it is now (the object's position in params[5:8] is the caller's), or None when the
-        kernel does not take it, or takes it only after ``allocate`` has moved adaptive's
-        alpha (whose task ratio reads this tick's contact forces)."""
-        if self.method == "adaptive" or not self._kernel_takes():
-            return None
-        self._params[0] = kernels.ALLOCATION_METHODS.index(self.method)
-        self._params[8] = self.alpha
-        return self._local, self._params
+        kernel does not take it (its ``state`` and ``work`` are this allocator's)."""
+        return (self._local, self._params) if self._kernel_takes() else None
 
     def _kernel_takes(self) -> bool:
         """True if the kernel takes this method and actuation (one direction per finger);
-        its directions and robustness parameters follow the actuation's and ours."""
-        act, rb = self.actuation, self.robust
-        if self.method not in kernels.ALLOCATION_METHODS:
-            return False
+        its directions and parameters follow the actuation's, ours and adaptive's."""
+        act, rb, ad = self.actuation, self.robust, self._adaptive
+        params = self._params
+        params[0] = kernels.ALLOCATION_METHODS.index(self.method) if self.method in _CODES else -1
+        gain = 1.0 if ad.time_constant_s <= 0 else min(1.0, self.dt / ad.time_constant_s)
+        params[8:11] = (ad.ratio_low, ad.ratio_high, gain)
         made_for = self._local_for
         if made_for is None or made_for[0] is not act or made_for[1] is not rb:
-            if any(c != 1 for c in act.counts):
-                return False
-            self._local = np.array([ds[0] for ds in act.local], dtype=float).reshape(-1, 3)
+            shape = kernels.allocation_work_shape(act.n_fingers)
+            if self.work.shape != shape:
+                self.work = np.zeros(shape)
             grasp = 1.0 if act.frame == "grasp" else 0.0
-            self._params[1:5] = (rb.eps, rb.min_separation_m, rb.contact_onset_n, grasp)
+            params[1:5] = (rb.eps, rb.min_separation_m, rb.contact_onset_n, grasp)
+            ones = all(c == 1 for c in act.counts)
+            if ones:
+                self._local = np.array([ds[0] for ds in act.local], dtype=float).reshape(-1, 3)
             self._local_for = (act, rb)
-        return True
+        return self.method in _CODES and all(c == 1 for c in act.counts)
 
-    def _general(self, *tick: np.ndarray) -> None:
-        """``allocate`` (its arguments: ``tick``) for what the kernel does not take:
-        hapticd.allocation.allocate."""
+    def _general(self, alpha: float, *tick: np.ndarray) -> None:
+        """``allocate`` (its arguments: ``tick``) for what the kernel does not take, with
+        adaptive's ``alpha``: hapticd.allocation.allocate."""
         in_contact, device_pos, points, forces, center, lam_a, rendered = tick
         contacts = np.flatnonzero(in_contact).tolist()
         lam_a.fill(0.0)
@@ -197,7 +197,7 @@ class ContactAllocator:
         geometry = (points[contacts], forces[contacts], center, M)
         if not all(np.all(np.isfinite(a)) for a in geometry):
             raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-        x, G, lam = self._solve(contacts, world, points, forces, center)
+        x, G, lam = self._solve(alpha, contacts, world, points, forces, center)
         onset = self.robust.contact_onset_n
         if len(contacts) >= 2 and onset > 0.0:
             # A contact that is just being made or broken joins the grasp gradually: without
@@ -207,7 +207,8 @@ class ContactAllocator:
             beta = smoothstep(float(norms[weakest]) / onset)
             if beta < 1.0:
                 rest = contacts[:weakest] + contacts[weakest + 1 :]
-                x = beta * x + (1.0 - beta) * self._solve(rest, world, points, forces, center)[0]
+                rest_x = self._solve(alpha, rest, world, points, forces, center)[0]
+                x = beta * x + (1.0 - beta) * rest_x
         if not np.all(np.isfinite(x)):
             raise AllocationError(f"allocator {self.method!r} produced a non-finite force")
         lam_a[...] = x
@@ -217,6 +218,7 @@ class ContactAllocator:
 
     def _solve(
         self,
+        alpha: float,
         contacts: list[int],
         world: list[list[V3]],
         points: np.ndarray,
@@ -231,29 +233,10 @@ class ContactAllocator:
         G = grasp_matrix(points[contacts], center)
         lam = forces[contacts].reshape(-1)
         if cols:
-            out[cols] = allocate(self.method, G, M, lam, robust=self.robust, alpha=self.alpha)
+            out[cols] = allocate(self.method, G, M, lam, robust=self.robust, alpha=alpha)
         return out, G, lam
 
-    def _external_ratio(
-        self, in_contact: np.ndarray, points: np.ndarray, forces: np.ndarray, center: np.ndarray
-    ) -> float:
-        """The adaptive allocator's task state: |net force| / (|net force| + squeeze)."""
-        contacts = [i for i, on in enumerate(in_contact.tolist()) if on]
-        if not contacts:
-            return 0.0
-        pts, lam = points.tolist(), forces.tolist()
-        net = [sum(lam[i][k] for i in contacts) for k in range(3)]
-        if len(contacts) == 1:
-            squeeze = 0.0
-        elif len(contacts) == 2:
-            c1, c2 = pts[contacts[0]], pts[contacts[1]]
-            l1, l2 = lam[contacts[0]], lam[contacts[1]]
-            e = (c2[0] - c1[0], c2[1] - c1[1], c2[2] - c1[2])
-            ne = _norm(e)
-            q = (l1[0] - l2[0], l1[1] - l2[1], l1[2] - l2[2])
-            squeeze = abs(e[0] * q[0] + e[1] * q[1] + e[2] * q[2]) / (2.0 * ne) if ne > 0 else 0.0
-        else:
-            G = grasp_matrix(points[contacts], center)
-            P = soft_internal_projector(G, self.robust)
-            squeeze = float(np.linalg.norm(P @ forces[contacts].reshape(-1))) / math.sqrt(2.0)
-        return external_ratio(_norm((net[0], net[1], net[2])), squeeze)
+
+# The kernel's alpha update, uncompiled: for the allocations the kernel does not take.
+_TASK_ALPHA = kernels.uncompiled("_task_alpha")
+_CODES = kernels.ALLOCATION_METHODS

@@ -1,7 +1,7 @@
 """The robust allocators' parameters, their error, and the filtered gain they are built on.
 
 The general path itself (filtered pseudoinverses, the soft internal projector) is
-``hapticd.allocation.batch``; the closed forms are ``hapticd.allocation.closed``.
+``hapticd.allocation.general``; the closed forms are ``hapticd.allocation.closed``.
 """
 
 from __future__ import annotations

@@ -1,0 +1,544 @@
+"""The robust allocators' general path, written once in the style numba compiles.
+
+One grasp at a time, on a workspace ``w`` (rows, cols) float64 the caller
+preallocates (``work_shape``): G (6, n) in rows ``G0``, M_a (n, r) in rows ``M0``,
+lam (n,) in row ``LAM`` (``n = 3p`` for p contacts, forces in N, lengths in m);
+``general`` writes lam_a (r,) N into row ``XO``. Plain loops over small matrices
+and a cyclic Jacobi eigensolver on the workspace: nothing is allocated, so the
+servo loop's kernel (``hapticd.kernels.allocation_step``, three or more contacts)
+calls it every tick; ``allocate()`` runs the same function on floats, and
+``allocate_many`` on a whole batch at once, each workspace entry an (N,) array
+(``solve_stack``: the five helpers that branch on a value have a float form and an
+elementwise form, chosen by the argument's type, as in ``hapticd.allocation.closed``),
+or compiled grasp by grasp (``solve_grasps``, ``hapticd.kernels.allocate_grasps``).
+
+- a filtered pseudoinverse g(s) = 1/s or s/eps^2 of A is F(A^T A) A^T, F the
+  spectral function l -> 1/max(l, eps^2) of the Gram matrix;
+- the soft internal projector is I - (1/p) sum of force blocks - Gm^T F(Gm Gm^T) Gm,
+  Gm the moment rows about the contacts' centroid weighted by 1/L (about the
+  centroid the weighted G's Gram matrix is block diagonal: p I3, Gm Gm^T);
+- IF is the projector form x1 = B^+ P_int lam, B = P_int M_a, P = I - B^+ B,
+  lam_a = x1 + P (M_a P)^+ (lam - M_a x1).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from hapticd.allocation.closed import ADAPTIVE, EF, PINV, adaptive_mix
+
+_SWEEPS = 64  # Jacobi sweeps at most (a 15 x 15 converges in under 10)
+# Eigenvalues of G G^T below this share of the largest are G's null space (accuracy):
+# the Gram matrix holds s^2 to rounding of the largest, so a rank cut on s itself at
+# numpy's tolerance would keep rounding noise of exactly collinear contacts.
+_RANK_SHARE = 1e-13
+
+
+# Rows of ``layout``'s offsets: lam (n,), two scratch vectors, lam_a (r,).
+LAM_ROW, T1_ROW, T2_ROW, XO_ROW = 2, 15, 16, 19
+
+
+def work_shape(n: int, r: int) -> tuple[int, int]:
+    """The workspace's shape for grasps of up to n force components and r directions."""
+    return 3 * n + 5 * r + 37, max(n, r, 6)
+
+
+def layout(n: int, r: int) -> tuple[int, ...]:
+    """Row offsets for n force components and r directions: G0, M0, LAM, GM, A3, V3, B0,
+    KB, VB, PP, MP, K2, V2, A6, V6, T1, T2, Y, X1, XO, C (each block's rows as in work_shape)."""
+    m0 = 6
+    lam = m0 + n
+    gm = lam + 1
+    a3 = gm + 3
+    v3 = a3 + 3
+    b0 = v3 + 3
+    kb = b0 + n
+    vb = kb + r
+    pp = vb + r
+    mp = pp + r
+    k2 = mp + n
+    v2 = k2 + r
+    a6 = v2 + r
+    v6 = a6 + 6
+    t1 = v6 + 6
+    return (0, m0, lam, gm, a3, v3, b0, kb, vb, pp, mp, k2, v2, a6, v6, t1, t1 + 1, t1 + 2,
+            t1 + 3, t1 + 4, t1 + 5)  # fmt: skip
+
+
+def _converged_floats(off: float, diag: float) -> bool:
+    return off <= 1e-32 * diag or off == 0.0
+
+
+def _converged_arrays(off: np.ndarray, diag: np.ndarray) -> bool:
+    return bool(np.all((off <= 1e-32 * diag) | (off == 0.0)))
+
+
+def _converged(off, diag) -> bool:
+    """Whether the off-diagonal square sum ``off`` is negligible against the diagonal's
+    (every grasp's, on arrays)."""
+    if isinstance(diag, np.ndarray):  # off is 0.0 for a 1 x 1
+        return _converged_arrays(off, diag)
+    return _converged_floats(off, diag)
+
+
+def _is_zero_floats(x: float) -> bool:
+    return x == 0.0
+
+
+def _is_zero_arrays(x: np.ndarray) -> bool:
+    return bool(np.all(x == 0.0))
+
+
+def _is_zero(x) -> bool:
+    """x == 0 (every grasp's, on arrays)."""
+    if isinstance(x, np.ndarray):
+        return _is_zero_arrays(x)
+    return _is_zero_floats(x)
+
+
+def _rotation_floats(app: float, aqq: float, apq: float) -> tuple[float, float]:
+    theta = (aqq - app) / (2.0 * apq)
+    if abs(theta) > 1e150:  # theta^2 would overflow: t = 1 / (2 theta)
+        t = 0.5 / theta
+    else:
+        t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+        if theta < 0.0:
+            t = -t
+    c = 1.0 / math.sqrt(t * t + 1.0)
+    return c, t * c
+
+
+def _rotation_arrays(app: np.ndarray, aqq: np.ndarray, apq: np.ndarray) -> tuple:
+    zero = apq == 0.0
+    theta = (aqq - app) / (2.0 * np.where(zero, 1.0, apq))
+    big = np.abs(theta) > 1e150
+    small = np.where(big, 0.0, theta)
+    t = 1.0 / (np.abs(small) + np.sqrt(small * small + 1.0))
+    t = np.where(theta < 0.0, -t, t)
+    t = np.where(big, 0.5 / np.where(big, theta, 1.0), t)
+    t = np.where(zero, 0.0, t)  # nothing to rotate: the identity
+    c = 1.0 / np.sqrt(t * t + 1.0)
+    return c, t * c
+
+
+def _rotation(app, aqq, apq):
+    """(cos, sin) of the Jacobi rotation that zeroes apq of [[app, apq], [apq, aqq]]; on
+    floats or elementwise on arrays (where apq = 0: the identity)."""
+    if isinstance(apq, np.ndarray):
+        return _rotation_arrays(app, aqq, apq)
+    return _rotation_floats(app, aqq, apq)
+
+
+def _floor_floats(x: float, lo: float) -> float:
+    return x if x >= lo else lo
+
+
+def _floor_arrays(x: np.ndarray, lo: float) -> np.ndarray:
+    return np.maximum(x, lo)
+
+
+def _floor(x, lo: float):
+    """max(x, lo): an eigenvalue's filtered denominator; floats or arrays."""
+    if isinstance(x, np.ndarray):
+        return _floor_arrays(x, lo)
+    return _floor_floats(x, lo)
+
+
+def _clip01_floats(x: float) -> float:
+    return 0.0 if x < 0.0 else (1.0 if x > 1.0 else x)
+
+
+def _clip01_arrays(x: np.ndarray) -> np.ndarray:
+    return np.clip(x, 0.0, 1.0)
+
+
+def _clip01(x):
+    """x clipped to [0, 1]; floats or arrays."""
+    if isinstance(x, np.ndarray):
+        return _clip01_arrays(x)
+    return _clip01_floats(x)
+
+
+def _jacobi(w: np.ndarray, a: int, v: int, k: int) -> None:
+    """Eigendecomposition of the symmetric k x k matrix in rows a..a+k of w (columns 0..k),
+    in place: its eigenvalues end on its diagonal, the eigenvectors in the columns of the
+    k x k matrix in rows v..v+k (cyclic Jacobi rotations)."""
+    for i in range(k):
+        for j in range(k):
+            w[v + i, j] = 1.0 if i == j else 0.0
+    for _ in range(_SWEEPS):
+        off = 0.0
+        diag = 0.0
+        for i in range(k):
+            diag += w[a + i, i] * w[a + i, i]
+            for j in range(i + 1, k):
+                off += w[a + i, j] * w[a + i, j]
+        if _converged(off, diag):
+            return
+        for p in range(k - 1):
+            for q in range(p + 1, k):
+                apq = w[a + p, q]
+                if _is_zero(apq):
+                    continue
+                c, s = _rotation(w[a + p, p], w[a + q, q], apq)
+                for i in range(k):  # columns p, q
+                    x, y = w[a + i, p], w[a + i, q]
+                    w[a + i, p], w[a + i, q] = c * x - s * y, s * x + c * y
+                for i in range(k):  # rows p, q
+                    x, y = w[a + p, i], w[a + q, i]
+                    w[a + p, i], w[a + q, i] = c * x - s * y, s * x + c * y
+                w[a + p, q] = 0.0
+                w[a + q, p] = 0.0
+                for i in range(k):
+                    x, y = w[v + i, p], w[v + i, q]
+                    w[v + i, p], w[v + i, q] = c * x - s * y, s * x + c * y
+
+
+def _gram_cols(w: np.ndarray, src: int, m: int, k: int, dst: int) -> None:
+    """A^T A (k x k) into rows dst.. of w, A (m x k) in rows src.."""
+    for i in range(k):
+        for j in range(i, k):
+            s = 0.0
+            for t in range(m):
+                s += w[src + t, i] * w[src + t, j]
+            w[dst + i, j] = s
+            w[dst + j, i] = s
+
+
+def _t_apply(w: np.ndarray, src: int, m: int, k: int, vec: int, out: int) -> None:
+    """A^T v (k,) into row ``out``: A (m x k) in rows src.., v (m,) in row ``vec``."""
+    for j in range(k):
+        s = 0.0
+        for t in range(m):
+            s += w[src + t, j] * w[vec, t]
+        w[out, j] = s
+
+
+def _finv_apply(w: np.ndarray, a: int, v: int, k: int, vec: int, eps2: float, tmp: int) -> None:
+    """F(K) y in place of y (row ``vec``, k,): K's eigenvalues on the diagonal of rows a..,
+    its eigenvectors in rows v.. (``_jacobi``); F(l) = 1/max(l, eps2); row ``tmp`` scratch."""
+    for j in range(k):
+        s = 0.0
+        for t in range(k):
+            s += w[v + t, j] * w[vec, t]
+        w[tmp, j] = s / _floor(w[a + j, j], eps2)
+    for t in range(k):
+        s = 0.0
+        for j in range(k):
+            s += w[v + t, j] * w[tmp, j]
+        w[vec, t] = s
+
+
+def soft_prepare(w: np.ndarray, n: int, eps: float, min_sep: float) -> None:
+    """The soft internal projector's parts from G (rows G0): Gm (3 x n), the moment rows
+    about the contacts' centroid weighted by 1/L, in rows GM, and the eigendecomposition
+    of Gm Gm^T in rows A3 (eigenvalues) and V3."""
+    lay = layout(n, 1)
+    gm, a3, v3 = lay[3], lay[4], lay[5]
+    p = n // 3
+    mx, my, mz = 0.0, 0.0, 0.0
+    for i in range(p):  # the contact offsets, read off G's moment rows
+        mx += w[5, 3 * i + 1]
+        my += w[3, 3 * i + 2]
+        mz += w[4, 3 * i]
+    mx, my, mz = mx / p, my / p, mz / p
+    inv_l = math.sqrt(2.0) * eps / min_sep  # 1 / Robustness.length_scale_m
+    for i in range(p):
+        x = (w[5, 3 * i + 1] - mx) * inv_l
+        y = (w[3, 3 * i + 2] - my) * inv_l
+        z = (w[4, 3 * i] - mz) * inv_l
+        j = 3 * i
+        w[gm, j], w[gm, j + 1], w[gm, j + 2] = 0.0, -z, y
+        w[gm + 1, j], w[gm + 1, j + 1], w[gm + 1, j + 2] = z, 0.0, -x
+        w[gm + 2, j], w[gm + 2, j + 1], w[gm + 2, j + 2] = -y, x, 0.0
+    for i in range(3):
+        for j in range(i, 3):
+            s = 0.0
+            for t in range(n):
+                s += w[gm + i, t] * w[gm + j, t]
+            w[a3 + i, j] = s
+            w[a3 + j, i] = s
+    _jacobi(w, a3, v3, 3)
+
+
+def soft_apply(w: np.ndarray, n: int, eps2: float, src: int, dst: int) -> None:
+    """P_int v (n,) into row ``dst`` for v in row ``src`` (``soft_prepare`` first):
+    v minus the mean of its force blocks on every block, minus Gm^T F(Gm Gm^T) Gm v."""
+    lay = layout(n, 1)
+    gm, a3, v3 = lay[3], lay[4], lay[5]
+    p = n // 3
+    f0, f1, f2 = 0.0, 0.0, 0.0
+    for i in range(p):
+        f0 += w[src, 3 * i]
+        f1 += w[src, 3 * i + 1]
+        f2 += w[src, 3 * i + 2]
+    f0, f1, f2 = f0 / p, f1 / p, f2 / p
+    g0, g1, g2 = 0.0, 0.0, 0.0  # Gm v
+    for t in range(n):
+        vt = w[src, t]
+        g0 += w[gm, t] * vt
+        g1 += w[gm + 1, t] * vt
+        g2 += w[gm + 2, t] * vt
+    h0, h1, h2 = 0.0, 0.0, 0.0  # F(Gm Gm^T) Gm v
+    for j in range(3):
+        lj = w[a3 + j, j]
+        c = w[v3, j] * g0 + w[v3 + 1, j] * g1 + w[v3 + 2, j] * g2
+        c = c / _floor(lj, eps2)
+        h0 += w[v3, j] * c
+        h1 += w[v3 + 1, j] * c
+        h2 += w[v3 + 2, j] * c
+    for i in range(p):
+        for k in range(3):
+            t = 3 * i + k
+            f = f0 if k == 0 else (f1 if k == 1 else f2)
+            w[dst, t] = w[src, t] - f - (w[gm, t] * h0 + w[gm + 1, t] * h1 + w[gm + 2, t] * h2)
+
+
+def _pinv_or_ef(code: int, w: np.ndarray, n: int, r: int, eps2: float) -> None:
+    """Robust pinv (x = F(M^T M) M^T lam) or EF (x = F(A^T A) A^T G lam, A = G M) into XO."""
+    lay = layout(n, r)
+    m0, lam, kb, vb, a6, t1, xo, tmp = (
+        lay[1],
+        lay[2],
+        lay[7],
+        lay[8],
+        lay[13],
+        lay[15],
+        lay[19],
+        lay[20],
+    )
+    if code == PINV:
+        _gram_cols(w, m0, n, r, kb)
+        _t_apply(w, m0, n, r, lam, xo)
+    else:
+        for i in range(6):  # A = G M (6 x r) and G lam
+            for j in range(r):
+                s = 0.0
+                for t in range(n):
+                    s += w[i, t] * w[m0 + t, j]
+                w[a6 + i, j] = s
+            s = 0.0
+            for t in range(n):
+                s += w[i, t] * w[lam, t]
+            w[t1, i] = s
+        _gram_cols(w, a6, 6, r, kb)
+        _t_apply(w, a6, 6, r, t1, xo)
+    _jacobi(w, kb, vb, r)
+    _finv_apply(w, kb, vb, r, xo, eps2, tmp)
+
+
+def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -> None:
+    """Robust IF into XO: the projector form with the soft internal projector."""
+    lay = layout(n, r)
+    m0, lam, b0, kb, vb, pp = lay[1], lay[2], lay[6], lay[7], lay[8], lay[9]
+    mp, k2, v2, t1, t2 = lay[10], lay[11], lay[12], lay[15], lay[16]
+    y, x1, xo, tmp = lay[17], lay[18], lay[19], lay[20]
+    eps2 = eps * eps
+    soft_prepare(w, n, eps, min_sep)
+    for j in range(r):  # B = P_int M, column by column
+        for t in range(n):
+            w[t1, t] = w[m0 + t, j]
+        soft_apply(w, n, eps2, t1, t2)
+        for t in range(n):
+            w[b0 + t, j] = w[t2, t]
+    soft_apply(w, n, eps2, lam, t1)  # P_int lam
+    _gram_cols(w, b0, n, r, kb)
+    _jacobi(w, kb, vb, r)
+    _t_apply(w, b0, n, r, t1, x1)
+    _finv_apply(w, kb, vb, r, x1, eps2, tmp)  # x1 = B^+ P_int lam
+    # P = I - B^+ B = I - V diag(min(1, l / eps^2)) V^T, symmetrized.
+    for i in range(r):
+        for j in range(r):
+            s = 0.0
+            for k in range(r):
+                lk = _clip01(w[kb + k, k] / eps2)
+                s += w[vb + i, k] * lk * w[vb + j, k]
+            w[pp + i, j] = (1.0 if i == j else 0.0) - s
+    for i in range(r):
+        for j in range(i + 1, r):
+            s = 0.5 * (w[pp + i, j] + w[pp + j, i])
+            w[pp + i, j] = s
+            w[pp + j, i] = s
+    for t in range(n):  # M P, and the rest lam - M x1
+        s = w[lam, t]
+        for j in range(r):  # (not -=: on arrays w's rows are views)
+            s = s - w[m0 + t, j] * w[x1, j]
+            q = 0.0
+            for k in range(r):
+                q += w[m0 + t, k] * w[pp + k, j]
+            w[mp + t, j] = q
+        w[t2, t] = s
+    _gram_cols(w, mp, n, r, k2)
+    _jacobi(w, k2, v2, r)
+    _t_apply(w, mp, n, r, t2, y)
+    _finv_apply(w, k2, v2, r, y, eps2, tmp)
+    for i in range(r):  # x1 + P y
+        s = w[x1, i]
+        for j in range(r):
+            s = s + w[pp + i, j] * w[y, j]
+        w[xo, i] = s
+
+
+def general(
+    code: int, w: np.ndarray, n: int, r: int, eps: float, min_sep: float, alpha: float
+) -> None:
+    """lam_a (r,) N into row XO of ``w`` by robust method ``code`` (closed.CODES) for the
+    grasp in ``w`` (G, M_a, lam: the module's layout); ``alpha`` adaptive's external weight
+    in [0, 1] (the others ignore it). Uses rows X1 and the scratch rows for adaptive's mix."""
+    lay = layout(n, r)
+    xo, x1 = lay[19], lay[18]
+    eps2 = eps * eps
+    if code in (PINV, EF):
+        _pinv_or_ef(code, w, n, r, eps2)
+        return
+    _internal_first(w, n, r, eps, min_sep)
+    if code == ADAPTIVE and alpha != 0.0:
+        for j in range(r):
+            w[x1, j] = w[xo, j]
+        _pinv_or_ef(EF, w, n, r, eps2)
+        for j in range(r):
+            w[xo, j] = adaptive_mix(w[x1, j], w[xo, j], alpha)
+
+
+def solve_grasps(
+    code: int,
+    G: np.ndarray,
+    M: np.ndarray,
+    lam: np.ndarray,
+    alpha: np.ndarray,
+    eps: float,
+    min_sep: float,
+    out: np.ndarray,
+    w: np.ndarray,
+) -> None:
+    """``general`` for N grasps: G (N, 6, n), M (N, n, r) or one shared (1, n, r), lam
+    (N, n) N, alpha (N,); lam_a into out (N, r) N; ``w`` a workspace (work_shape(n, r))."""
+    N, n, r = lam.shape[0], lam.shape[1], out.shape[1]
+    lay = layout(n, r)
+    m0, row, xo = lay[1], lay[2], lay[19]
+    shared = M.shape[0] == 1
+    for g in range(N):
+        mg = 0 if shared else g
+        for i in range(6):
+            for t in range(n):
+                w[i, t] = G[g, i, t]
+        if g == 0 or not shared:
+            for t in range(n):
+                for j in range(r):
+                    w[m0 + t, j] = M[mg, t, j]
+        for t in range(n):
+            w[row, t] = lam[g, t]
+        general(code, w, n, r, eps, min_sep, alpha[g])
+        for j in range(r):
+            out[g, j] = w[xo, j]
+
+
+def residuals(w: np.ndarray, n: int, r: int) -> tuple[float, float, float, float]:
+    """hapticd.allocation.accuracy's measures (internal, external, total, amplification)
+    of lam_a in row XO for the grasp in ``w``: residual res = lam - M_a lam_a, internal
+    |P_N(G) res| (N(G) exact: G's row space from the eigenvalues of G G^T above
+    _RANK_SHARE of the largest), external |G res|, total |res|, |M_a lam_a| / |lam|."""
+    lay = layout(n, r)
+    m0, lam, a6, v6, t1, xo = lay[1], lay[2], lay[13], lay[14], lay[15], lay[19]
+    total = 0.0
+    norm_lam = 0.0
+    norm_out = 0.0
+    for t in range(n):
+        m = 0.0
+        for j in range(r):
+            m += w[m0 + t, j] * w[xo, j]
+        res = w[lam, t] - m
+        w[t1, t] = res
+        total += res * res
+        norm_lam += w[lam, t] * w[lam, t]
+        norm_out += m * m
+    external = 0.0
+    for i in range(6):  # G res (row T2) and G G^T
+        s = 0.0
+        for t in range(n):
+            s += w[i, t] * w[t1, t]
+        w[t1 + 1, i] = s
+        external += s * s
+        for j in range(i, 6):
+            q = 0.0
+            for t in range(n):
+                q += w[i, t] * w[j, t]
+            w[a6 + i, j] = q
+            w[a6 + j, i] = q
+    _jacobi(w, a6, v6, 6)
+    top = 0.0
+    for j in range(6):
+        top = w[a6 + j, j] if w[a6 + j, j] > top else top
+    coef = t1 + 2  # (G G^T)^+ G res in V's basis, then G^T of it subtracted from res
+    for j in range(6):
+        lj = w[a6 + j, j]
+        c = 0.0
+        if lj > _RANK_SHARE * top:
+            for i in range(6):
+                c += w[v6 + i, j] * w[t1 + 1, i]
+            c /= lj
+        w[coef, j] = c
+    for i in range(6):
+        s = 0.0
+        for j in range(6):
+            s += w[v6 + i, j] * w[coef, j]
+        w[coef + 1, i] = s
+    internal = 0.0
+    for t in range(n):
+        s = w[t1, t]
+        for i in range(6):
+            s = s - w[i, t] * w[coef + 1, i]
+        internal += s * s
+    amp = math.sqrt(norm_out) / math.sqrt(norm_lam) if norm_lam > 0.0 else 0.0
+    return math.sqrt(internal), math.sqrt(external), math.sqrt(total), amp
+
+
+def solve_stack(
+    code: int, G: np.ndarray, M: np.ndarray, lam: np.ndarray, eps: float, min_sep: float
+) -> np.ndarray:
+    """``general`` (not adaptive's mix) for N grasps at once, elementwise: every workspace
+    entry an (N,) array (the helpers that branch on a value take their array forms). G (N, 6,
+    n), M (N, n, r) or shared (n, r), lam (N, n) N; returns lam_a (N, r) N."""
+    N, n = lam.shape
+    r = M.shape[-1]
+    rows, cols = work_shape(n, r)
+    w = np.zeros((rows, cols, N))
+    lay = layout(n, r)
+    w[0:6, :n] = np.moveaxis(G, 0, -1)
+    w[lay[1] : lay[1] + n, :r] = M[..., None] if M.ndim == 2 else np.moveaxis(M, 0, -1)
+    w[lay[2], :n] = lam.T
+    with np.errstate(all="ignore"):  # np.where's discarded branches
+        general(code, w, n, r, eps, min_sep, 0.0)
+    return w[lay[19], :r].T.copy()
+
+
+# What compiled code calls (hapticd.jit makes them callable from a kernel). Those that
+# branch on the argument's type run their float form there (``FLOAT_FORMS``).
+KERNEL_HELPERS = (
+    _converged,
+    _is_zero,
+    _rotation,
+    _floor,
+    _clip01,
+    _jacobi,
+    _gram_cols,
+    _t_apply,
+    _finv_apply,
+    layout,
+    soft_prepare,
+    soft_apply,
+    _pinv_or_ef,
+    _internal_first,
+    general,
+    residuals,
+    solve_grasps,
+)
+FLOAT_FORMS = {
+    _converged: _converged_floats,
+    _is_zero: _is_zero_floats,
+    _rotation: _rotation_floats,
+    _floor: _floor_floats,
+    _clip01: _clip01_floats,
+}
