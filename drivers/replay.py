@@ -12,6 +12,7 @@ firmware would and kept for inspection.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 
@@ -44,6 +45,9 @@ class ReplayDevice(Device):
         self._clock = clock
         self._t0 = 0.0
         self._hold_s = float(hold_s)
+        # When the device has finished (s of its clock; a repeated path never does): the
+        # loop asks after every tick.
+        self._ends_at = math.inf if repeat else self.path.duration + self._hold_s
         self._open = False
         self._enabled = False
         self._now = 0.0
@@ -130,7 +134,7 @@ class ReplayDevice(Device):
 
     @property
     def finished(self) -> bool:
-        return not self.path.repeat and self._now >= self.path.duration + self._hold_s
+        return self._now >= self._ends_at
 
     @property
     def forces(self) -> np.ndarray:

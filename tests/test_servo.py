@@ -189,21 +189,35 @@ def test_ticks_create_no_reference_cycles():
 def test_recording_matches_what_the_devices_received(tmp_path):
     path = tmp_path / "run.hrec"
     s = session(record_path=path)
-    s.run()
+    summary = s.run()
     rec = recording.read(path)
     assert rec.ticks == 7801
     for i, dev in enumerate(s.devices):
         # The device got one force per tick, then the final zero on shutdown.
         np.testing.assert_array_equal(dev.forces[:-1], rec["device_force"][:, i, :])
     np.testing.assert_allclose(np.diff(rec["t"]), 1e-3, atol=1e-12)
+    _check_summary_counts(summary, rec, rec.ticks)
+
+
+def _check_summary_counts(summary, rec, ticks):
+    """The summary's per-finger contact ticks and largest force are the recording's (its
+    first ``ticks`` records: the loop's own ticks)."""
+    touching = rec["in_contact"][:ticks].sum(axis=0)
+    largest = np.linalg.norm(rec["device_force"][:ticks], axis=2).max(axis=0)
+    fingers = list(summary["fingers"].values())
+    assert [f["contact_ticks"] for f in fingers] == touching.tolist()
+    assert min(touching) > 100  # the run touched the cube
+    np.testing.assert_allclose([f["max_force_n"] for f in fingers], largest, atol=1e-6)
 
 
 def test_a_run_that_ends_mid_grasp_records_the_shutdowns_zero_force(tmp_path):
     path = tmp_path / "run.hrec"
     s = session(record_path=path, duration_s=3.0)  # in the pinch: forces are not zero
-    s.run()
+    summary = s.run()
     rec = recording.read(path)
     assert rec.ticks == 3001  # 3000 ticks, then the shutdown
+    assert rec["in_contact"][2999].all()  # the run ends in contact: it counts to the end
+    _check_summary_counts(summary, rec, 3000)
     for i, dev in enumerate(s.devices):
         np.testing.assert_array_equal(dev.forces, rec["device_force"][:, i, :])
         assert np.abs(dev.forces[-2]).max() > 0.1 and not dev.forces[-1].any()
