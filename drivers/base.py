@@ -56,12 +56,33 @@ class DeviceInfo:
 
 @dataclass
 class DeviceState:
-    """Preallocated state a device fills on every read (no allocation per tick)."""
+    """Preallocated state a device fills on every read (no allocation per tick).
+
+    ``position`` (m) and ``velocity`` (m/s) are (3,) float64 arrays filled in place, never
+    replaced (the owner may hand views of its own arrays); ``pos_view`` and ``vel_view``
+    are memoryviews of them, for a device that stores them float by float (a store
+    through one costs a fraction of a numpy item assignment)."""
 
     position: np.ndarray = field(default_factory=lambda: np.zeros(3))
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     buttons: int = 0
     timestamp: float = 0.0
+    pos_view: memoryview = field(init=False, repr=False, compare=False)
+    vel_view: memoryview = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        for name in ("position", "velocity"):
+            a = getattr(self, name)
+            if not (
+                isinstance(a, np.ndarray)
+                and a.shape == (3,)
+                and a.dtype == np.float64
+                and a.flags.c_contiguous
+                and a.flags.writeable
+            ):
+                raise ValueError(f"DeviceState.{name} must be a writable (3,) float64 array")
+        self.pos_view = memoryview(self.position)
+        self.vel_view = memoryview(self.velocity)
 
 
 class Device(abc.ABC):
@@ -106,18 +127,34 @@ class Device(abc.ABC):
         self.close()
 
 
-def check_force(force: np.ndarray, limit_n: float, who: str) -> None:
-    """Device-side guard: refuse non-finite or over-limit forces, as firmware would."""
-    # Plain floats, not numpy reductions: this runs for every device on every tick.
+def check_force(force: np.ndarray, limit_n: float, who: str) -> tuple[float, float, float]:
+    """Device-side guard: refuse non-finite or over-limit forces, as firmware would.
+
+    Returns the accepted force's three components (N) as plain numbers, for a device that
+    keeps or sends them without reading the array again."""
+    # Plain floats, not numpy reductions: this runs for every device on every tick. A
+    # (3,) array whose magnitude is within the limit passes with one tolist and one hypot
+    # (NaN and inf fail the comparison); anything else takes the full check below.
+    try:
+        x, y, z = force.tolist()  # type: ignore[union-attr]
+        if math.hypot(x, y, z) <= limit_n * (1.0 + 1e-9):
+            return x, y, z
+    except (AttributeError, TypeError, ValueError):
+        pass
+    return _check_slowly(force, limit_n, who)
+
+
+def _check_slowly(force: object, limit_n: float, who: str) -> tuple[float, float, float]:
+    """``check_force`` for any input (a list, a tuple, another shape, non-finite values):
+    the force as three floats, or the DeviceError that says why it is refused."""
     given = force
     try:
         if getattr(force, "shape", None) is None:
             force = np.asarray(force, dtype=float)  # a list or tuple: the rare path
-        if force.shape != (3,):
+        if force.shape != (3,):  # type: ignore[union-attr]
             raise ValueError
-        # One tolist, then float() of each (a float is itself: cheap), as float(force[i])
-        # would convert.
-        x, y, z = force.tolist()
+        # One tolist, then float() of each, as float(force[i]) would convert.
+        x, y, z = force.tolist()  # type: ignore[union-attr]
         x, y, z = float(x), float(y), float(z)
     except (TypeError, ValueError):
         x = y = z = math.nan
@@ -126,3 +163,4 @@ def check_force(force: np.ndarray, limit_n: float, who: str) -> None:
     mag = math.hypot(x, y, z)
     if mag > limit_n * (1.0 + 1e-9):
         raise DeviceError(f"{who}: refused force of {mag:.6g} N above its limit {limit_n:g} N")
+    return x, y, z

@@ -124,7 +124,6 @@ class SimulatedFinger(ReplayDevice):
 
     def write_force(self, force: np.ndarray) -> None:
         self._require_open("write to")
-        check_force(force, self.info.max_force_n, f"sim {self.info.serial}")
-        self._keep(force)
-        f = force if self._enabled else (0.0, 0.0, 0.0)
-        self._applied = (float(f[0]), float(f[1]), float(f[2]))
+        x, y, z = check_force(force, self.info.max_force_n, f"sim {self.info.serial}")
+        self._keep(x, y, z)
+        self._applied = (float(x), float(y), float(z)) if self._enabled else (0.0, 0.0, 0.0)

@@ -8,6 +8,7 @@ import numpy as np
 from hapticd_drivers.base import DeviceError
 
 Vec = tuple[float, float, float]
+Items = np.ndarray | memoryview  # where ``sample`` stores three floats
 
 
 def check_samples(
@@ -90,6 +91,8 @@ class Trajectory:
         self._t = (t - t[0]).tolist()
         self._x = [tuple(p) for p in x.tolist()]
         self._slope = [tuple(s) for s in (np.diff(x, axis=0) / np.diff(t)[:, None]).tolist()]
+        self._segments = [p + s for p, s in zip(self._x, self._slope, strict=False)]
+        self._kmax = len(self._t) - 2  # the last segment's start
         self._k = 0
 
     @property
@@ -131,3 +134,38 @@ class Trajectory:
         s = self._slope[k]
         dt = now - t[k]
         return (x0[0] + s[0] * dt, x0[1] + s[1] * dt, x0[2] + s[2] * dt), s
+
+    def sample(self, now: float, position: Items, velocity: Items) -> int:
+        """``at(now)`` written into ``position`` and ``velocity`` ((3,) arrays or memoryviews,
+        m and m/s; the same numbers), and ``buttons_at(now)`` returned: a device's read in
+        one call, with no tuple built for the sample."""
+        t = self._t
+        k = self._k
+        # A tick's usual step: the cursor's segment [t[k], t[k + 1]) or the next one (then
+        # at() finds the same segment: the time is inside the path, and no wrap).
+        if now >= t[k + 1]:
+            k += 1
+            if k > self._kmax or now >= t[k + 1]:
+                return self._sample_far(now, position, velocity)
+        elif not now >= t[k]:
+            return self._sample_far(now, position, velocity)
+        self._k = k
+        # The segment's start and slope in one tuple: the same numbers as at()'s.
+        x0, x1, x2, s0, s1, s2 = self._segments[k]
+        dt = now - t[k]
+        position[0] = x0 + s0 * dt
+        position[1] = x1 + s1 * dt
+        position[2] = x2 + s2 * dt
+        velocity[0] = s0
+        velocity[1] = s1
+        velocity[2] = s2
+        b = self._buttons
+        return 0 if b is None else b[k]
+
+    def _sample_far(self, now: float, position: Items, velocity: Items) -> int:
+        """``sample`` when the time is beyond the cursor's next segment, before its segment
+        (a new run), or past either end: ``at`` and ``buttons_at``."""
+        pos, vel = self.at(now)
+        position[0], position[1], position[2] = pos
+        velocity[0], velocity[1], velocity[2] = vel
+        return self.buttons_at(now)

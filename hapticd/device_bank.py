@@ -61,7 +61,17 @@ class DeviceBank:
         self.reconnect = reconnect
         self._on_fault = on_fault
         self._on_event = on_event
-        self._states = [DeviceState() for _ in self.devices]
+        F = len(self.devices)
+        # What the devices report, in their own frames: positions then velocities, (2, F, 3),
+        # each device's DeviceState holding views of its rows (a device fills them in
+        # place). Laid out as the frame's device_pos and device_vel are, so a tick whose
+        # samples all pass and need no mount enters the frame with one copy.
+        self._raw = np.zeros((2, F, 3))
+        self._states = [DeviceState(self._raw[0, i], self._raw[1, i]) for i in range(F)]
+        # Flat memoryviews: each row's floats (tolist) and the whole block (one memcpy).
+        self._raw_pos = [memoryview(self._raw[0, i]) for i in range(F)]
+        self._raw_vel = [memoryview(self._raw[1, i]) for i in range(F)]
+        self._raw_all = memoryview(self._raw.reshape(-1))
         self.lost: list[float | None] = [None] * len(self.devices)
         self._n_lost = 0
         self._zero = np.zeros(3)
@@ -127,54 +137,89 @@ class DeviceBank:
         """What a tick needs of ``frame``, looked up once per frame (a reload brings a new
         one): each finger's force row, and memoryviews of the device state (a float stored
         through one is that float, bit for bit, for a fraction of a numpy item
-        assignment). The devices themselves are looked up on every tick: a test or a
-        bring-up may swap one."""
+        assignment; a memoryview copy of a block is one memcpy). The devices themselves
+        are looked up on every tick: a test or a bring-up may swap one."""
         self._frame = frame
+        F = len(self.devices)
         # Per finger, its position and velocity rows (a 1-d view: no index tuple to build).
         self._state_rows = [
-            (item_view(frame.device_pos[i]), item_view(frame.device_vel[i]))
-            for i in range(len(self.devices))
+            (item_view(frame.device_pos[i]), item_view(frame.device_vel[i])) for i in range(F)
         ]
         self._buttons_mv = item_view(frame.buttons)
-        self._force_rows = [frame.device_force[i] for i in range(len(self.devices))]
+        self._force_rows = [frame.device_force[i] for i in range(F)]
         self._any_mounted = any(self._mounted)
+        # device_pos and device_vel side by side in the record (hapticd.frame lays them out
+        # so): both, as one flat memoryview, take the devices' block in one copy.
+        pos, vel = frame.device_pos, frame.device_vel
+        rec = frame.record.reshape(1).view(np.uint8)
+        at = pos.ctypes.data - rec.ctypes.data
+        self._frame_both = (
+            memoryview(rec[at : at + 2 * pos.nbytes]).cast("d")
+            if vel.ctypes.data == pos.ctypes.data + pos.nbytes
+            else None
+        )
 
     def read(self, frame: Frame, k: int, t: float) -> None:
         """Fill ``device_pos``, ``device_vel`` and ``buttons``; a lost device keeps its last
         position, at rest, and so does a device whose sample is implausible (a fault)."""
         if frame is not self._frame:
             self._bind(frame)
-        state_rows, buttons = self._state_rows, self._buttons_mv
+        buttons = self._buttons_mv
         lost = self.lost if self._n_lost else None
         lim = self._max_speed
         hypot = math.hypot
-        states = self._states
+        states, raw_pos, raw_vel = self._states, self._raw_pos, self._raw_vel
+        # The block copy below takes every finger's sample: only when each one passed and
+        # needs no mount; otherwise each finger that passed is copied on its own.
+        whole = not self._any_mounted and lost is None
         for i, dev in enumerate(self.devices):
             if lost is not None and lost[i] is not None:
                 continue
             st = states[i]
             try:
                 dev.read_state(st)
-            except DeviceError as exc:
+            except BaseException as exc:
+                if whole:  # the fingers before this one passed: into the frame first
+                    self._enter(frame, i)
+                    whole = False
+                if not isinstance(exc, DeviceError):
+                    raise
                 self._lose(frame, i, k, t, exc)
                 lost = self.lost
                 continue
             # NaN fails the comparisons (hypot neither overflows nor hides a NaN).
-            px, py, pz = st.position.tolist()
-            vx, vy, vz = st.velocity.tolist()
+            px, py, pz = raw_pos[i].tolist()
+            vx, vy, vz = raw_vel[i].tolist()
             if not (hypot(vx, vy, vz) <= lim and hypot(px, py, pz) <= MAX_DEVICE_DISTANCE_M):
+                if whole:
+                    self._enter(frame, i)
+                    whole = False
                 self._implausible(frame, i, k, t, st)
                 continue
-            if self._any_mounted and self._mounted[i]:
+            buttons[i] = st.buttons
+            if whole:
+                continue  # copied with the others below
+            if self._mounted[i]:
                 tmp = self._tmp
                 np.matmul(self._sR[i], st.position, out=tmp)
                 np.add(tmp, self._t[i], out=frame.device_pos[i])
                 np.matmul(self._sR[i], st.velocity, out=frame.device_vel[i])
             else:
-                pos, vel = state_rows[i]
-                pos[0], pos[1], pos[2] = px, py, pz
-                vel[0], vel[1], vel[2] = vx, vy, vz
-            buttons[i] = st.buttons
+                pos, vel = self._state_rows[i]
+                pos[:] = raw_pos[i]
+                vel[:] = raw_vel[i]
+        if whole:
+            self._enter(frame, len(states))
+
+    def _enter(self, frame: Frame, n: int) -> None:
+        """Copy the first ``n`` fingers' samples, all passed and none mounted, into the
+        frame: the whole block in one copy when ``n`` is every finger."""
+        both = self._frame_both
+        if n == len(self._states) and both is not None:
+            both[:] = self._raw_all
+            return
+        frame.device_pos[:n] = self._raw[0, :n]
+        frame.device_vel[:n] = self._raw[1, :n]
 
     def write(self, frame: Frame, k: int, t: float) -> None:
         """Command ``device_force`` (world frame) on every connected device, each in its own

@@ -116,11 +116,18 @@ class EventRing:
 class FrameEvents:
     """Pushes ``contact_begin``/``contact_end`` and ``button_down``/``button_up`` events when
     the frame's ``in_contact`` or ``buttons`` differ from the previous tick's (both start at
-    zero: a finger already touching on tick 0 begins its contact there)."""
+    zero: a finger already touching on tick 0 begins its contact there).
+
+    It counts each finger's ticks in contact on the way (``contact_ticks``): at each
+    contact's end, and for contacts still going on when asked, so a tick without a change
+    counts nothing."""
 
     def __init__(self, ring: EventRing, n_fingers: int) -> None:
         self.ring = ring
         self.n_fingers = n_fingers
+        self.tick = -1  # the last tick watched
+        self._closed = [0] * n_fingers  # ticks in contacts that have ended
+        self._since = [0] * n_fingers  # the first tick of each finger's current contact
         self._contact = np.zeros(n_fingers, dtype=np.uint8)
         self._buttons = np.zeros(n_fingers, dtype=np.uint32)
         self._was_contact = memoryview(self._contact)
@@ -139,6 +146,7 @@ class FrameEvents:
         """Compare the tick's frame with the previous tick's; push what changed."""
         if frame is not self._frame:
             self._bind(frame)
+        self.tick = tick
         if self._now_contact != self._was_contact:
             self._contacts(frame, tick, t)
         if self._now_buttons != self._was_buttons:
@@ -151,7 +159,19 @@ class FrameEvents:
             a, b = int(was[i]), int(now[i])
             if a != b:
                 push(CONTACT_BEGIN if b else CONTACT_END, tick, t, i)
+                if b:
+                    self._since[i] = tick
+                else:
+                    self._closed[i] += tick - self._since[i]
         was[...] = now
+
+    def contact_ticks(self) -> list[int]:
+        """Each finger's ticks in contact over the ticks watched so far."""
+        out = list(self._closed)
+        for i in range(self.n_fingers):
+            if self._contact[i]:
+                out[i] += self.tick + 1 - self._since[i]
+        return out
 
     def _button_changes(self, frame: Frame, tick: int, t: float) -> None:
         now, was = frame.buttons, self._buttons

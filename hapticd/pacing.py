@@ -28,7 +28,8 @@ START_DELAY_S = 2e-3
 
 @dataclass
 class LoopStats:
-    """Timing gathered while the loop runs (s), and per-finger force and contact counts."""
+    """Timing gathered while the loop runs (s), and per-finger force and contact counts
+    (``contact_ticks`` brought up to date when the loop stops)."""
 
     period_error: LogHistogram = field(default_factory=LogHistogram)
     compute: LogHistogram = field(default_factory=LogHistogram)

@@ -308,6 +308,7 @@ class ServoLoop:
         self._t_wall_view = item_view(frame.t_wall)
         self._fault_view = item_view(frame.fault)
         self._compute_view = item_view(frame.compute_s)
+        self._force_rows = [item_view(row) for row in frame.device_force]
 
     def _trip(self, k: int, t: float, cause: str, kind: str = "device") -> None:
         # Literal kinds: a test checks every kind latched is declared (hapticd.events).
@@ -458,6 +459,7 @@ class ServoLoop:
             self._loop()
         finally:
             self.running = False
+            self.stats.contact_ticks[:] = self._frame_events.contact_ticks()
             # Was the last force sent not zero? Then the recording needs the shutdown's zero.
             unrecorded_zero = bool(self.frame.device_force.any())
             # The devices first: nothing below may stand between a fault and zero force.
@@ -515,18 +517,17 @@ class ServoLoop:
             self._frame_events.after_tick(frame, k, t)
             if safety.fault is not None and safety.fault is not self._fault_seen:
                 self._note_fault(k, t)
-            # Plain floats: numpy item access per finger would cost several times this.
+            if frame is not self._scalars_of:
+                self._bind_scalars(frame)
+            # Plain floats through each finger's memoryview: numpy item access per finger
+            # would cost several times this. (Ticks in contact are counted by the frame
+            # watcher, at each change.)
             max_force = st.max_force
-            for i, (f0, f1, f2) in enumerate(frame.device_force.tolist()):
+            for i, row in enumerate(self._force_rows):
+                f0, f1, f2 = row.tolist()
                 mag = hypot(f0, f1, f2)
                 if mag > max_force[i]:
                     max_force[i] = mag
-            contact_ticks = st.contact_ticks
-            for i, touching in enumerate(frame.in_contact.tolist()):
-                if touching:
-                    contact_ticks[i] += 1
-            if frame is not self._scalars_of:
-                self._bind_scalars(frame)
             self._fault_view[()] = safety.fault is not None
             if self.control_seq != self._control_seq_written:
                 # It changes only when a command lands (its field stays between ticks).

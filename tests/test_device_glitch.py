@@ -98,3 +98,45 @@ def test_a_diverged_object_latches_a_fault_and_ends_the_run():
     assert "the object's state diverged" in fault["cause"]
     assert summary["end_reason"] == "the object's state diverged"
     assert np.all(np.isfinite(forces)) and np.all(forces[-1] == 0.0)
+
+
+def test_a_glitch_on_one_finger_lets_the_others_samples_in():
+    """The device bank copies the fingers' samples into the frame in one block when all
+    pass; a glitch on the second finger still lets the first finger's sample in, and keeps
+    the second's last good position, at rest, with its buttons."""
+    from hapticd_drivers import DeviceState
+
+    from hapticd.device_bank import DeviceBank
+    from hapticd.frame import Frame
+
+    class Scripted:
+        info = None
+        finished = False
+
+        def __init__(self, samples):
+            self.samples, self.k = samples, 0
+
+        def read_state(self, st: DeviceState) -> None:
+            st.position[:], st.velocity[:], st.buttons = self.samples[self.k]
+            self.k += 1
+
+    good = [((0.01, 0.02, 0.03), (0.1, 0.0, 0.0), 1), ((0.02, 0.02, 0.03), (0.2, 0.0, 0.0), 2)]
+    bad = [((0.0, 0.01, 0.0), (0.0, 0.3, 0.0), 4), ((0.0, 0.5, 0.0), (0.0, math.nan, 0.0), 8)]
+    faults = []
+    bank = DeviceBank(
+        [Scripted(good), Scripted(bad)],
+        reconnect=False,
+        on_fault=lambda *a: faults.append(a),
+        on_event=None,
+        max_speed_m_per_s=5.0,
+    )
+    frame = Frame(2, 2)
+    bank.read(frame, 0, 0.0)
+    assert not faults
+    assert frame.device_pos.tolist() == [[0.01, 0.02, 0.03], [0.0, 0.01, 0.0]]
+    assert frame.device_vel.tolist() == [[0.1, 0.0, 0.0], [0.0, 0.3, 0.0]]
+    bank.read(frame, 1, 1e-3)
+    assert len(faults) == 1 and "finger 1" in faults[0][2] and faults[0][3] == "device_state"
+    assert frame.device_pos.tolist() == [[0.02, 0.02, 0.03], [0.0, 0.01, 0.0]]
+    assert frame.device_vel.tolist() == [[0.2, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    assert frame.buttons.tolist() == [2, 8]

@@ -101,3 +101,56 @@ def test_drivers_never_import_hapticd():
         "assert not bad, bad\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.parametrize("repeat", [False, True])
+def test_a_trajectory_samples_what_at_and_buttons_at_give(repeat):
+    """``Trajectory.sample`` (the replay device's read) writes the very floats ``at`` returns
+    and returns ``buttons_at``'s buttons, whatever the cursor does: a tick's step, a jump over
+    several samples, time going back, before the start, past the end, around a repeat."""
+    from hapticd_drivers.trajectory import Trajectory
+
+    rng = np.random.default_rng(7)
+    t = np.cumsum(rng.uniform(1e-3, 3e-3, 60))
+    x = np.cumsum(rng.normal(0.0, 1e-4, (60, 3)), axis=0)
+    x[-1] = x[0]  # a repeated path ends where it starts
+    b = rng.integers(0, 8, 60)
+    ref = Trajectory(t, x, "ref", b, repeat)
+    path = Trajectory(t, x, "path", b, repeat)
+    end = float(t[-1] - t[0])
+    times = [k * 1e-3 for k in range(int(end * 1e3) + 40)]  # every tick, past the end
+    times += [0.05, 0.01, -0.5, end, end + 1e-9, 2.5 * end, 0.02, 0.021, 0.09, 1e-3]
+    times += rng.uniform(-0.01, 3 * end, 200).tolist()
+    pos, vel = np.zeros(3), np.zeros(3)
+    for now in times:
+        buttons = path.sample(now, memoryview(pos), memoryview(vel))
+        want_pos, want_vel = ref.at(now)
+        assert pos.tolist() == list(want_pos), now
+        assert vel.tolist() == list(want_vel), now
+        assert buttons == ref.buttons_at(now), now
+
+
+def test_check_force_returns_the_force_it_accepts():
+    from hapticd_drivers.base import check_force
+
+    assert check_force(np.array([1.0, -2.0, 0.5]), 3.0, "d") == (1.0, -2.0, 0.5)
+    assert check_force([0.0, 3.0, 0.0], 3.0, "d") == (0.0, 3.0, 0.0)  # a list: the slow path
+    for bad in (np.zeros(4), np.zeros((3, 1)), np.array([0.0, np.inf, 0.0]), "abc"):
+        with pytest.raises(DeviceError, match="expected 3 finite values"):
+            check_force(bad, 3.0, "d")
+    with pytest.raises(DeviceError, match="above its limit 3 N"):
+        check_force(np.array([3.0, 0.1, 0.0]), 3.0, "d")
+
+
+def test_a_device_state_holds_its_arrays_and_refuses_others():
+    st = DeviceState()
+    st.pos_view[1] = 0.25
+    st.vel_view[2] = -1.5
+    assert st.position.tolist() == [0.0, 0.25, 0.0] and st.velocity.tolist() == [0, 0, -1.5]
+    rows = np.zeros((2, 3))
+    st = DeviceState(rows[0], rows[1])  # an owner's own rows, filled in place
+    st.pos_view[0] = 1.0
+    assert rows[0, 0] == 1.0
+    for bad in (np.zeros(3, dtype=np.float32), np.zeros(4), np.zeros((3, 2))[:, 0]):
+        with pytest.raises(ValueError, match=r"DeviceState\.position"):
+            DeviceState(bad)

@@ -74,6 +74,13 @@ class Recorder:
                 buffer=self._mm,
                 offset=ring.HEADER_BYTES,
             )
+            self._itemsize = self.dtype.itemsize
+            base = memoryview(self._mm)
+            self._word_view = base[: ring.HEADER_BYTES].cast("Q")
+            self._slot_view = base[ring.HEADER_BYTES :]
+            self._ring_views = (self._word_view, self._slot_view, base)  # released on close
+            self._record: np.ndarray | None = None  # the last record appended, and its view
+            self._record_view = memoryview(b"")
             self._proc = subprocess.Popen(
                 [
                     sys.executable,
@@ -144,16 +151,22 @@ class Recorder:
         """Record one tick: ``record`` is its bytes, uint8 (itemsize,) in this recording's
         layout (the tick frame's ``recorded``; ``as_record`` makes one from values)."""
         n = self._n
-        words = self._words
-        drained = int(words[4])  # W_DRAINED
+        # The ring's words and slots through memoryviews: each word one aligned 8-byte load
+        # or store, as the writer's (hapticd.recording.ring); a record one memcpy.
+        words = self._word_view
+        drained = words[4]  # W_DRAINED
         if drained > self._drained:
             self._drained = drained  # it only grows: a lower reading is stale, not a full ring
-        full = n - self._drained >= self.capacity
-        if full and not (self.block_when_full and self._wait_for_room(n)):
+        if n - self._drained >= self.capacity and not (
+            self.block_when_full and self._wait_for_room(n)
+        ):
             self.dropped += 1
             words[6] = self.dropped  # W_DROPPED
             return
-        self._slots[n % self.capacity] = record
+        if record is not self._record:  # the frame's bytes: the same array on every tick
+            self._record, self._record_view = record, memoryview(record)
+        at = (n % self.capacity) * self._itemsize
+        self._slot_view[at : at + self._itemsize] = self._record_view
         self._n = n + 1
         words[3] = n + 1  # W_WRITTEN: published after the record is complete
 
@@ -224,5 +237,7 @@ class Recorder:
             self._proc.kill()
         self._proc.wait()
         del self._slots, self._words
+        for view in self._ring_views:
+            view.release()
         self._mm.close()
         os.close(self._ring_fd)
