@@ -190,8 +190,8 @@ class Renderer:
     def kernel_names(self) -> list[str]:
         """The kernels (names in hapticd.kernels) this renderer runs: the tick's one call,
         and the allocation's own when each finger has one actuated direction (its stage
-        runs it on ticks the call hands back; the number of directions stays fixed while
-        the renderer lives)."""
+        runs it between the call's parts for an exact method; the number of directions
+        stays fixed while the renderer lives)."""
         names = ["tick_step"]
         if all(c == 1 for c in self.actuation.counts):
             names.append("allocation_step")

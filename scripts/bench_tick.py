@@ -7,8 +7,8 @@ recorder and its writer process) in a subprocess of its own, unpaced (as fast as
 it can, on the nominal clock) or paced at a given rate, without real-time
 settings.
 
-``--profile-stages``: each part of a tick (device read, every renderer stage,
-safety, device write, the loop's own bookkeeping, recording) timed with
+``--profile-stages``: each part of a tick (device read, the renderer's one call,
+its Python stages, safety, device write, the loop's own bookkeeping, recording) timed with
 perf_counter_ns on every tick: median and p99 per part, unpaced and paced, and
 the ratio paced/unpaced. The timers cost ~0.1 us per part, so the parts' sum is
 a little above an untimed tick. Besides the loop's own pacing (sleep until 200 us
@@ -120,12 +120,13 @@ def child(args: argparse.Namespace) -> dict:
             setattr(obj, attr, timed)
 
         wrap(loop.bank, "read", "device read")
-        # The plan's one call (physics and the safety chain's normal tick) when it has one;
-        # its stages and the chain then run only on ticks the call hands back.
-        if loop.renderer.one_call is not None:
-            wrap(loop.renderer.one_call, "run", "one call (renderer + safety)")
-        for stage in loop.renderer.stages:
-            wrap(stage, "run", f"stage {stage.name}")
+        # The plan's one call (physics and the safety chain's normal tick), and the stages
+        # it runs in Python between its parts (none in the bundled profiles); the chain's own
+        # run only on ticks it takes back.
+        wrap(loop.renderer.one_call, "run", "one call (renderer + safety)")
+        for part in loop.renderer.one_call._parts:
+            if not isinstance(part, tuple):
+                wrap(part, "run", f"stage {part.name}")
         wrap(loop.safety, "run", "safety")
         wrap(loop.bank, "write", "device write")
         tick = loop._tick
