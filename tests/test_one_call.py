@@ -269,7 +269,6 @@ def test_every_plan_runs_as_the_call_with_its_python_stages_between_parts(compil
     two_directions = Renderer(_box(True), [0.008, 0.008], act, "if", dt=1e-3)
     assert two_directions.kernel_names == ["tick_step"]
     two_directions.use_kernels({n: compiled[n] for n in two_directions.kernel_names})
-    parts = two_directions.one_call._parts
     two_directions.step(np.zeros((2, 3)), np.zeros((2, 3)))
     parts = two_directions.one_call._parts
     assert parts[0] == (kn.STAGE_CONTACT, kn.STAGE_ALLOCATION) and parts[2][1] == end
