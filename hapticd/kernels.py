@@ -378,7 +378,7 @@ KERNEL_HELPERS = (
     "_many_contacts",
     "_write_many",
     "_gram_mu",
-    "_hypot3",
+    "_norm3",
     # tick_step's stages: compiled into it, one call per tick
     "world_planes",
     "contact_step",
@@ -1423,65 +1423,22 @@ SAFETY_PARAMS = 6
 # limited), or DEFER: something may trip (a non-finite force, a finger at or beyond the
 # workspace's edge), nothing written, the Python chain runs this tick.
 SAFETY_CLAMPED, SAFETY_LIMITED, SAFETY_DEFER = 1, 2, 4
-# Python's math.hypot splits each scaled square with Veltkamp's constant 2**27 + 1.
-_SPLIT = 134217729.0
 
 
-def _hypot3(x0: float, x1: float, x2: float) -> float:
-    """``math.hypot(x0, x1, x2)`` as CPython 3.11 computes it (``vector_norm``: scaled by
-    the largest magnitude, squares split with Veltkamp's constant, compensated sums, one
-    correction step), bit for bit, under any Python; inf for an infinite argument."""
+def _norm3(x0: float, x1: float, x2: float) -> float:
+    """The length of (x0, x1, x2), scaled by its largest magnitude so that no square
+    overflows or underflows (a force of 1e200 N keeps its direction when clamped); inf
+    for an infinite argument, NaN for a NaN one (every comparison then fails)."""
     a0, a1, a2 = abs(x0), abs(x1), abs(x2)
     top = a0
     if a1 > top:
         top = a1
     if a2 > top:
         top = a2
-    if math.isinf(top) or top == 0.0:
+    if top == 0.0 or math.isinf(top):
         return top
-    else:
-        e = math.frexp(top)[1]
-        csum, frac1, frac2, frac3 = 1.0, 0.0, 0.0, 0.0
-        if e >= -1023:
-            scale = math.ldexp(1.0, -e)
-            for x in (a0 * scale, a1 * scale, a2 * scale):
-                t = x * _SPLIT
-                hi = t - (t - x)
-                lo = x - hi
-                x = hi * hi
-                old = csum
-                csum += x
-                frac1 += (old - csum) + x
-                x = 2.0 * hi * lo
-                old = csum
-                csum += x
-                frac2 += (old - csum) + x
-                frac3 += lo * lo
-            h = math.sqrt(csum - 1.0 + (frac1 + frac2 + frac3))
-            t = h * _SPLIT
-            hi = t - (t - h)
-            lo = h - hi
-            x = -hi * hi
-            old = csum
-            csum += x
-            frac1 += (old - csum) + x
-            x = -2.0 * hi * lo
-            old = csum
-            csum += x
-            frac2 += (old - csum) + x
-            x = -lo * lo
-            old = csum
-            csum += x
-            frac3 += (old - csum) + x
-            x = csum - 1.0 + (frac1 + frac2 + frac3)
-            return (h + x / (2.0 * h)) / scale
-        else:
-            for x in (a0 / top, a1 / top, a2 / top):
-                x = x * x
-                old = csum
-                csum += x
-                frac1 += (old - csum) + x
-            return top * math.sqrt(csum - 1.0 + frac1)
+    a0, a1, a2 = a0 / top, a1 / top, a2 / top
+    return top * math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
 
 
 def safety_step(
@@ -1497,8 +1454,8 @@ def safety_step(
     output and returns the SAFETY_CLAMPED and SAFETY_LIMITED flags, or returns
     SAFETY_DEFER having written nothing: the chain then checks what may trip, with its
     messages (or, a finger within rounding of the workspace's edge, decides, and calls
-    this again without the workspace check). Magnitudes are ``_hypot3`` (CPython 3.11's
-    ``math.hypot``), the same on any Python, compiled or not.
+    this again without the workspace check). Magnitudes are ``_norm3``'s, the same
+    compiled or not.
     """
     n_fingers = forces.shape[0]
     for i in range(n_fingers):
@@ -1524,7 +1481,7 @@ def safety_step(
     flags = 0
     for i in range(n_fingers):
         f0, f1, f2 = forces[i, 0], forces[i, 1], forces[i, 2]
-        mag = _hypot3(f0, f1, f2)
+        mag = _norm3(f0, f1, f2)
         limit = params[SAFETY_PARAMS + i]
         if mag > limit:
             s = limit / mag
@@ -1540,7 +1497,7 @@ def safety_step(
         if rate_limited and (f0 != 0.0 or f1 != 0.0 or f2 != 0.0):
             p0, p1, p2 = out_prev[1, i, 0], out_prev[1, i, 1], out_prev[1, i, 2]
             d0, d1, d2 = f0 - p0, f1 - p1, f2 - p2
-            change = _hypot3(d0, d1, d2)
+            change = _norm3(d0, d1, d2)
             if change > step:
                 k = step / change
                 f0, f1, f2 = p0 + k * d0, p1 + k * d1, p2 + k * d2
@@ -1905,11 +1862,11 @@ def tick_step(
             record[o + k] = obj_state[k]
     if params[TICK_SAFETY] == 0.0 or not first <= STAGE_SAFETY < last:
         return TICK_DONE
-    # NaN fails every comparison; _hypot3 is math.hypot's (the loop's backstop's) sum.
+    # NaN fails every comparison (the loop's backstop, math.hypot, agrees to rounding).
     if params[TICK_FREE] != 0.0 and not (
-        _hypot3(obj_state[0], obj_state[1], obj_state[2]) <= MAX_OBJECT_DISTANCE_M
-        and _hypot3(obj_state[3], obj_state[4], obj_state[5]) <= MAX_OBJECT_SPEED_M_PER_S
-        and _hypot3(obj_state[6], obj_state[7], obj_state[8]) <= MAX_OBJECT_SPIN_RAD_PER_S
+        _norm3(obj_state[0], obj_state[1], obj_state[2]) <= MAX_OBJECT_DISTANCE_M
+        and _norm3(obj_state[3], obj_state[4], obj_state[5]) <= MAX_OBJECT_SPEED_M_PER_S
+        and _norm3(obj_state[6], obj_state[7], obj_state[8]) <= MAX_OBJECT_SPIN_RAD_PER_S
     ):
         return TICK_OBJECT
     flags = safety_step(rendered, device_pos, safety_params, out_prev)
