@@ -51,13 +51,14 @@ from pathlib import Path
 
 MODES = ("python", "compiled", "auto")
 
-# numba's signature of each kernel: the frame's fields and the object's state are
-# C-contiguous float64 (uint8 for in_contact), the scalars float64 or int64.
+# numba's signature of each kernel called from outside hapticd.kernels: the tick's one call
+# (the stages' kernels and helpers are compiled into it: kernels.KERNEL_HELPERS), the
+# allocation's own (ContactAllocator's, when it runs outside the call: its replay, its
+# stage between the call's parts), the batch's (allocate_many) and the safety chain's
+# tick. The frame's
+# fields and the object's state are C-contiguous float64 (uint8 for in_contact), the
+# scalars float64 or int64.
 SIGNATURES = {
-    "free_body_step": (
-        "void(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[:, ::1],"
-        " f8[:, ::1], f8[:, ::1])"
-    ),
     "allocation_step": (
         "i8(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[::1],"
         " f8[:, ::1], f8[::1], f8[:, ::1])"
@@ -66,20 +67,7 @@ SIGNATURES = {
         "void(i8, f8[:, :, ::1], f8[:, :, ::1], f8[:, ::1], f8[::1], f8, f8, f8[:, ::1],"
         " f8[:, ::1])"
     ),
-    "friction_step": (
-        "void(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1],"
-        " f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], f8[::1])"
-    ),
-    "forces_step": (
-        "void(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1],"
-        " f8[::1])"
-    ),
-    "contact_step": (
-        "i8(f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], u1[::1], f8[:, ::1],"
-        " f8[:, ::1], f8[:, ::1], f8[:, ::1])"
-    ),
     "safety_step": "i8(f8[:, ::1], f8[:, ::1], f8[::1], f8[:, :, ::1])",
-    "world_planes": "void(f8[:, ::1], f8[::1], f8[:, ::1], f8[::1], f8[:, ::1])",
     "tick_step": (
         "i8(f8[::1], u1[::1], i8[::1], f8[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1],"
         " f8[:, ::1], f8[::1], f8[::1], f8[:, :, ::1])"

@@ -14,11 +14,14 @@ two contacts and the general path of ``hapticd.allocation.general`` for more (wr
 once, shared with ``allocate`` and ``allocate_many``; ``KERNEL_HELPERS``).
 ``allocate_grasps`` is that general path for a batch (``allocate_many``'s ``kernel=``).
 
-``allocation_step``, ``contact_step``, ``friction_step``, ``forces_step``,
-``free_body_step`` and ``safety_step`` have no twin: each is its stage's physics
-(hapticd.stages.Allocation, Contact, Friction, Forces, Dynamics;
-hapticd.safety.SafetyChain's normal tick), compiled or, with ``rendering.kernels=python``,
-run uncompiled (``uncompiled``).
+``tick_step`` is the renderer's tick as one call (hapticd.render.OneCall): ``world_planes``,
+``contact_step``, ``friction_step``, ``forces_step``, ``allocation_step`` and
+``free_body_step`` are its stages' physics (hapticd.stages.Contact, Friction, Forces,
+Allocation, Dynamics), with no twin, compiled into it (``KERNEL_HELPERS``), and
+``safety_step`` is hapticd.safety.SafetyChain's normal tick. hapticd.jit compiles as entry
+points only what is called from outside this module (``hapticd.jit.SIGNATURES``:
+``tick_step``, ``allocation_step``, ``allocate_grasps``, ``safety_step``); with
+``rendering.kernels=python`` the same functions run uncompiled (``uncompiled``).
 
 Units: positions m, velocities m/s, angular velocities rad/s, forces N, torques
 N m, stiffness N/m, damping N s/m, mass kg, inertia kg m^2, times s.

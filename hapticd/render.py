@@ -5,9 +5,9 @@ device state is filled: contact, friction, forces, allocation, environment,
 passivity, dynamics, scene. Stages the scene does not need are not in the plan
 and never run (a fixed cube has no dynamics stage, a frictionless one no
 friction stage, a renderer without ``passivity`` parameters no passivity stage).
-``use_kernels`` hands it compiled kernels (hapticd.kernels, compiled by hapticd.jit)
-for the stages that have one; without them every stage with a kernel runs the same
-kernel uncompiled (its only code). ``insert`` adds a stage after a named one;
+The plan runs as one call per tick (``OneCall``: hapticd.kernels.tick_step);
+``use_kernels`` hands it the compiled call (hapticd.jit); without it the same function
+runs uncompiled (its only code). ``insert`` adds a stage after a named one;
 ``set_param`` changes a scene or rendering parameter (those of hapticd.params the
 renderer owns) and re-plans.
 The same object renders off-line: ``step(device_pos, device_vel)`` runs one
@@ -131,7 +131,7 @@ class Renderer:
         )
         # Stages that carry state from tick to tick live as long as the renderer.
         self._contact = Contact(self.scene, self.radii)
-        self._friction = Friction(self.scene, self.radii)
+        self._friction = Friction(self.radii)
         self._allocation = Allocation(self.scene, self.allocator)
         self._passivity = None if passivity is None else Passivity(passivity, self.n_fingers, dt)
         self._inserted: list[tuple[str, Stage]] = []
@@ -157,11 +157,10 @@ class Renderer:
         stages: list[Stage] = [self._contact]
         friction = obj.material.has_friction
         self._contact.outputs = FRICTIONLESS if friction else HELD
-        self._friction.inputs = FRICTIONLESS
         if friction:
             stages.append(self._friction)
         self._allocation.kernel = self.kernels.get("allocation_step")
-        stages += [Forces(sc), self._allocation]
+        stages += [Forces(), self._allocation]
         parts: list[str] = []
         if sc.surfaces:
             stages.append(Environment())
@@ -198,8 +197,8 @@ class Renderer:
         return names
 
     def use_kernels(self, kernels: dict[str, Callable[..., None]]) -> None:
-        """Run the stages that have a kernel in ``kernels`` (name -> compiled function)
-        with it from the next tick on; an empty dict: none compiled."""
+        """Run the kernels in ``kernels`` (name -> compiled function, ``kernel_names``) from
+        the next tick on; an empty dict: none compiled."""
         self.kernels = dict(kernels)
         self.plan()
 
@@ -440,9 +439,8 @@ class OneCall:
         obj = self._scene.object
         if frame is not self._frame or obj is not self._obj or obj.material is not self._material:
             self._bind(frame)
-        if not self._started:  # every proxy starts at its device, on the first tick run
-            self.renderer._contact.start(frame)
-            self._started = True
+        if not self._started:  # every proxy starts at its device, on the first finite tick
+            self._started = self.renderer._contact.start(frame)
         if safety is not self._safety:  # the chain in the call changed (None: no chain)
             self._with(safety)
         if self._single:

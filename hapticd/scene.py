@@ -128,8 +128,8 @@ class SceneObject:
 
     def update_world(self) -> None:
         """Say the pose changed: the world-frame polytope is made again on its next use (a
-        free object moves every tick; the contact stage reads its polytope only without a
-        compiled planes kernel)."""
+        free object moves every tick; the tick's one call puts its planes at its pose
+        itself each tick: kernels.world_planes)."""
         self.__dict__["_polytope"] = None  # past __setattr__: every tick of a free object
 
     @property

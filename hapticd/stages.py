@@ -8,8 +8,9 @@ to tick (``carries``: hapticd.frame.STATE) and its part of the tick's one call
     contact -> friction -> forces -> allocation -> environment -> passivity -> output
     -> dynamics -> scene
 
-Contact, Friction, Forces and Dynamics also run alone on a frame (``run``: their
-kernel, compiled or not); Allocation runs in Python for what its kernel does not take.
+A stage the call has is a declaration (no ``run``); a stage it does not have (Allocation
+for what its kernel does not take, a stage inserted into the plan) runs in Python
+(``run(frame)``) between the call's parts.
 
 Units: positions m, velocities m/s, forces N, stiffness N/m, damping N s/m.
 """
@@ -29,7 +30,7 @@ from hapticd.contact import Polytope
 from hapticd.dynamics import auto_substeps
 from hapticd.frame import Frame
 from hapticd.passivity import PassivityParams
-from hapticd.scene import Material, Scene, SceneObject, Surface
+from hapticd.scene import Scene, SceneObject, Surface
 
 
 class Stage(Protocol):
@@ -38,13 +39,12 @@ class Stage(Protocol):
     ``reads`` and ``writes`` name the frame fields (hapticd.frame) it reads and writes; the
     renderer refuses a plan in which two stages write one field. A stage that declares
     neither (a test's hook acting at a tick) is taken to touch no field; a test's fault
-    injector names the fields it spoils after their writer in ``corrupts``."""
+    injector names the fields it spoils after their writer in ``corrupts``. A stage of the
+    tick's one call names its part (``kernel_stage``); any other runs in Python (``run``)."""
 
     name: str
     reads: tuple[str, ...]
     writes: tuple[str, ...]
-
-    def run(self, frame: Frame) -> None: ...
 
 
 HELD = ("proxy_pos", "surface_point", "contact_point")
@@ -72,20 +72,6 @@ class _Fields:
         return self.views
 
 
-def _kernel(name: str) -> property:
-    """A stage's kernel ``name`` (a function of hapticd.kernels): the compiled function
-    hapticd.jit gave it, or, set to None, the very same function uncompiled
-    (``kernels.uncompiled``: ``rendering.kernels=python``). The stage calls ``_kernel``."""
-
-    def get(stage: object) -> Callable[..., object]:
-        return stage._kernel  # type: ignore[attr-defined]
-
-    def put(stage: object, fn: Callable[..., object] | None) -> None:
-        stage._kernel = kernels.uncompiled(name) if fn is None else fn  # type: ignore[attr-defined]
-
-    return property(get, put, doc=f"hapticd.kernels.{name}, compiled or not")
-
-
 class Contact:
     """God-object contact of spherical fingertips with the object, the ground and the walls.
 
@@ -93,26 +79,18 @@ class Contact:
     object's active planes only (frictionless) and the contact point into ``outputs``
     (``HELD``: ``proxy_pos``, ``surface_point``, ``contact_point``; in a plan with friction
     the renderer makes them ``FRICTIONLESS``), and ``contact_normal``, ``in_contact`` and
-    ``env_force`` (the ground and walls' spring-damper force on each finger). The physics
-    is hapticd.kernels.contact_step, compiled or not (``kernel``); a non-finite input
-    raises ValueError naming it, with nothing written.
+    ``env_force`` (the ground and walls' spring-damper force on each finger). Its physics
+    is the one call's (hapticd.kernels.contact_step); a non-finite input stops the call,
+    with nothing written, and ``_non_finite`` names it.
     """
 
     name = "contact"
     reads = ("device_pos", "device_vel")
     kernel_stage = kernels.STAGE_CONTACT
-    kernel = _kernel("contact_step")
 
-    def __init__(
-        self, scene: Scene, radii: list[float], kernel: Callable[..., int] | None = None
-    ) -> None:
+    def __init__(self, scene: Scene, radii: list[float]) -> None:
         self.scene = scene
         self.radii = radii
-        self.kernel = kernel
-        # hapticd.kernels.world_planes compiled, or None: a free object's planes for the
-        # kernel each tick from its pose, without making its polytope.
-        self.planes_kernel: Callable[..., None] | None = None
-        self._body: tuple[object, np.ndarray, np.ndarray] | None = None  # shape, N, d
         # The proxies (m), the radii, the active planes and the kernel's work space.
         self._state = np.zeros((len(radii), kernels.CONTACT_STATE))
         self._state[:, kernels._C_RADIUS] = radii
@@ -121,7 +99,6 @@ class Contact:
         self._planes: np.ndarray | None = None  # the kernel's planes (PLANE_COLUMNS)
         self._planes_for: Polytope | None = None
         self.outputs = HELD
-        self._out = _Fields()
         self.carries = {"proxies": self._state}  # hapticd.frame.STATE
 
     @property
@@ -134,30 +111,13 @@ class Contact:
     def writes(self) -> tuple[str, ...]:
         return ("in_contact", "contact_normal", "env_force", *self.outputs)
 
-    def start(self, frame: Frame) -> None:
-        """Until a tick with finite device positions: every proxy starts at its device."""
+    def start(self, frame: Frame) -> bool:
+        """Until a tick with finite device positions: every proxy starts at its device.
+        Whether they have started."""
         if not self._started:
             self._proxies[...] = frame.device_pos
             self._started = bool(np.all(np.isfinite(self._proxies)))
-
-    def run(self, frame: Frame) -> None:
-        self.start(frame)
-        planes = self._kernel_planes()
-        out_proxy, out_surface, out_point = self._out.of(frame, self.outputs)
-        outcome = self._kernel(
-            frame.device_pos,
-            frame.device_vel,
-            planes,
-            self._state,
-            out_proxy,
-            frame.in_contact,
-            out_surface,
-            out_point,
-            frame.contact_normal,
-            frame.env_force,
-        )
-        if outcome != kernels.CONTACT_DONE:
-            raise ValueError(self._non_finite(frame, planes))
+        return self._started
 
     def _non_finite(self, frame: Frame, planes: np.ndarray) -> str:
         """What the kernel refused: the first non-finite input, named."""
@@ -179,8 +139,8 @@ class Contact:
 
     def _kernel_planes(self) -> np.ndarray:
         """The kernel's planes (hapticd.kernels.PLANE_COLUMNS): the object's, copied again
-        only when its polytope changed, then the surfaces'. (The one call moves a free
-        object's planes itself, each tick: kernels.world_planes.)"""
+        only when its polytope changed, then the surfaces'. (The one call puts the object's
+        planes at its pose itself, each tick: kernels.world_planes.)"""
         obj = self.scene.object
         planes = self._planes
         poly = obj.polytope
@@ -218,41 +178,22 @@ class Friction:
     moves with the object); moves ``proxy_pos`` (the god-object proxy as contact
     wrote it) with the fingertip's point and updates ``contact_point`` to match.
     The anchors live in ``anchors`` (F, kernels.FRICTION_COLUMNS: the anchor (3, m, body
-    frame), 1.0 if it is set, the fingertip's radius (m)). The physics is
-    hapticd.kernels.friction_step, compiled or not (``kernel``).
+    frame), 1.0 if it is set, the fingertip's radius (m)). Its physics is the one call's
+    (hapticd.kernels.friction_step).
 
-    Reads contact's results from ``inputs`` (``FRICTIONLESS`` in the renderer's plan;
-    ``HELD`` when run on its own: then it moves them in place) and writes ``HELD``.
+    Reads contact's results from ``inputs`` (``FRICTIONLESS`` in the renderer's plan) and
+    writes ``HELD``.
     """
 
     name = "friction"
     outputs = HELD
     kernel_stage = kernels.STAGE_FRICTION
-    kernel = _kernel("friction_step")
 
-    def __init__(
-        self, scene: Scene, radii: list[float], kernel: Callable[..., None] | None = None
-    ) -> None:
-        self.scene = scene
-        self.radii = radii
-        self.kernel = kernel
+    def __init__(self, radii: list[float]) -> None:
         self.anchors = np.zeros((len(radii), kernels.FRICTION_COLUMNS))
         self.anchors[:, kernels.FINGER_RADIUS] = radii
-        self.holding = False  # an anchor may be set (out of contact, clear them only then)
-        self._params = np.zeros(kernels.FRICTION_PARAMS)
-        self._params_for: Material | None = None
-        self._inputs = HELD
-        self._in = _Fields()
+        self.inputs = FRICTIONLESS
         self.carries = {"friction_anchors": self.anchors}  # hapticd.frame.STATE
-
-    @property
-    def inputs(self) -> tuple[str, ...]:
-        """The fields it reads contact's results from (``FRICTIONLESS`` or ``HELD``)."""
-        return self._inputs
-
-    @inputs.setter
-    def inputs(self, names: tuple[str, ...]) -> None:
-        self._inputs = HELD if tuple(names) == HELD else tuple(names)
 
     @property
     def reads(self) -> tuple[str, ...]:
@@ -262,88 +203,19 @@ class Friction:
     def writes(self) -> tuple[str, ...]:
         return self.outputs
 
-    def run(self, frame: Frame) -> None:
-        # Contact's results (its proxy, surface point and contact point), where friction
-        # starts from.
-        god_in, plain_in, point_in = self._in.of(frame, self._inputs)
-        # Out of contact the kernel would only copy them: cheaper here than a call.
-        if not any(frame.in_contact.tolist()):
-            if self.holding:
-                self.anchors[:, kernels.ANCHOR_SET] = 0.0
-                self.holding = False
-            if self._inputs is not HELD:
-                frame.proxy_pos[...] = god_in
-                frame.surface_point[...] = plain_in
-                frame.contact_point[...] = point_in
-            return
-        self.holding = True
-        obj = self.scene.object
-        mat = obj.material
-        params = self._params
-        if mat is not self._params_for:  # a Material is frozen: a change is a new one
-            params[0] = mat.mu_static
-            params[1] = mat.mu_dynamic
-            self._params_for = mat
-        self._kernel(
-            frame.in_contact,
-            frame.device_pos,
-            plain_in,
-            god_in,
-            point_in,
-            frame.surface_point,
-            frame.contact_normal,
-            frame.proxy_pos,
-            frame.contact_point,
-            self.anchors,
-            obj.state,
-            params,
-        )
-
 
 class Forces:
     """The full contact force on each finger: k (surface point - device) - b v_rel.
 
     Damping may slow the finger but never pull it into the object. Writes
-    ``contact_force``; zero for a finger out of contact. The physics is
-    hapticd.kernels.forces_step, compiled or not (``kernel``).
+    ``contact_force``; zero for a finger out of contact. Its physics is the one call's
+    (hapticd.kernels.forces_step).
     """
 
     name = "forces"
     reads = ("in_contact", "device_pos", "device_vel", "surface_point", "contact_normal")
     writes = ("contact_force",)
     kernel_stage = kernels.STAGE_FORCES
-    kernel = _kernel("forces_step")
-
-    def __init__(self, scene: Scene, kernel: Callable[..., None] | None = None) -> None:
-        self.scene = scene
-        self.kernel = kernel
-        self._params = np.zeros(kernels.FORCES_PARAMS)
-        self._params_for: tuple[Material, bool] | None = None
-        self._still = np.zeros(kernels.STATE)  # a fixed object's motion: none is read
-
-    def run(self, frame: Frame) -> None:
-        # Out of contact: zero, cheaper here than a call to the kernel.
-        if not any(frame.in_contact.tolist()):
-            frame.contact_force.fill(0.0)
-            return
-        obj = self.scene.object
-        mat, fixed = obj.material, obj.fixed
-        made = self._params_for
-        if made is None or made[0] is not mat or made[1] != fixed:
-            self._params[0] = mat.stiffness
-            self._params[1] = mat.damping
-            self._params[2] = 0.0 if fixed else 1.0
-            self._params_for = (mat, fixed)
-        self._kernel(
-            frame.in_contact,
-            frame.device_pos,
-            frame.device_vel,
-            frame.surface_point,
-            frame.contact_normal,
-            frame.contact_force,
-            self._still if fixed else obj.state,
-            self._params,
-        )
 
 
 class Allocation:
@@ -522,23 +394,19 @@ class Dynamics:
 
     The fingers act as springs that move with the object during the tick's
     substeps; soft-finger contacts resist spin about their normals. Writes the
-    object's pose to the scene (the next tick's contact sees it). The physics is
-    hapticd.kernels.free_body_step, compiled or not (``kernel``), for any shape.
+    object's pose to the scene (the next tick's contact sees it). Its physics is the one
+    call's (hapticd.kernels.free_body_step), for any shape, on ``arrays``.
     """
 
     name = "dynamics"
     reads = ("in_contact", "contact_point", "contact_force", "contact_normal")
     writes = ()  # the object's pose and motion (the scene's object)
     kernel_stage = kernels.STAGE_DYNAMICS
-    kernel = _kernel("free_body_step")
 
-    def __init__(
-        self, scene: Scene, n_fingers: int, dt: float, kernel: Callable[..., None] | None = None
-    ) -> None:
+    def __init__(self, scene: Scene, n_fingers: int, dt: float) -> None:
         self.scene = scene
         obj = scene.object
         self.dt = dt
-        self.kernel = kernel
         self.gravity = scene.gravity
         self.substeps = scene.substeps
         if scene.substeps == 0:  # auto
@@ -572,24 +440,6 @@ class Dynamics:
         arr.params[0] = mat.stiffness
         arr.params[1] = mat.torsion
         return arr.params, arr.body, arr.surf, self._scratch
-
-    def run(self, frame: Frame) -> None:
-        """The step on the frame's arrays and the object's ``state`` (its position,
-        velocity, omega and rotation are views of it)."""
-        obj = self.scene.object
-        params, body, surf, scratch = self.arrays()
-        self._kernel(
-            frame.in_contact,
-            frame.contact_point,
-            frame.contact_force,
-            frame.contact_normal,
-            params,
-            obj.state,
-            body,
-            surf,
-            scratch,
-        )
-        obj.update_world()
 
 
 class _BodyArrays:

@@ -11,9 +11,9 @@
    tick time against the surface-distance error (how far the hull's faces lie
    inside the true sphere), with the compiled kernels (uncompiled, the contact's
    pass over a mesh's planes is a Python loop: seconds a tick at 20k faces).
-3. Substeps 1, 2, 4, 8: dynamics time per tick (the Dynamics stage, compiled)
-   against energy drift of a free-falling cube (1 s, no ground) and the creep
-   of a cube resting on the ground (1 s).
+3. Substeps 1, 2, 4, 8: the tick's time (its one call, compiled: the free cube's step
+   and a finger touching nothing) against energy drift of a free-falling cube (1 s, no
+   ground) and the creep of a cube resting on the ground (1 s).
 
 Timings are medians and p99 over repeated runs, interleaved per section.
 Usage: python scripts/bench_scene.py [--rounds 3] [--plot PATH]
@@ -36,12 +36,9 @@ import yaml
 from hapticd import jit, recording
 from hapticd.actuation import Actuation
 from hapticd.build import build_scene, builtin_trajectory
-from hapticd.dynamics import kinetic_energy, step_body
-from hapticd.frame import Frame
 from hapticd.profile import parse_profile
 from hapticd.render import Renderer
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
-from hapticd.stages import Dynamics
 
 ROOT = Path(__file__).resolve().parent.parent
 # Outside the repository: a run never overwrites the docs' figure unless asked to.
@@ -68,26 +65,8 @@ def renderer_for(data: dict, kernels: str = "python") -> Renderer:
     return r
 
 
-TIMED_STAGES = ("friction", "allocation", "dynamics")
 # The effect sets run with the Python code and with the compiled kernels (hapticd.kernels).
 KERNELS = ("python", "compiled")
-
-
-def instrument(r: Renderer) -> dict[str, float]:
-    """Wrap the timed stages' ``run`` with timers; returns the running totals (s)."""
-    totals = dict.fromkeys(TIMED_STAGES, 0.0)
-    for stage in r.stages:
-        if stage.name not in totals:
-            continue
-        fn = stage.run
-
-        def timed(frame: object, _fn=fn, _stage: str = stage.name) -> None:
-            t0 = time.perf_counter()
-            _fn(frame)
-            totals[_stage] += time.perf_counter() - t0
-
-        stage.run = timed  # type: ignore[method-assign]
-    return totals
 
 
 def tick_times(r: Renderer, positions: np.ndarray, dt: float) -> list[float]:
@@ -150,31 +129,20 @@ def bench_effects(rounds: int) -> list[dict]:
     keys = [(name, k) for name in sets for k in KERNELS]
     times: dict[tuple[str, str], list[float]] = {key: [] for key in keys}
     stages: dict[str, list[str]] = {}
-    per_stage: dict[tuple[str, str], dict[str, float]] = {
-        key: dict.fromkeys(TIMED_STAGES, 0.0) for key in keys
-    }
     for name, k in keys:
         tick_times(renderer_for(sets[name], k), pos[:200], 1e-3)  # warm-up, not timed
     for _ in range(rounds):
         for name, k in keys:  # interleaved: python and compiled of a set side by side
             r = renderer_for(sets[name], k)
             stages[name] = r.stage_names
-            totals = instrument(r)
             times[(name, k)] += tick_times(r, pos, 1e-3)
-            for st, v in totals.items():
-                per_stage[(name, k)][st] += v
     rows = []
     base = None
     for name in sets:
         row: dict = {"set": name, "stages": " ".join(stages[name])}
         for k in KERNELS:
             med, p99 = stats(times[(name, k)])
-            n = len(times[(name, k)])
-            row[k] = {
-                "median_us": med,
-                "p99_us": p99,
-                **{f"{st}_us": v / n * 1e6 for st, v in per_stage[(name, k)].items()},
-            }
+            row[k] = {"median_us": med, "p99_us": p99}
         base = base or row["python"]["median_us"]
         row["ratio"] = row["python"]["median_us"] / base
         row["speedup"] = row["python"]["median_us"] / row["compiled"]["median_us"]
@@ -243,15 +211,29 @@ def bench_meshes(rounds: int, tmp: Path, kernels: str = "compiled") -> list[dict
     return rows
 
 
+def kinetic_energy(obj: SceneObject) -> float:
+    """Translational plus rotational kinetic energy, J."""
+    I_world = obj.rotation @ obj.inertia_body @ obj.rotation.T
+    return 0.5 * obj.mass * float(obj.velocity @ obj.velocity) + 0.5 * float(
+        obj.omega @ I_world @ obj.omega
+    )
+
+
 def bench_substeps(rounds: int) -> list[dict]:
     g = np.array([0.0, 0.0, -9.81])
     ground = [Surface("ground", (0.0, 0.0, 1.0), -0.025, Material(2000.0, 5.0, 0.6, 0.5))]
-    step = jit.compile_kernels(["free_body_step"])["free_body_step"]
-    no_contact = Frame(1, 1)
+    eye = [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)]
+    away = (np.array([[0.0, 0.0, 1.0]]), np.zeros((1, 3)))  # the finger touches nothing
+    compiled: dict = {}
 
-    def dynamics(c: SceneObject, surfaces: list[Surface], k: int) -> Dynamics:
-        """The loop's Dynamics stage (compiled) for ``c`` with gravity, no finger touching."""
-        return Dynamics(Scene(c, surfaces, g, k), 1, 1e-3, step)
+    def tick(c: SceneObject, surfaces: list[Surface], k: int) -> Renderer:
+        """The renderer's tick (its one call, compiled) of ``c`` with gravity, one finger
+        far away: contact, forces and allocation of nothing, and the object's step."""
+        r = Renderer(Scene(c, surfaces, g, k), [0.008], Actuation([eye], "world"), "pinv")
+        if not compiled:
+            compiled.update(jit.compile_kernels(r.kernel_names))
+        r.use_kernels(compiled)
+        return r
 
     rows = []
     times: dict[int, list[float]] = {k: [] for k in (1, 2, 4, 8)}
@@ -273,13 +255,13 @@ def bench_substeps(rounds: int) -> list[dict]:
         for k in times:
             # Free fall with a tumble, no contact: total energy must stay constant.
             c = cube(0.0, True)
-            stage = dynamics(c, [], k)
+            r = tick(c, [], k)
             e0 = kinetic_energy(c) - c.mass * float(g @ c.position)
             clock = time.perf_counter
             worst = 0.0
             for _ in range(1000):
                 t0 = clock()
-                stage.run(no_contact)
+                r.step(*away)
                 times[k].append(clock() - t0)
                 e = kinetic_energy(c) - c.mass * float(g @ c.position)
                 worst = max(worst, abs(e - e0))
@@ -287,9 +269,9 @@ def bench_substeps(rounds: int) -> list[dict]:
             # Resting on the ground: it must not creep or jitter.
             c = cube(-0.06 * 9.81 / (4 * 2000.0), False)
             z0 = c.position.copy()
-            stage = dynamics(c, ground, k)
+            r = tick(c, ground, k)
             for _ in range(1000):
-                stage.run(no_contact)
+                r.step(*away)
             creep[k] = float(np.linalg.norm(c.position - z0))
     base = None
     for k in times:
@@ -305,25 +287,6 @@ def bench_substeps(rounds: int) -> list[dict]:
                 "rest_creep_m": creep[k],
             }
         )
-    # hapticd.dynamics.step_body (the same model in numpy, the tests' cross-check) beside
-    # it, one substep.
-    c = cube(0.0, True)
-    ts = []
-    for _ in range(1000):
-        t0 = time.perf_counter()
-        step_body(c, np.zeros(3), np.zeros(3), 1e-3, gravity=g, substeps=1)
-        ts.append(time.perf_counter() - t0)
-    med, p99 = stats(ts)
-    rows.append(
-        {
-            "substeps": "1 (numpy step_body)",
-            "median_us": med,
-            "p99_us": p99,
-            "ratio": med / base,
-            "fall_drift_j": float("nan"),
-            "rest_creep_m": float("nan"),
-        }
-    )
     return rows
 
 
@@ -400,18 +363,15 @@ def main() -> None:
     subs = bench_substeps(args.rounds)
     print(
         "| effect set | stages in the plan | python median / p99 us | compiled median / p99 us "
-        "| python / compiled | python x fixed frictionless | mean us python / compiled: "
-        "friction | allocation | dynamics |"
+        "| python / compiled | python x fixed frictionless |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|")
     for r in effects:
         py, co = r["python"], r["compiled"]
         print(
             f"| {r['set']} | {r['stages']} | {py['median_us']:.1f} / {py['p99_us']:.1f} | "
             f"{co['median_us']:.1f} / {co['p99_us']:.1f} | {r['speedup']:.2f} | "
-            f"{r['ratio']:.2f} | "
-            + " | ".join(f"{py[f'{st}_us']:.1f} / {co[f'{st}_us']:.1f}" for st in TIMED_STAGES)
-            + " |"
+            f"{r['ratio']:.2f} |"
         )
     print("\n| object | median us | p99 us | x box | surface error mm |")
     print("|---|---|---|---|---|")
@@ -421,7 +381,7 @@ def main() -> None:
             f"{r['error_mm']:.4f} |"
         )
     print(
-        "\n| substeps | dynamics median us | p99 us | x 1 substep | "
+        "\n| substeps | tick median us | p99 us | x 1 substep | "
         "free-fall energy drift J (1 s) | resting creep m (1 s) |"
     )
     print("|---|---|---|---|---|---|")

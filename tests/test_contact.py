@@ -1,6 +1,6 @@
-"""God-object contact (hapticd.kernels.contact_step, the one source) against analytic
-results: faces, edges, corners, fast fingers, sliding, release, fine meshes, and the Gram
-systems' closed forms (``kernels._gram_mu``)."""
+"""God-object contact (hapticd.kernels.contact_step, the one source, in the tick's one call:
+tests/proxies.py) against analytic results: faces, edges, corners, fast fingers, sliding,
+release, fine meshes, and the Gram systems' closed forms (``kernels._gram_mu``)."""
 
 import math
 import warnings
@@ -13,21 +13,21 @@ from hypothesis.extra.numpy import arrays
 
 from hapticd import kernels
 from hapticd.scene import rpy_matrix
-from tests.proxies import KERNELS, Proxy, box
+from tests.proxies import MODES, Proxy, box
 
 R = 0.008
 HALF = 0.025
 BOX = box(np.zeros(3), np.eye(3), [2 * HALF] * 3, inflate=R)
 SURF = HALF + R
-BOTH = pytest.mark.parametrize("mode", list(KERNELS))
+BOTH = pytest.mark.parametrize("mode", MODES)
 
 
 def run_path(obstacle, points, mode: str = "compiled"):
-    return Proxy([obstacle], KERNELS[mode]()).walk(points[0], points)
+    return Proxy([obstacle], mode).walk(points[0], points)
 
 
 def update(obstacle, proxy, device, mode: str = "compiled"):
-    return Proxy([obstacle], KERNELS[mode]()).step(proxy, device)
+    return Proxy([obstacle], mode).step(proxy, device)
 
 
 @pytest.mark.parametrize("axis", range(3))
@@ -173,14 +173,12 @@ def test_frictionless_sliding_on_a_rotated_face_stays_normal(angle, n_steps):
         np.testing.assert_allclose(f, k * depth * n, rtol=0, atol=1e-9 * k * depth)
 
 
-@pytest.mark.parametrize("fn", ["compiled", "uncompiled", "numpy"])
-def test_a_path_parallel_to_a_far_plane_divides_nothing_out_of_range(fn):
+@BOTH
+def test_a_path_parallel_to_a_far_plane_divides_nothing_out_of_range(mode):
     # A device step whose z is a subnormal number: the path is parallel to the ground to
     # within 5e-324 m. Its crossing time with the ground lies far off the segment and was
-    # computed anyway: an overflow (a RuntimeWarning with numpy scalars: the kernel handed
-    # numpy arrays as they are).
-    kernel = kernels.contact_step if fn == "numpy" else KERNELS[fn]()
-    proxy = Proxy([([(0.0, 0.0, 1.0)], [-0.017])], kernel)
+    # computed anyway: an overflow (a RuntimeWarning with numpy scalars).
+    proxy = Proxy([([(0.0, 0.0, 1.0)], [-0.017])], mode)
     dev = (0.03, -0.01, -5e-324)
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -1,19 +1,22 @@
-"""The free-body step (hapticd.kernels.free_body_step, the Dynamics stage's physics) against
-``hapticd.dynamics.step_body``, the same model written independently in numpy: the same
-results to rounding on every output, whatever the state, contacts, surfaces, gravity and
-substeps; a spin that overflows gives a non-finite pose (for the loop's object check), not
-an error, compiled or not. tests/test_kernels.py compares compiled and uncompiled."""
+"""The free-body step (hapticd.kernels.free_body_step, the Dynamics stage's part of the
+tick's one call) against ``tests.dynamics_oracle.step_body``, the same model written
+independently in numpy: the same results to rounding on every output, whatever the state,
+contacts, surfaces, gravity and substeps; compiled and uncompiled, the same bits; the
+object's state written in place; a spin that overflows gives a non-finite pose (for the
+loop's object check), not an error, compiled or not.
+
+The step runs in the renderer's one call, the frame's contacts put in by a stage inserted
+before it (tests/ticks.py: the call in parts), the fingers out of contact themselves."""
 
 import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hapticd import jit
-from hapticd.dynamics import SurfaceSet, step_body
-from hapticd.frame import Frame
+from hapticd.render import Renderer
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
-from hapticd.stages import Dynamics
+from tests import ticks
+from tests.dynamics_oracle import SurfaceSet, step_body
 from tests.strategies import unit_vectors
 
 DT = 1e-3  # s, one tick at 1 kHz
@@ -94,9 +97,13 @@ def stage_cases(draw) -> dict:
     }
 
 
-def dynamics_stage(case: dict, kernel) -> tuple[Dynamics, Frame]:
-    """The Dynamics stage for a ``stage_cases`` case (``kernel``: compiled, or None) and
-    its frame."""
+# The frame's fields the Dynamics stage reads, put in before it.
+CONTACTS = ("in_contact", "contact_point", "contact_force", "contact_normal")
+
+
+def dynamics_renderer(case: dict, mode: str) -> Renderer:
+    """A renderer of a ``stage_cases`` case's scene (``mode``: compiled or uncompiled) whose
+    plan puts the case's contacts into the frame before the Dynamics stage."""
     o = case["object"]
     obj = SceneObject(
         o["shape"],
@@ -111,27 +118,23 @@ def dynamics_stage(case: dict, kernel) -> tuple[Dynamics, Frame]:
     gravity = None if case["gravity"] is None else case["gravity"].copy()
     scene = Scene(obj, list(case["surfaces"]), gravity, case["substeps"])
     f = case["frame"]
-    frame = Frame(len(f["in_contact"]), 3)
-    for name, value in f.items():
-        getattr(frame, name)[...] = value
-    return Dynamics(scene, frame.n_fingers, DT, kernel), frame
+    r = ticks.renderer(scene, [0.008] * len(f["in_contact"]), mode)
+    put = ticks.Put(CONTACTS)
+    put.values = {name: np.array(value) for name, value in f.items()}
+    r.insert(put, after="allocation")
+    return r
 
 
-def run_dynamics(case: dict, kernel) -> SceneObject:
-    """The case's object after its ticks of the Dynamics stage."""
-    stage, frame = dynamics_stage(case, kernel)
+def run_dynamics(case: dict, mode: str) -> SceneObject:
+    """The case's object after its ticks (the fingers a metre away: no contact of their own)."""
+    r = dynamics_renderer(case, mode)
+    n = r.n_fingers
     for _ in range(case["ticks"]):
-        stage.run(frame)
-    return stage.scene.object
+        r.step(ticks.far(n), np.zeros((n, 3)))
+    return r.obj
 
 
 STATE = ("position", "velocity", "omega", "rotation")
-
-
-@pytest.fixture(scope="module")
-def compiled():
-    """The compiled free-body kernel (numba is a dependency: no skip without it)."""
-    return jit.compile_kernels(["free_body_step"])["free_body_step"]
 
 
 def numpy_step(case: dict) -> SceneObject:
@@ -139,22 +142,19 @@ def numpy_step(case: dict) -> SceneObject:
     reads them: each finger in contact a spring of the object's stiffness at its contact
     point, carrying the reaction of its force; with torsional friction mu_t, a cap of
     mu_t |f . n| on the spin about its normal."""
-    stage, frame = dynamics_stage(case, None)
-    obj = stage.scene.object
+    r = dynamics_renderer(case, "uncompiled")
+    obj = r.obj
     k, mu_t = obj.material.stiffness, obj.material.torsion
     springs, torsion = [], []
-    for on, point, f, n in zip(
-        frame.in_contact,
-        frame.contact_point,
-        frame.contact_force,
-        frame.contact_normal,
-        strict=True,
+    f = case["frame"]
+    for on, point, force, n in zip(
+        f["in_contact"], f["contact_point"], f["contact_force"], f["contact_normal"], strict=True
     ):
         if not on:
             continue
-        springs.append((point.copy(), -f, k))
-        if mu_t > 0.0 and abs(f @ n) > 0.0:
-            torsion.append((n.copy(), mu_t * abs(float(f @ n))))
+        springs.append((point.copy(), -force, k))
+        if mu_t > 0.0 and abs(force @ n) > 0.0:
+            torsion.append((n.copy(), mu_t * abs(float(force @ n))))
     step_body(
         obj,
         np.zeros(3),
@@ -162,7 +162,7 @@ def numpy_step(case: dict) -> SceneObject:
         DT,
         gravity=case["gravity"],
         surfaces=SurfaceSet(case["surfaces"]) if case["surfaces"] else None,
-        substeps=stage.substeps,
+        substeps=ticks.stage(r, "dynamics").substeps,
         torsion=torsion or None,
         springs=springs or None,
     )
@@ -181,7 +181,7 @@ RTOL = 1e-12
 @given(stage_cases())
 def test_the_step_equals_the_numpy_model(case):
     want = numpy_step(case)
-    got = run_dynamics({**case, "ticks": 1}, None)  # uncompiled: the reference
+    got = run_dynamics({**case, "ticks": 1}, "uncompiled")  # the reference
     for name in STATE:
         a, b = getattr(want, name), getattr(got, name)
         # The size of the quantity, before or after the step (either may be near zero).
@@ -204,34 +204,78 @@ def huge(limit: float):
     )
 
 
-@pytest.mark.parametrize("path", ["uncompiled", "compiled"])
+@pytest.mark.parametrize("mode", ticks.MODES)
 @given(
     omega=st.tuples(huge(1.7e308), huge(1.7e308), huge(1.7e308)),
     force=st.tuples(huge(1.7e308), huge(1.7e308), huge(1.7e308)),
 )
-def test_the_step_never_raises_on_finite_input(compiled, path, omega, force):
+def test_the_step_never_raises_on_finite_input(mode, omega, force):
     """A spin whose square overflows (|w| above about 1e154 rad/s, or a finger's force whose
     torque makes one) gives a non-finite pose instead of a math error; the loop's object
     check then sees the spin beyond its limit and ends the run."""
     from hapticd.servo import MAX_OBJECT_SPIN_RAD_PER_S
 
+    case = {
+        "object": {
+            "shape": ConvexShape.box(np.array([0.05, 0.04, 0.03])),
+            "material": Material(500.0),
+            "position": np.zeros(3),
+            "rotation": np.eye(3),
+            "mass": 0.1,
+            "velocity": np.zeros(3),
+            "omega": np.array(omega),
+        },
+        "surfaces": [],
+        "gravity": None,
+        "substeps": 2,
+        "frame": {
+            "in_contact": [True],
+            "contact_point": [np.array([0.025, 0.02, 0.0])],
+            "contact_force": [np.array(force)],
+            "contact_normal": [np.array([1.0, 0.0, 0.0])],
+        },
+        "ticks": 1,
+    }
+    obj = run_dynamics(case, mode)
+    if not np.all(np.isfinite(obj.rotation)):
+        spin = np.hypot.reduce(np.abs(obj.omega)) if np.all(np.isfinite(obj.omega)) else np.inf
+        assert not spin <= MAX_OBJECT_SPIN_RAD_PER_S  # NaN counts as beyond: the check's way
+
+
+@given(stage_cases())
+def test_the_step_compiled_and_uncompiled_agree_bit_for_bit(case):
+    """numba neither fuses multiply-adds nor reorders without fastmath; sin, cos and sqrt
+    are the same C library's: the same bits, on the state and the world-frame shape."""
+    ref, got = run_dynamics(case, "uncompiled"), run_dynamics(case, "compiled")
+    for name in STATE:
+        np.testing.assert_array_equal(getattr(ref, name), getattr(got, name), err_msg=name)
+    np.testing.assert_array_equal(ref.polytope.offsets, got.polytope.offsets)
+    np.testing.assert_array_equal(ref.polytope.normals, got.polytope.normals)
+
+
+@pytest.mark.parametrize("mode", ticks.MODES)
+def test_the_step_writes_the_objects_state_in_place_and_takes_what_is_set(mode):
+    """The call writes the object's state in place, into its one state array (whose views
+    are its position, velocity, omega and rotation; the scene's fields are a copy of it);
+    state put there from outside (a reset) is taken on the next tick, not overwritten."""
     obj = SceneObject(
-        ConvexShape.box(np.array([0.05, 0.04, 0.03])),
-        Material(500.0),
+        ConvexShape.box(np.full(3, 0.05)),
+        Material(100.0),
         np.zeros(3),
         np.eye(3),
         fixed=False,
         mass=0.1,
-        velocity=np.zeros(3),
-        omega=np.array(omega),
     )
-    frame = Frame(1, 1)
-    frame.in_contact[0] = 1
-    frame.contact_point[0] = (0.025, 0.02, 0.0)
-    frame.contact_force[0] = force
-    frame.contact_normal[0] = (1.0, 0.0, 0.0)
-    stage = Dynamics(Scene(obj, [], None, 2), 1, DT, compiled if path == "compiled" else None)
-    stage.run(frame)
-    if not np.all(np.isfinite(obj.rotation)):
-        spin = np.hypot.reduce(np.abs(obj.omega)) if np.all(np.isfinite(obj.omega)) else np.inf
-        assert not spin <= MAX_OBJECT_SPIN_RAD_PER_S  # NaN counts as beyond: the check's way
+    r = ticks.renderer(Scene(obj, [], np.array([0.0, 0.0, -9.81]), 2), [0.008], mode)
+    given_velocity, state = obj.velocity, obj.state
+    frame = r.step(ticks.far(1), np.zeros((1, 3)))
+    assert obj.velocity is given_velocity and obj.state is state  # written in place
+    assert obj.velocity[2] == pytest.approx(-9.81 * DT) and state[5] == obj.velocity[2]
+    np.testing.assert_array_equal(frame.object_vel, obj.velocity)
+    obj.velocity = np.array([1, 0, 0])  # ints, from outside: copied into the state
+    obj.position = np.zeros(3)
+    assert obj.velocity is given_velocity and state[3] == 1.0
+    r.step(ticks.far(1), np.zeros((1, 3)))
+    assert obj.velocity.dtype == float and obj.velocity[0] == 1.0
+    assert obj.position[0] == pytest.approx(1.0 * DT)
+    np.testing.assert_array_equal(r.frame.object_pos, obj.position)

@@ -1,10 +1,10 @@
-"""Contact's one source (hapticd.kernels.contact_step) compiled against the same function
-uncompiled, through the Contact stage: the same bits in every output field and in the
-proxies, tick after tick, for generated boxes (turned, moving between ticks), grounds and
-walls, fingers inside, outside, at edges and corners, fast ones and first ticks; a large
-mesh (stage by stage and in the renderer's one call); a non-finite input refused by name
-with nothing written (in the one call too); hostile device positions end in zero force
-and a latched fault."""
+"""Contact's one source (hapticd.kernels.contact_step, the Contact stage's part of the tick's
+one call) compiled against the same call uncompiled: the same bits in every output field
+and in the proxies, tick after tick, for generated boxes (turned, moved between ticks),
+grounds and walls, fingers inside, outside, at edges and corners, fast ones and first
+ticks; a large mesh (in one call and in parts); a non-finite input refused by name with
+nothing written; the object's planes at its pose (kernels.world_planes) are its polytope's,
+every bit; hostile device positions end in zero force and a latched fault."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from hapticd.frame import Frame
 from hapticd.profile import load_profile
 from hapticd.render import Renderer
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
-from hapticd.stages import Contact
+from tests import ticks
 from tests.conftest import ROOT
 from tests.strategies import unit_vectors
 from tests.test_dynamics import floats, rotations, vec
@@ -38,12 +38,6 @@ OUTPUTS = (
     "contact_normal",
     "env_force",
 )
-
-
-@pytest.fixture(scope="module")
-def compiled():
-    """The compiled contact kernel (numba is a dependency: no skip without it)."""
-    return jit.compile_kernels(["contact_step"])["contact_step"]
 
 
 @st.composite
@@ -102,29 +96,23 @@ def contact_cases(draw) -> dict:
     }
 
 
-def _run(case: dict, kernel) -> list[dict[str, np.ndarray]]:
-    """Every tick's outputs and proxies of a Contact stage (``kernel`` None: uncompiled)."""
-    obj = SceneObject(
-        ConvexShape.box(case["size"]), Material(500.0), case["center"], case["R"], fixed=False
-    )
-    scene = Scene(obj, list(case["surfaces"]), None)
-    stage = Contact(scene, list(case["radii"]), kernel)
-    n = len(case["radii"])
-    frame = Frame(n, n)
+def _run(case: dict, mode: str) -> list[dict[str, np.ndarray]]:
+    """Every tick's outputs and proxies of the one call (``mode``: compiled or not)."""
+    obj = SceneObject(ConvexShape.box(case["size"]), Material(500.0), case["center"], case["R"])
+    r = ticks.renderer(Scene(obj, list(case["surfaces"]), None), list(case["radii"]), mode)
+    contact = ticks.stage(r, "contact")
+    frame = r.frame
     out = []
     for pos, vel, move in case["ticks"]:
         if move is not None:
             obj.position = obj.position + move[0]
             obj.rotation = move[1] @ obj.rotation
-            obj.update_world()
-        frame.device_pos[...] = pos
-        frame.device_vel[...] = vel
         # Yesterday's numbers: a path that forgets to write a field is caught.
         for name in OUTPUTS:
             getattr(frame, name)[...] = 7
-        stage.run(frame)
+        r.step(np.array(pos), np.array(vel))
         got = {name: getattr(frame, name).copy() for name in OUTPUTS}
-        got["state"] = stage.state[:, : kernels._C_PUSHED].copy()
+        got["state"] = contact.state[:, : kernels._C_PUSHED].copy()
         out.append(got)
     return out
 
@@ -137,13 +125,13 @@ def _assert_same(ref: list[dict], got: list[dict]) -> None:
 
 
 @given(contact_cases())
-def test_the_compiled_contact_equals_the_uncompiled_bit_for_bit(compiled, case):
+def test_the_compiled_contact_equals_the_uncompiled_bit_for_bit(case):
     """One source: numba neither fuses multiply-adds nor reorders without fastmath, and
     sqrt is correctly rounded; the proxies, active planes and multipliers too."""
-    _assert_same(_run(case, None), _run(case, compiled))
+    _assert_same(_run(case, "uncompiled"), _run(case, "compiled"))
 
 
-def test_the_cases_reach_contacts_creases_and_surfaces(compiled):
+def test_the_cases_reach_contacts_creases_and_surfaces():
     """The generated cases are not all out of contact: over 150 derandomized ones, fingers
     touch the object, the surfaces, and both at once (a crease between obstacles)."""
     seen: set[str] = set()
@@ -151,7 +139,7 @@ def test_the_cases_reach_contacts_creases_and_surfaces(compiled):
     @settings(max_examples=150, derandomize=True, database=None)
     @given(contact_cases())
     def collect(case):
-        for tick in _run(case, compiled):
+        for tick in _run(case, "compiled"):
             on_object = tick["in_contact"] != 0
             on_surface = np.any(tick["env_force"] != 0.0, axis=1)
             if np.any(on_object):
@@ -165,10 +153,15 @@ def test_the_cases_reach_contacts_creases_and_surfaces(compiled):
     assert seen == {"object", "surface", "both"}
 
 
-def _edge_case(kernel, device: list) -> Contact:
+def _edge_case(mode: str) -> tuple[Renderer, SceneObject]:
+    """A fixed 5 cm cube on the ground, one 8 mm fingertip, the one call compiled or not."""
     obj = SceneObject(ConvexShape.box(np.full(3, 0.05)), Material(500.0), np.zeros(3), np.eye(3))
     ground = Surface("ground", (0.0, 0.0, 1.0), -0.025, Material(1000.0, 5.0))
-    return Contact(Scene(obj, [ground], None), [0.008], kernel), obj
+    return ticks.renderer(Scene(obj, [ground], None), [0.008], mode), obj
+
+
+def _step(r: Renderer, pos, vel=(0.0, 0.0, 0.0)) -> Frame:
+    return r.step(np.array([pos], dtype=float), np.array([vel], dtype=float))
 
 
 @pytest.mark.parametrize(
@@ -184,122 +177,149 @@ def _edge_case(kernel, device: list) -> Contact:
         [(0.001, 0.002, 0.0), (0.1, 0.0, 0.0)],
     ],
 )
-def test_hand_made_paths_give_the_same_bits_both_ways(compiled, path):
+def test_hand_made_paths_give_the_same_bits_both_ways(path):
     outs = []
-    for kernel in (None, compiled):
-        stage, _ = _edge_case(kernel, path)
-        frame = Frame(1, 1)
-        ticks = []
+    for mode in ticks.MODES:
+        r, _ = _edge_case(mode)
+        out = []
         for p in path:
-            frame.device_pos[0] = p
-            frame.device_vel[0] = (0.1, -0.2, -0.3)
-            stage.run(frame)
-            ticks.append({name: getattr(frame, name).copy() for name in OUTPUTS})
-        outs.append(ticks)
+            frame = _step(r, p, (0.1, -0.2, -0.3))
+            out.append({name: getattr(frame, name).copy() for name in OUTPUTS})
+        outs.append(out)
     _assert_same(*outs)
     assert any(t["in_contact"][0] for t in outs[0])
 
 
-@pytest.mark.parametrize("mode", ["compiled", "uncompiled"])
+@pytest.mark.parametrize("mode", ticks.MODES)
 @pytest.mark.parametrize(
     ("field", "where"),
     [("device_pos", 0), ("device_pos", 2), ("device_vel", 1), ("radius", 0), ("plane", 0)],
 )
 @pytest.mark.parametrize("bad", [math.nan, math.inf])
-def test_a_non_finite_input_is_refused_by_name_with_nothing_written(
-    compiled, mode, field, where, bad
-):
-    """The stage raises ValueError naming the finger and field (or the obstacle); the frame
+def test_a_non_finite_input_is_refused_by_name_with_nothing_written(mode, field, where, bad):
+    """The call raises ValueError naming the finger and field (or the obstacle); the frame
     and the proxies are as they were, and a finite tick after goes on from them as if the
     bad one had never come."""
-    stage, obj = _edge_case(compiled if mode == "compiled" else None, [])
-    ref, _ = _edge_case(compiled, [])
-    frame, rframe = Frame(1, 1), Frame(1, 1)
+    r, obj = _edge_case(mode)
+    ref, _ = _edge_case("compiled")
+    contact = ticks.stage(r, "contact")
     for p in [(0.06, 0.0, 0.0), (0.02, 0.0, 0.0)]:
-        for s, f in ((stage, frame), (ref, rframe)):
-            f.device_pos[0] = p
-            s.run(f)
-    before = {name: getattr(frame, name).copy() for name in OUTPUTS}
-    state = stage.state.copy()
+        _step(r, p)
+        _step(ref, p)
+    before = {name: getattr(r.frame, name).copy() for name in OUTPUTS}
+    state = contact.state.copy()
+    pos, vel = np.array([[0.02, 0.0, 0.0]]), np.zeros((1, 3))
     if field == "radius":
-        stage.state[0, kernels._C_RADIUS] = bad
+        contact.state[0, kernels._C_RADIUS] = bad
         want = "finger 0's radius is not finite"
     elif field == "plane":
         shape = obj.shape
         obj.shape = dataclasses.replace(shape, offsets=np.full(6, bad))
         obj.update_world()
+        r.plan()  # a new shape: the call binds it
         want = "a plane of the object is not finite"
     else:
-        getattr(frame, field)[0, where] = bad
+        (pos if field == "device_pos" else vel)[0, where] = bad
         want = f"finger 0's {field} is not finite"
     with pytest.raises(ValueError, match=f"^contact: {want}"):
-        stage.run(frame)
+        r.step(pos, vel)
     for name in OUTPUTS:
-        np.testing.assert_array_equal(getattr(frame, name), before[name])
+        np.testing.assert_array_equal(getattr(r.frame, name), before[name])
     if field != "radius":
-        np.testing.assert_array_equal(stage.state, state)
+        np.testing.assert_array_equal(contact.state, state)
     # Put right: the next tick is the reference's.
-    stage.state[0, kernels._C_RADIUS] = 0.008
+    contact.state[0, kernels._C_RADIUS] = 0.008
     if field == "plane":
         obj.shape = shape
         obj.update_world()
-    for s, f in ((stage, frame), (ref, rframe)):
-        f.device_pos[0] = (0.015, 0.001, 0.0)
-        f.device_vel[0] = 0.0
-        s.run(f)
+        r.plan()
+    for s in (r, ref):
+        _step(s, (0.015, 0.001, 0.0))
     for name in OUTPUTS:
-        np.testing.assert_array_equal(getattr(frame, name), getattr(rframe, name))
+        np.testing.assert_array_equal(getattr(r.frame, name), getattr(ref.frame, name))
 
 
-@pytest.mark.parametrize("mode", ["compiled", "uncompiled"])
-def test_a_non_finite_surface_is_named(compiled, mode):
+@pytest.mark.parametrize("mode", ticks.MODES)
+def test_a_non_finite_surface_is_named(mode):
     obj = SceneObject(ConvexShape.box(np.full(3, 0.05)), Material(500.0), np.zeros(3), np.eye(3))
     wall = Surface("wall", (1.0, 0.0, 0.0), math.inf, Material(1000.0))
-    stage = Contact(Scene(obj, [wall], None), [0.008], compiled if mode == "compiled" else None)
+    r = ticks.renderer(Scene(obj, [wall], None), [0.008], mode)
     with pytest.raises(ValueError, match=r"^contact: a plane of surface 'wall' is not finite"):
-        stage.run(Frame(1, 1))
+        _step(r, (0.0, 0.0, 0.1))
 
 
-def test_a_non_finite_first_tick_starts_the_proxies_at_the_next_one(compiled):
-    stage, _ = _edge_case(compiled, [])
-    frame = Frame(1, 1)
-    frame.device_pos[0] = (math.nan, 0.0, 0.0)
+@pytest.mark.parametrize("mode", ticks.MODES)
+def test_a_non_finite_first_tick_starts_the_proxies_at_the_next_one(mode):
+    r, _ = _edge_case(mode)
     with pytest.raises(ValueError, match="finger 0's device_pos"):
-        stage.run(frame)
-    frame.device_pos[0] = (0.0, 0.0, 0.1)
-    stage.run(frame)
+        _step(r, (math.nan, 0.0, 0.0))
+    frame = _step(r, (0.0, 0.0, 0.1))
     np.testing.assert_array_equal(frame.proxy_pos[0], [0.0, 0.0, 0.1])
 
 
-def test_a_large_mesh_runs_on_the_kernel_both_ways(compiled):
+def test_a_large_mesh_runs_in_the_call_both_ways():
     """Any number of planes per obstacle: a 1000-sided prism, compiled and not alike."""
     k = 1000
     angles = np.linspace(0.0, 2.0 * np.pi, k, endpoint=False)
     normals = np.stack([np.cos(angles), np.sin(angles), np.zeros(k)], axis=1)
     outs = []
-    for kernel in (None, compiled):
-        stage, obj = _edge_case(kernel, [])
+    for mode in ticks.MODES:
+        r, obj = _edge_case(mode)
         obj.shape = dataclasses.replace(obj.shape, normals=normals, offsets=np.full(k, 0.02))
         obj.update_world()
-        frame = Frame(1, 1)
-        ticks = []
+        r.plan()
+        out = []
         for x in [(0.04, 0.0, 0.0), (0.015, 0.002, 0.0), (0.0, 0.015, 0.01), (-0.02, 0.0, 0.0)]:
-            frame.device_pos[0] = x
-            stage.run(frame)
-            ticks.append({name: getattr(frame, name).copy() for name in OUTPUTS})
-        outs.append(ticks)
+            frame = _step(r, x)
+            out.append({name: getattr(frame, name).copy() for name in OUTPUTS})
+        outs.append(out)
         # Slid over the fine faces to the one nearest the device (within a face's angle),
         # the device projected onto it (28 mm out).
-        assert ticks[1]["in_contact"][0] == 1
-        n = ticks[1]["contact_normal"][0]
+        assert out[1]["in_contact"][0] == 1
+        n = out[1]["contact_normal"][0]
         u = np.array([0.015, 0.002, 0.0]) / math.hypot(0.015, 0.002)
         assert n @ u > math.cos(2.0 * math.pi / k)
-        assert n @ ticks[1]["surface_point"][0] == pytest.approx(0.028, abs=1e-12)
+        assert n @ out[1]["surface_point"][0] == pytest.approx(0.028, abs=1e-12)
+    _assert_same(*outs)
+
+
+@given(
+    size=vec(0.01, 0.1),
+    Q=rotations(),
+    R=rotations(),
+    position=vec(-0.1, 0.1),
+    extra=st.lists(unit_vectors(), max_size=4),
+    path=st.lists(vec(-0.15, 0.15), min_size=2, max_size=4),
+)
+def test_the_objects_planes_at_its_pose_are_its_polytopes_bit_for_bit(
+    size, Q, R, position, extra, path
+):
+    """The call puts the object's planes at its pose itself (kernels.world_planes, compiled
+    in): the same planes, every bit, as its polytope (SceneObject.polytope's sums), which
+    the bring-up and the analysis read. An object at any pose (a box turned in its body
+    frame, with extra faces) renders exactly as one whose shape is that polytope at the
+    origin, unturned. (Uncompiled, the same bits: the cases above.)"""
+    box = ConvexShape.box(size)
+    normals = np.vstack([box.normals @ Q.T, np.array(extra).reshape(-1, 3)])
+    offsets = np.concatenate([box.offsets, np.full(len(extra), 0.01)])
+    shape = ConvexShape(normals, offsets, box.vertices, box.volume, box.inertia_unit_mass)
+    posed = SceneObject(shape, Material(200.0), position, R)
+    poly = posed.polytope
+    world = dataclasses.replace(shape, normals=poly.normals, offsets=poly.offsets)
+    placed = SceneObject(world, Material(200.0), np.zeros(3), np.eye(3))
+    outs = []
+    for obj in (posed, placed):
+        r = ticks.renderer(Scene(obj, [], None), [0.004], "compiled")
+        out = []
+        for x in path:
+            frame = _step(r, x + position)
+            out.append({name: getattr(frame, name).copy() for name in (*OUTPUTS, "contact_force")})
+        outs.append(out)
     _assert_same(*outs)
 
 
 @pytest.mark.parametrize("path", [LIFT, GRASP], ids=["lift", "grasp"])
-def test_the_bundled_profiles_render_their_contact_with_the_kernel(compiled, path):
+def test_the_bundled_profiles_render_their_contact_with_the_kernel(path):
     jit.compile_kernels(list(jit.SIGNATURES))
     s = build_session(
         load_profile(path, ["rendering.kernels=compiled"]), paced=False, duration_s=0.01
@@ -349,9 +369,7 @@ def _hostile_run(path, mode: str, value: float, where: str) -> tuple[dict, np.nd
 
 @pytest.mark.parametrize("value", [math.nan, math.inf, -1e300, 1e6])
 @pytest.mark.parametrize("path", [LIFT, GRASP], ids=["lift", "grasp"])
-def test_hostile_device_positions_end_in_zero_force_and_a_fault_on_the_compiled_path(
-    compiled, path, value
-):
+def test_hostile_device_positions_end_in_zero_force_and_a_fault_on_the_compiled_path(path, value):
     """NaN, inf and huge positions from finger 0's device, with the compiled contact: a
     latched fault, every force finite and within the limit, zero at the end."""
     jit.compile_kernels(list(jit.SIGNATURES))
@@ -364,7 +382,7 @@ def test_hostile_device_positions_end_in_zero_force_and_a_fault_on_the_compiled_
 
 @pytest.mark.parametrize("value", [math.nan, math.inf, -1e300, 1e6])
 @pytest.mark.parametrize("path", [LIFT, GRASP], ids=["lift", "grasp"])
-def test_hostile_positions_past_the_device_bank_fault_alike_both_ways(compiled, path, value):
+def test_hostile_positions_past_the_device_bank_fault_alike_both_ways(path, value):
     """The same positions put straight into the frame (past the bank's check): every force
     written is finite, within the limit and the uncompiled run's, bit for bit, and so is
     how the run ends; a non-finite one faults the contact stage by name."""

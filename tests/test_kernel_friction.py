@@ -1,13 +1,15 @@
-"""The Friction and Forces stages' one source (hapticd.kernels.friction_step, forces_step)
-compiled against the same functions uncompiled: the same bits for generated contacts
-(sticking, slipping, new contacts, fingers pulled out of the face), normals, anchors, fixed
-and free objects, damping on and off, over several ticks; the anchors are one state both
-share, so a run may switch between them between ticks; the object's state array is shared
-with the Dynamics kernel; hostile values through either end in zero force and a latched
-fault.
+"""Friction and the contact forces (hapticd.kernels.friction_step, forces_step: the Friction
+and Forces stages' part of the tick's one call) compiled against the same call uncompiled:
+the same bits for generated contacts (sticking, slipping, new contacts, fingers pulled out
+of the face), normals, anchors, fixed and free objects, damping on and off, over several
+ticks; the anchors are the Friction stage's carried state, so a run may switch between
+the paths between ticks; the call reads and writes the object's one state array; hostile
+values through either end in zero force and a latched fault.
 
-Whole runs of the bundled profiles both ways are compared with the stored reference
-in tests/test_reference_output.py (the compiled runs use these kernels: checked below)."""
+Contact's results come from a stage inserted after contact (tests/ticks.py: the call in
+parts). Whole runs of the bundled profiles both ways are compared with the stored
+reference in tests/test_reference_output.py (the compiled runs use this call: checked
+below)."""
 
 from __future__ import annotations
 
@@ -18,28 +20,39 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from hapticd import jit, kernels
+from hapticd import kernels
 from hapticd.daemon.session import build_session
-from hapticd.frame import Frame
 from hapticd.profile import load_profile
 from hapticd.render import Renderer
 from hapticd.scene import ConvexShape, Material, Scene, SceneObject
-from hapticd.stages import Dynamics, Forces, Friction
+from hapticd.stages import FRICTIONLESS, HELD
+from tests import ticks
 from tests.conftest import ROOT, capture_writes
 from tests.strategies import unit_vectors
 from tests.test_dynamics import floats, rotations, vec
 
 LIFT = ROOT / "configs" / "lift-weight.yaml"
 GRASP = ROOT / "configs" / "grasp-stiffness.yaml"
-NAMES = ("friction_step", "forces_step")
-# What the two stages write (the frame's fields), and the anchors friction keeps.
+# What friction and forces write (the frame's fields), and the anchors friction keeps.
 OUTPUTS = ("surface_point", "proxy_pos", "contact_point", "contact_force")
+# Contact's results as the cases give them (its HELD fields), put in after contact as its
+# frictionless ones, with in_contact and the normal.
+CONTACT = ("in_contact", "contact_normal", *FRICTIONLESS)
 
 
-@pytest.fixture(scope="module")
-def compiled() -> dict:
-    """The compiled friction and forces kernels (numba is a dependency: no skip without it)."""
-    return jit.compile_kernels(list(NAMES))
+def with_contacts(r: Renderer) -> ticks.Put:
+    """A stage after ``r``'s contact that puts in contact's results (``CONTACT``)."""
+    put = ticks.Put(CONTACT)
+    r.insert(put, after="contact")
+    return put
+
+
+def contact_values(fields: dict) -> dict:
+    """A case's fields as ``with_contacts`` puts them: its HELD ones as contact's FRICTIONLESS."""
+    values = {name: np.array(fields[name]) for name in ("in_contact", "contact_normal")}
+    for plain, held in zip(FRICTIONLESS, HELD, strict=True):
+        values[plain] = np.array(fields[held])
+    return values
 
 
 @st.composite
@@ -134,35 +147,32 @@ def _scene(case: dict) -> Scene:
     return Scene(obj, [], None)
 
 
-def _run(case: dict, paths: list) -> list[dict[str, np.ndarray]]:
-    """Run Friction then Forces on each tick of ``case``, tick k with ``paths[k]`` (None: the
-    kernels uncompiled, else the two kernels by name); what they wrote, tick by tick."""
+def _run(case: dict, modes: list[str]) -> list[dict[str, np.ndarray]]:
+    """Run the one call on each tick of ``case`` with contact's results put in, tick k
+    compiled or not as ``modes[k]`` says; what friction and forces wrote, the anchors and
+    the object's state, tick by tick."""
     scene = _scene(case)
     n = case["n"]
     radii = [0.008 + 0.001 * i for i in range(n)]
-    friction = Friction(scene, radii)
-    forces = Forces(scene)
-    frame = Frame(n, n)
+    r = ticks.renderer(scene, radii, modes[0])
+    put = with_contacts(r)
+    friction = ticks.stage(r, "friction")
     friction.anchors[:, :4] = case["ticks"][0]["anchors"][:, :4]
-    friction.holding = True  # the anchors above were set on a tick before these
     out = []
-    for tick, path in zip(case["ticks"], paths, strict=True):
-        for name, value in tick["fields"].items():
-            getattr(frame, name)[...] = value
-        frame.contact_force[...] = 7.0  # yesterday's numbers: a path that forgets to write
-        friction.kernel = None if path is None else path["friction_step"]
-        forces.kernel = None if path is None else path["forces_step"]
-        friction.run(frame)
-        forces.run(frame)
-        got = {name: getattr(frame, name).copy() for name in OUTPUTS}
+    for tick, mode in zip(case["ticks"], modes, strict=True):
+        ticks.use(r, mode)
+        fields = tick["fields"]
+        put.values = contact_values(fields)
+        r.frame.contact_force[...] = 7.0  # yesterday's numbers: a path that forgets to write
+        r.step(np.array(fields["device_pos"]), np.array(fields["device_vel"]))
+        got = {name: getattr(r.frame, name).copy() for name in OUTPUTS}
         got["anchors"] = friction.anchors.copy()
-        obj = scene.object
-        got["state"] = np.concatenate(
-            [obj.position, obj.velocity, obj.omega, np.ravel(obj.rotation)]
-        )
+        got["state"] = scene.object.state.copy()
         out.append(got)
-        # The object moves between ticks: in place or by new arrays, as others move it.
+        # The object moves between ticks (a free one also by its own step): in place or by
+        # new arrays, as others move it.
         x, R = tick["pose"]
+        obj = scene.object
         if len(out) % 2:
             obj.position[:] = x
             obj.rotation[:] = R
@@ -179,29 +189,39 @@ def _assert_same(ref: list, got: list) -> None:
 
 
 @given(cases())
-def test_friction_and_forces_compiled_and_uncompiled_agree_bit_for_bit(compiled, case):
+def test_friction_and_forces_compiled_and_uncompiled_agree_bit_for_bit(case):
     """numba neither fuses multiply-adds nor reorders without fastmath, and sqrt is
     correctly rounded: the same bits on every output, the anchors and the object's state."""
-    ticks = len(case["ticks"])
-    _assert_same(_run(case, [None] * ticks), _run(case, [compiled] * ticks))
+    ticks_ = len(case["ticks"])
+    _assert_same(_run(case, ["uncompiled"] * ticks_), _run(case, ["compiled"] * ticks_))
 
 
 @given(cases(), st.data())
-def test_switching_paths_between_ticks_keeps_the_anchors(compiled, case, data):
-    """The anchors are one array both read and write: any mix of compiled and uncompiled
-    ticks over a run gives the uncompiled run's numbers."""
-    ticks = len(case["ticks"])
-    assume(ticks >= 2)
-    paths = [data.draw(st.sampled_from([None, compiled])) for _ in range(ticks)]
-    assume(any(p is None for p in paths) and any(p is not None for p in paths))
-    _assert_same(_run(case, [None] * ticks), _run(case, paths))
+def test_switching_paths_between_ticks_keeps_the_anchors(case, data):
+    """The anchors are the stage's one array, which both paths read and write: any mix of
+    compiled and uncompiled ticks over a run gives the uncompiled run's numbers."""
+    ticks_ = len(case["ticks"])
+    assume(ticks_ >= 2)
+    modes = [data.draw(st.sampled_from(ticks.MODES)) for _ in range(ticks_)]
+    assume(len(set(modes)) == 2)
+    _assert_same(_run(case, ["uncompiled"] * ticks_), _run(case, modes))
 
 
-@pytest.mark.parametrize("path", ["python", "compiled"])
+def _pressed(obj: SceneObject, mode: str) -> tuple[Renderer, ticks.Put]:
+    """A renderer of ``obj`` for one fingertip (8 mm), contact's results put in after it."""
+    r = ticks.renderer(Scene(obj, [], None), [0.008], mode)
+    return r, with_contacts(r) if obj.material.has_friction else _put_held(r)
+
+
+def _put_held(r: Renderer) -> ticks.Put:
+    put = ticks.Put(("in_contact", "contact_normal", "surface_point"))
+    r.insert(put, after="contact")
+    return put
+
+
+@pytest.mark.parametrize("mode", ticks.MODES)
 @pytest.mark.parametrize(("reach", "expected"), [(0.5, 0.5), (1.0, 1.0), (2.0, 0.8)])
-def test_an_anchor_within_the_static_cone_sticks_and_one_beyond_slips(
-    compiled, path, reach, expected
-):
+def test_an_anchor_within_the_static_cone_sticks_and_one_beyond_slips(mode, reach, expected):
     """mu_s 0.5, mu_d 0.4, 15.625 mm deep: an anchor ``reach`` x mu_s depth along the face
     holds the friction proxy there (on the cone's edge too: the numbers are exact in binary);
     beyond, the proxy slips to the dynamic cone's edge (0.8 x mu_s depth), toward the
@@ -210,20 +230,20 @@ def test_an_anchor_within_the_static_cone_sticks_and_one_beyond_slips(
     obj = SceneObject(
         ConvexShape.box(np.full(3, 0.05)), Material(100.0, 0.0, mu_s, 0.4), np.zeros(3), np.eye(3)
     )
-    scene = Scene(obj, [], None)
-    kernel = compiled if path == "compiled" else {}
-    friction = Friction(scene, [0.008], kernel.get("friction_step"))
-    forces = Forces(scene, kernel.get("forces_step"))
-    frame = Frame(1, 1)
-    frame.in_contact[0] = 1
-    frame.surface_point[0] = (0.0, 0.0, top)
-    frame.proxy_pos[0] = (0.0, 0.0, top)
-    frame.device_pos[0] = (0.0, 0.0, top - depth)
-    frame.contact_normal[0] = (0.0, 0.0, 1.0)
+    r, put = _pressed(obj, mode)
+    friction = ticks.stage(r, "friction")
+    put.values = contact_values(
+        {
+            "in_contact": [1],
+            "contact_normal": [(0.0, 0.0, 1.0)],
+            "proxy_pos": [(0.0, 0.0, top)],
+            "surface_point": [(0.0, 0.0, top)],
+            "contact_point": [(0.0, 0.0, top - 0.008)],
+        }
+    )
     friction.anchors[0, :4] = (-reach * mu_s * depth, 0.0, top, 1.0)
-    friction.holding = True
-    friction.run(frame)
-    forces.run(frame)
+    device = np.array([[0.0, 0.0, top - depth]])
+    frame = r.step(device, np.zeros((1, 3)))
     x = -expected * mu_s * depth
     np.testing.assert_allclose(frame.surface_point[0], (x, 0.0, top), atol=1e-15)
     np.testing.assert_allclose(frame.proxy_pos[0], (x, 0.0, top), atol=1e-15)
@@ -231,46 +251,45 @@ def test_an_anchor_within_the_static_cone_sticks_and_one_beyond_slips(
     np.testing.assert_allclose(frame.contact_force[0], (100.0 * x, 0.0, 100.0 * depth), atol=1e-12)
     # The new anchor is the proxy, in the body frame; a finger that leaves clears it.
     np.testing.assert_allclose(friction.anchors[0], (x, 0.0, top, 1.0, 0.008), atol=1e-15)
-    frame.in_contact[0] = 0
-    friction.run(frame)
-    forces.run(frame)
+    put.values["in_contact"] = np.zeros(1)
+    r.step(device, np.zeros((1, 3)))
     assert friction.anchors[0, kernels.ANCHOR_SET] == 0.0
     assert np.all(frame.contact_force == 0.0)
 
 
-def test_a_free_objects_damping_is_relative_to_its_motion(compiled):
+def test_a_free_objects_damping_is_relative_to_its_motion():
     """A finger resting on a face that moves and spins: the damping sees the finger's
     velocity less the material's at the surface point (v + w x r), on both paths."""
-    obj = SceneObject(
-        ConvexShape.box(np.full(3, 0.05)),
-        Material(100.0, 2.0),
-        np.zeros(3),
-        np.eye(3),
-        fixed=False,
-        mass=0.1,
-        velocity=np.array([0.1, 0.0, 0.0]),
-        omega=np.array([0.0, 0.0, 1.0]),
-    )
     out = []
-    for kernel in (None, compiled["forces_step"]):
-        frame = Frame(1, 1)
-        frame.in_contact[0] = 1
-        frame.surface_point[0] = (0.0, 0.025, 0.0)
-        frame.device_pos[0] = (0.0, 0.025, 0.0)
-        frame.device_vel[0] = (0.0, 0.0, 0.0)
-        frame.contact_normal[0] = (0.0, 1.0, 0.0)
-        Forces(Scene(obj, [], None), kernel).run(frame)
+    for mode in ticks.MODES:
+        obj = SceneObject(
+            ConvexShape.box(np.full(3, 0.05)),
+            Material(100.0, 2.0),
+            np.zeros(3),
+            np.eye(3),
+            fixed=False,
+            mass=0.1,
+            velocity=np.array([0.1, 0.0, 0.0]),
+            omega=np.array([0.0, 0.0, 1.0]),
+        )
+        r, put = _pressed(obj, mode)
+        put.values = {
+            "in_contact": np.ones(1),
+            "surface_point": np.array([0.0, 0.025, 0.0]),
+            "contact_normal": np.array([0.0, 1.0, 0.0]),
+        }
+        frame = r.step(np.array([[0.0, 0.025, 0.0]]), np.zeros((1, 3)))
         out.append(frame.contact_force[0].copy())
     # The material at (0, 0.025, 0) moves at v + w x r = (0.1 - 0.025, 0, 0) m/s.
     np.testing.assert_allclose(out[0], (2.0 * 0.075, 0.0, 0.0), atol=1e-15)
     np.testing.assert_array_equal(out[0], out[1])
 
 
-def test_the_kernels_share_one_object_state_with_the_dynamics_kernel(compiled):
+@pytest.mark.parametrize("mode", ticks.MODES)
+def test_the_call_shares_one_object_state_between_friction_forces_and_dynamics(mode):
     """Friction, Forces and Dynamics read (and Dynamics writes) the object's one state
     array, whose views are its position, velocity, omega and rotation; a value assigned
     from outside goes into that array, and the next tick reads it."""
-    free = jit.compile_kernels(["free_body_step"])["free_body_step"]
     obj = SceneObject(
         ConvexShape.box(np.full(3, 0.05)),
         Material(100.0, 0.5, 1.0, 0.8),
@@ -279,19 +298,22 @@ def test_the_kernels_share_one_object_state_with_the_dynamics_kernel(compiled):
         fixed=False,
         mass=0.1,
     )
-    scene = Scene(obj, [], np.array([0.0, 0.0, -9.81]))
-    friction = Friction(scene, [0.008], compiled["friction_step"])
-    forces = Forces(scene, compiled["forces_step"])
-    dynamics = Dynamics(scene, 1, 1e-3, free)
-    frame = Frame(1, 1)
-    frame.in_contact[0] = 1
-    frame.surface_point[0] = (0.0, 0.0, 0.025)
-    frame.device_pos[0] = (0.0, 0.0, 0.02)
-    frame.contact_normal[0] = (0.0, 0.0, 1.0)
+    r = ticks.renderer(Scene(obj, [], np.array([0.0, 0.0, -9.81])), [0.008], mode)
+    assert [s.name for s in r.stages][:3] == ["contact", "friction", "forces"]
+    put = with_contacts(r)
+    put.values = contact_values(
+        {
+            "in_contact": [1],
+            "contact_normal": [(0.0, 0.0, 1.0)],
+            "proxy_pos": [(0.0, 0.0, 0.025)],
+            "surface_point": [(0.0, 0.0, 0.025)],
+            "contact_point": [(0.0, 0.0, 0.017)],
+        }
+    )
+    device = np.array([[0.0, 0.0, 0.02]])
     state = obj.state
     for _ in range(2):
-        for stage in (friction, forces, dynamics):
-            stage.run(frame)
+        r.step(device, np.zeros((1, 3)))
     assert obj.state is state
     assert obj.position.base is state and obj.velocity.base is state
     assert obj.rotation.base is state
@@ -299,12 +321,12 @@ def test_the_kernels_share_one_object_state_with_the_dynamics_kernel(compiled):
     assert state[5] == obj.velocity[2]
     obj.position = np.array([0.0, 0.0, 0.5])  # a reset from outside: into the state
     assert state[2] == 0.5 and obj.position.base is state
-    dynamics.run(frame)
+    r.step(device, np.zeros((1, 3)))
     assert 0.49 < state[2] < 0.5 and obj.position[2] == state[2]  # moved on from there
 
 
 @pytest.mark.parametrize("path", [LIFT, GRASP], ids=["lift", "grasp"])
-def test_compiled_runs_of_the_bundled_profiles_use_these_kernels(compiled, path):
+def test_compiled_runs_of_the_bundled_profiles_use_these_kernels(path):
     """tests/test_reference_output.py's compiled runs (rendering.kernels=compiled) go
     through the compiled call, with friction (the lift has it) and forces (both)."""
     s = build_session(

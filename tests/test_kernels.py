@@ -1,10 +1,13 @@
-"""The compiled kernels (hapticd.kernels, compiled by hapticd.jit) against the Python code
-they replace: the same numbers for generated states; a run without a working JIT falls
-back to Python with a message; the cache folder; hostile values through the compiled path
-end in zero force like through the Python one.
+"""Compiling the kernels (hapticd.kernels, by hapticd.jit): a run without a working JIT falls
+back to Python with a message; the background compiler, one at a time; the cache folder, a
+damaged or swapped cache; hostile values through the compiled path end in zero force like
+through the Python one.
 
-Whole runs of the bundled profiles on both paths are compared with the stored reference
-in tests/test_reference_output.py (1e-12; measured: bit-identical recordings)."""
+Each stage's part of the tick's one call is compared compiled against uncompiled, bit for
+bit, in its own file (tests/test_kernel_contact.py, test_kernel_friction.py,
+test_dynamics.py, test_kernel_allocation.py, test_kernel_safety.py); whole runs of the
+bundled profiles on both paths against the stored reference in
+tests/test_reference_output.py."""
 
 from __future__ import annotations
 
@@ -19,8 +22,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
 
 from hapticd import jit, kernels
 from hapticd.daemon.session import build_session
@@ -28,8 +29,6 @@ from hapticd.profile import load_profile
 from hapticd.safety import SafetyChain
 from hapticd.scene import ConvexShape, Material, SceneObject
 from tests.conftest import ROOT, capture_writes
-from tests.strategies import unit_vectors
-from tests.test_dynamics import STATE, dynamics_stage, rotations, run_dynamics, stage_cases, vec
 
 LIFT = ROOT / "configs" / "lift-weight.yaml"
 GRASP = ROOT / "configs" / "grasp-stiffness.yaml"
@@ -38,68 +37,27 @@ DT = 1e-3
 LIFT_KERNELS = ("tick_step", "allocation_step")
 
 
-@pytest.fixture(scope="module")
-def compiled():
-    """The compiled free-body kernel (numba is a dependency: no skip without it)."""
-    return jit.compile_kernels(["free_body_step"])["free_body_step"]
-
-
-@given(stage_cases())
-def test_the_free_body_step_compiled_and_uncompiled_agree_bit_for_bit(compiled, case):
-    """numba neither fuses multiply-adds nor reorders without fastmath; sin, cos and sqrt
-    are the same C library's: the same bits, on the state and the world-frame shape."""
-    ref, got = run_dynamics(case, None), run_dynamics(case, compiled)
-    for name in STATE:
-        np.testing.assert_array_equal(getattr(ref, name), getattr(got, name), err_msg=name)
-    np.testing.assert_array_equal(ref.polytope.offsets, got.polytope.offsets)
-    np.testing.assert_array_equal(ref.polytope.normals, got.polytope.normals)
-
-
-def test_the_kernel_writes_the_objects_state_in_place_and_takes_what_is_set(compiled):
-    """The kernel writes the object's state in place, into its one state array (whose views
-    are its position, velocity, omega and rotation); state put there from outside (a reset)
-    is taken on the next tick, not overwritten."""
-    case = {
-        "object": {
-            "shape": ConvexShape.box(np.array([0.05, 0.05, 0.05])),
-            "material": Material(100.0),
-            "position": np.zeros(3),
-            "rotation": np.eye(3),
-            "mass": 0.1,
-            "velocity": np.zeros(3),
-            "omega": np.zeros(3),
-        },
-        "surfaces": [],
-        "gravity": np.array([0.0, 0.0, -9.81]),
-        "substeps": 2,
-        "frame": {"in_contact": [False], "contact_point": [np.zeros(3)]},
-        "ticks": 1,
-    }
-    stage, frame = dynamics_stage(case, compiled)
-    obj = stage.scene.object
-    given_velocity, state = obj.velocity, obj.state
-    stage.run(frame)
-    assert obj.velocity is given_velocity and obj.state is state  # written in place
-    assert obj.velocity[2] == pytest.approx(-9.81 * DT) and state[5] == obj.velocity[2]
-    obj.velocity = np.array([1, 0, 0])  # ints, from outside: copied into the state
-    obj.position = np.zeros(3)
-    assert obj.velocity is given_velocity and state[3] == 1.0
-    stage.run(frame)
-    assert obj.velocity.dtype == float and obj.velocity[0] == 1.0
-    assert obj.position[0] == pytest.approx(1.0 * DT)
-
-
 # -- choosing, falling back, caching -----------------------------------------------------
 
 
-def test_python_mode_and_a_fixed_object_compile_nothing():
-    assert jit.choose("python", ["free_body_step"]).kernels == {}
+def test_python_mode_and_no_kernels_compile_nothing():
+    assert jit.choose("python", ["tick_step"]).kernels == {}
     assert jit.choose("auto", []).used == "python"
     with pytest.raises(ValueError, match="expected one of"):
-        jit.choose("fast", ["free_body_step"])
+        jit.choose("fast", ["tick_step"])
 
 
-def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked(compiled):
+def test_only_what_is_called_from_outside_the_kernels_is_an_entry_point():
+    """The stages' kernels are compiled into the one call (kernels.KERNEL_HELPERS), not as
+    entry points of their own; every entry point is one of hapticd.kernels' functions."""
+    assert set(jit.SIGNATURES) == {"tick_step", "allocation_step", "allocate_grasps", "safety_step"}
+    for name in ("world_planes", "contact_step", "friction_step", "forces_step", "free_body_step"):
+        assert name in kernels.KERNEL_HELPERS and name not in jit.SIGNATURES
+    with pytest.raises(jit.JitUnavailableError, match="no kernel 'contact_step'"):
+        jit.compile_kernels(["contact_step"])
+
+
+def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked():
     jit.compile_kernels(list(jit.SIGNATURES))  # in this process: auto takes them
     profile = load_profile(LIFT)
     assert profile.rendering.kernels == "auto"
@@ -259,7 +217,7 @@ def test_compiled_kernels_are_cached_across_runs(tmp_path):
     folder NUMBA_CACHE_DIR names."""
     code = (
         "from hapticd import jit\n"
-        "f = jit.compile_kernels(['free_body_step'])['free_body_step']\n"
+        "f = jit.compile_kernels(['safety_step'])['safety_step']\n"
         "print(sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values()))\n"
     )
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
@@ -365,14 +323,14 @@ def empty_cache(tmp_path, monkeypatch):
     return cache, started
 
 
-# Two of the smaller kernels: the several-runs test waits for a real compile of them.
-NAMES = ["free_body_step", "forces_step"]
+# The smallest entry point: the several-runs test waits for a real compile of it.
+NAMES = ["safety_step"]
 
 
 def test_runs_started_while_a_compiler_works_start_none_of_their_own(empty_cache):
     cache, started = empty_cache
     first = jit.choose("auto", NAMES)
-    assert first.used == "python" and "compiling free_body_step" in first.note
+    assert first.used == "python" and "compiling safety_step" in first.note
     assert len(started) == 1 and (cache / jit.COMPILING).exists()
     for _ in range(3):
         again = jit.choose("auto", NAMES)
@@ -430,7 +388,7 @@ def test_several_runs_at_once_start_one_compiler_that_leaves_no_marker(tmp_path)
     ]
     notes = [p.communicate(timeout=120)[0] for p in procs]
     assert all(p.returncode == 0 for p in procs), notes
-    assert sum("compiling free_body_step" in n for n in notes) == 1, notes
+    assert sum("compiling safety_step" in n for n in notes) == 1, notes
     assert sum("another run's compiler" in n for n in notes) == 3, notes
     deadline = time.monotonic() + 180.0
     while (cache / jit.COMPILING).exists() or not (cache / jit.COMPILED).exists():
@@ -461,36 +419,6 @@ def test_processes_recording_kernels_at_once_lose_none_of_them(tmp_path):
     assert set(record) == {f"{tag} {i}" for tag in "ab" for i in range(300)}
 
 
-@pytest.fixture(scope="module")
-def world_planes():
-    return jit.compile_kernels(["world_planes"])["world_planes"]
-
-
-@given(
-    size=vec(0.01, 0.1),
-    Q=rotations(),
-    R=rotations(),
-    position=vec(-0.1, 0.1),
-    extra=st.lists(unit_vectors(), max_size=4),
-)
-def test_world_planes_are_the_polytope_bit_for_bit(world_planes, size, Q, R, position, extra):
-    """The contact kernel's planes of a free object (hapticd.kernels.world_planes, compiled
-    and as plain Python) are its polytope's normals and offsets, every bit: a box turned
-    in its body frame, with extra faces, at any pose."""
-    box = ConvexShape.box(size)
-    normals = np.vstack([box.normals @ Q.T, np.array(extra).reshape(-1, 3)])
-    offsets = np.concatenate([box.offsets, np.full(len(extra), 0.01)])
-    shape = ConvexShape(normals, offsets, box.vertices, box.volume, box.inertia_unit_mass)
-    obj = SceneObject(shape, Material(200.0, 0.0), position, R, fixed=False, mass=0.05)
-    poly = obj.polytope
-    for fn in (world_planes, kernels.world_planes):
-        planes = np.full((len(offsets) + 2, kernels.PLANE_COLUMNS), -7.0)
-        fn(obj.rotation, obj.position, np.ascontiguousarray(normals), offsets, planes)
-        np.testing.assert_array_equal(planes[: len(offsets), 0:3], poly.normals)
-        np.testing.assert_array_equal(planes[: len(offsets), 3], poly.offsets)
-        assert (planes[len(offsets) :] == -7.0).all() and (planes[:, 4:] == -7.0).all()
-
-
 def test_a_moved_object_makes_its_polytope_again():
     """update_world marks the polytope stale; the next use makes it at the new pose."""
     obj = SceneObject(
@@ -510,14 +438,24 @@ def test_a_moved_object_makes_its_polytope_again():
 
 # -- a damaged or mismatched cache -----------------------------------------------------
 
-SMALL = ["world_planes", "forces_step"]  # two kernels that compile quickly
+# Two small functions of hapticd.kernels (parts of the one call), given entry points of
+# their own in these tests' processes only: the cache's handling is the same for any
+# kernel, and the product's entry points take far longer to compile.
+SMALL_SIGNATURES = {
+    "world_planes": "void(f8[:, ::1], f8[::1], f8[:, ::1], f8[::1], f8[:, ::1])",
+    "forces_step": (
+        "void(u1[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1],"
+        " f8[::1])"
+    ),
+}
+SMALL = list(SMALL_SIGNATURES)
+WITH_SMALL = f"from hapticd import jit\njit.SIGNATURES.update({SMALL_SIGNATURES!r})\n"
 # In a process of its own (numba's cache folder is chosen when it is imported): choose the
 # kernels, with the background compiler recorded instead of started, and call world_planes
 # (a swapped cache held forces_step's code there: "No matching definition" at the first tick).
 DAMAGED = """
 import json, sys
 import numpy as np
-from hapticd import jit
 started = []
 jit._spawn = started.append
 c = jit.choose({mode!r}, {names!r})
@@ -532,7 +470,7 @@ print(json.dumps({{"used": c.used, "message": c.message, "note": c.note, "starte
 
 
 def _choose_in(cache: Path, mode: str) -> dict:
-    out = _python(DAMAGED.format(mode=mode, names=SMALL), cache, 300)
+    out = _python(WITH_SMALL + DAMAGED.format(mode=mode, names=SMALL), cache, 300)
     return json.loads(out.stdout.splitlines()[-1])
 
 
@@ -606,7 +544,7 @@ def test_auto_takes_an_index_without_its_code_for_not_cached(small_cache, tmp_pa
 
 STAMPED = """
 import json
-from hapticd import jit, kernels
+from hapticd import kernels
 kernels.SOURCES = (*kernels.SOURCES, *{extra!r})
 f = jit.compile_kernels(["world_planes"])["world_planes"]
 print(json.dumps([sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]))
@@ -622,7 +560,7 @@ def test_a_kernel_whose_helpers_changed_is_compiled_again(small_cache, tmp_path)
     helper.write_text("x = 1\n")
 
     def hits_and_misses(extra: list[str]) -> list[int]:
-        out = _python(STAMPED.format(extra=extra), cache, 300)
+        out = _python(WITH_SMALL + STAMPED.format(extra=extra), cache, 300)
         return json.loads(out.stdout.splitlines()[-1])
 
     assert hits_and_misses([]) == [1, 0]  # unchanged: loaded
