@@ -181,27 +181,18 @@ class Friction:
     frame), 1.0 if it is set, the fingertip's radius (m)). Its physics is the one call's
     (hapticd.kernels.friction_step).
 
-    Reads contact's results from ``inputs`` (``FRICTIONLESS`` in the renderer's plan) and
-    writes ``HELD``.
+    Reads contact's results (``FRICTIONLESS``) and writes ``HELD``.
     """
 
     name = "friction"
-    outputs = HELD
+    reads = ("in_contact", "device_pos", "contact_normal", *FRICTIONLESS)
+    writes = HELD
     kernel_stage = kernels.STAGE_FRICTION
 
     def __init__(self, radii: list[float]) -> None:
         self.anchors = np.zeros((len(radii), kernels.FRICTION_COLUMNS))
         self.anchors[:, kernels.FINGER_RADIUS] = radii
-        self.inputs = FRICTIONLESS
         self.carries = {"friction_anchors": self.anchors}  # hapticd.frame.STATE
-
-    @property
-    def reads(self) -> tuple[str, ...]:
-        return ("in_contact", "device_pos", "contact_normal", *self.inputs)
-
-    @property
-    def writes(self) -> tuple[str, ...]:
-        return self.outputs
 
 
 class Forces:

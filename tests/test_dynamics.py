@@ -101,11 +101,10 @@ def stage_cases(draw) -> dict:
 CONTACTS = ("in_contact", "contact_point", "contact_force", "contact_normal")
 
 
-def dynamics_renderer(case: dict, mode: str) -> Renderer:
-    """A renderer of a ``stage_cases`` case's scene (``mode``: compiled or uncompiled) whose
-    plan puts the case's contacts into the frame before the Dynamics stage."""
+def free_object(case: dict) -> SceneObject:
+    """A ``stage_cases`` case's object, free."""
     o = case["object"]
-    obj = SceneObject(
+    return SceneObject(
         o["shape"],
         o["material"],
         o["position"].copy(),
@@ -115,8 +114,13 @@ def dynamics_renderer(case: dict, mode: str) -> Renderer:
         velocity=o["velocity"].copy(),
         omega=o["omega"].copy(),
     )
+
+
+def dynamics_renderer(case: dict, mode: str) -> Renderer:
+    """A renderer of a ``stage_cases`` case's scene (``mode``: compiled or uncompiled) whose
+    plan puts the case's contacts into the frame before the Dynamics stage."""
     gravity = None if case["gravity"] is None else case["gravity"].copy()
-    scene = Scene(obj, list(case["surfaces"]), gravity, case["substeps"])
+    scene = Scene(free_object(case), list(case["surfaces"]), gravity, case["substeps"])
     f = case["frame"]
     r = ticks.renderer(scene, [0.008] * len(f["in_contact"]), mode)
     put = ticks.Put(CONTACTS)
@@ -142,8 +146,7 @@ def numpy_step(case: dict) -> SceneObject:
     reads them: each finger in contact a spring of the object's stiffness at its contact
     point, carrying the reaction of its force; with torsional friction mu_t, a cap of
     mu_t |f . n| on the spin about its normal."""
-    r = dynamics_renderer(case, "uncompiled")
-    obj = r.obj
+    obj = free_object(case)
     k, mu_t = obj.material.stiffness, obj.material.torsion
     springs, torsion = [], []
     f = case["frame"]
@@ -162,7 +165,7 @@ def numpy_step(case: dict) -> SceneObject:
         DT,
         gravity=case["gravity"],
         surfaces=SurfaceSet(case["surfaces"]) if case["surfaces"] else None,
-        substeps=ticks.stage(r, "dynamics").substeps,
+        substeps=case["substeps"],  # 1-8 (0 would let the Dynamics stage choose)
         torsion=torsion or None,
         springs=springs or None,
     )
