@@ -222,14 +222,15 @@ def kinetic_energy(obj: SceneObject) -> float:
 def bench_substeps(rounds: int) -> list[dict]:
     g = np.array([0.0, 0.0, -9.81])
     ground = [Surface("ground", (0.0, 0.0, 1.0), -0.025, Material(2000.0, 5.0, 0.6, 0.5))]
-    eye = [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)]
     away = (np.array([[0.0, 0.0, 1.0]]), np.zeros((1, 3)))  # the finger touches nothing
     compiled: dict = {}
 
     def tick(c: SceneObject, surfaces: list[Surface], k: int) -> Renderer:
         """The renderer's tick (its one call, compiled) of ``c`` with gravity, one finger
-        far away: contact, forces and allocation of nothing, and the object's step."""
-        r = Renderer(Scene(c, surfaces, g, k), [0.008], Actuation([eye], "world"), "pinv")
+        far away (one actuated direction: allocation in the call too): contact, forces and
+        allocation of nothing, and the object's step."""
+        one = [(1.0, 0.0, 0.0)]
+        r = Renderer(Scene(c, surfaces, g, k), [0.008], Actuation([one], "world"), "pinv")
         if not compiled:
             compiled.update(jit.compile_kernels(r.kernel_names))
         r.use_kernels(compiled)
