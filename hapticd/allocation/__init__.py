@@ -24,12 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from hapticd import params
-from hapticd.allocation.accuracy import (
-    Accuracy,
-    accuracy,
-    one_contact_accuracy,
-    two_contact_accuracy,
-)
+from hapticd.allocation.accuracy import Accuracy, accuracy
 from hapticd.allocation.adaptive import AdaptiveState, smoothstep
 from hapticd.allocation.batch import (
     allocate_many,
@@ -110,11 +105,9 @@ __all__ = [
     "ef_exact",
     "if_exact",
     "one_contact",
-    "one_contact_accuracy",
     "pinv_exact",
     "smoothstep",
     "two_contact",
-    "two_contact_accuracy",
     "two_contact_ef",
     "two_contact_if",
     "two_contact_pinv",
