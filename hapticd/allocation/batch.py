@@ -1,4 +1,4 @@
-"""The one definition of the robust allocators' general path, on stacks of grasps.
+"""Allocation on stacks of grasps: which definition each grasp runs, and its checks.
 
 Shapes: G (N, 6, 3p), M_a (N, 3p, r) or shared (3p, r), lam (N, 3p) -> lam_a (N, r);
 forces in N, lengths in m. Pure: numpy in, numpy out. ``allocate()`` is this with
@@ -42,15 +42,6 @@ STACK_MIN = 10
 # -- validation -------------------------------------------------------------------------------
 
 
-def _first_bad(arr: np.ndarray) -> int | None:
-    """Index of the first grasp (axis 0) holding NaN or inf, or None."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        if np.isfinite(np.sum(arr)):  # NaN and inf propagate into the sum: all finite
-            return None
-    bad = ~np.isfinite(arr.reshape(arr.shape[0], -1)).all(axis=1)
-    return int(np.argmax(bad)) if bad.any() else None
-
-
 def check(
     method: str, G: object, M_a: object, lam: object, alpha: object, one: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -82,12 +73,9 @@ def check(
             raise AllocationError("adaptive alpha must be in [0, 1] (and finite)")
         a = np.broadcast_to(a, (N,)).astype(float)
     for name, arr in (("G", G), ("lam", lam_arr), ("M_a", M)):
-        if arr is M and M.ndim == 2:  # shared by every grasp
-            bad = None if np.all(np.isfinite(M)) else -1
-        else:
-            bad = _first_bad(arr) if arr.size else None
-        if bad is not None:
-            where = "" if one or bad < 0 else f" (grasp {bad})"
+        if not np.isfinite(arr).all():
+            g = np.argmax(~np.isfinite(arr.reshape(len(arr), -1)).all(axis=1))  # the first grasp
+            where = "" if one or (arr.ndim == 2 and arr is M) else f" (grasp {g})"
             raise AllocationError(f"{name} contains NaN or inf{where}; refusing to compute a force")
     return G, M, lam_arr, a
 
@@ -236,15 +224,27 @@ def solve(
     if fast and n == 6 and M.shape[-1] == 2:  # one direction per finger, block by block?
         cross = M[..., [3, 4, 5, 0, 1, 2], [0, 0, 0, 1, 1, 1]]  # each column on the other finger
         closed = np.broadcast_to(~cross.any(axis=-1), (N,))
+    if closed.all() or not closed.any():  # the whole batch one way: no copies
+        return _path(bool(closed.all()), method, G, M, lam, robust, kernel)
     out = np.empty((N, M.shape[-1]))
-    for rows, path in ((np.flatnonzero(closed), "closed"), (np.flatnonzero(~closed), "general")):
-        if not rows.size:
-            continue
-        sel = slice(None) if rows.size == N else rows  # the whole batch: no copies
-        Ms = M if M.ndim == 2 else M[sel]
-        if path == "closed":
-            Mb = np.broadcast_to(Ms, (rows.size, 6, 2))
-            out[sel] = np.stack(_two_contact_v(method, G[sel], Mb, lam[sel], robust), -1)
-        else:
-            out[sel] = _general(method, G[sel], Ms, lam[sel], robust, kernel)
+    for rows in (np.flatnonzero(closed), np.flatnonzero(~closed)):
+        Mr = M if M.ndim == 2 else M[rows]
+        out[rows] = _path(bool(closed[rows[0]]), method, G[rows], Mr, lam[rows], robust, kernel)
     return out
+
+
+def _path(
+    closed: bool,
+    method: str,
+    G: np.ndarray,
+    M: np.ndarray,
+    lam: np.ndarray,
+    robust: Robustness,
+    kernel: Callable[..., None] | None,
+) -> np.ndarray:
+    """Robust ``method`` by the two-contact closed forms (``closed``: every grasp has two
+    contacts with one direction each) or by the general path."""
+    if closed:
+        Mb = np.broadcast_to(M, (G.shape[0], 6, 2))
+        return np.stack(_two_contact_v(method, G, Mb, lam, robust), -1)
+    return _general(method, G, M, lam, robust, kernel)
