@@ -378,6 +378,7 @@ KERNEL_HELPERS = (
     two_contact_residuals,
     "_fill_grasp",
     "_task_alpha",
+    "_nth",
     "_contact",
     "_solve_grasp",
     "_allocate_contacts",
@@ -485,21 +486,16 @@ def _task_alpha(
     contact, the force along the grasp line for two, |P_int lam| / sqrt(2) for more."""
     n_fingers = in_contact.shape[0]
     k = 0
-    c0 = -1
-    c1 = -1
     n0, n1, n2 = 0.0, 0.0, 0.0
     for i in range(n_fingers):
         if in_contact[i] != 0:
-            if k == 0:
-                c0 = i
-            elif k == 1:
-                c1 = i
             n0 += forces[i, 0]
             n1 += forces[i, 1]
             n2 += forces[i, 2]
             k += 1
     squeeze = 0.0
     if k == 2:
+        c0, c1 = _nth(in_contact, -1, 0), _nth(in_contact, -1, 1)
         e0 = points[c1, 0] - points[c0, 0]
         e1 = points[c1, 1] - points[c0, 1]
         e2 = points[c1, 2] - points[c0, 2]
@@ -617,8 +613,7 @@ def _allocate_contacts(
     accuracy in ``work``'s last row. Returns an outcome (nothing is written outside
     ``work``)."""
     n_fingers = in_contact.shape[0]
-    method = int(params[0])
-    eps, min_sep, onset = params[1], params[2], params[3]
+    onset = params[3]
     dirs = work.shape[0] - n_fingers - 1
     xk = work.shape[0] - 1  # the allocation of the rest, by finger; then the accuracy
     s = 0.0
@@ -644,16 +639,14 @@ def _allocate_contacts(
         z = 0.0 if z < 0.0 else (1.0 if z > 1.0 else z)
         beta = z * z * (3.0 - 2.0 * z)
     if beta < 1.0:  # the rest alone
-        k = _fill_grasp(in_contact, points, forces, params, weak, work)
-        xo = _solve_grasp(method, work, k, eps, min_sep, alpha)
+        xo = _solve_grasp(in_contact, points, forces, params, weak, alpha, work)
         s = 0
         for i in range(n_fingers):
             work[xk, i] = 0.0
             if in_contact[i] != 0 and i != weak:
                 work[xk, i] = (1.0 - beta) * work[xo, s]
                 s += 1
-    _fill_grasp(in_contact, points, forces, params, -1, work)
-    xo = _solve_grasp(method, work, n, eps, min_sep, alpha)
+    xo = _solve_grasp(in_contact, points, forces, params, -1, alpha, work)
     s = 0
     for i in range(n_fingers):
         if in_contact[i] != 0:
@@ -664,47 +657,71 @@ def _allocate_contacts(
             if not math.isfinite(x):
                 return NON_FINITE_OUTPUT
             s += 1
-    if n > 2:
+    if n > 2:  # the grasp _solve_grasp left in work
         work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = residuals(work, 3 * n, n)
         return ALLOCATED
-    r1, d1, l1 = _contact(work, n, 0)
+    r1, d1, l1 = _contact(points, forces, params, work, _nth(in_contact, -1, 0))
     if n == 1:
         work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = one_contact_residuals(
             r1, d1, l1, work[xo, 0]
         )
     else:
-        r2, d2, l2 = _contact(work, n, 1)
+        r2, d2, l2 = _contact(points, forces, params, work, _nth(in_contact, -1, 1))
         work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = two_contact_residuals(
             r1, r2, d1, d2, l1, l2, work[xo, 0], work[xo, 1]
         )
     return ALLOCATED
 
 
-def _contact(work: np.ndarray, k: int, s: int) -> tuple[closed.V3, closed.V3, closed.V3]:
-    """Contact ``s`` of the ``k`` that ``_fill_grasp`` left in ``work``: its offset from the
-    reference point r (m, off G's moment rows), direction d and force l (N)."""
-    j = 3 * s
-    lam = 6 + 3 * k
-    r = (work[5, j + 1], work[3, j + 2], work[4, j])
-    d = (work[6 + j, s], work[7 + j, s], work[8 + j, s])
-    return r, d, (work[lam, j], work[lam, j + 1], work[lam, j + 2])
+def _nth(in_contact: np.ndarray, skip: int, s: int) -> int:
+    """The finger of contact ``s`` (0, 1, ...) among those in contact but ``skip``."""
+    for i in range(in_contact.shape[0]):
+        if in_contact[i] != 0 and i != skip:
+            if s == 0:
+                return i
+            s -= 1
+    return -1
+
+
+def _contact(
+    points: np.ndarray, forces: np.ndarray, params: np.ndarray, work: np.ndarray, i: int
+) -> tuple[closed.V3, closed.V3, closed.V3]:
+    """Finger ``i``'s contact: its offset r from the grasp's reference point (m), its world
+    direction d (``work``'s rows after general's) and its force l (N)."""
+    dirs = work.shape[0] - points.shape[0] - 1
+    r = (points[i, 0] - params[5], points[i, 1] - params[6], points[i, 2] - params[7])
+    d = (work[dirs + i, 0], work[dirs + i, 1], work[dirs + i, 2])
+    return r, d, (forces[i, 0], forces[i, 1], forces[i, 2])
 
 
 def _solve_grasp(
-    method: int, work: np.ndarray, k: int, eps: float, min_sep: float, alpha: float
+    in_contact: np.ndarray,
+    points: np.ndarray,
+    forces: np.ndarray,
+    params: np.ndarray,
+    skip: int,
+    alpha: float,
+    work: np.ndarray,
 ) -> int:
-    """lam_a of the grasp ``_fill_grasp`` left in ``work`` (k contacts, one direction each)
-    by ``method`` into general's row XO, which it returns: the closed forms of
-    hapticd.allocation.closed for one or two contacts, the general path for more."""
+    """lam_a of the contacts but ``skip`` (allocation_step's arguments; this tick's alpha)
+    into general's row XO, which it returns: the closed forms of hapticd.allocation.closed
+    for one or two contacts, the general path for more (on the grasp ``_fill_grasp`` puts
+    into ``work``)."""
+    method = int(params[0])
+    eps, min_sep = params[1], params[2]
+    k = 0
+    for i in range(in_contact.shape[0]):
+        k += 1 if in_contact[i] != 0 and i != skip else 0
     xo = layout(3 * k, k)[XO_ROW]
     if k > 2:
+        _fill_grasp(in_contact, points, forces, params, skip, work)
         general_path(method, work, 3 * k, k, eps, min_sep, alpha)
         return xo
-    r1, d1, l1 = _contact(work, k, 0)
+    r1, d1, l1 = _contact(points, forces, params, work, _nth(in_contact, skip, 0))
     if k == 1:
         work[xo, 0] = one_contact(method, r1, d1, l1, eps, alpha)
     else:
-        r2, d2, l2 = _contact(work, k, 1)
+        r2, d2, l2 = _contact(points, forces, params, work, _nth(in_contact, skip, 1))
         work[xo, 0], work[xo, 1] = two_contact(method, r1, r2, d1, d2, l1, l2, eps, min_sep, alpha)
     return xo
 

@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from hapticd import params
 from hapticd.allocation.accuracy import Accuracy, accuracy
 from hapticd.allocation.adaptive import AdaptiveState, smoothstep
 from hapticd.allocation.batch import (
+    EXACT_METHODS,
+    METHODS,
+    ROBUST_METHODS,
     allocate_many,
     check,
     solve,
@@ -50,11 +52,6 @@ from hapticd.allocation.robust import (
     Robustness,
     contact_offsets,
 )
-
-# Declared with the other settable parameters (the control client reads them too).
-METHODS: tuple[str, ...] = tuple(params.ALLOCATORS)
-ROBUST_METHODS: tuple[str, ...] = ("pinv", "if", "ef", "adaptive")
-EXACT_METHODS: tuple[str, ...] = ("pinv_exact", "if_exact", "ef_exact")
 
 
 def allocate(

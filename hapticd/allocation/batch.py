@@ -31,8 +31,10 @@ from hapticd.allocation.robust import (
     Robustness,
 )
 
-_METHODS: tuple[str, ...] = tuple(params.ALLOCATORS)
-_EXACT = tuple(m for m in _METHODS if m.endswith("_exact"))
+# Declared with the other settable parameters (the control client reads them too).
+METHODS: tuple[str, ...] = tuple(params.ALLOCATORS)
+ROBUST_METHODS: tuple[str, ...] = CODES  # the robust methods, by code (closed.CODES)
+EXACT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m.endswith("_exact"))
 CHUNK = 1024  # grasps per internal pass of allocate_many
 # From this many grasps on, the general path runs on the whole batch elementwise; fewer run
 # one by one on floats (cheaper below about 10 grasps here: the elementwise pass costs 2-20
@@ -48,8 +50,8 @@ def check(
     """allocate_many's arguments as float arrays, and alpha per grasp (N,), or
     AllocationError naming what is wrong; ``one``: allocate()'s batch of one, whose
     messages name the one grasp's shapes."""
-    if method not in _METHODS:
-        raise AllocationError(f"unknown allocator {method!r}; expected one of {list(_METHODS)}")
+    if method not in METHODS:
+        raise AllocationError(f"unknown allocator {method!r}; expected one of {list(METHODS)}")
     G = np.asarray(G, dtype=float)
     M = np.asarray(M_a, dtype=float)
     lam_arr = np.asarray(lam, dtype=float)
@@ -144,12 +146,10 @@ def _general(
 
 # -- the exact (seed) formulas, grasp by grasp ---------------------------------------------------
 
-_SEED = {"pinv_exact": exact.pinv_exact, "if_exact": exact.if_exact, "ef_exact": exact.ef_exact}
-
 
 def _exact(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """The seed's formula (hapticd.allocation.exact) on each grasp."""
-    fn = _SEED[method]
+    """The seed's formula (hapticd.allocation.exact's function of that name) on each grasp."""
+    fn = getattr(exact, method)
     Ms = np.broadcast_to(M, (G.shape[0], *M.shape[-2:]))
     return np.array([fn(G[k], Ms[k], lam[k]) for k in range(G.shape[0])])
 
@@ -209,7 +209,7 @@ def solve(
     definition each grasp runs. The exact methods: the seed's formula; the robust ones: the
     two-contact closed forms for two contacts with one direction each (``fast`` False:
     never), the general path for the rest; adaptive: IF, mixed with EF where alpha is not 0."""
-    if method in _EXACT:
+    if method in EXACT_METHODS:
         return _exact(method, G, M, lam)
     if method == "adaptive":
         out = solve("if", G, M, lam, a, robust, fast, kernel)
@@ -224,8 +224,9 @@ def solve(
     if fast and n == 6 and M.shape[-1] == 2:  # one direction per finger, block by block?
         cross = M[..., [3, 4, 5, 0, 1, 2], [0, 0, 0, 1, 1, 1]]  # each column on the other finger
         closed = np.broadcast_to(~cross.any(axis=-1), (N,))
-    if closed.all() or not closed.any():  # the whole batch one way: no copies
-        return _path(bool(closed.all()), method, G, M, lam, robust, kernel)
+    every = bool(closed.all())
+    if every or not closed.any():  # the whole batch one way: no copies
+        return _path(every, method, G, M, lam, robust, kernel)
     out = np.empty((N, M.shape[-1]))
     for rows in (np.flatnonzero(closed), np.flatnonzero(~closed)):
         Mr = M if M.ndim == 2 else M[rows]
