@@ -113,7 +113,8 @@ def _items(a: np.ndarray) -> memoryview:
     return memoryview(a).cast("B").cast("d", a.shape)
 
 
-def _general(
+def _path(
+    closed: bool,
     method: str,
     G: np.ndarray,
     M: np.ndarray,
@@ -121,9 +122,14 @@ def _general(
     robust: Robustness,
     kernel: Callable[..., None] | None,
 ) -> np.ndarray:
-    """Robust pinv / ef / if on stacks, M (N, n, r) or shared (n, r): ``general.general``,
-    compiled grasp by grasp (``kernel``: hapticd.kernels.allocate_grasps), else on the whole
-    batch elementwise (fewer than STACK_MIN grasps: one by one on floats)."""
+    """Robust pinv / ef / if on stacks, M (N, n, r) or shared (n, r), every grasp by one
+    path: the two-contact closed forms (``closed``: two contacts with one direction each),
+    else ``general.general``, compiled grasp by grasp (``kernel``:
+    hapticd.kernels.allocate_grasps) or on the whole batch elementwise (fewer than
+    STACK_MIN grasps: one by one on floats)."""
+    if closed:
+        Mb = np.broadcast_to(M, (G.shape[0], 6, 2))
+        return np.stack(_two_contact_v(method, G, Mb, lam, robust), -1)
     N, _, n = G.shape
     r = M.shape[-1]
     code = CODES.index(method)
@@ -232,20 +238,3 @@ def solve(
         Mr = M if M.ndim == 2 else M[rows]
         out[rows] = _path(bool(closed[rows[0]]), method, G[rows], Mr, lam[rows], robust, kernel)
     return out
-
-
-def _path(
-    closed: bool,
-    method: str,
-    G: np.ndarray,
-    M: np.ndarray,
-    lam: np.ndarray,
-    robust: Robustness,
-    kernel: Callable[..., None] | None,
-) -> np.ndarray:
-    """Robust ``method`` by the two-contact closed forms (``closed``: every grasp has two
-    contacts with one direction each) or by the general path."""
-    if closed:
-        Mb = np.broadcast_to(M, (G.shape[0], 6, 2))
-        return np.stack(_two_contact_v(method, G, Mb, lam, robust), -1)
-    return _general(method, G, M, lam, robust, kernel)
