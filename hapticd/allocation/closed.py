@@ -46,18 +46,25 @@ FLOAT_FORMS: dict[Callable[..., object], Callable[..., object]] = {}
 
 
 def elementwise(arrays: Callable[..., object]) -> Callable[[Callable], Callable]:
-    """Decorator of a helper's float form, with ``arrays`` its form elementwise on arrays
-    (np.where, with safe denominators): the helper runs the array form when its first
-    argument (or that argument's first item) is an array, else the float form."""
+    """Decorator of a helper's float form (of 1 to 4 arguments), with ``arrays`` its form
+    elementwise on arrays (np.where, with safe denominators): the helper runs the array
+    form when its first argument (or that argument's first item) is an array, else the
+    float form (a Python float first: the uncompiled kernels' and allocate()'s path)."""
 
     def both(floats: Callable[..., object]) -> Callable[..., object]:
-        @functools.wraps(floats)
-        def either(first, *rest):
-            probe = first[0] if type(first) is tuple else first
-            return (arrays if isinstance(probe, np.ndarray) else floats)(first, *rest)
+        def form(a: object) -> Callable[..., object]:
+            if type(a) is float or not isinstance(a[0] if type(a) is tuple else a, np.ndarray):
+                return floats
+            return arrays
 
+        either = (  # of the float form's arity: quicker than *args
+            lambda a: form(a)(a),
+            lambda a, b: form(a)(a, b),
+            lambda a, b, c: form(a)(a, b, c),
+            lambda a, b, c, d: form(a)(a, b, c, d),
+        )[floats.__code__.co_argcount - 1]
         FLOAT_FORMS[either] = floats
-        return either
+        return functools.wraps(floats)(either)
 
     return both
 
