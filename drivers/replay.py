@@ -54,10 +54,10 @@ class ReplayDevice(Device):
         self._forces = np.zeros((1024, 3))
         self._force_times = np.zeros(1024)
         self._n_forces = 0
-        self._bind_kept()
         # The forces kept for inspection: all of a run that ends, the latest of one that
         # does not (a repeated path): beyond KEPT_FORCES the older half is dropped.
         self._kept_max = KEPT_FORCES if repeat else None
+        self._bind_kept()
 
     @property
     def duration(self) -> float:
@@ -93,17 +93,8 @@ class ReplayDevice(Device):
         """Keep the force (x, y, z) N just accepted (zero while disabled), at this read's
         time."""
         n = self._n_forces
-        if n == self._kept_max:
-            half = n // 2
-            self._forces[: n - half] = self._forces[half:n]
-            self._force_times[: n - half] = self._force_times[half:n]
-            n = n - half
-        if n == len(self._force_times):
-            self._forces = np.concatenate([self._forces, np.zeros_like(self._forces)])
-            self._force_times = np.concatenate(
-                [self._force_times, np.zeros_like(self._force_times)]
-            )
-            self._bind_kept()
+        if n >= self._room:
+            n = self._make_room(n)
         # Stored through flat memoryviews: a float each, for a fraction of a row assignment.
         f, i = self._forces_mv, 3 * n
         if self._enabled:
@@ -115,9 +106,28 @@ class ReplayDevice(Device):
         self._times_mv[n] = self._now
         self._n_forces = n + 1
 
+    def _make_room(self, n: int) -> int:
+        """Room for the ``n``-th force kept: beyond KEPT_FORCES (a repeated path) the older
+        half dropped, else the arrays doubled; returns where it goes."""
+        if n == self._kept_max:
+            half = n // 2
+            self._forces[: n - half] = self._forces[half:n]
+            self._force_times[: n - half] = self._force_times[half:n]
+            n = n - half
+        if n == len(self._force_times):
+            self._forces = np.concatenate([self._forces, np.zeros_like(self._forces)])
+            self._force_times = np.concatenate(
+                [self._force_times, np.zeros_like(self._force_times)]
+            )
+            self._bind_kept()
+        return n
+
     def _bind_kept(self) -> None:
         self._forces_mv = memoryview(self._forces.reshape(-1))
         self._times_mv = memoryview(self._force_times)
+        # _keep makes room when the count reaches this: the arrays' end, or the most kept.
+        size, most = len(self._force_times), self._kept_max
+        self._room = size if most is None else min(most, size)
 
     def write_force(self, force: np.ndarray) -> None:
         if not self._open:

@@ -307,6 +307,7 @@ class OneCall:
     def __init__(self, renderer: Renderer, fn: Callable[..., int] | None) -> None:
         self.renderer = renderer
         self._fn = kn.uncompiled("tick_step") if fn is None else fn
+        self._call: Callable[..., int] = self._fn  # ``direct(fn, args)``, made with the args
         self._frame: Frame | None = None
         self._args: tuple[np.ndarray, ...] = ()
         self._scene = renderer.scene
@@ -325,7 +326,7 @@ class OneCall:
     def __getstate__(self) -> dict[str, object]:
         # A copy (a deep copy, a pickle) binds its own frame's fields on its first tick:
         # the arguments are views of this one's frame, which a copy would detach.
-        unbound = {"_frame": None, "_args": (), "_obj": None, "_material": None}
+        unbound = {"_frame": None, "_args": (), "_obj": None, "_material": None, "_call": self._fn}
         return {**self.__dict__, **unbound, "_safety": None}
 
     def _bind(self, frame: Frame) -> None:
@@ -431,6 +432,7 @@ class OneCall:
         self._obj, self._material = obj, mat
         self._free = free
         self._safety = None  # the arguments hold no chain's arrays
+        self._call = direct(self._fn, self._args)
 
     def run(self, frame: Frame, safety: SafetyChain | None = None) -> int | None:
         """The tick (``Renderer.run``): the safety chain's flags when it ran too, else None."""
@@ -444,7 +446,7 @@ class OneCall:
         if safety is not self._safety:  # the chain in the call changed (None: no chain)
             self._with(safety)
         if self._single:
-            outcome = self._fn(*self._args)
+            outcome = self._call(*self._args)
             if outcome < _FINISHED:
                 self._stopped(frame, outcome)
             if self._free:
@@ -461,7 +463,7 @@ class OneCall:
         for part in self._parts:
             if isinstance(part, tuple):
                 p[kn.TICK_FIRST], p[kn.TICK_LAST] = part
-                outcome = self._fn(*self._args)
+                outcome = self._call(*self._args)
                 if outcome < _FINISHED:
                     self._stopped(frame, outcome)
                 if self._free and part[0] <= kn.STAGE_DYNAMICS < part[1]:
@@ -485,7 +487,38 @@ class OneCall:
         self._safety = safety
         arrays = _NO_SAFETY if safety is None else safety.kernel_arrays
         self._args = (*self._args[:-2], *arrays)
+        self._call = direct(self._fn, self._args)
         self._plan[kn.TICK_SAFETY] = 0.0 if safety is None else 1.0
+
+
+def direct(fn: Callable[..., int], args: tuple[np.ndarray, ...]) -> Callable[..., int]:
+    """What to call ``fn`` with ``args`` through, every tick: a numba dispatcher's compiled
+    code itself (its one overload's entry point) when each argument is exactly the array
+    its signature declares, else ``fn`` (plain Python, or a dispatcher whose own check
+    then refuses the arguments by name).
+
+    The dispatcher checks the type of all twelve arguments on every call (about 1 us a
+    tick here); the entry point only unpacks them, trusting their dtype, dimensions and
+    layout. So that trust is checked here, once per set of arguments (the call's arrays
+    are bound once per frame, plan and chain, and never reshaped): the same dtype (byte
+    order included), dimensions, C order where declared, writable and aligned, and no
+    subclass, as numba's typing would demand."""
+    sigs = getattr(fn, "signatures", None)
+    overloads = getattr(fn, "overloads", None)
+    if not sigs or len(sigs) != 1 or overloads is None or len(sigs[0]) != len(args):
+        return fn
+    for a, ty in zip(args, sigs[0], strict=True):
+        if not (
+            type(a) is np.ndarray
+            and getattr(ty, "ndim", None) == a.ndim
+            and a.dtype == np.dtype(str(getattr(ty, "dtype", "")))
+            and a.dtype.isnative
+            and (ty.layout == "A" or (ty.layout == "C" and a.flags.c_contiguous))
+            and a.flags.writeable == ty.mutable
+            and a.flags.aligned == ty.aligned
+        ):
+            return fn
+    return overloads[sigs[0]].entry_point
 
 
 def _parts(stages: list[Stage]) -> list[tuple[int, int] | Stage]:

@@ -100,6 +100,9 @@ class SafetyChain:
         # check): SAFETY_PARAMS parameters, then the F limits, then the F gates.
         self._step_params = np.zeros(SAFETY_PARAMS + 2 * F)
         self._limits_a = self._step_params[SAFETY_PARAMS : SAFETY_PARAMS + F]
+        # Its per-tick items stored through a memoryview: a float stored through one is
+        # that float, for a fraction of a numpy item assignment.
+        self._step_view = memoryview(self._step_params)
         self.limits = [float(v) for v in limits_n]
         self.rated = [float(v) for v in (rated_n if rated_n is not None else limits_n)]
         if len(self.rated) != len(self.limits):
@@ -368,19 +371,19 @@ class SafetyChain:
         """safety_step's parameters for nominal time ``t`` (s), with the workspace check
         (when the params have a finite radius) or without."""
         prm = self.params
-        p = self._step_params
         if prm is not self._params_of:
             self._params_of = prm
-            p[3:6] = prm.workspace_center_m
-        p[2] = prm.workspace_radius_m if workspace else math.inf  # inf: no check
+            self._step_params[3:6] = prm.workspace_center_m
+        v = self._step_view
+        v[2] = prm.workspace_radius_m if workspace else math.inf  # inf: no check
         # Past the enable ramp and before any ramp-down the factor is exactly 1 (the
         # division in ``_ramp`` cannot fall below 1 there); otherwise ``_ramp`` says.
         if t < self._t_down and (prm.ramp_s <= 0.0 or t - self._t_enabled >= prm.ramp_s):
-            p[0] = 1.0
+            v[0] = 1.0
         else:
-            p[0] = self._ramp(t)
-        p[1] = prm.max_rate_n_per_s * self.dt
-        return p
+            v[0] = self._ramp(t)
+        v[1] = prm.max_rate_n_per_s * self.dt
+        return self._step_params
 
     def _fitted(self, forces: Any, positions: Any) -> tuple[np.ndarray, np.ndarray]:
         """``forces`` and ``positions`` as the kernel takes them (F, 3) float64, C order: the

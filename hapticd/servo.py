@@ -19,9 +19,11 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import functools
 import gc
 import logging
 import math
+import operator
 import sys
 import threading
 import time
@@ -66,8 +68,20 @@ class Applied(threading.Event):
         self.result: Any = None
 
 
+class TickClock:
+    """The nominal time of a servo loop's current tick (s), for the devices that play a
+    trajectory, made before the loop that keeps it (``ServoLoop(..., clock=it)``): a
+    device reads ``now()``, a callable of no arguments that runs no Python code (a
+    device reads it every tick), the loop stores each tick's time in ``cell[0]``."""
+
+    def __init__(self) -> None:
+        self.cell = [0.0]
+        self.now: Callable[[], float] = functools.partial(operator.getitem, self.cell, 0)
+
+
 class ServoLoop:
-    """Runs ``renderer`` and ``safety`` on ``devices`` at ``rate_hz``."""
+    """Runs ``renderer`` and ``safety`` on ``devices`` at ``rate_hz``; ``clock``: the
+    devices' clock, which the loop keeps at each tick's nominal time (None: its own)."""
 
     def __init__(
         self,
@@ -87,6 +101,7 @@ class ServoLoop:
         spin_s: float = SPIN_MARGIN_S,
         event_capacity: int = DEFAULT_CAPACITY,
         wall_watchdog: bool = True,
+        clock: TickClock | None = None,
     ) -> None:
         if not (rate_hz > 0 and math.isfinite(rate_hz)):
             raise ValueError(f"rate_hz must be positive, got {rate_hz}")
@@ -120,6 +135,7 @@ class ServoLoop:
         self.stats: LoopStats = self.pacer.stats
         self.stats.max_force = [0.0] * F
         self.stats.contact_ticks = [0] * F
+        self.clock = clock if clock is not None else TickClock()
         self._t = 0.0
         self._stop_reason: str | None = None
         self._stop_now = False
@@ -492,9 +508,10 @@ class ServoLoop:
         k = 0
         if self.recorder is not None:
             self.event_ring.push(RECORDING_STARTED, 0, 0.0)
+        now = self.clock.cell
         while True:
             t = k * T
-            self._t = t
+            self._t = now[0] = t
             start, late = pacer.begin(k)
             if late is not None:
                 self.safety.trip(k, t, late, "overrun")

@@ -434,3 +434,68 @@ def test_the_call_with_the_safety_chain_allocates_nothing_a_tick(n_fingers, comp
     ]
     assert not grown, grown
     assert frame.in_contact.all() and np.abs(frame.device_force).max() > 0.1
+
+
+@pytest.mark.parametrize("profile", ["lift-weight", "grasp-stiffness"])
+def test_the_compiled_call_skips_numbas_dispatch_only_on_its_declared_arrays(profile, compiled):
+    """``direct``: the call goes straight to the compiled code (no per-call type dispatch)
+    only when every argument the renderer bound is exactly the array tick_step's signature
+    declares; one argument off in dtype, dimensions, order, writability or class keeps
+    numba's dispatcher, which refuses it (no unchecked call on a wrong array). The direct
+    call's ticks are the dispatcher's, bit for bit; uncompiled, the function itself."""
+    from hapticd.render import direct
+    from hapticd.safety import SafetyChain
+
+    prof = load_profile(ROOT / "configs" / f"{profile}.yaml")
+    fast, slow = build_renderer(prof), build_renderer(prof)
+    fast.use_kernels({n: compiled[n] for n in fast.kernel_names})
+    slow.use_kernels({n: compiled[n] for n in slow.kernel_names})
+    chains = [SafetyChain([8.0] * fast.n_fingers, dt=1e-3) for _ in range(2)]
+    for chain in chains:
+        chain.use_kernels({"safety_step": compiled["safety_step"]})
+        chain.start(0.0)
+    fn = compiled["tick_step"]
+    assert direct(kn.uncompiled("tick_step"), ()) is kn.uncompiled("tick_step")
+    paths = [p for p in load_trajectories(prof) if p is not None]
+    times, pos = paths[0][0], np.stack([p[1] for p in paths], axis=1)
+    dt = float(times[1] - times[0])
+    touched, most = 0, 0.0
+    for k in range(0, len(times) - 1, 5):
+        for r, chain in zip((fast, slow), chains, strict=True):
+            r.frame.device_pos[...] = pos[k]
+            r.frame.device_vel[...] = (pos[k + 1] - pos[k]) / dt
+            t = k * 1e-3
+            assert r.run(r.frame, chain if chain.ready(t) else None) is not None
+        if k == 0:  # bound now, with the chain's arrays: the slow one keeps the dispatcher
+            args = fast.one_call._args
+            entry = direct(fn, args)
+            assert entry is not fn and fast.one_call._call is entry
+            slow.one_call._call = fn
+        np.testing.assert_array_equal(fast.frame.record, slow.frame.record, err_msg=f"tick {k}")
+        touched += bool(fast.frame.in_contact.any())
+        most = max(most, float(np.abs(fast.frame.device_force).max()))
+    assert touched > 10 and most > 0.1
+
+    class Sub(np.ndarray):
+        pass
+
+    for i, a in enumerate(args):
+        wrong = [
+            a.astype(np.float32 if a.dtype != np.float32 else np.float64),
+            a.reshape(-1) if a.ndim > 1 else a.reshape(1, -1),
+            a.view(Sub),
+        ]
+        if a.dtype.itemsize > 1:
+            wrong.append(a.astype(a.dtype.newbyteorder()))
+        if a.ndim == 1 and a.size > 1:
+            wrong.append(np.repeat(a, 2)[::2])  # not contiguous
+        ro = a.copy()
+        ro.flags.writeable = False
+        wrong.append(ro)
+        for bad in wrong:
+            spoilt = (*args[:i], bad, *args[i + 1 :])
+            assert direct(fn, spoilt) is fn, (i, bad.dtype, bad.shape)
+            if type(bad) is np.ndarray:  # numba types a subclass as its base
+                with pytest.raises(TypeError):
+                    fn(*spoilt)
+    assert direct(fn, args[:-1]) is fn

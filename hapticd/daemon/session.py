@@ -34,7 +34,7 @@ from hapticd.protocol import ProtocolError
 from hapticd.recording import Recorder, RecordingError, files, ring
 from hapticd.render import Renderer
 from hapticd.safety import SafetyChain
-from hapticd.servo import Applied, ServoLoop
+from hapticd.servo import Applied, ServoLoop, TickClock
 
 log = logging.getLogger("hapticd")
 
@@ -245,10 +245,8 @@ def build_session(
     the socket writes only in ``record_directory(profile, record_dir)``.
     ``event_capacity``: events the loop's ring holds until the control server drains it.
     """
-    clock_box: list[ServoLoop] = []
-    devices, emulators = build_devices(
-        profile, device=device, emulate=emulate, clock=lambda: clock_box[0].now()
-    )
+    clock = TickClock()
+    devices, emulators = build_devices(profile, device=device, emulate=emulate, clock=clock.now)
     if emulate and duration_s is None:
         # Emulated devices do not end; stop where the trajectories do.
         duration_s = max(float(t[0][-1] - t[0][0]) for t in load_trajectories(profile) if t)
@@ -275,9 +273,9 @@ def build_session(
         realtime_settings=realtime_settings(profile) if paced else None,
         event_capacity=event_capacity,
         wall_watchdog=paced or not on_nominal_clock(profile, device, emulate),
+        clock=clock,
     )
     loop.bank.set_mounts(build_mounts(profile))
-    clock_box.append(loop)
     return Session(
         profile,
         devices,

@@ -60,7 +60,7 @@ from hapticd.profile import (
     parse_profile,
     read_document,
 )
-from hapticd.servo import ServoLoop
+from hapticd.servo import ServoLoop, TickClock
 from hapticd.trajectory import Hold, MinJerk, Segment, two_finger
 
 # 2 x 0.6745: a cue difference with noise sd s on each interval gives a psychometric
@@ -371,13 +371,13 @@ def run_interval(
     recorded frame (structured array), the shutdown's zero left out. RuntimeError if a
     safety fault latched."""
     times, pos = path
-    clock_box: list[ServoLoop] = []
+    clock = TickClock()
     devices = [
         registry.open_device(
             "sim",
             times=times,
             positions=pos[:, i, :],
-            clock=lambda: clock_box[0].now(),
+            clock=clock.now,
             serial=f"observer-{f.name}",
             max_force_n=float(getattr(f.device, "max_force_n", 12.0)),
             **config.hand,
@@ -399,9 +399,9 @@ def run_interval(
         recorder=log,  # type: ignore[arg-type]
         stop_ramp_s=0.0,
         wall_watchdog=False,
+        clock=clock,
     )
     loop.bank.set_mounts(build_mounts(profile))
-    clock_box.append(loop)
     for name, value in settings.items():
         loop.set_param(name, params.PARAMS[name].check(value))
     loop.run()

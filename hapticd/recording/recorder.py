@@ -75,6 +75,12 @@ class Recorder:
                 offset=ring.HEADER_BYTES,
             )
             self._itemsize = self.dtype.itemsize
+            # Every page of the slots written once now, here: the memory file's pages are
+            # made on their first write, and a page first written in the loop cost that
+            # tick a fault (several us, one tick in each page's few records).
+            flat = self._slots.reshape(-1)
+            flat[:: mmap.PAGESIZE] = 0
+            flat[-1:] = 0
             base = memoryview(self._mm)
             self._word_view = base[: ring.HEADER_BYTES].cast("Q")
             self._slot_view = base[ring.HEADER_BYTES :]
