@@ -378,8 +378,10 @@ KERNEL_HELPERS = (
     two_contact_residuals,
     "_fill_grasp",
     "_task_alpha",
-    "_many_contacts",
-    "_write_many",
+    "_nth",
+    "_contact",
+    "_solve_grasp",
+    "_allocate_contacts",
     "_gram_mu",
     "_norm3",
     # tick_step's stages: compiled into it, one call per tick
@@ -484,21 +486,16 @@ def _task_alpha(
     contact, the force along the grasp line for two, |P_int lam| / sqrt(2) for more."""
     n_fingers = in_contact.shape[0]
     k = 0
-    c0 = -1
-    c1 = -1
     n0, n1, n2 = 0.0, 0.0, 0.0
     for i in range(n_fingers):
         if in_contact[i] != 0:
-            if k == 0:
-                c0 = i
-            elif k == 1:
-                c1 = i
             n0 += forces[i, 0]
             n1 += forces[i, 1]
             n2 += forces[i, 2]
             k += 1
     squeeze = 0.0
     if k == 2:
+        c0, c1 = _nth(in_contact, -1, 0), _nth(in_contact, -1, 1)
         e0 = points[c1, 0] - points[c0, 0]
         e1 = points[c1, 1] - points[c0, 1]
         e2 = points[c1, 2] - points[c0, 2]
@@ -543,11 +540,11 @@ def allocation_step(
     work: np.ndarray,
 ) -> int:
     """One tick's allocation for F fingers with one actuated direction each, by a robust
-    method, with contact onset: the closed forms of ``hapticd.allocation.closed`` for one
-    or two contacts, hapticd.allocation.general for more, their accuracy and M_a lam_a
-    per finger (the one definition of this case: ``hapticd.allocation.contacts.
-    ContactAllocator`` runs it, compiled or not). The adaptive allocator's alpha
-    (``state``) follows this tick's task first (``_task_alpha``).
+    method, with contact onset (``_allocate_contacts``: the closed forms of
+    ``hapticd.allocation.closed`` for one or two contacts, hapticd.allocation.general for
+    more), its accuracy and M_a lam_a per finger (the one definition of this case:
+    ``hapticd.allocation.contacts.ContactAllocator`` runs it, compiled or not). The
+    adaptive allocator's alpha (``state``) follows this tick's task first (``_task_alpha``).
 
     The frame's fields: ``in_contact`` (F,) u1, ``device_pos`` (F, 3) m (the grasp
     frame's axes come from fingers 0 and 1), ``points`` (F, 3) contact points m,
@@ -559,35 +556,19 @@ def allocation_step(
     alpha, and returns ALLOCATED, or returns another outcome having written nothing.
     """
     n_fingers = in_contact.shape[0]
-    method = int(params[0])
     alpha = state[0]
-    if method == closed.ADAPTIVE:
+    if int(params[0]) == closed.ADAPTIVE:
         alpha = _task_alpha(in_contact, points, forces, params, alpha, work)
     n = 0
-    c0 = -1
-    c1 = -1
     for i in range(n_fingers):
-        if in_contact[i] != 0:
-            if n == 0:
-                c0 = i
-            elif n == 1:
-                c1 = i
-            n += 1
-    if n == 0:
-        for i in range(n_fingers):
-            lam_a[i] = 0.0
-            rendered[i, 0], rendered[i, 1], rendered[i, 2] = 0.0, 0.0, 0.0
-        for i in range(ACCURACY):
-            acc[i] = 0.0
-        state[0] = alpha
-        return ALLOCATED
-    eps, min_sep, onset = params[1], params[2], params[3]
-    ox, oy, oz = params[5], params[6], params[7]
-    # The world directions (hapticd.actuation.grasp_axes in the grasp frame).
-    grasp = params[4] != 0.0
-    ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, grasp)
-    if n > 2:  # every finger's world direction into the workspace, then the general path
-        dirs = work.shape[0] - n_fingers - 1
+        n += 1 if in_contact[i] != 0 else 0
+    dirs = work.shape[0] - n_fingers - 1
+    xk = work.shape[0] - 1
+    if n > 0:
+        # Every finger's world direction into ``work`` (hapticd.actuation.grasp_axes in the
+        # grasp frame), then the grasp's allocation.
+        grasp = params[4] != 0.0
+        ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, grasp)
         for i in range(n_fingers):
             p0, p1, p2 = local[i, 0], local[i, 1], local[i, 2]
             if grasp:
@@ -596,193 +577,12 @@ def allocation_step(
                 work[dirs + i, 2] = ax2 * p0 + ay2 * p1 + az2 * p2
             else:
                 work[dirs + i, 0], work[dirs + i, 1], work[dirs + i, 2] = p0, p1, p2
-        outcome = _many_contacts(in_contact, points, forces, params, alpha, work)
-        if outcome == ALLOCATED:
-            _write_many(in_contact, work, lam_a, rendered, acc)
-            state[0] = alpha
-        return outcome
-    # Contact 1 (c0) and, with two, contact 2 (c1): offset r, direction d, force l.
-    r1 = (points[c0, 0] - ox, points[c0, 1] - oy, points[c0, 2] - oz)
-    l1 = (forces[c0, 0], forces[c0, 1], forces[c0, 2])
-    p0, p1, p2 = local[c0, 0], local[c0, 1], local[c0, 2]
-    d1 = (p0, p1, p2)
-    if grasp:
-        d1 = (
-            ax0 * p0 + ay0 * p1 + az0 * p2,
-            ax1 * p0 + ay1 * p1 + az1 * p2,
-            ax2 * p0 + ay2 * p1 + az2 * p2,
-        )
-    r2 = (0.0, 0.0, 0.0)
-    l2 = (0.0, 0.0, 0.0)
-    d2 = (0.0, 0.0, 0.0)
-    if n == 2:
-        r2 = (points[c1, 0] - ox, points[c1, 1] - oy, points[c1, 2] - oz)
-        l2 = (forces[c1, 0], forces[c1, 1], forces[c1, 2])
-        p0, p1, p2 = local[c1, 0], local[c1, 1], local[c1, 2]
-        d2 = (p0, p1, p2)
-        if grasp:
-            d2 = (
-                ax0 * p0 + ay0 * p1 + az0 * p2,
-                ax1 * p0 + ay1 * p1 + az1 * p2,
-                ax2 * p0 + ay2 * p1 + az2 * p2,
-            )
-    # 0 x c is 0 for a finite c and NaN otherwise (the second contact's zeros: finite).
-    s = 0.0
-    for v in (r1, d1, l1, r2, d2, l2):
-        s += 0.0 * v[0] + 0.0 * v[1] + 0.0 * v[2]
-    if not math.isfinite(s):
-        return NON_FINITE_INPUT
-    # The closed forms (hapticd.allocation.closed, compiled in by hapticd.jit).
-    x0 = 0.0  # contact 1's actuator force, N
-    x1 = 0.0  # contact 2's
-    if n == 2:
-        x0, x1 = two_contact(method, r1, r2, d1, d2, l1, l2, eps, min_sep, alpha)
-    # One contact alone, or the other one while the weaker of two is being made or broken
-    # (contact onset: the allocation blended with that of the rest alone).
-    beta = 1.0
-    alone = c0  # the finger whose one-contact allocation is needed
-    if n == 2 and onset > 0.0:
-        n1 = math.sqrt(l1[0] * l1[0] + l1[1] * l1[1] + l1[2] * l1[2])
-        n2 = math.sqrt(l2[0] * l2[0] + l2[1] * l2[1] + l2[2] * l2[2])
-        weak = n2 if n2 < n1 else n1
-        alone = c0 if n2 < n1 else c1
-        z = weak / onset
-        z = 0.0 if z < 0.0 else (1.0 if z > 1.0 else z)
-        beta = z * z * (3.0 - 2.0 * z)
-    y = 0.0
-    if n == 1 or beta < 1.0:
-        r, d, m = (r1, d1, l1) if alone == c0 else (r2, d2, l2)
-        y = one_contact(method, r, d, m, eps, alpha)
-    if n == 1:
-        x0 = y
-    elif beta < 1.0:
-        # beta lam_a + (1 - beta) lam_a(rest): the rest's zero where the weak finger is.
-        if alone == c0:
-            x0 = beta * x0 + (1.0 - beta) * y
-            x1 = beta * x1 + (1.0 - beta) * 0.0
-        else:
-            x0 = beta * x0 + (1.0 - beta) * 0.0
-            x1 = beta * x1 + (1.0 - beta) * y
-    if not (math.isfinite(x0) and math.isfinite(x1)):
-        return NON_FINITE_OUTPUT
-    # The accuracy (hapticd.allocation.accuracy's closed forms).
-    if n == 1:
-        acc[0], acc[1], acc[2], acc[3] = one_contact_residuals(r1, d1, l1, x0)
-    else:
-        acc[0], acc[1], acc[2], acc[3] = two_contact_residuals(r1, r2, d1, d2, l1, l2, x0, x1)
-    # lam_a and the rendered rows M_a lam_a (zero out of contact).
-    for i in range(n_fingers):
-        lam_a[i] = 0.0
-        rendered[i, 0], rendered[i, 1], rendered[i, 2] = 0.0, 0.0, 0.0
-    lam_a[c0] = x0
-    rendered[c0, 0] = 0.0 + x0 * d1[0]
-    rendered[c0, 1] = 0.0 + x0 * d1[1]
-    rendered[c0, 2] = 0.0 + x0 * d1[2]
-    if n == 2:
-        lam_a[c1] = x1
-        rendered[c1, 0] = 0.0 + x1 * d2[0]
-        rendered[c1, 1] = 0.0 + x1 * d2[1]
-        rendered[c1, 2] = 0.0 + x1 * d2[2]
-    state[0] = alpha
-    return ALLOCATED
-
-
-def _many_contacts(
-    in_contact: np.ndarray,
-    points: np.ndarray,
-    forces: np.ndarray,
-    params: np.ndarray,
-    alpha: float,
-    work: np.ndarray,
-) -> int:
-    """allocation_step's three or more contacts (its arguments; this tick's alpha; each
-    finger's world direction in ``work``'s rows after general's): hapticd.allocation.general
-    on the grasp, blended with the grasp without its weakest contact while that one is
-    being made or broken (contact onset); lam_a and the accuracy left in ``work`` for
-    ``_write_many``. Returns an outcome (nothing is written outside ``work``).
-    """
-    n_fingers = in_contact.shape[0]
-    method = int(params[0])
-    eps, min_sep, onset = params[1], params[2], params[3]
-    dirs = work.shape[0] - n_fingers - 1
-    xk = work.shape[0] - 1  # the allocation of all contacts, by finger
-    s = 0.0
-    weak = -1
-    weakest = 0.0
-    for i in range(n_fingers):
-        if in_contact[i] == 0:
-            continue
-        for c in range(3):
-            s += 0.0 * (points[i, c] - params[5 + c]) + 0.0 * work[dirs + i, c]
-            s += 0.0 * forces[i, c]
-        f = math.sqrt(forces[i, 0] ** 2 + forces[i, 1] ** 2 + forces[i, 2] ** 2)
-        if weak < 0 or f < weakest:
-            weak, weakest = i, f
-    if not math.isfinite(s):
-        return NON_FINITE_INPUT
-    beta = 1.0
-    if onset > 0.0:
-        z = weakest / onset
-        z = 0.0 if z < 0.0 else (1.0 if z > 1.0 else z)
-        beta = z * z * (3.0 - 2.0 * z)
-    k = 0
-    if beta < 1.0:  # the rest alone: two contacts by their closed form, more by general
-        k = _fill_grasp(in_contact, points, forces, params, weak, work)
-        xo = layout(3 * k, k)[XO_ROW]
-        if k == 2:
-            r1 = (work[5, 1], work[3, 2], work[4, 0])  # (x, y, z) off G's moment rows
-            r2 = (work[5, 4], work[3, 5], work[4, 3])
-            d1 = (work[6, 0], work[7, 0], work[8, 0])
-            d2 = (work[9, 1], work[10, 1], work[11, 1])
-            la = 6 + 6
-            l1 = (work[la, 0], work[la, 1], work[la, 2])
-            l2 = (work[la, 3], work[la, 4], work[la, 5])
-            x0, x1 = two_contact(method, r1, r2, d1, d2, l1, l2, eps, min_sep, alpha)
-            work[xo, 0], work[xo, 1] = x0, x1
-        else:
-            general_path(method, work, 3 * k, k, eps, min_sep, alpha)
-        s = 0
-        for i in range(n_fingers):
-            work[xk, i] = 0.0
-            if in_contact[i] != 0 and i != weak:
-                work[xk, i] = (1.0 - beta) * work[xo, s]
-                s += 1
-    k = _fill_grasp(in_contact, points, forces, params, -1, work)
-    n, r = 3 * k, k
-    xo = layout(n, r)[XO_ROW]
-    general_path(method, work, n, r, eps, min_sep, alpha)
-    s = 0
-    for i in range(n_fingers):
-        if in_contact[i] != 0:
-            x = work[xo, s]
-            if beta < 1.0:
-                x = beta * x + work[xk, i]
-            work[xo, s] = x
-            if not math.isfinite(x):
-                return NON_FINITE_OUTPUT
-            s += 1
-    work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = residuals(work, n, r)
-    return ALLOCATED
-
-
-def _write_many(
-    in_contact: np.ndarray,
-    work: np.ndarray,
-    lam_a: np.ndarray,
-    rendered: np.ndarray,
-    acc: np.ndarray,
-) -> None:
-    """What ``_many_contacts`` left in ``work`` into lam_a, M_a lam_a per finger (zero out
-    of contact) and the accuracy."""
-    n_fingers = in_contact.shape[0]
-    dirs = work.shape[0] - n_fingers - 1
-    xk = work.shape[0] - 1
-    k = 0
-    for i in range(n_fingers):
-        k += 1 if in_contact[i] != 0 else 0
-    xo = layout(3 * k, k)[XO_ROW]
+        outcome = _allocate_contacts(in_contact, points, forces, params, alpha, work)
+        if outcome != ALLOCATED:
+            return outcome
+    xo = layout(3 * n, n)[XO_ROW]
     for i in range(ACCURACY):
-        acc[i] = work[xk, i]
+        acc[i] = work[xk, i] if n > 0 else 0.0
     s = 0
     for i in range(n_fingers):
         lam_a[i] = 0.0
@@ -794,6 +594,136 @@ def _write_many(
             rendered[i, 1] = 0.0 + x * work[dirs + i, 1]
             rendered[i, 2] = 0.0 + x * work[dirs + i, 2]
             s += 1
+    state[0] = alpha
+    return ALLOCATED
+
+
+def _allocate_contacts(
+    in_contact: np.ndarray,
+    points: np.ndarray,
+    forces: np.ndarray,
+    params: np.ndarray,
+    alpha: float,
+    work: np.ndarray,
+) -> int:
+    """allocation_step's grasp (its arguments; this tick's alpha; each finger's world
+    direction in ``work``'s rows after general's): ``_solve_grasp`` on the contacts,
+    blended with the grasp without its weakest contact while that one is being made or
+    broken (contact onset); lam_a, contact by contact, in general's row XO and the
+    accuracy in ``work``'s last row. Returns an outcome (nothing is written outside
+    ``work``)."""
+    n_fingers = in_contact.shape[0]
+    onset = params[3]
+    dirs = work.shape[0] - n_fingers - 1
+    xk = work.shape[0] - 1  # the allocation of the rest, by finger; then the accuracy
+    s = 0.0
+    n = 0
+    weak = -1
+    weakest = 0.0
+    for i in range(n_fingers):
+        if in_contact[i] == 0:
+            continue
+        n += 1
+        for c in range(3):  # 0 x c is 0 for a finite c and NaN otherwise
+            s += 0.0 * (points[i, c] - params[5 + c]) + 0.0 * work[dirs + i, c]
+            s += 0.0 * forces[i, c]
+        f0, f1, f2 = forces[i, 0], forces[i, 1], forces[i, 2]
+        f = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
+        if weak < 0 or f < weakest:
+            weak, weakest = i, f
+    if not math.isfinite(s):
+        return NON_FINITE_INPUT
+    beta = 1.0
+    if n > 1 and onset > 0.0:
+        z = weakest / onset
+        z = 0.0 if z < 0.0 else (1.0 if z > 1.0 else z)
+        beta = z * z * (3.0 - 2.0 * z)
+    if beta < 1.0:  # the rest alone
+        xo = _solve_grasp(in_contact, points, forces, params, weak, alpha, work)
+        s = 0
+        for i in range(n_fingers):
+            work[xk, i] = 0.0
+            if in_contact[i] != 0 and i != weak:
+                work[xk, i] = (1.0 - beta) * work[xo, s]
+                s += 1
+    xo = _solve_grasp(in_contact, points, forces, params, -1, alpha, work)
+    s = 0
+    for i in range(n_fingers):
+        if in_contact[i] != 0:
+            x = work[xo, s]
+            if beta < 1.0:
+                x = beta * x + work[xk, i]
+            work[xo, s] = x
+            if not math.isfinite(x):
+                return NON_FINITE_OUTPUT
+            s += 1
+    if n > 2:  # the grasp _solve_grasp left in work
+        work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = residuals(work, 3 * n, n)
+        return ALLOCATED
+    r1, d1, l1 = _contact(points, forces, params, work, _nth(in_contact, -1, 0))
+    if n == 1:
+        work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = one_contact_residuals(
+            r1, d1, l1, work[xo, 0]
+        )
+    else:
+        r2, d2, l2 = _contact(points, forces, params, work, _nth(in_contact, -1, 1))
+        work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = two_contact_residuals(
+            r1, r2, d1, d2, l1, l2, work[xo, 0], work[xo, 1]
+        )
+    return ALLOCATED
+
+
+def _nth(in_contact: np.ndarray, skip: int, s: int) -> int:
+    """The finger of contact ``s`` (0, 1, ...) among those in contact but ``skip``."""
+    for i in range(in_contact.shape[0]):
+        if in_contact[i] != 0 and i != skip:
+            if s == 0:
+                return i
+            s -= 1
+    return -1
+
+
+def _contact(
+    points: np.ndarray, forces: np.ndarray, params: np.ndarray, work: np.ndarray, i: int
+) -> tuple[closed.V3, closed.V3, closed.V3]:
+    """Finger ``i``'s contact: its offset r from the grasp's reference point (m), its world
+    direction d (``work``'s rows after general's) and its force l (N)."""
+    dirs = work.shape[0] - points.shape[0] - 1
+    r = (points[i, 0] - params[5], points[i, 1] - params[6], points[i, 2] - params[7])
+    d = (work[dirs + i, 0], work[dirs + i, 1], work[dirs + i, 2])
+    return r, d, (forces[i, 0], forces[i, 1], forces[i, 2])
+
+
+def _solve_grasp(
+    in_contact: np.ndarray,
+    points: np.ndarray,
+    forces: np.ndarray,
+    params: np.ndarray,
+    skip: int,
+    alpha: float,
+    work: np.ndarray,
+) -> int:
+    """lam_a of the contacts but ``skip`` (allocation_step's arguments; this tick's alpha)
+    into general's row XO, which it returns: the closed forms of hapticd.allocation.closed
+    for one or two contacts, the general path for more (on the grasp ``_fill_grasp`` puts
+    into ``work``)."""
+    method = int(params[0])
+    eps, min_sep = params[1], params[2]
+    k = 0
+    for i in range(in_contact.shape[0]):
+        k += 1 if in_contact[i] != 0 and i != skip else 0
+    xo = layout(3 * k, k)[XO_ROW]
+    if k > 2:
+        _fill_grasp(in_contact, points, forces, params, skip, work)
+        general_path(method, work, 3 * k, k, eps, min_sep, alpha)
+        return xo
+    r1, d1, l1 = _contact(points, forces, params, work, _nth(in_contact, skip, 0))
+    if k == 1:
+        work[xo, 0] = one_contact(method, r1, d1, l1, eps, alpha)
+    else:
+        r2, d2, l2 = _contact(points, forces, params, work, _nth(in_contact, skip, 1))
+        work[xo, 0], work[xo, 1] = two_contact(method, r1, r2, d1, d2, l1, l2, eps, min_sep, alpha)
+    return xo
 
 
 # The Friction stage's per-finger array (F, FRICTION_COLUMNS), shared by its Python code
@@ -1663,9 +1593,9 @@ def _block_compiled(a: np.ndarray, start: int, n: int, cols: int) -> np.ndarray:
     return a[start : start + n * cols].reshape((n, cols))
 
 
-# Helpers whose compiled form is another function (hapticd.jit compiles that one in): the
-# general path's float forms too.
-COMPILED_FORMS = {_block: _block_compiled, **general.FLOAT_FORMS}
+# Helpers whose compiled form is another function (hapticd.jit compiles that one in; the
+# allocation's float forms are hapticd.allocation.closed.FLOAT_FORMS).
+COMPILED_FORMS = {_block: _block_compiled}
 
 
 # tick_step's plan: one float64 array, the params (TICK_PARAMS) then these blocks, each

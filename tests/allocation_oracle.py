@@ -9,7 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from hapticd.allocation import Robustness, filtered_gain
+from hapticd.allocation import Robustness
+
+
+def filtered_gain(s: np.ndarray, eps: float) -> np.ndarray:
+    """Gain per singular value: 1/s for s >= eps, s/eps^2 below (continuous, <= 1/eps)."""
+    s = np.asarray(s, dtype=float)
+    return np.where(s >= eps, 1.0 / np.where(s >= eps, s, 1.0), s / (eps * eps))
 
 
 def svd_pinv(A: np.ndarray, eps: float) -> np.ndarray:

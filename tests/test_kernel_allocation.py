@@ -302,25 +302,35 @@ def test_non_finite_input_raises_the_python_stages_error(compiled, field, bad):
 
 @pytest.mark.parametrize("method", kernels.ALLOCATION_METHODS)
 @pytest.mark.parametrize("size", [1e300, 1e307, 1.7e308])
-def test_forces_that_overflow_raise_the_python_stages_error(compiled, method, size):
-    """Finite forces whose products overflow: the same error (or the same numbers) on both."""
+@pytest.mark.parametrize("fingers", [2, 3])
+def test_forces_that_overflow_raise_the_python_stages_error(compiled, method, size, fingers):
+    """Finite forces whose products overflow: the same error (or the same numbers) on both,
+    for two contacts (the closed forms) and three (the general path; uncompiled, a force's
+    square once raised OverflowError there)."""
     case = {
-        "n": 2,
+        "n": fingers,
         "robust": Robustness(eps=0.05),
         "method": method,
         "frame": "world",
         "local": [np.array([0.8660254, 0, 0.5]), np.array([-0.8660254, 0, 0.5])],
         "center": np.zeros(3),
         "frame_fields": {
-            "in_contact": [1, 1],
+            "in_contact": [1] * fingers,
             "device_pos": [[-0.03, 0, 0], [0.03, 0, 0]],
             "contact_point": [[-0.025, 0, 0], [-0.0249, 0, 0]],
             "contact_force": [[size, 0, size], [-size, 0, size]],
         },
     }
+    if fingers == 3:
+        case["local"].append(np.array([0.0, -0.8660254, 0.5]))
+        for name, row in (("device_pos", [0, 0.03, 0]), ("contact_point", [0, 0.025, 0])):
+            case["frame_fields"][name].append(row)
+        case["frame_fields"]["contact_force"].append([0, -size, size])
     ref, got = _outputs(case, None), _outputs(case, compiled)
     _assert_same(ref, got)
-    if size > 1e307:
+    if fingers == 3:
+        assert isinstance(ref, str) or np.all(np.isfinite(ref["lam_a"]))
+    elif size > 1e307:
         assert isinstance(ref, str) and "produced a non-finite force" in ref
     else:  # finite forces; the residuals may overflow (inf), as in the Python code
         assert not isinstance(ref, str) and np.all(np.isfinite(ref["lam_a"]))

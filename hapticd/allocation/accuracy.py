@@ -76,15 +76,3 @@ def one_contact_residuals(r: V3, d: V3, lam: V3, x: float) -> tuple[float, float
     external = math.sqrt(_dot(q, q) + _dot(t, t))
     amp = abs(x) * math.sqrt(_dot(d, d)) / n_lam if n_lam > 0 else 0.0
     return 0.0, external, total, amp
-
-
-def two_contact_accuracy(
-    r1: V3, r2: V3, d1: V3, d2: V3, l1: V3, l2: V3, x0: float, x1: float
-) -> Accuracy:
-    """``accuracy`` for two contacts with one direction each, in closed form."""
-    return Accuracy(*two_contact_residuals(r1, r2, d1, d2, l1, l2, x0, x1))
-
-
-def one_contact_accuracy(r: V3, d: V3, lam: V3, x: float) -> Accuracy:
-    """``accuracy`` for one contact with one direction: no internal forces exist."""
-    return Accuracy(*one_contact_residuals(r, d, lam, x))

@@ -13,12 +13,6 @@ def smoothstep(x: float) -> float:
     return x * x * (3.0 - 2.0 * x)
 
 
-def external_ratio(net_force_n: float, squeeze_n: float) -> float:
-    """Share of external force in the task: |net force| / (|net force| + squeeze), 0..1."""
-    total = net_force_n + squeeze_n
-    return net_force_n / total if total > 0.0 else 0.0
-
-
 @dataclass
 class AdaptiveState:
     """External-force weight alpha of the ``adaptive`` allocator, following the task.

@@ -1,4 +1,4 @@
-"""The one definition of the robust allocators' general path, on stacks of grasps.
+"""Allocation on stacks of grasps: which definition each grasp runs, and its checks.
 
 Shapes: G (N, 6, 3p), M_a (N, 3p, r) or shared (3p, r), lam (N, 3p) -> lam_a (N, r);
 forces in N, lengths in m. Pure: numpy in, numpy out. ``allocate()`` is this with
@@ -31,8 +31,10 @@ from hapticd.allocation.robust import (
     Robustness,
 )
 
-_METHODS: tuple[str, ...] = tuple(params.ALLOCATORS)
-_EXACT = tuple(m for m in _METHODS if m.endswith("_exact"))
+# Declared with the other settable parameters (the control client reads them too).
+METHODS: tuple[str, ...] = tuple(params.ALLOCATORS)
+ROBUST_METHODS: tuple[str, ...] = CODES  # the robust methods, by code (closed.CODES)
+EXACT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m.endswith("_exact"))
 CHUNK = 1024  # grasps per internal pass of allocate_many
 # From this many grasps on, the general path runs on the whole batch elementwise; fewer run
 # one by one on floats (cheaper below about 10 grasps here: the elementwise pass costs 2-20
@@ -42,36 +44,29 @@ STACK_MIN = 10
 # -- validation -------------------------------------------------------------------------------
 
 
-def _first_bad(arr: np.ndarray) -> int | None:
-    """Index of the first grasp (axis 0) holding NaN or inf, or None."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        if np.isfinite(np.sum(arr)):  # NaN and inf propagate into the sum: all finite
-            return None
-    bad = ~np.isfinite(arr.reshape(arr.shape[0], -1)).all(axis=1)
-    return int(np.argmax(bad)) if bad.any() else None
-
-
-def _check(
-    method: str, G: object, M_a: object, lam: object, alpha: object
+def check(
+    method: str, G: object, M_a: object, lam: object, alpha: object, one: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    if method not in _METHODS:
-        raise AllocationError(f"unknown allocator {method!r}; expected one of {list(_METHODS)}")
+    """allocate_many's arguments as float arrays, and alpha per grasp (N,), or
+    AllocationError naming what is wrong; ``one``: allocate()'s batch of one, whose
+    messages name the one grasp's shapes."""
+    if method not in METHODS:
+        raise AllocationError(f"unknown allocator {method!r}; expected one of {list(METHODS)}")
     G = np.asarray(G, dtype=float)
-    if G.ndim != 3 or G.shape[1] != 6 or G.shape[2] % 3:
-        raise AllocationError(f"G must have shape (N, 6, 3p), got {G.shape}")
-    N, _, n = G.shape
     M = np.asarray(M_a, dtype=float)
-    if not (M.ndim == 2 and M.shape[0] == n) and not (M.ndim == 3 and M.shape[:2] == (N, n)):
-        raise AllocationError(
-            f"M_a must have shape ({N}, {n}, r) or shared ({n}, r) to match G {G.shape}, "
-            f"got {M.shape}"
-        )
     lam_arr = np.asarray(lam, dtype=float)
+    k = 1 if one else 0  # leading axes not shown
+    if G.ndim != 3 or G.shape[1] != 6 or G.shape[2] % 3:
+        raise AllocationError(f"G must have shape ({'' if one else 'N, '}6, 3p), got {G.shape[k:]}")
+    N, _, n = G.shape
+    if not (M.ndim == 2 and M.shape[0] == n) and not (M.ndim == 3 and M.shape[:2] == (N, n)):
+        want = f"({n}, r)" if one else f"({N}, {n}, r) or shared ({n}, r)"
+        raise AllocationError(f"M_a must have shape {want} to match G {G.shape[k:]}, got {M.shape}")
     if lam_arr.shape != (N, n):
         raise AllocationError(
-            f"lam must have shape ({N}, {n}) to match G {G.shape}, got {lam_arr.shape}"
+            f"lam must have shape {(N, n)[k:]} to match G {G.shape[k:]}, got {lam_arr.shape[k:]}"
         )
-    a = np.zeros(N)  # other methods ignore alpha, as allocate() does
+    a = np.zeros(N)  # other methods ignore alpha
     if method == "adaptive":
         a = np.asarray(alpha, dtype=float)
         if a.ndim > 1 or (a.ndim == 1 and a.shape != (N,)):
@@ -79,17 +74,11 @@ def _check(
         if not np.all((a >= 0.0) & (a <= 1.0)):  # False for NaN too
             raise AllocationError("adaptive alpha must be in [0, 1] (and finite)")
         a = np.broadcast_to(a, (N,)).astype(float)
-    for name, arr in (("G", G), ("lam", lam_arr)):
-        k = _first_bad(arr) if arr.size else None
-        if k is not None:
-            raise AllocationError(
-                f"{name} contains NaN or inf (grasp {k}); refusing to compute a force"
-            )
-    if M.ndim == 2:
-        if not np.all(np.isfinite(M)):
-            raise AllocationError("M_a contains NaN or inf; refusing to compute a force")
-    elif N and M.size and (k := _first_bad(M)) is not None:
-        raise AllocationError(f"M_a contains NaN or inf (grasp {k}); refusing to compute a force")
+    for name, arr in (("G", G), ("lam", lam_arr), ("M_a", M)):
+        if not np.isfinite(arr).all():
+            g = np.argmax(~np.isfinite(arr.reshape(len(arr), -1)).all(axis=1))  # the first grasp
+            where = "" if one or (arr.ndim == 2 and arr is M) else f" (grasp {g})"
+            raise AllocationError(f"{name} contains NaN or inf{where}; refusing to compute a force")
     return G, M, lam_arr, a
 
 
@@ -124,7 +113,8 @@ def _items(a: np.ndarray) -> memoryview:
     return memoryview(a).cast("B").cast("d", a.shape)
 
 
-def _general(
+def _path(
+    closed: bool,
     method: str,
     G: np.ndarray,
     M: np.ndarray,
@@ -132,9 +122,14 @@ def _general(
     robust: Robustness,
     kernel: Callable[..., None] | None,
 ) -> np.ndarray:
-    """Robust pinv / ef / if on stacks, M (N, n, r) or shared (n, r): ``general.general``,
-    compiled grasp by grasp (``kernel``: hapticd.kernels.allocate_grasps), else on the whole
-    batch elementwise (fewer than STACK_MIN grasps: one by one on floats)."""
+    """Robust pinv / ef / if on stacks, M (N, n, r) or shared (n, r), every grasp by one
+    path: the two-contact closed forms (``closed``: two contacts with one direction each),
+    else ``general.general``, compiled grasp by grasp (``kernel``:
+    hapticd.kernels.allocate_grasps) or on the whole batch elementwise (fewer than
+    STACK_MIN grasps: one by one on floats)."""
+    if closed:
+        Mb = np.broadcast_to(M, (G.shape[0], 6, 2))
+        return np.stack(_two_contact_v(method, G, Mb, lam, robust), -1)
     N, _, n = G.shape
     r = M.shape[-1]
     code = CODES.index(method)
@@ -157,89 +152,15 @@ def _general(
 
 # -- the exact (seed) formulas, grasp by grasp ---------------------------------------------------
 
-_SEED = {"pinv_exact": exact.pinv_exact, "if_exact": exact.if_exact, "ef_exact": exact.ef_exact}
-
 
 def _exact(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """The seed's formula (hapticd.allocation.exact) on each grasp."""
-    fn = _SEED[method]
+    """The seed's formula (hapticd.allocation.exact's function of that name) on each grasp."""
+    fn = getattr(exact, method)
     Ms = np.broadcast_to(M, (G.shape[0], *M.shape[-2:]))
     return np.array([fn(G[k], Ms[k], lam[k]) for k in range(G.shape[0])])
 
 
-def filtered_pinv(A: np.ndarray, eps: float) -> np.ndarray:
-    """Filtered pseudoinverse of A (m, n): sum g(s_i) v_i u_i^T, shape (n, m) (``general``'s
-    pinv applied to each unit vector)."""
-    A = np.atleast_2d(np.asarray(A, dtype=float))
-    m, n = A.shape
-    if A.size == 0:
-        return np.zeros((n, m))
-    G = np.zeros((m, 6, m))  # unused by pinv
-    lam = np.eye(m)
-    out = _general("pinv", G, A, lam, Robustness(eps=eps), None)
-    return out.T.copy()
-
-
-def soft_internal_projector(G: np.ndarray, robust: Robustness = DEFAULT_ROBUSTNESS) -> np.ndarray:
-    """Soft projector onto the internal forces N(G), (3p, 3p), of one grasp G (6, 3p).
-
-    Exact (N N^T) when every singular value of the weighted G is 0 or at least eps:
-    for two contacts, when they are at least min_separation_m apart; three or more
-    contacts also need to be far from collinear (a rotation about their near-common
-    line has almost no lever). As contacts approach such a configuration, directions
-    whose moment lever vanishes blend in continuously. Computed about the contacts'
-    centroid with moments weighted by 1/L (N(G) depends on neither): ``general``'s.
-    """
-    G = np.asarray(G, dtype=float)
-    n = G.shape[1]
-    if n == 0:
-        return np.zeros((0, 0))
-    w = np.zeros(general.work_shape(n, 1))
-    w[0:6, :n] = G
-    general.soft_prepare(w, n, robust.eps, robust.min_separation_m)
-    out = np.empty((n, n))
-    eps2 = robust.eps * robust.eps
-    src, dst = w.shape[0] - 2, w.shape[0] - 1
-    for k in range(n):
-        w[src, :n] = 0.0
-        w[src, k] = 1.0
-        general.soft_apply(w, n, eps2, src, dst)
-        out[:, k] = w[dst, :n]
-    return out
-
-
 # -- public API -------------------------------------------------------------------------------
-
-
-def _robust_many(
-    method: str,
-    G: np.ndarray,
-    M: np.ndarray,
-    lam: np.ndarray,
-    robust: Robustness,
-    fast: bool,
-    kernel: Callable[..., None] | None = None,
-) -> np.ndarray:
-    """Robust pinv / if / ef: the closed form for two contacts with one direction each
-    (two_contact_structure's case; ``fast`` False: never), else the general path."""
-    N, _, n = G.shape
-    r = M.shape[-1]
-    if fast and n == 6 and r == 2:
-        # two_contact_structure's case: one direction per finger, block by block.
-        cross = M[..., [3, 4, 5, 0, 1, 2], [0, 0, 0, 1, 1, 1]]  # each column on the other finger
-        simple = np.broadcast_to(~cross.any(axis=-1), (N,))
-        if simple.all():
-            Mb = np.broadcast_to(M, (N, 6, 2))
-            return np.stack(_two_contact_v(method, G, Mb, lam, robust), -1)
-        out = np.empty((N, 2))
-        idx, rest = np.flatnonzero(simple), np.flatnonzero(~simple)
-        if idx.size:
-            Ms = np.broadcast_to(M, (N, 6, 2))[idx]
-            out[idx] = np.stack(_two_contact_v(method, G[idx], Ms, lam[idx], robust), -1)
-        Mr = M if M.ndim == 2 else M[rest]
-        out[rest] = _general(method, G[rest], Mr, lam[rest], robust, kernel)
-        return out
-    return _general(method, G, M, lam, robust, kernel)
 
 
 def allocate_many(
@@ -262,7 +183,7 @@ def allocate_many(
     (``hapticd.jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]``), far quicker
     on grasps the two-contact closed forms do not take; None: the same code uncompiled.
     """
-    G, M, lam, a = _check(method, G, M_a, lam, alpha)
+    G, M, lam, a = check(method, G, M_a, lam, alpha)
     N, _, n = G.shape
     r = M.shape[-1]
     if N == 0 or r == 0 or n == 0:
@@ -290,19 +211,30 @@ def solve(
     fast: bool = True,
     kernel: Callable[..., None] | None = None,
 ) -> np.ndarray:
-    """allocate_many on validated input (a: alpha per grasp, (N,)), in one pass; ``fast``
-    False keeps two contacts with one direction each on the general path too."""
-    if method in _EXACT:
+    """allocate_many on validated input (a: alpha per grasp, (N,)), in one pass: which
+    definition each grasp runs. The exact methods: the seed's formula; the robust ones: the
+    two-contact closed forms for two contacts with one direction each (``fast`` False:
+    never), the general path for the rest; adaptive: IF, mixed with EF where alpha is not 0."""
+    if method in EXACT_METHODS:
         return _exact(method, G, M, lam)
-    if method != "adaptive":
-        return _robust_many(method, G, M, lam, robust, fast, kernel)
-    x_if = _robust_many("if", G, M, lam, robust, fast, kernel)
-    mix = a != 0.0
-    if not mix.any():
-        return x_if
-    idx = np.flatnonzero(mix)
-    Mi = M if M.ndim == 2 else M[idx]
-    x_ef = _robust_many("ef", G[idx], Mi, lam[idx], robust, fast, kernel)
-    ai = a[idx, None]
-    x_if[idx] = adaptive_mix(x_if[idx], x_ef, ai)
-    return x_if
+    if method == "adaptive":
+        out = solve("if", G, M, lam, a, robust, fast, kernel)
+        mix = np.flatnonzero(a != 0.0)
+        if mix.size:
+            Mi = M if M.ndim == 2 else M[mix]
+            x_ef = solve("ef", G[mix], Mi, lam[mix], a[mix], robust, fast, kernel)
+            out[mix] = adaptive_mix(out[mix], x_ef, a[mix, None])
+        return out
+    N, _, n = G.shape
+    closed = np.zeros(N, dtype=bool)
+    if fast and n == 6 and M.shape[-1] == 2:  # one direction per finger, block by block?
+        cross = M[..., [3, 4, 5, 0, 1, 2], [0, 0, 0, 1, 1, 1]]  # each column on the other finger
+        closed = np.broadcast_to(~cross.any(axis=-1), (N,))
+    every = bool(closed.all())
+    if every or not closed.any():  # the whole batch one way: no copies
+        return _path(every, method, G, M, lam, robust, kernel)
+    out = np.empty((N, M.shape[-1]))
+    for rows in (np.flatnonzero(closed), np.flatnonzero(~closed)):
+        Mr = M if M.ndim == 2 else M[rows]
+        out[rows] = _path(bool(closed[rows[0]]), method, G[rows], Mr, lam[rows], robust, kernel)
+    return out

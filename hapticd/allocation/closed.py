@@ -10,14 +10,15 @@ compiles with these functions: ``KERNEL_HELPERS``), ``allocate()`` and
 
 The three steps that branch on a value (the filtered 2x2 inverse ``_finv2``, the
 filtered gain ``_gain`` and the grasp line ``_grasp_line``) come in a form on
-floats (what compiled code runs) and an elementwise form on arrays (np.where,
-with safe denominators), chosen by the argument's type; everything else is
-arithmetic that works on both.
+floats (what compiled code runs) and an elementwise form on arrays (``elementwise``);
+everything else is arithmetic that works on both.
 """
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -39,22 +40,33 @@ def _cross(u: V3, v: V3) -> V3:
     return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
 
 
-def _finv2_floats(a: float, b: float, c: float, eps2: float) -> Sym2:
-    mean = 0.5 * (a + c)
-    half = 0.5 * (a - c)
-    rad = math.sqrt(half * half + b * b)
-    l2 = mean - rad
-    if l2 >= eps2:
-        det = a * c - b * b
-        return c / det, -b / det, a / det
-    l1 = mean + rad
-    h2 = 1.0 / eps2
-    h1 = 1.0 / l1 if l1 >= eps2 else h2
-    if h1 == h2:
-        return h2, 0.0, h2
-    # f(K) = h2 I + (h1 - h2) P1 with the spectral projector P1 = (K - l2 I) / (l1 - l2).
-    s = (h1 - h2) / (l1 - l2)
-    return h2 + s * (a - l2), s * b, h2 + s * (c - l2)
+# The float form of each helper that branches on a value, by the helper (hapticd.jit compiles
+# the float form in its place).
+FLOAT_FORMS: dict[Callable[..., object], Callable[..., object]] = {}
+
+
+def elementwise(arrays: Callable[..., object]) -> Callable[[Callable], Callable]:
+    """Decorator of a helper's float form (of 1 to 4 arguments), with ``arrays`` its form
+    elementwise on arrays (np.where, with safe denominators): the helper runs the array
+    form when its first argument (or that argument's first item) is an array, else the
+    float form (a Python float first: the uncompiled kernels' and allocate()'s path)."""
+
+    def both(floats: Callable[..., object]) -> Callable[..., object]:
+        def form(a: object) -> Callable[..., object]:
+            if type(a) is float or not isinstance(a[0] if type(a) is tuple else a, np.ndarray):
+                return floats
+            return arrays
+
+        either = (  # of the float form's arity: quicker than *args
+            lambda a: form(a)(a),
+            lambda a, b: form(a)(a, b),
+            lambda a, b, c: form(a)(a, b, c),
+            lambda a, b, c, d: form(a)(a, b, c, d),
+        )[floats.__code__.co_argcount - 1]
+        FLOAT_FORMS[either] = floats
+        return functools.wraps(floats)(either)
+
+    return both
 
 
 def _safe(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -81,27 +93,35 @@ def _finv2_arrays(a: np.ndarray, b: np.ndarray, c: np.ndarray, eps2: float) -> t
     return out0, out1, out2
 
 
-def _finv2(a, b, c, eps2: float):
+@elementwise(_finv2_arrays)
+def _finv2(a: float, b: float, c: float, eps2: float) -> Sym2:
     """Filtered inverse of [[a, b], [b, c]] (symmetric PSD): eigenvalues l -> 1/l or
-    1/eps2, as (a', b', c'); on floats or elementwise on arrays."""
-    if isinstance(a, np.ndarray):
-        return _finv2_arrays(a, b, c, eps2)
-    return _finv2_floats(a, b, c, eps2)
-
-
-def _gain_floats(k: float, eps2: float) -> float:
-    return 1.0 / k if k >= eps2 else 1.0 / eps2
+    1/eps2, as (a', b', c')."""
+    mean = 0.5 * (a + c)
+    half = 0.5 * (a - c)
+    rad = math.sqrt(half * half + b * b)
+    l2 = mean - rad
+    if l2 >= eps2:
+        det = a * c - b * b
+        return c / det, -b / det, a / det
+    l1 = mean + rad
+    h2 = 1.0 / eps2
+    h1 = 1.0 / l1 if l1 >= eps2 else h2
+    if h1 == h2:
+        return h2, 0.0, h2
+    # f(K) = h2 I + (h1 - h2) P1 with the spectral projector P1 = (K - l2 I) / (l1 - l2).
+    s = (h1 - h2) / (l1 - l2)
+    return h2 + s * (a - l2), s * b, h2 + s * (c - l2)
 
 
 def _gain_arrays(k: np.ndarray, eps2: float) -> np.ndarray:
     return np.where(k >= eps2, 1.0 / _safe(k, k >= eps2), 1.0 / eps2)
 
 
-def _gain(k, eps2: float):
-    """Filtered gain 1/k (k >= eps2) or 1/eps2 of a squared length k; floats or arrays."""
-    if isinstance(k, np.ndarray):
-        return _gain_arrays(k, eps2)
-    return _gain_floats(k, eps2)
+@elementwise(_gain_arrays)
+def _gain(k: float, eps2: float) -> float:
+    """Filtered gain 1/k (k >= eps2) or 1/eps2 of a squared length k."""
+    return 1.0 / k if k >= eps2 else 1.0 / eps2
 
 
 def adaptive_mix(x_if, x_ef, alpha):
@@ -191,15 +211,6 @@ def one_contact(code: int, r: V3, d: V3, lam: V3, eps: float, alpha: float) -> f
     return x
 
 
-def _grasp_line_floats(r1: V3, r2: V3, min_sep: float) -> tuple[V3, float]:
-    dx, dy, dz = r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2]
-    dist = math.sqrt(dx * dx + dy * dy + dz * dz)
-    w = 1.0 - (dist / min_sep) ** 2 if dist < min_sep else 0.0
-    if dist > _TINY:
-        return (dx / dist, dy / dist, dz / dist), w
-    return (1.0, 0.0, 0.0), 1.0  # coincident: w = 1 makes e irrelevant
-
-
 def _grasp_line_arrays(r1, r2, min_sep: float) -> tuple[tuple, np.ndarray]:
     dx, dy, dz = r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2]
     dist = np.sqrt(dx * dx + dy * dy + dz * dz)
@@ -216,12 +227,16 @@ def _grasp_line_arrays(r1, r2, min_sep: float) -> tuple[tuple, np.ndarray]:
     return e, np.where(apart, w, 1.0)  # coincident: w = 1 makes e irrelevant
 
 
-def _grasp_line(r1, r2, min_sep: float):
+@elementwise(_grasp_line_arrays)
+def _grasp_line(r1: V3, r2: V3, min_sep: float) -> tuple[V3, float]:
     """Unit grasp line e (first to second contact) and the blend w toward all opposing
-    pairs; on floats or elementwise on arrays."""
-    if isinstance(r1[0], np.ndarray):
-        return _grasp_line_arrays(r1, r2, min_sep)
-    return _grasp_line_floats(r1, r2, min_sep)
+    pairs."""
+    dx, dy, dz = r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2]
+    dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+    w = 1.0 - (dist / min_sep) ** 2 if dist < min_sep else 0.0
+    if dist > _TINY:
+        return (dx / dist, dy / dist, dz / dist), w
+    return (1.0, 0.0, 0.0), 1.0  # coincident: w = 1 makes e irrelevant
 
 
 def _soft_line(e: V3, w: float, v: V3) -> V3:
@@ -297,8 +312,8 @@ def two_contact(
     return x0, x1
 
 
-# What compiled code calls (hapticd.jit makes them callable from a kernel). Those that
-# branch on the argument's type run their float form there (``FLOAT_FORMS``).
+# What compiled code calls (hapticd.jit makes them callable from a kernel; those that
+# branch on a value run their float form there: ``FLOAT_FORMS``).
 KERNEL_HELPERS = (
     _dot,
     _cross,
@@ -318,4 +333,3 @@ KERNEL_HELPERS = (
     one_contact,
     two_contact,
 )
-FLOAT_FORMS = {_finv2: _finv2_floats, _gain: _gain_floats, _grasp_line: _grasp_line_floats}

@@ -191,13 +191,8 @@ class ContactAllocator:
         self.accuracy.fill(0.0)
         if not contacts:
             return
-        act = self.actuation
-        world = act.world_directions(device_pos.tolist())
-        M, cols = act.submatrix(world, contacts)
-        geometry = (points[contacts], forces[contacts], center, M)
-        if not all(np.all(np.isfinite(a)) for a in geometry):
-            raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-        x, G, lam = self._solve(alpha, contacts, world, points, forces, center)
+        world = self.actuation.world_directions(device_pos.tolist())
+        x, G, M, cols, lam = self._solve(alpha, contacts, world, points, forces, center)
         onset = self.robust.contact_onset_n
         if len(contacts) >= 2 and onset > 0.0:
             # A contact that is just being made or broken joins the grasp gradually: without
@@ -224,17 +219,19 @@ class ContactAllocator:
         points: np.ndarray,
         forces: np.ndarray,
         center: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int], np.ndarray]:
         """lam_a over all r actuators (zero for fingers not in ``contacts``), and the
-        contacts' G (6, 3p) and lam (3p,) N."""
-        act = self.actuation
-        out = np.zeros(act.n_actuators)
-        M, cols = act.submatrix(world, contacts)
+        contacts' G (6, 3p), M_a (3p, c), the actuators of its c columns and lam (3p,) N."""
+        M, cols = self.actuation.submatrix(world, contacts)
+        geometry = (points[contacts], forces[contacts], center, M)
+        if not all(np.all(np.isfinite(a)) for a in geometry):
+            raise AllocationError("non-finite contact geometry or force; refusing to allocate")
         G = grasp_matrix(points[contacts], center)
         lam = forces[contacts].reshape(-1)
+        out = np.zeros(self.actuation.n_actuators)
         if cols:
             out[cols] = allocate(self.method, G, M, lam, robust=self.robust, alpha=alpha)
-        return out, G, lam
+        return out, G, M, cols, lam
 
 
 # The kernel's alpha update, uncompiled: for the allocations the kernel does not take.

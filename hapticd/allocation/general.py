@@ -9,7 +9,7 @@ servo loop's kernel (``hapticd.kernels.allocation_step``, three or more contacts
 calls it every tick; ``allocate()`` runs the same function on floats, and
 ``allocate_many`` on a whole batch at once, each workspace entry an (N,) array
 (``solve_stack``: the five helpers that branch on a value have a float form and an
-elementwise form, chosen by the argument's type, as in ``hapticd.allocation.closed``),
+elementwise form, ``hapticd.allocation.closed.elementwise``),
 or compiled grasp by grasp (``solve_grasps``, ``hapticd.kernels.allocate_grasps``).
 
 - a filtered pseudoinverse g(s) = 1/s or s/eps^2 of A is F(A^T A) A^T, F the
@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from hapticd.allocation.closed import ADAPTIVE, EF, PINV, adaptive_mix
+from hapticd.allocation.closed import ADAPTIVE, EF, PINV, adaptive_mix, elementwise
 
 _SWEEPS = 64  # Jacobi sweeps at most (a 15 x 15 converges in under 10)
 # Eigenvalues of G G^T below this share of the largest are G's null space (accuracy):
@@ -67,47 +67,25 @@ def layout(n: int, r: int) -> tuple[int, ...]:
             t1 + 3, t1 + 4, t1 + 5)  # fmt: skip
 
 
-def _converged_floats(off: float, diag: float) -> bool:
-    return off <= 1e-32 * diag or off == 0.0
-
-
-def _converged_arrays(off: np.ndarray, diag: np.ndarray) -> bool:
+def _converged_arrays(diag: np.ndarray, off) -> bool:
     return bool(np.all((off <= 1e-32 * diag) | (off == 0.0)))
 
 
-def _converged(off, diag) -> bool:
-    """Whether the off-diagonal square sum ``off`` is negligible against the diagonal's
-    (every grasp's, on arrays)."""
-    if isinstance(diag, np.ndarray):  # off is 0.0 for a 1 x 1
-        return _converged_arrays(off, diag)
-    return _converged_floats(off, diag)
-
-
-def _is_zero_floats(x: float) -> bool:
-    return x == 0.0
+@elementwise(_converged_arrays)
+def _converged(diag: float, off: float) -> bool:
+    """Whether the off-diagonal square sum ``off`` is negligible against the diagonal's,
+    ``diag`` (every grasp's, on arrays; off is 0.0 for a 1 x 1)."""
+    return off <= 1e-32 * diag or off == 0.0
 
 
 def _is_zero_arrays(x: np.ndarray) -> bool:
     return bool(np.all(x == 0.0))
 
 
-def _is_zero(x) -> bool:
+@elementwise(_is_zero_arrays)
+def _is_zero(x: float) -> bool:
     """x == 0 (every grasp's, on arrays)."""
-    if isinstance(x, np.ndarray):
-        return _is_zero_arrays(x)
-    return _is_zero_floats(x)
-
-
-def _rotation_floats(app: float, aqq: float, apq: float) -> tuple[float, float]:
-    theta = (aqq - app) / (2.0 * apq)
-    if abs(theta) > 1e150:  # theta^2 would overflow: t = 1 / (2 theta)
-        t = 0.5 / theta
-    else:
-        t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-        if theta < 0.0:
-            t = -t
-    c = 1.0 / math.sqrt(t * t + 1.0)
-    return c, t * c
+    return x == 0.0
 
 
 def _rotation_arrays(app: np.ndarray, aqq: np.ndarray, apq: np.ndarray) -> tuple:
@@ -123,42 +101,31 @@ def _rotation_arrays(app: np.ndarray, aqq: np.ndarray, apq: np.ndarray) -> tuple
     return c, t * c
 
 
-def _rotation(app, aqq, apq):
-    """(cos, sin) of the Jacobi rotation that zeroes apq of [[app, apq], [apq, aqq]]; on
-    floats or elementwise on arrays (where apq = 0: the identity)."""
-    if isinstance(apq, np.ndarray):
-        return _rotation_arrays(app, aqq, apq)
-    return _rotation_floats(app, aqq, apq)
+@elementwise(_rotation_arrays)
+def _rotation(app: float, aqq: float, apq: float) -> tuple[float, float]:
+    """(cos, sin) of the Jacobi rotation that zeroes apq of [[app, apq], [apq, aqq]] (on
+    arrays, where apq = 0: the identity)."""
+    theta = (aqq - app) / (2.0 * apq)
+    if abs(theta) > 1e150:  # theta^2 would overflow: t = 1 / (2 theta)
+        t = 0.5 / theta
+    else:
+        t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+        if theta < 0.0:
+            t = -t
+    c = 1.0 / math.sqrt(t * t + 1.0)
+    return c, t * c
 
 
-def _floor_floats(x: float, lo: float) -> float:
+@elementwise(np.maximum)
+def _floor(x: float, lo: float) -> float:
+    """max(x, lo): an eigenvalue's filtered denominator."""
     return x if x >= lo else lo
 
 
-def _floor_arrays(x: np.ndarray, lo: float) -> np.ndarray:
-    return np.maximum(x, lo)
-
-
-def _floor(x, lo: float):
-    """max(x, lo): an eigenvalue's filtered denominator; floats or arrays."""
-    if isinstance(x, np.ndarray):
-        return _floor_arrays(x, lo)
-    return _floor_floats(x, lo)
-
-
-def _clip01_floats(x: float) -> float:
+@elementwise(lambda x: np.clip(x, 0.0, 1.0))
+def _clip01(x: float) -> float:
+    """x clipped to [0, 1]."""
     return 0.0 if x < 0.0 else (1.0 if x > 1.0 else x)
-
-
-def _clip01_arrays(x: np.ndarray) -> np.ndarray:
-    return np.clip(x, 0.0, 1.0)
-
-
-def _clip01(x):
-    """x clipped to [0, 1]; floats or arrays."""
-    if isinstance(x, np.ndarray):
-        return _clip01_arrays(x)
-    return _clip01_floats(x)
 
 
 def _jacobi(w: np.ndarray, a: int, v: int, k: int) -> None:
@@ -175,7 +142,7 @@ def _jacobi(w: np.ndarray, a: int, v: int, k: int) -> None:
             diag += w[a + i, i] * w[a + i, i]
             for j in range(i + 1, k):
                 off += w[a + i, j] * w[a + i, j]
-        if _converged(off, diag):
+        if _converged(diag, off):
             return
         for p in range(k - 1):
             for q in range(p + 1, k):
@@ -299,16 +266,8 @@ def soft_apply(w: np.ndarray, n: int, eps2: float, src: int, dst: int) -> None:
 def _pinv_or_ef(code: int, w: np.ndarray, n: int, r: int, eps2: float) -> None:
     """Robust pinv (x = F(M^T M) M^T lam) or EF (x = F(A^T A) A^T G lam, A = G M) into XO."""
     lay = layout(n, r)
-    m0, lam, kb, vb, a6, t1, xo, tmp = (
-        lay[1],
-        lay[2],
-        lay[7],
-        lay[8],
-        lay[13],
-        lay[15],
-        lay[19],
-        lay[20],
-    )
+    m0, lam, kb, vb, a6, t1, xo = lay[1], lay[2], lay[7], lay[8], lay[13], lay[15], lay[19]
+    tmp = lay[20]
     if code == PINV:
         _gram_cols(w, m0, n, r, kb)
         _t_apply(w, m0, n, r, lam, xo)
@@ -514,8 +473,8 @@ def solve_stack(
     return w[lay[19], :r].T.copy()
 
 
-# What compiled code calls (hapticd.jit makes them callable from a kernel). Those that
-# branch on the argument's type run their float form there (``FLOAT_FORMS``).
+# What compiled code calls (hapticd.jit makes them callable from a kernel; those that
+# branch on a value run their float form there: ``closed.FLOAT_FORMS``).
 KERNEL_HELPERS = (
     _converged,
     _is_zero,
@@ -535,10 +494,3 @@ KERNEL_HELPERS = (
     residuals,
     solve_grasps,
 )
-FLOAT_FORMS = {
-    _converged: _converged_floats,
-    _is_zero: _is_zero_floats,
-    _rotation: _rotation_floats,
-    _floor: _floor_floats,
-    _clip01: _clip01_floats,
-}

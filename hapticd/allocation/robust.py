@@ -1,4 +1,4 @@
-"""The robust allocators' parameters, their error, and the filtered gain they are built on.
+"""The robust allocators' parameters and their error.
 
 The general path itself (filtered pseudoinverses, the soft internal projector) is
 ``hapticd.allocation.general``; the closed forms are ``hapticd.allocation.closed``.
@@ -49,15 +49,6 @@ class Robustness:
 
 
 DEFAULT_ROBUSTNESS = Robustness()
-
-
-def filtered_gain(s: np.ndarray, eps: float) -> np.ndarray:
-    """Gain per singular value: 1/s for s >= eps, s/eps^2 below (continuous, <= 1/eps)."""
-    s = np.asarray(s, dtype=float)
-    out = s / (eps * eps)
-    big = s >= eps
-    out[big] = 1.0 / s[big]
-    return out
 
 
 def contact_offsets(G: np.ndarray) -> np.ndarray:
