@@ -79,8 +79,8 @@ def test_forces_are_checked_as_firmware_would_and_kept_while_enabled():
 @contextlib.contextmanager
 def virtual_daemon(sock: Path, record_dir: Path) -> Iterator[ControlServer]:
     """A paced run of the virtual rehearsal profile serving ``sock`` in a thread (it has no
-    wall-clock faults: no hardware)."""
-    profile = load_profile(VIRTUAL, ["rendering.kernels=python"])
+    wall-clock faults: no hardware), its kernels loaded from the run's cache (auto)."""
+    profile = load_profile(VIRTUAL)
     session = build_session(profile, paced=True, duration_s=120.0, record_dir=record_dir)
     session.loop.realtime_settings = None
     server = ControlServer(session, sock)
