@@ -89,9 +89,13 @@ class ReplayDevice(Device):
         state.buttons = self.path.sample(now, state.pos_view, state.vel_view)
         state.timestamp = now
 
-    def _keep(self, x: float, y: float, z: float) -> None:
-        """Keep the force (x, y, z) N just accepted (zero while disabled), at this read's
-        time."""
+    def write_force(self, force: np.ndarray) -> None:
+        """Check ``force`` as firmware would, then keep it (zero while disabled), at this
+        read's time."""
+        if not self._open:
+            self._require_open("write to")
+        x, y, z = check_force(force, self.info.max_force_n, self._who)
+        # Kept here, not in a method of its own: this runs for every device every tick.
         n = self._n_forces
         if n >= self._room:
             n = self._make_room(n)
@@ -128,12 +132,6 @@ class ReplayDevice(Device):
         # _keep makes room when the count reaches this: the arrays' end, or the most kept.
         size, most = len(self._force_times), self._kept_max
         self._room = size if most is None else min(most, size)
-
-    def write_force(self, force: np.ndarray) -> None:
-        if not self._open:
-            self._require_open("write to")
-        x, y, z = check_force(force, self.info.max_force_n, self._who)
-        self._keep(x, y, z)
 
     def enable_forces(self, enabled: bool) -> None:
         self._enabled = bool(enabled)

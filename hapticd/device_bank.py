@@ -172,7 +172,9 @@ class DeviceBank:
         # The block copy below takes every finger's sample: only when each one passed and
         # needs no mount; otherwise each finger that passed is copied on its own.
         whole = not self._any_mounted and lost is None
-        for i, dev in enumerate(self.devices):
+        i = -1  # counted by hand: enumerate's pair a finger costs more
+        for dev in self.devices:
+            i += 1
             if lost is not None and lost[i] is not None:
                 continue
             st = states[i]
@@ -231,12 +233,15 @@ class DeviceBank:
         if frame is not self._frame:
             self._bind(frame)
         lost = self.lost if self._n_lost else None
+        mounted = self._mounted if self._any_mounted else None
         rows = self._force_rows
-        for i, dev in enumerate(self.devices):
+        i = -1
+        for dev in self.devices:
+            i += 1
             if lost is not None and lost[i] is not None:
                 continue
             f = rows[i]
-            if self._any_mounted and self._mounted[i]:
+            if mounted is not None and mounted[i]:
                 f = np.matmul(self._Rt[i], f, out=self._f_dev[i])
             try:
                 dev.write_force(f)

@@ -75,6 +75,7 @@ class Pacer:
         self.t0 = 0.0
         self.sleep_until = 0.0  # when the loop's current sleep ends, less the spin
         self._prev = 0.0
+        self._period_error = 0.0  # tick k's (k > 0), from ``begin`` to ``end`` (s)
         self._late = 0
         self._gate_w = -1
 
@@ -119,7 +120,8 @@ class Pacer:
             st.first_start = start
         else:
             period = start - self._prev
-            st.period_error.add(abs(period - self.period))
+            # Added to its histogram in ``end``, once the tick's forces are out.
+            self._period_error = abs(period - self.period)
             if period > OVERRUN_FACTOR * self.period:
                 st.overruns += 1
                 self._late += 1
@@ -137,6 +139,8 @@ class Pacer:
         """Tick ``k`` that began at ``start`` is done; returns its compute time (s)."""
         compute = time.monotonic() - start
         st = self.stats
+        if k:
+            st.period_error.add(self._period_error)  # this tick's, measured in ``begin``
         st.compute.add(compute)
         st.ticks = k + 1
         st.last_start = start

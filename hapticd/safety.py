@@ -126,7 +126,10 @@ class SafetyChain:
         self.dt = float(dt)
         # safety_step, compiled or not (use_kernels), and its preallocated inputs.
         self._step: Callable[..., int] = kernels.uncompiled("safety_step")
-        self._params_of: SafetyParams | None = None  # the params _step_params holds
+        # The params (and whether with the workspace check) _step_params holds; ``dt`` is
+        # fixed for the chain's life.
+        self._inputs_for: SafetyParams | None = None
+        self._inputs_workspace = False
         self._gate_a = self._step_params[SAFETY_PARAMS + F :]
         self._gate_a[:] = self.gate
         self._fit: tuple[Any, Any] = (None, None)  # the last arrays found fit for it
@@ -268,8 +271,9 @@ class SafetyChain:
             if last is not None and t_wall - last > self.params.watchdog_s:
                 return False
             self._last_wall = t_wall
-        self.clamped_ticks += (flags & SAFETY_CLAMPED) != 0
-        self.rate_limited_ticks += (flags & SAFETY_LIMITED) != 0
+        if flags:  # most ticks neither clamp nor limit
+            self.clamped_ticks += (flags & SAFETY_CLAMPED) != 0
+            self.rate_limited_ticks += (flags & SAFETY_LIMITED) != 0
         return True
 
     def deadman_status(self) -> list[dict[str, Any] | None]:
@@ -371,18 +375,19 @@ class SafetyChain:
         """safety_step's parameters for nominal time ``t`` (s), with the workspace check
         (when the params have a finite radius) or without."""
         prm = self.params
-        if prm is not self._params_of:
-            self._params_of = prm
-            self._step_params[3:6] = prm.workspace_center_m
         v = self._step_view
-        v[2] = prm.workspace_radius_m if workspace else math.inf  # inf: no check
+        if prm is not self._inputs_for or workspace is not self._inputs_workspace:
+            # The parameters' part, stored again only when they (or the check) change.
+            self._inputs_for, self._inputs_workspace = prm, workspace
+            self._step_params[3:6] = prm.workspace_center_m
+            v[2] = prm.workspace_radius_m if workspace else math.inf  # inf: no check
+            v[1] = prm.max_rate_n_per_s * self.dt
         # Past the enable ramp and before any ramp-down the factor is exactly 1 (the
         # division in ``_ramp`` cannot fall below 1 there); otherwise ``_ramp`` says.
         if t < self._t_down and (prm.ramp_s <= 0.0 or t - self._t_enabled >= prm.ramp_s):
             v[0] = 1.0
         else:
             v[0] = self._ramp(t)
-        v[1] = prm.max_rate_n_per_s * self.dt
         return self._step_params
 
     def _fitted(self, forces: Any, positions: Any) -> tuple[np.ndarray, np.ndarray]:

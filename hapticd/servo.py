@@ -299,7 +299,8 @@ class ServoLoop:
         # The safety chain's normal tick runs in the renderer's one call when it can: then
         # the object was checked there too, and device_force is written. The watchdog's
         # clock is read after it: a stalled tick trips before its force is sent.
-        flags = self.renderer.run(frame, safety if safety.ready(t) else None)
+        # Renderer.run's one call, called without the method around it.
+        flags = self.renderer.one_call.run(frame, safety if safety.ready(t) else None)
         t_wall = self.watchdog_clock() if self.wall_watchdog else None
         if flags is None:
             self._check_object(frame, k, t)
@@ -527,12 +528,13 @@ class ServoLoop:
                 self._log_fault()
                 return
             # Read after the tick: a command at its start may have swapped these.
-            safety, frame = self.safety, self.frame
-            if not latched and safety.fault is not None:
+            frame = self.frame
+            fault = self.safety.fault
+            if fault is not None and not latched:
                 self._log_fault()
             # Events read the frame the tick left, never the stages' insides.
             self._frame_events.after_tick(frame, k, t)
-            if safety.fault is not None and safety.fault is not self._fault_seen:
+            if fault is not None and fault is not self._fault_seen:
                 self._note_fault(k, t)
             if frame is not self._scalars_of:
                 self._bind_scalars(frame)
@@ -540,12 +542,14 @@ class ServoLoop:
             # would cost several times this. (Ticks in contact are counted by the frame
             # watcher, at each change.)
             max_force = st.max_force
-            for i, row in enumerate(self._force_rows):
+            i = 0
+            for row in self._force_rows:
                 f0, f1, f2 = row.tolist()
                 mag = hypot(f0, f1, f2)
                 if mag > max_force[i]:
                     max_force[i] = mag
-            self._fault_view[()] = safety.fault is not None
+                i += 1  # noqa: SIM113 - enumerate's pair would cost more per finger
+            self._fault_view[()] = fault is not None
             if self.control_seq != self._control_seq_written:
                 # It changes only when a command lands (its field stays between ticks).
                 frame.control_seq[()] = self._control_seq_written = self.control_seq
