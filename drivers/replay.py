@@ -129,7 +129,7 @@ class ReplayDevice(Device):
     def _bind_kept(self) -> None:
         self._forces_mv = memoryview(self._forces.reshape(-1))
         self._times_mv = memoryview(self._force_times)
-        # _keep makes room when the count reaches this: the arrays' end, or the most kept.
+        # write_force makes room when the count reaches this: the arrays' end, or the most kept.
         size, most = len(self._force_times), self._kept_max
         self._room = size if most is None else min(most, size)
 

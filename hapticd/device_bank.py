@@ -210,12 +210,8 @@ class DeviceBank:
                 pos, vel = self._state_rows[i]
                 pos[:] = raw_pos[i]
                 vel[:] = raw_vel[i]
-        if whole:
-            both = self._frame_both
-            if both is not None:
-                both[:] = self._raw_all  # every finger's sample: the whole block, one copy
-            else:
-                self._enter(frame, len(states))
+        if whole:  # every finger's sample: the whole block, in one copy where it can
+            self._enter(frame, len(states))
 
     def _enter(self, frame: Frame, n: int) -> None:
         """Copy the first ``n`` fingers' samples, all passed and none mounted, into the

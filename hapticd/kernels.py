@@ -726,9 +726,9 @@ def _solve_grasp(
     return xo
 
 
-# The Friction stage's per-finger array (F, FRICTION_COLUMNS), shared by its Python code
-# and friction_step: the anchor in the object's body frame (3, m), whether it is set (1.0)
-# or not (0.0), the fingertip's radius (m).
+# The Friction stage's per-finger array (F, FRICTION_COLUMNS), its carried state that
+# friction_step reads and writes: the anchor in the object's body frame (3, m), whether it
+# is set (1.0) or not (0.0), the fingertip's radius (m).
 FRICTION_COLUMNS = 5
 ANCHOR_SET = 3
 FINGER_RADIUS = 4

@@ -15,6 +15,7 @@ from hapticd.allocation import (
     accuracy,
     allocate,
     allocate_many,
+    closed,
     two_contact_structure,
 )
 from hapticd.allocation import general as general_path
@@ -266,11 +267,15 @@ def test_sweep_through_rank_change_is_continuous_and_bounded(name, method):
 
 
 def test_filtered_gain_is_continuous_and_bounded():
+    """The allocators' gain on a singular value s: s times ``closed._gain`` of s^2 (1/s
+    from eps on, s/eps^2 below), elementwise and on floats, against the oracle's."""
     s = np.linspace(0, 1, 100001)
-    g = filtered_gain(s, EPS)
+    g = s * closed._gain(s * s, EPS * EPS)
+    np.testing.assert_allclose(g, filtered_gain(s, EPS), rtol=1e-12, atol=0)
     assert g.max() == pytest.approx(1 / EPS)
     assert np.abs(np.diff(g)).max() < 1e-3
-    np.testing.assert_allclose(filtered_gain(np.array([0.5, 2.0]), EPS), [2.0, 0.5])
+    for x, want in ((0.5, 2.0), (2.0, 0.5), (EPS / 2, 0.5 / EPS)):
+        assert x * closed._gain(x * x, EPS * EPS) == pytest.approx(want, rel=1e-12)
     A = np.array([[1.0, 0.0], [0.0, 1e-12]])
     np.testing.assert_allclose(filtered_pinv(A, EPS), [[1.0, 0], [0, 1e-12 / EPS**2]])
 
