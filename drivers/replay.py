@@ -42,6 +42,9 @@ class ReplayDevice(Device):
         self.path = Trajectory(times, positions, f"replay {serial}", buttons, repeat)
         self.info = DeviceInfo("replay", serial, float(max_force_n), workspace_radius_m)
         self._who = f"{self.info.model} {self.info.serial}"  # names it in a refusal
+        # Looked up once: read_state and write_force run for every device every tick.
+        self._sample = self.path.sample
+        self._limit_n = self.info.max_force_n
         self._clock = clock
         self._t0 = 0.0
         self._hold_s = float(hold_s)
@@ -86,7 +89,7 @@ class ReplayDevice(Device):
         now = clock() if clock is not None else time.monotonic() - self._t0
         self._now = now
         # Written item by item into the state's arrays: no tuple per sample.
-        state.buttons = self.path.sample(now, state.pos_view, state.vel_view)
+        state.buttons = self._sample(now, state.pos_view, state.vel_view)
         state.timestamp = now
 
     def write_force(self, force: np.ndarray) -> None:
@@ -94,7 +97,7 @@ class ReplayDevice(Device):
         read's time."""
         if not self._open:
             self._require_open("write to")
-        x, y, z = check_force(force, self.info.max_force_n, self._who)
+        x, y, z = check_force(force, self._limit_n, self._who)
         # Kept here, not in a method of its own: this runs for every device every tick.
         n = self._n_forces
         if n >= self._room:

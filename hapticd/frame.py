@@ -193,7 +193,9 @@ when it plans)."""
 @dataclass(frozen=True)
 class StateField:
     """One quantity a tick carries to the next: its one ``writer`` (a stage's name, or a
-    part of the loop), the attribute it lives in (``where``), its shape and SI unit.
+    part of the loop), the attribute it lives in (``where``), its shape and SI unit. What
+    the renderer's stages carry lives in one array, ``Renderer.state``, whose blocks
+    (hapticd.kernels.TICK_STATE) the stages hold views of and the tick's one call takes.
 
     The frame holds what one tick hands from stage to stage; these are what the next tick
     starts from. Where one is also a frame field (``recorded_as``), the recording has it.
@@ -212,7 +214,7 @@ STATE: tuple[StateField, ...] = (
     StateField(
         "proxies",
         "contact",
-        "Contact.state",
+        "Renderer.state: contact (Contact.state)",
         "(F, kernels.CONTACT_STATE)",
         "m",
         "each finger's god-object proxy (columns 0-2), its radius, its active planes "
@@ -222,7 +224,7 @@ STATE: tuple[StateField, ...] = (
     StateField(
         "friction_anchors",
         "friction",
-        "Friction.anchors",
+        "Renderer.state: anchors (Friction.anchors)",
         "(F, kernels.FRICTION_COLUMNS)",
         "m",
         "each finger's sticking point in the object's body frame, its set flag (cleared "
@@ -241,7 +243,7 @@ STATE: tuple[StateField, ...] = (
     StateField(
         "allocator_blend",
         "allocation",
-        "ContactAllocator.alpha",
+        "Renderer.state: alloc (ContactAllocator.alpha)",
         "()",
         "",
         "the adaptive allocator's weight of the external force, following the task",
@@ -250,7 +252,7 @@ STATE: tuple[StateField, ...] = (
     StateField(
         "passivity_energy",
         "passivity",
-        "Passivity.energy",
+        "Renderer.state: passive (Passivity.energy)",
         "(F,)",
         "J",
         "the energy each finger's port absorbed, as the observer sees it",
@@ -259,7 +261,7 @@ STATE: tuple[StateField, ...] = (
     StateField(
         "passivity_last_pos",
         "passivity",
-        "Passivity.last_pos",
+        "Renderer.state: passive (Passivity.last_pos)",
         "(F, 3)",
         "m",
         "each finger's position on the last tick (its motion this tick is the difference)",

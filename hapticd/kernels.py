@@ -1619,14 +1619,17 @@ COMPILED_FORMS = {_block: _block_compiled, _bytes: _bytes_compiled}
 # float64 array, the renderer's; each stage holds views of its block: contact's (F,
 # CONTACT_STATE), friction's anchors (F, FRICTION_COLUMNS), passivity's (F,
 # PASSIVITY_STATE), the allocator's alpha (ALLOCATION_STATE,) and workspace
-# (allocation_work_shape(F)), and the loop's (LOOP_HEAD + 2 F,; below). The object's own
+# (allocation_work_shape(F)), and the loop's (LOOP_HEAD + 8 F,; below). The object's own
 # state is the scene's (SceneObject.state), and the safety chain's its own.
 TICK_STATE = ("contact", "anchors", "passive", "alloc", "work", "loop")
 # The loop's block: 1.0 while the devices' samples wait in the frame's device_sample for
 # the call's check (the device bank's deferred read; the call clears it), the fastest
-# plausible device speed (m/s) and farthest position (m), 1.0 to keep each finger's
-# largest device force; then that force (F, N), then its value before this tick (F, N).
-LOOP_SAMPLES, LOOP_MAX_SPEED, LOOP_MAX_DISTANCE, LOOP_STATS, LOOP_HEAD = range(5)
+# plausible device speed (m/s) and farthest position (m), 1.0 while the loop watches the
+# ticks, then (written by the call when it does) 1.0 when in_contact or buttons differ
+# from the last tick's; then each finger's largest device force (F, N), its value before
+# this tick (F, N), and the last tick's in_contact (F) and buttons (4 F, their bytes).
+LOOP_SAMPLES, LOOP_MAX_SPEED, LOOP_MAX_DISTANCE, LOOP_WATCH, LOOP_CHANGED = range(5)
+LOOP_HEAD = 5
 
 
 def state_layout(n_fingers: int) -> dict[str, tuple[int, tuple[int, ...]]]:
@@ -1637,7 +1640,7 @@ def state_layout(n_fingers: int) -> dict[str, tuple[int, tuple[int, ...]]]:
         "passive": (n_fingers, PASSIVITY_STATE),
         "alloc": (ALLOCATION_STATE,),
         "work": allocation_work_shape(n_fingers),
-        "loop": (LOOP_HEAD + 2 * n_fingers,),
+        "loop": (LOOP_HEAD + 8 * n_fingers,),
     }
     out, at = {}, 0
     for name in TICK_STATE:
@@ -1649,18 +1652,19 @@ def state_layout(n_fingers: int) -> dict[str, tuple[int, tuple[int, ...]]]:
 # tick_step's plan: one float64 array: where things are (TICK_AT items: each TICK_FIELDS
 # field's offset in the frame's record, then each TICK_PLAN block's below, then each
 # TICK_STATE block's in the state and the workspace's rows and columns, then in_contact's
-# offset in the record's bytes and the number of fingers), the params (TICK_PARAMS), then
-# these blocks (with their rows where they vary): contact's planes (P, PLANE_COLUMNS),
-# allocation's directions (F, 3), the free body's body (K, 3) and surfaces (S,
-# SURFACE_COLUMNS), the shape's normals (M, 3) and offsets (M,), the free body's scratch
-# (F, SCRATCH_COLUMNS), every finger's actuated directions in the actuation's frame (D, 3),
-# finger by finger, and how many each finger has (F,)
+# and buttons' offsets in the record's bytes, and the number of fingers), the params
+# (TICK_PARAMS), then these blocks (with their rows where they vary): contact's planes (P,
+# PLANE_COLUMNS), allocation's directions (F, 3), the free body's body (K, 3) and surfaces
+# (S, SURFACE_COLUMNS), the shape's normals (M, 3) and offsets (M,), the free body's
+# scratch (F, SCRATCH_COLUMNS), every finger's actuated directions in the actuation's frame
+# (D, 3), finger by finger, and how many each finger has (F,)
 TICK_PLAN = ("planes", "rows", "local", "body", "rows", "surf", "rows", "normals", "rows")
 TICK_PLAN += ("offsets", "scratch", "directions", "rows", "counts")
 _AT_PLAN = len(TICK_FIELDS)
 _AT_STATE = _AT_PLAN + len(TICK_PLAN)
 _AT_IN_CONTACT = _AT_STATE + len(TICK_STATE) + 2
-_AT_FINGERS = _AT_IN_CONTACT + 1
+_AT_BUTTONS = _AT_IN_CONTACT + 1
+_AT_FINGERS = _AT_BUTTONS + 1
 TICK_AT = _AT_FINGERS + 1
 
 
@@ -1866,6 +1870,23 @@ def tick_step(
         o = int(plan[_AT_OBJECT])
         for k in range(STATE):
             record[o + k] = obj_state[k]
+    watch = state[lp + LOOP_WATCH] != 0.0
+    if watch and first <= STAGE_SAFETY < last:
+        # The loop's events watcher (hapticd.event_ring.FrameEvents) runs when in_contact
+        # or buttons changed since the last tick: whether they did, kept for the next.
+        raw = _bytes(record)
+        was = lp + LOOP_HEAD + 2 * n
+        bt = int(plan[_AT_BUTTONS])
+        changed = 0.0
+        for i in range(n):
+            if state[was + i] != raw[ic + i]:
+                state[was + i] = raw[ic + i]
+                changed = 1.0
+        for j in range(4 * n):
+            if state[was + n + j] != raw[bt + j]:
+                state[was + n + j] = raw[bt + j]
+                changed = 1.0
+        state[lp + LOOP_CHANGED] = changed
     if params[TICK_SAFETY] == 0.0 or not first <= STAGE_SAFETY < last:
         return TICK_DONE
     # NaN fails every comparison (the loop's backstop, math.hypot, agrees to rounding).
@@ -1879,11 +1900,10 @@ def tick_step(
     if flags & SAFETY_DEFER:
         return TICK_SAFETY_DEFER
     out = _rows(record, int(plan[_AT_DEVICE_FORCE]), n)
-    stats = state[lp + LOOP_STATS] != 0.0
     for i in range(n):
         f0, f1, f2 = out_prev[0, i, 0], out_prev[0, i, 1], out_prev[0, i, 2]
         out[i, 0], out[i, 1], out[i, 2] = f0, f1, f2
-        if stats:  # the loop's statistics: each finger's largest force, and the last one
+        if watch:  # the loop's statistics: each finger's largest force, and the last one
             top = lp + LOOP_HEAD + i
             was = state[top]
             state[top + n] = was

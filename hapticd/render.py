@@ -474,6 +474,7 @@ class OneCall:
             *(state[name][0] for name in kn.TICK_STATE),
             *state["work"][1],
             frame.dtype.fields["in_contact"][1],
+            frame.dtype.fields["buttons"][1],
             n,
         ]
         self._args = (

@@ -52,7 +52,7 @@ TRAJECTORY_END = CODES["trajectory_end"]
 RECORDING_STARTED = CODES["recording_started"]
 OTHER_CAUSE = CAUSE_CODES["other"]
 TRAJECTORY_ENDED = "trajectory ended"
-SAMPLES = kernels.LOOP_SAMPLES
+SAMPLES, CHANGED = kernels.LOOP_SAMPLES, kernels.LOOP_CHANGED
 # hapticd.kernels.MAX_OBJECT_*: a free object beyond them has diverged.
 MAX_OBJECT_DISTANCE_M = kernels.MAX_OBJECT_DISTANCE_M
 MAX_OBJECT_SPEED_M_PER_S = kernels.MAX_OBJECT_SPEED_M_PER_S
@@ -342,7 +342,14 @@ class ServoLoop:
             block[top : top + F] = np.maximum(block[top : top + F], old.loop[top : top + F])
         block[kernels.LOOP_MAX_SPEED] = self._speed_of = self.bank.max_speed_m_per_s
         block[kernels.LOOP_MAX_DISTANCE] = MAX_DEVICE_DISTANCE_M
-        block[kernels.LOOP_STATS] = 1.0
+        block[kernels.LOOP_WATCH] = 1.0
+        # The call says when in_contact or buttons changed against what the events
+        # watcher saw last; then the watcher runs (it finds what changed).
+        F = len(self.stats.max_force)
+        was = kernels.LOOP_HEAD + 2 * F
+        block[was : was + F] = self._frame_events._contact
+        block[was + F : was + 5 * F] = self._frame_events._buttons.view(np.uint8)
+        block[kernels.LOOP_CHANGED] = 1.0
         self._loop_of = renderer
         self._loop_block = memoryview(block)
 
@@ -583,8 +590,13 @@ class ServoLoop:
             fault = self.safety.fault
             if fault is not None and not latched:
                 self._log_fault()
-            # Events read the frame the tick left, never the stages' insides.
-            self._frame_events.after_tick(frame, k, t)
+            # Events read the frame the tick left, never the stages' insides: when the call
+            # found in_contact or buttons changed, or did not look (hapticd.kernels.LOOP_*).
+            events = self._frame_events
+            if self._loop_block[CHANGED]:
+                events.after_tick(frame, k, t)
+            else:
+                events.tick = k
             if fault is not None and fault is not self._fault_seen:
                 self._note_fault(k, t)
             if frame is not self._scalars_of:
