@@ -499,3 +499,28 @@ def test_the_compiled_call_skips_numbas_dispatch_only_on_its_declared_arrays(pro
                 with pytest.raises(TypeError):
                     fn(*spoilt)
     assert direct(fn, args[:-1]) is fn
+
+
+def test_a_copied_renderer_goes_on_from_its_own_state():
+    """The carried state is one array the stages hold views of: a deep copy (which detaches
+    each array) takes its stages' values back into its own array and goes on exactly as the
+    original does, without touching the original's."""
+    act = Actuation([[(0.6, 0.0, 0.8)], [(0.0, 0.6, 0.8)]], "world")
+    passive = PassivityParams(velocity_threshold=0.01, max_damping=5.0)
+    r = Renderer(_scene(False), [0.008] * 2, act, "adaptive", dt=1e-3, passivity=passive)
+    ticks = _squeeze(2, 120)
+    for pos, vel in ticks[:60]:
+        r.step(pos, vel)
+    twin = copy.deepcopy(r)
+    twin.frame = Frame(2, act.n_actuators)  # a frame's copy holds no views of its record
+    before = r.state.copy()
+    for pos, vel in ticks[60:]:
+        twin.step(pos, vel)
+    np.testing.assert_array_equal(r.state, before)  # the original's state untouched
+    for pos, vel in ticks[60:]:
+        r.step(pos, vel)
+    np.testing.assert_array_equal(twin.state, r.state)
+    np.testing.assert_array_equal(twin.frame.rendered_force, r.frame.rendered_force)
+    assert np.shares_memory(twin._contact.state, twin.state)
+    assert np.shares_memory(twin.allocator.work, twin.state)
+    assert np.abs(r.state).max() > 0
