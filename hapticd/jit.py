@@ -63,7 +63,7 @@ SIGNATURES = {
         " f8[:, ::1], f8[::1], f8[:, ::1])"
     ),
     "allocate_grasps": (
-        "void(i8, f8[:, :, ::1], f8[:, :, ::1], f8[:, ::1], f8[::1], f8, f8, f8[:, ::1],"
+        "void(i8, f8[:, :, ::1], f8[:, :, ::1], f8[:, ::1], f8[::1], f8, f8, b1, f8[:, ::1],"
         " f8[:, ::1])"
     ),
     "safety_step": "i8(f8[:, ::1], f8[:, ::1], f8[::1], f8[:, :, ::1])",
@@ -202,16 +202,13 @@ def _register_helpers(numba, kernels) -> None:
     try:
         from numba.extending import overload, register_jitable
 
-        from hapticd.allocation.closed import FLOAT_FORMS
-
-        forms = {**FLOAT_FORMS, **kernels.COMPILED_FORMS}
+        forms = kernels.COMPILED_FORMS
         for helper in kernels.KERNEL_HELPERS:
             fn = getattr(kernels, helper) if isinstance(helper, str) else helper
             if fn in _HELPERS:
                 continue
             if fn in forms:
-                # Its compiled form is another function (the float one of a helper that
-                # chooses its form by the argument's type): compiled code runs that.
+                # Its compiled form is another function: compiled code runs that.
                 floats = register_jitable(forms[fn])
                 overload(fn, strict=False)(lambda *args, _f=floats, **kw: _f)
             else:
