@@ -282,12 +282,15 @@ def _load(
         folder, files = _cache_files(numba, kernel)
     except Exception:  # a numba without this layout: nothing to check or remove
         folder, files = None, []
-    if stale and may_compile:
+
+    def remove() -> None:
         for f in files:
             with contextlib.suppress(OSError):
                 f.unlink()
+
+    if stale and may_compile:
+        remove()
         files = []
-    bad: str | None = None
     try:
         fn = numba.njit(SIGNATURES[name], cache=True, nogil=True)(kernel)
         bad = _mismatch(numba, fn, name)
@@ -297,9 +300,7 @@ def _load(
         bad = f"could not be read ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
     if bad is None:
         return fn
-    for f in files:
-        with contextlib.suppress(OSError):
-            f.unlink()
+    remove()
     why = f"numba's cache of {name} in {folder} {bad}: removed it"
     if not may_compile:
         raise DamagedCacheError(why)
@@ -419,15 +420,6 @@ def release_compiling(token: str) -> None:
     with contextlib.suppress(OSError):
         if token and path.read_text() == token:
             path.unlink()
-
-
-def compiling_elsewhere(now: float | None = None) -> bool:
-    """Whether a background compiler's marker younger than COMPILING_MAX_AGE_S is there."""
-    try:
-        age = (time.time() if now is None else now) - (_cache_folder() / COMPILING).stat().st_mtime
-    except OSError:
-        return False
-    return age < COMPILING_MAX_AGE_S
 
 
 def _spawn(cmd: list[str]) -> None:
