@@ -239,17 +239,6 @@ def _cache_files(numba, fn: Callable[..., None]) -> tuple[Path, list[Path]]:
     return folder, sorted(folder.glob(f"kernels.{fn.__name__}-*.{tag}.*nb[ic]"))
 
 
-def _complete(numba, fn: Callable[..., None]) -> bool:
-    """Whether numba's cache holds both the index and the code of kernel ``fn`` (an index
-    alone would make numba compile it, in the foreground)."""
-    try:
-        _, files = _cache_files(numba, fn)
-    except Exception:  # a numba without this layout: leave it to numba
-        return True
-    suffixes = {f.suffix for f in files}
-    return ".nbi" in suffixes and ".nbc" in suffixes
-
-
 def _mismatch(numba, disp, name: str) -> str | None:
     """What is wrong with the dispatcher ``disp`` numba made for kernel ``name``: None when
     it holds that kernel for its one signature, else what it holds instead (a cache whose
@@ -366,11 +355,19 @@ def cached(names: Sequence[str], version: str) -> tuple[bool, str | None]:
 
 
 def _all_complete(names: Sequence[str]) -> bool:
-    """Whether numba's cache holds the index and the code of every kernel in ``names``."""
+    """Whether numba's cache holds the index and the code of every kernel in ``names`` (an
+    index alone would make numba compile it, in the foreground)."""
     from hapticd import kernels
 
     numba = _import_numba()
-    return all(_complete(numba, getattr(kernels, n)) for n in names if n in SIGNATURES)
+    for n in filter(SIGNATURES.__contains__, names):
+        try:
+            suffixes = {f.suffix for f in _cache_files(numba, getattr(kernels, n))[1]}
+        except Exception:  # a numba without this layout: leave it to numba
+            continue
+        if not {".nbi", ".nbc"} <= suffixes:
+            return False
+    return True
 
 
 # The marker of a background compiler at work, in the cache folder: runs started while it
