@@ -63,7 +63,7 @@ SIGNATURES = {
         " f8[:, ::1], f8[::1], f8[:, ::1])"
     ),
     "allocate_grasps": (
-        "void(i8, f8[:, :, ::1], f8[:, :, ::1], f8[:, ::1], f8[::1], f8, f8, f8[:, ::1],"
+        "void(i8, f8[:, :, ::1], f8[:, :, ::1], f8[:, ::1], f8[::1], f8, f8, b1, f8[:, ::1],"
         " f8[:, ::1])"
     ),
     "safety_step": "i8(f8[:, ::1], f8[:, ::1], f8[::1], f8[:, :, ::1])",
@@ -202,16 +202,13 @@ def _register_helpers(numba, kernels) -> None:
     try:
         from numba.extending import overload, register_jitable
 
-        from hapticd.allocation.closed import FLOAT_FORMS
-
-        forms = {**FLOAT_FORMS, **kernels.COMPILED_FORMS}
+        forms = kernels.COMPILED_FORMS
         for helper in kernels.KERNEL_HELPERS:
             fn = getattr(kernels, helper) if isinstance(helper, str) else helper
             if fn in _HELPERS:
                 continue
             if fn in forms:
-                # Its compiled form is another function (the float one of a helper that
-                # chooses its form by the argument's type): compiled code runs that.
+                # Its compiled form is another function: compiled code runs that.
                 floats = register_jitable(forms[fn])
                 overload(fn, strict=False)(lambda *args, _f=floats, **kw: _f)
             else:
@@ -240,17 +237,6 @@ def _cache_files(numba, fn: Callable[..., None]) -> tuple[Path, list[Path]]:
     folder = Path(FunctionCache(fn).cache_path)
     tag = f"py{sys.version_info.major}{sys.version_info.minor}"
     return folder, sorted(folder.glob(f"kernels.{fn.__name__}-*.{tag}.*nb[ic]"))
-
-
-def _complete(numba, fn: Callable[..., None]) -> bool:
-    """Whether numba's cache holds both the index and the code of kernel ``fn`` (an index
-    alone would make numba compile it, in the foreground)."""
-    try:
-        _, files = _cache_files(numba, fn)
-    except Exception:  # a numba without this layout: leave it to numba
-        return True
-    suffixes = {f.suffix for f in files}
-    return ".nbi" in suffixes and ".nbc" in suffixes
 
 
 def _mismatch(numba, disp, name: str) -> str | None:
@@ -285,12 +271,15 @@ def _load(
         folder, files = _cache_files(numba, kernel)
     except Exception:  # a numba without this layout: nothing to check or remove
         folder, files = None, []
-    if stale and may_compile:
+
+    def remove() -> None:
         for f in files:
             with contextlib.suppress(OSError):
                 f.unlink()
+
+    if stale and may_compile:
+        remove()
         files = []
-    bad: str | None = None
     try:
         fn = numba.njit(SIGNATURES[name], cache=True, nogil=True)(kernel)
         bad = _mismatch(numba, fn, name)
@@ -300,9 +289,7 @@ def _load(
         bad = f"could not be read ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
     if bad is None:
         return fn
-    for f in files:
-        with contextlib.suppress(OSError):
-            f.unlink()
+    remove()
     why = f"numba's cache of {name} in {folder} {bad}: removed it"
     if not may_compile:
         raise DamagedCacheError(why)
@@ -368,11 +355,19 @@ def cached(names: Sequence[str], version: str) -> tuple[bool, str | None]:
 
 
 def _all_complete(names: Sequence[str]) -> bool:
-    """Whether numba's cache holds the index and the code of every kernel in ``names``."""
+    """Whether numba's cache holds the index and the code of every kernel in ``names`` (an
+    index alone would make numba compile it, in the foreground)."""
     from hapticd import kernels
 
     numba = _import_numba()
-    return all(_complete(numba, getattr(kernels, n)) for n in names if n in SIGNATURES)
+    for n in filter(SIGNATURES.__contains__, names):
+        try:
+            suffixes = {f.suffix for f in _cache_files(numba, getattr(kernels, n))[1]}
+        except Exception:  # a numba without this layout: leave it to numba
+            continue
+        if not {".nbi", ".nbc"} <= suffixes:
+            return False
+    return True
 
 
 # The marker of a background compiler at work, in the cache folder: runs started while it
@@ -422,15 +417,6 @@ def release_compiling(token: str) -> None:
     with contextlib.suppress(OSError):
         if token and path.read_text() == token:
             path.unlink()
-
-
-def compiling_elsewhere(now: float | None = None) -> bool:
-    """Whether a background compiler's marker younger than COMPILING_MAX_AGE_S is there."""
-    try:
-        age = (time.time() if now is None else now) - (_cache_folder() / COMPILING).stat().st_mtime
-    except OSError:
-        return False
-    return age < COMPILING_MAX_AGE_S
 
 
 def _spawn(cmd: list[str]) -> None:

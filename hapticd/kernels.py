@@ -12,7 +12,7 @@ direction per finger by a robust method (pinv, if, ef, adaptive, whose alpha it 
 it calls the closed forms of ``hapticd.allocation.closed`` and ``accuracy`` for one or
 two contacts and the general path of ``hapticd.allocation.general`` for more (written
 once, shared with ``allocate`` and ``allocate_many``; ``KERNEL_HELPERS``).
-``allocate_grasps`` is that general path for a batch (``allocate_many``'s ``kernel=``).
+``allocate_grasps`` is the robust methods grasp by grasp (``allocate_many``'s ``kernel=``).
 
 ``tick_step`` is the renderer's tick as one call (hapticd.render.OneCall): ``world_planes``,
 ``contact_step``, ``friction_step``, ``forces_step``, ``allocation_step`` and
@@ -420,12 +420,14 @@ def allocate_grasps(
     alpha: np.ndarray,
     eps: float,
     min_sep: float,
+    fast: bool,
     out: np.ndarray,
     work: np.ndarray,
 ) -> None:
-    """hapticd.allocation.general.solve_grasps as a kernel (``allocate_many``'s general path
-    compiled): G (N, 6, n), M (N or 1, n, r), lam (N, n) N, alpha (N,) into out (N, r) N."""
-    solve_grasps(code, G, M, lam, alpha, eps, min_sep, out, work)
+    """hapticd.allocation.general.solve_grasps as a kernel (``allocate_many``'s robust
+    methods compiled): G (N, 6, n), M (N or 1, n, r), lam (N, n) N, alpha (N,) into out
+    (N, r) N."""
+    solve_grasps(code, G, M, lam, alpha, eps, min_sep, fast, out, work)
 
 
 def _fill_grasp(
@@ -1593,8 +1595,7 @@ def _block_compiled(a: np.ndarray, start: int, n: int, cols: int) -> np.ndarray:
     return a[start : start + n * cols].reshape((n, cols))
 
 
-# Helpers whose compiled form is another function (hapticd.jit compiles that one in; the
-# allocation's float forms are hapticd.allocation.closed.FLOAT_FORMS).
+# Helpers whose compiled form is another function (hapticd.jit compiles that one in).
 COMPILED_FORMS = {_block: _block_compiled}
 
 

@@ -114,25 +114,3 @@ def control(
     if need <= cap:
         return 0.0, need  # exactly what brings E back to zero
     return observed + cap * ua2 / dt, cap
-
-
-def step(
-    energy: float,
-    force: Sequence[float],
-    dx: Sequence[float],
-    dx_actuated: Sequence[float],
-    dt: float,
-    params: PassivityParams,
-) -> tuple[float, float]:
-    """One tick of one finger's observer and controller: (E(n) J, alpha(n) N s/m).
-
-    ``energy`` is E(n-1) (J), ``force`` the rendered force f(n) (3,) N on the finger,
-    ``dx`` its motion x(n) - x(n-1) (3,) m, ``dx_actuated`` that motion projected onto the
-    finger's actuated directions, P_a dx (3,) m, ``dt`` the tick period T (s). The force to
-    display is f(n) - alpha(n) P_a dx / T. Non-finite input leaves E unchanged and adds
-    no damping.
-    """
-    observed = observe(energy, force, dx)
-    if not math.isfinite(observed):
-        return energy, 0.0
-    return control(observed, dx_actuated, dt, params.velocity_threshold, params.max_damping)

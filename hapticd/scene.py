@@ -155,14 +155,6 @@ class SceneObject:
         return self.position
 
     @property
-    def stiffness(self) -> float:
-        return self.material.stiffness
-
-    @property
-    def damping(self) -> float:
-        return self.material.damping
-
-    @property
     def inertia_body(self) -> np.ndarray:
         return self.mass * self.shape.inertia_unit_mass
 

@@ -5,7 +5,7 @@ profiles' scenes, a free object pushed onto the ground, three fingers, the adapt
 allocator and a material set between ticks; three and five fingers holding a cube run
 every tick as one call, their forces allocate()'s; the environment's and the passivity
 controller's forces against their definitions (a projector onto the span of the actuated
-directions, hapticd.passivity.step).
+directions, hapticd.passivity's observer and controller).
 """
 
 from __future__ import annotations
@@ -292,10 +292,11 @@ def test_every_plan_runs_as_the_call_with_its_python_stages_between_parts(compil
 @pytest.mark.parametrize("mode", ["compiled", "python"])
 def test_the_passivity_controller_in_the_call_is_its_definition(mode, compiled):
     """Every tick of a lift with passivity (a low threshold, so that it acts), each finger's
-    energy, damping and damping force are hapticd.passivity.step's on the force before it
+    energy, damping and damping force are hapticd.passivity's observer and controller
+    (tests.test_passivity.step) on the force before it
     (allocated plus the environment's) and the finger's motion projected onto its actuated
     directions (grasp frame)."""
-    from hapticd import passivity
+    from tests import test_passivity as passivity
 
     over = [
         f"rendering.kernels={mode}",
