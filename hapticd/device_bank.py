@@ -64,14 +64,8 @@ class DeviceBank:
         F = len(self.devices)
         # What the devices report, in their own frames: positions then velocities, (2, F, 3),
         # each device's DeviceState holding views of its rows (a device fills them in
-        # place). Laid out as the frame's device_pos and device_vel are, so a tick whose
-        # samples all pass and need no mount enters the frame with one copy.
-        self._raw = np.zeros((2, F, 3))
-        self._states = [DeviceState(self._raw[0, i], self._raw[1, i]) for i in range(F)]
-        # Flat memoryviews: each row's floats (tolist) and the whole block (one memcpy).
-        self._raw_pos = [memoryview(self._raw[0, i]) for i in range(F)]
-        self._raw_vel = [memoryview(self._raw[1, i]) for i in range(F)]
-        self._raw_all = memoryview(self._raw.reshape(-1))
+        # place): the frame's device_sample once a frame is bound (``_sample_into``).
+        self._sample_into(np.zeros((2, F, 3)))
         self.lost: list[float | None] = [None] * len(self.devices)
         self._n_lost = 0
         self._zero = np.zeros(3)
@@ -147,6 +141,7 @@ class DeviceBank:
         ]
         self._buttons_mv = item_view(frame.buttons)
         self._force_rows = [frame.device_force[i] for i in range(F)]
+        self._sample_into(frame.device_sample)
         self._any_mounted = any(self._mounted)
         # device_pos and device_vel side by side in the record (hapticd.frame lays them out
         # so): both, as one flat memoryview, take the devices' block in one copy.
@@ -159,27 +154,79 @@ class DeviceBank:
             else None
         )
 
-    def read(self, frame: Frame, k: int, t: float) -> None:
+    def _sample_into(self, raw: np.ndarray) -> None:
+        """Read the devices into ``raw`` (2, F, 3) from now on. Laid out as the frame's
+        device_pos and device_vel are, so a tick whose samples all pass and need no mount
+        enters the frame with one copy."""
+        F = len(self.devices)
+        self._raw = raw
+        self._states = [DeviceState(raw[0, i], raw[1, i]) for i in range(F)]
+        # Flat memoryviews: each row's floats (tolist) and the whole block (one memcpy).
+        self._raw_pos = [memoryview(raw[0, i]) for i in range(F)]
+        self._raw_vel = [memoryview(raw[1, i]) for i in range(F)]
+        self._raw_all = memoryview(raw.reshape(-1))
+
+    def read(self, frame: Frame, k: int, t: float, defer: bool = False) -> bool:
         """Fill ``device_pos``, ``device_vel`` and ``buttons``; a lost device keeps its last
-        position, at rest, and so does a device whose sample is implausible (a fault)."""
+        position, at rest, and so does a device whose sample is implausible (a fault).
+
+        ``defer``: read every device's sample into the frame's ``device_sample`` and leave
+        its check and entry to the tick's one call (hapticd.kernels.tick_step, its compiled
+        form of ``check``), when every device answers, none is lost and none has a mount;
+        returns whether it did (False: the samples were checked and entered here)."""
         if frame is not self._frame:
             self._bind(frame)
+        if not defer or self._n_lost or self._any_mounted:
+            self._read(frame, k, t, 0, None)
+            return False
         buttons = self._buttons_mv
-        lost = self.lost if self._n_lost else None
-        lim = self._max_speed
-        hypot = math.hypot
-        states, raw_pos, raw_vel = self._states, self._raw_pos, self._raw_vel
-        # The block copy below takes every finger's sample: only when each one passed and
-        # needs no mount; otherwise each finger that passed is copied on its own.
-        whole = not self._any_mounted and lost is None
+        states = self._states
         i = -1  # counted by hand: enumerate's pair a finger costs more
         for dev in self.devices:
             i += 1
-            if lost is not None and lost[i] is not None:
-                continue
             st = states[i]
             try:
                 dev.read_state(st)
+            except BaseException as exc:
+                # The fingers read so far as the checked read would have taken them, then
+                # this one's error and the rest the checked way.
+                self.check(frame, k, t, i)
+                self._read(frame, k, t, i, exc)
+                return False
+            buttons[i] = st.buttons
+        return True
+
+    def check(self, frame: Frame, k: int, t: float, n: int | None = None) -> None:
+        """The plausibility check of the first ``n`` fingers' samples (None: all) already
+        read into ``device_sample``, entering each that passes and latching a fault for each
+        that does not (a deferred read whose samples the one call refused)."""
+        whole = not self._any_mounted and not self._n_lost
+        n = len(self._states) if n is None else n
+        for i in range(n):
+            whole = self._check_one(frame, i, k, t, whole)
+        if whole:
+            self._enter(frame, n)
+
+    def _read(
+        self, frame: Frame, k: int, t: float, first: int, failed: BaseException | None
+    ) -> None:
+        """Read, check and enter the fingers from ``first`` on (``failed``: the error finger
+        ``first``'s read already raised)."""
+        lost = self.lost if self._n_lost else None
+        states = self._states
+        # The block copy below takes every finger's sample: only when each one passed and
+        # needs no mount; otherwise each finger that passed is copied on its own.
+        whole = not self._any_mounted and lost is None and first == 0
+        i = first - 1
+        for dev in self.devices[first:]:
+            i += 1
+            if lost is not None and lost[i] is not None:
+                continue
+            try:
+                if failed is not None:
+                    exc, failed = failed, None
+                    raise exc
+                dev.read_state(states[i])
             except BaseException as exc:
                 if whole:  # the fingers before this one passed: into the frame first
                     self._enter(frame, i)
@@ -189,29 +236,38 @@ class DeviceBank:
                 self._lose(frame, i, k, t, exc)
                 lost = self.lost
                 continue
-            # NaN fails the comparisons (hypot neither overflows nor hides a NaN).
-            px, py, pz = raw_pos[i].tolist()
-            vx, vy, vz = raw_vel[i].tolist()
-            if not (hypot(vx, vy, vz) <= lim and hypot(px, py, pz) <= MAX_DEVICE_DISTANCE_M):
-                if whole:
-                    self._enter(frame, i)
-                    whole = False
-                self._implausible(frame, i, k, t, st)
-                continue
-            buttons[i] = st.buttons
-            if whole:
-                continue  # copied with the others below
-            if self._mounted[i]:
-                tmp = self._tmp
-                np.matmul(self._sR[i], st.position, out=tmp)
-                np.add(tmp, self._t[i], out=frame.device_pos[i])
-                np.matmul(self._sR[i], st.velocity, out=frame.device_vel[i])
-            else:
-                pos, vel = self._state_rows[i]
-                pos[:] = raw_pos[i]
-                vel[:] = raw_vel[i]
+            whole = self._check_one(frame, i, k, t, whole)
         if whole:  # every finger's sample: the whole block, in one copy where it can
             self._enter(frame, len(states))
+
+    def _check_one(self, frame: Frame, i: int, k: int, t: float, whole: bool) -> bool:
+        """Finger ``i``'s sample checked (a fault if implausible) and, when it passes, into
+        the frame, or (``whole``) left for the block copy; returns ``whole`` still."""
+        st = self._states[i]
+        hypot = math.hypot
+        # NaN fails the comparisons (hypot neither overflows nor hides a NaN).
+        px, py, pz = self._raw_pos[i].tolist()
+        vx, vy, vz = self._raw_vel[i].tolist()
+        if not (
+            hypot(vx, vy, vz) <= self._max_speed and hypot(px, py, pz) <= MAX_DEVICE_DISTANCE_M
+        ):
+            if whole:
+                self._enter(frame, i)
+            self._implausible(frame, i, k, t, st)
+            return False
+        self._buttons_mv[i] = st.buttons
+        if whole:
+            return True  # copied with the others
+        if self._mounted[i]:
+            tmp = self._tmp
+            np.matmul(self._sR[i], st.position, out=tmp)
+            np.add(tmp, self._t[i], out=frame.device_pos[i])
+            np.matmul(self._sR[i], st.velocity, out=frame.device_vel[i])
+        else:
+            pos, vel = self._state_rows[i]
+            pos[:] = self._raw_pos[i]
+            vel[:] = self._raw_vel[i]
+        return False
 
     def _enter(self, frame: Frame, n: int) -> None:
         """Copy the first ``n`` fingers' samples, all passed and none mounted, into the

@@ -130,6 +130,15 @@ FIELDS: tuple[FrameField, ...] = (
         "allocator", "u1", (), "", "index into meta.allocators of the allocator on this tick"
     ),
     # Hand-offs within a tick, not recorded.
+    FrameField(
+        "device_sample",
+        "<f8",
+        (2, "F", 3),
+        "m, m/s",
+        "each device's position then velocity as read (its own frame), before the "
+        "plausibility check enters it into device_pos and device_vel",
+        False,
+    ),
     FrameField("surface_point", "<f8", F3, "m", "fingertip centre held on the object", False),
     # Contact's results before friction moves them (written only when friction is planned;
     # without friction contact writes proxy_pos, surface_point and contact_point itself).
@@ -172,6 +181,7 @@ LOOP_WRITERS: dict[str, str] = {
     "device_pos": "the device bank",
     "device_vel": "the device bank",
     "buttons": "the device bank",
+    "device_sample": "the device bank",
     "device_force": "the safety chain",
 }
 """The frame's fields written outside the renderer, and by whom: the loop (hapticd.servo),

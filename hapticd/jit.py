@@ -67,10 +67,7 @@ SIGNATURES = {
         " f8[:, ::1])"
     ),
     "safety_step": "i8(f8[:, ::1], f8[:, ::1], f8[::1], f8[:, :, ::1])",
-    "tick_step": (
-        "i8(f8[::1], u1[::1], i8[::1], f8[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1],"
-        " f8[:, ::1], f8[::1], f8[::1], f8[:, :, ::1])"
-    ),
+    "tick_step": "i8(f8[::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[:, :, ::1])",
 }
 
 # Compiled kernels of this process, by name: a reload compiles nothing again.

@@ -399,6 +399,7 @@ KERNEL_HELPERS = (
     authority,
     "_rows",
     "_block",
+    "_bytes",
     "safety_step",
 )
 # The sources whose code or constants the kernels compile in: numba's cache knows only
@@ -1516,6 +1517,10 @@ PASSIVITY_STATE = 5
 # flags: done, the safety chain's tick too. From TICK_FINISHED on, every stage of the
 # plan has run.
 TICK_FROM_CONTACT, TICK_NON_FINITE_INPUT, TICK_NON_FINITE_OUTPUT = 1, 3, 4
+# The devices' samples the call was to check (the loop's block says they wait) hold one no
+# hand makes (non-finite, too fast or too far): nothing written, the device bank checks
+# them itself, with its messages.
+TICK_SAMPLES = 2
 TICK_FINISHED = TICK_DONE = 5
 TICK_OBJECT, TICK_SAFETY_DEFER = 6, 7
 TICK_SAFE = 16
@@ -1552,6 +1557,7 @@ TICK_FIELDS = (
     "rendered_force",
     "object_pos",  # then object_vel, object_omega, object_rot: STATE floats
     "device_force",
+    "device_sample",
 )
 (
     _AT_POS,
@@ -1575,6 +1581,7 @@ TICK_FIELDS = (
     _AT_RENDERED,
     _AT_OBJECT,
     _AT_DEVICE_FORCE,
+    _AT_SAMPLE,
 ) = range(len(TICK_FIELDS))
 
 
@@ -1595,81 +1602,147 @@ def _block_compiled(a: np.ndarray, start: int, n: int, cols: int) -> np.ndarray:
     return a[start : start + n * cols].reshape((n, cols))
 
 
+def _bytes(a: np.ndarray) -> np.ndarray:
+    """The flat float64 ``a``'s memory as bytes (a memoryview's, uncompiled;
+    ``_bytes_compiled`` in compiled code): the frame's one-byte fields."""
+    return a.cast("B")  # type: ignore[attr-defined]
+
+
+def _bytes_compiled(a: np.ndarray) -> np.ndarray:
+    return a.view(np.uint8)
+
+
 # Helpers whose compiled form is another function (hapticd.jit compiles that one in).
-COMPILED_FORMS = {_block: _block_compiled}
+COMPILED_FORMS = {_block: _block_compiled, _bytes: _bytes_compiled}
 
 
-# tick_step's plan: one float64 array, the params (TICK_PARAMS) then these blocks, each
-# at the item ``at`` gives after TICK_FIELDS' (with its rows where they vary): contact's
-# planes (P, PLANE_COLUMNS), allocation's directions (F, 3), the free body's body (K, 3)
-# and surfaces (S, SURFACE_COLUMNS), the shape's normals (M, 3) and offsets (M,), the free
-# body's scratch (F, SCRATCH_COLUMNS), every finger's actuated directions in the actuation's
-# frame (D, 3), finger by finger, and how many each finger has (F,)
+# tick_step's state: everything a tick carries to the next (hapticd.frame.STATE) in one
+# float64 array, the renderer's; each stage holds views of its block: contact's (F,
+# CONTACT_STATE), friction's anchors (F, FRICTION_COLUMNS), passivity's (F,
+# PASSIVITY_STATE), the allocator's alpha (ALLOCATION_STATE,) and workspace
+# (allocation_work_shape(F)), and the loop's (LOOP_HEAD + 2 F,; below). The object's own
+# state is the scene's (SceneObject.state), and the safety chain's its own.
+TICK_STATE = ("contact", "anchors", "passive", "alloc", "work", "loop")
+# The loop's block: 1.0 while the devices' samples wait in the frame's device_sample for
+# the call's check (the device bank's deferred read; the call clears it), the fastest
+# plausible device speed (m/s) and farthest position (m), 1.0 to keep each finger's
+# largest device force; then that force (F, N), then its value before this tick (F, N).
+LOOP_SAMPLES, LOOP_MAX_SPEED, LOOP_MAX_DISTANCE, LOOP_STATS, LOOP_HEAD = range(5)
+
+
+def state_layout(n_fingers: int) -> dict[str, tuple[int, tuple[int, ...]]]:
+    """Each TICK_STATE block's (offset in float64 items, shape) for ``n_fingers``."""
+    shapes = {
+        "contact": (n_fingers, CONTACT_STATE),
+        "anchors": (n_fingers, FRICTION_COLUMNS),
+        "passive": (n_fingers, PASSIVITY_STATE),
+        "alloc": (ALLOCATION_STATE,),
+        "work": allocation_work_shape(n_fingers),
+        "loop": (LOOP_HEAD + 2 * n_fingers,),
+    }
+    out, at = {}, 0
+    for name in TICK_STATE:
+        out[name] = (at, shapes[name])
+        at += math.prod(shapes[name])
+    return out
+
+
+# tick_step's plan: one float64 array: where things are (TICK_AT items: each TICK_FIELDS
+# field's offset in the frame's record, then each TICK_PLAN block's below, then each
+# TICK_STATE block's in the state and the workspace's rows and columns, then in_contact's
+# offset in the record's bytes and the number of fingers), the params (TICK_PARAMS), then
+# these blocks (with their rows where they vary): contact's planes (P, PLANE_COLUMNS),
+# allocation's directions (F, 3), the free body's body (K, 3) and surfaces (S,
+# SURFACE_COLUMNS), the shape's normals (M, 3) and offsets (M,), the free body's scratch
+# (F, SCRATCH_COLUMNS), every finger's actuated directions in the actuation's frame (D, 3),
+# finger by finger, and how many each finger has (F,)
 TICK_PLAN = ("planes", "rows", "local", "body", "rows", "surf", "rows", "normals", "rows")
 TICK_PLAN += ("offsets", "scratch", "directions", "rows", "counts")
 _AT_PLAN = len(TICK_FIELDS)
-TICK_AT = _AT_PLAN + len(TICK_PLAN)
+_AT_STATE = _AT_PLAN + len(TICK_PLAN)
+_AT_IN_CONTACT = _AT_STATE + len(TICK_STATE) + 2
+_AT_FINGERS = _AT_IN_CONTACT + 1
+TICK_AT = _AT_FINGERS + 1
 
 
 def tick_step(
     record: np.ndarray,
-    in_contact: np.ndarray,
-    at: np.ndarray,
-    obj_state: np.ndarray,
-    contact_state: np.ndarray,
-    anchors: np.ndarray,
-    passive: np.ndarray,
-    alloc_state: np.ndarray,
-    alloc_work: np.ndarray,
+    state: np.ndarray,
     plan: np.ndarray,
+    obj_state: np.ndarray,
     safety_params: np.ndarray,
     out_prev: np.ndarray,
 ) -> int:
-    """One whole tick of the renderer's plan in one call: the object's planes at its pose,
-    contact, friction, the contact forces, allocation, the environment's force through each
-    finger's actuated directions, the passivity controller, their sum, the free object's
-    step and the scene's state, each by its kernel or helper (the stages' physics;
-    hapticd.render.Renderer's plan says which run, and a plan with a stage of its own in
-    Python runs the call in parts: the STAGE_ indices params[TICK_FIRST] to before
-    params[TICK_LAST]).
+    """One whole tick of the renderer's plan in one call: the devices' samples checked
+    (when they wait), the object's planes at its pose, contact, friction, the contact
+    forces, allocation, the environment's force through each finger's actuated directions,
+    the passivity controller, their sum, the free object's step and the scene's state, each
+    by its kernel or helper (the stages' physics; hapticd.render.Renderer's plan says which
+    run, and a plan with a stage of its own in Python runs the call in parts: the STAGE_
+    indices params[TICK_FIRST] to before params[TICK_LAST]).
 
-    ``record``: the frame's record as float64 items, whose fields ``TICK_FIELDS`` start
-    at ``at`` (int64, TICK_AT); ``in_contact`` (F,) u1, the frame's. The carried state:
-    the object's ``obj_state`` (STATE,), contact's ``contact_state``, friction's
-    ``anchors``, passivity's ``passive`` (F, PASSIVITY_STATE), the allocation's
-    ``alloc_state`` (ALLOCATION_STATE,; its workspace ``alloc_work``). ``plan``: the params
-    and blocks ``TICK_PLAN`` declares. With params[TICK_SAFETY], after the last stage, the
-    safety chain's normal tick on the rendered force into ``device_force``: a free
-    object's state checked first, then safety_step with the chain's ``safety_params``
-    and ``out_prev``. Returns a TICK_ outcome.
+    ``record``: the frame's record as float64 items, where ``plan`` says each field is;
+    ``state``: the carried state (TICK_STATE), ``obj_state`` the object's (STATE,);
+    ``plan``: where things are, the params and the blocks ``TICK_PLAN`` declares. With
+    params[TICK_SAFETY], after the last stage, the safety chain's normal tick on the
+    rendered force into ``device_force``: a free object's state checked first, then
+    safety_step with the chain's ``safety_params`` and ``out_prev``, then each finger's
+    largest force kept (the loop's block). Returns a TICK_ outcome.
     """
-    n = in_contact.shape[0]
+    n = int(plan[_AT_FINGERS])
+    s = _AT_STATE
+    contact_state = _block(state, int(plan[s]), n, CONTACT_STATE)
+    anchors = _block(state, int(plan[s + 1]), n, FRICTION_COLUMNS)
+    passive = _block(state, int(plan[s + 2]), n, PASSIVITY_STATE)
+    alloc_state = state[int(plan[s + 3]) : int(plan[s + 3]) + ALLOCATION_STATE]
+    alloc_work = _block(state, int(plan[s + 4]), int(plan[s + 6]), int(plan[s + 7]))
+    lp = int(plan[s + 5])
+    at_pos, at_vel = int(plan[_AT_POS]), int(plan[_AT_VEL])
+    if state[lp + LOOP_SAMPLES] != 0.0:
+        # The device bank's check of the samples it read (hapticd.device_bank), compiled:
+        # a sample no hand makes refuses the tick before anything is written.
+        state[lp + LOOP_SAMPLES] = 0.0
+        sp = int(plan[_AT_SAMPLE])
+        sv = sp + 3 * n
+        speed, far = state[lp + LOOP_MAX_SPEED], state[lp + LOOP_MAX_DISTANCE]
+        for i in range(n):
+            p, v = sp + 3 * i, sv + 3 * i
+            if not (
+                _norm3(record[v], record[v + 1], record[v + 2]) <= speed
+                and _norm3(record[p], record[p + 1], record[p + 2]) <= far
+            ):
+                return TICK_SAMPLES
+        for j in range(3 * n):
+            record[at_pos + j] = record[sp + j]
+            record[at_vel + j] = record[sv + j]
+    ic = int(plan[_AT_IN_CONTACT])
+    in_contact = _bytes(record)[ic : ic + n]
     k = _AT_PLAN
-    params = plan[0:TICK_PARAMS]
+    params = plan[TICK_AT : TICK_AT + TICK_PARAMS]
     first, last = params[TICK_FIRST], params[TICK_LAST]
-    planes = _block(plan, at[k], at[k + 1], PLANE_COLUMNS)
-    local = _rows(plan, at[k + 2], n)
-    body = _rows(plan, at[k + 3], at[k + 4])
-    surf = _block(plan, at[k + 5], at[k + 6], SURFACE_COLUMNS)
-    body_normals = _rows(plan, at[k + 7], at[k + 8])
-    body_offsets = plan[at[k + 9] : at[k + 9] + at[k + 8]]
-    scratch = _block(plan, at[k + 10], n, SCRATCH_COLUMNS)
-    directions = _rows(plan, at[k + 11], at[k + 12])
-    counts = plan[at[k + 13] : at[k + 13] + n]
-    device_pos = _rows(record, at[_AT_POS], n)
-    device_vel = _rows(record, at[_AT_VEL], n)
-    plain_proxy = _rows(record, at[_AT_PLAIN_PROXY], n)
-    plain_surface = _rows(record, at[_AT_PLAIN_SURFACE], n)
-    plain_point = _rows(record, at[_AT_PLAIN_POINT], n)
-    normal = _rows(record, at[_AT_NORMAL], n)
-    env_force = _rows(record, at[_AT_ENV], n)
-    surface_point = _rows(record, at[_AT_SURFACE], n)
-    contact_point = _rows(record, at[_AT_POINT], n)
-    contact_force = _rows(record, at[_AT_FORCE], n)
-    allocated = _rows(record, at[_AT_ALLOCATED], n)
-    env_rendered = _rows(record, at[_AT_ENV_RENDERED], n)
-    damping_force = _rows(record, at[_AT_DAMPING_FORCE], n)
-    rendered = _rows(record, at[_AT_RENDERED], n)
+    planes = _block(plan, int(plan[k]), int(plan[k + 1]), PLANE_COLUMNS)
+    local = _rows(plan, int(plan[k + 2]), n)
+    body = _rows(plan, int(plan[k + 3]), int(plan[k + 4]))
+    surf = _block(plan, int(plan[k + 5]), int(plan[k + 6]), SURFACE_COLUMNS)
+    body_normals = _rows(plan, int(plan[k + 7]), int(plan[k + 8]))
+    body_offsets = plan[int(plan[k + 9]) : int(plan[k + 9]) + int(plan[k + 8])]
+    scratch = _block(plan, int(plan[k + 10]), n, SCRATCH_COLUMNS)
+    directions = _rows(plan, int(plan[k + 11]), int(plan[k + 12]))
+    counts = plan[int(plan[k + 13]) : int(plan[k + 13]) + n]
+    device_pos = _rows(record, int(plan[_AT_POS]), n)
+    device_vel = _rows(record, int(plan[_AT_VEL]), n)
+    plain_proxy = _rows(record, int(plan[_AT_PLAIN_PROXY]), n)
+    plain_surface = _rows(record, int(plan[_AT_PLAIN_SURFACE]), n)
+    plain_point = _rows(record, int(plan[_AT_PLAIN_POINT]), n)
+    normal = _rows(record, int(plan[_AT_NORMAL]), n)
+    env_force = _rows(record, int(plan[_AT_ENV]), n)
+    surface_point = _rows(record, int(plan[_AT_SURFACE]), n)
+    contact_point = _rows(record, int(plan[_AT_POINT]), n)
+    contact_force = _rows(record, int(plan[_AT_FORCE]), n)
+    allocated = _rows(record, int(plan[_AT_ALLOCATED]), n)
+    env_rendered = _rows(record, int(plan[_AT_ENV_RENDERED]), n)
+    damping_force = _rows(record, int(plan[_AT_DAMPING_FORCE]), n)
+    rendered = _rows(record, int(plan[_AT_RENDERED]), n)
     if first <= STAGE_CONTACT < last:
         world_planes(_rows(obj_state, 9, 3), obj_state[0:3], body_normals, body_offsets, planes)
         if (
@@ -1697,7 +1770,7 @@ def tick_step(
             plain_point,
             surface_point,
             normal,
-            _rows(record, at[_AT_PROXY], n),
+            _rows(record, int(plan[_AT_PROXY]), n),
             contact_point,
             anchors,
             obj_state,
@@ -1717,7 +1790,7 @@ def tick_step(
     a = TICK_ALLOCATION_AT
     if first <= STAGE_ALLOCATION < last:
         params[a + 5], params[a + 6], params[a + 7] = obj_state[0], obj_state[1], obj_state[2]
-        scalars = record[at[_AT_SCALARS] : at[_AT_SCALARS] + ACCURACY + 1]
+        scalars = record[int(plan[_AT_SCALARS]) : int(plan[_AT_SCALARS]) + ACCURACY + 1]
         outcome = allocation_step(
             in_contact,
             device_pos,
@@ -1726,7 +1799,7 @@ def tick_step(
             local,
             params[a:TICK_BODY_AT],
             alloc_state,
-            record[at[_AT_LAM] : at[_AT_LAM] + n],
+            record[int(plan[_AT_LAM]) : int(plan[_AT_LAM]) + n],
             allocated,
             scalars,
             alloc_work,
@@ -1765,8 +1838,8 @@ def tick_step(
             params[TICK_PASSIVITY_AT:TICK_FRICTION_AT],
             passive,
             damping_force,
-            record[at[_AT_ENERGY] : at[_AT_ENERGY] + n],
-            record[at[_AT_DAMPING] : at[_AT_DAMPING] + n],
+            record[int(plan[_AT_ENERGY]) : int(plan[_AT_ENERGY]) + n],
+            record[int(plan[_AT_DAMPING]) : int(plan[_AT_DAMPING]) + n],
         )
     if params[TICK_SUM] != 0.0 and first <= STAGE_SUM < last:
         # The contributions in the plan's order: allocated, environment's, passivity's.
@@ -1791,7 +1864,7 @@ def tick_step(
             scratch,
         )
     if first <= STAGE_SCENE < last:
-        o = at[_AT_OBJECT]
+        o = int(plan[_AT_OBJECT])
         for k in range(STATE):
             record[o + k] = obj_state[k]
     if params[TICK_SAFETY] == 0.0 or not first <= STAGE_SAFETY < last:
@@ -1806,9 +1879,18 @@ def tick_step(
     flags = safety_step(rendered, device_pos, safety_params, out_prev)
     if flags & SAFETY_DEFER:
         return TICK_SAFETY_DEFER
-    out = _rows(record, at[_AT_DEVICE_FORCE], n)
+    out = _rows(record, int(plan[_AT_DEVICE_FORCE]), n)
+    stats = state[lp + LOOP_STATS] != 0.0
     for i in range(n):
-        out[i, 0], out[i, 1], out[i, 2] = out_prev[0, i, 0], out_prev[0, i, 1], out_prev[0, i, 2]
+        f0, f1, f2 = out_prev[0, i, 0], out_prev[0, i, 1], out_prev[0, i, 2]
+        out[i, 0], out[i, 1], out[i, 2] = f0, f1, f2
+        if stats:  # the loop's statistics: each finger's largest force, and the last one
+            top = lp + LOOP_HEAD + i
+            was = state[top]
+            state[top + n] = was
+            mag = _norm3(f0, f1, f2)
+            if mag > was:
+                state[top] = mag
     return TICK_SAFE + flags
 
 

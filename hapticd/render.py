@@ -16,6 +16,7 @@ tick on the renderer's own frame, with no devices, timing or safety.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -129,16 +130,71 @@ class Renderer:
             adaptive if adaptive is not None else AdaptiveState(),
             dt,
         )
-        # Stages that carry state from tick to tick live as long as the renderer.
-        self._contact = Contact(self.scene, self.radii)
-        self._friction = Friction(self.radii)
+        # What a tick carries to the next, in one array (hapticd.kernels.TICK_STATE) that
+        # the one call takes; the stages that carry state live as long as the renderer and
+        # hold views of their blocks.
+        layout = kn.state_layout(self.n_fingers)
+        self.state = np.zeros(sum(math.prod(shape) for _, shape in layout.values()))
+        views = self._state_views()
+        self._contact = Contact(self.scene, self.radii, views["contact"])
+        self._friction = Friction(self.radii, views["anchors"])
         self._allocation = Allocation(self.scene, self.allocator)
-        self._passivity = None if passivity is None else Passivity(passivity, self.n_fingers, dt)
+        self._passivity = (
+            None
+            if passivity is None
+            else Passivity(passivity, self.n_fingers, dt, views["passive"])
+        )
+        self._adopt()
         self._inserted: list[tuple[str, Stage]] = []
         self._output: Stage | None = None  # a stage writing rendered_force instead of the sum
         self.kernels: dict[str, Callable[..., None]] = {}
         self.frame = Frame(self.n_fingers, actuation.n_actuators)
         self.plan()
+
+    # -- the carried state ------------------------------------------------------------------
+
+    def _state_views(self) -> dict[str, np.ndarray]:
+        """Each block of ``state`` (kernels.TICK_STATE) as a view, made again when they are
+        no views of it (a deep copy or a pickle copies each array on its own)."""
+        views = getattr(self, "_views", None)
+        if views is None or views["loop"].base is not self.state:
+            layout = kn.state_layout(self.n_fingers)
+            views = {
+                name: self.state[at : at + math.prod(shape)].reshape(shape)
+                for name, (at, shape) in layout.items()
+            }
+            self._views = views
+        return views
+
+    def _carriers(self) -> list[tuple[object, str, str]]:
+        """Who holds a view of which block of ``state``: (holder, attribute, block)."""
+        held: list[tuple[object, str, str]] = [
+            (self._contact, "state", "contact"),
+            (self._friction, "anchors", "anchors"),
+            (self.allocator, "state", "alloc"),
+            (self.allocator, "work", "work"),
+        ]
+        if self._passivity is not None:
+            held.append((self._passivity, "state", "passive"))
+        return held
+
+    def _adopt(self) -> None:
+        """Every carrier's array a view of ``state``: one that holds its own (the allocator's
+        from its start, a copy's) has its values copied in and holds the view from then on."""
+        views = self._state_views()
+        for holder, attr, block in self._carriers():
+            view = views[block]
+            mine = getattr(holder, attr)
+            if mine is not view:
+                if mine.shape == view.shape:
+                    view[...] = mine
+                setattr(holder, attr, view)
+
+    @property
+    def loop(self) -> np.ndarray:
+        """The servo loop's block of ``state`` (kernels.LOOP_*): whether the devices' samples
+        wait for the one call's check, their limits, each finger's largest force (N)."""
+        return self._state_views()["loop"]
 
     # -- the plan -------------------------------------------------------------------------
 
@@ -317,8 +373,8 @@ class OneCall:
         self._started = False
         self._safety: SafetyChain | None = None  # the chain whose tick the call makes
         self._plan = np.zeros(0)  # tick_step's plan (kernels.TICK_PLAN), made by _bind
+        self._params = self._plan  # the plan's params (kernels.TICK_PARAMS, a view)
         self._planes = np.zeros((0, kn.PLANE_COLUMNS))  # the plan's planes block (a view)
-        self._at = np.zeros(kn.TICK_AT, dtype=np.int64)
         # The tick in parts: runs of the kernel's stages (first, last) and Python stages.
         self._parts = _parts(renderer.stages)
         self._single = len(self._parts) == 1  # one part: the whole tick
@@ -362,12 +418,13 @@ class OneCall:
             "directions": np.array([d for ds in act.local for d in ds], dtype=float),
             "counts": np.array(act.counts, dtype=float),
         }
-        size = kn.TICK_PARAMS + sum(b.size for b in blocks.values())
+        head = kn.TICK_AT + kn.TICK_PARAMS
+        size = head + sum(b.size for b in blocks.values())
         if self._plan.size != size:
             self._plan = np.zeros(size)
         plan = self._plan
         layout: list[int] = []
-        start = rows = kn.TICK_PARAMS
+        start = rows = head
         for name in kn.TICK_PLAN:
             if name == "rows":  # the rows of the block before
                 layout.append(rows)
@@ -380,7 +437,7 @@ class OneCall:
         self._planes = plan[at_planes : at_planes + blocks["planes"].size].reshape(
             -1, kn.PLANE_COLUMNS
         )
-        p = plan[: kn.TICK_PARAMS]
+        p = self._params = plan[kn.TICK_AT : head]
         p[:] = 0.0
         p[kn.TICK_FRICTION] = float(friction)
         p[kn.TICK_FREE] = float(free)
@@ -409,18 +466,21 @@ class OneCall:
             ("residual_internal", "residual_external", "residual_total", "amplification", "alpha"),
         )
         adjacent(frame, ("object_pos", "object_vel", "object_omega", "object_rot"))
-        self._at[:] = [*(at[name] for name in kn.TICK_FIELDS), *layout]
+        r._adopt()
+        state = kn.state_layout(n)
+        plan[: kn.TICK_AT] = [
+            *(at[name] for name in kn.TICK_FIELDS),
+            *layout,
+            *(state[name][0] for name in kn.TICK_STATE),
+            *state["work"][1],
+            frame.dtype.fields["in_contact"][1],
+            n,
+        ]
         self._args = (
             frame.record.reshape(1).view(np.uint8).view(np.float64),
-            frame.in_contact,
-            self._at,
-            obj.state,
-            contact.state,
-            r._friction.anchors,
-            _NO_PASSIVITY if passivity is None else passivity.state,
-            r.allocator.state,
-            r.allocator.work,
+            r.state,
             plan,
+            obj.state,
             *_NO_SAFETY,
         )
         if self._single:
@@ -448,22 +508,34 @@ class OneCall:
         if self._single:
             outcome = self._call(*self._args)
             if outcome < _FINISHED:
+                if outcome == kn.TICK_SAMPLES:
+                    return SAMPLES_REFUSED
                 self._stopped(frame, outcome)
             if self._free:
                 obj.update_world()
         else:
             outcome = self._in_parts(frame)
+            if outcome == kn.TICK_SAMPLES:
+                return SAMPLES_REFUSED
         # The chain's flags, or None: no chain, or its own checks to run.
         return outcome - _SAFE if outcome >= _SAFE else None
 
+    @property
+    def started(self) -> bool:
+        """Whether every proxy has started at its device (the first finite tick): from then
+        on the devices' samples may wait in the frame for the call's check."""
+        return self._started
+
     def _in_parts(self, frame: Frame) -> int:
         """The tick in its parts: the kernel's runs of stages and the Python stages."""
-        p = self._plan
+        p = self._params
         outcome = kn.TICK_DONE
         for part in self._parts:
             if isinstance(part, tuple):
                 p[kn.TICK_FIRST], p[kn.TICK_LAST] = part
                 outcome = self._call(*self._args)
+                if outcome == kn.TICK_SAMPLES:
+                    return outcome
                 if outcome < _FINISHED:
                     self._stopped(frame, outcome)
                 if self._free and part[0] <= kn.STAGE_DYNAMICS < part[1]:
@@ -488,7 +560,7 @@ class OneCall:
         arrays = _NO_SAFETY if safety is None else safety.kernel_arrays
         self._args = (*self._args[:-2], *arrays)
         self._call = direct(self._fn, self._args)
-        self._plan[kn.TICK_SAFETY] = 0.0 if safety is None else 1.0
+        self._params[kn.TICK_SAFETY] = 0.0 if safety is None else 1.0
 
 
 def direct(fn: Callable[..., int], args: tuple[np.ndarray, ...]) -> Callable[..., int]:
@@ -540,10 +612,12 @@ def _parts(stages: list[Stage]) -> list[tuple[int, int] | Stage]:
     return parts
 
 
+# What ``OneCall.run`` returns when the devices' samples it was to check hold one no hand
+# makes (kernels.TICK_SAMPLES): nothing of the tick is written; the device bank checks
+# them itself (its messages and fault), then the tick runs again.
+SAMPLES_REFUSED = -1
 # tick_step's safety arrays when the safety chain does not run in the call (never read).
 _NO_SAFETY = (np.zeros(kn.SAFETY_PARAMS), np.zeros((2, 1, 3)))
-# tick_step's passivity state without the passivity stage (never read).
-_NO_PASSIVITY = np.zeros((0, kn.PASSIVITY_STATE))
 _SAFE = kn.TICK_SAFE
 _FINISHED = kn.TICK_FINISHED
 

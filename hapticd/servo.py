@@ -35,14 +35,14 @@ from hapticd_drivers import Device
 
 from hapticd import kernels, realtime
 from hapticd.commands import Command
-from hapticd.device_bank import DeviceBank
+from hapticd.device_bank import MAX_DEVICE_DISTANCE_M, DeviceBank
 from hapticd.event_ring import DEFAULT_CAPACITY, EventRing, FrameEvents
 from hapticd.events import CAUSE_CODES, CODES
 from hapticd.frame import Frame, item_view
 from hapticd.pacing import SPIN_MARGIN_S, LoopStats, Pacer
 from hapticd.params import PARAMS, ParamError
 from hapticd.recording import Recorder
-from hapticd.render import Renderer
+from hapticd.render import SAMPLES_REFUSED, Renderer
 from hapticd.safety import SafetyChain
 
 log = logging.getLogger("hapticd.servo")
@@ -52,6 +52,7 @@ TRAJECTORY_END = CODES["trajectory_end"]
 RECORDING_STARTED = CODES["recording_started"]
 OTHER_CAUSE = CAUSE_CODES["other"]
 TRAJECTORY_ENDED = "trajectory ended"
+SAMPLES = kernels.LOOP_SAMPLES
 # hapticd.kernels.MAX_OBJECT_*: a free object beyond them has diverged.
 MAX_OBJECT_DISTANCE_M = kernels.MAX_OBJECT_DISTANCE_M
 MAX_OBJECT_SPEED_M_PER_S = kernels.MAX_OBJECT_SPEED_M_PER_S
@@ -135,6 +136,9 @@ class ServoLoop:
         self.stats: LoopStats = self.pacer.stats
         self.stats.max_force = [0.0] * F
         self.stats.contact_ticks = [0] * F
+        self._loop_of: Renderer | None = None  # the renderer whose loop block is bound
+        self._speed_of = math.inf
+        self._loop_block = memoryview(np.zeros(kernels.LOOP_HEAD))
         self.clock = clock if clock is not None else TickClock()
         self._t = 0.0
         self._stop_reason: str | None = None
@@ -294,19 +298,30 @@ class ServoLoop:
         self._tick_view[()] = k
         self._t_view[()] = t
         self._t_wall_view[()] = start - self.pacer.t0
-        self.bank.read(frame, k, t)
+        renderer = self.renderer
+        if renderer is not self._loop_of or self.bank.max_speed_m_per_s != self._speed_of:
+            self._bind_renderer(renderer)
+        call = renderer.one_call
+        # The samples wait in the frame for the one call's check (its compiled form of the
+        # bank's) once every proxy has started; the bank checks them itself otherwise.
+        self._loop_block[SAMPLES] = self.bank.read(frame, k, t, call.started)
         safety = self.safety
         # The safety chain's normal tick runs in the renderer's one call when it can: then
-        # the object was checked there too, and device_force is written. The watchdog's
-        # clock is read after it: a stalled tick trips before its force is sent.
-        # Renderer.run's one call, called without the method around it.
-        flags = self.renderer.one_call.run(frame, safety if safety.ready(t) else None)
+        # the object was checked there too, device_force is written and each finger's
+        # largest force kept. The watchdog's clock is read after it: a stalled tick trips
+        # before its force is sent. Renderer.run's one call, without the method around it.
+        flags = call.run(frame, safety if safety.ready(t) else None)
+        if flags == SAMPLES_REFUSED:  # a sample no hand makes: the bank says which, a fault
+            self.bank.check(frame, k, t)
+            flags = call.run(frame, safety if safety.ready(t) else None)
         t_wall = self.watchdog_clock() if self.wall_watchdog else None
         if flags is None:
             self._check_object(frame, k, t)
             safety.run(frame, t_wall)
+            self._keep_max_force(frame, False)
         elif not safety.done(flags, t_wall):
             safety.run(frame, t_wall)  # the watchdog trips: zero force
+            self._keep_max_force(frame, True)
         self.bank.write(frame, k, t)
         if self.safety.fault is not None and not self.forces_off:
             # A latched fault: after the zero force just written, the devices' forces go off
@@ -314,6 +329,41 @@ class ServoLoop:
             # raising; `enable` turns them on again.
             self.forces_off = True
             self.bank.zero()
+
+    def _bind_renderer(self, renderer: Renderer) -> None:
+        """The loop's block of ``renderer``'s state (hapticd.kernels.LOOP_*): the device
+        bank's sample limits, each finger's largest force so far (carried over from the
+        renderer before a reload) kept by the one call."""
+        block = renderer.loop
+        old = self._loop_of
+        if old is not None and old is not renderer:
+            F = len(self.stats.max_force)
+            top = kernels.LOOP_HEAD
+            block[top : top + F] = np.maximum(block[top : top + F], old.loop[top : top + F])
+        block[kernels.LOOP_MAX_SPEED] = self._speed_of = self.bank.max_speed_m_per_s
+        block[kernels.LOOP_MAX_DISTANCE] = MAX_DEVICE_DISTANCE_M
+        block[kernels.LOOP_STATS] = 1.0
+        self._loop_of = renderer
+        self._loop_block = memoryview(block)
+
+    def _keep_max_force(self, frame: Frame, undo: bool) -> None:
+        """Each finger's largest force, for a tick whose force the one call did not send:
+        ``undo`` the call's count of the force it made (the chain then sent another)."""
+        block = self._loop_block
+        top = kernels.LOOP_HEAD
+        F = len(self._force_rows)
+        for i, row in enumerate(self._force_rows):
+            if undo:
+                block[top + i] = block[top + F + i]
+            f0, f1, f2 = row.tolist()
+            mag = kernels._norm3(f0, f1, f2)
+            if mag > block[top + i]:
+                block[top + i] = mag
+
+    def max_force(self) -> list[float]:
+        """Each finger's largest device force so far, N."""
+        top = kernels.LOOP_HEAD
+        return self.renderer.loop[top : top + len(self.stats.max_force)].tolist()
 
     def _bind_scalars(self, frame: Frame) -> None:
         """Item views (hapticd.frame.item_view) of the frame's per-tick scalars the loop
@@ -477,6 +527,8 @@ class ServoLoop:
         finally:
             self.running = False
             self.stats.contact_ticks[:] = self._frame_events.contact_ticks()
+            with contextlib.suppress(Exception):
+                self.stats.max_force[:] = self.max_force()
             # Was the last force sent not zero? Then the recording needs the shutdown's zero.
             unrecorded_zero = bool(self.frame.device_force.any())
             # The devices first: nothing below may stand between a fault and zero force.
@@ -502,9 +554,8 @@ class ServoLoop:
         return self.stats
 
     def _loop(self) -> None:
-        pacer, st = self.pacer, self.stats
+        pacer = self.pacer
         T = self.period
-        hypot = math.hypot
         pacer.start()
         k = 0
         if self.recorder is not None:
@@ -538,17 +589,8 @@ class ServoLoop:
                 self._note_fault(k, t)
             if frame is not self._scalars_of:
                 self._bind_scalars(frame)
-            # Plain floats through each finger's memoryview: numpy item access per finger
-            # would cost several times this. (Ticks in contact are counted by the frame
-            # watcher, at each change.)
-            max_force = st.max_force
-            i = 0
-            for row in self._force_rows:
-                f0, f1, f2 = row.tolist()
-                mag = hypot(f0, f1, f2)
-                if mag > max_force[i]:
-                    max_force[i] = mag
-                i += 1  # noqa: SIM113 - enumerate's pair would cost more per finger
+            # (Each finger's largest force is kept by the one call, or by _tick when the
+            # chain sent the force; ticks in contact by the frame watcher, at each change.)
             self._fault_view[()] = fault is not None
             if self.control_seq != self._control_seq_written:
                 # It changes only when a command lands (its field stays between ticks).

@@ -88,24 +88,31 @@ class Contact:
     reads = ("device_pos", "device_vel")
     kernel_stage = kernels.STAGE_CONTACT
 
-    def __init__(self, scene: Scene, radii: list[float]) -> None:
+    def __init__(self, scene: Scene, radii: list[float], state: np.ndarray | None = None) -> None:
         self.scene = scene
         self.radii = radii
-        # The proxies (m), the radii, the active planes and the kernel's work space.
-        self._state = np.zeros((len(radii), kernels.CONTACT_STATE))
-        self._state[:, kernels._C_RADIUS] = radii
-        self._proxies = self._state[:, :3]
+        # The proxies (m), the radii, the active planes and the kernel's work space: a view
+        # of the renderer's state (hapticd.kernels.TICK_STATE), or its own.
+        if state is None:
+            state = np.zeros((len(radii), kernels.CONTACT_STATE))
+        state[:, kernels._C_RADIUS] = radii
+        self.state = state
         self._started = False  # the first tick: every proxy starts at its device
         self._planes: np.ndarray | None = None  # the kernel's planes (PLANE_COLUMNS)
         self._planes_for: Polytope | None = None
         self.outputs = HELD
-        self.carries = {"proxies": self._state}  # hapticd.frame.STATE
 
     @property
     def state(self) -> np.ndarray:
         """The proxies (columns 0-2, m), the radii, the active planes and their multipliers,
         and the kernel's work space (F, kernels.CONTACT_STATE), carried from tick to tick."""
         return self._state
+
+    @state.setter
+    def state(self, state: np.ndarray) -> None:
+        self._state = state
+        self._proxies = state[:, :3]
+        self.carries = {"proxies": state}  # hapticd.frame.STATE
 
     @property
     def writes(self) -> tuple[str, ...]:
@@ -189,10 +196,16 @@ class Friction:
     writes = HELD
     kernel_stage = kernels.STAGE_FRICTION
 
-    def __init__(self, radii: list[float]) -> None:
-        self.anchors = np.zeros((len(radii), kernels.FRICTION_COLUMNS))
-        self.anchors[:, kernels.FINGER_RADIUS] = radii
-        self.carries = {"friction_anchors": self.anchors}  # hapticd.frame.STATE
+    def __init__(self, radii: list[float], anchors: np.ndarray | None = None) -> None:
+        # A view of the renderer's state (hapticd.kernels.TICK_STATE), or its own.
+        if anchors is None:
+            anchors = np.zeros((len(radii), kernels.FRICTION_COLUMNS))
+        anchors[:, kernels.FINGER_RADIUS] = radii
+        self.anchors = anchors
+
+    @property
+    def carries(self) -> dict[str, object]:
+        return {"friction_anchors": self.anchors}  # hapticd.frame.STATE
 
 
 class Forces:
@@ -342,10 +355,13 @@ class Passivity:
     writes = ("passivity_force", "passivity_energy", "passivity_damping")
     kernel_stage = kernels.STAGE_PASSIVITY
 
-    def __init__(self, params: PassivityParams, n_fingers: int, dt: float) -> None:
+    def __init__(
+        self, params: PassivityParams, n_fingers: int, dt: float, state: np.ndarray | None = None
+    ) -> None:
         self.params = params
         self.dt = dt
-        self.state = np.zeros((n_fingers, kernels.PASSIVITY_STATE))
+        # A view of the renderer's state (hapticd.kernels.TICK_STATE), or its own.
+        self.state = np.zeros((n_fingers, kernels.PASSIVITY_STATE)) if state is None else state
         self.inputs: tuple[str, ...] = ("allocated_force",)
 
     @property

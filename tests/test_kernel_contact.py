@@ -349,10 +349,12 @@ def _hostile_run(path, mode: str, value: float, where: str) -> tuple[dict, np.nd
     else:
         bank = loop.bank
 
-        def read(frame, k, t, _read=bank.read):
+        def read(frame, k, t, defer=False, _read=bank.read):
+            # Checked and entered here (not left to the one call's check), then spoiled.
             _read(frame, k, t)
             if loop.now() >= 1.0:
                 frame.device_pos[0] = value
+            return False
 
         bank.read = read
     written = []
