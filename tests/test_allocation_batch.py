@@ -4,7 +4,7 @@ method; allocate() is the same definition with a batch of one."""
 
 import numpy as np
 import pytest
-from hypothesis import assume, given
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from hapticd.allocation import (
@@ -139,6 +139,7 @@ def compiled_grasps():
 
 
 @pytest.mark.parametrize("method", ROBUST_METHODS)
+@settings(max_examples=25)  # the oracle's SVDs cost the most here
 @given(batches(), st.floats(0, 1))
 def test_compiled_equals_the_oracle(compiled_grasps, method, b, alpha):
     """The robust methods compiled grasp by grasp (kernel=: the closed forms and the general
@@ -367,6 +368,7 @@ def _two_contact_grasps(draw):
     return r1, r2, d1, d2, l1, l2
 
 
+@settings(max_examples=50)  # each example: up to 12 grasps, 3 methods, the oracle's SVDs
 @given(st.lists(_two_contact_grasps(), min_size=1, max_size=12))
 def test_the_closed_forms_equal_the_oracle_on_degenerate_grasps(compiled_grasps, grasps):
     """Two contacts with one direction each take the closed forms, compiled or not: what the
