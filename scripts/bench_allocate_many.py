@@ -13,8 +13,8 @@ Variants per method (pinv, if, ef), per grasp:
 - allocate loop  : a Python loop over allocate() (robust, closed form where it applies)
 - allocate_many  : one call on the loop's grasps, uncompiled (the default: the same
                    per-grasp code on Python floats)
-- compiled       : allocate_many with kernel= (hapticd.kernels.allocate_grasps, compiled
-                   by hapticd.jit): one call on a batch of 1e3, and of 1e4, grasps
+- compiled       : allocate_many with kernel= (hapticd.physics.kernels.allocate_grasps, compiled
+                   by hapticd.physics.jit): one call on a batch of 1e3, and of 1e4, grasps
 
 Every variant is timed the same way: the process's CPU time of a whole pass
 divided by its number of grasps (a loop over ``--loop-grasps`` grasps, a batch
@@ -42,8 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hapticd import jit
 from hapticd.allocation import allocate, allocate_many, ef_exact, if_exact, pinv_exact
+from hapticd.physics import jit
 
 METHODS = ("pinv", "if", "ef")
 SEED: dict[str, Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]] = {

@@ -18,7 +18,7 @@ from hapticd.allocation import (
     two_contact_structure,
 )
 from hapticd.allocation.cases import SWEEPS, block_actuation, sweep
-from hapticd.grasp import grasp_matrix
+from hapticd.physics.grasp import grasp_matrix
 from tests.allocation_oracle import robust_allocation
 
 KINDS = (
@@ -132,8 +132,8 @@ def test_equals_allocate_one_by_one(method, b, data):
 
 @pytest.fixture(scope="module")
 def compiled_grasps():
-    """allocate_many's robust methods compiled (hapticd.kernels.allocate_grasps)."""
-    from hapticd import jit
+    """allocate_many's robust methods compiled (hapticd.physics.kernels.allocate_grasps)."""
+    from hapticd.physics import jit
 
     return jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]
 

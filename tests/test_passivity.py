@@ -9,23 +9,23 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from hapticd import kernels
-from hapticd.actuation import Actuation
 from hapticd.analysis import Pipeline, examples
-from hapticd.build import build_renderer
 from hapticd.cli import format_status
+from hapticd.daemon.build import build_renderer
 from hapticd.daemon.session import build_session
 from hapticd.daemon.summary import status
-from hapticd.passivity import PassivityParams, authority, control, observe
+from hapticd.physics import kernels
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.passivity import PassivityParams, authority, control, observe
+from hapticd.physics.render import Renderer
+from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject
 from hapticd.profile import ProfileError, load_profile, parse_profile
-from hapticd.render import Renderer
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject
 from tests.conftest import ROOT
 
 
 def step(energy, force, dx, dx_actuated, dt, params):
     """One tick of one finger's observer and controller, as the tick's one call composes
-    them (hapticd.kernels._passivity): (E(n) J, alpha(n) N s/m) for E(n-1) ``energy`` (J),
+    them (hapticd.physics.kernels._passivity): (E(n) J, alpha(n) N s/m) for E(n-1) ``energy`` (J),
     the rendered force (3,) N, the finger's motion dx (3,) m and P_a dx (3,) m over ``dt``
     s. Non-finite input leaves E unchanged and adds no damping."""
     observed = observe(energy, force, dx)

@@ -20,7 +20,7 @@ class AdaptiveState:
     The target is smoothstep((rho - ratio_low) / (ratio_high - ratio_low)) of the
     external ratio rho; alpha (its start) follows it with a first-order lag of
     ``time_constant_s`` so that no switch is a jolt. The allocation kernel moves it
-    each tick (``hapticd.kernels._task_alpha``; ``ContactAllocator.alpha``).
+    each tick (``hapticd.physics.kernels._task_alpha``; ``ContactAllocator.alpha``).
     """
 
     ratio_low: float = 0.2

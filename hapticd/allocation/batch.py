@@ -9,7 +9,7 @@ N = 1; ``allocate_many`` runs it on a batch.
   direction each, the general path (``general.general``: the filtered
   pseudoinverses on Gram matrices, the soft internal projector, IF's projector form)
   for every other grasp: the same functions the servo loop's kernel calls; on Python
-  floats, or compiled with ``kernel`` (``hapticd.kernels.allocate_grasps``);
+  floats, or compiled with ``kernel`` (``hapticd.physics.kernels.allocate_grasps``);
 - the exact (seed) methods call ``hapticd.allocation.exact`` grasp by grasp.
 """
 
@@ -110,7 +110,7 @@ def allocate_many(
     scalar or (N,), each in [0, 1]) is the external-force weight of ``adaptive``.
     Raises AllocationError (a ValueError) on an unknown method, a shape that does
     not match, NaN or inf, or alpha outside [0, 1]. ``kernel``: the robust methods compiled
-    (``hapticd.jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]``), 1-3 us a
+    (``hapticd.physics.jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]``), 1-3 us a
     grasp; None: the same code uncompiled, on Python floats (0.05-2 ms a grasp).
     """
     G, M, lam, a = check(method, G, M_a, lam, alpha)
@@ -132,7 +132,7 @@ def solve(
 ) -> np.ndarray:
     """allocate_many on validated input (a: alpha per grasp, (N,)): the exact methods the
     seed's formula; the robust ones ``general.solve_grasps`` (``fast`` False: never the
-    closed forms), compiled (``kernel``: hapticd.kernels.allocate_grasps) or on floats."""
+    closed forms), compiled (``kernel``: hapticd.physics.kernels.allocate_grasps) or on floats."""
     if method in EXACT_METHODS:
         return _exact(method, G, M, lam)
     N, _, n = G.shape

@@ -2,8 +2,8 @@
 
 Equal to the general path (``hapticd.allocation.general``) to rounding, and much
 cheaper per tick. Vectors are 3-tuples of floats: offsets r (m), directions d
-(unit), forces l (N). The servo loop's kernel (``hapticd.kernels.allocation_step``,
-which hapticd.jit compiles with these functions: ``KERNEL_HELPERS``), ``allocate()``
+(unit), forces l (N). The servo loop's kernel (``hapticd.physics.kernels.allocation_step``,
+which hapticd.physics.jit compiles with these functions: ``KERNEL_HELPERS``), ``allocate()``
 and ``allocate_many`` (grasp by grasp, ``hapticd.allocation.general.solve_grasps``,
 compiled or not) all evaluate these same functions.
 """
@@ -125,7 +125,7 @@ def one_contact_ef(r: V3, d: V3, lam: V3, eps: float) -> float:
 
 
 # The robust methods by code: what one_contact and two_contact take (compiled code has no
-# strings); hapticd.kernels passes these codes.
+# strings); hapticd.physics.kernels passes these codes.
 CODES = ("pinv", "if", "ef", "adaptive")
 PINV, IF, EF, ADAPTIVE = 0, 1, 2, 3
 
@@ -227,7 +227,7 @@ def two_contact(
     return x0, x1
 
 
-# What compiled code calls (hapticd.jit makes them callable from a kernel).
+# What compiled code calls (hapticd.physics.jit makes them callable from a kernel).
 KERNEL_HELPERS = (
     _dot,
     _cross,

@@ -5,10 +5,10 @@ preallocates (``work_shape``): G (6, n) in rows ``G0``, M_a (n, r) in rows ``M0`
 lam (n,) in row ``LAM`` (``n = 3p`` for p contacts, forces in N, lengths in m);
 ``general`` writes lam_a (r,) N into row ``XO``. Plain loops over small matrices
 and a cyclic Jacobi eigensolver on the workspace: nothing is allocated, so the
-servo loop's kernel (``hapticd.kernels.allocation_step``, three or more contacts)
+servo loop's kernel (``hapticd.physics.kernels.allocation_step``, three or more contacts)
 calls it every tick; ``allocate()`` and ``allocate_many`` run it grasp by grasp
 (``solve_grasps``, with the two-contact closed forms where they apply), uncompiled
-on Python floats or compiled (``hapticd.kernels.allocate_grasps``).
+on Python floats or compiled (``hapticd.physics.kernels.allocate_grasps``).
 
 - a filtered pseudoinverse g(s) = 1/s or s/eps^2 of A is F(A^T A) A^T, F the
   spectral function l -> 1/max(l, eps^2) of the Gram matrix;
@@ -428,7 +428,7 @@ def residuals(w: np.ndarray, n: int, r: int) -> tuple[float, float, float, float
     return math.sqrt(internal), math.sqrt(external), math.sqrt(total), amp
 
 
-# What compiled code calls (hapticd.jit makes them callable from a kernel).
+# What compiled code calls (hapticd.physics.jit makes them callable from a kernel).
 KERNEL_HELPERS = (
     _rotation,
     _jacobi,

@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from hapticd import kernels
-from hapticd.frame import Frame
-from hapticd.kernels import SAFETY_CLAMPED, SAFETY_DEFER, SAFETY_LIMITED, SAFETY_PARAMS
 from hapticd.params import PARAMS, ParamError
+from hapticd.physics import kernels
+from hapticd.physics.frame import Frame
+from hapticd.physics.kernels import SAFETY_CLAMPED, SAFETY_DEFER, SAFETY_LIMITED, SAFETY_PARAMS
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,7 @@ class SafetyParams:
     watchdog_s: more wall time than this between two ticks latches a fault (a stalled loop).
     max_device_speed_m_per_s: a device reporting a faster speed (m/s, its own frame), or a
       non-finite position or velocity, latches a fault; checked where device state enters
-      the frame (hapticd.device_bank), which keeps the finger's last good state.
+      the frame (hapticd.loop.device_bank), which keeps the finger's last good state.
     deadman: per finger, its deadman button or None (empty: no finger has one).
     """
 
@@ -77,7 +77,7 @@ class SafetyChain:
     devices' own limits (N, per finger), which a new ``force_limit_n`` never exceeds;
     without them, the starting ``limits_n``.
 
-    The clamp, ramp, gate and rate limit are hapticd.kernels.safety_step, compiled
+    The clamp, ramp, gate and rate limit are hapticd.physics.kernels.safety_step, compiled
     (``use_kernels``) or not; whatever may trip (a non-finite force, the watchdog, a
     finger at the workspace's edge) is checked by the code below, with its messages,
     before that step runs.
@@ -163,7 +163,7 @@ class SafetyChain:
         self._limits_a[:] = self._limits  # the kernel's copy
 
     def use_kernels(self, compiled: dict[str, Callable[..., int]]) -> None:
-        """Run ``compiled["safety_step"]`` (compiled by hapticd.jit) from the next tick on;
+        """Run ``compiled["safety_step"]`` (compiled by hapticd.physics.jit) from the next tick on;
         without it (an empty dict), the same function uncompiled."""
         self._step = compiled.get("safety_step") or kernels.uncompiled("safety_step")
 

@@ -43,7 +43,7 @@ provably leaves such a rendering alone. An instantaneous velocity would pair
 with f(n) with an error of order T^2 k |v|^2 of either sign.
 
 Units: m, m/s, N, N s/m, J, s. Pure: plain floats, no I/O. ``observe``, ``control`` and
-``authority`` are compiled into the tick's one call (hapticd.kernels.tick_step).
+``authority`` are compiled into the tick's one call (hapticd.physics.kernels.tick_step).
 """
 
 from __future__ import annotations

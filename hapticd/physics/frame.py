@@ -184,9 +184,9 @@ LOOP_WRITERS: dict[str, str] = {
     "device_sample": "the device bank",
     "device_force": "the safety chain",
 }
-"""The frame's fields written outside the renderer, and by whom: the loop (hapticd.servo),
-the device bank (hapticd.device_bank) or the safety chain (hapticd.safety). Every other
-field is written by exactly one stage of the renderer's plan (hapticd.render checks it
+"""The frame's fields written outside the renderer, and by whom: the loop (hapticd.loop.servo),
+the device bank (hapticd.loop.device_bank) or the safety chain (hapticd.physics.safety). Every other
+field is written by exactly one stage of the renderer's plan (hapticd.physics.render checks it
 when it plans)."""
 
 
