@@ -4,7 +4,7 @@
 fields it carries besides ``event``, ``tick`` (the tick it happened on) and
 ``t`` (that tick's nominal time, s), and what it means. The servo loop writes
 fixed-size records holding a kind's ``code`` (its index here) to a ring
-(hapticd.event_ring); the control server turns them into JSON lines by these
+(hapticd.loop.event_ring); the control server turns them into JSON lines by these
 names; the client and the command line read them by name. ``FAULT_CAUSES``
 names the causes a ``fault_latched`` event carries (the ring holds the index).
 

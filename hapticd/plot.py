@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hapticd.pacing import OVERRUN_FACTOR
+from hapticd.loop.pacing import OVERRUN_FACTOR
 from hapticd.recording import MAGIC, Recording, RecordingError
 from hapticd.recording import read as read_recording
 

@@ -40,8 +40,8 @@ from pydantic import (
 )
 
 from hapticd import params
-from hapticd.mount import mount_rotation
-from hapticd.pacing import SPIN_MARGIN_S
+from hapticd.loop.mount import mount_rotation
+from hapticd.loop.pacing import SPIN_MARGIN_S
 
 PROFILE_VERSION = 1
 DOCS = "docs/profiles.md"

@@ -11,17 +11,20 @@ Variants per method (pinv, if, ef), per grasp:
 - seed loop      : a Python loop over the seed's formulas in plain numpy
                    (hapticd.allocation.exact: np.linalg.pinv, SVD null spaces), the baseline
 - allocate loop  : a Python loop over allocate() (robust, closed form where it applies)
-- allocate_many  : one call on a batch of 1e3, and of 1e4, grasps
+- allocate_many  : one call on the loop's grasps, uncompiled (the default: the same
+                   per-grasp code on Python floats)
+- compiled       : allocate_many with kernel= (hapticd.physics.kernels.allocate_grasps, compiled
+                   by hapticd.physics.jit): one call on a batch of 1e3, and of 1e4, grasps
 
 Every variant is timed the same way: the process's CPU time of a whole pass
 divided by its number of grasps (a loop over ``--loop-grasps`` grasps, a batch
 of N), median and p99 over the passes of ``--rounds`` rounds (each round runs
-all 1e4 grasps in batches: ten of 1e3, one of 1e4). CPU time, because the
+all 1e4 grasps in compiled batches: ten of 1e3, one of 1e4). CPU time, because the
 machine is shared: wall-clock time would count other jobs' time slices, and
 unevenly (a 5 ms batch is nearly always preempted, a 20 us call rarely).
 Variants are interleaved within each round; ratios are against the seed loop
 and the allocate loop of the same run. The last column is the largest
-|allocate_many - allocate| over the loop's grasps (N). Prints a Markdown table
+|allocate_many - allocate| over the loop's grasps (N), compiled and not. Prints a Markdown table
 and saves a plot.
 
 Usage: python scripts/bench_allocate_many.py [--rounds 25] [--plot PATH]
@@ -40,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from hapticd.allocation import allocate, allocate_many, ef_exact, if_exact, pinv_exact
+from hapticd.physics import jit
 
 METHODS = ("pinv", "if", "ef")
 SEED: dict[str, Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]] = {
@@ -105,9 +109,10 @@ def measure(
 ) -> dict[str, tuple[float, float]]:
     """Per-grasp CPU time (median us, p99 us) of every variant, interleaved over ``rounds``."""
     seed_fn = SEED[method]
-    times: dict[str, list[float]] = {"seed loop": [], "allocate loop": []}
+    kernel = jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]
+    times: dict[str, list[float]] = {"seed loop": [], "allocate loop": [], "allocate_many": []}
     for nb in BATCHES:
-        times[f"allocate_many {nb:.0e}"] = []
+        times[f"compiled {nb:.0e}"] = []
     clock = time.process_time  # this process's CPU time: other jobs' time slices do not count
     for _ in range(rounds):
         t0 = clock()
@@ -118,20 +123,27 @@ def measure(
         for i in range(loop_n):
             allocate(method, G[i], M[i], lam[i])
         times["allocate loop"].append((clock() - t0) / loop_n)
+        t0 = clock()
+        allocate_many(method, G[:loop_n], M[:loop_n], lam[:loop_n])
+        times["allocate_many"].append((clock() - t0) / loop_n)
         for nb in BATCHES:
-            ts = times[f"allocate_many {nb:.0e}"]
+            ts = times[f"compiled {nb:.0e}"]
             for k in range(0, G.shape[0] - nb + 1, nb):  # every grasp once per round
                 t0 = clock()
-                allocate_many(method, G[k : k + nb], M[k : k + nb], lam[k : k + nb])
+                allocate_many(method, G[k : k + nb], M[k : k + nb], lam[k : k + nb], kernel=kernel)
                 ts.append((clock() - t0) / nb)
     return {k: _stats(v) for k, v in times.items()}
 
 
 def max_difference(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, n: int) -> float:
-    """Largest |allocate_many - allocate one by one| (N) over the first ``n`` grasps."""
-    batch = allocate_many(method, G[:n], M[:n], lam[:n])
+    """Largest |allocate_many - allocate one by one| (N) over the first ``n`` grasps, compiled
+    and not."""
+    kernel = jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]
     ref = np.array([allocate(method, G[i], M[i], lam[i]) for i in range(n)])
-    return float(np.abs(batch - ref).max())
+    return max(
+        float(np.abs(allocate_many(method, G[:n], M[:n], lam[:n], kernel=k) - ref).max())
+        for k in (None, kernel)
+    )
 
 
 def plot(path: Path, rows: list[tuple[str, str, str, float, float]]) -> None:
@@ -187,7 +199,7 @@ def main() -> None:
             seed_med, loop_med = res["seed loop"][0], res["allocate loop"][0]
             for variant, (med, p99) in res.items():
                 rows.append((label, method, variant, med, p99))
-                batch = variant.startswith("allocate_many")
+                batch = variant.startswith(("allocate_many", "compiled"))
                 lines.append(
                     f"| {label} | {method} | {variant} | {med:.3g} | {p99:.3g} | "
                     f"{seed_med / med:.1f}x | {loop_med / med:.1f}x | "

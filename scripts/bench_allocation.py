@@ -38,7 +38,6 @@ from pathlib import Path
 import numpy as np
 
 from hapticd import recording
-from hapticd.actuation import Actuation
 from hapticd.allocation import (
     DEFAULT_ROBUSTNESS,
     accuracy,
@@ -50,7 +49,8 @@ from hapticd.allocation import (
 )
 from hapticd.allocation.cases import SWEEPS, sweep
 from hapticd.daemon.session import build_session
-from hapticd.grasp import grasp_matrix
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.grasp import grasp_matrix
 from hapticd.profile import load_profile
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -40,10 +40,10 @@ import numpy as np
 from hapticd_drivers.sim import Hand
 
 from hapticd.analysis import examples
-from hapticd.build import build_renderer
-from hapticd.passivity import PassivityParams
+from hapticd.daemon.build import build_renderer
+from hapticd.physics.passivity import PassivityParams
+from hapticd.physics.render import Renderer
 from hapticd.profile import PassivityConfig, load_profile
-from hapticd.render import Renderer
 
 ROOT = Path(__file__).resolve().parent.parent
 GRASP = ROOT / "configs" / "grasp-stiffness.yaml"

@@ -33,12 +33,13 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from hapticd import jit, recording
-from hapticd.actuation import Actuation
-from hapticd.build import build_scene, builtin_trajectory
+from hapticd import recording
+from hapticd.daemon.build import build_scene, builtin_trajectory
+from hapticd.physics import jit
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.render import Renderer
+from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, Surface
 from hapticd.profile import parse_profile
-from hapticd.render import Renderer
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
 
 ROOT = Path(__file__).resolve().parent.parent
 # Outside the repository: a run never overwrites the docs' figure unless asked to.
@@ -48,7 +49,7 @@ LIFT = ROOT / "configs" / "lift-weight.yaml"
 
 def renderer_for(data: dict, kernels: str = "python") -> Renderer:
     """The profile ``data``'s renderer, with its compiled kernels when ``kernels`` is
-    "compiled" (hapticd.jit; an error if they do not compile)."""
+    "compiled" (hapticd.physics.jit; an error if they do not compile)."""
     prof = parse_profile(data, LIFT)
     scene = build_scene(prof.scene, prof)
     r = Renderer(
@@ -65,7 +66,7 @@ def renderer_for(data: dict, kernels: str = "python") -> Renderer:
     return r
 
 
-# The effect sets run with the Python code and with the compiled kernels (hapticd.kernels).
+# The effect sets run with the Python code and with the compiled kernels (hapticd.physics.kernels).
 KERNELS = ("python", "compiled")
 
 

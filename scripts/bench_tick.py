@@ -388,11 +388,11 @@ def compare(args: argparse.Namespace) -> list[dict]:
 FINGERS_CHILD = r"""
 import json, sys, time
 import numpy as np
-from hapticd import jit
-from hapticd.actuation import Actuation
-from hapticd.render import Renderer
-from hapticd.safety import SafetyChain
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
+from hapticd.physics import jit
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.render import Renderer
+from hapticd.physics.safety import SafetyChain
+from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, Surface
 
 n, ticks, python = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "python"
 cube = SceneObject(ConvexShape.box(np.array([0.04] * 3)), Material(400.0, 2.0, 0.6, 0.4, 0.002),

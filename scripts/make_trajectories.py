@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Generate the bundled replay trajectories from the motion model (hapticd.trajectory).
+"""Generate the bundled replay trajectories from the motion model (hapticd.loop.trajectory).
 
 Writes hapticd/data/trajectories/*.hrec. Deterministic: running it again gives the same
 files to 1e-15 m (a test checks this). Usage: python scripts/make_trajectories.py [--out DIR]
@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from hapticd import recording
-from hapticd.trajectory import Hold, MinJerk, Segment, Squeeze, two_finger
+from hapticd.loop.trajectory import Hold, MinJerk, Segment, Squeeze, two_finger
 
 DATA = Path(__file__).resolve().parent.parent / "hapticd" / "data" / "trajectories"
 RATE_HZ = 500.0

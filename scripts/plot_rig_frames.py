@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from hapticd.mount import Mount
+from hapticd.loop.mount import Mount
 
 ROOT = Path(__file__).resolve().parent.parent
 CUBE_M = 0.05  # the bundled grasp's cube, m

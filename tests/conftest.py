@@ -89,7 +89,7 @@ def pytest_xdist_auto_num_workers(config):
 
 
 # Deterministic generated cases in CI; more examples on demand (HYPOTHESIS_PROFILE=thorough).
-# The session's own numba cache: compiled kernels (hapticd.jit) neither come from nor go
+# The session's own numba cache: compiled kernels (hapticd.physics.jit) neither come from nor go
 # into the source tree's or the user's cache, and a background compiler that a test's auto
 # run starts writes here; the session waits for it at its end (pytest_sessionfinish).
 # One cache for the whole run: the first process to compile a kernel (pytest-xdist runs the
@@ -119,14 +119,14 @@ if _CACHE_MADE_HERE and sys.flags.dont_write_bytecode:
 
 def _compile_kernels_once() -> None:
     """Every kernel compiled into the run's cache before the workers start, by two
-    compilers at once (``python -m hapticd.jit``), the kernels shared out by source length.
+    compilers at once (``python -m hapticd.physics.jit``), the kernels shared out by source length.
     Left to the tests, each worker compiled what it first needed (10 s of CPU for all of
     them), and every run in auto mode before that rendered with the slower Python code
     and started a compiler of its own: 100 s of the suite's CPU. A failure here fails no
     test: the tests that need a kernel compile it and say why it does not."""
     import inspect
 
-    from hapticd import jit, kernels
+    from hapticd.physics import jit, kernels
 
     def size(fn) -> int:
         return len(inspect.getsource(getattr(kernels, fn) if isinstance(fn, str) else fn))
@@ -141,7 +141,7 @@ def _compile_kernels_once() -> None:
     groups: list[list[str]] = [[], []]
     for name in sorted(sizes, key=sizes.get, reverse=True):
         min(groups, key=lambda g: sum(map(sizes.get, g))).append(name)
-    procs = [subprocess.Popen([sys.executable, "-m", "hapticd.jit", *g]) for g in groups]
+    procs = [subprocess.Popen([sys.executable, "-m", "hapticd.physics.jit", *g]) for g in groups]
     for proc in procs:
         try:
             proc.wait(timeout=COMPILER_WAIT_S)
@@ -157,7 +157,7 @@ if os.environ.get("PYTEST_XDIST_WORKER") is None:  # the run's first process, no
 def pytest_sessionfinish(session, exitstatus):
     """No background compiler outlives the session: wait (bounded) for its marker to go,
     fail the session if it does not; then the process that made the run's cache removes it."""
-    from hapticd import jit
+    from hapticd.physics import jit
 
     marker = NUMBA_CACHE / jit.COMPILING
     deadline = time.monotonic() + COMPILER_WAIT_S

@@ -1,4 +1,4 @@
-"""An independent oracle for the free object's step: hapticd.kernels.free_body_step's
+"""An independent oracle for the free object's step: hapticd.physics.kernels.free_body_step's
 model (the Dynamics stage's physics, in the tick's one call) written again in numpy,
 independently: forces summed in another order, Euler's equations in the world frame,
 Rodrigues with a Bjorck step instead of a quaternion exponential. Tests only
@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from hapticd.scene import SceneObject, Surface
+from hapticd.physics.scene import SceneObject, Surface
 
 
 def skew(v: np.ndarray) -> np.ndarray:

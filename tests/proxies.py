@@ -1,4 +1,4 @@
-"""The tests' way to step a god-object proxy: contact's one source (hapticd.kernels.
+"""The tests' way to step a god-object proxy: contact's one source (hapticd.physics.kernels.
 contact_step) in the tick's one call, compiled or not, on obstacles given as plane lists.
 
 An obstacle is (unit normals (m, 3), offsets (m,)), the half-space n . x <= d, already
@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapticd import kernels
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
+from hapticd.physics import kernels
+from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, Surface
 from tests import ticks
 
 Obstacle = tuple[Sequence[Sequence[float]], Sequence[float]]

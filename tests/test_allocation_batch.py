@@ -18,7 +18,7 @@ from hapticd.allocation import (
     two_contact_structure,
 )
 from hapticd.allocation.cases import SWEEPS, block_actuation, sweep
-from hapticd.grasp import grasp_matrix
+from hapticd.physics.grasp import grasp_matrix
 from tests.allocation_oracle import robust_allocation
 
 KINDS = (
@@ -132,29 +132,26 @@ def test_equals_allocate_one_by_one(method, b, data):
 
 @pytest.fixture(scope="module")
 def compiled_grasps():
-    """allocate_many's general path compiled (hapticd.kernels.allocate_grasps)."""
-    from hapticd import jit
+    """allocate_many's robust methods compiled (hapticd.physics.kernels.allocate_grasps)."""
+    from hapticd.physics import jit
 
     return jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]
 
 
 @pytest.mark.parametrize("method", ROBUST_METHODS)
-@settings(max_examples=25)  # each example a whole elementwise pass (2-20 ms)
+@settings(max_examples=25)  # the oracle's SVDs cost the most here
 @given(batches(), st.floats(0, 1))
-def test_the_general_path_elementwise_and_compiled_equals_the_oracle(
-    compiled_grasps, method, b, alpha
-):
-    """The general path on the whole batch at once (general.solve_stack, what batches of
-    STACK_MIN grasps or more take; here on the small batches generated) and compiled grasp
-    by grasp (kernel=: the function the servo loop's kernel runs for three or more
-    contacts)."""
+def test_compiled_equals_the_oracle(compiled_grasps, method, b, alpha):
+    """The robust methods compiled grasp by grasp (kernel=: the closed forms and the general
+    path the servo loop's kernel runs), and the general path alone (allocate()'s fast=False)."""
     G, M, lam = b
     ref = one_by_one(method, G, M, lam, alpha)
-    with pytest.MonkeyPatch.context() as m:
-        m.setattr(batch, "STACK_MIN", 1)
-        assert_rows_equal(allocate_many(method, G, M, lam, alpha=alpha), ref, lam)
-    got = allocate_many(method, G, M, lam, alpha=alpha, kernel=compiled_grasps)
-    assert_rows_equal(got, ref, lam)
+    assert_rows_equal(
+        allocate_many(method, G, M, lam, alpha=alpha, kernel=compiled_grasps), ref, lam
+    )
+    G, M, lam, a = batch.check(method, G, M, lam, alpha)
+    general = batch.solve(method, G, M, lam, a, Robustness(), False, compiled_grasps)
+    assert_rows_equal(general, ref, lam)
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -247,26 +244,6 @@ def test_shared_directions_equal_per_grasp_copies(method):
     copies = allocate_many(method, G, np.broadcast_to(M, (20, 9, 4)).copy(), lam, alpha=0.2)
     np.testing.assert_allclose(shared, copies, rtol=1e-12, atol=1e-12)
     assert_rows_equal(shared, one_by_one(method, G, M, lam, 0.2), lam)
-
-
-@pytest.mark.parametrize("method", METHODS)
-@pytest.mark.parametrize("shared", [False, True])
-def test_chunks_give_what_one_pass_gives(method, shared, monkeypatch):
-    # Large batches run in chunks of batch.CHUNK grasps; 8 here, 45 grasps: five full
-    # chunks and a partial one, mixing closed-form and general-path grasps.
-    rng = np.random.default_rng(9)
-    G = np.array([grasp_matrix(rng.uniform(-0.05, 0.05, (2, 3)), np.zeros(3)) for _ in range(45)])
-    dirs = [[[rng.normal(size=3)], [rng.normal(size=3)]] for _ in range(45)]
-    Ms = np.array([block_actuation(d) for d in dirs])
-    Ms[::4] = rng.normal(size=(12, 6, 2))
-    M = Ms[0] if shared else Ms
-    lam = rng.normal(size=(45, 6))
-    alpha = rng.uniform(0, 1, 45)
-    whole = allocate_many(method, G, M, lam, alpha=alpha)
-    monkeypatch.setattr(batch, "CHUNK", 8)
-    chunked = allocate_many(method, G, M, lam, alpha=alpha)
-    np.testing.assert_allclose(chunked, whole, rtol=1e-13, atol=1e-15)
-    assert_rows_equal(chunked, one_by_one(method, G, M, lam, alpha), lam)
 
 
 # -- linear in lam ------------------------------------------------------------------------------
@@ -367,7 +344,7 @@ def test_bad_method_and_alpha():
     )
 
 
-# -- the closed forms on arrays are the closed forms on floats -------------------------------
+# -- the closed forms on degenerate grasps -----------------------------------------------------
 
 _SMALL = st.floats(-0.05, 0.05, allow_nan=False, allow_infinity=False)
 _DIR = st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False)
@@ -391,16 +368,16 @@ def _two_contact_grasps(draw):
     return r1, r2, d1, d2, l1, l2
 
 
-@settings(max_examples=100)  # each example: 12 grasps, 3 methods, both forms
+@settings(max_examples=50)  # each example: up to 12 grasps, 3 methods, the oracle's SVDs
 @given(st.lists(_two_contact_grasps(), min_size=1, max_size=12))
-def test_the_closed_forms_on_arrays_are_the_closed_forms_on_floats(grasps):
-    """allocate_many's two-contact path and the loop run the same closed forms; only the
-    filtered inverse, gain and grasp line have a float and an array form: bit for bit the
-    same on every grasp, whichever branch each takes."""
-    from hapticd.allocation.closed import EF, IF, PINV, two_contact
-
-    cols = [tuple(np.array([g[k][i] for g in grasps]) for i in range(3)) for k in range(6)]
-    for code in (PINV, IF, EF):
-        x0, x1 = two_contact(code, *cols, 0.2, 0.005, 0.0)
-        for j, g in enumerate(grasps):
-            assert (x0[j], x1[j]) == two_contact(code, *g, 0.2, 0.005, 0.0), (code, g)
+def test_the_closed_forms_equal_the_oracle_on_degenerate_grasps(compiled_grasps, grasps):
+    """Two contacts with one direction each take the closed forms, compiled or not: what the
+    oracle gives, whichever branch each grasp takes."""
+    G = np.array([grasp_matrix(np.array(g[:2]), np.zeros(3)) for g in grasps])
+    M = np.zeros((len(grasps), 6, 2))
+    M[:, 0:3, 0], M[:, 3:6, 1] = [g[2] for g in grasps], [g[3] for g in grasps]
+    lam = np.array([g[4] + g[5] for g in grasps])
+    for method in ("pinv", "if", "ef"):
+        ref = one_by_one(method, G, M, lam)
+        for kernel in (None, compiled_grasps):
+            assert_rows_equal(allocate_many(method, G, M, lam, kernel=kernel), ref, lam)

@@ -7,7 +7,6 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from hapticd.actuation import Actuation
 from hapticd.allocation import (
     DEFAULT_ROBUSTNESS,
     AdaptiveState,
@@ -22,9 +21,10 @@ from hapticd.allocation import general as general_path
 from hapticd.allocation.accuracy import one_contact_residuals, two_contact_residuals
 from hapticd.allocation.cases import SWEEPS
 from hapticd.allocation.cases import block_actuation as block_m
-from hapticd.grasp import grasp_matrix, internal_projector
-from hapticd.render import Renderer
-from hapticd.scene import ConvexShape, Material, SceneObject
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.grasp import grasp_matrix, internal_projector
+from hapticd.physics.render import Renderer
+from hapticd.physics.scene import ConvexShape, Material, SceneObject
 from tests.allocation_oracle import filtered_gain, svd_internal_projector, svd_pinv
 
 EPS = DEFAULT_ROBUSTNESS.eps
@@ -36,7 +36,7 @@ def filtered_pinv(A: np.ndarray, eps: float) -> np.ndarray:
     vector (hapticd.allocation.general on one grasp per column)."""
     m, n = A.shape
     out = np.zeros((m, n))
-    args = (np.zeros((m, 6, m)), A[None].copy(), np.eye(m), np.zeros(m), eps, 0.005, out)
+    args = (np.zeros((m, 6, m)), A[None].copy(), np.eye(m), np.zeros(m), eps, 0.005, False, out)
     general_path.solve_grasps(general_path.PINV, *args, np.zeros(general_path.work_shape(m, n)))
     return out.T
 
@@ -268,9 +268,9 @@ def test_sweep_through_rank_change_is_continuous_and_bounded(name, method):
 
 def test_filtered_gain_is_continuous_and_bounded():
     """The allocators' gain on a singular value s: s times ``closed._gain`` of s^2 (1/s
-    from eps on, s/eps^2 below), elementwise and on floats, against the oracle's."""
+    from eps on, s/eps^2 below), against the oracle's."""
     s = np.linspace(0, 1, 100001)
-    g = s * closed._gain(s * s, EPS * EPS)
+    g = s * np.array([closed._gain(x * x, EPS * EPS) for x in s.tolist()])
     np.testing.assert_allclose(g, filtered_gain(s, EPS), rtol=1e-12, atol=0)
     assert g.max() == pytest.approx(1 / EPS)
     assert np.abs(np.diff(g)).max() < 1e-3
@@ -402,13 +402,27 @@ def test_adaptive_switches_continuously_from_squeeze_to_push():
     assert np.abs(np.diff(np.array(forces), axis=0)).max() < 0.02
 
 
-def test_adaptive_state_targets():
-    s = AdaptiveState(0.2, 0.6, 0.0)
-    assert s.update(0.1, 1e-3) == 0.0
-    assert s.update(0.9, 1e-3) == 1.0
-    assert s.update(0.4, 1e-3) == pytest.approx(0.5)
-    assert s.update(0.9, 1e-3, supported=True) == 0.0
-    assert math.isclose(AdaptiveState(time_constant_s=0.1).update(1.0, 0.01), 0.1)
+def test_adaptive_alpha_follows_the_tasks_external_ratio():
+    """alpha = smoothstep((rho - ratio_low) / (ratio_high - ratio_low)) of rho = |net force| /
+    (|net force| + squeeze), reached at once without a lag, by dt / time_constant_s a tick
+    with one. Two contacts on the x axis, f = (+-s, n / 2, 0): net n, squeeze s."""
+    from hapticd.allocation.contacts import ContactAllocator
+
+    def tick(alloc, n, s, fingers=(1, 1)):
+        forces = np.array([[s, n / 2, 0.0], [-s, n / 2, 0.0]])
+        pts = np.array([[-0.02, 0.0, 0.0], [0.02, 0.0, 0.0]])
+        touching = np.array(fingers, dtype=np.uint8)
+        alloc.allocate(touching, pts, pts, forces, np.zeros(3), np.zeros(2), np.zeros((2, 3)))
+        return alloc.alpha
+
+    act = Actuation([[(0.0, 0.0, 1.0)], [(0.0, 0.0, 1.0)]])
+    alloc = ContactAllocator(act, "adaptive", Robustness(), AdaptiveState(0.2, 0.6, 0.0), 1e-3)
+    assert tick(alloc, 1.0, 9.0) == 0.0  # rho 0.1
+    assert tick(alloc, 9.0, 1.0) == 1.0  # rho 0.9
+    assert tick(alloc, 2.0, 3.0) == pytest.approx(0.5)  # rho 0.4, halfway
+    assert tick(alloc, 3.0, 7.0) == pytest.approx(0.15625)  # rho 0.3: smoothstep(1/4)
+    lag = ContactAllocator(act, "adaptive", Robustness(), AdaptiveState(time_constant_s=0.1), 0.01)
+    assert math.isclose(tick(lag, 1.0, 0.0, (1, 0)), 0.1)  # one contact: rho 1, a tenth of it
 
 
 @pytest.mark.parametrize("method", ["pinv", "if", "ef", "adaptive"])

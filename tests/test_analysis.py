@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from hapticd import recording
-from hapticd.actuation import Actuation
 from hapticd.analysis import Pipeline, examples
 from hapticd.analysis.pipeline import asymmetry, loop_work_rate, null_directions
-from hapticd.build import build_renderer, builtin_trajectory
 from hapticd.cli import main
+from hapticd.daemon.build import build_renderer, builtin_trajectory
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, rpy_matrix
 from hapticd.profile import load_profile
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject, rpy_matrix
 
 ROOT = Path(__file__).resolve().parent.parent
 GRASP = ROOT / "configs" / "grasp-stiffness.yaml"

@@ -18,10 +18,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hapticd import bringup as bringup_module
 from hapticd.cli import main
-from hapticd.frame import Frame
-from hapticd.pulse import MAX_PULSE_N, PulseStage, envelope
+from hapticd.daemon import bringup as bringup_module
+from hapticd.loop.pulse import MAX_PULSE_N, PulseStage, envelope
+from hapticd.physics.frame import Frame
 from tests.conftest import GRASP_PROFILE
 from tests.test_rig import _dhd_profile, _mount
 

@@ -1,4 +1,4 @@
-"""God-object contact (hapticd.kernels.contact_step, the one source, in the tick's one call:
+"""God-object contact (hapticd.physics.kernels.contact_step, the one source, in the tick's one call:
 tests/proxies.py) against analytic results: faces, edges, corners, fast fingers, sliding,
 release, fine meshes, and the Gram systems' closed forms (``kernels._gram_mu``)."""
 
@@ -11,8 +11,8 @@ from hypothesis import assume, given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from hapticd import kernels
-from hapticd.scene import rpy_matrix
+from hapticd.physics import kernels
+from hapticd.physics.scene import rpy_matrix
 from tests.proxies import MODES, Proxy, box
 
 R = 0.008

@@ -17,10 +17,10 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from hapticd.actuation import Actuation
-from hapticd.build import mesh_shape
-from hapticd.render import Renderer
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject, rpy_matrix
+from hapticd.daemon.build import mesh_shape
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.render import Renderer
+from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, rpy_matrix
 from tests.proxies import Obstacle, Proxy
 
 K = 200.0  # N/m
@@ -36,7 +36,7 @@ weights = arrays(float, (12, 8), elements=st.floats(0.0, 1.0))
 
 @pytest.fixture(scope="module")
 def meshes(tmp_path_factory) -> dict[str, ConvexShape]:
-    """Convex shapes read by hapticd.build.mesh_shape: 80 planes, 1280 planes and an
+    """Convex shapes read by hapticd.daemon.build.mesh_shape: 80 planes, 1280 planes and an
     irregular hull."""
     d = tmp_path_factory.mktemp("meshes")
     rng = np.random.default_rng(7)

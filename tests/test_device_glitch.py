@@ -106,8 +106,8 @@ def test_a_glitch_on_one_finger_lets_the_others_samples_in():
     the second's last good position, at rest, with its buttons."""
     from hapticd_drivers import DeviceState
 
-    from hapticd.device_bank import DeviceBank
-    from hapticd.frame import Frame
+    from hapticd.loop.device_bank import DeviceBank
+    from hapticd.physics.frame import Frame
 
     class Scripted:
         info = None

@@ -1,4 +1,4 @@
-"""The free-body step (hapticd.kernels.free_body_step, the Dynamics stage's part of the
+"""The free-body step (hapticd.physics.kernels.free_body_step, the Dynamics stage's part of the
 tick's one call) against ``tests.dynamics_oracle.step_body``, the same model written
 independently in numpy: the same results to rounding on every output, whatever the state,
 contacts, surfaces, gravity and substeps; compiled and uncompiled, the same bits; the
@@ -13,8 +13,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hapticd.render import Renderer
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
+from hapticd.physics.render import Renderer
+from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, Surface
 from tests import ticks
 from tests.dynamics_oracle import SurfaceSet, step_body
 from tests.strategies import unit_vectors
@@ -216,7 +216,7 @@ def test_the_step_never_raises_on_finite_input(mode, omega, force):
     """A spin whose square overflows (|w| above about 1e154 rad/s, or a finger's force whose
     torque makes one) gives a non-finite pose instead of a math error; the loop's object
     check then sees the spin beyond its limit and ends the run."""
-    from hapticd.servo import MAX_OBJECT_SPIN_RAD_PER_S
+    from hapticd.loop.servo import MAX_OBJECT_SPIN_RAD_PER_S
 
     case = {
         "object": {

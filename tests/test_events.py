@@ -17,12 +17,12 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from hapticd import events, recording
-from hapticd.commands import Enable
 from hapticd.control import ControlClient
 from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
-from hapticd.event_ring import EventRing, FrameEvents
-from hapticd.frame import Frame
+from hapticd.loop.commands import Enable
+from hapticd.loop.event_ring import EventRing, FrameEvents
+from hapticd.physics.frame import Frame
 from hapticd.profile import load_profile
 from tests.conftest import ROOT, AtTick, ServerHold, wait_for, wait_for_tick
 

@@ -464,9 +464,9 @@ def test_bringup_pulses_each_actuated_direction_through_the_falcons(tmp_path, ca
     """hapticd bringup on emulated Falcons: both pass as homed, each actuated direction is
     pulsed, and the force the emulated motors exert stays at most 0.5 N (plus a motor
     unit's quantisation)."""
-    from hapticd import bringup
     from hapticd.cli import main
-    from hapticd.pulse import MAX_PULSE_N
+    from hapticd.daemon import bringup
+    from hapticd.loop.pulse import MAX_PULSE_N
 
     sessions = []
     build = bringup.build_session
@@ -562,7 +562,7 @@ def test_hapticd_calibrate_tells_the_user_to_move_each_falcon(
 def test_a_run_on_a_falcon_whose_firmware_file_is_missing_ends_at_setup_naming_the_key(
     grasp_data, write_profile, tmp_path
 ):
-    from hapticd.build import build_devices
+    from hapticd.daemon.build import build_devices
     from hapticd.profile import ProfileError, load_profile
 
     grasp_data["fingers"][1]["device"] = {

@@ -11,8 +11,8 @@ import pytest
 from hapticd_drivers import DeviceError
 from hapticd_drivers.replay import ReplayDevice
 
-from hapticd.device_bank import DeviceBank
-from hapticd.frame import Frame, item_view
+from hapticd.loop.device_bank import DeviceBank
+from hapticd.physics.frame import Frame, item_view
 
 
 @pytest.mark.parametrize("n_fingers", [1, 2, 3, 4, 5])

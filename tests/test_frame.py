@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from hapticd import recording
-from hapticd.frame import FIELDS, Frame, markdown_table
+from hapticd.physics.frame import FIELDS, Frame, markdown_table
 from hapticd.recording import Recorder
 from tests.conftest import ROOT
 

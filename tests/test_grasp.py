@@ -3,7 +3,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from hapticd.grasp import decompose, grasp_matrix, internal_projector, null_space_basis, skew
+from hapticd.physics.grasp import (
+    decompose,
+    grasp_matrix,
+    internal_projector,
+    null_space_basis,
+    skew,
+)
 from tests.strategies import point_pairs
 
 finite = st.floats(-0.2, 0.2, allow_nan=False)

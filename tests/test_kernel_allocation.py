@@ -1,5 +1,5 @@
-"""The compiled allocation kernel (hapticd.kernels.allocation_step) against the same function
-uncompiled: the same bits for generated grasps of two to five fingers, near-singular ones
+"""The compiled allocation kernel (hapticd.physics.kernels.allocation_step) against the same
+function uncompiled: the same bits for generated grasps of two to five fingers, near-singular ones
 included (coincident and nearly coincident contacts, directions along the grasp line or
 nearly parallel, forces at contact onset, a vertical grasp line in the grasp frame); and
 against allocate() with contact onset; the cases it does not take run allocate();
@@ -14,14 +14,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hapticd import jit, kernels
-from hapticd.actuation import Actuation
 from hapticd.allocation import AdaptiveState, AllocationError, Robustness, allocate, smoothstep
 from hapticd.allocation.contacts import ContactAllocator
-from hapticd.frame import Frame
-from hapticd.grasp import grasp_matrix
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject
-from hapticd.stages import Allocation
+from hapticd.physics import jit, kernels
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.frame import Frame
+from hapticd.physics.grasp import grasp_matrix
+from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject
+from hapticd.physics.stages import Allocation
 from tests.strategies import unit_vectors
 from tests.test_allocation_robust import bound
 from tests.test_dynamics import floats, vec
@@ -190,7 +190,7 @@ def _allocate_with_onset(case: dict, alpha: float) -> tuple[np.ndarray, np.ndarr
 @given(grasps(), st.sampled_from(kernels.ALLOCATION_METHODS), st.floats(0.0, 1.0))
 def test_the_kernel_equals_allocate_with_contact_onset(case, method, alpha):
     """The kernel's closed forms and general path, grasp frame and contact onset against
-    allocate() (with the world directions of hapticd.actuation) on the contacts, blended
+    allocate() (with the world directions of hapticd.physics.actuation) on the contacts, blended
     at onset: the same forces to rounding, near singular configurations too; adaptive with
     the kernel's alpha of the tick; within the documented bounds (compiled, the same bits:
     the tests above)."""

@@ -1,5 +1,5 @@
-"""Contact's one source (hapticd.kernels.contact_step, the Contact stage's part of the tick's
-one call) compiled against the same call uncompiled: the same bits in every output field
+"""Contact's one source (hapticd.physics.kernels.contact_step, the Contact stage's part of the
+tick's one call) compiled against the same call uncompiled: the same bits in every output field
 and in the proxies, tick after tick, for generated boxes (turned, moved between ticks),
 grounds and walls, fingers inside, outside, at edges and corners, fast ones and first
 ticks; a large mesh (in one call and in parts); a non-finite input refused by name with
@@ -16,13 +16,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hapticd import jit, kernels
-from hapticd.actuation import Actuation
 from hapticd.daemon.session import build_session
-from hapticd.frame import Frame
+from hapticd.physics import jit, kernels
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.frame import Frame
+from hapticd.physics.render import Renderer
+from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, Surface
 from hapticd.profile import load_profile
-from hapticd.render import Renderer
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
 from tests import ticks
 from tests.conftest import ROOT
 from tests.strategies import unit_vectors
@@ -402,7 +402,7 @@ def test_hostile_positions_past_the_device_bank_fault_alike_both_ways(path, valu
 
 def _one_call_renderer(shape: ConvexShape, calls: list | None = None) -> Renderer:
     """A fixed frictionless object of ``shape`` on the ground, two fingers, IF, every kernel
-    compiled: the plan runs as one call (hapticd.render.OneCall), counted in ``calls``."""
+    compiled: the plan runs as one call (hapticd.physics.render.OneCall), counted in ``calls``."""
     obj = SceneObject(shape, Material(500.0), np.zeros(3), np.eye(3))
     ground = Surface("ground", (0.0, 0.0, 1.0), -0.03, Material(1000.0, 5.0))
     r = Renderer(Scene(obj, [ground], None), [0.008] * 2, Actuation([[(1.0, 0, 0)]] * 2), "if")

@@ -1,4 +1,4 @@
-"""Friction and the contact forces (hapticd.kernels.friction_step, forces_step: the Friction
+"""Friction and the contact forces (hapticd.physics.kernels.friction_step, forces_step: the Friction
 and Forces stages' part of the tick's one call) compiled against the same call uncompiled:
 the same bits for generated contacts (sticking, slipping, new contacts, fingers pulled out
 of the face), normals, anchors, fixed and free objects, damping on and off, over several
@@ -20,12 +20,12 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from hapticd import kernels
 from hapticd.daemon.session import build_session
+from hapticd.physics import kernels
+from hapticd.physics.render import Renderer
+from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject
+from hapticd.physics.stages import FRICTIONLESS, HELD
 from hapticd.profile import load_profile
-from hapticd.render import Renderer
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject
-from hapticd.stages import FRICTIONLESS, HELD
 from tests import ticks
 from tests.conftest import ROOT, capture_writes
 from tests.strategies import unit_vectors

@@ -1,4 +1,4 @@
-"""The safety chain's normal tick (hapticd.kernels.safety_step, its one source) compiled
+"""The safety chain's normal tick (hapticd.physics.kernels.safety_step, its one source) compiled
 against uncompiled: the same output bits, faults, causes and counters for generated
 streams, limits, ramps, rate limits, workspaces and deadman buttons; a clamped force
 keeps its direction and lands on its limit, over the whole range of floats; hostile
@@ -17,11 +17,11 @@ from hypothesis import assume, event, given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from hapticd import jit, kernels
 from hapticd.daemon.session import build_session
-from hapticd.frame import Frame
+from hapticd.physics import jit, kernels
+from hapticd.physics.frame import Frame
+from hapticd.physics.safety import Deadman, SafetyChain, SafetyParams
 from hapticd.profile import load_profile
-from hapticd.safety import Deadman, SafetyChain, SafetyParams
 from tests.conftest import ROOT, capture_writes
 
 LIFT = ROOT / "configs" / "lift-weight.yaml"

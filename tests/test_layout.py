@@ -26,49 +26,53 @@ ROOT = Path(__file__).resolve().parent.parent
 # A name ending in ".*" is a whole package (its __init__ and every module under it).
 CATEGORIES: dict[str, set[str]] = {
     "pure": {
-        "hapticd.actuation",
         "hapticd.allocation.*",
         "hapticd.analysis.examples",
         "hapticd.analysis.pipeline",
-        "hapticd.contact",
-        "hapticd.dynamics",
-        "hapticd.frame",
-        "hapticd.grasp",
-        "hapticd.kernels",
-        "hapticd.mount",
-        "hapticd.passivity",
+        "hapticd.loop",
+        "hapticd.loop.mount",
+        "hapticd.loop.pulse",
+        "hapticd.loop.trajectory",
+        "hapticd.physics",
+        "hapticd.physics.actuation",
+        "hapticd.physics.contact",
+        "hapticd.physics.dynamics",
+        "hapticd.physics.frame",
+        "hapticd.physics.grasp",
+        "hapticd.physics.kernels",
+        "hapticd.physics.passivity",
+        "hapticd.physics.render",
+        "hapticd.physics.safety",
+        "hapticd.physics.scene",
+        "hapticd.physics.stages",
         "hapticd.psychophysics",
-        "hapticd.pulse",
-        "hapticd.render",
-        "hapticd.safety",
-        "hapticd.scene",
-        "hapticd.stages",
-        "hapticd.trajectory",
     },
     "runtime": {
-        "hapticd.commands",
-        "hapticd.device_bank",
-        "hapticd.event_ring",
-        "hapticd.jit",  # compiles hapticd.kernels (numba) and finds its cache folder
-        "hapticd.pacing",
-        "hapticd.realtime",
-        "hapticd.servo",
-        "hapticd.stats",
+        "hapticd.loop.commands",
+        "hapticd.loop.device_bank",
+        "hapticd.loop.event_ring",
+        "hapticd.loop.pacing",
+        "hapticd.loop.realtime",
+        "hapticd.loop.servo",
+        "hapticd.loop.stats",
+        # Compiles hapticd.physics.kernels (numba) and finds its cache folder.
+        "hapticd.physics.jit",
     },
     "service": {
         "hapticd.__main__",
-        "hapticd.analysis",  # Pipeline.from_profile reads the profile through hapticd.build
+        # Pipeline.from_profile reads the profile through hapticd.daemon.build.
+        "hapticd.analysis",
         "hapticd.analysis.report",  # hapticd analyze's tables, JSON and plot
-        "hapticd.bringup",  # hapticd bringup: the rig checked before a subject touches it
-        "hapticd.build",
         "hapticd.cli.*",
+        # The session built from a profile (build), the control server, the run's
+        # summary and hapticd bringup (the rig checked before a subject touches it).
         "hapticd.daemon.*",
         # Experiment files, trial plan, trial store, analysis, the model observer (it
         # builds a run from the profile) and hapticd study (process pool, Dask); the
         # runner (hapticd.experiment.runner) is also in SOCKET_CLIENTS below.
         "hapticd.experiment.*",
         "hapticd.plot",  # hapticd plot's figures (matplotlib inside its functions only)
-        "hapticd.profile",
+        "hapticd.profile",  # the profile's schema, read by the daemon, analysis, experiments
         "hapticd.recording.*",
     },
     "client": {
@@ -111,9 +115,9 @@ IO_STDLIB = {
 # Service modules that reach a daemon only through its control socket (hapticd.control):
 # never the loop, the device layer or the daemon's internals.
 SOCKET_CLIENTS = {"hapticd.experiment.runner"}
-LOOP_SIDE = {"hapticd.daemon", "hapticd.build", "hapticd_drivers"}
+LOOP_SIDE = {"hapticd.daemon", "hapticd.daemon.build", "hapticd_drivers"}
 # What the servo loop is built from, never what it imports.
-CONFIGURATION = {"pydantic", "yaml", "hapticd.profile", "hapticd.build", "hapticd.daemon"}
+CONFIGURATION = {"pydantic", "yaml", "hapticd.profile", "hapticd.daemon.build", "hapticd.daemon"}
 FRONT = {"hapticd.cli", "hapticd.daemon"}
 
 
@@ -212,6 +216,33 @@ def test_every_module_is_in_exactly_one_category():
         p for ps in CATEGORIES.values() for p in ps if not p.endswith(".*") and p not in MODULES
     ]
     assert not problems and not stale, "\n".join(problems + [f"no module {p}" for p in stale])
+
+
+# The families the code is grouped by (docs/architecture.md, "Layout"): each subpackage
+# holds the categories it may, and the top level only the client, the entry point and
+# the modules several families use: the profile, the figures, the psychometrics.
+FAMILIES = {
+    "hapticd.physics": {"pure", "runtime"},  # the tick's physics, and its compiler
+    "hapticd.loop": {"pure", "runtime"},  # the servo loop, its devices' bank, pacing
+    "hapticd.daemon": {"service"},  # the service: profile, build, session, server
+}
+TOP_LEVEL = {"hapticd.__main__", "hapticd.plot", "hapticd.profile", "hapticd.psychophysics"}
+
+
+def test_each_family_holds_only_its_own_categories():
+    wrong = []
+    for module in MODULES:
+        family = next((f for f in FAMILIES if module.startswith(f + ".")), None)
+        if family is not None and not set(_categories(module)) <= FAMILIES[family]:
+            wrong.append(f"{module}: {_categories(module)} in {family}")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_top_level_holds_the_client_and_the_packages():
+    flat = {m for m in MODULES if m.startswith("hapticd.") and m.count(".") == 1}
+    flat = {m for m in flat if MODULES[m].name != "__init__.py"}
+    client = {m for m in flat if _categories(m) == ["client"]}
+    assert flat - client == TOP_LEVEL
 
 
 @pytest.mark.parametrize("module", _in("pure"))

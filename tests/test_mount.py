@@ -11,9 +11,9 @@ from hypothesis import assume, given
 from hypothesis import strategies as st
 
 from hapticd import recording
-from hapticd.build import builtin_trajectory
+from hapticd.daemon.build import builtin_trajectory
 from hapticd.daemon.session import build_session
-from hapticd.mount import Mount, distance_to_polytope, mount_rotation
+from hapticd.loop.mount import Mount, distance_to_polytope, mount_rotation
 from hapticd.profile import ProfileError, load_profile
 from tests.conftest import GRASP_PROFILE
 
@@ -219,8 +219,8 @@ def test_check_reports_where_each_workspace_meets_the_object(tmp_path):
 def test_device_bank_maps_state_and_force_through_the_mount(rpy):
     from hapticd_drivers import DeviceState
 
-    from hapticd.device_bank import DeviceBank
-    from hapticd.frame import Frame
+    from hapticd.loop.device_bank import DeviceBank
+    from hapticd.physics.frame import Frame
 
     assume(max(abs(a) for a in rpy) > 1e-3)
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from hapticd.build import build_renderer
 from hapticd.cli import main
+from hapticd.daemon.build import build_renderer
 from hapticd.experiment import check_experiment
 from hapticd.experiment import observer as ob
 from hapticd.experiment.analyze import analyze

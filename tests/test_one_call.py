@@ -1,11 +1,11 @@
-"""The renderer's plan as one call per tick (hapticd.render.OneCall, hapticd.kernels.tick_step)
-against the same plan in parts (a probe stage inserted after every stage, so that the call
-runs each stage as a part of its own): the same frame, tick after tick, for the bundled
-profiles' scenes, a free object pushed onto the ground, three fingers, the adaptive
-allocator and a material set between ticks; three and five fingers holding a cube run
+"""The renderer's plan as one call per tick (hapticd.physics.render.OneCall,
+hapticd.physics.kernels.tick_step) against the same plan in parts (a probe stage inserted after
+every stage, so that the call runs each stage as a part of its own): the same frame, tick after
+tick, for the bundled profiles' scenes, a free object pushed onto the ground, three fingers, the
+adaptive allocator and a material set between ticks; three and five fingers holding a cube run
 every tick as one call, their forces allocate()'s; the environment's and the passivity
 controller's forces against their definitions (a projector onto the span of the actuated
-directions, hapticd.passivity.step).
+directions, hapticd.physics.passivity's observer and controller).
 """
 
 from __future__ import annotations
@@ -15,16 +15,16 @@ import copy
 import numpy as np
 import pytest
 
-from hapticd import jit
-from hapticd import kernels as kn
-from hapticd.actuation import Actuation
 from hapticd.allocation.robust import AllocationError
-from hapticd.build import build_renderer, load_trajectories
-from hapticd.frame import FIELDS, Frame
-from hapticd.passivity import PassivityParams
+from hapticd.daemon.build import build_renderer, load_trajectories
+from hapticd.physics import jit
+from hapticd.physics import kernels as kn
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.frame import FIELDS, Frame
+from hapticd.physics.passivity import PassivityParams
+from hapticd.physics.render import Renderer
+from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, Surface
 from hapticd.profile import load_profile
-from hapticd.render import Renderer
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface
 from tests.conftest import ROOT
 
 COMPARED = [f.name for f in FIELDS if f.name not in ("t", "t_wall", "compute_s", "tick")]
@@ -190,7 +190,7 @@ def test_many_fingers_run_every_tick_as_one_call_with_allocates_forces(n_fingers
     handed back (the safety chain's flags come back every tick), and lam_a and the
     allocated force are allocate()'s on the same tick's contacts, with contact onset,
     to 1e-9 N."""
-    from hapticd.safety import SafetyChain
+    from hapticd.physics.safety import SafetyChain
     from tests.test_kernel_allocation import _allocate_with_onset
 
     angles = np.linspace(0.0, 2 * np.pi, n_fingers, endpoint=False)
@@ -292,10 +292,11 @@ def test_every_plan_runs_as_the_call_with_its_python_stages_between_parts(compil
 @pytest.mark.parametrize("mode", ["compiled", "python"])
 def test_the_passivity_controller_in_the_call_is_its_definition(mode, compiled):
     """Every tick of a lift with passivity (a low threshold, so that it acts), each finger's
-    energy, damping and damping force are hapticd.passivity.step's on the force before it
+    energy, damping and damping force are hapticd.physics.passivity's observer and controller
+    (tests.test_passivity.step) on the force before it
     (allocated plus the environment's) and the finger's motion projected onto its actuated
     directions (grasp frame)."""
-    from hapticd import passivity
+    from tests import test_passivity as passivity
 
     over = [
         f"rendering.kernels={mode}",
@@ -340,7 +341,7 @@ def _lift_run(tmp_path, overrides, monkeypatch, in_call: bool):
     one call, or (the chain never ``ready`` for it) the chain's own."""
     from hapticd import recording
     from hapticd.daemon.session import build_session
-    from hapticd.safety import SafetyChain
+    from hapticd.physics.safety import SafetyChain
 
     prof = load_profile(ROOT / "configs" / "lift-weight.yaml", overrides)
     path = tmp_path / f"{in_call}.hrec"
@@ -398,7 +399,7 @@ def test_the_call_with_the_safety_chain_allocates_nothing_a_tick(n_fingers, comp
     it frees on return, outside Python's allocator.)"""
     import tracemalloc
 
-    from hapticd.safety import SafetyChain
+    from hapticd.physics.safety import SafetyChain
 
     angles = np.linspace(0.0, 2 * np.pi, n_fingers, endpoint=False)
     dirs = [[(float(-0.8 * np.cos(a)), float(-0.8 * np.sin(a)), 0.6)] for a in angles]
@@ -443,8 +444,8 @@ def test_the_compiled_call_skips_numbas_dispatch_only_on_its_declared_arrays(pro
     declares; one argument off in dtype, dimensions, order, writability or class keeps
     numba's dispatcher, which refuses it (no unchecked call on a wrong array). The direct
     call's ticks are the dispatcher's, bit for bit; uncompiled, the function itself."""
-    from hapticd.render import direct
-    from hapticd.safety import SafetyChain
+    from hapticd.physics.render import direct
+    from hapticd.physics.safety import SafetyChain
 
     prof = load_profile(ROOT / "configs" / f"{profile}.yaml")
     fast, slow = build_renderer(prof), build_renderer(prof)

@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 import yaml
 
-from hapticd import params, render, safety
+from hapticd import params
 from hapticd import protocol as proto
 from hapticd.allocation import METHODS
 from hapticd.cli import build_parser, main
@@ -25,6 +25,7 @@ from hapticd.control import ControlClient
 from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import Session, build_session
 from hapticd.params import PARAMS, ParamError
+from hapticd.physics import render, safety
 from hapticd.profile import ProfileError, RenderingConfig, apply_overrides, parse_profile
 from hapticd.protocol import ProtocolError
 from tests.conftest import GRASP_PROFILE, IN_PROCESS, wait_for_tick

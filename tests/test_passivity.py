@@ -9,18 +9,30 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from hapticd import kernels, passivity
-from hapticd.actuation import Actuation
 from hapticd.analysis import Pipeline, examples
-from hapticd.build import build_renderer
 from hapticd.cli import format_status
+from hapticd.daemon.build import build_renderer
 from hapticd.daemon.session import build_session
 from hapticd.daemon.summary import status
-from hapticd.passivity import PassivityParams, authority
+from hapticd.physics import kernels
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.passivity import PassivityParams, authority, control, observe
+from hapticd.physics.render import Renderer
+from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject
 from hapticd.profile import ProfileError, load_profile, parse_profile
-from hapticd.render import Renderer
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject
 from tests.conftest import ROOT
+
+
+def step(energy, force, dx, dx_actuated, dt, params):
+    """One tick of one finger's observer and controller, as the tick's one call composes
+    them (hapticd.physics.kernels._passivity): (E(n) J, alpha(n) N s/m) for E(n-1) ``energy`` (J),
+    the rendered force (3,) N, the finger's motion dx (3,) m and P_a dx (3,) m over ``dt``
+    s. Non-finite input leaves E unchanged and adds no damping."""
+    observed = observe(energy, force, dx)
+    if not math.isfinite(observed):
+        return energy, 0.0
+    return control(observed, dx_actuated, dt, params.velocity_threshold, params.max_damping)
+
 
 DT = 1e-3
 PARAMS = PassivityParams(velocity_threshold=0.002, max_damping=50.0)
@@ -34,16 +46,14 @@ def test_the_observer_and_controller_on_a_hand_computed_tick():
     # delivers 1 mJ, so E(n) = E(n-1) - f . dx = 0.0004 - 0.001 = -0.0006 J before the
     # controller. Actuated along x, |P_a v| = 1 m/s, far above twice the threshold:
     # alpha = 0.0006 J / (1 ms (1 m/s)^2) = 0.6 N s/m brings E back to exactly 0.
-    e, alpha = passivity.step(4e-4, (1.0, 0.0, 0.0), (1e-3, 0.0, 0.0), (1e-3, 0.0, 0.0), DT, PARAMS)
+    e, alpha = step(4e-4, (1.0, 0.0, 0.0), (1e-3, 0.0, 0.0), (1e-3, 0.0, 0.0), DT, PARAMS)
     assert alpha == pytest.approx(0.6, rel=1e-12) and e == 0.0
     # Clamped at 0.25 N s/m, the damping dissipates 0.25 * 1 * 1e-3 = 0.25 mJ of the 0.6.
     clamped = PassivityParams(0.002, 0.25)
-    e, alpha = passivity.step(
-        4e-4, (1.0, 0.0, 0.0), (1e-3, 0.0, 0.0), (1e-3, 0.0, 0.0), DT, clamped
-    )
+    e, alpha = step(4e-4, (1.0, 0.0, 0.0), (1e-3, 0.0, 0.0), (1e-3, 0.0, 0.0), DT, clamped)
     assert alpha == 0.25 and e == pytest.approx(-6e-4 + 2.5e-4, rel=1e-12)
     # The finger pushing into the force: the display absorbs 2 mJ, nothing added.
-    e, alpha = passivity.step(0.0, (-2.0, 0.0, 0.0), (1e-3, 0.0, 0.0), (1e-3, 0.0, 0.0), DT, PARAMS)
+    e, alpha = step(0.0, (-2.0, 0.0, 0.0), (1e-3, 0.0, 0.0), (1e-3, 0.0, 0.0), DT, PARAMS)
     assert (e, alpha) == (pytest.approx(2e-3, rel=1e-12), 0.0)
 
 
@@ -53,7 +63,7 @@ def test_authority_ramps_from_the_threshold_to_twice_it():
     assert authority(5.0, 0.01) == 1.0
     # At 1.5 thresholds the damping is capped at half the maximum.
     dx = (0.015 * DT, 0.0, 0.0)
-    e, alpha = passivity.step(0.0, (1.0, 0.0, 0.0), dx, dx, DT, PassivityParams(0.01, 10.0))
+    e, alpha = step(0.0, (1.0, 0.0, 0.0), dx, dx, DT, PassivityParams(0.01, 10.0))
     assert alpha == pytest.approx(5.0) and e == pytest.approx(-0.015e-3 + 5.0 * 0.015**2 * DT)
 
 
@@ -121,7 +131,7 @@ def test_damping_is_bounded_idle_below_the_threshold_and_never_nan(
     energy, force, dx, threshold, max_damping, dt
 ):
     p = PassivityParams(threshold, max_damping)
-    e, alpha = passivity.step(energy, force, dx, dx, dt, p)
+    e, alpha = step(energy, force, dx, dx, dt, p)
     assert math.isfinite(e) and math.isfinite(alpha)
     assert 0.0 <= alpha <= max_damping
     speed = math.sqrt(sum(c * c for c in dx)) / dt

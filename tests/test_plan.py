@@ -13,11 +13,11 @@ import pytest
 import yaml
 
 from hapticd.allocation import METHODS
-from hapticd.build import build_renderer
-from hapticd.frame import LOOP_WRITERS, NAMES, STATE, STATE_NAMES
+from hapticd.daemon.build import build_renderer
+from hapticd.loop.pulse import PulseStage
+from hapticd.physics.frame import LOOP_WRITERS, NAMES, STATE, STATE_NAMES
+from hapticd.physics.render import PlanError, Renderer
 from hapticd.profile import load_profile, parse_profile
-from hapticd.pulse import PulseStage
-from hapticd.render import PlanError, Renderer
 
 ROOT = Path(__file__).resolve().parent.parent
 PROFILES = sorted((ROOT / "configs").glob("*.yaml")) + sorted(

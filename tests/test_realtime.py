@@ -7,8 +7,8 @@ import threading
 
 import pytest
 
-from hapticd import realtime
 from hapticd.daemon.session import build_session
+from hapticd.loop import realtime
 from hapticd.profile import load_profile
 from tests.conftest import GRASP_PROFILE
 

@@ -251,7 +251,7 @@ def test_a_paced_recorder_takes_a_stale_drained_count_for_what_it_is(tmp_path):
 def test_csv_columns_name_every_per_finger_field_by_finger(tmp_path):
     """Every field the tick frame declares per finger (first axis "F") is labelled by finger
     name in a CSV export, 3-vectors by axis: ``contact_point.thumb.x``, ``buttons.index``."""
-    from hapticd.frame import FIELDS
+    from hapticd.physics.frame import FIELDS
     from hapticd.recording.export import csv_columns
 
     fields = loop_fields(2, 3)

@@ -34,7 +34,7 @@ STRIDE = 5
 PROFILES = ("grasp-stiffness", "lift-weight")
 DEVICES = ("replay", "sim")
 # The Python code (the reference, which regenerates the file) and the compiled kernels
-# (hapticd.kernels: every kernel the renderer names for the profile: the free-body step,
+# (hapticd.physics.kernels: every kernel the renderer names for the profile: the free-body step,
 # the allocation, the contact, friction and the contact forces): both must reproduce it.
 # Measured: the same bits on both.
 KERNELS = ("python", "compiled")

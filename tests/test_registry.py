@@ -14,8 +14,8 @@ import yaml
 from hapticd_drivers import registry
 from hapticd_drivers.registry import BACKENDS, REQUIRED
 
-from hapticd.build import build_devices
 from hapticd.cli import build_parser
+from hapticd.daemon.build import build_devices
 from hapticd.profile import DEVICE_MODELS, ProfileError, load_profile, parse_profile
 
 ROOT = Path(__file__).resolve().parent.parent

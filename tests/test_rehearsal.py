@@ -17,10 +17,10 @@ from hapticd_drivers.replay import KEPT_FORCES, ReplayDevice
 from hapticd_drivers.sim import SimulatedFinger
 
 from hapticd import recording
-from hapticd.commands import SetParam
 from hapticd.daemon.session import build_session
 from hapticd.experiment import load_experiment, make_plan
 from hapticd.experiment import runner as rn
+from hapticd.loop.commands import SetParam
 from hapticd.profile import load_profile
 from hapticd.protocol import ProtocolError
 from tests.conftest import ROOT, wait_for

@@ -13,7 +13,7 @@ from hapticd_drivers.trajectory import Trajectory
 
 from hapticd import recording
 from hapticd.cli import main
-from hapticd.mount import Mount
+from hapticd.loop.mount import Mount
 from tests.conftest import GRASP_PROFILE, IN_PROCESS_WATCHDOG_S
 from tests.test_mount import MOUNTS, _trajectories
 
@@ -205,7 +205,7 @@ def test_the_hardware_guide_mounting_example(tmp_path, libdhd, capsys):
     and both fingers reach it."""
     import re
 
-    from hapticd.build import build_mounts
+    from hapticd.daemon.build import build_mounts
     from hapticd.profile import load_profile
 
     text = (GRASP_PROFILE.parent.parent / "docs" / "hardware.md").read_text()

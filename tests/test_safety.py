@@ -6,13 +6,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from hapticd import jit, kernels
-from hapticd.safety import SafetyChain
+from hapticd.physics import jit, kernels
+from hapticd.physics.safety import SafetyChain
 
 
 @pytest.fixture(scope="module", autouse=True, params=["python", "compiled"])
 def safety_path(request):
-    """Every test here both ways: the chain's normal tick (hapticd.kernels.safety_step)
+    """Every test here both ways: the chain's normal tick (hapticd.physics.kernels.safety_step)
     uncompiled and compiled (tests/test_kernel_safety.py compares them)."""
     if request.param == "python":
         yield request.param
@@ -78,7 +78,7 @@ def test_bad_limits_rejected():
 
 # -- ramp, rate limit, workspace, watchdog --------------------------------------------------
 
-from hapticd.safety import SafetyParams  # noqa: E402
+from hapticd.physics.safety import SafetyParams  # noqa: E402
 
 finite = st.floats(-50, 50)
 
@@ -200,7 +200,7 @@ def test_a_stall_in_the_renderers_one_call_ends_in_zero_force():
 
 
 def test_a_ramp_down_ends_at_exactly_zero_despite_rounded_tick_times():
-    from hapticd.safety import SafetyChain
+    from hapticd.physics.safety import SafetyChain
 
     dt = 1e-3
     for start in range(2000, 4000, 7):  # many start ticks: some end a hair short of 1.0

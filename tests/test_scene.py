@@ -10,13 +10,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from hapticd import jit, recording
-from hapticd.actuation import Actuation
+from hapticd import recording
 from hapticd.allocation import Robustness
-from hapticd.build import build_scene
 from hapticd.cli import main
+from hapticd.daemon.build import build_scene
+from hapticd.physics import jit
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.render import Renderer
 from hapticd.profile import ProfileError, parse_profile
-from hapticd.render import Renderer
 from tests.conftest import ROOT
 from tests.proxies import Proxy
 

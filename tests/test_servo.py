@@ -7,9 +7,9 @@ import yaml
 from hapticd_drivers import Device, DeviceError, DeviceInfo
 
 from hapticd import recording
-from hapticd.commands import Enable
 from hapticd.daemon.session import build_session
-from hapticd.pacing import Pacer
+from hapticd.loop.commands import Enable
+from hapticd.loop.pacing import Pacer
 from hapticd.profile import load_profile
 from tests.conftest import GRASP_PROFILE, AtTick, wait_for
 
@@ -308,7 +308,7 @@ def test_enable_while_stopping_is_refused_so_the_stop_ramp_ends():
 def test_a_realtime_setting_that_raises_after_enabling_still_zeroes_and_disables(monkeypatch):
     """A CPU number beyond a C long made sched_setaffinity raise OverflowError after the
     devices were enabled, and the run ended with their forces on."""
-    from hapticd import realtime
+    from hapticd.loop import realtime
 
     def overflow(settings):
         raise OverflowError("Python int too large to convert to C long")
@@ -325,7 +325,7 @@ def test_a_realtime_setting_that_raises_after_enabling_still_zeroes_and_disables
 
 
 def test_a_cpu_number_beyond_a_c_long_is_a_real_time_problem_not_an_exception():
-    from hapticd import realtime
+    from hapticd.loop import realtime
 
     # priority 0, no timer slack, no mlockall: nothing here changes the test process.
     rep = realtime.apply(realtime.RealtimeSettings(0, 10**30, False, None, False))

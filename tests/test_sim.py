@@ -6,7 +6,7 @@ import yaml
 from hapticd_drivers import DeviceError, DeviceState, open_device
 
 from hapticd import recording
-from hapticd.build import builtin_trajectory
+from hapticd.daemon.build import builtin_trajectory
 from hapticd.daemon.session import build_session
 from hapticd.profile import ProfileError, parse_profile
 from tests.conftest import GRASP_PROFILE

@@ -4,8 +4,8 @@ import sys
 import numpy as np
 
 from hapticd import recording
-from hapticd.build import builtin_trajectory
-from hapticd.trajectory import Hold, MinJerk, Squeeze, minjerk_profile, sample
+from hapticd.daemon.build import builtin_trajectory
+from hapticd.loop.trajectory import Hold, MinJerk, Squeeze, minjerk_profile, sample
 from tests.conftest import ROOT
 
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from hapticd import recording
-from hapticd.build import BUILTIN, builtin_trajectory, load_trajectories
 from hapticd.cli import main
+from hapticd.daemon.build import BUILTIN, builtin_trajectory, load_trajectories
 from hapticd.profile import load_profile
 
 FINGERS = ["thumb", "index"]

@@ -1,6 +1,6 @@
-"""The tests' way into the tick's one call (hapticd.kernels.tick_step) with chosen inputs: a
+"""The tests' way into the tick's one call (hapticd.physics.kernels.tick_step) with chosen inputs: a
 renderer on a scene, compiled or not, and a stage inserted into its plan that puts given
-values into frame fields (the call then runs in parts around it: hapticd.render.OneCall).
+values into frame fields (the call then runs in parts around it: hapticd.physics.render.OneCall).
 
 The compiled call is loaded from the run's numba cache (tests/conftest.py compiles it
 before the workers start), never compiled here."""
@@ -11,10 +11,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from hapticd import jit
-from hapticd.actuation import Actuation
-from hapticd.render import Renderer
-from hapticd.scene import Scene
+from hapticd.physics import jit
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.render import Renderer
+from hapticd.physics.scene import Scene
 
 MODES = ("uncompiled", "compiled")
 

@@ -1,24 +1,16 @@
 """Closed forms for one contact, and for two contacts with one direction each: written once.
 
 Equal to the general path (``hapticd.allocation.general``) to rounding, and much
-cheaper per tick. Vectors are 3-tuples: offsets r (m), directions d (unit),
-forces l (N); their components are floats (one grasp) or arrays of equal shape
-(a batch, elementwise: ``hapticd.allocation.batch``). The servo loop's Python
-path, its compiled kernel (``hapticd.kernels.allocation_step``, which hapticd.jit
-compiles with these functions: ``KERNEL_HELPERS``), ``allocate()`` and
-``allocate_many`` all evaluate these same functions.
-
-The three steps that branch on a value (the filtered 2x2 inverse ``_finv2``, the
-filtered gain ``_gain`` and the grasp line ``_grasp_line``) come in a form on
-floats (what compiled code runs) and an elementwise form on arrays (``elementwise``);
-everything else is arithmetic that works on both.
+cheaper per tick. Vectors are 3-tuples of floats: offsets r (m), directions d
+(unit), forces l (N). The servo loop's kernel (``hapticd.physics.kernels.allocation_step``,
+which hapticd.physics.jit compiles with these functions: ``KERNEL_HELPERS``), ``allocate()``
+and ``allocate_many`` (grasp by grasp, ``hapticd.allocation.general.solve_grasps``,
+compiled or not) all evaluate these same functions.
 """
 
 from __future__ import annotations
 
-import functools
 import math
-from collections.abc import Callable
 
 import numpy as np
 
@@ -40,60 +32,6 @@ def _cross(u: V3, v: V3) -> V3:
     return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
 
 
-# The float form of each helper that branches on a value, by the helper (hapticd.jit compiles
-# the float form in its place).
-FLOAT_FORMS: dict[Callable[..., object], Callable[..., object]] = {}
-
-
-def elementwise(arrays: Callable[..., object]) -> Callable[[Callable], Callable]:
-    """Decorator of a helper's float form (of 1 to 4 arguments), with ``arrays`` its form
-    elementwise on arrays (np.where, with safe denominators): the helper runs the array
-    form when its first argument (or that argument's first item) is an array, else the
-    float form (a Python float first: the uncompiled kernels' and allocate()'s path)."""
-
-    def both(floats: Callable[..., object]) -> Callable[..., object]:
-        def form(a: object) -> Callable[..., object]:
-            if type(a) is float or not isinstance(a[0] if type(a) is tuple else a, np.ndarray):
-                return floats
-            return arrays
-
-        either = (  # of the float form's arity: quicker than *args
-            lambda a: form(a)(a),
-            lambda a, b: form(a)(a, b),
-            lambda a, b, c: form(a)(a, b, c),
-            lambda a, b, c, d: form(a)(a, b, c, d),
-        )[floats.__code__.co_argcount - 1]
-        FLOAT_FORMS[either] = floats
-        return functools.wraps(floats)(either)
-
-    return both
-
-
-def _safe(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """x where ok, else 1 (a denominator in a branch np.where discards)."""
-    return np.where(ok, x, 1.0)
-
-
-def _finv2_arrays(a: np.ndarray, b: np.ndarray, c: np.ndarray, eps2: float) -> tuple:
-    mean = 0.5 * (a + c)
-    half = 0.5 * (a - c)
-    rad = np.sqrt(half * half + b * b)
-    l2 = mean - rad
-    reg = l2 >= eps2
-    det = _safe(a * c - b * b, reg)
-    l1 = mean + rad
-    h2 = 1.0 / eps2
-    big1 = l1 >= eps2
-    h1 = np.where(big1, 1.0 / _safe(l1, big1), h2)
-    same = h1 == h2
-    s = (h1 - h2) / _safe(l1 - l2, ~(reg | same))
-    out0 = np.where(reg, c / det, np.where(same, h2, h2 + s * (a - l2)))
-    out1 = np.where(reg, -b / det, np.where(same, 0.0, s * b))
-    out2 = np.where(reg, a / det, np.where(same, h2, h2 + s * (c - l2)))
-    return out0, out1, out2
-
-
-@elementwise(_finv2_arrays)
 def _finv2(a: float, b: float, c: float, eps2: float) -> Sym2:
     """Filtered inverse of [[a, b], [b, c]] (symmetric PSD): eigenvalues l -> 1/l or
     1/eps2, as (a', b', c')."""
@@ -114,11 +52,6 @@ def _finv2(a: float, b: float, c: float, eps2: float) -> Sym2:
     return h2 + s * (a - l2), s * b, h2 + s * (c - l2)
 
 
-def _gain_arrays(k: np.ndarray, eps2: float) -> np.ndarray:
-    return np.where(k >= eps2, 1.0 / _safe(k, k >= eps2), 1.0 / eps2)
-
-
-@elementwise(_gain_arrays)
 def _gain(k: float, eps2: float) -> float:
     """Filtered gain 1/k (k >= eps2) or 1/eps2 of a squared length k."""
     return 1.0 / k if k >= eps2 else 1.0 / eps2
@@ -192,7 +125,7 @@ def one_contact_ef(r: V3, d: V3, lam: V3, eps: float) -> float:
 
 
 # The robust methods by code: what one_contact and two_contact take (compiled code has no
-# strings); hapticd.kernels passes these codes.
+# strings); hapticd.physics.kernels passes these codes.
 CODES = ("pinv", "if", "ef", "adaptive")
 PINV, IF, EF, ADAPTIVE = 0, 1, 2, 3
 
@@ -211,23 +144,6 @@ def one_contact(code: int, r: V3, d: V3, lam: V3, eps: float, alpha: float) -> f
     return x
 
 
-def _grasp_line_arrays(r1, r2, min_sep: float) -> tuple[tuple, np.ndarray]:
-    dx, dy, dz = r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2]
-    dist = np.sqrt(dx * dx + dy * dy + dz * dz)
-    near = dist < min_sep
-    q = dist / min_sep
-    w = np.where(near, 1.0 - q * q, 0.0)
-    apart = dist > _TINY
-    sd = _safe(dist, apart)
-    e = (
-        np.where(apart, dx / sd, 1.0),
-        np.where(apart, dy / sd, 0.0),
-        np.where(apart, dz / sd, 0.0),
-    )
-    return e, np.where(apart, w, 1.0)  # coincident: w = 1 makes e irrelevant
-
-
-@elementwise(_grasp_line_arrays)
 def _grasp_line(r1: V3, r2: V3, min_sep: float) -> tuple[V3, float]:
     """Unit grasp line e (first to second contact) and the blend w toward all opposing
     pairs."""
@@ -299,8 +215,7 @@ def two_contact(
     alpha: float,
 ) -> tuple[float, float]:
     """(x1, x2) N for two contacts with one direction each, by robust method ``code``
-    (CODES); ``alpha`` the adaptive allocator's external weight, a float (the others
-    ignore it; on arrays, mix ``if`` and ``ef`` yourself)."""
+    (CODES); ``alpha`` the adaptive allocator's external weight (the others ignore it)."""
     if code == PINV:
         return two_contact_pinv(d1, d2, l1, l2, eps)
     if code == EF:
@@ -312,8 +227,7 @@ def two_contact(
     return x0, x1
 
 
-# What compiled code calls (hapticd.jit makes them callable from a kernel; those that
-# branch on a value run their float form there: ``FLOAT_FORMS``).
+# What compiled code calls (hapticd.physics.jit makes them callable from a kernel).
 KERNEL_HELPERS = (
     _dot,
     _cross,

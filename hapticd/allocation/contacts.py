@@ -4,7 +4,7 @@
 the devices are, the contact points in m and full contact forces in N, on the
 finger) and writes lam_a (r,) N and M_a lam_a per finger, returning the accuracy of
 the result. With one actuated direction per finger and a robust method, the kernel
-``hapticd.kernels.allocation_step`` (compiled, or the same function uncompiled)
+``hapticd.physics.kernels.allocation_step`` (compiled, or the same function uncompiled)
 takes every tick: the closed forms of ``hapticd.allocation.closed`` for one or two
 contacts, ``hapticd.allocation.general`` for more, and adaptive's alpha. The rest
 (several directions on a finger, the seed's exact formulas) runs
@@ -18,13 +18,13 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hapticd import kernels
-from hapticd.actuation import Actuation
 from hapticd.allocation import allocate
 from hapticd.allocation.accuracy import accuracy
 from hapticd.allocation.adaptive import AdaptiveState, smoothstep
 from hapticd.allocation.robust import AllocationError, Robustness
-from hapticd.grasp import grasp_matrix
+from hapticd.physics import kernels
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.grasp import grasp_matrix
 
 V3 = tuple[float, float, float]
 
@@ -34,7 +34,7 @@ class ContactAllocator:
 
     Carries the adaptive allocator's alpha (``state``, following the task over ticks of
     ``dt`` s, from ``adaptive``'s alpha) and runs the allocation kernel: ``kernel`` is the
-    compiled ``allocation_step`` (hapticd.jit) or, set to None, the same function
+    compiled ``allocation_step`` (hapticd.physics.jit) or, set to None, the same function
     uncompiled; ``work`` is its workspace.
     """
 
@@ -81,7 +81,7 @@ class ContactAllocator:
 
     @property
     def kernel(self) -> Callable[..., int]:
-        """hapticd.kernels.allocation_step, compiled or not."""
+        """hapticd.physics.kernels.allocation_step, compiled or not."""
         return self._kernel
 
     @kernel.setter

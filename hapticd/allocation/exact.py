@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hapticd.grasp import null_space_basis
+from hapticd.physics.grasp import null_space_basis
 
 # -- the seed's exact formulas ----------------------------------------------------------------
 

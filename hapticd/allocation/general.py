@@ -5,12 +5,10 @@ preallocates (``work_shape``): G (6, n) in rows ``G0``, M_a (n, r) in rows ``M0`
 lam (n,) in row ``LAM`` (``n = 3p`` for p contacts, forces in N, lengths in m);
 ``general`` writes lam_a (r,) N into row ``XO``. Plain loops over small matrices
 and a cyclic Jacobi eigensolver on the workspace: nothing is allocated, so the
-servo loop's kernel (``hapticd.kernels.allocation_step``, three or more contacts)
-calls it every tick; ``allocate()`` runs the same function on floats, and
-``allocate_many`` on a whole batch at once, each workspace entry an (N,) array
-(``solve_stack``: the five helpers that branch on a value have a float form and an
-elementwise form, ``hapticd.allocation.closed.elementwise``),
-or compiled grasp by grasp (``solve_grasps``, ``hapticd.kernels.allocate_grasps``).
+servo loop's kernel (``hapticd.physics.kernels.allocation_step``, three or more contacts)
+calls it every tick; ``allocate()`` and ``allocate_many`` run it grasp by grasp
+(``solve_grasps``, with the two-contact closed forms where they apply), uncompiled
+on Python floats or compiled (``hapticd.physics.kernels.allocate_grasps``).
 
 - a filtered pseudoinverse g(s) = 1/s or s/eps^2 of A is F(A^T A) A^T, F the
   spectral function l -> 1/max(l, eps^2) of the Gram matrix;
@@ -27,7 +25,7 @@ import math
 
 import numpy as np
 
-from hapticd.allocation.closed import ADAPTIVE, EF, PINV, adaptive_mix, elementwise
+from hapticd.allocation.closed import ADAPTIVE, EF, PINV, adaptive_mix, two_contact
 
 _SWEEPS = 64  # Jacobi sweeps at most (a 15 x 15 converges in under 10)
 # Eigenvalues of G G^T below this share of the largest are G's null space (accuracy):
@@ -67,41 +65,6 @@ def layout(n: int, r: int) -> tuple[int, ...]:
             t1 + 3, t1 + 4, t1 + 5)  # fmt: skip
 
 
-def _converged_arrays(diag: np.ndarray, off) -> bool:
-    return bool(np.all((off <= 1e-32 * diag) | (off == 0.0)))
-
-
-@elementwise(_converged_arrays)
-def _converged(diag: float, off: float) -> bool:
-    """Whether the off-diagonal square sum ``off`` is negligible against the diagonal's,
-    ``diag`` (every grasp's, on arrays; off is 0.0 for a 1 x 1)."""
-    return off <= 1e-32 * diag or off == 0.0
-
-
-def _is_zero_arrays(x: np.ndarray) -> bool:
-    return bool(np.all(x == 0.0))
-
-
-@elementwise(_is_zero_arrays)
-def _is_zero(x: float) -> bool:
-    """x == 0 (every grasp's, on arrays)."""
-    return x == 0.0
-
-
-def _rotation_arrays(app: np.ndarray, aqq: np.ndarray, apq: np.ndarray) -> tuple:
-    zero = apq == 0.0
-    theta = (aqq - app) / (2.0 * np.where(zero, 1.0, apq))
-    big = np.abs(theta) > 1e150
-    small = np.where(big, 0.0, theta)
-    t = 1.0 / (np.abs(small) + np.sqrt(small * small + 1.0))
-    t = np.where(theta < 0.0, -t, t)
-    t = np.where(big, 0.5 / np.where(big, theta, 1.0), t)
-    t = np.where(zero, 0.0, t)  # nothing to rotate: the identity
-    c = 1.0 / np.sqrt(t * t + 1.0)
-    return c, t * c
-
-
-@elementwise(_rotation_arrays)
 def _rotation(app: float, aqq: float, apq: float) -> tuple[float, float]:
     """(cos, sin) of the Jacobi rotation that zeroes apq of [[app, apq], [apq, aqq]] (on
     arrays, where apq = 0: the identity)."""
@@ -114,18 +77,6 @@ def _rotation(app: float, aqq: float, apq: float) -> tuple[float, float]:
             t = -t
     c = 1.0 / math.sqrt(t * t + 1.0)
     return c, t * c
-
-
-@elementwise(np.maximum)
-def _floor(x: float, lo: float) -> float:
-    """max(x, lo): an eigenvalue's filtered denominator."""
-    return x if x >= lo else lo
-
-
-@elementwise(lambda x: np.clip(x, 0.0, 1.0))
-def _clip01(x: float) -> float:
-    """x clipped to [0, 1]."""
-    return 0.0 if x < 0.0 else (1.0 if x > 1.0 else x)
 
 
 def _jacobi(w: np.ndarray, a: int, v: int, k: int) -> None:
@@ -142,12 +93,12 @@ def _jacobi(w: np.ndarray, a: int, v: int, k: int) -> None:
             diag += w[a + i, i] * w[a + i, i]
             for j in range(i + 1, k):
                 off += w[a + i, j] * w[a + i, j]
-        if _converged(diag, off):
+        if off <= 1e-32 * diag or off == 0.0:  # off: 0.0 for a 1 x 1
             return
         for p in range(k - 1):
             for q in range(p + 1, k):
                 apq = w[a + p, q]
-                if _is_zero(apq):
+                if apq == 0.0:
                     continue
                 c, s = _rotation(w[a + p, p], w[a + q, q], apq)
                 for i in range(k):  # columns p, q
@@ -190,7 +141,8 @@ def _finv_apply(w: np.ndarray, a: int, v: int, k: int, vec: int, eps2: float, tm
         s = 0.0
         for t in range(k):
             s += w[v + t, j] * w[vec, t]
-        w[tmp, j] = s / _floor(w[a + j, j], eps2)
+        lj = w[a + j, j]
+        w[tmp, j] = s / (lj if lj >= eps2 else eps2)
     for t in range(k):
         s = 0.0
         for j in range(k):
@@ -252,7 +204,7 @@ def soft_apply(w: np.ndarray, n: int, eps2: float, src: int, dst: int) -> None:
     for j in range(3):
         lj = w[a3 + j, j]
         c = w[v3, j] * g0 + w[v3 + 1, j] * g1 + w[v3 + 2, j] * g2
-        c = c / _floor(lj, eps2)
+        c = c / (lj if lj >= eps2 else eps2)
         h0 += w[v3, j] * c
         h1 += w[v3 + 1, j] * c
         h2 += w[v3 + 2, j] * c
@@ -312,7 +264,8 @@ def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -
         for j in range(r):
             s = 0.0
             for k in range(r):
-                lk = _clip01(w[kb + k, k] / eps2)
+                lk = w[kb + k, k] / eps2
+                lk = 0.0 if lk < 0.0 else (1.0 if lk > 1.0 else lk)
                 s += w[vb + i, k] * lk * w[vb + j, k]
             w[pp + i, j] = (1.0 if i == j else 0.0) - s
     for i in range(r):
@@ -322,7 +275,7 @@ def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -
             w[pp + j, i] = s
     for t in range(n):  # M P, and the rest lam - M x1
         s = w[lam, t]
-        for j in range(r):  # (not -=: on arrays w's rows are views)
+        for j in range(r):
             s = s - w[m0 + t, j] * w[x1, j]
             q = 0.0
             for k in range(r):
@@ -369,17 +322,38 @@ def solve_grasps(
     alpha: np.ndarray,
     eps: float,
     min_sep: float,
+    fast: bool,
     out: np.ndarray,
     w: np.ndarray,
 ) -> None:
-    """``general`` for N grasps: G (N, 6, n), M (N, n, r) or one shared (1, n, r), lam
-    (N, n) N, alpha (N,); lam_a into out (N, r) N; ``w`` a workspace (work_shape(n, r))."""
+    """lam_a of N grasps by robust method ``code`` into out (N, r) N: G (N, 6, n), M (N, n,
+    r) or one shared (1, n, r), lam (N, n) N, alpha (N,) adaptive's weights; ``w`` a
+    workspace (work_shape(n, r)). Two contacts with one direction each (``fast``) take
+    the closed form (hapticd.allocation.closed.two_contact), every other grasp ``general``."""
     N, n, r = lam.shape[0], lam.shape[1], out.shape[1]
     lay = layout(n, r)
     m0, row, xo = lay[1], lay[2], lay[19]
     shared = M.shape[0] == 1
     for g in range(N):
         mg = 0 if shared else g
+        closed = fast and n == 6 and r == 2
+        for t in range(3 if closed else 0):  # each direction on its own finger only?
+            if M[mg, 3 + t, 0] != 0.0 or M[mg, t, 1] != 0.0:
+                closed = False
+        if closed:  # the offsets off G's moment rows, as contact_offsets reads them
+            out[g, 0], out[g, 1] = two_contact(
+                code,
+                (G[g, 5, 1], G[g, 3, 2], G[g, 4, 0]),
+                (G[g, 5, 4], G[g, 3, 5], G[g, 4, 3]),
+                (M[mg, 0, 0], M[mg, 1, 0], M[mg, 2, 0]),
+                (M[mg, 3, 1], M[mg, 4, 1], M[mg, 5, 1]),
+                (lam[g, 0], lam[g, 1], lam[g, 2]),
+                (lam[g, 3], lam[g, 4], lam[g, 5]),
+                eps,
+                min_sep,
+                alpha[g],
+            )
+            continue
         for i in range(6):
             for t in range(n):
                 w[i, t] = G[g, i, t]
@@ -454,33 +428,9 @@ def residuals(w: np.ndarray, n: int, r: int) -> tuple[float, float, float, float
     return math.sqrt(internal), math.sqrt(external), math.sqrt(total), amp
 
 
-def solve_stack(
-    code: int, G: np.ndarray, M: np.ndarray, lam: np.ndarray, eps: float, min_sep: float
-) -> np.ndarray:
-    """``general`` (not adaptive's mix) for N grasps at once, elementwise: every workspace
-    entry an (N,) array (the helpers that branch on a value take their array forms). G (N, 6,
-    n), M (N, n, r) or shared (n, r), lam (N, n) N; returns lam_a (N, r) N."""
-    N, n = lam.shape
-    r = M.shape[-1]
-    rows, cols = work_shape(n, r)
-    w = np.zeros((rows, cols, N))
-    lay = layout(n, r)
-    w[0:6, :n] = np.moveaxis(G, 0, -1)
-    w[lay[1] : lay[1] + n, :r] = M[..., None] if M.ndim == 2 else np.moveaxis(M, 0, -1)
-    w[lay[2], :n] = lam.T
-    with np.errstate(all="ignore"):  # np.where's discarded branches
-        general(code, w, n, r, eps, min_sep, 0.0)
-    return w[lay[19], :r].T.copy()
-
-
-# What compiled code calls (hapticd.jit makes them callable from a kernel; those that
-# branch on a value run their float form there: ``closed.FLOAT_FORMS``).
+# What compiled code calls (hapticd.physics.jit makes them callable from a kernel).
 KERNEL_HELPERS = (
-    _converged,
-    _is_zero,
     _rotation,
-    _floor,
-    _clip01,
     _jacobi,
     _gram_cols,
     _t_apply,

@@ -2,7 +2,7 @@
 
 The math is in ``hapticd.analysis.pipeline`` (pure: numpy in, numpy out, the
 loop's own stages); this package adds ``Pipeline.from_profile``, which reads a
-profile (and the files it names) through ``hapticd.build``. See docs/analysis.md.
+profile (and the files it names) through ``hapticd.daemon.build``. See docs/analysis.md.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from hapticd.analysis.pipeline import (
     loop_work_rate,
     null_directions,
 )
-from hapticd.build import build_renderer
+from hapticd.daemon.build import build_renderer
 from hapticd.profile import Profile, load_profile
 
 

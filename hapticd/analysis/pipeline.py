@@ -1,7 +1,7 @@
 """Barbagli & Salisbury's asymmetry analysis, run on the same stages the servo loop runs.
 
 ``Pipeline`` holds its own copy of a scene and renders it off-line with
-``hapticd.render.Renderer`` (contact, friction, forces, allocation, environment;
+``hapticd.physics.render.Renderer`` (contact, friction, forces, allocation, environment;
 no devices, safety chain or timing), one renderer per evaluation, so it never
 touches a live loop. Every quantity is quasi-static: fingers at rest (zero
 velocity, so damping does no work), proxies settled, a free object held at its
@@ -53,7 +53,6 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from hapticd.actuation import Actuation
 from hapticd.allocation import (
     DEFAULT_ROBUSTNESS,
     METHODS,
@@ -61,9 +60,10 @@ from hapticd.allocation import (
     AdaptiveState,
     Robustness,
 )
-from hapticd.frame import Frame
-from hapticd.render import Renderer
-from hapticd.scene import Material, Scene, SceneObject
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.frame import Frame
+from hapticd.physics.render import Renderer
+from hapticd.physics.scene import Material, Scene, SceneObject
 
 FD_STEP_M = 1e-6
 """Central-difference step (m) for Cartesian linearizations (see the module's docstring)."""

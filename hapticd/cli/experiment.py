@@ -10,8 +10,8 @@ from pathlib import Path
 from typing import Any
 
 from hapticd import params
-from hapticd.build import build_devices, build_scene, load_trajectories
 from hapticd.cli.common import EXIT_BAD_INPUT, EXIT_ERROR, EXIT_OK, _positive
+from hapticd.daemon.build import build_devices, build_scene, load_trajectories
 from hapticd.profile import ProfileError
 
 log = logging.getLogger("hapticd")

@@ -17,8 +17,6 @@ from typing import Any
 from hapticd_drivers import BackendUnavailableError, DeviceError, registry
 from hapticd_drivers.registry import discover
 
-from hapticd import bringup
-from hapticd.build import build_devices, build_scene, load_trajectories
 from hapticd.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_ERROR,
@@ -32,13 +30,15 @@ from hapticd.cli.common import (
 )
 from hapticd.cli.offline import _plot
 from hapticd.control import default_socket_path
+from hapticd.daemon import bringup
+from hapticd.daemon.build import build_devices, build_scene, load_trajectories
 from hapticd.daemon.sdnotify import ServiceNotifier
 from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
 from hapticd.daemon.summary import status, summarize
+from hapticd.loop.servo import ServoLoop
 from hapticd.profile import ProfileError, load_profile
 from hapticd.recording import RecordingError
-from hapticd.servo import ServoLoop
 
 log = logging.getLogger("hapticd")
 
@@ -446,7 +446,7 @@ def cmd_udev_rules(args: argparse.Namespace) -> int:
 
 
 def _add_bringup(sub: Any) -> None:
-    """``hapticd bringup``: its arguments are hapticd.bringup's, and so is the work."""
+    """``hapticd bringup``: its arguments are hapticd.daemon.bringup's, and so is the work."""
     p = sub.add_parser(
         "bringup",
         help="check a rig before a subject touches it: devices, limits, positions, force pulses",

@@ -10,8 +10,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from hapticd.build import build_scene, load_trajectories
 from hapticd.cli.common import EXIT_BAD_INPUT, EXIT_OK
+from hapticd.daemon.build import build_scene, load_trajectories
 from hapticd.profile import ProfileError, load_profile
 
 DEFAULT_PROFILE = Path("/etc/hapticd/profile.yaml")

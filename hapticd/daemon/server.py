@@ -32,9 +32,9 @@ from typing import TYPE_CHECKING, Any
 
 from hapticd import __version__, events
 from hapticd import protocol as proto
-from hapticd.commands import Command, Disable, Enable, SetParam
 from hapticd.control import check_socket_dir, share_socket
 from hapticd.daemon import summary as views
+from hapticd.loop.commands import Command, Disable, Enable, SetParam
 from hapticd.params import PARAMS
 from hapticd.profile import ProfileError
 from hapticd.recording import RecordingError

@@ -17,7 +17,7 @@ from hapticd_drivers.emulator import DeltaEmulator
 
 from hapticd import recording
 from hapticd.allocation import METHODS
-from hapticd.build import (
+from hapticd.daemon.build import (
     build_devices,
     build_mounts,
     build_renderer,
@@ -25,16 +25,16 @@ from hapticd.build import (
     load_trajectories,
     realtime_settings,
 )
-from hapticd.commands import Command, RecordStart, RecordStop, Reload
 from hapticd.daemon.summary import summarize
-from hapticd.event_ring import DEFAULT_CAPACITY
-from hapticd.frame import Frame
+from hapticd.loop.commands import Command, RecordStart, RecordStop, Reload
+from hapticd.loop.event_ring import DEFAULT_CAPACITY
+from hapticd.loop.servo import Applied, ServoLoop, TickClock
+from hapticd.physics.frame import Frame
+from hapticd.physics.render import Renderer
+from hapticd.physics.safety import SafetyChain
 from hapticd.profile import Profile, ProfileError, load_profile
 from hapticd.protocol import ProtocolError
 from hapticd.recording import Recorder, RecordingError, files, ring
-from hapticd.render import Renderer
-from hapticd.safety import SafetyChain
-from hapticd.servo import Applied, ServoLoop, TickClock
 
 log = logging.getLogger("hapticd")
 

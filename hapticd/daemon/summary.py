@@ -10,10 +10,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from hapticd.servo import ServoLoop
-from hapticd.stats import LogHistogram
+from hapticd.loop.servo import ServoLoop
+from hapticd.loop.stats import LogHistogram
 
-# What a telemetry frame carries of the tick frame (see hapticd.frame for units): enough to
+# What a telemetry frame carries of the tick frame (see hapticd.physics.frame for units): enough to
 # draw the scene (positions, the object's pose) and the forces (full and rendered).
 TELEMETRY_FIELDS = (
     "device_pos",

@@ -6,7 +6,7 @@ interval of a trial it plans an exploration with trial-to-trial motor variabilit
 (``squeeze``: close on the fixed cube to a depth and back; ``lift``: pinch the free cube,
 lift it and hold it), runs the servo loop on the base profile, unpaced and in process
 (the renderer, safety chain, device bank and loop the daemon runs, built by
-hapticd.build), with the condition's parameters and the interval's value of the varied
+hapticd.daemon.build), with the condition's parameters and the interval's value of the varied
 parameter set through the same parameter path the control socket uses, and keeps every
 tick's frame in memory.
 
@@ -46,13 +46,15 @@ import numpy as np
 from hapticd_drivers import registry
 
 from hapticd import params
-from hapticd.actuation import Actuation
 from hapticd.allocation import DEFAULT_ROBUSTNESS, AdaptiveState, Robustness
 from hapticd.allocation.contacts import ContactAllocator
-from hapticd.build import build_mounts, build_renderer, build_safety
+from hapticd.daemon.build import build_mounts, build_renderer, build_safety
 from hapticd.experiment.plan import PlannedTrial
 from hapticd.experiment.spec import Experiment, ExperimentError
-from hapticd.frame import Frame
+from hapticd.loop.servo import ServoLoop, TickClock
+from hapticd.loop.trajectory import Hold, MinJerk, Segment, two_finger
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.frame import Frame
 from hapticd.profile import (
     Profile,
     apply_overrides,
@@ -60,8 +62,6 @@ from hapticd.profile import (
     parse_profile,
     read_document,
 )
-from hapticd.servo import ServoLoop, TickClock
-from hapticd.trajectory import Hold, MinJerk, Segment, two_finger
 
 # 2 x 0.6745: a cue difference with noise sd s on each interval gives a psychometric
 # function of sigma sqrt(2) s, whose JND is 0.6745 sigma.

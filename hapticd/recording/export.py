@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from hapticd.frame import FIELDS
+from hapticd.physics.frame import FIELDS
 from hapticd.recording.format import Recording
 
 # Per-finger fields (a first axis of one entry per finger, labelled by finger name): as
-# the tick frame declares them (hapticd.frame).
+# the tick frame declares them (hapticd.physics.frame).
 PER_FINGER = frozenset(f.name for f in FIELDS if f.shape[:1] == ("F",))
 _DECLARED = {f.name: f.shape for f in FIELDS}
 

@@ -23,7 +23,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from hapticd.frame import FIELDS, fields_for
+from hapticd.physics.frame import FIELDS, fields_for
 from hapticd.protocol import too_deep
 
 MAGIC = b"HAPTREC\x00"

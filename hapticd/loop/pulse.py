@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from hapticd.frame import Frame
+from hapticd.physics.frame import Frame
 
 # The largest pulse a bring-up may send, N: felt clearly through a thimble, harmless.
 MAX_PULSE_N = 0.5

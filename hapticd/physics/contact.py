@@ -1,8 +1,8 @@
 """The convex polytope god-object contact renders against: half-spaces n . x <= d.
 
 The contact itself (proxy, first entry, sliding on up to three planes, the Gram systems)
-is one function, hapticd.kernels.contact_step: the Contact stage's part of the tick's one
-call (hapticd.kernels.tick_step).
+is one function, hapticd.physics.kernels.contact_step: the Contact stage's part of the tick's one
+call (hapticd.physics.kernels.tick_step).
 
 Units: m. Unit outward normals n.
 """

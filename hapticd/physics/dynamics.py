@@ -1,6 +1,6 @@
 """Rigid-body dynamics of a free object: how many substeps its step needs.
 
-The step itself is hapticd.kernels.free_body_step, in the tick's one call (the Dynamics
+The step itself is hapticd.physics.kernels.free_body_step, in the tick's one call (the Dynamics
 stage's physics: the fingers as springs moving with the object, gravity, the ground's
 and walls' penalty spring-damper with Coulomb friction at the object's vertices, in
 ``substeps`` semi-implicit Euler steps). tests/dynamics_oracle.py is the same model in
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 
-from hapticd.scene import SceneObject, Surface
+from hapticd.physics.scene import SceneObject, Surface
 
 
 def auto_substeps(

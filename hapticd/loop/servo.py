@@ -1,10 +1,10 @@
 """The fixed-rate servo loop: read, render, make safe, write, record; then wait for the next tick.
 
-Each tick k runs on one frame (hapticd.frame) at nominal time t = k / rate_hz
+Each tick k runs on one frame (hapticd.physics.frame) at nominal time t = k / rate_hz
 (s): the device bank reads the devices into it, the renderer's stages and the
 safety chain fill it, the bank writes its forces, and the recorder copies it.
-Pacing (deadlines, sleep gate, overruns) is ``hapticd.pacing``; control
-changes are typed commands (hapticd.commands) applied at a tick boundary.
+Pacing (deadlines, sleep gate, overruns) is ``hapticd.loop.pacing``; control
+changes are typed commands (hapticd.loop.commands) applied at a tick boundary.
 Devices that play a trajectory take their time from ``ServoLoop.now``, so a
 paced run and an unpaced run (no waiting: as fast as possible on the nominal
 clock) compute the same forces. Garbage collection is frozen and disabled
@@ -33,19 +33,20 @@ from typing import Any
 import numpy as np
 from hapticd_drivers import Device
 
-from hapticd import kernels, realtime
-from hapticd.commands import Command
-from hapticd.device_bank import MAX_DEVICE_DISTANCE_M, DeviceBank
-from hapticd.event_ring import DEFAULT_CAPACITY, EventRing, FrameEvents
 from hapticd.events import CAUSE_CODES, CODES
-from hapticd.frame import Frame, item_view
-from hapticd.pacing import SPIN_MARGIN_S, LoopStats, Pacer
+from hapticd.loop import realtime
+from hapticd.loop.commands import Command
+from hapticd.loop.device_bank import MAX_DEVICE_DISTANCE_M, DeviceBank
+from hapticd.loop.event_ring import DEFAULT_CAPACITY, EventRing, FrameEvents
+from hapticd.loop.pacing import SPIN_MARGIN_S, LoopStats, Pacer
 from hapticd.params import PARAMS, ParamError
+from hapticd.physics import kernels
+from hapticd.physics.frame import Frame, item_view
+from hapticd.physics.render import SAMPLES_REFUSED, Renderer
+from hapticd.physics.safety import SafetyChain
 from hapticd.recording import Recorder
-from hapticd.render import SAMPLES_REFUSED, Renderer
-from hapticd.safety import SafetyChain
 
-log = logging.getLogger("hapticd.servo")
+log = logging.getLogger("hapticd.loop.servo")
 
 FAULT_LATCHED = CODES["fault_latched"]
 TRAJECTORY_END = CODES["trajectory_end"]
@@ -53,7 +54,7 @@ RECORDING_STARTED = CODES["recording_started"]
 OTHER_CAUSE = CAUSE_CODES["other"]
 TRAJECTORY_ENDED = "trajectory ended"
 SAMPLES, CHANGED = kernels.LOOP_SAMPLES, kernels.LOOP_CHANGED
-# hapticd.kernels.MAX_OBJECT_*: a free object beyond them has diverged.
+# hapticd.physics.kernels.MAX_OBJECT_*: a free object beyond them has diverged.
 MAX_OBJECT_DISTANCE_M = kernels.MAX_OBJECT_DISTANCE_M
 MAX_OBJECT_SPEED_M_PER_S = kernels.MAX_OBJECT_SPEED_M_PER_S
 MAX_OBJECT_SPIN_RAD_PER_S = kernels.MAX_OBJECT_SPIN_RAD_PER_S
@@ -331,7 +332,7 @@ class ServoLoop:
             self.bank.zero()
 
     def _bind_renderer(self, renderer: Renderer) -> None:
-        """The loop's block of ``renderer``'s state (hapticd.kernels.LOOP_*): the device
+        """The loop's block of ``renderer``'s state (hapticd.physics.kernels.LOOP_*): the device
         bank's sample limits, each finger's largest force so far (carried over from the
         renderer before a reload) kept by the one call."""
         block = renderer.loop
@@ -373,7 +374,7 @@ class ServoLoop:
         return self.renderer.loop[top : top + len(self.stats.max_force)].tolist()
 
     def _bind_scalars(self, frame: Frame) -> None:
-        """Item views (hapticd.frame.item_view) of the frame's per-tick scalars the loop
+        """Item views (hapticd.physics.frame.item_view) of the frame's per-tick scalars the loop
         writes: a store through one costs a tenth of a numpy 0-d assignment."""
         self._scalars_of = frame
         self._control_seq_written = -1  # a new frame: write it on the next tick
@@ -591,7 +592,7 @@ class ServoLoop:
             if fault is not None and not latched:
                 self._log_fault()
             # Events read the frame the tick left, never the stages' insides: when the call
-            # found in_contact or buttons changed, or did not look (hapticd.kernels.LOOP_*).
+            # found in_contact or buttons changed, or did not look (hapticd.physics.kernels.LOOP_*).
             events = self._frame_events
             if self._loop_block[CHANGED]:
                 events.after_tick(frame, k, t)

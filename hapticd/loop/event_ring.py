@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from hapticd.events import CODES
-from hapticd.frame import Frame
+from hapticd.physics.frame import Frame
 
 # One event: its kind (index into hapticd.events.EVENTS), finger and button (-1: none),
 # a value (a fault cause or parameter index; -1: none), its tick and that tick's time (s).

@@ -1,9 +1,9 @@
-"""The renderer's stages: each does one job on the tick frame (``hapticd.frame``).
+"""The renderer's stages: each does one job on the tick frame (``hapticd.physics.frame``).
 
 A stage declares the frame fields it reads and writes, the state it carries from tick
-to tick (``carries``: hapticd.frame.STATE) and its part of the tick's one call
-(``kernel_stage``, a ``hapticd.kernels.STAGE_`` index: the call runs its physics).
-``Renderer`` (hapticd.render) puts the stages a scene needs in order:
+to tick (``carries``: hapticd.physics.frame.STATE) and its part of the tick's one call
+(``kernel_stage``, a ``hapticd.physics.kernels.STAGE_`` index: the call runs its physics).
+``Renderer`` (hapticd.physics.render) puts the stages a scene needs in order:
 
     contact -> friction -> forces -> allocation -> environment -> passivity -> output
     -> dynamics -> scene
@@ -23,20 +23,20 @@ from typing import Protocol
 
 import numpy as np
 
-from hapticd import kernels
-from hapticd.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
-from hapticd.contact import Polytope
-from hapticd.dynamics import auto_substeps
-from hapticd.frame import Frame
-from hapticd.passivity import PassivityParams
-from hapticd.scene import Scene, SceneObject, Surface
+from hapticd.physics import kernels
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.contact import Polytope
+from hapticd.physics.dynamics import auto_substeps
+from hapticd.physics.frame import Frame
+from hapticd.physics.passivity import PassivityParams
+from hapticd.physics.scene import Scene, SceneObject, Surface
 
 
 class Stage(Protocol):
     """One step of a tick: reads and writes fields of the frame, nothing else of the tick.
 
-    ``reads`` and ``writes`` name the frame fields (hapticd.frame) it reads and writes; the
+    ``reads`` and ``writes`` name the frame fields (hapticd.physics.frame) it reads and writes; the
     renderer refuses a plan in which two stages write one field. A stage that declares
     neither (a test's hook acting at a tick) is taken to touch no field; a test's fault
     injector names the fields it spoils after their writer in ``corrupts``. A stage of the
@@ -80,7 +80,7 @@ class Contact:
     (``HELD``: ``proxy_pos``, ``surface_point``, ``contact_point``; in a plan with friction
     the renderer makes them ``FRICTIONLESS``), and ``contact_normal``, ``in_contact`` and
     ``env_force`` (the ground and walls' spring-damper force on each finger). Its physics
-    is the one call's (hapticd.kernels.contact_step); a non-finite input stops the call,
+    is the one call's (hapticd.physics.kernels.contact_step); a non-finite input stops the call,
     with nothing written, and ``_non_finite`` names it.
     """
 
@@ -92,7 +92,7 @@ class Contact:
         self.scene = scene
         self.radii = radii
         # The proxies (m), the radii, the active planes and the kernel's work space: a view
-        # of the renderer's state (hapticd.kernels.TICK_STATE), or its own.
+        # of the renderer's state (hapticd.physics.kernels.TICK_STATE), or its own.
         if state is None:
             state = np.zeros((len(radii), kernels.CONTACT_STATE))
         state[:, kernels._C_RADIUS] = radii
@@ -112,7 +112,7 @@ class Contact:
     def state(self, state: np.ndarray) -> None:
         self._state = state
         self._proxies = state[:, :3]
-        self.carries = {"proxies": state}  # hapticd.frame.STATE
+        self.carries = {"proxies": state}  # hapticd.physics.frame.STATE
 
     @property
     def writes(self) -> tuple[str, ...]:
@@ -145,7 +145,7 @@ class Contact:
         return f"contact: a plane of {what} is not finite (its pose or offset)"
 
     def _kernel_planes(self) -> np.ndarray:
-        """The kernel's planes (hapticd.kernels.PLANE_COLUMNS): the object's, copied again
+        """The kernel's planes (hapticd.physics.kernels.PLANE_COLUMNS): the object's, copied again
         only when its polytope changed, then the surfaces'. (The one call puts the object's
         planes at its pose itself, each tick: kernels.world_planes.)"""
         obj = self.scene.object
@@ -186,7 +186,7 @@ class Friction:
     wrote it) with the fingertip's point and updates ``contact_point`` to match.
     The anchors live in ``anchors`` (F, kernels.FRICTION_COLUMNS: the anchor (3, m, body
     frame), 1.0 if it is set, the fingertip's radius (m)). Its physics is the one call's
-    (hapticd.kernels.friction_step).
+    (hapticd.physics.kernels.friction_step).
 
     Reads contact's results (``FRICTIONLESS``) and writes ``HELD``.
     """
@@ -197,7 +197,7 @@ class Friction:
     kernel_stage = kernels.STAGE_FRICTION
 
     def __init__(self, radii: list[float], anchors: np.ndarray | None = None) -> None:
-        # A view of the renderer's state (hapticd.kernels.TICK_STATE), or its own.
+        # A view of the renderer's state (hapticd.physics.kernels.TICK_STATE), or its own.
         if anchors is None:
             anchors = np.zeros((len(radii), kernels.FRICTION_COLUMNS))
         anchors[:, kernels.FINGER_RADIUS] = radii
@@ -205,7 +205,7 @@ class Friction:
 
     @property
     def carries(self) -> dict[str, object]:
-        return {"friction_anchors": self.anchors}  # hapticd.frame.STATE
+        return {"friction_anchors": self.anchors}  # hapticd.physics.frame.STATE
 
 
 class Forces:
@@ -213,7 +213,7 @@ class Forces:
 
     Damping may slow the finger but never pull it into the object. Writes
     ``contact_force``; zero for a finger out of contact. Its physics is the one call's
-    (hapticd.kernels.forces_step).
+    (hapticd.physics.kernels.forces_step).
     """
 
     name = "forces"
@@ -244,8 +244,8 @@ class Allocation:
 
     @property
     def kernel(self) -> Callable[..., int]:
-        """hapticd.kernels.allocation_step, compiled (hapticd.jit) or, set to None, not: the
-        allocator's (it takes the robust methods with one direction per finger, any number
+        """hapticd.physics.kernels.allocation_step, compiled (hapticd.physics.jit) or, set to None,
+        not: the allocator's (it takes the robust methods with one direction per finger, any number
         of contacts, and adaptive's alpha; the rest run allocate())."""
         return self.allocator.kernel
 
@@ -265,7 +265,7 @@ class Allocation:
 
     @property
     def carries(self) -> dict[str, object]:
-        return {"allocator_blend": self.allocator.alpha}  # hapticd.frame.STATE
+        return {"allocator_blend": self.allocator.alpha}  # hapticd.physics.frame.STATE
 
     @property
     def writes(self) -> tuple[str, ...]:
@@ -315,7 +315,7 @@ class Allocation:
 class Environment:
     """Renders the ground's and walls' force through each finger's own actuated directions
     (its projection onto their span): writes ``env_rendered`` (the sum adds it to the
-    rendered force). Its physics is in the tick's one call (hapticd.kernels.tick_step)."""
+    rendered force). Its physics is in the tick's one call (hapticd.physics.kernels.tick_step)."""
 
     name = "environment"
     reads = ("env_force", "device_pos")
@@ -339,15 +339,15 @@ class Output:
 
 
 class Passivity:
-    """Time-domain passivity per finger (hapticd.passivity): observes the energy each finger's
-    port has absorbed and adds the least damping along that finger's actuated directions
+    """Time-domain passivity per finger (hapticd.physics.passivity): observes the energy each
+    finger's port has absorbed and adds the least damping along that finger's actuated directions
     that keeps it from going negative.
 
     Observes the sum of the contributions before it (``inputs``: the allocated force, and
     the environment's with ground or walls), the whole rendered force but its own;
     writes its damping force to ``passivity_force`` (the output stage adds it),
     ``passivity_energy`` (J) and ``passivity_damping`` (N s/m) every tick. Its physics is
-    in the tick's one call (hapticd.kernels.tick_step); it carries ``state`` (F,
+    in the tick's one call (hapticd.physics.kernels.tick_step); it carries ``state`` (F,
     kernels.PASSIVITY_STATE): each finger's observed energy and last position.
     """
 
@@ -360,7 +360,7 @@ class Passivity:
     ) -> None:
         self.params = params
         self.dt = dt
-        # A view of the renderer's state (hapticd.kernels.TICK_STATE), or its own.
+        # A view of the renderer's state (hapticd.physics.kernels.TICK_STATE), or its own.
         self.state = np.zeros((n_fingers, kernels.PASSIVITY_STATE)) if state is None else state
         self.inputs: tuple[str, ...] = ("allocated_force",)
 
@@ -370,7 +370,7 @@ class Passivity:
 
     @property
     def carries(self) -> dict[str, object]:
-        # hapticd.frame.STATE
+        # hapticd.physics.frame.STATE
         return {"passivity_energy": self.energy, "passivity_last_pos": self.last_pos}
 
     @property
@@ -402,7 +402,7 @@ class Dynamics:
     The fingers act as springs that move with the object during the tick's
     substeps; soft-finger contacts resist spin about their normals. Writes the
     object's pose to the scene (the next tick's contact sees it). Its physics is the one
-    call's (hapticd.kernels.free_body_step), for any shape, on ``arrays``.
+    call's (hapticd.physics.kernels.free_body_step), for any shape, on ``arrays``.
     """
 
     name = "dynamics"
@@ -426,7 +426,7 @@ class Dynamics:
 
     @property
     def carries(self) -> dict[str, object]:
-        return {"object_state": self.scene.object.state}  # hapticd.frame.STATE
+        return {"object_state": self.scene.object.state}  # hapticd.physics.frame.STATE
 
     @property
     def effects(self) -> list[str]:
@@ -451,7 +451,7 @@ class Dynamics:
 
 class _BodyArrays:
     """The free-body kernel's arrays for an object's shape and mass and the surfaces
-    (hapticd.kernels.free_body_step says the layouts): params, body (inertia, its inverse
+    (hapticd.physics.kernels.free_body_step says the layouts): params, body (inertia, its inverse
     and the vertices, body frame) and surfaces (normal, offset, stiffness, damping, dynamic
     friction). The object's state is its ``state``."""
 

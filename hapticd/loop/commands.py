@@ -14,11 +14,11 @@ from typing import TYPE_CHECKING, Any
 from hapticd.params import PARAMS
 
 if TYPE_CHECKING:
-    from hapticd.frame import Frame
+    from hapticd.loop.servo import ServoLoop
+    from hapticd.physics.frame import Frame
+    from hapticd.physics.render import Renderer
+    from hapticd.physics.safety import SafetyChain
     from hapticd.recording import Recorder
-    from hapticd.render import Renderer
-    from hapticd.safety import SafetyChain
-    from hapticd.servo import ServoLoop
 
 
 class Command:

@@ -1,12 +1,12 @@
-"""The renderer: the ordered stages of one tick, planned from the scene (hapticd.stages).
+"""The renderer: the ordered stages of one tick, planned from the scene (hapticd.physics.stages).
 
-``Renderer.run(frame)`` runs the plan on a tick frame (hapticd.frame) whose
+``Renderer.run(frame)`` runs the plan on a tick frame (hapticd.physics.frame) whose
 device state is filled: contact, friction, forces, allocation, environment,
 passivity, dynamics, scene. Stages the scene does not need are not in the plan
 and never run (a fixed cube has no dynamics stage, a frictionless one no
 friction stage, a renderer without ``passivity`` parameters no passivity stage).
-The plan runs as one call per tick (``OneCall``: hapticd.kernels.tick_step);
-``use_kernels`` hands it the compiled call (hapticd.jit); without it the same function
+The plan runs as one call per tick (``OneCall``: hapticd.physics.kernels.tick_step);
+``use_kernels`` hands it the compiled call (hapticd.physics.jit); without it the same function
 runs uncompiled (its only code). ``insert`` adds a stage after a named one;
 ``set_param`` changes a scene or rendering parameter (those of hapticd.params the
 renderer owns) and re-plans.
@@ -22,17 +22,17 @@ from typing import Any
 
 import numpy as np
 
-from hapticd import kernels as kn
-from hapticd.actuation import Actuation
 from hapticd.allocation import DEFAULT_ROBUSTNESS, METHODS, AdaptiveState, Robustness
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.allocation.robust import AllocationError
-from hapticd.frame import LOOP_WRITERS, NAMES, STATE_WRITERS, Frame
 from hapticd.params import PARAMS, ParamError
-from hapticd.passivity import PassivityParams
-from hapticd.safety import SafetyChain
-from hapticd.scene import Material, Scene, SceneObject
-from hapticd.stages import (
+from hapticd.physics import kernels as kn
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.frame import LOOP_WRITERS, NAMES, STATE_WRITERS, Frame
+from hapticd.physics.passivity import PassivityParams
+from hapticd.physics.safety import SafetyChain
+from hapticd.physics.scene import Material, Scene, SceneObject
+from hapticd.physics.stages import (
     FRICTIONLESS,
     HELD,
     Allocation,
@@ -51,7 +51,7 @@ from hapticd.stages import (
 
 class PlanError(ValueError):
     """A plan of stages that breaks the frame's rule: one writer per field, and every field
-    read written by someone (hapticd.frame)."""
+    read written by someone (hapticd.physics.frame)."""
 
 
 def check_plan(stages: list[Stage]) -> dict[str, str]:
@@ -59,11 +59,11 @@ def check_plan(stages: list[Stage]) -> dict[str, str]:
     PlanError naming the field and both writers when two write one field, or the stage and
     field when a stage names a field the frame does not have or reads one nobody writes.
 
-    A stage declares ``reads`` and ``writes`` (hapticd.stages.Stage); one that declares
+    A stage declares ``reads`` and ``writes`` (hapticd.physics.stages.Stage); one that declares
     neither (a test's hook) touches no field. A test's fault injector declares the fields
     it spoils after their writer in ``corrupts``: not a writer, but it must name fields
     someone writes. A stage that carries state to the next tick names it in ``carries``:
-    each is declared in hapticd.frame.STATE with that stage as its one writer."""
+    each is declared in hapticd.physics.frame.STATE with that stage as its one writer."""
     order = " -> ".join(s.name for s in stages)
     writers = dict(LOOP_WRITERS)
     for stage in stages:
@@ -82,7 +82,7 @@ def check_plan(stages: list[Stage]) -> dict[str, str]:
             if STATE_WRITERS.get(name) != stage.name:
                 raise PlanError(
                     f"stage {stage.name!r} carries {name!r} from tick to tick, which "
-                    f"hapticd.frame.STATE gives to {STATE_WRITERS.get(name, 'no one')!r}"
+                    f"hapticd.physics.frame.STATE gives to {STATE_WRITERS.get(name, 'no one')!r}"
                 )
             if name in carriers:
                 raise PlanError(f"two stages named {stage.name!r} carry {name!r}")
@@ -130,7 +130,7 @@ class Renderer:
             adaptive if adaptive is not None else AdaptiveState(),
             dt,
         )
-        # What a tick carries to the next, in one array (hapticd.kernels.TICK_STATE) that
+        # What a tick carries to the next, in one array (hapticd.physics.kernels.TICK_STATE) that
         # the one call takes; the stages that carry state live as long as the renderer and
         # hold views of their blocks.
         layout = kn.state_layout(self.n_fingers)
@@ -243,7 +243,7 @@ class Renderer:
 
     @property
     def kernel_names(self) -> list[str]:
-        """The kernels (names in hapticd.kernels) this renderer runs: the tick's one call,
+        """The kernels (names in hapticd.physics.kernels) this renderer runs: the tick's one call,
         and the allocation's own when each finger has one actuated direction (its stage
         runs it between the call's parts for an exact method; the number of directions
         stays fixed while the renderer lives)."""
@@ -349,7 +349,8 @@ class Renderer:
 
 
 class OneCall:
-    """The renderer's plan as one call per tick: hapticd.kernels.tick_step, compiled or (with
+    """The renderer's plan as one call per tick: hapticd.physics.kernels.tick_step, compiled or
+    (with
     ``rendering.kernels=python``, or until the compiler is done) the same function
     uncompiled, over the frame's fields and the stages' carried state (their own arrays:
     the proxies, the anchors, the object's state, passivity's, the allocator's alpha and

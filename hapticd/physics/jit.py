@@ -1,11 +1,12 @@
-"""Compiles the kernels of ``hapticd.kernels`` with numba, before the first tick, cached on disk.
+"""Compiles the kernels of ``hapticd.physics.kernels`` with numba, before the first tick, cached on
+disk.
 
 ``choose(mode, names)`` is what a renderer is built with: ``mode`` is the profile's
 ``rendering.kernels``, ``names`` the kernels the renderer's plan uses (none: then
 numba is not even imported; ``Renderer.kernel_names`` says which).
 
 - ``python``: never compile (a kernel that is its stage's only code runs uncompiled,
-  ``hapticd.kernels.uncompiled``).
+  ``hapticd.physics.kernels.uncompiled``).
 - ``compiled``: compile now (a first run on a machine waits for it: 2-8 s a kernel
   on this loaded 2-core machine), or load from the cache (0.3-0.6 s).
 - ``auto`` (the default): load from the cache when the kernels are in it;
@@ -19,7 +20,7 @@ Any failure (numba missing or broken, a kernel that does not compile) falls back
 the Python code with a message saying why; both paths give the same forces (tests
 prove it). Kernels are compiled eagerly for one signature (``SIGNATURES``: the
 frame's and the object's arrays), so no call in the loop can trigger a compilation.
-The cache sits in ``__pycache__`` beside ``hapticd/kernels.py`` when that folder is
+The cache sits in ``__pycache__`` beside ``hapticd/physics/kernels.py`` when that folder is
 writable (a source tree, an editable install); otherwise (a system-wide install, a
 service) in ``$NUMBA_CACHE_DIR`` if set, else ``$CACHE_DIRECTORY`` (systemd's
 ``CacheDirectory=``), ``$XDG_CACHE_HOME/hapticd/numba`` or
@@ -51,7 +52,7 @@ from pathlib import Path
 
 MODES = ("python", "compiled", "auto")
 
-# numba's signature of each kernel called from outside hapticd.kernels: the tick's one call
+# numba's signature of each kernel called from outside hapticd.physics.kernels: the tick's one call
 # (the stages' kernels and helpers are compiled into it: kernels.KERNEL_HELPERS), the
 # allocation's own (ContactAllocator's, when it runs outside the call: its replay, its
 # stage between the call's parts), the batch's (allocate_many) and the safety chain's
@@ -63,7 +64,7 @@ SIGNATURES = {
         " f8[:, ::1], f8[::1], f8[:, ::1])"
     ),
     "allocate_grasps": (
-        "void(i8, f8[:, :, ::1], f8[:, :, ::1], f8[:, ::1], f8[::1], f8, f8, f8[:, ::1],"
+        "void(i8, f8[:, :, ::1], f8[:, :, ::1], f8[:, ::1], f8[::1], f8, f8, b1, f8[:, ::1],"
         " f8[:, ::1])"
     ),
     "safety_step": "i8(f8[:, ::1], f8[:, ::1], f8[::1], f8[:, :, ::1])",
@@ -130,7 +131,7 @@ def _writable(path: Path) -> bool:
 def _import_numba():
     """numba, imported with its cache folder chosen first (JitUnavailableError if it cannot
     be imported)."""
-    from hapticd import kernels
+    from hapticd.physics import kernels
 
     where = cache_dir(Path(kernels.__file__).parent, os.environ)
     if where is not None:
@@ -147,7 +148,7 @@ def _import_numba():
 
 def _cache_folder() -> Path:
     """The folder numba caches the kernels in (set by ``_import_numba``)."""
-    from hapticd import kernels
+    from hapticd.physics import kernels
 
     if os.environ.get("NUMBA_CACHE_DIR"):
         return Path(os.environ["NUMBA_CACHE_DIR"])
@@ -158,7 +159,7 @@ def _keys(names: Sequence[str], version: str) -> dict[str, str]:
     """What numba's cache of each kernel depends on: numba, Python, the machine, the
     kernels' sources (``kernels.SOURCES``, numba's own stamp of each: modification time
     and size), the signature."""
-    from hapticd import kernels
+    from hapticd.physics import kernels
 
     stamps = " ".join(f"{st.st_mtime_ns} {st.st_size}" for st in map(os.stat, kernels.SOURCES))
     base = f"numba {version}; {sys.version}; {platform.machine()}; {stamps}"
@@ -199,16 +200,13 @@ def _register_helpers(numba, kernels) -> None:
     try:
         from numba.extending import overload, register_jitable
 
-        from hapticd.allocation.closed import FLOAT_FORMS
-
-        forms = {**FLOAT_FORMS, **kernels.COMPILED_FORMS}
+        forms = kernels.COMPILED_FORMS
         for helper in kernels.KERNEL_HELPERS:
             fn = getattr(kernels, helper) if isinstance(helper, str) else helper
             if fn in _HELPERS:
                 continue
             if fn in forms:
-                # Its compiled form is another function (the float one of a helper that
-                # chooses its form by the argument's type): compiled code runs that.
+                # Its compiled form is another function: compiled code runs that.
                 floats = register_jitable(forms[fn])
                 overload(fn, strict=False)(lambda *args, _f=floats, **kw: _f)
             else:
@@ -237,17 +235,6 @@ def _cache_files(numba, fn: Callable[..., None]) -> tuple[Path, list[Path]]:
     folder = Path(FunctionCache(fn).cache_path)
     tag = f"py{sys.version_info.major}{sys.version_info.minor}"
     return folder, sorted(folder.glob(f"kernels.{fn.__name__}-*.{tag}.*nb[ic]"))
-
-
-def _complete(numba, fn: Callable[..., None]) -> bool:
-    """Whether numba's cache holds both the index and the code of kernel ``fn`` (an index
-    alone would make numba compile it, in the foreground)."""
-    try:
-        _, files = _cache_files(numba, fn)
-    except Exception:  # a numba without this layout: leave it to numba
-        return True
-    suffixes = {f.suffix for f in files}
-    return ".nbi" in suffixes and ".nbc" in suffixes
 
 
 def _mismatch(numba, disp, name: str) -> str | None:
@@ -282,12 +269,15 @@ def _load(
         folder, files = _cache_files(numba, kernel)
     except Exception:  # a numba without this layout: nothing to check or remove
         folder, files = None, []
-    if stale and may_compile:
+
+    def remove() -> None:
         for f in files:
             with contextlib.suppress(OSError):
                 f.unlink()
+
+    if stale and may_compile:
+        remove()
         files = []
-    bad: str | None = None
     try:
         fn = numba.njit(SIGNATURES[name], cache=True, nogil=True)(kernel)
         bad = _mismatch(numba, fn, name)
@@ -297,9 +287,7 @@ def _load(
         bad = f"could not be read ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
     if bad is None:
         return fn
-    for f in files:
-        with contextlib.suppress(OSError):
-            f.unlink()
+    remove()
     why = f"numba's cache of {name} in {folder} {bad}: removed it"
     if not may_compile:
         raise DamagedCacheError(why)
@@ -321,7 +309,7 @@ def compile_kernels(
     notes = [] if notes is None else notes
     missing = [n for n in names if n not in _COMPILED]
     if missing:
-        from hapticd import kernels
+        from hapticd.physics import kernels
 
         numba = _import_numba()
         _register_helpers(numba, kernels)
@@ -365,11 +353,19 @@ def cached(names: Sequence[str], version: str) -> tuple[bool, str | None]:
 
 
 def _all_complete(names: Sequence[str]) -> bool:
-    """Whether numba's cache holds the index and the code of every kernel in ``names``."""
-    from hapticd import kernels
+    """Whether numba's cache holds the index and the code of every kernel in ``names`` (an
+    index alone would make numba compile it, in the foreground)."""
+    from hapticd.physics import kernels
 
     numba = _import_numba()
-    return all(_complete(numba, getattr(kernels, n)) for n in names if n in SIGNATURES)
+    for n in filter(SIGNATURES.__contains__, names):
+        try:
+            suffixes = {f.suffix for f in _cache_files(numba, getattr(kernels, n))[1]}
+        except Exception:  # a numba without this layout: leave it to numba
+            continue
+        if not {".nbi", ".nbc"} <= suffixes:
+            return False
+    return True
 
 
 # The marker of a background compiler at work, in the cache folder: runs started while it
@@ -421,15 +417,6 @@ def release_compiling(token: str) -> None:
             path.unlink()
 
 
-def compiling_elsewhere(now: float | None = None) -> bool:
-    """Whether a background compiler's marker younger than COMPILING_MAX_AGE_S is there."""
-    try:
-        age = (time.time() if now is None else now) - (_cache_folder() / COMPILING).stat().st_mtime
-    except OSError:
-        return False
-    return age < COMPILING_MAX_AGE_S
-
-
 def _spawn(cmd: list[str]) -> None:
     """Start ``cmd`` at the lowest priority through a shell that exits at once: the process
     belongs to no one here and outlives a short run."""
@@ -439,12 +426,18 @@ def _spawn(cmd: list[str]) -> None:
 
 def compile_in_background(names: Sequence[str]) -> bool:
     """Compile ``names`` into the cache in a process of its own at the lowest priority
-    (``python -m hapticd.jit --marker TOKEN NAME...``), unless another run's compiler is
+    (``python -m hapticd.physics.jit --marker TOKEN NAME...``), unless another run's compiler is
     at work (its marker, see COMPILING); True if this call started one."""
     token = _claim_compiling(time.time())
     if token is None:
         return False
-    cmd = [sys.executable, "-m", "hapticd.jit", *(["--marker", token] if token else []), *names]
+    cmd = [
+        sys.executable,
+        "-m",
+        "hapticd.physics.jit",
+        *(["--marker", token] if token else []),
+        *names,
+    ]
     try:
         _spawn(cmd)
     except BaseException:
@@ -513,8 +506,8 @@ def _in_background(mode: str, names: Sequence[str], damaged: str | None, t0: flo
 
 
 def main(argv: Sequence[str]) -> int:
-    """``python -m hapticd.jit [--marker TOKEN] NAME...``: compile kernels into the cache, at
-    low priority; then remove the compiling marker ``TOKEN`` (see COMPILING) if given."""
+    """``python -m hapticd.physics.jit [--marker TOKEN] NAME...``: compile kernels into the cache,
+    at low priority; then remove the compiling marker ``TOKEN`` (see COMPILING) if given."""
     with contextlib.suppress(OSError):
         os.nice(19)
     names = list(argv)
@@ -524,7 +517,7 @@ def main(argv: Sequence[str]) -> int:
     try:
         compile_kernels(names)
     except JitUnavailableError as e:
-        print(f"hapticd.jit: {e}", file=sys.stderr)
+        print(f"hapticd.physics.jit: {e}", file=sys.stderr)
         return 1
     finally:
         release_compiling(token)

@@ -19,11 +19,16 @@ from hapticd_drivers.delta import load_description
 from hapticd_drivers.emulator import DeltaEmulator, FakeHidModule
 from hapticd_drivers.trajectory import Trajectory, check_samples
 
-from hapticd import jit, recording
-from hapticd.actuation import Actuation
+from hapticd import recording
 from hapticd.allocation import AdaptiveState, Robustness
-from hapticd.mount import Mount
-from hapticd.passivity import PassivityParams
+from hapticd.loop.mount import Mount
+from hapticd.loop.realtime import RealtimeSettings
+from hapticd.physics import jit
+from hapticd.physics.actuation import Actuation
+from hapticd.physics.passivity import PassivityParams
+from hapticd.physics.render import Renderer
+from hapticd.physics.safety import Deadman, SafetyChain, SafetyParams
+from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, Surface, rpy_matrix
 from hapticd.profile import (
     FingerConfig,
     ObjectConfig,
@@ -32,11 +37,7 @@ from hapticd.profile import (
     SceneConfig,
     SurfaceConfig,
 )
-from hapticd.realtime import RealtimeSettings
 from hapticd.recording import RecordingError
-from hapticd.render import Renderer
-from hapticd.safety import Deadman, SafetyChain, SafetyParams
-from hapticd.scene import ConvexShape, Material, Scene, SceneObject, Surface, rpy_matrix
 
 log = logging.getLogger("hapticd")
 
@@ -216,7 +217,7 @@ def build_mounts(profile: Profile) -> list[Mount]:
 
 def mesh_shape(path: Path, scale: float = 1.0) -> ConvexShape:
     """The convex hull of a mesh file (any format trimesh reads), centred on its centroid,
-    scaled by ``scale`` (mesh units to m). Here, not in hapticd.scene: reading files is
+    scaled by ``scale`` (mesh units to m). Here, not in hapticd.physics.scene: reading files is
     the configuration's business, and the physics stays free of I/O."""
     import trimesh
 
@@ -355,7 +356,7 @@ def build_renderer(profile: Profile) -> Renderer:
 
 def build_safety(profile: Profile, devices: list[Device]) -> SafetyChain:
     """The safety chain of ``profile`` for ``devices`` (limit: the smaller of both), with
-    its compiled normal path as ``rendering.kernels`` asks (hapticd.jit.choose)."""
+    its compiled normal path as ``rendering.kernels`` asks (hapticd.physics.jit.choose)."""
     limits = [min(d.info.max_force_n, profile.safety.max_force_n) for d in devices]
     sc = profile.safety
     chain = SafetyChain(

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hapticd.scene import rpy_matrix
+from hapticd.physics.scene import rpy_matrix
 
 # Angles beyond one turn are almost always degrees written where radians belong.
 MAX_ANGLE_RAD = 2.0 * math.pi

@@ -14,7 +14,7 @@ import os
 import time
 from dataclasses import dataclass, field
 
-from hapticd.stats import LogHistogram
+from hapticd.loop.stats import LogHistogram
 
 OVERRUN_FACTOR = 1.1
 # Sleep until this long before a deadline, then spin: measured in docs/daemon.md. The

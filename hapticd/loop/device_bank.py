@@ -1,7 +1,7 @@
 """The servo loop's devices: read their state into the tick frame, write the frame's forces.
 
 Devices speak their own frames; the tick frame holds world quantities. Each
-device's mount (hapticd.mount: rotation R, position t, workspace scale s) maps
+device's mount (hapticd.loop.mount: rotation R, position t, workspace scale s) maps
 between them at this seam: x_world = s R x_dev + t and v_world = s R v_dev on
 reading, f_dev = R^T f_world on writing, into preallocated arrays.
 
@@ -30,8 +30,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from hapticd_drivers import Device, DeviceError, DeviceLostError, DeviceState
 
-from hapticd.frame import Frame, item_view
-from hapticd.mount import Mount
+from hapticd.loop.mount import Mount
+from hapticd.physics.frame import Frame, item_view
 
 # How often a lost device is looked for again (reconnect mode), s of loop time.
 RECONNECT_PERIOD_S = 0.5
@@ -143,7 +143,7 @@ class DeviceBank:
         self._force_rows = [frame.device_force[i] for i in range(F)]
         self._sample_into(frame.device_sample)
         self._any_mounted = any(self._mounted)
-        # device_pos and device_vel side by side in the record (hapticd.frame lays them out
+        # device_pos and device_vel side by side in the record (hapticd.physics.frame lays them out
         # so): both, as one flat memoryview, take the devices' block in one copy.
         pos, vel = frame.device_pos, frame.device_vel
         rec = frame.record.reshape(1).view(np.uint8)
@@ -171,7 +171,7 @@ class DeviceBank:
         position, at rest, and so does a device whose sample is implausible (a fault).
 
         ``defer``: read every device's sample into the frame's ``device_sample`` and leave
-        its check and entry to the tick's one call (hapticd.kernels.tick_step, its compiled
+        its check and entry to the tick's one call (hapticd.physics.kernels.tick_step, its compiled
         form of ``check``), when every device answers, none is lost and none has a mount;
         returns whether it did (False: the samples were checked and entered here)."""
         if frame is not self._frame:

@@ -184,9 +184,9 @@ LOOP_WRITERS: dict[str, str] = {
     "device_sample": "the device bank",
     "device_force": "the safety chain",
 }
-"""The frame's fields written outside the renderer, and by whom: the loop (hapticd.servo),
-the device bank (hapticd.device_bank) or the safety chain (hapticd.safety). Every other
-field is written by exactly one stage of the renderer's plan (hapticd.render checks it
+"""The frame's fields written outside the renderer, and by whom: the loop (hapticd.loop.servo),
+the device bank (hapticd.loop.device_bank) or the safety chain (hapticd.physics.safety). Every other
+field is written by exactly one stage of the renderer's plan (hapticd.physics.render checks it
 when it plans)."""
 
 
@@ -195,7 +195,7 @@ class StateField:
     """One quantity a tick carries to the next: its one ``writer`` (a stage's name, or a
     part of the loop), the attribute it lives in (``where``), its shape and SI unit. What
     the renderer's stages carry lives in one array, ``Renderer.state``, whose blocks
-    (hapticd.kernels.TICK_STATE) the stages hold views of and the tick's one call takes.
+    (hapticd.physics.kernels.TICK_STATE) the stages hold views of and the tick's one call takes.
 
     The frame holds what one tick hands from stage to stage; these are what the next tick
     starts from. Where one is also a frame field (``recorded_as``), the recording has it.

@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from hapticd import kernels
-from hapticd.frame import Frame
-from hapticd.kernels import SAFETY_CLAMPED, SAFETY_DEFER, SAFETY_LIMITED, SAFETY_PARAMS
 from hapticd.params import PARAMS, ParamError
+from hapticd.physics import kernels
+from hapticd.physics.frame import Frame
+from hapticd.physics.kernels import SAFETY_CLAMPED, SAFETY_DEFER, SAFETY_LIMITED, SAFETY_PARAMS
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,7 @@ class SafetyParams:
     watchdog_s: more wall time than this between two ticks latches a fault (a stalled loop).
     max_device_speed_m_per_s: a device reporting a faster speed (m/s, its own frame), or a
       non-finite position or velocity, latches a fault; checked where device state enters
-      the frame (hapticd.device_bank), which keeps the finger's last good state.
+      the frame (hapticd.loop.device_bank), which keeps the finger's last good state.
     deadman: per finger, its deadman button or None (empty: no finger has one).
     """
 
@@ -77,7 +77,7 @@ class SafetyChain:
     devices' own limits (N, per finger), which a new ``force_limit_n`` never exceeds;
     without them, the starting ``limits_n``.
 
-    The clamp, ramp, gate and rate limit are hapticd.kernels.safety_step, compiled
+    The clamp, ramp, gate and rate limit are hapticd.physics.kernels.safety_step, compiled
     (``use_kernels``) or not; whatever may trip (a non-finite force, the watchdog, a
     finger at the workspace's edge) is checked by the code below, with its messages,
     before that step runs.
@@ -132,9 +132,6 @@ class SafetyChain:
         self._inputs_workspace = False
         self._gate_a = self._step_params[SAFETY_PARAMS + F :]
         self._gate_a[:] = self.gate
-        self._fit: tuple[Any, Any] = (None, None)  # the last arrays found fit for it
-        # Copies of forces and positions given in another form than the kernel's.
-        self._copies = np.zeros((2, F, 3))
         self.fault: Fault | None = None
         self.clamped_ticks = 0
         self.rate_limited_ticks = 0
@@ -166,7 +163,7 @@ class SafetyChain:
         self._limits_a[:] = self._limits  # the kernel's copy
 
     def use_kernels(self, compiled: dict[str, Callable[..., int]]) -> None:
-        """Run ``compiled["safety_step"]`` (compiled by hapticd.jit) from the next tick on;
+        """Run ``compiled["safety_step"]`` (compiled by hapticd.physics.jit) from the next tick on;
         without it (an empty dict), the same function uncompiled."""
         self._step = compiled.get("safety_step") or kernels.uncompiled("safety_step")
 
@@ -228,22 +225,9 @@ class SafetyChain:
         """The safety stage: ``device_force`` from the frame's ``rendered_force``, checked
         against its tick, nominal time and device positions; ``t_wall`` (monotonic s)
         feeds the watchdog."""
-        t = float(frame.t)
-        if (
-            not self._has_deadman
-            and self.fault is None
-            and self._normal(frame.rendered_force, t, frame.device_pos, t_wall)
-        ):
-            # The normal tick: ``apply``'s path without its generic steps.
-            frame.device_force[...] = self.output
-            return
+        buttons = frame.buttons if self._has_deadman else None
         out = self.apply(
-            frame.rendered_force,
-            int(frame.tick),
-            t,
-            frame.device_pos,
-            t_wall,
-            frame.buttons if self._has_deadman else None,
+            frame.rendered_force, int(frame.tick), float(frame.t), frame.device_pos, t_wall, buttons
         )
         frame.device_force[...] = out
 
@@ -267,8 +251,7 @@ class SafetyChain:
         at monotonic time ``t_wall`` (s; None: no watchdog): its ``flags`` counted; False
         when the watchdog must trip (the caller then runs the chain: ``run``)."""
         if t_wall is not None:
-            last = self._last_wall
-            if last is not None and t_wall - last > self.params.watchdog_s:
+            if self._stalled(t_wall):
                 return False
             self._last_wall = t_wall
         if flags:  # most ticks neither clamp nor limit
@@ -344,32 +327,34 @@ class SafetyChain:
     def _normal(self, forces: Any, t: float, positions: Any, t_wall: float | None) -> bool:
         """The normal tick by ``safety_step``; False (nothing changed) when ``_apply`` must
         run this tick: something may trip."""
-        prm = self.params
-        if t_wall is not None:
-            last = self._last_wall
-            if last is not None and t_wall - last > prm.watchdog_s:
-                return False
-        if not self._step_now(forces, t, positions):
+        if t_wall is not None and self._stalled(t_wall):
             return False
-        if t_wall is not None:
-            self._last_wall = t_wall
-        return True
+        flags = self._step_now(forces, t, positions)
+        return not flags & SAFETY_DEFER and self.done(flags, t_wall)
 
-    def _step_now(self, forces: Any, t: float, positions: Any) -> bool:
-        """``safety_step`` on this tick's ``forces`` (and ``positions``, None: no workspace
-        check); False, nothing written, when it defers (something may trip)."""
+    def _stalled(self, t_wall: float) -> bool:
+        """Whether more wall time than the watchdog's limit passed since the last tick."""
+        last = self._last_wall
+        return last is not None and t_wall - last > self.params.watchdog_s
+
+    def _step_now(self, forces: Any, t: float, positions: Any) -> int:
+        """``safety_step``'s flags on this tick's ``forces`` (F, 3) N (and ``positions`` (F, 3)
+        m, None: no workspace check): SAFETY_DEFER, nothing written, when something may
+        trip. Either given in another form than the kernel's (a list, another dtype, a
+        strided view) is copied."""
         p = self._step_inputs(t, positions is not None)
         if positions is None or not math.isfinite(p[2]):
             positions = self.output  # never read
-        if forces is not self._fit[0] or positions is not self._fit[1]:
-            forces, positions = self._fitted(forces, positions)
+        forces = np.ascontiguousarray(forces, dtype=float)
+        positions = np.ascontiguousarray(positions, dtype=float)
+        for a in (forces, positions):
+            if a.shape != self.output.shape:
+                raise ValueError(
+                    f"forces and positions must be {self.output.shape} arrays, not {a.shape}"
+                )
         if self._has_deadman:
             self._gate_a[:] = self.gate
-        flags = self._step(forces, positions, p, self._out_prev)
-        if flags & SAFETY_DEFER:
-            return False
-        self.done(flags, None)
-        return True
+        return self._step(forces, positions, p, self._out_prev)
 
     def _step_inputs(self, t: float, workspace: bool) -> np.ndarray:
         """safety_step's parameters for nominal time ``t`` (s), with the workspace check
@@ -389,31 +374,6 @@ class SafetyChain:
         else:
             v[0] = self._ramp(t)
         return self._step_params
-
-    def _fitted(self, forces: Any, positions: Any) -> tuple[np.ndarray, np.ndarray]:
-        """``forces`` and ``positions`` as the kernel takes them (F, 3) float64, C order: the
-        arrays themselves when they are (checked once per pair: a frame's are the same
-        arrays every tick), else copies (a list, another dtype, a strided view)."""
-        shape = self.output.shape
-        fit = []
-        for a, copy in zip((forces, positions), self._copies, strict=True):
-            if not (
-                type(a) is np.ndarray
-                and a.dtype == np.float64
-                and a.shape == shape
-                and a.flags.c_contiguous
-            ):
-                got = np.asarray(a, dtype=float)
-                if got.shape != shape:
-                    raise ValueError(
-                        f"forces and positions must be {shape} arrays, not {got.shape}"
-                    )
-                copy[...] = got
-                a = copy
-            fit.append(a)
-        if fit[0] is forces and fit[1] is positions:
-            self._fit = (forces, positions)
-        return fit[0], fit[1]
 
     def _apply(
         self,
@@ -459,7 +419,7 @@ class SafetyChain:
                     )
                     return out
         # Nothing trips: the normal step, its workspace check done above.
-        self._step_now(forces, t, None)
+        self.done(self._step_now(forces, t, None), None)
         return out
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hapticd.contact import Polytope
+from hapticd.physics.contact import Polytope
 
 
 def rpy_matrix(rpy: tuple[float, float, float]) -> np.ndarray:
@@ -44,7 +44,7 @@ class Material:
 class ConvexShape:
     """Convex polytope in its body frame: unit normals (m, 3), offsets (m,), vertices (v, 3) m.
 
-    A box is made here; a mesh file's convex hull by ``hapticd.build.mesh_shape``.
+    A box is made here; a mesh file's convex hull by ``hapticd.daemon.build.mesh_shape``.
     """
 
     normals: np.ndarray
@@ -66,7 +66,7 @@ class ConvexShape:
 
 OBJECT_STATE = 18
 """Length of a SceneObject's ``state``: x (3, m), v (3, m/s), w (3, rad/s), R (9, row by row),
-the layout hapticd.kernels.STATE names."""
+the layout hapticd.physics.kernels.STATE names."""
 
 _MOTION: dict[str, tuple[slice, tuple[int, ...]]] = {
     "position": (slice(0, 3), (3,)),
@@ -138,7 +138,7 @@ class SceneObject:
         ``update_world`` (a pose changed in place without it keeps the one made before).
 
         Normals R n and offsets d + (R n) . x in plain sums, each product rounded, in a
-        fixed order (hapticd.kernels.world_planes computes the same bits)."""
+        fixed order (hapticd.physics.kernels.world_planes computes the same bits)."""
         poly = self._polytope
         if poly is None:
             N, R, x = self.shape.normals, self.rotation, self.position
@@ -153,14 +153,6 @@ class SceneObject:
     def center(self) -> np.ndarray:
         """Centre of mass, the grasp reference point (m)."""
         return self.position
-
-    @property
-    def stiffness(self) -> float:
-        return self.material.stiffness
-
-    @property
-    def damping(self) -> float:
-        return self.material.damping
 
     @property
     def inertia_body(self) -> np.ndarray:

@@ -3,7 +3,7 @@
 Each kernel is one function (it calls no other function of ours but the helpers
 named in ``KERNEL_HELPERS``) in the subset of Python that numba compiles: float
 arithmetic, ``math``, loops and indexing of preallocated numpy arrays, no objects and no allocation.
-``hapticd.jit`` compiles them; the renderer (hapticd.render) takes the compiled
+``hapticd.physics.jit`` compiles them; the renderer (hapticd.physics.render) takes the compiled
 functions when ``rendering.kernels`` asks for them. Run as plain Python they give
 the same numbers, only slower.
 
@@ -12,14 +12,14 @@ direction per finger by a robust method (pinv, if, ef, adaptive, whose alpha it 
 it calls the closed forms of ``hapticd.allocation.closed`` and ``accuracy`` for one or
 two contacts and the general path of ``hapticd.allocation.general`` for more (written
 once, shared with ``allocate`` and ``allocate_many``; ``KERNEL_HELPERS``).
-``allocate_grasps`` is that general path for a batch (``allocate_many``'s ``kernel=``).
+``allocate_grasps`` is the robust methods grasp by grasp (``allocate_many``'s ``kernel=``).
 
-``tick_step`` is the renderer's tick as one call (hapticd.render.OneCall): ``world_planes``,
+``tick_step`` is the renderer's tick as one call (hapticd.physics.render.OneCall): ``world_planes``,
 ``contact_step``, ``friction_step``, ``forces_step``, ``allocation_step`` and
-``free_body_step`` are its stages' physics (hapticd.stages.Contact, Friction, Forces,
+``free_body_step`` are its stages' physics (hapticd.physics.stages.Contact, Friction, Forces,
 Allocation, Dynamics), with no twin, compiled into it (``KERNEL_HELPERS``), and
-``safety_step`` is hapticd.safety.SafetyChain's normal tick. hapticd.jit compiles as entry
-points only what is called from outside this module (``hapticd.jit.SIGNATURES``:
+``safety_step`` is hapticd.physics.safety.SafetyChain's normal tick. hapticd.physics.jit compiles as
+entry points only what is called from outside this module (``hapticd.physics.jit.SIGNATURES``:
 ``tick_step``, ``allocation_step``, ``allocate_grasps``, ``safety_step``); with
 ``rendering.kernels=python`` the same functions run uncompiled (``uncompiled``).
 
@@ -49,7 +49,7 @@ from hapticd.allocation.general import (
     solve_grasps,
 )
 from hapticd.allocation.general import general as general_path
-from hapticd.passivity import DEPENDENT, authority, control, observe
+from hapticd.physics.passivity import DEPENDENT, authority, control, observe
 
 
 @functools.cache
@@ -369,7 +369,7 @@ def allocation_work_shape(n_fingers: int) -> tuple[int, int]:
 
 # Functions the kernels call (everything else a kernel does is inline): this module's and
 # the allocation's closed forms and general path (hapticd.allocation.closed, general and
-# accuracy, written once for the loop, allocate() and allocate_many). hapticd.jit compiles
+# accuracy, written once for the loop, allocate() and allocate_many). hapticd.physics.jit compiles
 # them into the kernels that call them.
 KERNEL_HELPERS = (
     *closed.KERNEL_HELPERS,
@@ -403,7 +403,7 @@ KERNEL_HELPERS = (
     "safety_step",
 )
 # The sources whose code or constants the kernels compile in: numba's cache knows only
-# this file's, so hapticd.jit keys its record of compiled kernels on all of them.
+# this file's, so hapticd.physics.jit keys its record of compiled kernels on all of them.
 SOURCES = (
     __file__,
     closed.__file__,
@@ -421,12 +421,14 @@ def allocate_grasps(
     alpha: np.ndarray,
     eps: float,
     min_sep: float,
+    fast: bool,
     out: np.ndarray,
     work: np.ndarray,
 ) -> None:
-    """hapticd.allocation.general.solve_grasps as a kernel (``allocate_many``'s general path
-    compiled): G (N, 6, n), M (N or 1, n, r), lam (N, n) N, alpha (N,) into out (N, r) N."""
-    solve_grasps(code, G, M, lam, alpha, eps, min_sep, out, work)
+    """hapticd.allocation.general.solve_grasps as a kernel (``allocate_many``'s robust
+    methods compiled): G (N, 6, n), M (N or 1, n, r), lam (N, n) N, alpha (N,) into out
+    (N, r) N."""
+    solve_grasps(code, G, M, lam, alpha, eps, min_sep, fast, out, work)
 
 
 def _fill_grasp(
@@ -566,7 +568,7 @@ def allocation_step(
     dirs = work.shape[0] - n_fingers - 1
     xk = work.shape[0] - 1
     if n > 0:
-        # Every finger's world direction into ``work`` (hapticd.actuation.grasp_axes in the
+        # Every finger's world direction into ``work`` (hapticd.physics.actuation.grasp_axes in the
         # grasp frame), then the grasp's allocation.
         grasp = params[4] != 0.0
         ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, grasp)
@@ -917,7 +919,7 @@ def _gram_mu(planes: np.ndarray, state: np.ndarray, i: int, k: int, base: int) -
     """The multipliers state[i, _C_MU:_C_MU + k] solving G mu = rhs for the Gram matrix
     G = N N^T of the k (2 or 3) unit normals whose rows in ``planes`` are
     state[i, base:base + k], rhs = state[i, _C_RHS:_C_RHS + k] (m). The one function
-    contact_step calls: hapticd.jit compiles it in (``KERNEL_HELPERS``).
+    contact_step calls: hapticd.physics.jit compiles it in (``KERNEL_HELPERS``).
 
     Plain float sums in a fixed order: the 2 x 2 and 3 x 3 systems by their adjugates
     (Cramer's rule), the unit diagonal taken as exactly 1. A singular system (determinant
@@ -1378,7 +1380,7 @@ def _norm3(x0: float, x1: float, x2: float) -> float:
 def safety_step(
     forces: np.ndarray, positions: np.ndarray, params: np.ndarray, out_prev: np.ndarray
 ) -> int:
-    """The safety chain's normal tick (``hapticd.safety.SafetyChain``, its only code for
+    """The safety chain's normal tick (``hapticd.physics.safety.SafetyChain``, its only code for
     it, compiled or not) for F fingers: the finite check, the workspace check, the
     magnitude clamp (direction kept), the ramp and deadman gate, the rate limit.
 
@@ -1453,7 +1455,7 @@ def world_planes(
 ) -> None:
     """The object's face planes in the world at its pose, into the first M rows of
     ``planes`` (columns 0-2: the unit normal R n, column 3: the offset d + (R n) . x, m):
-    ``hapticd.scene.SceneObject.polytope``'s sums in its order.
+    ``hapticd.physics.scene.SceneObject.polytope``'s sums in its order.
 
     ``rotation`` (3, 3), ``position`` (3,) m, ``body_normals`` (M, 3) and
     ``body_offsets`` (M,) m (the body frame); ``planes`` (>= M, >= 4), other columns
@@ -1489,7 +1491,7 @@ TICK_FORCES_AT = TICK_FRICTION_AT + FRICTION_PARAMS
 TICK_ALLOCATION_AT = TICK_FORCES_AT + FORCES_PARAMS
 TICK_BODY_AT = TICK_ALLOCATION_AT + ALLOCATION_PARAMS
 TICK_PARAMS = TICK_BODY_AT + PARAMS
-# The stages of a tick, in order, as tick_step runs them (hapticd.stages names each
+# The stages of a tick, in order, as tick_step runs them (hapticd.physics.stages names each
 # stage's), then the safety chain's normal tick (when the call makes it).
 (
     STAGE_CONTACT,
@@ -1524,7 +1526,7 @@ TICK_OBJECT, TICK_SAFETY_DEFER = 6, 7
 TICK_SAFE = 16
 # A free object beyond these has left any scene a hand can reach (a free fall of a day
 # stays below them), and well before float overflow breaks its dynamics: the loop's
-# backstop (hapticd.servo) latches a fault.
+# backstop (hapticd.loop.servo) latches a fault.
 MAX_OBJECT_DISTANCE_M = 1e12
 MAX_OBJECT_SPEED_M_PER_S = 1e7
 MAX_OBJECT_SPIN_RAD_PER_S = 1e7
@@ -1610,12 +1612,11 @@ def _bytes_compiled(a: np.ndarray) -> np.ndarray:
     return a.view(np.uint8)
 
 
-# Helpers whose compiled form is another function (hapticd.jit compiles that one in; the
-# allocation's float forms are hapticd.allocation.closed.FLOAT_FORMS).
+# Helpers whose compiled form is another function (hapticd.physics.jit compiles that one in).
 COMPILED_FORMS = {_block: _block_compiled, _bytes: _bytes_compiled}
 
 
-# tick_step's state: everything a tick carries to the next (hapticd.frame.STATE) in one
+# tick_step's state: everything a tick carries to the next (hapticd.physics.frame.STATE) in one
 # float64 array, the renderer's; each stage holds views of its block: contact's (F,
 # CONTACT_STATE), friction's anchors (F, FRICTION_COLUMNS), passivity's (F,
 # PASSIVITY_STATE), the allocator's alpha (ALLOCATION_STATE,) and workspace
@@ -1680,7 +1681,7 @@ def tick_step(
     (when they wait), the object's planes at its pose, contact, friction, the contact
     forces, allocation, the environment's force through each finger's actuated directions,
     the passivity controller, their sum, the free object's step and the scene's state, each
-    by its kernel or helper (the stages' physics; hapticd.render.Renderer's plan says which
+    by its kernel or helper (the stages' physics; hapticd.physics.render.Renderer's plan says which
     run, and a plan with a stage of its own in Python runs the call in parts: the STAGE_
     indices params[TICK_FIRST] to before params[TICK_LAST]).
 
@@ -1702,7 +1703,7 @@ def tick_step(
     lp = int(plan[s + 5])
     at_pos, at_vel = int(plan[_AT_POS]), int(plan[_AT_VEL])
     if state[lp + LOOP_SAMPLES] != 0.0:
-        # The device bank's check of the samples it read (hapticd.device_bank), compiled:
+        # The device bank's check of the samples it read (hapticd.loop.device_bank), compiled:
         # a sample no hand makes refuses the tick before anything is written.
         state[lp + LOOP_SAMPLES] = 0.0
         sp = int(plan[_AT_SAMPLE])
@@ -1872,7 +1873,7 @@ def tick_step(
             record[o + k] = obj_state[k]
     watch = state[lp + LOOP_WATCH] != 0.0
     if watch and first <= STAGE_SAFETY < last:
-        # The loop's events watcher (hapticd.event_ring.FrameEvents) runs when in_contact
+        # The loop's events watcher (hapticd.loop.event_ring.FrameEvents) runs when in_contact
         # or buttons changed since the last tick: whether they did, kept for the next.
         raw = _bytes(record)
         was = lp + LOOP_HEAD + 2 * n
@@ -1927,7 +1928,7 @@ def _passivity(
     energy: np.ndarray,
     damping: np.ndarray,
 ) -> None:
-    """The passivity stage (hapticd.passivity's observer and controller) on every finger:
+    """The passivity stage (hapticd.physics.passivity's observer and controller) on every finger:
     observes the energy of the force before it (the allocated force, plus the environment's
     with ``surfaces``) over the finger's motion since the last tick, and writes the damping
     force along the finger's actuated directions, the energy and the damping (N s/m).
@@ -2011,7 +2012,7 @@ def _span_project(
 
 def _axes(device_pos: np.ndarray, grasp: bool) -> tuple[float, ...]:
     """The actuation frame's axes x, y, z in the world (9 floats): the world's, or the grasp
-    frame of fingers 0 and 1 (hapticd.actuation.grasp_axes)."""
+    frame of fingers 0 and 1 (hapticd.physics.actuation.grasp_axes)."""
     if not grasp:
         return 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
     ax0, ax1, ax2 = 1.0, 0.0, 0.0

@@ -43,7 +43,7 @@ provably leaves such a rendering alone. An instantaneous velocity would pair
 with f(n) with an error of order T^2 k |v|^2 of either sign.
 
 Units: m, m/s, N, N s/m, J, s. Pure: plain floats, no I/O. ``observe``, ``control`` and
-``authority`` are compiled into the tick's one call (hapticd.kernels.tick_step).
+``authority`` are compiled into the tick's one call (hapticd.physics.kernels.tick_step).
 """
 
 from __future__ import annotations
@@ -114,25 +114,3 @@ def control(
     if need <= cap:
         return 0.0, need  # exactly what brings E back to zero
     return observed + cap * ua2 / dt, cap
-
-
-def step(
-    energy: float,
-    force: Sequence[float],
-    dx: Sequence[float],
-    dx_actuated: Sequence[float],
-    dt: float,
-    params: PassivityParams,
-) -> tuple[float, float]:
-    """One tick of one finger's observer and controller: (E(n) J, alpha(n) N s/m).
-
-    ``energy`` is E(n-1) (J), ``force`` the rendered force f(n) (3,) N on the finger,
-    ``dx`` its motion x(n) - x(n-1) (3,) m, ``dx_actuated`` that motion projected onto the
-    finger's actuated directions, P_a dx (3,) m, ``dt`` the tick period T (s). The force to
-    display is f(n) - alpha(n) P_a dx / T. Non-finite input leaves E unchanged and adds
-    no damping.
-    """
-    observed = observe(energy, force, dx)
-    if not math.isfinite(observed):
-        return energy, 0.0
-    return control(observed, dx_actuated, dt, params.velocity_threshold, params.max_damping)

@@ -3,7 +3,7 @@
 In order: the devices are found and calibrated (each opened, asked, closed); the
 limits and the workspaces are shown; the servo loop starts, built exactly as
 ``hapticd run`` builds it, with one change to its renderer: a last stage
-(hapticd.pulse) replaces the rendered forces with scripted pulses (zero between
+(hapticd.loop.pulse) replaces the rendered forces with scripted pulses (zero between
 them), so nothing of the scene is felt and the object stays at its starting
 pose. The positions are shown live (world frame, device frame, object frame and
 the gap to the object's surface, per finger); then each actuated direction of
@@ -35,16 +35,16 @@ import numpy as np
 from hapticd_drivers import BackendUnavailableError, Device, registry
 
 from hapticd import __version__
-from hapticd.build import build_mounts, build_scene
-from hapticd.commands import Command
+from hapticd.daemon.build import build_mounts, build_scene
 from hapticd.daemon.session import Session, build_session, record_directory
-from hapticd.mount import Mount, Reach, workspace_reach
+from hapticd.loop.commands import Command
+from hapticd.loop.mount import Mount, Reach, workspace_reach
+from hapticd.loop.pulse import MAX_PULSE_N, PulseStage
 from hapticd.profile import ProfileError, load_profile
-from hapticd.pulse import MAX_PULSE_N, PulseStage
 from hapticd.recording import RecordingError
 
 if TYPE_CHECKING:
-    from hapticd.servo import ServoLoop
+    from hapticd.loop.servo import ServoLoop
 
 PULSE_RAMP_S = 0.2
 PULSE_HOLD_S = 0.3
