@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import os
 import socket
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -20,21 +22,27 @@ from tests.conftest import GRASP_PROFILE
 
 
 @pytest.fixture(params=["tmp", "xdg"])
-def own_dir(request, tmp_path, monkeypatch) -> Path:
+def own_dir(request, monkeypatch) -> Iterator[Path]:
     """hapticd's own socket directory, reached through the default path: /tmp/hapticd-UID
-    (with /tmp moved into tmp_path) or $XDG_RUNTIME_DIR/hapticd."""
+    (with /tmp moved into a folder of the test's) or $XDG_RUNTIME_DIR/hapticd."""
     for var in ("HAPTICD_SOCKET", "RUNTIME_DIRECTORY", "XDG_RUNTIME_DIR"):
         monkeypatch.delenv(var, raising=False)
-    base = tmp_path / "base"
+    # A short folder in /tmp, not tmp_path: a Unix socket's path has at most 107 bytes, and
+    # pytest's temporary folders grow deeper with every run on a machine.
+    with tempfile.TemporaryDirectory(prefix="hd-", dir="/tmp") as short:
+        yield from _own_dir(request.param, Path(short) / "base", monkeypatch)
+
+
+def _own_dir(kind: str, base: Path, monkeypatch) -> Iterator[Path]:
     base.mkdir()
-    if request.param == "tmp":
+    if kind == "tmp":
         monkeypatch.setattr(control, "TMP_DIR", base)
         d = base / f"hapticd-{os.getuid()}"
     else:
         monkeypatch.setenv("XDG_RUNTIME_DIR", str(base))
         d = base / "hapticd"
     assert control.default_socket_path() == d / "control.sock"
-    return d
+    yield d
 
 
 def _plant(kind: str, d: Path, tmp_path: Path) -> Path:

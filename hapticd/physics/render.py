@@ -524,9 +524,10 @@ class OneCall:
 
     @property
     def started(self) -> bool:
-        """Whether every proxy has started at its device (the first finite tick): from then
-        on the devices' samples may wait in the frame for the call's check."""
-        return self._started
+        """Whether the devices' samples may wait in the frame for the call's check: every
+        proxy has started at its device (the first finite tick), and the call's first part
+        is the kernel's (a Python stage before it would read the samples unchecked)."""
+        return self._started and (self._single or isinstance(self._parts[0], tuple))
 
     def _in_parts(self, frame: Frame) -> int:
         """The tick in its parts: the kernel's runs of stages and the Python stages."""
