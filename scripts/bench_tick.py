@@ -417,12 +417,12 @@ for k in range(ticks):
     frame.device_pos[:, 2] = 0.02
     frame.t[()] = k * 1e-3
     t0 = ns()
-    flags = r.run(frame, safety if safety.ready(k * 1e-3) else None)
-    if flags is None:
+    outcome = r.run(frame, safety if safety.ready() else None)
+    if outcome is None:
         handed += 1
         safety.run(frame, None)
     else:
-        safety.done(flags, None)
+        safety.done(outcome, k, k * 1e-3, None)
     out.append(ns() - t0)
     contacts.append(int(frame.in_contact.sum()))
 us = np.array(out[ticks // 4:]) / 1e3  # holding: every finger in contact

@@ -1,9 +1,10 @@
-"""The safety chain's normal tick (hapticd.physics.kernels.safety_step, its one source) compiled
-against uncompiled: the same output bits, faults, causes and counters for generated
-streams, limits, ramps, rate limits, workspaces and deadman buttons; a clamped force
-keeps its direction and lands on its limit, over the whole range of floats; hostile
-forces through a whole run on the compiled path end in zero force, a latched fault and
-the devices disabled.
+"""The safety chain's tick (hapticd.physics.kernels.safety_step, its one source) compiled
+against uncompiled: the same output bits, faults, causes, counters, ramps and deadman
+state for generated streams, limits, ramps, rate limits, workspaces and deadman buttons;
+a clamped force keeps its direction and lands on its limit, over the whole range of
+floats; the kernel decides every trip, and the chain names it; hostile forces and a
+finger leaving the workspace through a whole run on the compiled path end in zero
+force, a latched fault and the devices disabled.
 
 tests/test_safety.py runs every one of its tests compiled and uncompiled as well."""
 
@@ -20,7 +21,7 @@ from hypothesis.extra.numpy import arrays
 from hapticd.daemon.session import build_session
 from hapticd.physics import jit, kernels
 from hapticd.physics.frame import Frame
-from hapticd.physics.safety import Deadman, SafetyChain, SafetyParams
+from hapticd.physics.safety import Deadman, Fault, SafetyChain, SafetyParams
 from hapticd.profile import load_profile
 from tests.conftest import ROOT, capture_writes
 
@@ -89,10 +90,11 @@ def cases(draw) -> dict:
     }
 
 
-def run_both(case: dict, kernel: dict) -> tuple[SafetyChain, SafetyChain, int]:
+def run_both(case: dict, kernel: dict) -> tuple[SafetyChain, SafetyChain, list[int]]:
     """Feed both chains the case's ticks, the first with the kernel uncompiled, the second
-    with ``kernel`` (compiled, or empty: uncompiled); every output compared bit for bit.
-    Returns the chains and how many ticks the second's kernel made safe itself."""
+    with ``kernel`` (compiled, or empty: uncompiled); every output and the chains' whole
+    arrays (ramps, deadman state, counters) compared bit for bit. Returns the chains and
+    the second's kernel's outcomes."""
     dt = 1e-3
     chains = [SafetyChain(case["limits"], case["params"], dt=dt) for _ in range(2)]
     step = kernel.get("safety_step") or kernels.uncompiled("safety_step")
@@ -106,7 +108,6 @@ def run_both(case: dict, kernel: dict) -> tuple[SafetyChain, SafetyChain, int]:
     chains[1].use_kernels({"safety_step": counting})  # the kernel seam, counted
     for c in chains:
         c.start(0.0)
-    by_kernel = 0
     wall = 100.0
     for k, forces in enumerate(case["forces"]):
         t = k * dt
@@ -128,15 +129,17 @@ def run_both(case: dict, kernel: dict) -> tuple[SafetyChain, SafetyChain, int]:
         a, b = chains
         assert a.fault == b.fault
         assert (a.clamped_ticks, a.rate_limited_ticks) == (b.clamped_ticks, b.rate_limited_ticks)
-        assert a.gate == b.gate and a._prev.tobytes() == b._prev.tobytes()
-    by_kernel = sum(1 for f in calls if not f & kernels.SAFETY_DEFER)
-    return chains[0], chains[1], by_kernel
+        assert a.gate == b.gate and a.deadman_status() == b.deadman_status()
+        for x, y in zip(a.kernel_arrays, b.kernel_arrays, strict=True):
+            assert x.tobytes() == y.tobytes(), k
+    return chains[0], chains[1], calls
 
 
 @given(case=cases())
 def test_the_chain_compiled_and_uncompiled_gives_the_same_bits(compiled, case):
-    _, b, by_kernel = run_both(case, compiled)
-    event(f"ticks made safe by the kernel: {min(by_kernel, 3)}+")
+    _, b, outcomes = run_both(case, compiled)
+    trips = sum(1 for f in outcomes if f >= kernels.SAFETY_NON_FINITE)
+    event(f"ticks tripped by the kernel: {min(trips, 2)}+")
     event(f"fault: {b.fault.kind if b.fault else None}")
 
 
@@ -164,8 +167,8 @@ def test_clamped_forces_keep_their_direction_and_land_on_the_limit(compiled, pat
         "ramp_down_at": None,
         "reset_at": None,
     }
-    _, b, by_kernel = run_both(case, kernel_for(path, compiled))
-    assert by_kernel == 1 and b.clamped_ticks == 1
+    _, b, outcomes = run_both(case, kernel_for(path, compiled))
+    assert outcomes == [kernels.SAFETY_CLAMPED] and b.clamped_ticks == 1
     for row, out in zip(forces.tolist(), b.output.tolist(), strict=True):
         s = limit / math.hypot(*row)
         np.testing.assert_allclose(out, [row[0] * s, row[1] * s, row[2] * s], rtol=1e-12)
@@ -173,30 +176,58 @@ def test_clamped_forces_keep_their_direction_and_land_on_the_limit(compiled, pat
             assert math.hypot(*out) == pytest.approx(limit, rel=1e-12)
 
 
-def test_the_kernel_makes_the_normal_tick_safe_and_defers_every_trip(compiled):
-    """Ordinary ticks never reach the chain's checks; a non-finite force, the watchdog and
-    a finger at (within rounding of) the workspace's edge do, and trip with its message."""
+@pytest.mark.parametrize("path", PATHS)
+def test_the_kernel_decides_every_trip_and_the_chain_names_it(compiled, path):
+    """Ordinary ticks are made safe and counted by the kernel; a finger exactly at the
+    workspace's radius is inside, one a hair beyond it trips (its index in the outcome, its
+    distance in the message); a non-finite force trips naming every finger that has one;
+    the watchdog is the chain's. Each trip zeroes the output and latches its fault."""
     chain = SafetyChain(
         [2.0, 2.0],
         SafetyParams(max_rate_n_per_s=500.0, workspace_radius_m=0.1, watchdog_s=0.05),
     )
-    chain.use_kernels(compiled)
+    step = kernel_for(path, compiled).get("safety_step") or kernels.uncompiled("safety_step")
+    outcomes = []
+    chain.use_kernels({"safety_step": lambda *a: outcomes.append(step(*a)) or outcomes[-1]})
     pos = np.array([[0.05, 0.0, 0.0], [-0.05, 0.0, 0.0]])
     f = np.array([[3.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     for k in range(20):
         chain.apply(f, k, k * 1e-3, pos, 1.0 + k * 1e-3)
-    assert chain.checked_ticks == 0 and chain.clamped_ticks == 20
-    assert chain.rate_limited_ticks > 0
+    assert chain.clamped_ticks == 20 and chain.rate_limited_ticks > 0
+    assert all(o < kernels.SAFETY_NON_FINITE for o in outcomes)
     edge = pos.copy()
-    edge[1, 0] = -0.1  # exactly at the radius: inside, decided by the chain's check
+    edge[1, 0] = -0.1  # exactly at the radius: inside
     chain.apply(f, 20, 0.02, edge, 1.02)
-    assert chain.checked_ticks == 1 and chain.fault is None
-    chain.apply(f, 21, 0.021, pos, 1.2)  # 179 ms since the last tick
-    assert chain.checked_ticks == 2 and chain.fault.kind == "watchdog"
+    assert chain.fault is None and chain.output[0, 0] == 2.0
+    edge[1, 0] = math.nextafter(-0.1, -1.0)  # one float beyond it
+    chain.apply(f, 21, 0.021, edge, 1.021)
+    assert outcomes[-1] == kernels.SAFETY_WORKSPACE | 1 << kernels.SAFETY_FINGERS
+    assert chain.fault == Fault(
+        21,
+        0.021,
+        "finger 1 left the workspace: 0.1000 m from its centre (limit 0.1 m)",
+        "workspace",
+    )
     assert np.all(chain.output == 0.0)
-    chain.reset(0.03)  # forces on again: the watchdog starts afresh
-    chain.apply(np.array([[0.0, 0.0, 0.0], [math.nan, 0.0, 0.0]]), 22, 0.03, pos, 2.0)
-    assert chain.checked_ticks == 3 and chain.fault.kind == "nonfinite_force"
+    chain.reset(0.03)
+    chain.apply(f, 22, 0.03, pos, 1.03)
+    chain.apply(f, 23, 0.031, pos, 1.2)  # 170 ms since the last tick
+    assert chain.fault.kind == "watchdog" and chain.fault.tick == 23
+    assert chain.fault.cause == "watchdog: 170.0 ms between ticks (limit 50 ms)"
+    assert np.all(chain.output == 0.0)
+    chain.reset(0.04)  # forces on again: the watchdog starts afresh
+    chain.apply(f, 24, 0.04, pos, 2.0)
+    assert np.any(chain.output != 0.0)
+    bad = np.array([[math.inf, 0.0, 0.0], [math.nan, 0.0, 0.0]])
+    chain.apply(bad, 25, 0.041, pos, 2.001)
+    assert outcomes[-1] == kernels.SAFETY_NON_FINITE | 0b11 << kernels.SAFETY_FINGERS
+    assert chain.fault.kind == "nonfinite_force" and chain.fault.tick == 25
+    assert chain.fault.cause == "non-finite force for finger(s) [0, 1]"
+    assert np.all(chain.output == 0.0)
+    # A non-finite force and a stall on one tick: the non-finite force is named first.
+    chain.reset(0.05)
+    chain.apply(f, 26, 0.05, pos, 3.0)
+    chain.apply(np.array([[0.0, 0.0, 0.0], [0.0, math.nan, 0.0]]), 27, 0.051, pos, 3.5)
     assert chain.fault.cause == "non-finite force for finger(s) [1]"
 
 

@@ -187,7 +187,7 @@ def test_an_adaptive_plan_runs_as_one_call_alpha_too(compiled):
 @pytest.mark.parametrize("n_fingers", [3, 5])
 def test_many_fingers_run_every_tick_as_one_call_with_allocates_forces(n_fingers, compiled):
     """Fingers closing on a free cube and holding it (every finger in contact): no tick is
-    handed back (the safety chain's flags come back every tick), and lam_a and the
+    handed back (the safety chain's outcome comes back every tick), and lam_a and the
     allocated force are allocate()'s on the same tick's contacts, with contact onset,
     to 1e-9 N."""
     from hapticd.physics.safety import SafetyChain
@@ -205,9 +205,10 @@ def test_many_fingers_run_every_tick_as_one_call_with_allocates_forces(n_fingers
     for k, (pos, _) in enumerate(_squeeze(n_fingers, 200)):
         frame.device_pos[...] = pos
         center = r.obj.position.copy()  # the grasp's reference point: before the dynamics
-        flags = r.run(frame, safety if safety.ready(k * 1e-3) else None)
-        assert flags is not None, f"tick {k} handed back"
-        safety.done(flags, None)
+        frame.t[()] = k * 1e-3
+        outcome = r.run(frame, safety if safety.ready() else None)
+        assert outcome is not None, f"tick {k} handed back"
+        assert safety.done(outcome, k, k * 1e-3, None)
         case = {
             "n": n_fingers,
             "robust": r.allocator.robust,
@@ -337,8 +338,8 @@ def test_the_passivity_controller_in_the_call_is_its_definition(mode, compiled):
 
 
 def _lift_run(tmp_path, overrides, monkeypatch, in_call: bool):
-    """The lift profile's loop, unpaced, recorded; the safety chain's normal tick in the
-    one call, or (the chain never ``ready`` for it) the chain's own."""
+    """The lift profile's loop, unpaced, recorded; the safety chain's tick in the one call,
+    or (the chain never ``ready`` for it) the chain's own call of it (``run``)."""
     from hapticd import recording
     from hapticd.daemon.session import build_session
     from hapticd.physics.safety import SafetyChain
@@ -347,14 +348,14 @@ def _lift_run(tmp_path, overrides, monkeypatch, in_call: bool):
     path = tmp_path / f"{in_call}.hrec"
     with monkeypatch.context() as m:
         if not in_call:
-            m.setattr(SafetyChain, "ready", lambda self, t: False)
+            m.setattr(SafetyChain, "ready", lambda self: False)
         s = build_session(prof, paced=False, duration_s=3.0, record_path=path)
         s.run()
     return s.loop.safety, recording.read(path)
 
 
 def test_the_safety_chain_in_the_call_clamps_and_limits_as_the_chain(tmp_path, monkeypatch):
-    """The safety chain's normal tick made in the one call: the same forces sent, tick by
+    """The safety chain's tick made in the one call: the same forces sent, tick by
     tick, and the same counts of clamped and rate-limited ticks, as the chain's own."""
     low = [
         "rendering.kernels=compiled",
@@ -414,8 +415,9 @@ def test_the_call_with_the_safety_chain_allocates_nothing_a_tick(n_fingers, comp
 
     def tick(k: int) -> None:
         frame.device_pos[...] = path[k][0]
-        flags = r.run(frame, safety if safety.ready(k * 1e-3) else None)
-        assert flags is not None and safety.done(flags, None)
+        frame.t[()] = k * 1e-3
+        outcome = r.run(frame, safety if safety.ready() else None)
+        assert outcome is not None and safety.done(outcome, k, k * 1e-3, None)
 
     for k in range(200):
         tick(k)
@@ -465,8 +467,8 @@ def test_the_compiled_call_skips_numbas_dispatch_only_on_its_declared_arrays(pro
         for r, chain in zip((fast, slow), chains, strict=True):
             r.frame.device_pos[...] = pos[k]
             r.frame.device_vel[...] = (pos[k + 1] - pos[k]) / dt
-            t = k * 1e-3
-            assert r.run(r.frame, chain if chain.ready(t) else None) is not None
+            r.frame.t[()] = k * 1e-3
+            assert r.run(r.frame, chain if chain.ready() else None) is not None
         if k == 0:  # bound now, with the chain's arrays: the slow one keeps the dispatcher
             args = fast.one_call._args
             entry = direct(fn, args)

@@ -263,7 +263,6 @@ class ServoLoop:
             safety.fault = old.fault
         safety.clamped_ticks += old.clamped_ticks
         safety.rate_limited_ticks += old.rate_limited_ticks
-        safety.checked_ticks += old.checked_ticks
         safety.start(t)
         self.bank.max_speed_m_per_s = safety.params.max_device_speed_m_per_s
         self.renderer, self.safety = renderer, safety
@@ -307,21 +306,22 @@ class ServoLoop:
         # bank's) once every proxy has started; the bank checks them itself otherwise.
         self._loop_block[SAMPLES] = self.bank.read(frame, k, t, call.started)
         safety = self.safety
-        # The safety chain's normal tick runs in the renderer's one call when it can: then
-        # the object was checked there too, device_force is written and each finger's
-        # largest force kept. The watchdog's clock is read after it: a stalled tick trips
-        # before its force is sent. Renderer.run's one call, without the method around it.
-        flags = call.run(frame, safety if safety.ready(t) else None)
-        if flags == SAMPLES_REFUSED:  # a sample no hand makes: the bank says which, a fault
+        # The safety chain's tick runs in the renderer's one call unless a fault is latched:
+        # then the object was checked there too, device_force is written (zero on a trip)
+        # and each finger's largest force kept. The watchdog's clock is read after it: a
+        # stalled tick trips before its force is sent. Renderer.run's one call, without the
+        # method around it.
+        outcome = call.run(frame, safety if safety.ready() else None)
+        if outcome == SAMPLES_REFUSED:  # a sample no hand makes: the bank says which, a fault
             self.bank.check(frame, k, t)
-            flags = call.run(frame, safety if safety.ready(t) else None)
+            outcome = call.run(frame, safety if safety.ready() else None)
         t_wall = self.watchdog_clock() if self.wall_watchdog else None
-        if flags is None:
+        if outcome is None:
             self._check_object(frame, k, t)
             safety.run(frame, t_wall)
             self._keep_max_force(frame, False)
-        elif not safety.done(flags, t_wall):
-            safety.run(frame, t_wall)  # the watchdog trips: zero force
+        elif not safety.done(outcome, k, t, t_wall):
+            safety.run(frame, t_wall)  # a fault latched (a trip, the watchdog): zero force
             self._keep_max_force(frame, True)
         self.bank.write(frame, k, t)
         if self.safety.fault is not None and not self.forces_off:

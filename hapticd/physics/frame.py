@@ -278,10 +278,11 @@ STATE: tuple[StateField, ...] = (
     StateField(
         "safety_ramp",
         "the safety chain",
-        "SafetyChain ramps",
+        "SafetyChain.kernel_arrays: its array (kernels.SAFETY_*)",
         "scalars and (F,)",
         "s",
-        "when forces were enabled (ramp up) or the stop ramp began, and each deadman's gate",
+        "when forces were enabled (ramp up) or the stop ramp began, each deadman's press time"
+        " and gate, the clamped and rate-limited ticks' counts",
     ),
 )
 STATE_NAMES = frozenset(f.name for f in STATE)

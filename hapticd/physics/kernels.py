@@ -18,7 +18,7 @@ once, shared with ``allocate`` and ``allocate_many``; ``KERNEL_HELPERS``).
 ``contact_step``, ``friction_step``, ``forces_step``, ``allocation_step`` and
 ``free_body_step`` are its stages' physics (hapticd.physics.stages.Contact, Friction, Forces,
 Allocation, Dynamics), with no twin, compiled into it (``KERNEL_HELPERS``), and
-``safety_step`` is hapticd.physics.safety.SafetyChain's normal tick. hapticd.physics.jit compiles as
+``safety_step`` is hapticd.physics.safety.SafetyChain's tick. hapticd.physics.jit compiles as
 entry points only what is called from outside this module (``hapticd.physics.jit.SIGNATURES``:
 ``tick_step``, ``allocation_step``, ``allocate_grasps``, ``safety_step``); with
 ``rendering.kernels=python`` the same functions run uncompiled (``uncompiled``).
@@ -384,6 +384,7 @@ KERNEL_HELPERS = (
     "_allocate_contacts",
     "_gram_mu",
     "_norm3",
+    "ramp_down_factor",
     # tick_step's stages: compiled into it, one call per tick
     "world_planes",
     "contact_step",
@@ -1349,16 +1350,32 @@ def contact_step(
     return CONTACT_DONE
 
 
-# -- the safety chain's normal path -------------------------------------------------------
+# -- the safety chain ---------------------------------------------------------------------
 
-# safety_step's params: the ramp factor (enable ramp and ramp-down, 0 to 1), the rate
-# limit's largest change this tick (N; inf: off), the workspace radius (m; inf: off) and
-# its centre (3, m); then each finger's force limit (F, N) and deadman gate (F, 0 to 1).
-SAFETY_PARAMS = 6
-# safety_step's outcomes: bit flags of a tick made safe (a force clamped, a force rate
-# limited), or DEFER: something may trip (a non-finite force, a finger at or beyond the
-# workspace's edge), nothing written, the Python chain runs this tick.
-SAFETY_CLAMPED, SAFETY_LIMITED, SAFETY_DEFER = 1, 2, 4
+# The safety chain's array (hapticd.physics.safety.SafetyChain's, safety_step's ``params``):
+# its parameters and the state it carries from tick to tick. The rate limit's largest
+# change a tick (N; inf: off), the workspace's radius (m; inf: off) and centre (3, m), the
+# enable ramp's length (s), when forces were enabled (s, nominal), when the ramp-down
+# begins (s; inf: none) and its length (s), 1.0 while a fault is latched (forces zero, the
+# deadman gates still follow their buttons), the ticks on which a force was clamped and on
+# which one was rate limited, and the distance from the centre of the finger that left the
+# workspace (m, written when one does); then SAFETY_COLUMNS blocks of F items, one item a
+# finger: its force limit (N), its deadman button (-1: none), that deadman's ramp (s), when
+# the button went down (s, nominal; inf: up) and the deadman's gate on the last tick (0 to
+# 1; 1 without a deadman).
+SAFETY_RATE, SAFETY_RADIUS, SAFETY_CENTRE = 0, 1, 2
+SAFETY_RAMP_S, SAFETY_T_ENABLED, SAFETY_T_DOWN, SAFETY_DOWN_S = 5, 6, 7, 8
+SAFETY_LATCHED, SAFETY_CLAMPED_TICKS, SAFETY_LIMITED_TICKS, SAFETY_DISTANCE = 9, 10, 11, 12
+SAFETY_PARAMS = 13
+SAFETY_LIMIT, SAFETY_BUTTON, SAFETY_BUTTON_RAMP, SAFETY_PRESSED, SAFETY_GATE = range(5)
+SAFETY_COLUMNS = 5
+# safety_step's outcome: bit flags of a tick made safe (a force clamped, a force rate
+# limited), or of a trip, with the output zeroed (the chain latches the fault, with its
+# message): a non-finite force, the bits from SAFETY_FINGERS on naming its fingers (bit
+# SAFETY_FINGERS + i: finger i), or a finger beyond the workspace's radius, the bits from
+# SAFETY_FINGERS on its index.
+SAFETY_CLAMPED, SAFETY_LIMITED, SAFETY_NON_FINITE, SAFETY_WORKSPACE = 1, 2, 4, 8
+SAFETY_FINGERS = 4
 
 
 def _norm3(x0: float, x1: float, x2: float) -> float:
@@ -1377,53 +1394,107 @@ def _norm3(x0: float, x1: float, x2: float) -> float:
     return top * math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
 
 
+def ramp_down_factor(t: float, t_down: float, down_s: float) -> float:
+    """The ramp-down's factor at nominal time ``t`` (s): 1 before ``t_down`` (s), then
+    falling to exactly 0 after ``down_s`` (s): tick times carry rounding, and a remainder
+    of 1e-15 must not leave a force of 1e-15 N. safety_step's, and the chain's
+    ``ramped_down``."""
+    if t < t_down:
+        return 1.0
+    left = 1.0 - (t - t_down) / down_s if down_s > 0.0 else 0.0
+    return left if left > 1e-9 else 0.0
+
+
 def safety_step(
-    forces: np.ndarray, positions: np.ndarray, params: np.ndarray, out_prev: np.ndarray
+    forces: np.ndarray,
+    positions: np.ndarray,
+    buttons: np.ndarray,
+    params: np.ndarray,
+    out_prev: np.ndarray,
+    t: float,
 ) -> int:
-    """The safety chain's normal tick (``hapticd.physics.safety.SafetyChain``, its only code for
-    it, compiled or not) for F fingers: the finite check, the workspace check, the
-    magnitude clamp (direction kept), the ramp and deadman gate, the rate limit.
+    """The safety chain's tick (``hapticd.physics.safety.SafetyChain``, its only code for it,
+    compiled or not) for F fingers at nominal time ``t`` (s): the deadman gates, then with
+    no fault latched the finite check and the workspace check (either trips: zero output),
+    the magnitude clamp (direction kept), the enable ramp, ramp-down and deadman gate (the
+    smallest factor), the rate limit; the counters.
 
     ``forces`` (F, 3) N, ``positions`` (F, 3) m (read only with a finite workspace
-    radius), ``params`` (SAFETY_PARAMS + 2 F,) as declared above; ``out_prev`` (2, F, 3)
-    N: this tick's output, then last tick's, which becomes this tick's. Writes the
-    output and returns the SAFETY_CLAMPED and SAFETY_LIMITED flags, or returns
-    SAFETY_DEFER having written nothing: the chain then checks what may trip, with its
-    messages (or, a finger within rounding of the workspace's edge, decides, and calls
-    this again without the workspace check). Magnitudes are ``_norm3``'s, the same
-    compiled or not.
+    radius), ``buttons`` the devices' buttons' bytes (4 F, each finger's little-endian
+    uint32, the frame's; read only for a finger with a deadman), ``params`` the chain's
+    array (SAFETY_PARAMS + SAFETY_COLUMNS F,) as declared above; ``out_prev`` (2, F, 3) N:
+    this tick's output, then last tick's, which becomes this tick's. Writes the output and
+    returns the SAFETY_ outcome. Magnitudes and distances are ``_norm3``'s.
     """
-    n_fingers = forces.shape[0]
-    for i in range(n_fingers):
-        for j in range(3):
-            if not math.isfinite(forces[i, j]):
-                return SAFETY_DEFER
-    radius = params[2]
-    if math.isfinite(radius):
-        c0, c1, c2 = params[3], params[4], params[5]
-        # Python squares with ``** 2`` (the C library's pow, which differs from x * x in
-        # the last bit now and then): near the edge the Python chain decides.
-        edge = radius * (1.0 - 1e-9)
-        for i in range(n_fingers):
-            d0 = positions[i, 0] - c0
-            d1 = positions[i, 1] - c1
-            d2 = positions[i, 2] - c2
-            r = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-            if not r <= edge:
-                return SAFETY_DEFER
-    ramp = params[0]
-    step = params[1]
+    n = forces.shape[0]
+    limits = SAFETY_PARAMS + SAFETY_LIMIT * n
+    gates = SAFETY_PARAMS + SAFETY_GATE * n
+    for i in range(n):
+        button = params[SAFETY_PARAMS + SAFETY_BUTTON * n + i]
+        if button < 0.0:
+            continue
+        # The gate follows its button also while a fault holds the forces at zero.
+        bit = int(button)
+        pressed = SAFETY_PARAMS + SAFETY_PRESSED * n + i
+        if (int(buttons[4 * i + bit // 8]) >> (bit % 8)) & 1 == 0:
+            params[pressed] = math.inf
+            params[gates + i] = 0.0
+            continue
+        if params[pressed] == math.inf:
+            params[pressed] = t
+        held = t - params[pressed]
+        ramp_s = params[SAFETY_PARAMS + SAFETY_BUTTON_RAMP * n + i]
+        params[gates + i] = 1.0 if ramp_s <= 0.0 or held >= ramp_s else held / ramp_s
+    outcome = 0
+    if params[SAFETY_LATCHED] != 0.0:
+        outcome = -1
+    else:
+        for i in range(n):
+            if not (
+                math.isfinite(forces[i, 0])
+                and math.isfinite(forces[i, 1])
+                and math.isfinite(forces[i, 2])
+            ):
+                outcome |= 1 << (SAFETY_FINGERS + i)
+        if outcome != 0:
+            outcome |= SAFETY_NON_FINITE
+        elif math.isfinite(params[SAFETY_RADIUS]):
+            c0, c1, c2 = params[SAFETY_CENTRE], params[SAFETY_CENTRE + 1], params[SAFETY_CENTRE + 2]
+            for i in range(n):
+                r = _norm3(positions[i, 0] - c0, positions[i, 1] - c1, positions[i, 2] - c2)
+                if not r <= params[SAFETY_RADIUS]:
+                    params[SAFETY_DISTANCE] = r
+                    outcome = SAFETY_WORKSPACE | (i << SAFETY_FINGERS)
+                    break
+    if outcome != 0:  # a latched fault or a trip: zero force, and nothing to limit from
+        for i in range(n):
+            for j in range(3):
+                out_prev[0, i, j] = 0.0
+                out_prev[1, i, j] = 0.0
+        return 0 if outcome < 0 else outcome
+    ramp = 1.0
+    ramp_s = params[SAFETY_RAMP_S]
+    if ramp_s > 0.0:
+        ramp = (t - params[SAFETY_T_ENABLED]) / ramp_s
+        if not ramp > 0.0:
+            ramp = 0.0
+        elif not ramp < 1.0:
+            ramp = 1.0
+    down = ramp_down_factor(t, params[SAFETY_T_DOWN], params[SAFETY_DOWN_S])
+    if down < ramp:
+        ramp = down
+    step = params[SAFETY_RATE]
     rate_limited = step < math.inf
     flags = 0
-    for i in range(n_fingers):
+    for i in range(n):
         f0, f1, f2 = forces[i, 0], forces[i, 1], forces[i, 2]
         mag = _norm3(f0, f1, f2)
-        limit = params[SAFETY_PARAMS + i]
+        limit = params[limits + i]
         if mag > limit:
             s = limit / mag
             f0, f1, f2 = f0 * s, f1 * s, f2 * s
             flags |= SAFETY_CLAMPED
-        g = params[SAFETY_PARAMS + n_fingers + i]
+        g = params[gates + i]
         scale_i = ramp if ramp <= g else g
         if scale_i <= 0.0:
             # Exactly zero, never -0.0; the rate limit never delays a drop to zero.
@@ -1440,6 +1511,10 @@ def safety_step(
                 flags |= SAFETY_LIMITED
         out_prev[0, i, 0], out_prev[0, i, 1], out_prev[0, i, 2] = f0, f1, f2
         out_prev[1, i, 0], out_prev[1, i, 1], out_prev[1, i, 2] = f0, f1, f2
+    if flags & SAFETY_CLAMPED:
+        params[SAFETY_CLAMPED_TICKS] += 1.0
+    if flags & SAFETY_LIMITED:
+        params[SAFETY_LIMITED_TICKS] += 1.0
     return flags
 
 
@@ -1477,7 +1552,7 @@ def world_planes(
 
 
 # tick_step's params: what the plan has (1.0 or 0.0: friction, a free object, surfaces, a
-# sum of contributions into rendered_force, passivity), whether the safety chain's normal
+# sum of contributions into rendered_force, passivity), whether the safety chain's
 # tick runs in the call (set per tick), the stages this call runs (STAGE_ indices, from
 # first to before last), then the passivity, friction, forces, allocation and free-body
 # params at their offsets (each one's layout above; passivity's: velocity threshold m/s,
@@ -1492,7 +1567,7 @@ TICK_ALLOCATION_AT = TICK_FORCES_AT + FORCES_PARAMS
 TICK_BODY_AT = TICK_ALLOCATION_AT + ALLOCATION_PARAMS
 TICK_PARAMS = TICK_BODY_AT + PARAMS
 # The stages of a tick, in order, as tick_step runs them (hapticd.physics.stages names each
-# stage's), then the safety chain's normal tick (when the call makes it).
+# stage's), then the safety chain's tick (when the call makes it).
 (
     STAGE_CONTACT,
     STAGE_FRICTION,
@@ -1512,17 +1587,17 @@ PASSIVITY_STATE = 5
 # tick_step's outcomes: done; stopped at contact, a non-finite input (nothing of it
 # written: the contact stage names it); allocation refused a non-finite input or produced
 # a non-finite output (nothing after it written); with the safety chain's tick: a free
-# object's state beyond MAX_OBJECT_* (the chain not run: the loop latches the fault), or
-# the chain's kernel deferred (the chain runs its checks); TICK_SAFE + safety_step's
-# flags: done, the safety chain's tick too. From TICK_FINISHED on, every stage of the
-# plan has run.
+# object's state beyond MAX_OBJECT_* (the chain not run: the loop latches the fault);
+# TICK_SAFE + safety_step's outcome: done, the safety chain's tick too (a trip zeroed
+# device_force; the chain latches it). From TICK_FINISHED on, every stage of the plan
+# has run.
 TICK_FROM_CONTACT, TICK_NON_FINITE_INPUT, TICK_NON_FINITE_OUTPUT = 1, 3, 4
 # The devices' samples the call was to check (the loop's block says they wait) hold one no
 # hand makes (non-finite, too fast or too far): nothing written, the device bank checks
 # them itself, with its messages.
 TICK_SAMPLES = 2
 TICK_FINISHED = TICK_DONE = 5
-TICK_OBJECT, TICK_SAFETY_DEFER = 6, 7
+TICK_OBJECT = 6
 TICK_SAFE = 16
 # A free object beyond these has left any scene a hand can reach (a free fall of a day
 # stays below them), and well before float overflow breaks its dynamics: the loop's
@@ -1558,6 +1633,7 @@ TICK_FIELDS = (
     "object_pos",  # then object_vel, object_omega, object_rot: STATE floats
     "device_force",
     "device_sample",
+    "t",
 )
 (
     _AT_POS,
@@ -1582,6 +1658,7 @@ TICK_FIELDS = (
     _AT_OBJECT,
     _AT_DEVICE_FORCE,
     _AT_SAMPLE,
+    _AT_T,
 ) = range(len(TICK_FIELDS))
 
 
@@ -1688,10 +1765,11 @@ def tick_step(
     ``record``: the frame's record as float64 items, where ``plan`` says each field is;
     ``state``: the carried state (TICK_STATE), ``obj_state`` the object's (STATE,);
     ``plan``: where things are, the params and the blocks ``TICK_PLAN`` declares. With
-    params[TICK_SAFETY], after the last stage, the safety chain's normal tick on the
-    rendered force into ``device_force``: a free object's state checked first, then
-    safety_step with the chain's ``safety_params`` and ``out_prev``, then each finger's
-    largest force kept (the loop's block). Returns a TICK_ outcome.
+    params[TICK_SAFETY], after the last stage, the safety chain's tick on the rendered
+    force into ``device_force``: a free object's state checked first, then safety_step
+    with the chain's ``safety_params`` and ``out_prev`` at the frame's nominal time and
+    buttons, then each finger's largest force kept (the loop's block). Returns a TICK_
+    outcome.
     """
     n = int(plan[_AT_FINGERS])
     s = _AT_STATE
@@ -1897,9 +1975,11 @@ def tick_step(
         and _norm3(obj_state[6], obj_state[7], obj_state[8]) <= MAX_OBJECT_SPIN_RAD_PER_S
     ):
         return TICK_OBJECT
-    flags = safety_step(rendered, device_pos, safety_params, out_prev)
-    if flags & SAFETY_DEFER:
-        return TICK_SAFETY_DEFER
+    bt = int(plan[_AT_BUTTONS])
+    t = record[int(plan[_AT_T])]
+    outcome = safety_step(
+        rendered, device_pos, _bytes(record)[bt : bt + 4 * n], safety_params, out_prev, t
+    )
     out = _rows(record, int(plan[_AT_DEVICE_FORCE]), n)
     for i in range(n):
         f0, f1, f2 = out_prev[0, i, 0], out_prev[0, i, 1], out_prev[0, i, 2]
@@ -1911,7 +1991,7 @@ def tick_step(
             mag = _norm3(f0, f1, f2)
             if mag > was:
                 state[top] = mag
-    return TICK_SAFE + flags
+    return TICK_SAFE + outcome
 
 
 def _passivity(

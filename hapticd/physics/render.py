@@ -302,10 +302,10 @@ class Renderer:
         """One tick on ``frame``, whose device_pos (F, 3) m and device_vel (F, 3) m/s are set:
         the plan in one call (``OneCall``; in parts around a stage of its own in Python).
 
-        ``safety``: a chain ``ready`` for this tick, whose normal tick the one call makes
-        too (device_force), after checking a free object's state: then its safety_step
-        flags, for ``SafetyChain.done``; None when the call did not (the caller checks the
-        object and runs the chain)."""
+        ``safety``: a chain ``ready`` for this tick, whose tick the one call makes too
+        (device_force), after checking a free object's state: then its safety_step
+        outcome, for ``SafetyChain.done``; None when the call did not (the caller checks
+        the object and runs the chain)."""
         return self.one_call.run(frame, safety)
 
     def step(self, device_pos: np.ndarray, device_vel: np.ndarray) -> Frame:
@@ -497,7 +497,7 @@ class OneCall:
         self._call = direct(self._fn, self._args)
 
     def run(self, frame: Frame, safety: SafetyChain | None = None) -> int | None:
-        """The tick (``Renderer.run``): the safety chain's flags when it ran too, else None."""
+        """The tick (``Renderer.run``): the safety chain's outcome when it ran too, else None."""
         # Set without a new plan (set_param plans anew): the object, or its material (an
         # analysis replaying a recording's stiffness tick by tick).
         obj = self._scene.object
@@ -519,7 +519,7 @@ class OneCall:
             outcome = self._in_parts(frame)
             if outcome == kn.TICK_SAMPLES:
                 return SAMPLES_REFUSED
-        # The chain's flags, or None: no chain, or its own checks to run.
+        # The chain's outcome, or None: no chain (or the object's state to check).
         return outcome - _SAFE if outcome >= _SAFE else None
 
     @property
@@ -558,7 +558,7 @@ class OneCall:
         raise AllocationError(f"allocator {method!r} produced a non-finite force")
 
     def _with(self, safety: SafetyChain | None) -> None:
-        """Run ``safety``'s normal tick in the call from now on (None: no chain's)."""
+        """Run ``safety``'s tick in the call from now on (None: no chain's)."""
         self._safety = safety
         arrays = _NO_SAFETY if safety is None else safety.kernel_arrays
         self._args = (*self._args[:-2], *arrays)
