@@ -391,6 +391,53 @@ def test_python_mode_runs_the_same_call_uncompiled(profile, compiled):
     assert touched > 5
 
 
+@pytest.mark.parametrize("path", ["python", "compiled"])
+def test_the_call_makes_the_chains_tick_with_its_deadman_ramps_and_trips(path, compiled):
+    """A chain with a deadman, the enable ramp, a rate limit and a workspace runs in the one
+    call on every tick (the frame's nominal time and buttons), tick by tick as the chain's
+    own ``apply`` (uncompiled) on the same forces, positions and buttons: the same bits,
+    deadman state and counts. The finger that leaves the workspace trips in the call: zero
+    force, and the fault latched with its message at that tick."""
+    from hapticd.physics.safety import Deadman, SafetyChain, SafetyParams
+
+    n, ticks = 2, 200
+    angles = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    dirs = [[(float(-0.8 * np.cos(a)), float(-0.8 * np.sin(a)), 0.6)] for a in angles]
+    r = Renderer(_scene(False), [0.008] * n, Actuation(dirs, "world"), "if", dt=1e-3)
+    kernels = compiled if path == "compiled" else {}
+    r.use_kernels({k: kernels[k] for k in r.kernel_names} if kernels else {})
+    prm = SafetyParams(
+        ramp_s=0.02,
+        max_rate_n_per_s=100.0,
+        workspace_radius_m=0.08,
+        deadman=(Deadman(1, 0.01), None),
+    )
+    chain, ref = SafetyChain([8.0] * n, prm, dt=1e-3), SafetyChain([8.0] * n, prm, dt=1e-3)
+    chain.use_kernels(kernels)
+    frame = r.frame
+    gated = held = 0
+    for k, (pos, _) in enumerate(_squeeze(n, ticks)):  # finger 0 leaves at tick 151
+        t = k * 1e-3
+        frame.device_pos[...] = pos
+        frame.t[()], frame.tick[()] = t, k
+        frame.buttons[0] = 2 if 30 <= k < 90 or k >= 110 else 1  # finger 0's deadman: bit 1
+        outcome = r.run(frame, chain if chain.ready() else None)
+        assert (outcome is None) == (chain.fault is not None), k  # latched: the chain's own
+        if outcome is None or not chain.done(outcome, k, t, None):
+            chain.run(frame, None)
+        want = ref.apply(frame.rendered_force, k, t, frame.device_pos, None, frame.buttons)
+        assert frame.device_force.tobytes() == want.tobytes(), k
+        assert chain.fault == ref.fault and chain.deadman_status() == ref.deadman_status()
+        assert chain.kernel_arrays[0].tobytes() == ref.kernel_arrays[0].tobytes(), k
+        pushed = np.linalg.norm(frame.device_force, axis=1)
+        gated += bool(pushed[0] == 0.0 and pushed[1] > 0.0)
+        held += bool(pushed[0] > 0.0)
+    assert gated > 10 and held > 10 and chain.rate_limited_ticks > 0
+    assert chain.fault.kind == "workspace" and chain.fault.tick == 151
+    assert chain.fault.cause.startswith("finger 0 left the workspace: 0.1000 m from its centre")
+    assert np.all(frame.device_force == 0.0)
+
+
 @pytest.mark.parametrize("n_fingers", [2, 5])
 def test_the_call_with_the_safety_chain_allocates_nothing_a_tick(n_fingers, compiled):
     """The hot path allocates no Python object a tick: over 500 ticks of a held free cube on
