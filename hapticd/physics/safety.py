@@ -66,6 +66,19 @@ class SafetyParams:
     deadman: tuple[Deadman | None, ...] = ()
 
 
+class _Count:
+    """A count the kernel keeps at item ``at`` of a chain's array, as an int."""
+
+    def __init__(self, at: int) -> None:
+        self.at = at
+
+    def __get__(self, chain: Any, owner: type | None = None) -> Any:
+        return self if chain is None else int(chain._view[self.at])
+
+    def __set__(self, chain: Any, n: int) -> None:
+        chain._view[self.at] = float(n)
+
+
 class SafetyChain:
     """The last stage before a device, for F fingers, in this order: fault latch, NaN/inf
     guard, watchdog, workspace, magnitude clamp (direction kept), enable ramp, ramp-down
@@ -185,23 +198,10 @@ class SafetyChain:
     def limits(self, limits_n: list[float]) -> None:
         self._limits_a[:] = [float(v) for v in limits_n]
 
-    @property
-    def clamped_ticks(self) -> int:
-        """Ticks on which a force was clamped to its limit (counted by the kernel)."""
-        return int(self._view[kernels.SAFETY_CLAMPED_TICKS])
-
-    @clamped_ticks.setter
-    def clamped_ticks(self, n: int) -> None:
-        self._view[kernels.SAFETY_CLAMPED_TICKS] = float(n)
-
-    @property
-    def rate_limited_ticks(self) -> int:
-        """Ticks on which a force's change was rate limited (counted by the kernel)."""
-        return int(self._view[kernels.SAFETY_LIMITED_TICKS])
-
-    @rate_limited_ticks.setter
-    def rate_limited_ticks(self, n: int) -> None:
-        self._view[kernels.SAFETY_LIMITED_TICKS] = float(n)
+    # The ticks on which a force was clamped to its limit, and on which a force's change
+    # was rate limited: counted by the kernel (a reload carries them over).
+    clamped_ticks = _Count(kernels.SAFETY_CLAMPED_TICKS)
+    rate_limited_ticks = _Count(kernels.SAFETY_LIMITED_TICKS)
 
     @property
     def gate(self) -> list[float]:
