@@ -385,6 +385,7 @@ KERNEL_HELPERS = (
     "_allocate_contacts",
     "_gram_mu",
     "_norm3",
+    "plausible",
     # tick_step's stages: compiled into it, one call per tick
     "world_planes",
     "contact_step",
@@ -1373,7 +1374,8 @@ def _norm3(x0: float, x1: float, x2: float) -> float:
     if a2 > top:
         top = a2
     if top == 0.0 or math.isinf(top):
-        return top
+        # A NaN beside zeros or an infinity: the comparisons above skipped it.
+        return top if a0 == a0 and a1 == a1 and a2 == a2 else math.nan
     a0, a1, a2 = a0 / top, a1 / top, a2 / top
     return top * math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
 
@@ -1655,6 +1657,16 @@ def state_layout(n_fingers: int) -> dict[str, tuple[int, tuple[int, ...]]]:
     return out
 
 
+def plausible(
+    p0: float, p1: float, p2: float, v0: float, v1: float, v2: float, speed: float, far: float
+) -> bool:
+    """Whether a device's sample, position (p0, p1, p2) m and velocity (v0, v1, v2) m/s, is
+    one a hand makes: no faster than ``speed`` m/s, no farther than ``far`` m from the
+    device's origin, finite (NaN fails every comparison). The one check of a sample: the
+    tick's one call runs it compiled, the device bank (hapticd.loop.device_bank) on floats."""
+    return _norm3(v0, v1, v2) <= speed and _norm3(p0, p1, p2) <= far
+
+
 # tick_step's plan: one float64 array: where things are (TICK_AT items: each TICK_FIELDS
 # field's offset in the frame's record, then each TICK_PLAN block's below, then each
 # TICK_STATE block's in the state and the workspace's rows and columns, then in_contact's
@@ -1716,10 +1728,10 @@ def tick_step(
         speed, far = state[lp + LOOP_MAX_SPEED], state[lp + LOOP_MAX_DISTANCE]
         for i in range(n):
             p, v = sp + 3 * i, sv + 3 * i
-            if not (
-                _norm3(record[v], record[v + 1], record[v + 2]) <= speed
-                and _norm3(record[p], record[p + 1], record[p + 2]) <= far
-            ):
+            if not plausible(
+                record[p], record[p + 1], record[p + 2], record[v], record[v + 1], record[v + 2],
+                speed, far,
+            ):  # fmt: skip
                 return TICK_SAMPLES
         for j in range(3 * n):
             record[at_pos + j] = record[sp + j]
