@@ -145,4 +145,3 @@ def step_body(
         obj.omega = w + h * np.linalg.solve(I_world, T - cross(w, I_world @ w))
         obj.position = obj.position + h * obj.velocity
         obj.rotation = rotate(R, obj.omega, h)
-    obj.update_world()

@@ -140,3 +140,18 @@ def test_a_glitch_on_one_finger_lets_the_others_samples_in():
     assert frame.device_pos.tolist() == [[0.02, 0.02, 0.03], [0.0, 0.01, 0.0]]
     assert frame.device_vel.tolist() == [[0.2, 0.0, 0.0], [0.0, 0.0, 0.0]]
     assert frame.buttons.tolist() == [2, 8]
+
+
+@pytest.mark.parametrize("where", range(6))
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_a_sample_with_one_non_finite_item_among_zeros_is_refused(where, bad):
+    """The one check of a sample (the device bank's, and the one call's, compiled) refuses a
+    NaN or an infinity in any item, also when every other item is zero."""
+    from hapticd.physics.kernels import plausible
+
+    sample = [0.0] * 6
+    sample[where] = bad
+    assert not plausible(*sample, 5.0, 100.0)
+    assert plausible(*[0.0] * 6, 5.0, 100.0)
+    assert plausible(0.0, 0.0, 99.0, 0.0, -4.9, 0.0, 5.0, 100.0)
+    assert not plausible(0.0, 0.0, 0.0, 0.0, 5.1, 0.0, 5.0, 100.0)

@@ -215,7 +215,6 @@ def test_a_non_finite_input_is_refused_by_name_with_nothing_written(mode, field,
     elif field == "plane":
         shape = obj.shape
         obj.shape = dataclasses.replace(shape, offsets=np.full(6, bad))
-        obj.update_world()
         r.plan()  # a new shape: the call binds it
         want = "a plane of the object is not finite"
     else:
@@ -231,7 +230,6 @@ def test_a_non_finite_input_is_refused_by_name_with_nothing_written(mode, field,
     contact.state[0, kernels._C_RADIUS] = 0.008
     if field == "plane":
         obj.shape = shape
-        obj.update_world()
         r.plan()
     for s in (r, ref):
         _step(s, (0.015, 0.001, 0.0))
@@ -266,7 +264,6 @@ def test_a_large_mesh_runs_in_the_call_both_ways():
     for mode in ticks.MODES:
         r, obj = _edge_case(mode)
         obj.shape = dataclasses.replace(obj.shape, normals=normals, offsets=np.full(k, 0.02))
-        obj.update_world()
         r.plan()
         out = []
         for x in [(0.04, 0.0, 0.0), (0.015, 0.002, 0.0), (0.0, 0.015, 0.01), (-0.02, 0.0, 0.0)]:
@@ -295,10 +292,10 @@ def test_the_objects_planes_at_its_pose_are_its_polytopes_bit_for_bit(
     size, Q, R, position, extra, path
 ):
     """The call puts the object's planes at its pose itself (kernels.world_planes, compiled
-    in): the same planes, every bit, as its polytope (SceneObject.polytope's sums), which
-    the bring-up and the analysis read. An object at any pose (a box turned in its body
-    frame, with extra faces) renders exactly as one whose shape is that polytope at the
-    origin, unturned. (Uncompiled, the same bits: the cases above.)"""
+    in): the same planes, every bit, as its polytope (SceneObject.polytope: the same
+    function on floats), which the bring-up and the analysis read. An object at any pose (a
+    box turned in its body frame, with extra faces) renders exactly as one whose shape is
+    that polytope at the origin, unturned. (Uncompiled, the same bits: the cases above.)"""
     box = ConvexShape.box(size)
     normals = np.vstack([box.normals @ Q.T, np.array(extra).reshape(-1, 3)])
     offsets = np.concatenate([box.offsets, np.full(len(extra), 0.01)])

@@ -417,21 +417,21 @@ def test_processes_recording_kernels_at_once_lose_none_of_them(tmp_path):
     assert set(record) == {f"{tag} {i}" for tag in "ab" for i in range(300)}
 
 
-def test_a_moved_object_makes_its_polytope_again():
-    """update_world marks the polytope stale; the next use makes it at the new pose."""
+def test_a_moved_object_has_its_polytope_at_its_new_pose():
+    """The polytope is the object's faces at its pose when it is read: moved in place, the
+    offsets follow the move along each normal."""
     obj = SceneObject(
         ConvexShape.box(np.full(3, 0.05)), Material(200.0, 0.0), np.zeros(3), np.eye(3)
     )
     first = obj.polytope
-    assert obj.polytope is first
     obj.position[:] = (0.01, 0.0, 0.0)
-    obj.update_world()
     moved = obj.polytope
-    assert moved is not first
+    np.testing.assert_array_equal(moved.normals, first.normals)
     np.testing.assert_allclose(
         moved.offsets - first.offsets, moved.normals[:, 0] * 0.01, atol=1e-15
     )
     np.testing.assert_array_equal(moved.center, (0.01, 0.0, 0.0))
+    np.testing.assert_array_equal(first.center, (0.0, 0.0, 0.0))
 
 
 # -- a damaged or mismatched cache -----------------------------------------------------

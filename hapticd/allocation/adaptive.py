@@ -13,7 +13,7 @@ def smoothstep(x: float) -> float:
     return x * x * (3.0 - 2.0 * x)
 
 
-@dataclass
+@dataclass(frozen=True)
 class AdaptiveState:
     """External-force weight alpha of the ``adaptive`` allocator, following the task.
 

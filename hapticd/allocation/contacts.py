@@ -47,18 +47,45 @@ class ContactAllocator:
         dt: float,
         kernel: Callable[..., int] | None = None,
     ) -> None:
-        self.actuation = actuation
-        self.method = method
-        self.robust = robust
         self.dt = dt
         self.state = np.zeros(kernels.ALLOCATION_STATE)  # alpha
-        self.adaptive = adaptive
-        self.kernel = kernel
         self.accuracy = np.zeros(kernels.ACCURACY)  # the last tick's (N, N, N, 1)
-        self.work = np.zeros((0, 0))  # the kernel's workspace, made by _kernel_takes
+        self.work = np.zeros((0, 0))  # the kernel's workspace
         self._params = np.zeros(kernels.ALLOCATION_PARAMS)
         self._local = np.zeros((actuation.n_fingers, 3))  # the kernel's directions
-        self._local_for: tuple[Actuation, Robustness] | None = None
+        self._actuation, self._method, self._robust = actuation, method, robust
+        self.adaptive = adaptive  # sets alpha, and the kernel's inputs for all four
+        self.kernel = kernel
+
+    @property
+    def actuation(self) -> Actuation:
+        """The actuated directions; setting them remakes the kernel's inputs."""
+        return self._actuation
+
+    @actuation.setter
+    def actuation(self, value: Actuation) -> None:
+        self._actuation = value
+        self._refresh()
+
+    @property
+    def method(self) -> str:
+        """The allocator (a name in hapticd.allocation.METHODS)."""
+        return self._method
+
+    @method.setter
+    def method(self, value: str) -> None:
+        self._method = value
+        self._refresh()
+
+    @property
+    def robust(self) -> Robustness:
+        """The robust allocators' parameters."""
+        return self._robust
+
+    @robust.setter
+    def robust(self, value: Robustness) -> None:
+        self._robust = value
+        self._refresh()
 
     @property
     def adaptive(self) -> AdaptiveState:
@@ -69,6 +96,7 @@ class ContactAllocator:
     def adaptive(self, value: AdaptiveState) -> None:
         self._adaptive = value
         self.state[0] = value.alpha
+        self._refresh()
 
     @property
     def alpha(self) -> float:
@@ -107,11 +135,10 @@ class ContactAllocator:
         ``alpha`` of the adaptive allocator (a refused tick leaves it as it was). Raises
         AllocationError on non-finite contact geometry or forces, or a non-finite result.
         """
-        method = self.method
-        takes = self._kernel_takes()
+        method = self._method
         params = self._params
         params[5:8] = center
-        if takes:
+        if self._takes:
             outcome = self._kernel(
                 in_contact, device_pos, points, forces, self._local, params, self.state,
                 lam_a, rendered, self.accuracy, self.work,
@@ -158,28 +185,25 @@ class ContactAllocator:
         """allocation_step's ``local`` directions (F, 3) and ``params`` for the allocator as
         it is now (the object's position in params[5:8] is the caller's), or None when the
         kernel does not take it (its ``state`` and ``work`` are this allocator's)."""
-        return (self._local, self._params) if self._kernel_takes() else None
+        return (self._local, self._params) if self._takes else None
 
-    def _kernel_takes(self) -> bool:
-        """True if the kernel takes this method and actuation (one direction per finger);
-        its directions and parameters follow the actuation's, ours and adaptive's."""
-        act, rb, ad = self.actuation, self.robust, self._adaptive
+    def _refresh(self) -> None:
+        """The kernel's inputs for the actuation, method, robustness and adaptive parameters
+        as they are now, and whether it takes them (a robust method, one direction per
+        finger)."""
+        act, rb, ad = self._actuation, self._robust, self._adaptive
+        self._takes = self._method in _CODES and all(c == 1 for c in act.counts)
         params = self._params
-        params[0] = kernels.ALLOCATION_METHODS.index(self.method) if self.method in _CODES else -1
+        params[0] = _CODES.index(self._method) if self._method in _CODES else -1
+        grasp = 1.0 if act.frame == "grasp" else 0.0
+        params[1:5] = (rb.eps, rb.min_separation_m, rb.contact_onset_n, grasp)
         gain = 1.0 if ad.time_constant_s <= 0 else min(1.0, self.dt / ad.time_constant_s)
         params[8:11] = (ad.ratio_low, ad.ratio_high, gain)
-        made_for = self._local_for
-        if made_for is None or made_for[0] is not act or made_for[1] is not rb:
-            shape = kernels.allocation_work_shape(act.n_fingers)
-            if self.work.shape != shape:
-                self.work = np.zeros(shape)
-            grasp = 1.0 if act.frame == "grasp" else 0.0
-            params[1:5] = (rb.eps, rb.min_separation_m, rb.contact_onset_n, grasp)
-            ones = all(c == 1 for c in act.counts)
-            if ones:
-                self._local = np.array([ds[0] for ds in act.local], dtype=float).reshape(-1, 3)
-            self._local_for = (act, rb)
-        return self.method in _CODES and all(c == 1 for c in act.counts)
+        shape = kernels.allocation_work_shape(act.n_fingers)
+        if self.work.shape != shape:
+            self.work = np.zeros(shape)
+        if self._takes:
+            self._local = np.array([ds[0] for ds in act.local], dtype=float).reshape(-1, 3)
 
     def _general(self, alpha: float, *tick: np.ndarray) -> None:
         """``allocate`` (its arguments: ``tick``) for what the kernel does not take, with

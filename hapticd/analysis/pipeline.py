@@ -208,7 +208,6 @@ def _held_scene(scene: Scene | SceneObject) -> Scene:
     obj.fixed = True
     obj.velocity = np.zeros(3)
     obj.omega = np.zeros(3)
-    obj.update_world()
     return sc
 
 
@@ -389,7 +388,6 @@ class Pipeline:
             obj.material = Material(
                 float(stiffness), m.damping, m.mu_static, m.mu_dynamic, m.torsion
             )
-        obj.update_world()
         return self._clone(sc)
 
     # -- configurations --------------------------------------------------------------------
@@ -851,7 +849,6 @@ def _place(
         obj.material = Material(
             float(stiffness[t]), m.damping, m.mu_static, m.mu_dynamic, m.torsion
         )
-    obj.update_world()
 
 
 class Sample(NamedTuple):

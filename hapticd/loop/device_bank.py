@@ -32,6 +32,7 @@ from hapticd_drivers import Device, DeviceError, DeviceLostError, DeviceState
 
 from hapticd.loop.mount import Mount
 from hapticd.physics.frame import Frame, item_view
+from hapticd.physics.kernels import plausible
 
 # How often a lost device is looked for again (reconnect mode), s of loop time.
 RECONNECT_PERIOD_S = 0.5
@@ -244,13 +245,9 @@ class DeviceBank:
         """Finger ``i``'s sample checked (a fault if implausible) and, when it passes, into
         the frame, or (``whole``) left for the block copy; returns ``whole`` still."""
         st = self._states[i]
-        hypot = math.hypot
-        # NaN fails the comparisons (hypot neither overflows nor hides a NaN).
         px, py, pz = self._raw_pos[i].tolist()
         vx, vy, vz = self._raw_vel[i].tolist()
-        if not (
-            hypot(vx, vy, vz) <= self._max_speed and hypot(px, py, pz) <= MAX_DEVICE_DISTANCE_M
-        ):
+        if not plausible(px, py, pz, vx, vy, vz, self._max_speed, MAX_DEVICE_DISTANCE_M):
             if whole:
                 self._enter(frame, i)
             self._implausible(frame, i, k, t, st)

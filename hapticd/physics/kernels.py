@@ -34,6 +34,7 @@ import math
 from collections.abc import Callable
 
 import numpy as np
+from numpy.lib.stride_tricks import as_strided
 
 from hapticd.allocation import closed, general
 from hapticd.allocation.accuracy import one_contact_residuals, two_contact_residuals
@@ -385,6 +386,7 @@ KERNEL_HELPERS = (
     "_gram_mu",
     "_norm3",
     "ramp_down_factor",
+    "plausible",
     # tick_step's stages: compiled into it, one call per tick
     "world_planes",
     "contact_step",
@@ -1389,7 +1391,8 @@ def _norm3(x0: float, x1: float, x2: float) -> float:
     if a2 > top:
         top = a2
     if top == 0.0 or math.isinf(top):
-        return top
+        # A NaN beside zeros or an infinity: the comparisons above skipped it.
+        return top if a0 == a0 and a1 == a1 and a2 == a2 else math.nan
     a0, a1, a2 = a0 / top, a1 / top, a2 / top
     return top * math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
 
@@ -1676,7 +1679,11 @@ def _block(a: np.ndarray, start: int, n: int, cols: int) -> np.ndarray:
 
 
 def _block_compiled(a: np.ndarray, start: int, n: int, cols: int) -> np.ndarray:
-    return a[start : start + n * cols].reshape((n, cols))
+    # as_strided, not reshape: numba's reshape searches for strides at run time (about 40
+    # ns a view, a third of a tick's unpacking); the range is checked here instead.
+    if start < 0 or n < 0 or start + n * cols > a.shape[0]:
+        raise IndexError("a block beyond its array")
+    return as_strided(a[start:], shape=(n, cols), strides=(8 * cols, 8))
 
 
 def _bytes(a: np.ndarray) -> np.ndarray:
@@ -1725,6 +1732,16 @@ def state_layout(n_fingers: int) -> dict[str, tuple[int, tuple[int, ...]]]:
         out[name] = (at, shapes[name])
         at += math.prod(shapes[name])
     return out
+
+
+def plausible(
+    p0: float, p1: float, p2: float, v0: float, v1: float, v2: float, speed: float, far: float
+) -> bool:
+    """Whether a device's sample, position (p0, p1, p2) m and velocity (v0, v1, v2) m/s, is
+    one a hand makes: no faster than ``speed`` m/s, no farther than ``far`` m from the
+    device's origin, finite (NaN fails every comparison). The one check of a sample: the
+    tick's one call runs it compiled, the device bank (hapticd.loop.device_bank) on floats."""
+    return _norm3(v0, v1, v2) <= speed and _norm3(p0, p1, p2) <= far
 
 
 # tick_step's plan: one float64 array: where things are (TICK_AT items: each TICK_FIELDS
@@ -1789,10 +1806,10 @@ def tick_step(
         speed, far = state[lp + LOOP_MAX_SPEED], state[lp + LOOP_MAX_DISTANCE]
         for i in range(n):
             p, v = sp + 3 * i, sv + 3 * i
-            if not (
-                _norm3(record[v], record[v + 1], record[v + 2]) <= speed
-                and _norm3(record[p], record[p + 1], record[p + 2]) <= far
-            ):
+            if not plausible(
+                record[p], record[p + 1], record[p + 2], record[v], record[v + 1], record[v + 2],
+                speed, far,
+            ):  # fmt: skip
                 return TICK_SAMPLES
         for j in range(3 * n):
             record[at_pos + j] = record[sp + j]

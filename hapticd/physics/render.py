@@ -370,7 +370,6 @@ class OneCall:
         self._scene = renderer.scene
         self._obj: SceneObject | None = None
         self._material: Material | None = None
-        self._free = False
         self._started = False
         self._safety: SafetyChain | None = None  # the chain whose tick the call makes
         self._plan = np.zeros(0)  # tick_step's plan (kernels.TICK_PLAN), made by _bind
@@ -492,7 +491,6 @@ class OneCall:
         frame.allocator[()] = METHODS.index(r.allocator.method)
         self._frame = frame
         self._obj, self._material = obj, mat
-        self._free = free
         self._safety = None  # the arguments hold no chain's arrays
         self._call = direct(self._fn, self._args)
 
@@ -513,8 +511,6 @@ class OneCall:
                 if outcome == kn.TICK_SAMPLES:
                     return SAMPLES_REFUSED
                 self._stopped(frame, outcome)
-            if self._free:
-                obj.update_world()
         else:
             outcome = self._in_parts(frame)
             if outcome == kn.TICK_SAMPLES:
@@ -541,8 +537,6 @@ class OneCall:
                     return outcome
                 if outcome < _FINISHED:
                     self._stopped(frame, outcome)
-                if self._free and part[0] <= kn.STAGE_DYNAMICS < part[1]:
-                    self._scene.object.update_world()
             else:
                 part.run(frame)
         return outcome

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hapticd.physics.contact import Polytope
+from hapticd.physics.kernels import world_planes
 
 
 def rpy_matrix(rpy: tuple[float, float, float]) -> np.ndarray:
@@ -82,8 +83,8 @@ class SceneObject:
 
     Its pose and motion live in one array, ``state`` (OBJECT_STATE,): ``position`` (3,) m,
     ``velocity`` (3,) m/s, ``omega`` (3,) rad/s and ``rotation`` (3, 3) are views of it,
-    always. Assigning one of them copies the value into the state (and says the pose
-    changed); the compiled kernels read and write ``state`` in place.
+    always. Assigning one of them copies the value into the state; the compiled kernels
+    read and write ``state`` in place.
     """
 
     shape: ConvexShape
@@ -94,7 +95,6 @@ class SceneObject:
     mass: float = 0.0
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    _polytope: Polytope | None = field(init=False, default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         given = {name: self.__dict__[name] for name in _MOTION}
@@ -102,7 +102,6 @@ class SceneObject:
         self._bind()
         for name, value in given.items():
             setattr(self, name, value)
-        self.update_world()
 
     def _bind(self) -> None:
         state = self.__dict__["state"]
@@ -113,7 +112,6 @@ class SceneObject:
         if name in _MOTION and "state" in self.__dict__:
             shape = _MOTION[name][1]
             self.__dict__[name][...] = np.asarray(value, dtype=float).reshape(shape)
-            self.__dict__["_polytope"] = None
             return
         object.__setattr__(self, name, value)
 
@@ -126,28 +124,14 @@ class SceneObject:
         self.__dict__.update(d)
         self._bind()
 
-    def update_world(self) -> None:
-        """Say the pose changed: the world-frame polytope is made again on its next use (a
-        free object moves every tick; the tick's one call puts its planes at its pose
-        itself each tick: kernels.world_planes)."""
-        self.__dict__["_polytope"] = None  # past __setattr__: every tick of a free object
-
     @property
     def polytope(self) -> Polytope:
-        """The world-frame polytope at the object's pose, made on its first use after
-        ``update_world`` (a pose changed in place without it keeps the one made before).
-
-        Normals R n and offsets d + (R n) . x in plain sums, each product rounded, in a
-        fixed order (hapticd.physics.kernels.world_planes computes the same bits)."""
-        poly = self._polytope
-        if poly is None:
-            N, R, x = self.shape.normals, self.rotation, self.position
-            normals = N[:, 0:1] * R[:, 0] + N[:, 1:2] * R[:, 1] + N[:, 2:3] * R[:, 2]
-            offsets = self.shape.offsets + (
-                normals[:, 0] * x[0] + normals[:, 1] * x[1] + normals[:, 2] * x[2]
-            )
-            poly = self._polytope = Polytope(normals, offsets, self.position.copy())
-        return poly
+        """The world-frame polytope at the object's pose now: its face planes put there by
+        hapticd.physics.kernels.world_planes, the tick's own (its one call's, each tick)."""
+        shape = self.shape
+        planes = np.zeros((len(shape.offsets), 4))
+        world_planes(self.rotation, self.position, shape.normals, shape.offsets, planes)
+        return Polytope(planes[:, :3], planes[:, 3], self.position.copy())
 
     @property
     def center(self) -> np.ndarray:

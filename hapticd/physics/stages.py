@@ -26,7 +26,6 @@ import numpy as np
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.physics import kernels
 from hapticd.physics.actuation import Actuation
-from hapticd.physics.contact import Polytope
 from hapticd.physics.dynamics import auto_substeps
 from hapticd.physics.frame import Frame
 from hapticd.physics.passivity import PassivityParams
@@ -98,8 +97,6 @@ class Contact:
         state[:, kernels._C_RADIUS] = radii
         self.state = state
         self._started = False  # the first tick: every proxy starts at its device
-        self._planes: np.ndarray | None = None  # the kernel's planes (PLANE_COLUMNS)
-        self._planes_for: Polytope | None = None
         self.outputs = HELD
 
     @property
@@ -145,37 +142,25 @@ class Contact:
         return f"contact: a plane of {what} is not finite (its pose or offset)"
 
     def _kernel_planes(self) -> np.ndarray:
-        """The kernel's planes (hapticd.physics.kernels.PLANE_COLUMNS): the object's, copied again
-        only when its polytope changed, then the surfaces'. (The one call puts the object's
-        planes at its pose itself, each tick: kernels.world_planes.)"""
-        obj = self.scene.object
-        planes = self._planes
-        poly = obj.polytope
-        if poly is self._planes_for and planes is not None:
-            return planes
-        m = len(poly.offsets)
-        if planes is None or int(planes[0, 6]) != m:
-            blocks = [(poly, 0, 0.0, 0.0)]
-            blocks += [
-                (sf.polytope, j, sf.material.stiffness, sf.material.damping)
-                for j, sf in enumerate(self.scene.surfaces, start=1)
-            ]
-            rows = []
-            lo = 0
-            for p, j, k, b in blocks:
-                hi = lo + len(p.offsets)
-                block = np.empty((hi - lo, kernels.PLANE_COLUMNS))
-                block[:, 0:3] = p.normals
-                block[:, 3] = p.offsets
-                block[:, 4:] = (j, lo, hi, k, b)
-                rows.append(block)
-                lo = hi
-            planes = self._planes = np.ascontiguousarray(np.vstack(rows))
-        else:
-            planes[:m, 0:3] = poly.normals
-            planes[:m, 3] = poly.offsets
-        self._planes_for = poly
-        return planes
+        """The kernel's planes (hapticd.physics.kernels.PLANE_COLUMNS): the object's faces at
+        its pose (the one call puts them there itself each tick: kernels.world_planes), then
+        the surfaces'."""
+        blocks = [(self.scene.object.polytope, 0, 0.0, 0.0)]
+        blocks += [
+            (sf.polytope, j, sf.material.stiffness, sf.material.damping)
+            for j, sf in enumerate(self.scene.surfaces, start=1)
+        ]
+        rows = []
+        lo = 0
+        for p, j, k, b in blocks:
+            hi = lo + len(p.offsets)
+            block = np.empty((hi - lo, kernels.PLANE_COLUMNS))
+            block[:, 0:3] = p.normals
+            block[:, 3] = p.offsets
+            block[:, 4:] = (j, lo, hi, k, b)
+            rows.append(block)
+            lo = hi
+        return np.vstack(rows)
 
 
 class Friction:
