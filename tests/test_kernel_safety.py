@@ -231,6 +231,23 @@ def test_the_kernel_decides_every_trip_and_the_chain_names_it(compiled, path):
     assert chain.fault.cause == "non-finite force for finger(s) [1]"
 
 
+@pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize(
+    "bad",
+    [(0.0, math.nan, 0.0), (math.nan, 0.0, 0.0), (0.0, 0.0, -math.inf), (math.inf, 0.0, math.nan)],
+)
+def test_a_non_finite_position_is_beyond_the_workspace(compiled, path, bad):
+    """A finger whose position is not finite (a NaN beside zeros too) has left the
+    workspace: zero force and the fault, naming it."""
+    chain = SafetyChain([2.0, 2.0], SafetyParams(workspace_radius_m=0.1))
+    chain.use_kernels(kernel_for(path, compiled))
+    pos = np.array([[0.05, 0.0, 0.0], bad])
+    out = chain.apply(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), 3, 0.003, pos)
+    assert np.all(out == 0.0)
+    assert chain.fault.kind == "workspace" and chain.fault.tick == 3
+    assert chain.fault.cause.startswith("finger 1 left the workspace: ")
+
+
 def test_arrays_the_kernel_cannot_take_are_copied_for_it(compiled):
     """A list, another dtype, a non-contiguous view: the same output, from the kernel; a
     shape that is not (F, 3) is refused."""
