@@ -10,37 +10,20 @@ possible, y = z cross x), which follows the fingers.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
+from hapticd.physics import kernels
+
 V3 = tuple[float, float, float]
-_DEGENERATE = 1e-9
 
 
 def grasp_axes(p0: V3, p1: V3) -> tuple[V3, V3, V3]:
-    """Grasp frame axes (x, y, z) in world, for fingers at p0 and p1 (m).
-
-    x = unit(p1 - p0); z = world up made orthogonal to x; y = z cross x.
-    Degenerate cases fall back to world axes: coincident points use world x; a
-    vertical grasp line uses world x in place of up.
-    """
-    ex, ey, ez = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
-    n = math.sqrt(ex * ex + ey * ey + ez * ez)
-    x = (ex / n, ey / n, ez / n) if n > _DEGENERATE else (1.0, 0.0, 0.0)
-    ref = (0.0, 0.0, 1.0) if abs(x[2]) < 1.0 - 1e-6 else (1.0, 0.0, 0.0)
-    c = ref[0] * x[0] + ref[1] * x[1] + ref[2] * x[2]
-    z = (ref[0] - c * x[0], ref[1] - c * x[1], ref[2] - c * x[2])
-    nz = math.sqrt(z[0] * z[0] + z[1] * z[1] + z[2] * z[2])
-    z = (z[0] / nz, z[1] / nz, z[2] / nz)
-    y = (z[1] * x[2] - z[2] * x[1], z[2] * x[0] - z[0] * x[2], z[0] * x[1] - z[1] * x[0])
-    return x, y, z
-
-
-def grasp_frame(p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
-    """Rotation (3, 3) whose columns are the grasp frame's axes in world (see grasp_axes)."""
-    x, y, z = grasp_axes(tuple(map(float, p0)), tuple(map(float, p1)))
-    return np.array([x, y, z]).T
+    """Grasp frame axes (x, y, z) in world, for fingers at p0 and p1 (m): the tick's own
+    (hapticd.physics.kernels.grasp_axes). x = unit(p1 - p0); z = world up made orthogonal
+    to x; y = z cross x. Degenerate cases fall back to world axes: coincident points use
+    world x; a vertical grasp line uses world x in place of up."""
+    a = kernels.grasp_axes(p0[0], p0[1], p0[2], p1[0], p1[1], p1[2])
+    return (a[0], a[1], a[2]), (a[3], a[4], a[5]), (a[6], a[7], a[8])
 
 
 class Actuation:

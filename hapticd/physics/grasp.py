@@ -57,16 +57,6 @@ def null_space_basis(A: np.ndarray) -> np.ndarray:
     return vt[rank:].T.copy()
 
 
-def range_basis(A: np.ndarray) -> np.ndarray:
-    """Orthonormal basis of R(A), shape (m, rank A)."""
-    A = np.atleast_2d(np.asarray(A, dtype=float))
-    if A.size == 0:
-        return np.zeros((A.shape[0], 0))
-    u, s, _ = np.linalg.svd(A, full_matrices=False)
-    rank = int(np.sum(s > _rank_tol(s, A.shape)))
-    return u[:, :rank].copy()
-
-
 def internal_projector(G: np.ndarray) -> np.ndarray:
     """Orthogonal projector onto N(G), the internal (self-balanced) forces, (3p, 3p)."""
     N = null_space_basis(G)

@@ -395,6 +395,7 @@ KERNEL_HELPERS = (
     "allocation_step",
     "free_body_step",
     "_axes",
+    "grasp_axes",
     "_passivity",
     "_span_project",
     observe,
@@ -571,7 +572,7 @@ def allocation_step(
     dirs = work.shape[0] - n_fingers - 1
     xk = work.shape[0] - 1
     if n > 0:
-        # Every finger's world direction into ``work`` (hapticd.physics.actuation.grasp_axes in the
+        # Every finger's world direction into ``work`` (kernels.grasp_axes in the
         # grasp frame), then the grasp's allocation.
         grasp = params[4] != 0.0
         ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, grasp)
@@ -2109,13 +2110,24 @@ def _span_project(
 
 def _axes(device_pos: np.ndarray, grasp: bool) -> tuple[float, ...]:
     """The actuation frame's axes x, y, z in the world (9 floats): the world's, or the grasp
-    frame of fingers 0 and 1 (hapticd.physics.actuation.grasp_axes)."""
+    frame of fingers 0 and 1 (``grasp_axes``)."""
     if not grasp:
         return 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
+    return grasp_axes(
+        device_pos[0, 0], device_pos[0, 1], device_pos[0, 2],
+        device_pos[1, 0], device_pos[1, 1], device_pos[1, 2],
+    )  # fmt: skip
+
+
+def grasp_axes(
+    p0: float, p1: float, p2: float, q0: float, q1: float, q2: float
+) -> tuple[float, ...]:
+    """The grasp frame's axes x, y, z in the world (9 floats) for fingers at p and q (m):
+    x = unit(q - p); z = world up made orthogonal to x; y = z cross x. Degenerate cases
+    fall back to world axes: coincident (or non-finite) points use world x; a vertical
+    grasp line uses world x in place of up. (hapticd.physics.actuation.grasp_axes is this.)"""
     ax0, ax1, ax2 = 1.0, 0.0, 0.0
-    ex = device_pos[1, 0] - device_pos[0, 0]
-    ey = device_pos[1, 1] - device_pos[0, 1]
-    ez = device_pos[1, 2] - device_pos[0, 2]
+    ex, ey, ez = q0 - p0, q1 - p1, q2 - p2
     nx = math.sqrt(ex * ex + ey * ey + ez * ez)
     if nx > 1e-9:
         ax0, ax1, ax2 = ex / nx, ey / nx, ez / nx
