@@ -183,14 +183,14 @@ def test_two_contact_closed_form_equals_general_path(method, data):
 # -- finite and bounded everywhere -----------------------------------------------------------
 
 
-def bound(method, G, M):
-    """Documented bound on |M_a lam_a| / |lam| (docs/allocation.md)."""
+def bound(method, G, M, eps=EPS):
+    """Documented bound on |M_a lam_a| / |lam| (docs/allocation.md) for the threshold eps."""
     sm = singular_values(M).max()
     if method == "pinv":
         return 1.0
     if method == "if":
-        return 1.0 + 2.0 * sm / EPS
-    return sm * singular_values(G).max() / EPS
+        return 1.0 + 2.0 * sm / eps
+    return sm * singular_values(G).max() / eps
 
 
 @pytest.mark.parametrize("method", ROBUST)
