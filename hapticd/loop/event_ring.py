@@ -136,6 +136,12 @@ class FrameEvents:
         self._now_contact = self._was_contact
         self._now_buttons = self._was_buttons
 
+    @property
+    def seen(self) -> tuple[np.ndarray, np.ndarray]:
+        """What the watcher saw last: ``in_contact`` (F,) u1 and the ``buttons``' bytes (4 F,)
+        (copies; the one call compares the frame against them, hapticd.loop.servo)."""
+        return self._contact.copy(), self._buttons.view(np.uint8).copy()
+
     def _bind(self, frame: Frame) -> None:
         """Watch ``frame`` (a reload gives the loop a new one)."""
         self._frame = frame

@@ -348,8 +348,7 @@ class ServoLoop:
         # watcher saw last; then the watcher runs (it finds what changed).
         F = len(self.stats.max_force)
         was = kernels.LOOP_HEAD + 2 * F
-        block[was : was + F] = self._frame_events._contact
-        block[was + F : was + 5 * F] = self._frame_events._buttons.view(np.uint8)
+        block[was : was + F], block[was + F : was + 5 * F] = self._frame_events.seen
         block[kernels.LOOP_CHANGED] = 1.0
         self._loop_of = renderer
         self._loop_block = memoryview(block)
