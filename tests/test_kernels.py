@@ -319,7 +319,7 @@ def empty_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
     monkeypatch.setattr(jit, "_COMPILED", {})
     started: list[list[str]] = []
-    monkeypatch.setattr(jit, "_spawn", started.append)
+    monkeypatch.setattr(jit, "spawn", started.append)
     return cache, started
 
 
@@ -455,7 +455,7 @@ DAMAGED = """
 import json, sys
 import numpy as np
 started = []
-jit._spawn = started.append
+jit.spawn = started.append
 c = jit.choose({mode!r}, {names!r})
 out = None
 if c.used == "compiled":

@@ -251,7 +251,7 @@ def test_on_a_full_disk_the_written_count_is_what_the_file_holds(tmp_path, monke
             raise OSError(28, "No space left on device")
         return os.write(fd_, data[:left])
 
-    monkeypatch.setattr(ring, "_write", write)
+    monkeypatch.setattr(ring, "write", write)
     out_fd = os.open(out, os.O_WRONLY | os.O_APPEND)
     try:
         done = ring.drain(fd, out_fd, str(out), os.getppid())

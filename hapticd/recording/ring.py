@@ -87,7 +87,9 @@ def fail(mm: mmap.mmap, words: Words, message: str) -> None:
     words[W_STATE] = STATE_FAILED
 
 
-_write = os.write  # a seam: the tests make it fail as a full disk does
+# How the writer writes a file descriptor: os.write; a seam (the tests make it fail as a
+# full disk does).
+write = os.write
 
 
 class _ShortWriteError(OSError):
@@ -103,7 +105,7 @@ def _write_all(fd: int, data: memoryview) -> None:
     total = len(data)
     while data:
         try:
-            n = _write(fd, data)
+            n = write(fd, data)
         except OSError as exc:
             raise _ShortWriteError(exc, total - len(data)) from None
         data = data[n:]
