@@ -34,6 +34,7 @@ sets this tree's rendering.kernels otherwise; DIR's tree runs its own defaults.
     python scripts/bench_tick.py --compare /tmp/hapticd-before --compare-kernels --rounds 3
     python scripts/bench_tick.py --profile-stages --kernels compiled
     python scripts/bench_tick.py --fingers 2 3 5 --rounds 3
+    python scripts/bench_tick.py --fingers 2 3 --directions 1 2 3 --against /tmp/hapticd-main
 
 Prints Markdown tables and saves a plot in the system temp dir unless --plot PATH.
 """
@@ -394,13 +395,15 @@ from hapticd.physics.render import Renderer
 from hapticd.physics.safety import SafetyChain
 from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, Surface
 
-n, ticks, python = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "python"
+n, ticks, python, k = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "python", int(sys.argv[4])
 cube = SceneObject(ConvexShape.box(np.array([0.04] * 3)), Material(400.0, 2.0, 0.6, 0.4, 0.002),
                    np.array([0.0, 0.0, 0.02]), np.eye(3), fixed=False, mass=0.05)
 ground = Surface("ground", (0.0, 0.0, 1.0), 0.0, Material(2000.0, 5.0, 0.5, 0.4))
 angles = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
-# Each finger pushes toward the cube's centre: its one actuated direction, in the world.
-dirs = [[(float(-np.cos(a)), float(-np.sin(a)), 0.0)] for a in angles]
+# Each finger's first k actuated directions, in the world: toward the cube's centre, up,
+# along the cube's side (three: a fully actuated finger).
+dirs = [[(float(-np.cos(a)), float(-np.sin(a)), 0.0), (0.0, 0.0, 1.0),
+         (float(-np.sin(a)), float(np.cos(a)), 0.0)][:k] for a in angles]
 r = Renderer(Scene(cube, [ground], np.array([0.0, 0.0, -9.81]), substeps=2), [0.008] * n,
              Actuation(dirs, "world"), "if", dt=1e-3)
 r.use_kernels({} if python else jit.compile_kernels(r.kernel_names))
@@ -433,39 +436,46 @@ print(json.dumps({"p50": float(np.median(us)), "p99": float(np.percentile(us, 99
 
 
 def fingers(args: argparse.Namespace) -> list[dict]:
-    """The renderer's tick with the safety chain's (the one call, or the stages) against
-    the number of fingers holding a free cube on the ground, one actuated direction each
-    (IF): medians over rounds of each run's p50 and p99, in interleaved rounds."""
-    got: dict[int, list[dict]] = {n: [] for n in args.fingers}
+    """The renderer's tick with the safety chain's (the one call) against the number of
+    fingers holding a free cube on the ground and each finger's number of actuated
+    directions (IF), in this tree and, with ``--against DIR``, DIR's: medians over
+    interleaved rounds of each run's p50 and p99."""
+    trees = [("this", None)] + ([("against", Path(args.against))] if args.against else [])
+    cases = [(t, n, k) for t in trees for n in args.fingers for k in args.directions]
+    got: dict[tuple, list[dict]] = {(t[0], n, k): [] for t, n, k in cases}
     mode = "python" if args.kernels == "python" else "compiled"
     for rnd in range(args.rounds):
-        for n in args.fingers:
+        for (label, tree), n, k in cases:
+            env = dict(os.environ)
+            if tree is not None:
+                env["PYTHONPATH"] = f"{tree}:{tree / 'drivers_root'}"
             res = subprocess.run(
-                [sys.executable, "-c", FINGERS_CHILD, str(n), str(args.ticks), mode],
+                [sys.executable, "-c", FINGERS_CHILD, str(n), str(args.ticks), mode, str(k)],
                 capture_output=True,
                 text=True,
                 timeout=600,
-                cwd=ROOT,
+                cwd=tree or ROOT,
+                env=env,
             )
             if res.returncode != 0:
                 raise RuntimeError(res.stderr[-2000:])
-            got[n].append(json.loads(res.stdout.strip().splitlines()[-1]))
-            print(f"round {rnd + 1}: {n} fingers: {got[n][-1]['p50']:.1f} us", file=sys.stderr)
+            got[label, n, k].append(json.loads(res.stdout.strip().splitlines()[-1]))
+            p50 = got[label, n, k][-1]["p50"]
+            print(f"round {rnd + 1}: {label}: {n} fingers x {k}: {p50:.1f} us", file=sys.stderr)
     print(
-        "\n### renderer + safety tick against fingers (a free cube held on the ground, IF, "
-        f"{mode}; median over {args.rounds} rounds of each run's p50 / p99, us)\n"
+        "\n### renderer + safety tick against fingers and directions (a free cube held on "
+        f"the ground, IF, {mode}; median over {args.rounds} rounds of each run's p50 / p99, us)\n"
     )
-    print("| fingers | in contact | one call | ticks handed back | p50 | p99 | p50 per finger |")
+    print("| tree | fingers | directions each | in contact | p50 | p99 | p50 per finger |")
     print("|---|---|---|---|---|---|---|")
     rows = []
-    for n, runs in got.items():
+    for (label, n, k), runs in got.items():
         p50, p99 = med([r["p50"] for r in runs]), med([r["p99"] for r in runs])
-        last = runs[-1]
         print(
-            f"| {n} | {last['contacts']} | {'yes' if last['one_call'] else 'no'} | "
-            f"{last['handed_back']} | {p50:.1f} | {p99:.1f} | {p50 / n:.2f} |"
+            f"| {label} | {n} | {k} | {runs[-1]['contacts']} | {p50:.1f} | {p99:.1f} | "
+            f"{p50 / n:.2f} |"
         )
-        rows.append({"fingers": n, "p50": p50, "p99": p99})
+        rows.append({"tree": label, "fingers": n, "directions": k, "p50": p50, "p99": p99})
     return rows
 
 
@@ -520,6 +530,15 @@ def main() -> None:
         nargs="+",
         help="the renderer's and safety's tick against these numbers of fingers",
     )
+    ap.add_argument(
+        "--directions",
+        type=int,
+        nargs="+",
+        default=[1],
+        choices=(1, 2, 3),
+        help="with --fingers: each finger's numbers of actuated directions to run",
+    )
+    ap.add_argument("--against", metavar="DIR", help="with --fingers: another tree, too")
     ap.add_argument("--ticks", type=int, default=4000, help="ticks of a --fingers run")
     # One run (the subprocess's side).
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)

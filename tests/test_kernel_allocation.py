@@ -110,9 +110,14 @@ def grasps(draw, max_fingers: int = 5) -> dict:
     }
 
 
+def _actuation(case: dict) -> Actuation:
+    """The case's actuation: each finger's direction, or its list of directions."""
+    return Actuation([d if isinstance(d, list) else [d] for d in case["local"]], case["frame"])
+
+
 def _stage(case: dict, kernel) -> tuple[Allocation, Frame]:
     obj = SceneObject(ConvexShape.box(np.full(3, 0.05)), Material(100.0), case["center"], np.eye(3))
-    act = Actuation([[d] for d in case["local"]], case["frame"])
+    act = _actuation(case)
     alloc = ContactAllocator(act, case["method"], case["robust"], AdaptiveState(), 1e-3)
     frame = Frame(case["n"], act.n_actuators)
     for name, value in case["frame_fields"].items():
@@ -158,13 +163,13 @@ def _allocate_with_onset(case: dict, alpha: float) -> tuple[np.ndarray, np.ndarr
     """lam_a and M_a lam_a per finger by allocate() on the contacts, with contact onset: the
     weakest contact blended in by smoothstep(|force| / contact_onset_n)."""
     fields, rb = case["frame_fields"], case["robust"]
-    act = Actuation([[d] for d in case["local"]], case["frame"])
+    act = _actuation(case)
     world = act.world_directions(np.asarray(fields["device_pos"], dtype=float).tolist())
     points = np.asarray(fields["contact_point"], dtype=float)
     forces = np.asarray(fields["contact_force"], dtype=float)
 
     def solve(contacts: list[int]) -> np.ndarray:
-        out = np.zeros(case["n"])
+        out = np.zeros(act.n_actuators)
         if contacts:
             M, cols = act.submatrix(world, contacts)
             G = grasp_matrix(points[contacts], case["center"])
@@ -183,7 +188,8 @@ def _allocate_with_onset(case: dict, alpha: float) -> tuple[np.ndarray, np.ndarr
             x = beta * x + (1.0 - beta) * solve(rest)
     rendered = np.zeros((case["n"], 3))
     for i in contacts:
-        rendered[i] = x[i] * np.asarray(world[i][0])
+        for j, d in zip(act.columns[i], world[i], strict=True):
+            rendered[i] += x[j] * np.asarray(d)
     return x, rendered
 
 
@@ -211,7 +217,7 @@ def test_the_kernel_equals_allocate_with_contact_onset(case, method, alpha):
     x, rendered = _allocate_with_onset(case, stage.allocator.alpha)
     lam = np.abs(np.array(case["frame_fields"]["contact_force"])).max()
     for k, g in ((frame.lam_a, x), (frame.rendered_force, rendered)):
-        scale = max(lam, np.abs(g).max(), 1e-300)
+        scale = max(lam, np.abs(g).max(initial=0.0), 1e-300)
         np.testing.assert_allclose(k, g, rtol=0, atol=1e-9 * scale)
     # Finite, and within docs/allocation.md's bound (adaptive: the larger of IF's and EF's)
     # of the whole grasp: the onset blend, a mix of two allocations, stays within it too.
@@ -234,10 +240,10 @@ def test_methods_the_kernel_does_not_compute_run_the_general_path(compiled, case
     _assert_same(_outputs(case, None), _outputs(case, compiled))
 
 
-def test_three_contacts_run_in_the_kernel_and_several_directions_run_allocate(compiled):
+def test_three_contacts_and_several_directions_on_a_finger_run_in_the_kernel(compiled):
     """Three contacts: the kernel allocates them (the squeeze along x whole, nothing for
     the third finger's vertical actuator to render), compiled and not alike; two directions
-    on a finger: the kernel is not even called."""
+    on a finger: the kernel too."""
     case = {
         "n": 3,
         "robust": Robustness(),
@@ -256,20 +262,58 @@ def test_three_contacts_run_in_the_kernel_and_several_directions_run_allocate(co
     assert not isinstance(ref, str)
     np.testing.assert_allclose(ref["lam_a"], [1.0, 1.0, 0.0], rtol=0, atol=1e-12)
     _assert_same(ref, _outputs(case, compiled))
+    case["local"][:2] = [[np.array([1.0, 0, 0]), np.array([0.0, 1, 0])], np.array([1.0, 0, 0])]
+    case["frame_fields"]["in_contact"] = [1, 1, 0]
     calls = []
-    stage, three = _stage(case, lambda *a: calls.append(a) or kernels.ALLOCATED)
-    stage.run(three)
-    assert len(calls) == 1
-    stage.allocator.actuation = Actuation([[(1, 0, 0), (0, 1, 0)], [(1, 0, 0)], [(0, 0, 1)]])
-    frame = Frame(3, 4)
-    for name in case["frame_fields"]:
-        getattr(frame, name)[...] = getattr(three, name)
-    frame.in_contact[2] = 0
+    stage, frame = _stage(case, lambda *a: calls.append(a) or kernels.ALLOCATED)
     stage.run(frame)
     assert len(calls) == 1
+    ref = _outputs(case, None)
+    assert not isinstance(ref, str)
+    _assert_same(ref, _outputs(case, compiled))
     # thumb x, thumb y, index x, the third finger (not in contact): the squeeze whole, no
     # y force to render, nothing for a finger out of contact.
-    np.testing.assert_allclose(frame.lam_a, [1.0, 0.0, -1.0, 0.0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(ref["lam_a"], [1.0, 0.0, -1.0, 0.0], rtol=0, atol=1e-12)
+
+
+@st.composite
+def several_directions(draw) -> dict:
+    """A grasp of ``grasps()`` whose fingers have none to three actuated directions each (a
+    fully actuated finger, one with a redundant pair, one with none)."""
+    case = draw(grasps(max_fingers=4))
+    local = []
+    for d in case["local"]:
+        k = draw(st.integers(0, 3))
+        local.append([d, *(draw(directions(d)) for _ in range(k - 1))][:k])
+    return {**case, "local": local}
+
+
+@given(several_directions())
+def test_several_directions_a_finger_compiled_and_not_give_the_same_bits(compiled, case):
+    _assert_same(_outputs(case, None), _outputs(case, compiled))
+
+
+@given(several_directions(), st.floats(0.0, 1.0))
+def test_several_directions_a_finger_equal_allocate_with_contact_onset(case, alpha):
+    """The kernel's general path on any actuation against allocate() on the contacts,
+    blended at onset: the same forces to rounding."""
+    stage, frame = _stage(case, None)
+    stage.allocator.adaptive = AdaptiveState(alpha=alpha, time_constant_s=1e9)
+    try:
+        stage.run(frame)
+    except AllocationError:
+        with np.errstate(all="ignore"):
+            try:
+                x, _ = _allocate_with_onset(case, stage.allocator.alpha)
+            except AllocationError:
+                return
+        assert not np.all(np.isfinite(x))
+        return
+    x, rendered = _allocate_with_onset(case, stage.allocator.alpha)
+    lam = np.abs(np.array(case["frame_fields"]["contact_force"])).max()
+    for k, g in ((frame.lam_a, x), (frame.rendered_force, rendered)):
+        scale = max(lam, np.abs(g).max(initial=0.0), 1e-300)
+        np.testing.assert_allclose(k, g, rtol=0, atol=1e-9 * scale)
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
@@ -405,13 +449,14 @@ def test_the_kernels_refusals_leave_the_frame_and_alpha_untouched(compiled, case
         getattr(frame, name)[...] = 7.0
     alloc = stage.allocator
     alloc.alpha = alpha
-    local, params = alloc.kernel_inputs()
+    local, counts, params = alloc.kernel_inputs()
     outcome = compiled(
         frame.in_contact,
         frame.device_pos,
         frame.contact_point,
         frame.contact_force,
         local,
+        counts,
         params,
         alloc.state,
         frame.lam_a,
@@ -461,7 +506,7 @@ def test_the_kernel_is_continuous_through_rank_changes_of_three_contacts(compile
 
     def sweep(ts, kernel) -> np.ndarray:
         stage, frame = _stage({**_three_finger_sweep(name, 0.0), "method": method}, kernel)
-        local, params = stage.allocator.kernel_inputs()
+        local, counts, params = stage.allocator.kernel_inputs()
         params[5:8] = 0.0  # the grasp's reference point
         rows = []
         for t in ts:
@@ -471,7 +516,7 @@ def test_the_kernel_is_continuous_through_rank_changes_of_three_contacts(compile
             stage.allocator.alpha = 0.0  # each point its own first tick
             outcome = stage.kernel(
                 frame.in_contact, frame.device_pos, frame.contact_point, frame.contact_force,
-                local, params, stage.allocator.state, frame.lam_a, frame.rendered_force,
+                local, counts, params, stage.allocator.state, frame.lam_a, frame.rendered_force,
                 np.zeros(kernels.ACCURACY), stage.allocator.work,
             )  # fmt: skip
             assert outcome == kernels.ALLOCATED

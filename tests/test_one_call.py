@@ -139,9 +139,9 @@ def _projected(frame: Frame, act: Actuation, force: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("fixed", [True, False])
 def test_a_grasp_on_the_ground_renders_the_same_in_one_call(n_fingers, fixed, compiled):
     """Friction, the ground's force through the actuated directions (two of them for the
-    first finger, whose allocation then runs between the call's parts) and their sum, the
-    free body's step; with three fingers, ticks with three contacts too. The environment's
-    force is its projection."""
+    first finger with two fingers) and their sum, the free body's step, all in the one
+    call; with three fingers, ticks with three contacts too. The environment's force is
+    its projection."""
     directions = [[(0.6, 0.0, 0.8), (0.0, 1.0, 0.0)], [(0.0, 1.0, 0.0)], [(0.0, 0.6, 0.8)]]
     directions[0] = directions[0][:1] if n_fingers == 3 else directions[0]
     act = Actuation(copy.deepcopy(directions[:n_fingers]), "world")
@@ -152,7 +152,7 @@ def test_a_grasp_on_the_ground_renders_the_same_in_one_call(n_fingers, fixed, co
     names = make().kernel_names
     one, staged = _pair(make, {n: compiled[n] for n in names})
     assert "output" in one.stage_names and ("dynamics" in one.stage_names) is not fixed
-    assert (len(one.one_call._parts) == 1) is (n_fingers == 3)  # else two directions on one
+    assert len(one.one_call._parts) == 1
     contacts = set()
     ground = 0
     for k, (pos, vel) in enumerate(_squeeze(n_fingers, 240)):
@@ -263,24 +263,20 @@ def test_non_finite_inputs_are_refused_by_name(compiled):
 
 
 def test_every_plan_runs_as_the_call_with_its_python_stages_between_parts(compiled):
-    """Allocation the kernel does not take (two directions on a finger, the seed's exact
-    formulas) runs between the call's parts; adaptive and passivity are in the call."""
+    """Allocation by the seed's exact formulas runs between the call's parts; the robust
+    methods (on any actuation), adaptive and passivity are in the call."""
     end = kn.STAGE_END
     act = Actuation([[(1.0, 0.0, 0.0), (0.0, 1.0, 0.0)], [(-1.0, 0.0, 0.0)]], "world")
-    two_directions = Renderer(_box(True), [0.008, 0.008], act, "if", dt=1e-3)
-    assert two_directions.kernel_names == ["tick_step"]
-    two_directions.use_kernels({n: compiled[n] for n in two_directions.kernel_names})
-    two_directions.step(np.zeros((2, 3)), np.zeros((2, 3)))
-    parts = two_directions.one_call._parts
-    assert parts[0] == (kn.STAGE_CONTACT, kn.STAGE_ALLOCATION) and parts[2][1] == end
-    assert parts[1].name == "allocation"
-    act = Actuation([[(1.0, 0.0, 0.0)], [(-1.0, 0.0, 0.0)]], "world")
     r = Renderer(_box(True), [0.008, 0.008], act, "if", dt=1e-3)
     r.use_kernels({n: compiled[n] for n in r.kernel_names})
     for method, whole in (("if", True), ("adaptive", True), ("ef_exact", False), ("ef", True)):
         r.set_param("allocator", method)
         r.step(np.zeros((2, 3)), np.zeros((2, 3)))
         assert (len(r.one_call._parts) == 1) is whole, method
+        if not whole:
+            parts = r.one_call._parts
+            assert parts[0] == (kn.STAGE_CONTACT, kn.STAGE_ALLOCATION) and parts[2][1] == end
+            assert parts[1].name == "allocation"
     passive = Renderer(
         _box(True), [0.008, 0.008], act, "if", dt=1e-3, passivity=PassivityParams(0.01, 5.0)
     )

@@ -3,13 +3,12 @@
 ``ContactAllocator.allocate`` takes the frame's arrays (which fingers touch, where
 the devices are, the contact points in m and full contact forces in N, on the
 finger) and writes lam_a (r,) N and M_a lam_a per finger, returning the accuracy of
-the result. With one actuated direction per finger and a robust method, the kernel
-``hapticd.physics.kernels.allocation_step`` (compiled, or the same function uncompiled)
-takes every tick: the closed forms of ``hapticd.allocation.closed`` for one or two
-contacts, ``hapticd.allocation.general`` for more, and adaptive's alpha. The rest
-(several directions on a finger, the seed's exact formulas) runs
-``hapticd.allocation.allocate``, the batch definition with N = 1, with the kernel's
-update of alpha. Both blend a contact being made or broken into the grasp gradually.
+the result. A robust method runs the kernel ``hapticd.physics.kernels.allocation_step``
+(compiled, or the same function uncompiled): the closed forms of
+``hapticd.allocation.closed`` for one or two contacts with one direction each,
+``hapticd.allocation.general`` for any other grasp, and adaptive's alpha. The seed's
+exact formulas run ``hapticd.allocation.allocate``. Both blend a contact being made or
+broken into the grasp gradually.
 """
 
 from __future__ import annotations
@@ -52,7 +51,8 @@ class ContactAllocator:
         self.accuracy = np.zeros(kernels.ACCURACY)  # the last tick's (N, N, N, 1)
         self.work = np.zeros((0, 0))  # the kernel's workspace
         self._params = np.zeros(kernels.ALLOCATION_PARAMS)
-        self._local = np.zeros((actuation.n_fingers, 3))  # the kernel's directions
+        self._local = np.zeros((0, 3))  # the kernel's directions (D, 3), in their frame
+        self._counts = np.zeros(actuation.n_fingers)  # and how many each finger has
         self._actuation, self._method, self._robust = actuation, method, robust
         self.adaptive = adaptive  # sets alpha, and the kernel's inputs for all four
         self.kernel = kernel
@@ -140,7 +140,8 @@ class ContactAllocator:
         params[5:8] = center
         if self._takes:
             outcome = self._kernel(
-                in_contact, device_pos, points, forces, self._local, params, self.state,
+                in_contact, device_pos, points, forces, self._local, self._counts, params,
+                self.state,
                 lam_a, rendered, self.accuracy, self.work,
             )  # fmt: skip
             if outcome == kernels.ALLOCATED:
@@ -148,12 +149,8 @@ class ContactAllocator:
             if outcome == kernels.NON_FINITE_INPUT:
                 raise AllocationError("non-finite contact geometry or force; refusing to allocate")
             raise AllocationError(f"allocator {method!r} produced a non-finite force")
-        alpha = self.alpha
-        if method == "adaptive":  # the kernel's own update of alpha
-            alpha = _TASK_ALPHA(in_contact, points, forces, params, alpha, self.work)
         with np.errstate(over="ignore"):  # finite forces whose residuals overflow: inf
-            self._general(alpha, in_contact, device_pos, points, forces, center, lam_a, rendered)
-        self.state[0] = alpha
+            self._exact(in_contact, device_pos, points, forces, center, lam_a, rendered)
         return self.accuracy
 
     def replay(
@@ -181,33 +178,32 @@ class ContactAllocator:
             self.allocate(touching[k], pos[k], pts[k], lam[k], ctr[k], out[k], rendered)
         return out
 
-    def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """allocation_step's ``local`` directions (F, 3) and ``params`` for the allocator as
-        it is now (the object's position in params[5:8] is the caller's), or None when the
-        kernel does not take it (its ``state`` and ``work`` are this allocator's)."""
-        return (self._local, self._params) if self._takes else None
+    def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """allocation_step's ``local`` (D, 3), ``counts`` (F,) and ``params`` for the
+        allocator as it is now (the object's position in params[5:8] is the caller's), or
+        None for an exact method (its ``state`` and ``work`` are this allocator's)."""
+        return (self._local, self._counts, self._params) if self._takes else None
 
     def _refresh(self) -> None:
         """The kernel's inputs for the actuation, method, robustness and adaptive parameters
-        as they are now, and whether it takes them (a robust method, one direction per
-        finger)."""
+        as they are now, and whether it takes them (a robust method)."""
         act, rb, ad = self._actuation, self._robust, self._adaptive
-        self._takes = self._method in _CODES and all(c == 1 for c in act.counts)
+        self._takes = self._method in _CODES
         params = self._params
         params[0] = _CODES.index(self._method) if self._method in _CODES else -1
         grasp = 1.0 if act.frame == "grasp" else 0.0
         params[1:5] = (rb.eps, rb.min_separation_m, rb.contact_onset_n, grasp)
         gain = 1.0 if ad.time_constant_s <= 0 else min(1.0, self.dt / ad.time_constant_s)
         params[8:11] = (ad.ratio_low, ad.ratio_high, gain)
-        shape = kernels.allocation_work_shape(act.n_fingers)
+        shape = kernels.allocation_work_shape(act.n_fingers, act.n_actuators)
         if self.work.shape != shape:
             self.work = np.zeros(shape)
-        if self._takes:
-            self._local = np.array([ds[0] for ds in act.local], dtype=float).reshape(-1, 3)
+        self._local = np.array([d for ds in act.local for d in ds], dtype=float).reshape(-1, 3)
+        self._counts = np.array(act.counts, dtype=float)
 
-    def _general(self, alpha: float, *tick: np.ndarray) -> None:
-        """``allocate`` (its arguments: ``tick``) for what the kernel does not take, with
-        adaptive's ``alpha``: hapticd.allocation.allocate."""
+    def _exact(self, *tick: np.ndarray) -> None:
+        """``allocate`` (its arguments: ``tick``) by the seed's exact formulas
+        (hapticd.allocation.allocate)."""
         in_contact, device_pos, points, forces, center, lam_a, rendered = tick
         contacts = np.flatnonzero(in_contact).tolist()
         lam_a.fill(0.0)
@@ -216,7 +212,7 @@ class ContactAllocator:
         if not contacts:
             return
         world = self.actuation.world_directions(device_pos.tolist())
-        x, G, M, cols, lam = self._solve(alpha, contacts, world, points, forces, center)
+        x, G, M, cols, lam = self._solve(contacts, world, points, forces, center)
         onset = self.robust.contact_onset_n
         if len(contacts) >= 2 and onset > 0.0:
             # A contact that is just being made or broken joins the grasp gradually: without
@@ -226,7 +222,7 @@ class ContactAllocator:
             beta = smoothstep(float(norms[weakest]) / onset)
             if beta < 1.0:
                 rest = contacts[:weakest] + contacts[weakest + 1 :]
-                rest_x = self._solve(alpha, rest, world, points, forces, center)[0]
+                rest_x = self._solve(rest, world, points, forces, center)[0]
                 x = beta * x + (1.0 - beta) * rest_x
         if not np.all(np.isfinite(x)):
             raise AllocationError(f"allocator {self.method!r} produced a non-finite force")
@@ -237,7 +233,6 @@ class ContactAllocator:
 
     def _solve(
         self,
-        alpha: float,
         contacts: list[int],
         world: list[list[V3]],
         points: np.ndarray,
@@ -254,10 +249,8 @@ class ContactAllocator:
         lam = forces[contacts].reshape(-1)
         out = np.zeros(self.actuation.n_actuators)
         if cols:
-            out[cols] = allocate(self.method, G, M, lam, robust=self.robust, alpha=alpha)
+            out[cols] = allocate(self.method, G, M, lam, robust=self.robust)
         return out, G, M, cols, lam
 
 
-# The kernel's alpha update, uncompiled: for the allocations the kernel does not take.
-_TASK_ALPHA = kernels.uncompiled("_task_alpha")
 _CODES = kernels.ALLOCATION_METHODS

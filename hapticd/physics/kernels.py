@@ -360,12 +360,12 @@ ALLOCATED, NON_FINITE_INPUT, NON_FINITE_OUTPUT = 0, 2, 3
 ACCURACY = 4  # allocation_step's accuracy: internal, external, total, amplification
 
 
-def allocation_work_shape(n_fingers: int) -> tuple[int, int]:
-    """The shape of allocation_step's workspace for ``n_fingers`` fingers (float64, which
-    the caller preallocates): hapticd.allocation.general's rows for every finger in
-    contact, then each finger's world direction and the allocation of all contacts."""
-    rows, cols = general.work_shape(3 * n_fingers, n_fingers)
-    return rows + n_fingers + 1, cols
+def allocation_work_shape(n_fingers: int, n_directions: int) -> tuple[int, int]:
+    """allocation_step's workspace (float64, the caller's) for F fingers with D actuated
+    directions in all: hapticd.allocation.general's rows, each direction in the world,
+    then one row for the rest's allocation and the accuracy."""
+    rows, cols = general.work_shape(3 * n_fingers, n_directions)
+    return rows + n_directions + 1, cols
 
 
 # Functions the kernels call (everything else a kernel does is inline): this module's and
@@ -377,6 +377,7 @@ KERNEL_HELPERS = (
     *general.KERNEL_HELPERS,
     one_contact_residuals,
     two_contact_residuals,
+    "_dirs",
     "_fill_grasp",
     "_task_alpha",
     "_nth",
@@ -435,62 +436,77 @@ def allocate_grasps(
     solve_grasps(code, G, M, lam, alpha, eps, min_sep, fast, out, work)
 
 
+def _dirs(work: np.ndarray, counts: np.ndarray) -> int:
+    """The first of ``work``'s rows holding the D actuated directions in the world (after
+    general's rows; ``counts`` (F,): each finger's number)."""
+    d = 0
+    for i in range(counts.shape[0]):
+        d += int(counts[i])
+    return work.shape[0] - d - 1
+
+
 def _fill_grasp(
     in_contact: np.ndarray,
     points: np.ndarray,
     forces: np.ndarray,
+    counts: np.ndarray,
     params: np.ndarray,
     skip: int,
     work: np.ndarray,
 ) -> int:
-    """The grasp of the fingers in contact but ``skip`` into ``work`` (general's G, M_a with
-    one direction each from the world directions in work's rows after general's, lam); its
-    number of contacts."""
-    n_fingers = in_contact.shape[0]
+    """The grasp of the fingers in contact but ``skip`` into ``work``: general's G, M_a (their
+    world directions, from ``work``'s rows after general's) and lam; returns M_a's columns."""
+    dirs = _dirs(work, counts)
     k = 0
-    for i in range(n_fingers):
+    r = 0
+    for i in range(in_contact.shape[0]):
         if in_contact[i] != 0 and i != skip:
             k += 1
-    n, r = 3 * k, k
-    m0, lam = 6, 6 + n
-    dirs = work.shape[0] - n_fingers - 1
-    for t in range(n):
+            r += int(counts[i])
+    m0, lam = 6, 6 + 3 * k
+    for t in range(3 * k):
         for j in range(r):
             work[m0 + t, j] = 0.0
-    s = 0
-    for i in range(n_fingers):
-        if in_contact[i] == 0 or i == skip:
-            continue
-        x = points[i, 0] - params[5]
-        y = points[i, 1] - params[6]
-        z = points[i, 2] - params[7]
-        j = 3 * s
-        for row in range(3):
-            for col in range(3):
-                work[row, j + col] = 1.0 if row == col else 0.0
-        work[3, j], work[3, j + 1], work[3, j + 2] = 0.0, -z, y
-        work[4, j], work[4, j + 1], work[4, j + 2] = z, 0.0, -x
-        work[5, j], work[5, j + 1], work[5, j + 2] = -y, x, 0.0
-        for c in range(3):
-            work[m0 + j + c, s] = work[dirs + i, c]
-            work[lam, j + c] = forces[i, c]
-        s += 1
-    return k
+    j = 0
+    col = 0
+    start = 0
+    for i in range(in_contact.shape[0]):
+        c = int(counts[i])
+        if in_contact[i] != 0 and i != skip:
+            x = points[i, 0] - params[5]
+            y = points[i, 1] - params[6]
+            z = points[i, 2] - params[7]
+            for row in range(3):
+                for q in range(3):
+                    work[row, j + q] = 1.0 if row == q else 0.0
+            work[3, j], work[3, j + 1], work[3, j + 2] = 0.0, -z, y
+            work[4, j], work[4, j + 1], work[4, j + 2] = z, 0.0, -x
+            work[5, j], work[5, j + 1], work[5, j + 2] = -y, x, 0.0
+            for q in range(3):
+                work[lam, j + q] = forces[i, q]
+            for d in range(c):
+                for q in range(3):
+                    work[m0 + j + q, col] = work[dirs + start + d, q]
+                col += 1
+            j += 3
+        start += c
+    return r
 
 
 def _task_alpha(
     in_contact: np.ndarray,
     points: np.ndarray,
     forces: np.ndarray,
+    counts: np.ndarray,
     params: np.ndarray,
     alpha: float,
     work: np.ndarray,
 ) -> float:
     """The adaptive allocator's alpha after this tick (hapticd.allocation.AdaptiveState):
-    alpha moved by params' gain toward smoothstep((rho - ratio_low) / (ratio_high -
-    ratio_low)) of the task's external ratio rho = |net force| / (|net force| + squeeze)
-    of the contact forces; unchanged when rho is not finite. The squeeze: none for one
-    contact, the force along the grasp line for two, |P_int lam| / sqrt(2) for more."""
+    moved by params' gain toward smoothstep((rho - ratio_low) / (ratio_high - ratio_low)) of
+    the task's external ratio rho = |net force| / (|net force| + squeeze); unchanged when
+    rho is not finite. The squeeze: none for one contact, the force along the grasp line
+    for two, |P_int lam| / sqrt(2) for more."""
     n_fingers = in_contact.shape[0]
     k = 0
     n0, n1, n2 = 0.0, 0.0, 0.0
@@ -513,10 +529,11 @@ def _task_alpha(
         if ne > 0:
             squeeze = abs(e0 * q0 + e1 * q1 + e2 * q2) / (2.0 * ne)
     elif k > 2:
-        n = 3 * _fill_grasp(in_contact, points, forces, params, -1, work)
+        _fill_grasp(in_contact, points, forces, counts, params, -1, work)
+        n = 3 * k
         eps = params[1]
         soft_prepare(work, n, eps, params[2])
-        lay = layout(n, n // 3)
+        lay = layout(n, 0)  # T1: a scratch row
         out = lay[T1_ROW]
         soft_apply(work, n, eps * eps, lay[LAM_ROW], out)
         s = 0.0
@@ -539,6 +556,7 @@ def allocation_step(
     points: np.ndarray,
     forces: np.ndarray,
     local: np.ndarray,
+    counts: np.ndarray,
     params: np.ndarray,
     state: np.ndarray,
     lam_a: np.ndarray,
@@ -546,61 +564,66 @@ def allocation_step(
     acc: np.ndarray,
     work: np.ndarray,
 ) -> int:
-    """One tick's allocation for F fingers with one actuated direction each, by a robust
-    method, with contact onset (``_allocate_contacts``: the closed forms of
-    ``hapticd.allocation.closed`` for one or two contacts, hapticd.allocation.general for
-    more), its accuracy and M_a lam_a per finger (the one definition of this case:
-    ``hapticd.allocation.contacts.ContactAllocator`` runs it, compiled or not). The
-    adaptive allocator's alpha (``state``) follows this tick's task first (``_task_alpha``).
+    """One tick's allocation for F fingers by a robust method, with contact onset
+    (``_allocate_contacts``), its accuracy and M_a lam_a per finger: the one definition,
+    which ``hapticd.allocation.contacts.ContactAllocator`` and the tick's one call run. The
+    adaptive allocator's alpha (``state``) follows this tick's task first.
 
-    The frame's fields: ``in_contact`` (F,) u1, ``device_pos`` (F, 3) m (the grasp
-    frame's axes come from fingers 0 and 1), ``points`` (F, 3) contact points m,
-    ``forces`` (F, 3) full contact forces N. ``local`` (F, 3): each finger's unit
-    direction in its frame (world or grasp). ``params`` (ALLOCATION_PARAMS,) as declared
-    above; ``state`` (ALLOCATION_STATE,) carried from tick to tick; ``work`` the
-    workspace (allocation_work_shape(F)). Writes ``lam_a`` (F,) N, ``rendered`` (F, 3) N
-    (M_a lam_a per finger, zero out of contact), ``acc`` (ACCURACY,) (N, N, N, 1) and
-    alpha, and returns ALLOCATED, or returns another outcome having written nothing.
+    The frame's ``in_contact`` (F,) u1, ``device_pos`` (F, 3) m (the grasp frame's axes
+    come from fingers 0 and 1), ``points`` (F, 3) m and ``forces`` (F, 3) N. ``local``
+    (D, 3): the D actuated unit directions in the actuation's frame, finger by finger;
+    ``counts`` (F,): how many each finger has. ``params`` (ALLOCATION_PARAMS,), ``state``
+    (ALLOCATION_STATE,), ``work`` (allocation_work_shape(F, D)). Writes ``lam_a`` (D,) N,
+    ``rendered`` (F, 3) N (zero out of contact), ``acc`` (ACCURACY,) and alpha and returns
+    ALLOCATED; any other outcome writes nothing.
     """
     n_fingers = in_contact.shape[0]
     alpha = state[0]
     if int(params[0]) == closed.ADAPTIVE:
-        alpha = _task_alpha(in_contact, points, forces, params, alpha, work)
+        alpha = _task_alpha(in_contact, points, forces, counts, params, alpha, work)
     n = 0
+    r = 0
     for i in range(n_fingers):
-        n += 1 if in_contact[i] != 0 else 0
-    dirs = work.shape[0] - n_fingers - 1
+        if in_contact[i] != 0:
+            n += 1
+            r += int(counts[i])
+    dirs = _dirs(work, counts)
     xk = work.shape[0] - 1
     if n > 0:
-        # Every finger's world direction into ``work`` (kernels.grasp_axes in the
-        # grasp frame), then the grasp's allocation.
+        # Every direction in the world into ``work`` (the grasp frame's: grasp_axes), then
+        # the grasp's allocation.
         grasp = params[4] != 0.0
         ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, grasp)
-        for i in range(n_fingers):
-            p0, p1, p2 = local[i, 0], local[i, 1], local[i, 2]
+        for j in range(local.shape[0]):
+            p0, p1, p2 = local[j, 0], local[j, 1], local[j, 2]
             if grasp:
-                work[dirs + i, 0] = ax0 * p0 + ay0 * p1 + az0 * p2
-                work[dirs + i, 1] = ax1 * p0 + ay1 * p1 + az1 * p2
-                work[dirs + i, 2] = ax2 * p0 + ay2 * p1 + az2 * p2
+                work[dirs + j, 0] = ax0 * p0 + ay0 * p1 + az0 * p2
+                work[dirs + j, 1] = ax1 * p0 + ay1 * p1 + az1 * p2
+                work[dirs + j, 2] = ax2 * p0 + ay2 * p1 + az2 * p2
             else:
-                work[dirs + i, 0], work[dirs + i, 1], work[dirs + i, 2] = p0, p1, p2
-        outcome = _allocate_contacts(in_contact, points, forces, params, alpha, work)
+                work[dirs + j, 0], work[dirs + j, 1], work[dirs + j, 2] = p0, p1, p2
+        outcome = _allocate_contacts(in_contact, points, forces, counts, params, alpha, work)
         if outcome != ALLOCATED:
             return outcome
-    xo = layout(3 * n, n)[XO_ROW]
     for i in range(ACCURACY):
         acc[i] = work[xk, i] if n > 0 else 0.0
+    xo = layout(3 * n, r)[XO_ROW]
     s = 0
+    start = 0
     for i in range(n_fingers):
-        lam_a[i] = 0.0
-        rendered[i, 0], rendered[i, 1], rendered[i, 2] = 0.0, 0.0, 0.0
-        if in_contact[i] != 0:
-            x = work[xo, s]
-            lam_a[i] = x
-            rendered[i, 0] = 0.0 + x * work[dirs + i, 0]
-            rendered[i, 1] = 0.0 + x * work[dirs + i, 1]
-            rendered[i, 2] = 0.0 + x * work[dirs + i, 2]
-            s += 1
+        c = int(counts[i])
+        r0, r1, r2 = 0.0, 0.0, 0.0
+        for d in range(c):
+            x = 0.0
+            if in_contact[i] != 0:
+                x = work[xo, s]
+                s += 1
+                r0 = r0 + x * work[dirs + start + d, 0]
+                r1 = r1 + x * work[dirs + start + d, 1]
+                r2 = r2 + x * work[dirs + start + d, 2]
+            lam_a[start + d] = x
+        rendered[i, 0], rendered[i, 1], rendered[i, 2] = r0, r1, r2
+        start += c
     state[0] = alpha
     return ALLOCATED
 
@@ -609,31 +632,38 @@ def _allocate_contacts(
     in_contact: np.ndarray,
     points: np.ndarray,
     forces: np.ndarray,
+    counts: np.ndarray,
     params: np.ndarray,
     alpha: float,
     work: np.ndarray,
 ) -> int:
-    """allocation_step's grasp (its arguments; this tick's alpha; each finger's world
-    direction in ``work``'s rows after general's): ``_solve_grasp`` on the contacts,
-    blended with the grasp without its weakest contact while that one is being made or
-    broken (contact onset); lam_a, contact by contact, in general's row XO and the
-    accuracy in ``work``'s last row. Returns an outcome (nothing is written outside
-    ``work``)."""
+    """allocation_step's grasp (this tick's alpha; the world directions in ``work``):
+    ``_solve_grasp`` on the contacts, blended with the grasp without its weakest contact
+    while that one is being made or broken (contact onset). Writes lam_a of the contacts'
+    directions in general's row XO and the accuracy in ``work``'s last row; returns an
+    outcome (nothing written outside ``work``)."""
     n_fingers = in_contact.shape[0]
     onset = params[3]
-    dirs = work.shape[0] - n_fingers - 1
-    xk = work.shape[0] - 1  # the allocation of the rest, by finger; then the accuracy
+    dirs = _dirs(work, counts)
+    xk = work.shape[0] - 1  # the rest's allocation, by direction; then the accuracy
     s = 0.0
     n = 0
+    ones = True  # every contact has one direction: the closed forms
     weak = -1
     weakest = 0.0
+    start = 0
     for i in range(n_fingers):
+        c = int(counts[i])
+        start += c
         if in_contact[i] == 0:
             continue
         n += 1
-        for c in range(3):  # 0 x c is 0 for a finite c and NaN otherwise
-            s += 0.0 * (points[i, c] - params[5 + c]) + 0.0 * work[dirs + i, c]
-            s += 0.0 * forces[i, c]
+        ones = ones and c == 1
+        for q in range(3):  # 0 x c is 0 for a finite c and NaN otherwise
+            s += 0.0 * (points[i, q] - params[5 + q])
+            for d in range(start - c, start):
+                s += 0.0 * work[dirs + d, q]
+            s += 0.0 * forces[i, q]
         f0, f1, f2 = forces[i, 0], forces[i, 1], forces[i, 2]
         f = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
         if weak < 0 or f < weakest:
@@ -645,35 +675,41 @@ def _allocate_contacts(
         z = weakest / onset
         z = 0.0 if z < 0.0 else (1.0 if z > 1.0 else z)
         beta = z * z * (3.0 - 2.0 * z)
-    if beta < 1.0:  # the rest alone
-        xo = _solve_grasp(in_contact, points, forces, params, weak, alpha, work)
-        s = 0
+    if beta < 1.0:  # the rest alone, by direction
+        xo = _solve_grasp(in_contact, points, forces, counts, params, weak, alpha, work)
+        j = 0
+        start = 0
         for i in range(n_fingers):
-            work[xk, i] = 0.0
-            if in_contact[i] != 0 and i != weak:
-                work[xk, i] = (1.0 - beta) * work[xo, s]
-                s += 1
-    xo = _solve_grasp(in_contact, points, forces, params, -1, alpha, work)
-    s = 0
+            for d in range(start, start + int(counts[i])):
+                work[xk, d] = 0.0
+                if in_contact[i] != 0 and i != weak:
+                    work[xk, d] = (1.0 - beta) * work[xo, j]
+                    j += 1
+            start += int(counts[i])
+    xo = _solve_grasp(in_contact, points, forces, counts, params, -1, alpha, work)
+    j = 0
+    start = 0
     for i in range(n_fingers):
-        if in_contact[i] != 0:
-            x = work[xo, s]
-            if beta < 1.0:
-                x = beta * x + work[xk, i]
-            work[xo, s] = x
-            if not math.isfinite(x):
-                return NON_FINITE_OUTPUT
-            s += 1
-    if n > 2:  # the grasp _solve_grasp left in work
-        work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = residuals(work, 3 * n, n)
+        for d in range(start, start + int(counts[i])):
+            if in_contact[i] != 0:
+                x = work[xo, j]
+                if beta < 1.0:
+                    x = beta * x + work[xk, d]
+                work[xo, j] = x
+                if not math.isfinite(x):
+                    return NON_FINITE_OUTPUT
+                j += 1
+        start += int(counts[i])
+    if n > 2 or not ones:  # the grasp _solve_grasp left in work
+        work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = residuals(work, 3 * n, j)
         return ALLOCATED
-    r1, d1, l1 = _contact(points, forces, params, work, _nth(in_contact, -1, 0))
+    r1, d1, l1 = _contact(points, forces, counts, params, work, _nth(in_contact, -1, 0))
     if n == 1:
         work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = one_contact_residuals(
             r1, d1, l1, work[xo, 0]
         )
     else:
-        r2, d2, l2 = _contact(points, forces, params, work, _nth(in_contact, -1, 1))
+        r2, d2, l2 = _contact(points, forces, counts, params, work, _nth(in_contact, -1, 1))
         work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = two_contact_residuals(
             r1, r2, d1, d2, l1, l2, work[xo, 0], work[xo, 1]
         )
@@ -691,13 +727,20 @@ def _nth(in_contact: np.ndarray, skip: int, s: int) -> int:
 
 
 def _contact(
-    points: np.ndarray, forces: np.ndarray, params: np.ndarray, work: np.ndarray, i: int
+    points: np.ndarray,
+    forces: np.ndarray,
+    counts: np.ndarray,
+    params: np.ndarray,
+    work: np.ndarray,
+    i: int,
 ) -> tuple[closed.V3, closed.V3, closed.V3]:
-    """Finger ``i``'s contact: its offset r from the grasp's reference point (m), its world
-    direction d (``work``'s rows after general's) and its force l (N)."""
-    dirs = work.shape[0] - points.shape[0] - 1
+    """Finger ``i``'s contact: its offset r from the grasp's reference point (m), its first
+    world direction d and its force l (N)."""
+    row = _dirs(work, counts)
+    for f in range(i):
+        row += int(counts[f])
     r = (points[i, 0] - params[5], points[i, 1] - params[6], points[i, 2] - params[7])
-    d = (work[dirs + i, 0], work[dirs + i, 1], work[dirs + i, 2])
+    d = (work[row, 0], work[row, 1], work[row, 2])
     return r, d, (forces[i, 0], forces[i, 1], forces[i, 2])
 
 
@@ -705,30 +748,35 @@ def _solve_grasp(
     in_contact: np.ndarray,
     points: np.ndarray,
     forces: np.ndarray,
+    counts: np.ndarray,
     params: np.ndarray,
     skip: int,
     alpha: float,
     work: np.ndarray,
 ) -> int:
-    """lam_a of the contacts but ``skip`` (allocation_step's arguments; this tick's alpha)
-    into general's row XO, which it returns: the closed forms of hapticd.allocation.closed
-    for one or two contacts, the general path for more (on the grasp ``_fill_grasp`` puts
-    into ``work``)."""
+    """lam_a of the contacts but ``skip`` into general's row XO, which it returns: the closed
+    forms of hapticd.allocation.closed for one or two contacts with one direction each, the
+    general path for any other grasp (which ``_fill_grasp`` puts into ``work``)."""
     method = int(params[0])
     eps, min_sep = params[1], params[2]
     k = 0
+    r = 0
+    ones = True
     for i in range(in_contact.shape[0]):
-        k += 1 if in_contact[i] != 0 and i != skip else 0
-    xo = layout(3 * k, k)[XO_ROW]
-    if k > 2:
-        _fill_grasp(in_contact, points, forces, params, skip, work)
-        general_path(method, work, 3 * k, k, eps, min_sep, alpha)
+        if in_contact[i] != 0 and i != skip:
+            k += 1
+            r += int(counts[i])
+            ones = ones and counts[i] == 1.0
+    xo = layout(3 * k, r)[XO_ROW]
+    if k > 2 or not ones:
+        _fill_grasp(in_contact, points, forces, counts, params, skip, work)
+        general_path(method, work, 3 * k, r, eps, min_sep, alpha)
         return xo
-    r1, d1, l1 = _contact(points, forces, params, work, _nth(in_contact, skip, 0))
+    r1, d1, l1 = _contact(points, forces, counts, params, work, _nth(in_contact, skip, 0))
     if k == 1:
         work[xo, 0] = one_contact(method, r1, d1, l1, eps, alpha)
     else:
-        r2, d2, l2 = _contact(points, forces, params, work, _nth(in_contact, skip, 1))
+        r2, d2, l2 = _contact(points, forces, counts, params, work, _nth(in_contact, skip, 1))
         work[xo, 0], work[xo, 1] = two_contact(method, r1, r2, d1, d2, l1, l2, eps, min_sep, alpha)
     return xo
 
@@ -1718,14 +1766,15 @@ LOOP_SAMPLES, LOOP_MAX_SPEED, LOOP_MAX_DISTANCE, LOOP_WATCH, LOOP_CHANGED = rang
 LOOP_HEAD = 5
 
 
-def state_layout(n_fingers: int) -> dict[str, tuple[int, tuple[int, ...]]]:
-    """Each TICK_STATE block's (offset in float64 items, shape) for ``n_fingers``."""
+def state_layout(n_fingers: int, n_directions: int) -> dict[str, tuple[int, tuple[int, ...]]]:
+    """Each TICK_STATE block's (offset in float64 items, shape) for F fingers with D actuated
+    directions in all."""
     shapes = {
         "contact": (n_fingers, CONTACT_STATE),
         "anchors": (n_fingers, FRICTION_COLUMNS),
         "passive": (n_fingers, PASSIVITY_STATE),
         "alloc": (ALLOCATION_STATE,),
-        "work": allocation_work_shape(n_fingers),
+        "work": allocation_work_shape(n_fingers, n_directions),
         "loop": (LOOP_HEAD + 8 * n_fingers,),
     }
     out, at = {}, 0
@@ -1750,11 +1799,11 @@ def plausible(
 # TICK_STATE block's in the state and the workspace's rows and columns, then in_contact's
 # and buttons' offsets in the record's bytes, and the number of fingers), the params
 # (TICK_PARAMS), then these blocks (with their rows where they vary): contact's planes (P,
-# PLANE_COLUMNS), allocation's directions (F, 3), the free body's body (K, 3) and surfaces
+# PLANE_COLUMNS), the free body's body (K, 3) and surfaces
 # (S, SURFACE_COLUMNS), the shape's normals (M, 3) and offsets (M,), the free body's
 # scratch (F, SCRATCH_COLUMNS), every finger's actuated directions in the actuation's frame
 # (D, 3), finger by finger, and how many each finger has (F,)
-TICK_PLAN = ("planes", "rows", "local", "body", "rows", "surf", "rows", "normals", "rows")
+TICK_PLAN = ("planes", "rows", "body", "rows", "surf", "rows", "normals", "rows")
 TICK_PLAN += ("offsets", "scratch", "directions", "rows", "counts")
 _AT_PLAN = len(TICK_FIELDS)
 _AT_STATE = _AT_PLAN + len(TICK_PLAN)
@@ -1821,14 +1870,14 @@ def tick_step(
     params = plan[TICK_AT : TICK_AT + TICK_PARAMS]
     first, last = params[TICK_FIRST], params[TICK_LAST]
     planes = _block(plan, int(plan[k]), int(plan[k + 1]), PLANE_COLUMNS)
-    local = _rows(plan, int(plan[k + 2]), n)
-    body = _rows(plan, int(plan[k + 3]), int(plan[k + 4]))
-    surf = _block(plan, int(plan[k + 5]), int(plan[k + 6]), SURFACE_COLUMNS)
-    body_normals = _rows(plan, int(plan[k + 7]), int(plan[k + 8]))
-    body_offsets = plan[int(plan[k + 9]) : int(plan[k + 9]) + int(plan[k + 8])]
-    scratch = _block(plan, int(plan[k + 10]), n, SCRATCH_COLUMNS)
-    directions = _rows(plan, int(plan[k + 11]), int(plan[k + 12]))
-    counts = plan[int(plan[k + 13]) : int(plan[k + 13]) + n]
+    body = _rows(plan, int(plan[k + 2]), int(plan[k + 3]))
+    surf = _block(plan, int(plan[k + 4]), int(plan[k + 5]), SURFACE_COLUMNS)
+    body_normals = _rows(plan, int(plan[k + 6]), int(plan[k + 7]))
+    body_offsets = plan[int(plan[k + 8]) : int(plan[k + 8]) + int(plan[k + 7])]
+    scratch = _block(plan, int(plan[k + 9]), n, SCRATCH_COLUMNS)
+    n_dirs = int(plan[k + 11])
+    directions = _rows(plan, int(plan[k + 10]), n_dirs)
+    counts = plan[int(plan[k + 12]) : int(plan[k + 12]) + n]
     device_pos = _rows(record, int(plan[_AT_POS]), n)
     device_vel = _rows(record, int(plan[_AT_VEL]), n)
     plain_proxy = _rows(record, int(plan[_AT_PLAIN_PROXY]), n)
@@ -1896,10 +1945,11 @@ def tick_step(
             device_pos,
             contact_point,
             contact_force,
-            local,
+            directions,
+            counts,
             params[a:TICK_BODY_AT],
             alloc_state,
-            record[int(plan[_AT_LAM]) : int(plan[_AT_LAM]) + n],
+            record[int(plan[_AT_LAM]) : int(plan[_AT_LAM]) + n_dirs],
             allocated,
             scalars,
             alloc_work,

@@ -133,7 +133,7 @@ class Renderer:
         # What a tick carries to the next, in one array (hapticd.physics.kernels.TICK_STATE) that
         # the one call takes; the stages that carry state live as long as the renderer and
         # hold views of their blocks.
-        layout = kn.state_layout(self.n_fingers)
+        layout = kn.state_layout(self.n_fingers, actuation.n_actuators)
         self.state = np.zeros(sum(math.prod(shape) for _, shape in layout.values()))
         views = self._state_views()
         self._contact = Contact(self.scene, self.radii, views["contact"])
@@ -158,7 +158,7 @@ class Renderer:
         no views of it (a deep copy or a pickle copies each array on its own)."""
         views = getattr(self, "_views", None)
         if views is None or views["loop"].base is not self.state:
-            layout = kn.state_layout(self.n_fingers)
+            layout = kn.state_layout(self.n_fingers, self.actuation.n_actuators)
             views = {
                 name: self.state[at : at + math.prod(shape)].reshape(shape)
                 for name, (at, shape) in layout.items()
@@ -243,14 +243,9 @@ class Renderer:
 
     @property
     def kernel_names(self) -> list[str]:
-        """The kernels (names in hapticd.physics.kernels) this renderer runs: the tick's one call,
-        and the allocation's own when each finger has one actuated direction (its stage
-        runs it between the call's parts for an exact method; the number of directions
-        stays fixed while the renderer lives)."""
-        names = ["tick_step"]
-        if all(c == 1 for c in self.actuation.counts):
-            names.append("allocation_step")
-        return names
+        """The kernels (names in hapticd.physics.kernels) this renderer runs: the tick's one
+        call, and the allocation's own (its allocator's, outside the call: a replay)."""
+        return ["tick_step", "allocation_step"]
 
     def use_kernels(self, kernels: dict[str, Callable[..., None]]) -> None:
         """Run the kernels in ``kernels`` (name -> compiled function, ``kernel_names``) from
@@ -394,9 +389,8 @@ class OneCall:
         act = r.allocator.actuation
         n = r.n_fingers
         inputs = r._allocation.kernel_inputs()
-        if inputs is None:  # allocation runs in Python, between the call's parts
-            inputs = (np.zeros((n, 3)), np.zeros(kn.ALLOCATION_PARAMS))
-        local, alloc_params = inputs
+        # None: allocation runs in Python, between the call's parts.
+        alloc_params = np.zeros(kn.ALLOCATION_PARAMS) if inputs is None else inputs[2]
         names = {s.name: s for s in r.stages}
         friction = "friction" in names
         free = "dynamics" in names
@@ -409,7 +403,6 @@ class OneCall:
             body_params, body, surf = np.zeros(kn.PARAMS), np.zeros((0, 3)), np.zeros((0, 7))
         blocks = {
             "planes": contact._kernel_planes(),
-            "local": local,
             "body": body,
             "surf": surf,
             "normals": np.asarray(obj.shape.normals, dtype=float).reshape(-1, 3),
@@ -467,7 +460,7 @@ class OneCall:
         )
         adjacent(frame, ("object_pos", "object_vel", "object_omega", "object_rot"))
         r._adopt()
-        state = kn.state_layout(n)
+        state = kn.state_layout(n, act.n_actuators)
         plan[: kn.TICK_AT] = [
             *(at[name] for name in kn.TICK_FIELDS),
             *layout,

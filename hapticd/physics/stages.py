@@ -230,8 +230,7 @@ class Allocation:
     @property
     def kernel(self) -> Callable[..., int]:
         """hapticd.physics.kernels.allocation_step, compiled (hapticd.physics.jit) or, set to None,
-        not: the allocator's (it takes the robust methods with one direction per finger, any number
-        of contacts, and adaptive's alpha; the rest run allocate())."""
+        not: the allocator's (it takes the robust methods; the exact ones run allocate())."""
         return self.allocator.kernel
 
     @kernel.setter
@@ -291,9 +290,9 @@ class Allocation:
         ``kernel_inputs``), else None: the stage runs here, between the call's parts."""
         return None if self.kernel_inputs() is None else kernels.STAGE_ALLOCATION
 
-    def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """allocation_step's ``local`` and ``params`` for one call per tick, or None
-        (``ContactAllocator.kernel_inputs``)."""
+    def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """allocation_step's ``local``, ``counts`` and ``params`` for one call per tick, or
+        None (``ContactAllocator.kernel_inputs``)."""
         return self.allocator.kernel_inputs()
 
 
