@@ -50,6 +50,8 @@ _COMPILED: dict[str, Callable[..., None]] = {}
 # Helpers registered with numba in this process.
 _HELPERS: set[Callable[..., None]] = set()
 
+_KERNELS_DIR = Path(kernels.__file__).parent
+
 # Marker files in the cache folder, each keyed by ``_keys``: kernels compiled (so loading them
 # is quick), and kernels that failed to compile (and why).
 COMPILED = "hapticd-kernels.json"
@@ -115,9 +117,6 @@ def cache_dir(
 
 def _writable(path: Path) -> bool:
     return path.is_dir() and os.access(path, os.W_OK | os.X_OK)
-
-
-_KERNELS_DIR = Path(kernels.__file__).parent
 
 
 def _import_numba():
