@@ -1,11 +1,5 @@
-"""The convex polytope god-object contact renders against: half-spaces n . x <= d.
-
-The contact itself (proxy, first entry, sliding on up to three planes, the Gram systems)
-is one function, hapticd.physics.kernels.contact_step: the Contact stage's part of the tick's one
-call (hapticd.physics.kernels.tick_step).
-
-Units: m. Unit outward normals n.
-"""
+"""The convex polytope contact renders against (the contact itself is
+``kernels.contact_step``)."""
 
 from __future__ import annotations
 
@@ -16,8 +10,8 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Polytope:
-    """Convex polytope as half-spaces: normals (m, 3) unit, offsets (m,) in m, and a centre
-    (3,) m."""
+    """Convex polytope as half-spaces n . x <= d: unit outward normals (m, 3), offsets (m,)
+    in m, and a centre (3,) m."""
 
     normals: np.ndarray
     offsets: np.ndarray

@@ -1,10 +1,7 @@
-"""Safety between allocation and the devices: the last stage before a force leaves.
+"""The safety chain: the last stage before a force (F, 3) N leaves for the devices.
 
-Every force passes ``SafetyChain.apply``: a non-finite value latches a fault and
-zeroes every finger; a magnitude above the finger's limit (the smaller of the
-device's and the profile's) is scaled down with its direction kept. A latched
-fault keeps all forces at zero until ``reset``. A finger with a deadman button
-gets force only while that button is held. Forces in N, shape (F, 3).
+Its checks, their order and its faults: docs/daemon.md ("The safety chain's tick"), the
+``safety.*`` keys of docs/profiles.md and the fault causes of docs/control.md.
 """
 
 from __future__ import annotations
@@ -23,8 +20,8 @@ from hapticd.physics.frame import Frame
 
 @dataclass(frozen=True)
 class Fault:
-    """A latched fault: tick, time (s), a human-readable cause and its kind (a name of
-    hapticd.events.FAULT_CAUSES, e.g. ``nonfinite_force``)."""
+    """A latched fault: tick, time (s), the message and its kind (a name of
+    hapticd.events.FAULT_CAUSES)."""
 
     tick: int
     t: float
@@ -34,9 +31,8 @@ class Fault:
 
 @dataclass(frozen=True)
 class Deadman:
-    """A finger's deadman button: its force is exactly zero while button ``button`` (bit of
-    the device's ``buttons``) is up, and ramps from zero to full over ``ramp_s`` (s,
-    nominal clock) from the tick it is pressed."""
+    """A finger's deadman: ``button`` (0-31, a bit of the device's ``buttons``) and the ramp
+    from zero to full force after a press, ``ramp_s`` (s, nominal clock)."""
 
     button: int
     ramp_s: float = 0.25
@@ -44,18 +40,11 @@ class Deadman:
 
 @dataclass(frozen=True)
 class SafetyParams:
-    """Limits beyond the force clamp (defaults: off).
-
-    ramp_s: after enabling, forces scale from 0 to 1 over this time (s, nominal clock).
-    max_rate_n_per_s: largest change of a finger's force per second (N/s); a drop to
-      exactly zero is never delayed.
-    workspace_center_m, workspace_radius_m: a finger beyond this sphere latches a fault.
-    watchdog_s: more wall time than this between two ticks latches a fault (a stalled loop).
-    max_device_speed_m_per_s: a device reporting a faster speed (m/s, its own frame), or a
-      non-finite position or velocity, latches a fault; checked where device state enters
-      the frame (hapticd.loop.device_bank), which keeps the finger's last good state.
-    deadman: per finger, its deadman button or None (empty: no finger has one).
-    """
+    """Limits beyond the force clamp (defaults: off), as the ``safety.*`` keys of
+    docs/profiles.md: ramp_s (s), max_rate_n_per_s (N/s), workspace_center_m (m),
+    workspace_radius_m (m), watchdog_s (s), max_device_speed_m_per_s (m/s; checked by
+    hapticd.loop.device_bank, not the chain); deadman: per finger a Deadman or None (empty:
+    none)."""
 
     ramp_s: float = 0.0
     max_rate_n_per_s: float = math.inf
@@ -67,7 +56,7 @@ class SafetyParams:
 
 
 class _Count:
-    """A count the kernel keeps at item ``at`` of a chain's array, as an int."""
+    """A count the kernel keeps at item ``at`` of the chain's array, as an int."""
 
     def __init__(self, at: int) -> None:
         self.at = at
@@ -80,20 +69,15 @@ class _Count:
 
 
 class SafetyChain:
-    """The last stage before a device, for F fingers, in this order: fault latch, NaN/inf
-    guard, watchdog, workspace, magnitude clamp (direction kept), enable ramp, ramp-down
-    and deadman gate, rate limit.
+    """The safety chain of F fingers: ``limits_n`` (F,) N, ``rated_n`` (F,) N the devices'
+    own limits, which ``force_limit_n`` never exceeds (default: ``limits_n``), ``dt`` (s).
+    ValueError for limits that are not positive and finite, or a deadman or rated force
+    list of another length.
 
-    Every stage only scales a force down or moves it between two forces within the
-    limit, so the output never exceeds the limit and is never NaN. ``rated_n`` are the
-    devices' own limits (N, per finger), which a new ``force_limit_n`` never exceeds;
-    without them, the starting ``limits_n``.
-
-    The tick is hapticd.physics.kernels.safety_step, compiled (``use_kernels``) or not, on
-    the chain's array (its parameters, ramps, deadman state and counters): it decides
-    every trip but the watchdog's and zeroes the force; the chain latches the fault with
-    its message. The watchdog is the chain's: the wall clock is read after the force is
-    made, before it is sent.
+    Every check only scales a force down or moves it between two forces within the limit,
+    so the output never exceeds the limit and is never NaN. The kernel (``safety_step``)
+    decides every trip but the watchdog's; the chain words and latches them, and runs the
+    watchdog, whose wall clock is read after the force is made, before it is sent.
     """
 
     kernel_names = ("safety_step",)
@@ -106,7 +90,7 @@ class SafetyChain:
         *,
         rated_n: list[float] | None = None,
     ) -> None:
-        if not limits_n or any(not (math.isfinite(v) and v > 0) for v in limits_n):
+        if not limits_n or not _positive(limits_n):
             raise ValueError(f"force limits must be positive and finite, got {limits_n}")
         F = len(limits_n)
         prm = params or SafetyParams()
@@ -119,23 +103,15 @@ class SafetyChain:
             ):
                 got = (d.button, d.ramp_s)
                 raise ValueError(f"a deadman needs a button in 0-31 and a ramp >= 0 s, got {got}")
-        # safety_step's array (hapticd.physics.kernels.SAFETY_*): parameters and state.
+        # safety_step's array (kernels.SAFETY_*): parameters and state, then per-finger columns.
         self._array = a = np.zeros(kernels.SAFETY_PARAMS + kernels.SAFETY_COLUMNS * F)
-
-        def column(k: int) -> np.ndarray:  # the per-finger block k (F,)
-            return a[kernels.SAFETY_PARAMS + k * F : kernels.SAFETY_PARAMS + (k + 1) * F]
-
-        self._limits_a, self._buttons_a = (
-            column(kernels.SAFETY_LIMIT),
-            column(kernels.SAFETY_BUTTON),
-        )
-        self._ramps_a, self._pressed_a = (
-            column(kernels.SAFETY_BUTTON_RAMP),
-            column(kernels.SAFETY_PRESSED),
-        )
-        self._gate_a = column(kernels.SAFETY_GATE)
-        # Its items stored and read through a memoryview: a float stored through one is
-        # that float, for a fraction of a numpy item assignment.
+        columns = a[kernels.SAFETY_PARAMS :].reshape(kernels.SAFETY_COLUMNS, F)
+        self._limits_a = columns[kernels.SAFETY_LIMIT]
+        self._buttons_a = columns[kernels.SAFETY_BUTTON]
+        self._ramps_a = columns[kernels.SAFETY_BUTTON_RAMP]
+        self._pressed_a = columns[kernels.SAFETY_PRESSED]
+        self._gate_a = columns[kernels.SAFETY_GATE]
+        # Scalars go through a memoryview: a fraction of a numpy item assignment's cost.
         self._view = memoryview(a)
         self.dt = float(dt)
         self._params = prm
@@ -149,13 +125,12 @@ class SafetyChain:
         self._pressed_a[:] = math.inf
         self._gate_a[:] = [1.0 if d is None else 0.0 for d in deadman]
         self._has_deadman = any(d is not None for d in deadman)
-        self.limits = [float(v) for v in limits_n]
+        self.limits = limits_n
         self.rated = [float(v) for v in (rated_n if rated_n is not None else limits_n)]
         if len(self.rated) != F:
             raise ValueError(f"one rated force per finger is needed, got {rated_n}")
-        # safety_step, compiled or not (use_kernels), and its other preallocated inputs:
-        # the buttons (as the frame holds them) and positions at the workspace's centre
-        # (``apply`` without positions: no workspace check).
+        # safety_step's other inputs, preallocated: the buttons as the frame holds them, and
+        # positions at the workspace's centre for ``apply`` without positions (no check).
         self._step: Callable[..., int] = kernels.uncompiled("safety_step")
         self._buttons = np.zeros(F, dtype="<u4")
         self._button_bytes = self._buttons.view(np.uint8)
@@ -170,13 +145,12 @@ class SafetyChain:
 
     @property
     def params(self) -> SafetyParams:
-        """The chain's parameters (fixed for its life: a new profile builds a new chain)."""
+        """The chain's parameters (fixed: a new profile builds a new chain)."""
         return self._params
 
     @property
     def fault(self) -> Fault | None:
-        """The latched fault (None: forces may flow); the kernel holds the forces at zero
-        while one is."""
+        """The latched fault (None: forces may flow)."""
         return self._fault
 
     @fault.setter
@@ -190,16 +164,15 @@ class SafetyChain:
 
     @property
     def limits(self) -> list[float]:
-        """Per-finger force limits, N (a copy: ``set_limits`` changes them, so that the
-        kernel's copy follows)."""
+        """Per-finger force limits (F,) N, a copy (``set_limits`` changes them)."""
         return self._limits_a.tolist()
 
     @limits.setter
     def limits(self, limits_n: list[float]) -> None:
         self._limits_a[:] = [float(v) for v in limits_n]
 
-    # The ticks on which a force was clamped to its limit, and on which a force's change
-    # was rate limited: counted by the kernel (a reload carries them over).
+    # Ticks on which a force was clamped, and on which one was rate limited (settable: a
+    # reload carries them over).
     clamped_ticks = _Count(kernels.SAFETY_CLAMPED_TICKS)
     rate_limited_ticks = _Count(kernels.SAFETY_LIMITED_TICKS)
 
@@ -209,8 +182,8 @@ class SafetyChain:
         return self._gate_a.tolist()
 
     def use_kernels(self, compiled: dict[str, Callable[..., int]]) -> None:
-        """Run ``compiled["safety_step"]`` (compiled by hapticd.physics.jit) from the next tick on;
-        without it (an empty dict), the same function uncompiled."""
+        """Run ``compiled["safety_step"]`` from the next tick on; without it, the same
+        function uncompiled."""
         self._step = compiled.get("safety_step") or kernels.uncompiled("safety_step")
 
     def start(self, t: float) -> None:
@@ -224,23 +197,21 @@ class SafetyChain:
 
     def set_limits(self, limits_n: list[float]) -> None:
         """New per-finger force limits, N (positive, finite); the next tick obeys them."""
-        if len(limits_n) != len(self._limits_a) or any(
-            not (math.isfinite(v) and v > 0) for v in limits_n
-        ):
+        if len(limits_n) != len(self._limits_a) or not _positive(limits_n):
             raise ValueError(f"force limits must be {len(self._limits_a)} positive numbers")
-        self.limits = [float(v) for v in limits_n]
+        self.limits = limits_n
 
     def param(self, name: str) -> Any:
         """The current value of a safety parameter (hapticd.params, owner ``safety``)."""
         return _GETTERS[_own(name)](self)
 
     def set_param(self, name: str, value: Any) -> None:
-        """Change a safety parameter (already checked against its spec) from the next tick."""
+        """Change a safety parameter (checked against its spec already) from the next tick."""
         _SETTERS[_own(name)](self, value)
 
     def ramp_down(self, t: float, duration_s: float) -> None:
         """Scale forces by a factor falling from 1 at ``t`` (s) to exactly 0 after
-        ``duration_s`` (hapticd.physics.kernels.ramp_down_factor)."""
+        ``duration_s`` (s)."""
         self._view[kernels.SAFETY_T_DOWN] = float(t)
         self._view[kernels.SAFETY_DOWN_S] = max(float(duration_s), 0.0)
 
@@ -252,8 +223,8 @@ class SafetyChain:
         )
 
     def trip(self, tick: int, t: float, cause: str, kind: str = "other") -> None:
-        """Latch a fault (the first cause is kept) and zero the output; ``kind`` names the
-        cause's kind (hapticd.events.FAULT_CAUSES)."""
+        """Latch a fault (the first is kept) and zero the output; ``kind``: a name of
+        hapticd.events.FAULT_CAUSES."""
         if self._fault is None:
             self.fault = Fault(tick, t, cause, kind)
         self._out_prev[:] = 0.0
@@ -265,10 +236,9 @@ class SafetyChain:
         self.start(t)
 
     def run(self, frame: Frame, t_wall: float) -> None:
-        """The safety stage: ``device_force`` from the frame's ``rendered_force``, checked
-        against its tick, nominal time, device positions and buttons; ``t_wall``
+        """The frame's ``device_force`` from its ``rendered_force`` (``apply``); ``t_wall``
         (monotonic s) feeds the watchdog."""
-        out = self.apply(
+        frame.device_force[...] = self.apply(
             frame.rendered_force,
             int(frame.tick),
             float(frame.t),
@@ -276,11 +246,10 @@ class SafetyChain:
             t_wall,
             frame.buttons,
         )
-        frame.device_force[...] = out
 
     def ready(self) -> bool:
-        """Whether the renderer's one call may make this tick (with ``kernel_arrays``, the
-        frame's nominal time and buttons; then ``done``): no fault latched."""
+        """Whether the renderer's one call may make this tick (then ``done``): no fault
+        latched."""
         return self._fault is None
 
     @property
@@ -290,10 +259,9 @@ class SafetyChain:
         return self._array, self._out_prev
 
     def done(self, outcome: int, tick: int, t: float, t_wall: float | None) -> bool:
-        """After ``safety_step`` made tick ``tick`` (nominal time ``t``, s) with outcome
-        ``outcome``: the watchdog at monotonic time ``t_wall`` (s; None: none), and any
-        trip latched with its message. False when a fault latched (the caller then sends
-        zero force: ``run``)."""
+        """After ``safety_step`` made tick ``tick`` (nominal ``t``, s) with ``outcome``: the
+        watchdog at ``t_wall`` (monotonic s; None: none), and any trip latched. False when a
+        fault latched (the caller then sends zero force: ``run``)."""
         last = self._last_wall
         if t_wall is not None:
             self._last_wall = t_wall
@@ -306,42 +274,29 @@ class SafetyChain:
         return False
 
     def _latch(self, outcome: int, tick: int, t: float, gap: float | None) -> None:
-        """Latch the faults of a tick, in the chain's order (the first is kept): a non-finite
-        force, the watchdog (``gap``: s between ticks, None: no stall), the workspace."""
+        """Latch a tick's faults in the chain's order (the first is kept): a non-finite force,
+        the watchdog (``gap``: s between ticks, None: no stall), the workspace."""
+        fingers = outcome >> kernels.SAFETY_FINGERS
         if outcome & kernels.SAFETY_NON_FINITE:
-            bad = [
-                i for i in range(len(self.output)) if outcome >> (kernels.SAFETY_FINGERS + i) & 1
-            ]
+            bad = [i for i in range(len(self.output)) if fingers >> i & 1]
             self.trip(tick, t, f"non-finite force for finger(s) {bad}", "nonfinite_force")
         if gap is not None:
-            limit = self._watchdog_s
-            self.trip(
-                tick,
-                t,
-                f"watchdog: {gap * 1e3:.1f} ms between ticks (limit {limit * 1e3:g} ms)",
-                "watchdog",
-            )
+            limit_ms = self._watchdog_s * 1e3
+            cause = f"watchdog: {gap * 1e3:.1f} ms between ticks (limit {limit_ms:g} ms)"
+            self.trip(tick, t, cause, "watchdog")
         if outcome & kernels.SAFETY_WORKSPACE:
-            i, r = outcome >> kernels.SAFETY_FINGERS, self._view[kernels.SAFETY_DISTANCE]
-            self.trip(
-                tick,
-                t,
-                f"finger {i} left the workspace: {r:.4f} m from its centre "
-                f"(limit {self._params.workspace_radius_m:g} m)",
-                "workspace",
-            )
+            r, limit = self._view[kernels.SAFETY_DISTANCE], self._params.workspace_radius_m
+            cause = f"finger {fingers} left the workspace: {r:.4f} m from its centre "
+            cause += f"(limit {limit:g} m)"
+            self.trip(tick, t, cause, "workspace")
 
     def deadman_status(self) -> list[dict[str, Any] | None]:
-        """Per finger: its deadman button, whether it is held and the gate's factor (0 to 1)
-        on the last tick; None for a finger without one."""
+        """Per finger: its deadman button, whether it is held and the gate (0 to 1) on the
+        last tick; None for a finger without one."""
+        buttons, pressed = self._buttons_a.tolist(), self._pressed_a.tolist()
         return [
             None if b < 0 else {"button": int(b), "held": p < math.inf, "gate": g}
-            for b, p, g in zip(
-                self._buttons_a.tolist(),
-                self._pressed_a.tolist(),
-                self._gate_a.tolist(),
-                strict=True,
-            )
+            for b, p, g in zip(buttons, pressed, self.gate, strict=True)
         ]
 
     def apply(
@@ -353,12 +308,10 @@ class SafetyChain:
         t_wall: float | None = None,
         buttons: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Safe forces (F, 3) N for ``forces`` (F, 3) N; returns an internal buffer.
-
-        ``positions`` (F, 3) m feed the workspace check (None: none), ``t_wall`` (s,
-        monotonic) the watchdog, ``buttons`` (F,) bit sets the deadman gates (None: every
-        button up); ``t`` is the nominal tick time for the ramps. Arrays in another form
-        than the kernel's (a list, another dtype, a strided view) are copied.
+        """Safe forces (F, 3) N for ``forces`` (F, 3) N, in an internal buffer; ValueError for
+        another shape. ``t``: nominal time (s); ``positions`` (F, 3) m: the workspace check
+        (None: none); ``t_wall`` (monotonic s): the watchdog; ``buttons`` (F,) bit sets: the
+        deadman gates (None: all up). Arrays not in the kernel's form are copied.
         """
         forces = np.ascontiguousarray(forces, dtype=float)
         positions = (
@@ -379,17 +332,20 @@ class SafetyChain:
         return self.output
 
 
-# safety_step's outcomes from this one on are trips (below it: flags of a tick made safe).
+# safety_step's outcomes from this one on are trips (below: flags of a tick made safe).
 _TRIPPED = kernels.SAFETY_NON_FINITE
+
+
+def _positive(values: list[float]) -> bool:
+    return all(math.isfinite(v) and v > 0 for v in values)
 
 
 def _own(name: str) -> str:
     spec = PARAMS.get(name)
     if spec is None or spec.owner != "safety":
         known = list(_SETTERS)
-        raise ParamError(
-            "unknown_param", f"unknown parameter {name!r} for the safety chain; known: {known}"
-        )
+        why = f"unknown parameter {name!r} for the safety chain; known: {known}"
+        raise ParamError("unknown_param", why)
     return name
 
 
@@ -398,5 +354,5 @@ _SETTERS: dict[str, Callable[[SafetyChain, Any], None]] = {
 }
 
 _GETTERS: dict[str, Callable[[SafetyChain], Any]] = {
-    "force_limit_n": lambda s: list(s.limits),
+    "force_limit_n": lambda s: s.limits,
 }

@@ -43,10 +43,8 @@ class Material:
 
 @dataclass(frozen=True)
 class ConvexShape:
-    """Convex polytope in its body frame: unit normals (m, 3), offsets (m,), vertices (v, 3) m.
-
-    A box is made here; a mesh file's convex hull by ``hapticd.daemon.build.mesh_shape``.
-    """
+    """Convex polytope in its body frame: unit normals (m, 3), offsets (m,) m, vertices (v, 3)
+    m, volume m^3. A mesh's hull is made by ``hapticd.daemon.build.mesh_shape``."""
 
     normals: np.ndarray
     offsets: np.ndarray
@@ -66,8 +64,8 @@ class ConvexShape:
 
 
 OBJECT_STATE = 18
-"""Length of a SceneObject's ``state``: x (3, m), v (3, m/s), w (3, rad/s), R (9, row by row),
-the layout hapticd.physics.kernels.STATE names."""
+"""Length of a SceneObject's ``state``: x (3, m), v (3, m/s), w (3, rad/s), R (9, row by
+row)."""
 
 _MOTION: dict[str, tuple[slice, tuple[int, ...]]] = {
     "position": (slice(0, 3), (3,)),
@@ -79,12 +77,11 @@ _MOTION: dict[str, tuple[slice, tuple[int, ...]]] = {
 
 @dataclass
 class SceneObject:
-    """The grasped object: shape, material and pose; velocities and mass when free.
+    """The grasped object: shape, material and pose; velocities and mass (kg) when free.
 
-    Its pose and motion live in one array, ``state`` (OBJECT_STATE,): ``position`` (3,) m,
-    ``velocity`` (3,) m/s, ``omega`` (3,) rad/s and ``rotation`` (3, 3) are views of it,
-    always. Assigning one of them copies the value into the state; the compiled kernels
-    read and write ``state`` in place.
+    ``position`` (3,) m, ``velocity`` (3,) m/s, ``omega`` (3,) rad/s and ``rotation`` (3, 3)
+    are always views of one array, ``state`` (OBJECT_STATE,), which the kernels update in
+    place; assigning one of them copies into it.
     """
 
     shape: ConvexShape
@@ -126,8 +123,8 @@ class SceneObject:
 
     @property
     def polytope(self) -> Polytope:
-        """The world-frame polytope at the object's pose now: its face planes put there by
-        hapticd.physics.kernels.world_planes, the tick's own (its one call's, each tick)."""
+        """The world-frame polytope at the object's pose now (by the tick's own
+        ``world_planes``, so it matches the contact kernel's planes bit for bit)."""
         shape = self.shape
         planes = np.zeros((len(shape.offsets), 4))
         world_planes(self.rotation, self.position, shape.normals, shape.offsets, planes)
