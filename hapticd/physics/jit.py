@@ -27,8 +27,8 @@ MODES = ("python", "compiled", "auto")
 
 # numba's signature of each kernel called from outside hapticd.physics.kernels: the tick's one call
 # (the stages' kernels and helpers are compiled into it: kernels.KERNEL_HELPERS), the
-# allocation's own (ContactAllocator's, when it runs outside the call: its replay, its
-# stage between the call's parts), the batch's (allocate_many) and the safety chain's
+# allocation's own (ContactAllocator's outside the call: its replay), the batch's
+# (allocate_many) and the safety chain's
 # tick. The frame's fields and the object's state are C-contiguous float64 (uint8 for
 # in_contact), the scalars float64 or int64.
 SIGNATURES = {
