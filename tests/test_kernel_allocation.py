@@ -193,6 +193,30 @@ def _allocate_with_onset(case: dict, alpha: float) -> tuple[np.ndarray, np.ndarr
     return x, rendered
 
 
+def _against_allocate(case: dict, alpha: float) -> tuple[Allocation, Frame, bool]:
+    """The stage (uncompiled, adaptive starting at ``alpha``) against allocate() on the
+    contacts with contact onset: the same forces to 1e-9 of the force scale, or both refuse
+    the tick (allocate() refusing or giving a non-finite force). Whether it allocated."""
+    stage, frame = _stage(case, None)
+    stage.allocator.adaptive = AdaptiveState(alpha=alpha, time_constant_s=1e9)
+    try:
+        stage.run(frame)
+    except AllocationError:
+        with np.errstate(all="ignore"):
+            try:
+                x, _ = _allocate_with_onset(case, stage.allocator.alpha)
+            except AllocationError:
+                return stage, frame, False
+        assert not np.all(np.isfinite(x))
+        return stage, frame, False
+    x, rendered = _allocate_with_onset(case, stage.allocator.alpha)
+    lam = np.abs(np.array(case["frame_fields"]["contact_force"])).max()
+    for k, g in ((frame.lam_a, x), (frame.rendered_force, rendered)):
+        scale = max(lam, np.abs(g).max(initial=0.0), 1e-300)
+        np.testing.assert_allclose(k, g, rtol=0, atol=1e-9 * scale)
+    return stage, frame, True
+
+
 @given(grasps(), st.sampled_from(kernels.ALLOCATION_METHODS), st.floats(0.0, 1.0))
 def test_the_kernel_equals_allocate_with_contact_onset(case, method, alpha):
     """The kernel's closed forms and general path, grasp frame and contact onset against
@@ -201,28 +225,13 @@ def test_the_kernel_equals_allocate_with_contact_onset(case, method, alpha):
     the kernel's alpha of the tick; within the documented bounds (compiled, the same bits:
     the tests above)."""
     case = {**case, "method": method}
-    stage, frame = _stage(case, None)
-    stage.allocator.adaptive = AdaptiveState(alpha=alpha, time_constant_s=1e9)
-    try:
-        stage.run(frame)
-    except AllocationError:  # then allocate() refuses, or gives a non-finite force
-        with np.errstate(all="ignore"):
-            try:
-                x, _ = _allocate_with_onset(case, stage.allocator.alpha)
-            except AllocationError:
-                return
-        assert not np.all(np.isfinite(x))
-        return
-    assert abs(stage.allocator.alpha - alpha) <= 1e-11
-    x, rendered = _allocate_with_onset(case, stage.allocator.alpha)
-    lam = np.abs(np.array(case["frame_fields"]["contact_force"])).max()
-    for k, g in ((frame.lam_a, x), (frame.rendered_force, rendered)):
-        scale = max(lam, np.abs(g).max(initial=0.0), 1e-300)
-        np.testing.assert_allclose(k, g, rtol=0, atol=1e-9 * scale)
+    stage, frame, allocated = _against_allocate(case, alpha)
+    # A tick both refused is checked; one allocated moved alpha by the task alone.
+    assert not allocated or abs(stage.allocator.alpha - alpha) <= 1e-11
     # Finite, and within docs/allocation.md's bound (adaptive: the larger of IF's and EF's)
     # of the whole grasp: the onset blend, a mix of two allocations, stays within it too.
     contacts = [i for i, on in enumerate(case["frame_fields"]["in_contact"]) if on]
-    if contacts:
+    if allocated and contacts:
         fields = case["frame_fields"]
         G = grasp_matrix(np.asarray(fields["contact_point"], dtype=float)[contacts], case["center"])
         M = np.eye(3 * len(contacts))  # sigma_max of one unit direction per finger: 1
@@ -297,23 +306,7 @@ def test_several_directions_a_finger_compiled_and_not_give_the_same_bits(compile
 def test_several_directions_a_finger_equal_allocate_with_contact_onset(case, alpha):
     """The kernel's general path on any actuation against allocate() on the contacts,
     blended at onset: the same forces to rounding."""
-    stage, frame = _stage(case, None)
-    stage.allocator.adaptive = AdaptiveState(alpha=alpha, time_constant_s=1e9)
-    try:
-        stage.run(frame)
-    except AllocationError:
-        with np.errstate(all="ignore"):
-            try:
-                x, _ = _allocate_with_onset(case, stage.allocator.alpha)
-            except AllocationError:
-                return
-        assert not np.all(np.isfinite(x))
-        return
-    x, rendered = _allocate_with_onset(case, stage.allocator.alpha)
-    lam = np.abs(np.array(case["frame_fields"]["contact_force"])).max()
-    for k, g in ((frame.lam_a, x), (frame.rendered_force, rendered)):
-        scale = max(lam, np.abs(g).max(initial=0.0), 1e-300)
-        np.testing.assert_allclose(k, g, rtol=0, atol=1e-9 * scale)
+    _against_allocate(case, alpha)
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])

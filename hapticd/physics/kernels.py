@@ -1,27 +1,11 @@
-"""Per-tick physics as kernels: plain loops over numpy arrays, written to be compiled.
+"""The tick's physics, written once in the subset of Python numba compiles: float
+arithmetic, ``math``, loops over preallocated numpy arrays, no objects, no allocation.
 
-Each kernel is one function (it calls no other function of ours but the helpers
-named in ``KERNEL_HELPERS``) in the subset of Python that numba compiles: float
-arithmetic, ``math``, loops and indexing of preallocated numpy arrays, no objects and no allocation.
-``hapticd.physics.jit`` compiles them; the renderer (hapticd.physics.render) takes the compiled
-functions when ``rendering.kernels`` asks for them. Run as plain Python they give
-the same numbers, only slower.
-
-``allocation_step`` is the allocation of any number of contacts with one actuated
-direction per finger by a robust method (pinv, if, ef, adaptive, whose alpha it moves):
-it calls the closed forms of ``hapticd.allocation.closed`` and ``accuracy`` for one or
-two contacts and the general path of ``hapticd.allocation.general`` for more (written
-once, shared with ``allocate`` and ``allocate_many``; ``KERNEL_HELPERS``).
-``allocate_grasps`` is the robust methods grasp by grasp (``allocate_many``'s ``kernel=``).
-
-``tick_step`` is the renderer's tick as one call (hapticd.physics.render.OneCall): ``world_planes``,
-``contact_step``, ``friction_step``, ``forces_step``, ``allocation_step`` and
-``free_body_step`` are its stages' physics (hapticd.physics.stages.Contact, Friction, Forces,
-Allocation, Dynamics), with no twin, compiled into it (``KERNEL_HELPERS``), and
-``safety_step`` is hapticd.physics.safety.SafetyChain's tick. hapticd.physics.jit compiles as
-entry points only what is called from outside this module (``hapticd.physics.jit.SIGNATURES``:
-``tick_step``, ``allocation_step``, ``allocate_grasps``, ``safety_step``); with
-``rendering.kernels=python`` the same functions run uncompiled (``uncompiled``).
+``tick_step`` is the renderer's whole tick as one call; the stages' physics
+(``contact_step``, ``friction_step``, ``forces_step``, ``allocation_step``,
+``free_body_step``, ``safety_step``) are compiled into it with ``KERNEL_HELPERS``.
+hapticd.physics.jit compiles the entry points (its ``SIGNATURES``); ``uncompiled``
+runs the same functions as plain Python. The tick as a picture: docs/architecture.md.
 
 Units: positions m, velocities m/s, angular velocities rad/s, forces N, torques
 N m, stiffness N/m, damping N s/m, mass kg, inertia kg m^2, times s.
@@ -121,19 +105,14 @@ def free_body_step(
     surf: np.ndarray,
     scratch: np.ndarray,
 ) -> None:
-    """Move a free object one tick (``dt`` in ``substeps``) under the fingers' reactions,
-    gravity and surfaces; writes its state in place.
+    """Move a free object one tick (``dt`` in ``substeps``) under the fingers' reactions
+    (each finger a spring of the object's stiffness, fixed to it over the tick), gravity
+    and surfaces; writes ``state`` (STATE,: x, v, w, R row by row) in place.
 
-    The tick frame's fields: ``in_contact`` (F,) u1, ``points`` (F, 3) contact points,
-    ``forces`` (F, 3) full contact forces on the fingers, ``normals`` (F, 3).
-    ``params`` (PARAMS,): the object's stiffness k (each finger a spring fixed to the
-    object over the tick), torsional friction mu_t (m), mass m, dt, substeps (a whole
-    number), reach (the farthest vertex from the centre), gravity (3; zeros: none).
-    ``state`` (STATE,): x, v, w and R (row by row), read and overwritten. ``body``
-    (BODY_HEAD + V, 3): body inertia, its inverse, then the vertices (body frame).
-    ``surf`` (S, SURFACE_COLUMNS): per surface normal, offset, stiffness, damping, dynamic
-    friction. ``scratch`` (F, SCRATCH_COLUMNS): work space. Few arguments: each costs the
-    compiled function's caller a type check.
+    The frame's ``in_contact`` (F,) u1, ``points`` (F, 3) m, ``forces`` (F, 3) N on the
+    fingers, ``normals`` (F, 3); ``params`` (PARAMS,), ``body`` (BODY_HEAD + V, 3: inertia,
+    its inverse, the vertices in the body frame), ``surf`` (S, SURFACE_COLUMNS) as declared
+    above; ``scratch`` (F, SCRATCH_COLUMNS).
     """
     k, mu_t, m, dt = params[0], params[1], params[2], params[3]
     substeps = int(params[4])
@@ -351,8 +330,8 @@ def free_body_step(
 ALLOCATION_PARAMS = 11
 # allocation_step's carried state: the adaptive allocator's external weight alpha (0..1)
 ALLOCATION_STATE = 1
-# The robust allocators allocation_step computes (closed forms for one and two contacts,
-# hapticd.allocation.general for more).
+# The robust allocators allocation_step computes (the closed forms for one or two contacts
+# with one direction each, hapticd.allocation.general for any other grasp).
 ALLOCATION_METHODS = closed.CODES
 # allocation_step's outcomes: allocated; a non-finite contact point, direction or force; a
 # non-finite actuator force (nothing written, alpha unchanged, either way).
@@ -1465,18 +1444,14 @@ def safety_step(
     out_prev: np.ndarray,
     t: float,
 ) -> int:
-    """The safety chain's tick (``hapticd.physics.safety.SafetyChain``, its only code for it,
-    compiled or not) for F fingers at nominal time ``t`` (s): the deadman gates, then with
-    no fault latched the finite check and the workspace check (either trips: zero output),
-    the magnitude clamp (direction kept), the enable ramp, ramp-down and deadman gate (the
-    smallest factor), the rate limit; the counters.
+    """The safety chain's tick for F fingers at nominal time ``t`` (s): the deadman gates;
+    then, with no fault latched, the finite and workspace checks (a trip zeroes the
+    output), the clamp (direction kept), the smallest of the ramps and the gate, the rate
+    limit, the counters. Returns the SAFETY_ outcome.
 
-    ``forces`` (F, 3) N, ``positions`` (F, 3) m (read only with a finite workspace
-    radius), ``buttons`` the devices' buttons' bytes (4 F, each finger's little-endian
-    uint32, the frame's; read only for a finger with a deadman), ``params`` the chain's
-    array (SAFETY_PARAMS + SAFETY_COLUMNS F,) as declared above; ``out_prev`` (2, F, 3) N:
-    this tick's output, then last tick's, which becomes this tick's. Writes the output and
-    returns the SAFETY_ outcome. Magnitudes and distances are ``_norm3``'s.
+    ``forces`` (F, 3) N, ``positions`` (F, 3) m, ``buttons`` the frame's button bytes
+    (4 F: each finger's little-endian uint32), ``params`` the chain's array (SAFETY_*),
+    ``out_prev`` (2, F, 3) N: this tick's output, then last tick's.
     """
     n = forces.shape[0]
     limits = SAFETY_PARAMS + SAFETY_LIMIT * n
@@ -1580,14 +1555,9 @@ def world_planes(
     body_offsets: np.ndarray,
     planes: np.ndarray,
 ) -> None:
-    """The object's face planes in the world at its pose, into the first M rows of
-    ``planes`` (columns 0-2: the unit normal R n, column 3: the offset d + (R n) . x, m):
-    ``hapticd.physics.scene.SceneObject.polytope``'s sums in its order.
-
-    ``rotation`` (3, 3), ``position`` (3,) m, ``body_normals`` (M, 3) and
-    ``body_offsets`` (M,) m (the body frame); ``planes`` (>= M, >= 4), other columns
-    left as they are.
-    """
+    """The object's M face planes at its pose (``rotation`` (3, 3), ``position`` (3,) m)
+    from the body frame's ``body_normals`` (M, 3) and ``body_offsets`` (M,) m into the first
+    M rows of ``planes``: columns 0-2 the unit normal R n, column 3 d + (R n) . x (m)."""
     x0, x1, x2 = position[0], position[1], position[2]
     r00, r01, r02 = rotation[0, 0], rotation[0, 1], rotation[0, 2]
     r10, r11, r12 = rotation[1, 0], rotation[1, 1], rotation[1, 2]
@@ -1821,22 +1791,16 @@ def tick_step(
     safety_params: np.ndarray,
     out_prev: np.ndarray,
 ) -> int:
-    """One whole tick of the renderer's plan in one call: the devices' samples checked
-    (when they wait), the object's planes at its pose, contact, friction, the contact
-    forces, allocation, the environment's force through each finger's actuated directions,
-    the passivity controller, their sum, the free object's step and the scene's state, each
-    by its kernel or helper (the stages' physics; hapticd.physics.render.Renderer's plan says which
-    run, and a plan with a stage of its own in Python runs the call in parts: the STAGE_
-    indices params[TICK_FIRST] to before params[TICK_LAST]).
+    """The renderer's plan as one call, stage by stage (STAGE_ indices params[TICK_FIRST]
+    to before params[TICK_LAST]): the waiting device samples checked, the object's planes,
+    contact, friction, forces, allocation, environment, passivity, their sum, the free
+    object's step, the scene's state; with params[TICK_SAFETY], the object checked and the
+    safety chain's tick into ``device_force``. Returns a TICK_ outcome.
 
-    ``record``: the frame's record as float64 items, where ``plan`` says each field is;
-    ``state``: the carried state (TICK_STATE), ``obj_state`` the object's (STATE,);
-    ``plan``: where things are, the params and the blocks ``TICK_PLAN`` declares. With
-    params[TICK_SAFETY], after the last stage, the safety chain's tick on the rendered
-    force into ``device_force``: a free object's state checked first, then safety_step
-    with the chain's ``safety_params`` and ``out_prev`` at the frame's nominal time and
-    buttons, then each finger's largest force kept (the loop's block). Returns a TICK_
-    outcome.
+    ``record``: the frame's record as float64 items (``plan`` says where each field is);
+    ``state``: the carried state (TICK_STATE); ``plan``: offsets, params and the
+    ``TICK_PLAN`` blocks; ``obj_state`` (STATE,); ``safety_params`` and ``out_prev``: the
+    chain's arrays (safety_step).
     """
     n = int(plan[_AT_FINGERS])
     s = _AT_STATE
