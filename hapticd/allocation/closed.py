@@ -49,7 +49,7 @@ def _gain(k: float, eps2: float) -> float:
     return 1.0 / k if k >= eps2 else 1.0 / eps2
 
 
-def adaptive_mix(x_if, x_ef, alpha):
+def adaptive_mix(x_if: float, x_ef: float, alpha: float) -> float:
     """The adaptive allocator: (1 - alpha) IF + alpha EF, alpha in [0, 1]."""
     return (1.0 - alpha) * x_if + alpha * x_ef
 

@@ -147,6 +147,17 @@ def _finv_apply(w: np.ndarray, a: int, v: int, k: int, vec: int, eps2: float, tm
         w[vec, t] = s
 
 
+def _pinv_apply(
+    w: np.ndarray, src: int, m: int, k: int, y: int, out: int, a: int, v: int, eps2: float, tmp: int
+) -> None:
+    """The filtered pseudoinverse F(A^T A) A^T y (k,) into row ``out``: A (m x k) in rows
+    src.., y (m,) in row ``y``; A^T A's eigendecomposition left in rows a.. and v.."""
+    _gram_cols(w, src, m, k, a)
+    _jacobi(w, a, v, k)
+    _t_apply(w, src, m, k, y, out)
+    _finv_apply(w, a, v, k, out, eps2, tmp)
+
+
 def soft_prepare(w: np.ndarray, n: int, eps: float, min_sep: float) -> None:
     """The soft internal projector's parts from G: Gm (3 x n), the moment rows about the
     contacts' centroid weighted by 1/L, in rows GM; Gm Gm^T's eigendecomposition in A3, V3."""
@@ -210,23 +221,19 @@ def _pinv_or_ef(code: int, w: np.ndarray, n: int, r: int, eps2: float) -> None:
     m0, lam, kb, vb, a6, t1, xo = lay[1], lay[2], lay[7], lay[8], lay[13], lay[15], lay[19]
     tmp = lay[20]
     if code == PINV:
-        _gram_cols(w, m0, n, r, kb)
-        _t_apply(w, m0, n, r, lam, xo)
-    else:
-        for i in range(6):  # A = G M (6 x r) and G lam
-            for j in range(r):
-                s = 0.0
-                for t in range(n):
-                    s += w[i, t] * w[m0 + t, j]
-                w[a6 + i, j] = s
+        _pinv_apply(w, m0, n, r, lam, xo, kb, vb, eps2, tmp)
+        return
+    for i in range(6):  # A = G M (6 x r) and G lam
+        for j in range(r):
             s = 0.0
             for t in range(n):
-                s += w[i, t] * w[lam, t]
-            w[t1, i] = s
-        _gram_cols(w, a6, 6, r, kb)
-        _t_apply(w, a6, 6, r, t1, xo)
-    _jacobi(w, kb, vb, r)
-    _finv_apply(w, kb, vb, r, xo, eps2, tmp)
+                s += w[i, t] * w[m0 + t, j]
+            w[a6 + i, j] = s
+        s = 0.0
+        for t in range(n):
+            s += w[i, t] * w[lam, t]
+        w[t1, i] = s
+    _pinv_apply(w, a6, 6, r, t1, xo, kb, vb, eps2, tmp)
 
 
 def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -> None:
@@ -244,10 +251,7 @@ def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -
         for t in range(n):
             w[b0 + t, j] = w[t2, t]
     soft_apply(w, n, eps2, lam, t1)  # P_int lam
-    _gram_cols(w, b0, n, r, kb)
-    _jacobi(w, kb, vb, r)
-    _t_apply(w, b0, n, r, t1, x1)
-    _finv_apply(w, kb, vb, r, x1, eps2, tmp)  # x1 = B^+ P_int lam
+    _pinv_apply(w, b0, n, r, t1, x1, kb, vb, eps2, tmp)  # x1 = B^+ P_int lam
     # P = I - B^+ B = I - V diag(min(1, l / eps^2)) V^T, symmetrized.
     for i in range(r):
         for j in range(r):
@@ -271,10 +275,7 @@ def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -
                 q += w[m0 + t, k] * w[pp + k, j]
             w[mp + t, j] = q
         w[t2, t] = s
-    _gram_cols(w, mp, n, r, k2)
-    _jacobi(w, k2, v2, r)
-    _t_apply(w, mp, n, r, t2, y)
-    _finv_apply(w, k2, v2, r, y, eps2, tmp)
+    _pinv_apply(w, mp, n, r, t2, y, k2, v2, eps2, tmp)  # y = (M P)^+ (lam - M x1)
     for i in range(r):  # x1 + P y
         s = w[x1, i]
         for j in range(r):
@@ -416,6 +417,7 @@ KERNEL_HELPERS = (
     _gram_rows,
     _t_apply,
     _finv_apply,
+    _pinv_apply,
     layout,
     soft_prepare,
     soft_apply,
