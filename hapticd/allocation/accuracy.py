@@ -1,4 +1,4 @@
-"""How well an allocation renders the contact forces: residuals (N) and amplification."""
+"""How well an allocation renders the contact forces (docs/allocation.md, "Accuracy measures")."""
 
 from __future__ import annotations
 
@@ -10,17 +10,12 @@ import numpy as np
 from hapticd.allocation.closed import V3, _cross, _dot
 from hapticd.physics.grasp import null_space_basis
 
-# -- accuracy measures ----------------------------------------------------------------------
-
 
 @dataclass(frozen=True)
 class Accuracy:
-    """How well M_a lam_a renders lam. Residuals in N (external: N and N m stacked).
-
-    internal: |P_N(G) (lam - M_a lam_a)|, the squeeze error; external:
-    |G lam - G M_a lam_a|, the net wrench error; total: |lam - M_a lam_a|;
-    amplification: |M_a lam_a| / |lam| (0 when lam = 0).
-    """
+    """Residuals of res = lam - M_a lam_a in N: internal |N_G^T res| (squeeze), external
+    |G res| (net wrench, N and N m stacked), total |res|; amplification |M_a lam_a| / |lam|
+    (0 when lam = 0)."""
 
     internal: float
     external: float
@@ -29,7 +24,7 @@ class Accuracy:
 
 
 def accuracy(G: np.ndarray, M_a: np.ndarray, lam: np.ndarray, lam_a: np.ndarray) -> Accuracy:
-    """Accuracy measures of an allocation, with exact subspaces."""
+    """``Accuracy`` of lam_a (r,) N for lam (3p,) N, G (6, 3p), M_a (3p, r); exact subspaces."""
     rendered = M_a @ lam_a
     res = lam - rendered
     N = null_space_basis(G)
@@ -45,8 +40,8 @@ def accuracy(G: np.ndarray, M_a: np.ndarray, lam: np.ndarray, lam_a: np.ndarray)
 def two_contact_residuals(
     r1: V3, r2: V3, d1: V3, d2: V3, l1: V3, l2: V3, x0: float, x1: float
 ) -> tuple[float, float, float, float]:
-    """``accuracy`` for two contacts with one direction each, in closed form, as the tuple
-    (internal, external, total, amplification) (compiled code calls it too)."""
+    """``accuracy`` for two contacts with one direction each, as (internal, external,
+    total, amplification); compiled into the loop's kernel."""
     q1 = (l1[0] - x0 * d1[0], l1[1] - x0 * d1[1], l1[2] - x0 * d1[2])
     q2 = (l2[0] - x1 * d2[0], l2[1] - x1 * d2[1], l2[2] - x1 * d2[2])
     diff = (q1[0] - q2[0], q1[1] - q2[1], q1[2] - q2[2])
@@ -67,8 +62,8 @@ def two_contact_residuals(
 
 
 def one_contact_residuals(r: V3, d: V3, lam: V3, x: float) -> tuple[float, float, float, float]:
-    """``accuracy`` for one contact with one direction (no internal forces exist), as the
-    tuple (internal, external, total, amplification) (compiled code calls it too)."""
+    """``accuracy`` for one contact with one direction (no internal forces exist), as
+    (internal, external, total, amplification); compiled into the loop's kernel."""
     q = (lam[0] - x * d[0], lam[1] - x * d[1], lam[2] - x * d[2])
     t = _cross(r, q)
     n_lam = math.sqrt(_dot(lam, lam))

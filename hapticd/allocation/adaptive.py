@@ -1,10 +1,8 @@
-"""The task-adaptive allocator's state: alpha, the weight of external forces, from the task."""
+"""The task-adaptive allocator's parameters (docs/allocation.md, "The task-adaptive allocator")."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-
-# -- the task-adaptive allocator's state ----------------------------------------------------
 
 
 def smoothstep(x: float) -> float:
@@ -15,13 +13,9 @@ def smoothstep(x: float) -> float:
 
 @dataclass(frozen=True)
 class AdaptiveState:
-    """External-force weight alpha of the ``adaptive`` allocator, following the task.
-
-    The target is smoothstep((rho - ratio_low) / (ratio_high - ratio_low)) of the
-    external ratio rho; alpha (its start) follows it with a first-order lag of
-    ``time_constant_s`` so that no switch is a jolt. The allocation kernel moves it
-    each tick (``hapticd.physics.kernels._task_alpha``; ``ContactAllocator.alpha``).
-    """
+    """``adaptive``'s external-force weight alpha (its start, 0..1) and how it follows the
+    task: toward smoothstep((rho - ratio_low) / (ratio_high - ratio_low)) of the external
+    ratio rho with a first-order lag of ``time_constant_s`` (s), so no switch is a jolt."""
 
     ratio_low: float = 0.2
     ratio_high: float = 0.6

@@ -1,8 +1,7 @@
-"""Canonical allocation problems: sweeps through every kind of singular configuration.
+"""Allocation problems sweeping through each kind of singular configuration.
 
-Each sweep maps a parameter t (through 0, the singular point) to (G, M_a, lam)
-for two contacts on a 50 mm grasp. Used by the tests and by
-scripts/bench_allocation.py; handy for checking an allocator of your own.
+Each sweep maps t (singular at t = 0) to (G, M_a, lam) for two contacts 50 mm apart:
+for testing and benchmarking an allocator.
 """
 
 from __future__ import annotations

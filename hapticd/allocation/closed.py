@@ -1,11 +1,8 @@
-"""Closed forms for one contact, and for two contacts with one direction each: written once.
+"""Closed forms for one contact, and for two contacts with one direction each.
 
-Equal to the general path (``hapticd.allocation.general``) to rounding, and much
-cheaper per tick. Vectors are 3-tuples of floats: offsets r (m), directions d
-(unit), forces l (N). The servo loop's kernel (``hapticd.physics.kernels.allocation_step``,
-which hapticd.physics.jit compiles with these functions: ``KERNEL_HELPERS``), ``allocate()``
-and ``allocate_many`` (grasp by grasp, ``hapticd.allocation.general.solve_grasps``,
-compiled or not) all evaluate these same functions.
+Equal to the general path to rounding and much cheaper; compiled into the servo loop's
+kernel. Vectors are 3-tuples of floats: offsets r (m) from G's reference point, unit
+directions d, forces l (N). Theory: docs/allocation.md.
 """
 
 from __future__ import annotations
@@ -16,11 +13,7 @@ import numpy as np
 
 from hapticd.allocation.robust import _TINY, contact_offsets
 
-# -- two contacts, one direction each: closed form in plain floats --------------------------
-#
-# Everything reduces to symmetric 2x2 matrices [[a, b], [b, c]], stored as (a, b, c).
-
-Sym2 = tuple[float, float, float]
+Sym2 = tuple[float, float, float]  # the symmetric 2 x 2 [[a, b], [b, c]] as (a, b, c)
 V3 = tuple[float, float, float]
 
 
@@ -33,8 +26,7 @@ def _cross(u: V3, v: V3) -> V3:
 
 
 def _finv2(a: float, b: float, c: float, eps2: float) -> Sym2:
-    """Filtered inverse of [[a, b], [b, c]] (symmetric PSD): eigenvalues l -> 1/l or
-    1/eps2, as (a', b', c')."""
+    """F(K) of the symmetric PSD K = [[a, b], [b, c]], F(l) = 1/max(l, eps2)."""
     mean = 0.5 * (a + c)
     half = 0.5 * (a - c)
     rad = math.sqrt(half * half + b * b)
@@ -57,9 +49,8 @@ def _gain(k: float, eps2: float) -> float:
     return 1.0 / k if k >= eps2 else 1.0 / eps2
 
 
-def adaptive_mix(x_if, x_ef, alpha):
-    """The adaptive allocator: (1 - alpha) IF + alpha EF, alpha the external weight in
-    [0, 1] (floats, or arrays that broadcast)."""
+def adaptive_mix(x_if: float, x_ef: float, alpha: float) -> float:
+    """The adaptive allocator: (1 - alpha) IF + alpha EF, alpha in [0, 1]."""
     return (1.0 - alpha) * x_if + alpha * x_ef
 
 
@@ -98,7 +89,7 @@ def two_contact_pinv(d1: V3, d2: V3, l1: V3, l2: V3, eps: float) -> tuple[float,
 def two_contact_ef(
     r1: V3, r2: V3, d1: V3, d2: V3, l1: V3, l2: V3, eps: float
 ) -> tuple[float, float]:
-    """Robust EF for two fingers: r_i contact offsets from the reference point (m)."""
+    """Robust EF for two fingers with one direction each."""
     m1, m2 = _cross(r1, d1), _cross(r2, d2)
     f = (l1[0] + l2[0], l1[1] + l2[1], l1[2] + l2[2])
     t1, t2 = _cross(r1, l1), _cross(r2, l2)
@@ -124,18 +115,14 @@ def one_contact_ef(r: V3, d: V3, lam: V3, eps: float) -> float:
     return (_dot(d, lam) + _dot(m, _cross(r, lam))) / (K if eps2 <= K else eps2)
 
 
-# The robust methods by code: what one_contact and two_contact take (compiled code has no
-# strings); hapticd.physics.kernels passes these codes.
+# The robust methods by code (compiled code has no strings).
 CODES = ("pinv", "if", "ef", "adaptive")
 PINV, IF, EF, ADAPTIVE = 0, 1, 2, 3
 
 
 def one_contact(code: int, r: V3, d: V3, lam: V3, eps: float, alpha: float) -> float:
-    """Robust allocation by method ``code`` (CODES) for one contact with one direction;
-    ``alpha`` the adaptive allocator's external weight (the others ignore it).
-
-    With one contact N(G) = {0}, so IF is pinv; EF matches the contact's wrench.
-    """
+    """lam_a N for one contact with one direction by robust method ``code`` (CODES);
+    ``alpha`` adaptive's external weight. With one contact N(G) = {0}: IF is pinv."""
     if code == EF:
         return one_contact_ef(r, d, lam, eps)
     x = one_contact_pinv(d, lam, eps)
@@ -145,8 +132,7 @@ def one_contact(code: int, r: V3, d: V3, lam: V3, eps: float, alpha: float) -> f
 
 
 def _grasp_line(r1: V3, r2: V3, min_sep: float) -> tuple[V3, float]:
-    """Unit grasp line e (first to second contact) and the blend w toward all opposing
-    pairs."""
+    """Unit grasp line e (first to second contact) and the blend w toward all opposing pairs."""
     dx, dy, dz = r2[0] - r1[0], r2[1] - r1[1], r2[2] - r1[2]
     dist = math.sqrt(dx * dx + dy * dy + dz * dz)
     w = 1.0 - (dist / min_sep) ** 2 if dist < min_sep else 0.0
@@ -164,7 +150,7 @@ def _soft_line(e: V3, w: float, v: V3) -> V3:
 def two_contact_if(
     r1: V3, r2: V3, d1: V3, d2: V3, l1: V3, l2: V3, eps: float, min_sep: float
 ) -> tuple[float, float]:
-    """Robust IF for two fingers with one direction each (closed form of ``_if_general``)."""
+    """Robust IF for two fingers with one direction each (the projector form)."""
     eps2 = eps * eps
     e, w = _grasp_line(r1, r2, min_sep)
     # B's columns are +-(1/2)[a_k; -a_k]; P_int lam = (1/2)[s; -s].
@@ -214,8 +200,8 @@ def two_contact(
     min_sep: float,
     alpha: float,
 ) -> tuple[float, float]:
-    """(x1, x2) N for two contacts with one direction each, by robust method ``code``
-    (CODES); ``alpha`` the adaptive allocator's external weight (the others ignore it)."""
+    """(x1, x2) N for two contacts with one direction each by robust method ``code``
+    (CODES); ``alpha`` adaptive's external weight (the others ignore it)."""
     if code == PINV:
         return two_contact_pinv(d1, d2, l1, l2, eps)
     if code == EF:
@@ -227,7 +213,7 @@ def two_contact(
     return x0, x1
 
 
-# What compiled code calls (hapticd.physics.jit makes them callable from a kernel).
+# What compiled code calls (hapticd.physics.jit compiles them into the kernels).
 KERNEL_HELPERS = (
     _dot,
     _cross,

@@ -1,4 +1,4 @@
-"""The seed's allocators as published (Meli & Prattichizzo), with numpy's pseudoinverse.
+"""The seed's allocators as published, with numpy's pseudoinverse (docs/math.md).
 
 Kept for comparison: they blow up or jump at singularities.
 """
@@ -8,8 +8,6 @@ from __future__ import annotations
 import numpy as np
 
 from hapticd.physics.grasp import null_space_basis
-
-# -- the seed's exact formulas ----------------------------------------------------------------
 
 
 def pinv_exact(G: np.ndarray, M_a: np.ndarray, lam: np.ndarray) -> np.ndarray:

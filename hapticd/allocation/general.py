@@ -1,22 +1,10 @@
-"""The robust allocators' general path, written once in the style numba compiles.
+"""The robust allocators' general path, in plain loops that numba compiles.
 
-One grasp at a time, on a workspace ``w`` (rows, cols) float64 the caller
-preallocates (``work_shape``): G (6, n) in rows ``G0``, M_a (n, r) in rows ``M0``,
-lam (n,) in row ``LAM`` (``n = 3p`` for p contacts, forces in N, lengths in m);
-``general`` writes lam_a (r,) N into row ``XO``. Plain loops over small matrices
-and a cyclic Jacobi eigensolver on the workspace: nothing is allocated, so the
-servo loop's kernel (``hapticd.physics.kernels.allocation_step``, three or more contacts)
-calls it every tick; ``allocate()`` and ``allocate_many`` run it grasp by grasp
-(``solve_grasps``, with the two-contact closed forms where they apply), uncompiled
-on Python floats or compiled (``hapticd.physics.kernels.allocate_grasps``).
-
-- a filtered pseudoinverse g(s) = 1/s or s/eps^2 of A is F(A^T A) A^T, F the
-  spectral function l -> 1/max(l, eps^2) of the Gram matrix;
-- the soft internal projector is I - (1/p) sum of force blocks - Gm^T F(Gm Gm^T) Gm,
-  Gm the moment rows about the contacts' centroid weighted by 1/L (about the
-  centroid the weighted G's Gram matrix is block diagonal: p I3, Gm Gm^T);
-- IF is the projector form x1 = B^+ P_int lam, B = P_int M_a, P = I - B^+ B,
-  lam_a = x1 + P (M_a P)^+ (lam - M_a x1).
+One grasp at a time on a float64 workspace ``w`` the caller preallocates (``work_shape``;
+row offsets ``layout``): G (6, n), M_a (n, r), lam (n,) N in, lam_a (r,) N out, n = 3p.
+Nothing is allocated, so the servo loop's kernel runs it every tick. The formulas
+(filtered pseudoinverses on Gram matrices, the soft internal projector, IF's projector
+form): docs/allocation.md, "Batches".
 """
 
 from __future__ import annotations
@@ -34,18 +22,18 @@ _SWEEPS = 64  # Jacobi sweeps at most (a 15 x 15 converges in under 10)
 _RANK_SHARE = 1e-13
 
 
-# Rows of ``layout``'s offsets: lam (n,), two scratch vectors, lam_a (r,).
-LAM_ROW, T1_ROW, T2_ROW, XO_ROW = 2, 15, 16, 19
+# Indices into ``layout``'s offsets: lam (n,), a scratch vector, lam_a (r,).
+LAM_ROW, T1_ROW, XO_ROW = 2, 15, 19
 
 
 def work_shape(n: int, r: int) -> tuple[int, int]:
-    """The workspace's shape for grasps of up to n force components and r directions."""
+    """The workspace's shape (rows, cols) for up to n force components and r directions."""
     return 3 * n + 5 * r + 37, max(n, r, 6)
 
 
 def layout(n: int, r: int) -> tuple[int, ...]:
-    """Row offsets for n force components and r directions: G0, M0, LAM, GM, A3, V3, B0,
-    KB, VB, PP, MP, K2, V2, A6, V6, T1, T2, Y, X1, XO, C (each block's rows as in work_shape)."""
+    """Row offsets of the workspace's blocks for n force components and r directions: G0,
+    M0, LAM, GM, A3, V3, B0, KB, VB, PP, MP, K2, V2, A6, V6, T1, T2, Y, X1, XO, C."""
     m0 = 6
     lam = m0 + n
     gm = lam + 1
@@ -66,8 +54,7 @@ def layout(n: int, r: int) -> tuple[int, ...]:
 
 
 def _rotation(app: float, aqq: float, apq: float) -> tuple[float, float]:
-    """(cos, sin) of the Jacobi rotation that zeroes apq of [[app, apq], [apq, aqq]] (on
-    arrays, where apq = 0: the identity)."""
+    """(cos, sin) of the Jacobi rotation that zeroes apq of [[app, apq], [apq, aqq]]."""
     theta = (aqq - app) / (2.0 * apq)
     if abs(theta) > 1e150:  # theta^2 would overflow: t = 1 / (2 theta)
         t = 0.5 / theta
@@ -80,9 +67,8 @@ def _rotation(app: float, aqq: float, apq: float) -> tuple[float, float]:
 
 
 def _jacobi(w: np.ndarray, a: int, v: int, k: int) -> None:
-    """Eigendecomposition of the symmetric k x k matrix in rows a..a+k of w (columns 0..k),
-    in place: its eigenvalues end on its diagonal, the eigenvectors in the columns of the
-    k x k matrix in rows v..v+k (cyclic Jacobi rotations)."""
+    """Eigendecomposition of the symmetric k x k matrix in rows a.. of w, in place (cyclic
+    Jacobi): eigenvalues on its diagonal, eigenvectors in the columns of rows v.."""
     for i in range(k):
         for j in range(k):
             w[v + i, j] = 1.0 if i == j else 0.0
@@ -125,6 +111,17 @@ def _gram_cols(w: np.ndarray, src: int, m: int, k: int, dst: int) -> None:
             w[dst + j, i] = s
 
 
+def _gram_rows(w: np.ndarray, src: int, k: int, m: int, dst: int) -> None:
+    """A A^T (k x k) into rows dst.. of w, A (k x m) in rows src.."""
+    for i in range(k):
+        for j in range(i, k):
+            s = 0.0
+            for t in range(m):
+                s += w[src + i, t] * w[src + j, t]
+            w[dst + i, j] = s
+            w[dst + j, i] = s
+
+
 def _t_apply(w: np.ndarray, src: int, m: int, k: int, vec: int, out: int) -> None:
     """A^T v (k,) into row ``out``: A (m x k) in rows src.., v (m,) in row ``vec``."""
     for j in range(k):
@@ -135,8 +132,8 @@ def _t_apply(w: np.ndarray, src: int, m: int, k: int, vec: int, out: int) -> Non
 
 
 def _finv_apply(w: np.ndarray, a: int, v: int, k: int, vec: int, eps2: float, tmp: int) -> None:
-    """F(K) y in place of y (row ``vec``, k,): K's eigenvalues on the diagonal of rows a..,
-    its eigenvectors in rows v.. (``_jacobi``); F(l) = 1/max(l, eps2); row ``tmp`` scratch."""
+    """F(K) y in place of y (row ``vec``), F(l) = 1/max(l, eps2), K as ``_jacobi`` left it
+    in rows a.. and v..; row ``tmp`` scratch."""
     for j in range(k):
         s = 0.0
         for t in range(k):
@@ -150,10 +147,20 @@ def _finv_apply(w: np.ndarray, a: int, v: int, k: int, vec: int, eps2: float, tm
         w[vec, t] = s
 
 
+def _pinv_apply(
+    w: np.ndarray, src: int, m: int, k: int, y: int, out: int, a: int, v: int, eps2: float, tmp: int
+) -> None:
+    """The filtered pseudoinverse F(A^T A) A^T y (k,) into row ``out``: A (m x k) in rows
+    src.., y (m,) in row ``y``; A^T A's eigendecomposition left in rows a.. and v.."""
+    _gram_cols(w, src, m, k, a)
+    _jacobi(w, a, v, k)
+    _t_apply(w, src, m, k, y, out)
+    _finv_apply(w, a, v, k, out, eps2, tmp)
+
+
 def soft_prepare(w: np.ndarray, n: int, eps: float, min_sep: float) -> None:
-    """The soft internal projector's parts from G (rows G0): Gm (3 x n), the moment rows
-    about the contacts' centroid weighted by 1/L, in rows GM, and the eigendecomposition
-    of Gm Gm^T in rows A3 (eigenvalues) and V3."""
+    """The soft internal projector's parts from G: Gm (3 x n), the moment rows about the
+    contacts' centroid weighted by 1/L, in rows GM; Gm Gm^T's eigendecomposition in A3, V3."""
     lay = layout(n, 1)
     gm, a3, v3 = lay[3], lay[4], lay[5]
     p = n // 3
@@ -172,19 +179,12 @@ def soft_prepare(w: np.ndarray, n: int, eps: float, min_sep: float) -> None:
         w[gm, j], w[gm, j + 1], w[gm, j + 2] = 0.0, -z, y
         w[gm + 1, j], w[gm + 1, j + 1], w[gm + 1, j + 2] = z, 0.0, -x
         w[gm + 2, j], w[gm + 2, j + 1], w[gm + 2, j + 2] = -y, x, 0.0
-    for i in range(3):
-        for j in range(i, 3):
-            s = 0.0
-            for t in range(n):
-                s += w[gm + i, t] * w[gm + j, t]
-            w[a3 + i, j] = s
-            w[a3 + j, i] = s
+    _gram_rows(w, gm, 3, n, a3)
     _jacobi(w, a3, v3, 3)
 
 
 def soft_apply(w: np.ndarray, n: int, eps2: float, src: int, dst: int) -> None:
-    """P_int v (n,) into row ``dst`` for v in row ``src`` (``soft_prepare`` first):
-    v minus the mean of its force blocks on every block, minus Gm^T F(Gm Gm^T) Gm v."""
+    """P_int v into row ``dst`` for v (n,) in row ``src``, after ``soft_prepare``."""
     lay = layout(n, 1)
     gm, a3, v3 = lay[3], lay[4], lay[5]
     p = n // 3
@@ -221,23 +221,19 @@ def _pinv_or_ef(code: int, w: np.ndarray, n: int, r: int, eps2: float) -> None:
     m0, lam, kb, vb, a6, t1, xo = lay[1], lay[2], lay[7], lay[8], lay[13], lay[15], lay[19]
     tmp = lay[20]
     if code == PINV:
-        _gram_cols(w, m0, n, r, kb)
-        _t_apply(w, m0, n, r, lam, xo)
-    else:
-        for i in range(6):  # A = G M (6 x r) and G lam
-            for j in range(r):
-                s = 0.0
-                for t in range(n):
-                    s += w[i, t] * w[m0 + t, j]
-                w[a6 + i, j] = s
+        _pinv_apply(w, m0, n, r, lam, xo, kb, vb, eps2, tmp)
+        return
+    for i in range(6):  # A = G M (6 x r) and G lam
+        for j in range(r):
             s = 0.0
             for t in range(n):
-                s += w[i, t] * w[lam, t]
-            w[t1, i] = s
-        _gram_cols(w, a6, 6, r, kb)
-        _t_apply(w, a6, 6, r, t1, xo)
-    _jacobi(w, kb, vb, r)
-    _finv_apply(w, kb, vb, r, xo, eps2, tmp)
+                s += w[i, t] * w[m0 + t, j]
+            w[a6 + i, j] = s
+        s = 0.0
+        for t in range(n):
+            s += w[i, t] * w[lam, t]
+        w[t1, i] = s
+    _pinv_apply(w, a6, 6, r, t1, xo, kb, vb, eps2, tmp)
 
 
 def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -> None:
@@ -255,10 +251,7 @@ def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -
         for t in range(n):
             w[b0 + t, j] = w[t2, t]
     soft_apply(w, n, eps2, lam, t1)  # P_int lam
-    _gram_cols(w, b0, n, r, kb)
-    _jacobi(w, kb, vb, r)
-    _t_apply(w, b0, n, r, t1, x1)
-    _finv_apply(w, kb, vb, r, x1, eps2, tmp)  # x1 = B^+ P_int lam
+    _pinv_apply(w, b0, n, r, t1, x1, kb, vb, eps2, tmp)  # x1 = B^+ P_int lam
     # P = I - B^+ B = I - V diag(min(1, l / eps^2)) V^T, symmetrized.
     for i in range(r):
         for j in range(r):
@@ -282,10 +275,7 @@ def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -
                 q += w[m0 + t, k] * w[pp + k, j]
             w[mp + t, j] = q
         w[t2, t] = s
-    _gram_cols(w, mp, n, r, k2)
-    _jacobi(w, k2, v2, r)
-    _t_apply(w, mp, n, r, t2, y)
-    _finv_apply(w, k2, v2, r, y, eps2, tmp)
+    _pinv_apply(w, mp, n, r, t2, y, k2, v2, eps2, tmp)  # y = (M P)^+ (lam - M x1)
     for i in range(r):  # x1 + P y
         s = w[x1, i]
         for j in range(r):
@@ -296,9 +286,8 @@ def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -
 def general(
     code: int, w: np.ndarray, n: int, r: int, eps: float, min_sep: float, alpha: float
 ) -> None:
-    """lam_a (r,) N into row XO of ``w`` by robust method ``code`` (closed.CODES) for the
-    grasp in ``w`` (G, M_a, lam: the module's layout); ``alpha`` adaptive's external weight
-    in [0, 1] (the others ignore it). Uses rows X1 and the scratch rows for adaptive's mix."""
+    """lam_a (r,) N into row XO by robust method ``code`` (closed.CODES) for the grasp in
+    ``w``; ``alpha`` in [0, 1] is adaptive's external weight (the others ignore it)."""
     lay = layout(n, r)
     xo, x1 = lay[19], lay[18]
     eps2 = eps * eps
@@ -326,10 +315,9 @@ def solve_grasps(
     out: np.ndarray,
     w: np.ndarray,
 ) -> None:
-    """lam_a of N grasps by robust method ``code`` into out (N, r) N: G (N, 6, n), M (N, n,
-    r) or one shared (1, n, r), lam (N, n) N, alpha (N,) adaptive's weights; ``w`` a
-    workspace (work_shape(n, r)). Two contacts with one direction each (``fast``) take
-    the closed form (hapticd.allocation.closed.two_contact), every other grasp ``general``."""
+    """lam_a (N, r) N into ``out`` by robust method ``code``: G (N, 6, n), M (N or 1, n, r),
+    lam (N, n) N, alpha (N,), ``w`` a workspace. ``fast``: the closed form for two contacts
+    with one direction each."""
     N, n, r = lam.shape[0], lam.shape[1], out.shape[1]
     lay = layout(n, r)
     m0, row, xo = lay[1], lay[2], lay[19]
@@ -369,10 +357,8 @@ def solve_grasps(
 
 
 def residuals(w: np.ndarray, n: int, r: int) -> tuple[float, float, float, float]:
-    """hapticd.allocation.accuracy's measures (internal, external, total, amplification)
-    of lam_a in row XO for the grasp in ``w``: residual res = lam - M_a lam_a, internal
-    |P_N(G) res| (N(G) exact: G's row space from the eigenvalues of G G^T above
-    _RANK_SHARE of the largest), external |G res|, total |res|, |M_a lam_a| / |lam|."""
+    """``accuracy``'s (internal, external, total, amplification) of lam_a in row XO for the
+    grasp in ``w``; G's row space from G G^T's eigenvalues above _RANK_SHARE of the largest."""
     lay = layout(n, r)
     m0, lam, a6, v6, t1, xo = lay[1], lay[2], lay[13], lay[14], lay[15], lay[19]
     total = 0.0
@@ -388,18 +374,13 @@ def residuals(w: np.ndarray, n: int, r: int) -> tuple[float, float, float, float
         norm_lam += w[lam, t] * w[lam, t]
         norm_out += m * m
     external = 0.0
-    for i in range(6):  # G res (row T2) and G G^T
+    for i in range(6):  # G res, in row T2
         s = 0.0
         for t in range(n):
             s += w[i, t] * w[t1, t]
         w[t1 + 1, i] = s
         external += s * s
-        for j in range(i, 6):
-            q = 0.0
-            for t in range(n):
-                q += w[i, t] * w[j, t]
-            w[a6 + i, j] = q
-            w[a6 + j, i] = q
+    _gram_rows(w, 0, 6, n, a6)
     _jacobi(w, a6, v6, 6)
     top = 0.0
     for j in range(6):
@@ -433,8 +414,10 @@ KERNEL_HELPERS = (
     _rotation,
     _jacobi,
     _gram_cols,
+    _gram_rows,
     _t_apply,
     _finv_apply,
+    _pinv_apply,
     layout,
     soft_prepare,
     soft_apply,

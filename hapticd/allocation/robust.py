@@ -1,8 +1,4 @@
-"""The robust allocators' parameters and their error.
-
-The general path itself (filtered pseudoinverses, the soft internal projector) is
-``hapticd.allocation.general``; the closed forms are ``hapticd.allocation.closed``.
-"""
+"""The robust allocators' parameters (docs/allocation.md, "Parameters") and their error."""
 
 from __future__ import annotations
 
@@ -11,31 +7,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DEFAULT_EPS = 0.2
-DEFAULT_MIN_SEPARATION_M = 0.005
-DEFAULT_CONTACT_ONSET_N = 0.05
 _TINY = 1e-300
 
 
 class AllocationError(ValueError):
-    """Raised for malformed or non-finite allocation inputs."""
+    """Malformed or non-finite allocation input."""
 
 
 @dataclass(frozen=True)
 class Robustness:
-    """Parameters of the robust allocators.
+    """Parameters of the robust allocators; ValueError outside their ranges.
 
-    eps: singular-value threshold (dimensionless: directions are unit vectors,
-    moments are in N m per N); below it pseudoinverse gains are damped.
-    min_separation_m: contacts closer than this (m) blend the internal subspace
-    toward every opposing pair of forces.
-    contact_onset_n: a contact whose force is below this (N) joins the grasp
-    gradually (the renderer blends the allocations with and without it).
+    eps: singular-value threshold (dimensionless) below which gains are damped;
+    min_separation_m (m): closer contacts blend toward every opposing pair;
+    contact_onset_n (N): a weaker contact joins the grasp gradually.
     """
 
-    eps: float = DEFAULT_EPS
-    min_separation_m: float = DEFAULT_MIN_SEPARATION_M
-    contact_onset_n: float = DEFAULT_CONTACT_ONSET_N
+    eps: float = 0.2
+    min_separation_m: float = 0.005
+    contact_onset_n: float = 0.05
 
     def __post_init__(self) -> None:
         ok = 0 < self.eps < 1 and 0 < self.min_separation_m < 1 and 0 <= self.contact_onset_n < 10
