@@ -1,14 +1,6 @@
-"""One tick's allocation for F fingertips: which contacts, which definition, contact onset.
-
-``ContactAllocator.allocate`` takes the frame's arrays (which fingers touch, where
-the devices are, the contact points in m and full contact forces in N, on the
-finger) and writes lam_a (r,) N and M_a lam_a per finger, returning the accuracy of
-the result. A robust method runs the kernel ``hapticd.physics.kernels.allocation_step``
-(compiled, or the same function uncompiled): the closed forms of
-``hapticd.allocation.closed`` for one or two contacts with one direction each,
-``hapticd.allocation.general`` for any other grasp, and adaptive's alpha. The seed's
-exact formulas run ``hapticd.allocation.allocate``. Both blend a contact being made or
-broken into the grasp gradually.
+"""One tick's allocation for F fingertips on the frame's arrays: which contacts, which
+definition, contact onset. A robust method runs the kernel allocation_step, an exact one
+``hapticd.allocation.allocate``; docs/allocation.md says where each is defined.
 """
 
 from __future__ import annotations
@@ -29,12 +21,9 @@ V3 = tuple[float, float, float]
 
 
 class ContactAllocator:
-    """Allocates contact forces onto ``actuation``'s directions with ``method``.
-
-    Carries the adaptive allocator's alpha (``state``, following the task over ticks of
-    ``dt`` s, from ``adaptive``'s alpha) and runs the allocation kernel: ``kernel`` is the
-    compiled ``allocation_step`` (hapticd.physics.jit) or, set to None, the same function
-    uncompiled; ``work`` is its workspace.
+    """Allocates contact forces onto ``actuation``'s directions with ``method``, ticks of
+    ``dt`` s apart. Carries the adaptive allocator's alpha (``state``); ``kernel`` is
+    allocation_step, compiled or (set to None) not, ``work`` its workspace.
     """
 
     def __init__(
@@ -109,7 +98,7 @@ class ContactAllocator:
 
     @property
     def kernel(self) -> Callable[..., int]:
-        """hapticd.physics.kernels.allocation_step, compiled or not."""
+        """allocation_step, compiled or not."""
         return self._kernel
 
     @kernel.setter
@@ -127,13 +116,12 @@ class ContactAllocator:
         rendered: np.ndarray,
     ) -> np.ndarray:
         """Write lam_a (r,) N and ``rendered`` (F, 3) N, M_a lam_a per finger (zero out of
-        contact), and return the accuracy (internal, external, total, amplification).
+        contact); return the accuracy (internal, external, total N, amplification).
 
         ``in_contact`` (F,) u1, ``device_pos`` (F, 3) m (the grasp frame follows fingers 0
-        and 1), ``points`` (F, 3) m and ``forces`` (F, 3) N per finger, ``center`` (3,) m
-        the grasp's reference point; C-contiguous float64 (the kernel's types). Moves
-        ``alpha`` of the adaptive allocator (a refused tick leaves it as it was). Raises
-        AllocationError on non-finite contact geometry or forces, or a non-finite result.
+        and 1), ``points`` (F, 3) m, ``forces`` (F, 3) N, ``center`` (3,) m the grasp's
+        reference point; C-contiguous float64, the kernel's types. Moves ``alpha`` (a
+        refused tick leaves it). AllocationError for a non-finite input or result.
         """
         method = self._method
         params = self._params
@@ -161,13 +149,10 @@ class ContactAllocator:
         forces: np.ndarray,
         centers: np.ndarray,
     ) -> np.ndarray:
-        """lam_a (N, r) N over N recorded ticks, tick by tick as the loop's Allocation stage
-        allocates them: the same per-tick code (contact onset, the adaptive allocator's
-        alpha following the task from its value now), so a recording's allocation is the
-        loop's. ``in_contact`` (N, F), ``device_pos``, ``points`` (m) and ``forces`` (N)
-        (N, F, 3) are the frame's fields per tick; ``centers`` (N, 3) m the grasp's
-        reference point the tick allocated about (the object's position before the tick's
-        dynamics moved it)."""
+        """lam_a (N, r) N over N recorded ticks, allocated tick by tick as the loop does
+        (alpha from its value now). ``in_contact`` (N, F); ``device_pos``, ``points`` (m)
+        and ``forces`` (N) (N, F, 3); ``centers`` (N, 3) m, the object's position before
+        each tick's dynamics moved it."""
         touching = np.ascontiguousarray(in_contact, dtype=np.uint8)
         pos, pts, lam, ctr = (
             np.ascontiguousarray(a, dtype=float) for a in (device_pos, points, forces, centers)
@@ -179,14 +164,12 @@ class ContactAllocator:
         return out
 
     def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """allocation_step's ``local`` (D, 3), ``counts`` (F,) and ``params`` for the
-        allocator as it is now (the object's position in params[5:8] is the caller's), or
-        None for an exact method (its ``state`` and ``work`` are this allocator's)."""
+        """allocation_step's ``local`` (D, 3), ``counts`` (F,) and ``params`` as the allocator
+        is now (params[5:8], the object's position, the caller's), or None: an exact method."""
         return (self._local, self._counts, self._params) if self._takes else None
 
     def _refresh(self) -> None:
-        """The kernel's inputs for the actuation, method, robustness and adaptive parameters
-        as they are now, and whether it takes them (a robust method)."""
+        """Remake the kernel's inputs, and whether it takes the method (a robust one)."""
         act, rb, ad = self._actuation, self._robust, self._adaptive
         self._takes = self._method in _CODES
         params = self._params
@@ -202,8 +185,7 @@ class ContactAllocator:
         self._counts = np.array(act.counts, dtype=float)
 
     def _exact(self, *tick: np.ndarray) -> None:
-        """``allocate`` (its arguments: ``tick``) by the seed's exact formulas
-        (hapticd.allocation.allocate)."""
+        """``allocate`` by the seed's exact formulas."""
         in_contact, device_pos, points, forces, center, lam_a, rendered = tick
         contacts = np.flatnonzero(in_contact).tolist()
         lam_a.fill(0.0)
