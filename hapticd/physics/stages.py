@@ -19,7 +19,7 @@ from hapticd.physics.actuation import Actuation
 from hapticd.physics.dynamics import auto_substeps
 from hapticd.physics.frame import Frame
 from hapticd.physics.passivity import PassivityParams
-from hapticd.physics.scene import Scene, SceneObject, Surface
+from hapticd.physics.scene import Scene, SceneObject
 
 
 class Stage(Protocol):
@@ -31,28 +31,13 @@ class Stage(Protocol):
     writes: tuple[str, ...]
 
 
+# The accuracy's fields, in ContactAllocator.allocate's order.
+_ACCURACY = ("residual_internal", "residual_external", "residual_total", "amplification")
+
 HELD = ("proxy_pos", "surface_point", "contact_point")
 """The proxy shown, the fingertip's centre held on the object, the contact point."""
 FRICTIONLESS = ("frictionless_proxy", "frictionless_point", "frictionless_contact_point")
 """Contact's results when friction then moves them into ``HELD``."""
-
-
-class _Fields:
-    """The views of some fields of a frame, looked up once per frame and names (a stage
-    whose fields the plan binds keeps one: a lookup per tick costs more than the check)."""
-
-    __slots__ = ("_frame", "_names", "views")
-
-    def __init__(self) -> None:
-        self._frame: Frame | None = None
-        self._names: tuple[str, ...] = ()
-        self.views: tuple[np.ndarray, ...] = ()
-
-    def of(self, frame: Frame, names: tuple[str, ...]) -> tuple[np.ndarray, ...]:
-        if frame is not self._frame or names is not self._names:
-            self.views = tuple(getattr(frame, n) for n in names)
-            self._frame, self._names = frame, names
-        return self.views
 
 
 class Contact:
@@ -189,8 +174,7 @@ class Allocation:
         self.scene = scene
         self.allocator = allocator
         self.kernel = kernel
-        self._out = _Fields()
-        self._output = ("rendered_force",)
+        self.output = "rendered_force"  # or allocated_force, when the plan sums more into it
 
     @property
     def kernel(self) -> Callable[..., int]:
@@ -202,30 +186,12 @@ class Allocation:
         self.allocator.kernel = fn
 
     @property
-    def output(self) -> str:
-        """The field M_a lam_a goes to: ``rendered_force`` or ``allocated_force``."""
-        return self._output[0]
-
-    @output.setter
-    def output(self, name: str) -> None:
-        if name != self._output[0]:
-            self._output = (name,)
-
-    @property
     def carries(self) -> dict[str, object]:
         return {"allocator_blend": self.allocator.alpha}  # hapticd.physics.frame.STATE
 
     @property
     def writes(self) -> tuple[str, ...]:
-        return (
-            "lam_a",
-            "residual_internal",
-            "residual_external",
-            "residual_total",
-            "amplification",
-            "alpha",
-            self.output,
-        )
+        return ("lam_a", *_ACCURACY, "alpha", self.output)
 
     @property
     def actuation(self) -> Actuation:
@@ -240,7 +206,7 @@ class Allocation:
             frame.contact_force,
             self.scene.object.position,
             frame.lam_a,
-            self._out.of(frame, self._output)[0],
+            getattr(frame, self.output),
         )
         frame.alpha[()] = alloc.alpha
         frame.residual_internal[()] = acc[0]
@@ -350,12 +316,11 @@ class Dynamics:
         obj = scene.object
         self.dt = dt
         self.gravity = scene.gravity
-        self.substeps = scene.substeps
-        if scene.substeps == 0:  # auto
-            self.substeps = auto_substeps(
-                obj, scene.surfaces, obj.material.stiffness, n_fingers, dt
-            )
-        self._arrays: _BodyArrays | None = None  # the kernel's (shape, mass, surfaces)
+        self.substeps = scene.substeps or auto_substeps(  # 0: auto
+            obj, scene.surfaces, obj.material.stiffness, n_fingers, dt
+        )
+        self._arrays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._shape, self._mass = obj.shape, obj.mass  # what ``_arrays`` are for
         self._scratch = np.zeros((n_fingers, kernels.SCRATCH_COLUMNS))
         self._gravity = np.zeros(3) if self.gravity is None else np.array(self.gravity, float)
 
@@ -373,39 +338,31 @@ class Dynamics:
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """free_body_step's params, body, surfaces and scratch for the object as it is now."""
         obj = self.scene.object
-        arr = self._arrays
-        if arr is None or not arr.fits(obj):
-            arr = self._arrays = _BodyArrays(obj, self.scene.surfaces, self.dt, self.substeps)
-            arr.params[6:9] = self._gravity
-        mat = obj.material
-        arr.params[0] = mat.stiffness
-        arr.params[1] = mat.torsion
-        return arr.params, arr.body, arr.surf, self._scratch
+        if self._arrays is None or obj.shape is not self._shape or obj.mass != self._mass:
+            self._arrays = self._body_arrays(obj)
+        params, body, surf = self._arrays
+        params[0:2] = (obj.material.stiffness, obj.material.torsion)
+        return params, body, surf, self._scratch
 
-
-class _BodyArrays:
-    """free_body_step's arrays for an object's shape and mass and the surfaces: params,
-    body (inertia, its inverse, the vertices; body frame), surfaces (normal, offset,
-    stiffness, damping, dynamic friction)."""
-
-    def __init__(self, obj: SceneObject, surfaces: list[Surface], dt: float, substeps: int) -> None:
-        self.shape, self.mass = obj.shape, obj.mass
+    def _body_arrays(self, obj: SceneObject) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """free_body_step's params, body (inertia, its inverse, the vertices; body frame)
+        and surfaces (normal, offset, stiffness, damping, dynamic friction) for ``obj``'s
+        shape and mass."""
+        self._shape, self._mass = obj.shape, obj.mass
         local = obj.shape.vertices.tolist()
         # The farthest vertex from the centre of mass (m): surfaces farther away are skipped.
         reach = max((math.sqrt(x * x + y * y + z * z) for x, y, z in local), default=0.0)
-        self.params = np.zeros(kernels.PARAMS)
-        self.params[2:6] = (obj.mass, dt, substeps, reach)
+        params = np.zeros(kernels.PARAMS)
+        params[2:] = (obj.mass, self.dt, self.substeps, reach, *self._gravity)
         inertia = obj.inertia_body
-        self.body = np.array(
+        body = np.array(
             [*inertia.tolist(), *np.linalg.inv(inertia).tolist(), *local], dtype=float
         ).reshape(-1, 3)
-        self.surf = np.zeros((len(surfaces), kernels.SURFACE_COLUMNS))
-        for row, surface in zip(self.surf, surfaces, strict=True):
+        surf = np.zeros((len(self.scene.surfaces), kernels.SURFACE_COLUMNS))
+        for row, surface in zip(surf, self.scene.surfaces, strict=True):
             m = surface.material
             row[:] = (*surface.normal, surface.offset, m.stiffness, m.damping, m.mu_dynamic)
-
-    def fits(self, obj: SceneObject) -> bool:
-        return obj.shape is self.shape and obj.mass == self.mass
+        return params, body, surf
 
 
 class SceneState:
