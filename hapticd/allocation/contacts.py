@@ -6,6 +6,7 @@ definition, contact onset. A robust method runs the kernel allocation_step, an e
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
@@ -18,6 +19,21 @@ from hapticd.physics.actuation import Actuation
 from hapticd.physics.grasp import grasp_matrix
 
 V3 = tuple[float, float, float]
+T = TypeVar("T")
+
+
+class _Input(Generic[T]):
+    """An allocator's attribute whose setting remakes the kernel's inputs."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.attr = "_" + name
+
+    def __get__(self, obj: Any, owner: type | None = None) -> T:
+        return self if obj is None else getattr(obj, self.attr)  # type: ignore[return-value]
+
+    def __set__(self, obj: ContactAllocator, value: T) -> None:
+        setattr(obj, self.attr, value)
+        obj._refresh()
 
 
 class ContactAllocator:
@@ -25,6 +41,10 @@ class ContactAllocator:
     ``dt`` s apart. Carries the adaptive allocator's alpha (``state``); ``kernel`` is
     allocation_step, compiled or (set to None) not, ``work`` its workspace.
     """
+
+    actuation: _Input[Actuation] = _Input()  # the actuated directions
+    method: _Input[str] = _Input()  # a name in hapticd.allocation.METHODS
+    robust: _Input[Robustness] = _Input()  # the robust allocators' parameters
 
     def __init__(
         self,
@@ -45,36 +65,6 @@ class ContactAllocator:
         self._actuation, self._method, self._robust = actuation, method, robust
         self.adaptive = adaptive  # sets alpha, and the kernel's inputs for all four
         self.kernel = kernel
-
-    @property
-    def actuation(self) -> Actuation:
-        """The actuated directions; setting them remakes the kernel's inputs."""
-        return self._actuation
-
-    @actuation.setter
-    def actuation(self, value: Actuation) -> None:
-        self._actuation = value
-        self._refresh()
-
-    @property
-    def method(self) -> str:
-        """The allocator (a name in hapticd.allocation.METHODS)."""
-        return self._method
-
-    @method.setter
-    def method(self, value: str) -> None:
-        self._method = value
-        self._refresh()
-
-    @property
-    def robust(self) -> Robustness:
-        """The robust allocators' parameters."""
-        return self._robust
-
-    @robust.setter
-    def robust(self, value: Robustness) -> None:
-        self._robust = value
-        self._refresh()
 
     @property
     def adaptive(self) -> AdaptiveState:
@@ -193,12 +183,12 @@ class ContactAllocator:
         self.accuracy.fill(0.0)
         if not contacts:
             return
-        world = self.actuation.world_directions(device_pos.tolist())
+        world = self._actuation.world_directions(device_pos.tolist())
         x, G, M, cols, lam = self._solve(contacts, world, points, forces, center)
-        onset = self.robust.contact_onset_n
+        onset = self._robust.contact_onset_n
         if len(contacts) >= 2 and onset > 0.0:
-            # A contact that is just being made or broken joins the grasp gradually: without
-            # this, the grasp matrix (and IF's squeeze) would jump when it appears or leaves.
+            # A contact being made or broken joins the grasp gradually: else the grasp matrix
+            # (and IF's squeeze) would jump when it appears or leaves.
             norms = np.linalg.norm(forces[contacts], axis=1)
             weakest = int(np.argmin(norms))
             beta = smoothstep(float(norms[weakest]) / onset)
@@ -207,7 +197,7 @@ class ContactAllocator:
                 rest_x = self._solve(rest, world, points, forces, center)[0]
                 x = beta * x + (1.0 - beta) * rest_x
         if not np.all(np.isfinite(x)):
-            raise AllocationError(f"allocator {self.method!r} produced a non-finite force")
+            raise AllocationError(f"allocator {self._method!r} produced a non-finite force")
         lam_a[...] = x
         rendered[contacts] = (M @ x[cols]).reshape(-1, 3)
         a = accuracy(G, M, lam, x[cols])
@@ -223,15 +213,14 @@ class ContactAllocator:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int], np.ndarray]:
         """lam_a over all r actuators (zero for fingers not in ``contacts``), and the
         contacts' G (6, 3p), M_a (3p, c), the actuators of its c columns and lam (3p,) N."""
-        M, cols = self.actuation.submatrix(world, contacts)
-        geometry = (points[contacts], forces[contacts], center, M)
-        if not all(np.all(np.isfinite(a)) for a in geometry):
+        M, cols = self._actuation.submatrix(world, contacts)
+        pts, lam = points[contacts], forces[contacts].reshape(-1)
+        if not all(np.all(np.isfinite(a)) for a in (pts, lam, center, M)):
             raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-        G = grasp_matrix(points[contacts], center)
-        lam = forces[contacts].reshape(-1)
-        out = np.zeros(self.actuation.n_actuators)
+        G = grasp_matrix(pts, center)
+        out = np.zeros(self._actuation.n_actuators)
         if cols:
-            out[cols] = allocate(self.method, G, M, lam, robust=self.robust)
+            out[cols] = allocate(self._method, G, M, lam, robust=self._robust)
         return out, G, M, cols, lam
 
 
