@@ -7,6 +7,7 @@ The picture: docs/architecture.md, "One tick".
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from typing import Any
@@ -351,26 +352,18 @@ class OneCall:
     def _bind(self, frame: Frame) -> None:
         """Make the call's arguments for ``frame`` and the plan as it is now."""
         r = self.renderer
-        sc = r.scene
-        obj = sc.object
-        contact = r._contact
+        obj = r.scene.object
+        mat = obj.material
         act = r.allocator.actuation
         n = r.n_fingers
-        inputs = r._allocation.kernel_inputs()
-        # None: allocation runs in Python, between the call's parts.
-        alloc_params = np.zeros(kn.ALLOCATION_PARAMS) if inputs is None else inputs[2]
         names = {s.name: s for s in r.stages}
         friction = "friction" in names
         free = "dynamics" in names
-        total = "output" in names
         passivity = r._passivity if "passivity" in names else None
-        mat = obj.material
-        if free:
-            body_params, body, surf, _ = names["dynamics"].arrays()
-        else:
-            body_params, body, surf = np.zeros(kn.PARAMS), np.zeros((0, 3)), np.zeros((0, 7))
+        inputs = r._allocation.kernel_inputs()  # None: allocation runs between the parts
+        body_params, body, surf = names["dynamics"].arrays()[:3] if free else _NO_BODY
         blocks = {
-            "planes": contact._kernel_planes(),
+            "planes": r._contact._kernel_planes(),
             "body": body,
             "surf": surf,
             "normals": np.asarray(obj.shape.normals, dtype=float).reshape(-1, 3),
@@ -384,10 +377,10 @@ class OneCall:
         if self._plan.size != size:
             self._plan = np.zeros(size)
         plan = self._plan
-        layout: list[int] = []
+        layout: list[int] = []  # each block's offset in the plan; "rows": the last one's rows
         start = rows = head
         for name in kn.TICK_PLAN:
-            if name == "rows":  # the rows of the block before
+            if name == "rows":
                 layout.append(rows)
                 continue
             block = blocks[name]
@@ -400,22 +393,19 @@ class OneCall:
         )
         p = self._params = plan[kn.TICK_AT : head]
         p[:] = 0.0
-        p[kn.TICK_FRICTION] = float(friction)
-        p[kn.TICK_FREE] = float(free)
-        p[kn.TICK_SURFACES] = float(bool(sc.surfaces))
-        p[kn.TICK_SUM] = float(total)
-        p[kn.TICK_PASSIVITY] = float(passivity is not None)
+        p[kn.TICK_FRICTION] = friction
+        p[kn.TICK_FREE] = free
+        p[kn.TICK_SURFACES] = bool(r.scene.surfaces)
+        p[kn.TICK_SUM] = "output" in names
+        p[kn.TICK_PASSIVITY] = passivity is not None
         if passivity is not None:
             p[kn.TICK_PASSIVITY_AT : kn.TICK_FRICTION_AT] = passivity.kernel_params
         p[kn.TICK_FRICTION_AT : kn.TICK_FORCES_AT] = (mat.mu_static, mat.mu_dynamic)
-        p[kn.TICK_FORCES_AT : kn.TICK_ALLOCATION_AT] = (
-            mat.stiffness,
-            mat.damping,
-            0.0 if obj.fixed else 1.0,
-        )
-        p[kn.TICK_ALLOCATION_AT : kn.TICK_BODY_AT] = alloc_params
+        p[kn.TICK_FORCES_AT : kn.TICK_ALLOCATION_AT] = (mat.stiffness, mat.damping, not obj.fixed)
+        if inputs is not None:
+            p[kn.TICK_ALLOCATION_AT : kn.TICK_BODY_AT] = inputs[2]
         # The actuation's frame, for the environment and passivity as for allocation.
-        p[kn.TICK_ALLOCATION_AT + 4] = 1.0 if act.frame == "grasp" else 0.0
+        p[kn.TICK_ALLOCATION_AT + 4] = act.frame == "grasp"
         p[kn.TICK_BODY_AT :] = body_params
         at = {name: _float_offset(frame, name) for name in kn.TICK_FIELDS}
         if not friction:  # contact writes the final fields itself
@@ -572,6 +562,8 @@ def _parts(stages: list[Stage]) -> list[tuple[int, int] | Stage]:
 SAMPLES_REFUSED = -1
 # tick_step's safety arrays when the safety chain does not run in the call (never read).
 _NO_SAFETY = (np.zeros(kn.SAFETY_PARAMS), np.zeros((2, 1, 3)))
+# The free-body arrays of a plan with no dynamics (copied into the plan, never written).
+_NO_BODY = (np.zeros(kn.PARAMS), np.zeros((0, 3)), np.zeros((0, kn.SURFACE_COLUMNS)))
 _SAFE = kn.TICK_SAFE
 _FINISHED = kn.TICK_FINISHED
 
@@ -594,16 +586,7 @@ def _own(name: str) -> str:
 
 
 def _material(r: Renderer, **change: float) -> None:
-    m = r.obj.material
-    values = {
-        "stiffness": m.stiffness,
-        "damping": m.damping,
-        "mu_static": m.mu_static,
-        "mu_dynamic": m.mu_dynamic,
-        "torsion": m.torsion,
-    }
-    values.update(change)
-    r.obj.material = Material(**values)
+    r.obj.material = dataclasses.replace(r.obj.material, **change)
 
 
 def _set_actuation(r: Renderer, value: Any) -> None:
@@ -622,17 +605,13 @@ def _set_allocator(r: Renderer, value: Any) -> None:
     r.allocator.method = str(value)
 
 
-def _set_mass(r: Renderer, value: Any) -> None:
-    r.obj.mass = float(value)
-
-
 # How the renderer changes and reads each parameter it owns (hapticd.params, owner
 # "renderer"); a test checks these cover exactly those.
 _SETTERS: dict[str, Callable[[Renderer, Any], None]] = {
     "stiffness_n_per_m": lambda r, v: _material(r, stiffness=float(v)),
     "damping_n_s_per_m": lambda r, v: _material(r, damping=float(v)),
     "friction": lambda r, v: _material(r, mu_static=float(v[0]), mu_dynamic=float(v[1])),
-    "mass_kg": _set_mass,
+    "mass_kg": lambda r, v: setattr(r.obj, "mass", float(v)),
     "allocator": _set_allocator,
     "actuated_directions": _set_actuation,
 }
