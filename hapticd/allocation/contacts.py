@@ -113,7 +113,6 @@ class ContactAllocator:
         reference point; C-contiguous float64, the kernel's types. Moves ``alpha`` (a
         refused tick leaves it). AllocationError for a non-finite input or result.
         """
-        method = self._method
         params = self._params
         params[5:8] = center
         if self._takes:
@@ -124,9 +123,7 @@ class ContactAllocator:
             )  # fmt: skip
             if outcome == kernels.ALLOCATED:
                 return self.accuracy
-            if outcome == kernels.NON_FINITE_INPUT:
-                raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-            raise AllocationError(f"allocator {method!r} produced a non-finite force")
+            raise self.refusal(bad_input=outcome == kernels.NON_FINITE_INPUT)
         with np.errstate(over="ignore"):  # finite forces whose residuals overflow: inf
             self._exact(in_contact, device_pos, points, forces, center, lam_a, rendered)
         return self.accuracy
@@ -152,6 +149,12 @@ class ContactAllocator:
         for k in range(len(touching)):
             self.allocate(touching[k], pos[k], pts[k], lam[k], ctr[k], out[k], rendered)
         return out
+
+    def refusal(self, *, bad_input: bool) -> AllocationError:
+        """The error of a refused tick: a non-finite input (``bad_input``) or result."""
+        if bad_input:
+            return AllocationError("non-finite contact geometry or force; refusing to allocate")
+        return AllocationError(f"allocator {self._method!r} produced a non-finite force")
 
     def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """allocation_step's ``local`` (D, 3), ``counts`` (F,) and ``params`` as the allocator
@@ -197,7 +200,7 @@ class ContactAllocator:
                 rest_x = self._solve(rest, world, points, forces, center)[0]
                 x = beta * x + (1.0 - beta) * rest_x
         if not np.all(np.isfinite(x)):
-            raise AllocationError(f"allocator {self._method!r} produced a non-finite force")
+            raise self.refusal(bad_input=False)
         lam_a[...] = x
         rendered[contacts] = (M @ x[cols]).reshape(-1, 3)
         a = accuracy(G, M, lam, x[cols])
@@ -216,7 +219,7 @@ class ContactAllocator:
         M, cols = self._actuation.submatrix(world, contacts)
         pts, lam = points[contacts], forces[contacts].reshape(-1)
         if not all(np.all(np.isfinite(a)) for a in (pts, lam, center, M)):
-            raise AllocationError("non-finite contact geometry or force; refusing to allocate")
+            raise self.refusal(bad_input=True)
         G = grasp_matrix(pts, center)
         out = np.zeros(self._actuation.n_actuators)
         if cols:

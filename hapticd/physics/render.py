@@ -16,7 +16,6 @@ import numpy as np
 
 from hapticd.allocation import DEFAULT_ROBUSTNESS, METHODS, AdaptiveState, Robustness
 from hapticd.allocation.contacts import ContactAllocator
-from hapticd.allocation.robust import AllocationError
 from hapticd.params import PARAMS, ParamError
 from hapticd.physics import kernels as kn
 from hapticd.physics.actuation import Actuation
@@ -497,10 +496,7 @@ class OneCall:
         r = self.renderer
         if outcome == kn.TICK_FROM_CONTACT:
             raise ValueError(r._contact._non_finite(frame, self._planes))
-        if outcome == kn.TICK_NON_FINITE_INPUT:
-            raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-        method = r.allocator.method
-        raise AllocationError(f"allocator {method!r} produced a non-finite force")
+        raise r.allocator.refusal(bad_input=outcome == kn.TICK_NON_FINITE_INPUT)
 
     def _with(self, safety: SafetyChain | None) -> None:
         """Run ``safety``'s tick in the call from now on (None: no chain's)."""
