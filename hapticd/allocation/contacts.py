@@ -1,19 +1,12 @@
-"""One tick's allocation for F fingertips: which contacts, which definition, contact onset.
-
-``ContactAllocator.allocate`` takes the frame's arrays (which fingers touch, where
-the devices are, the contact points in m and full contact forces in N, on the
-finger) and writes lam_a (r,) N and M_a lam_a per finger, returning the accuracy of
-the result. A robust method runs the kernel ``hapticd.physics.kernels.allocation_step``
-(compiled, or the same function uncompiled): the closed forms of
-``hapticd.allocation.closed`` for one or two contacts with one direction each,
-``hapticd.allocation.general`` for any other grasp, and adaptive's alpha. The seed's
-exact formulas run ``hapticd.allocation.allocate``. Both blend a contact being made or
-broken into the grasp gradually.
+"""One tick's allocation for F fingertips on the frame's arrays: which contacts, which
+definition, contact onset. A robust method runs the kernel allocation_step, an exact one
+``hapticd.allocation.allocate``; docs/allocation.md says where each is defined.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
@@ -26,16 +19,32 @@ from hapticd.physics.actuation import Actuation
 from hapticd.physics.grasp import grasp_matrix
 
 V3 = tuple[float, float, float]
+T = TypeVar("T")
+
+
+class _Input(Generic[T]):
+    """An allocator's attribute whose setting remakes the kernel's inputs."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.attr = "_" + name
+
+    def __get__(self, obj: Any, owner: type | None = None) -> T:
+        return self if obj is None else getattr(obj, self.attr)  # type: ignore[return-value]
+
+    def __set__(self, obj: ContactAllocator, value: T) -> None:
+        setattr(obj, self.attr, value)
+        obj._refresh()
 
 
 class ContactAllocator:
-    """Allocates contact forces onto ``actuation``'s directions with ``method``.
-
-    Carries the adaptive allocator's alpha (``state``, following the task over ticks of
-    ``dt`` s, from ``adaptive``'s alpha) and runs the allocation kernel: ``kernel`` is the
-    compiled ``allocation_step`` (hapticd.physics.jit) or, set to None, the same function
-    uncompiled; ``work`` is its workspace.
+    """Allocates contact forces onto ``actuation``'s directions with ``method``, ticks of
+    ``dt`` s apart. Carries the adaptive allocator's alpha (``state``); ``kernel`` is
+    allocation_step, compiled or (set to None) not, ``work`` its workspace.
     """
+
+    actuation: _Input[Actuation] = _Input()  # the actuated directions
+    method: _Input[str] = _Input()  # a name in hapticd.allocation.METHODS
+    robust: _Input[Robustness] = _Input()  # the robust allocators' parameters
 
     def __init__(
         self,
@@ -56,36 +65,6 @@ class ContactAllocator:
         self._actuation, self._method, self._robust = actuation, method, robust
         self.adaptive = adaptive  # sets alpha, and the kernel's inputs for all four
         self.kernel = kernel
-
-    @property
-    def actuation(self) -> Actuation:
-        """The actuated directions; setting them remakes the kernel's inputs."""
-        return self._actuation
-
-    @actuation.setter
-    def actuation(self, value: Actuation) -> None:
-        self._actuation = value
-        self._refresh()
-
-    @property
-    def method(self) -> str:
-        """The allocator (a name in hapticd.allocation.METHODS)."""
-        return self._method
-
-    @method.setter
-    def method(self, value: str) -> None:
-        self._method = value
-        self._refresh()
-
-    @property
-    def robust(self) -> Robustness:
-        """The robust allocators' parameters."""
-        return self._robust
-
-    @robust.setter
-    def robust(self, value: Robustness) -> None:
-        self._robust = value
-        self._refresh()
 
     @property
     def adaptive(self) -> AdaptiveState:
@@ -109,7 +88,7 @@ class ContactAllocator:
 
     @property
     def kernel(self) -> Callable[..., int]:
-        """hapticd.physics.kernels.allocation_step, compiled or not."""
+        """allocation_step, compiled or not."""
         return self._kernel
 
     @kernel.setter
@@ -127,15 +106,13 @@ class ContactAllocator:
         rendered: np.ndarray,
     ) -> np.ndarray:
         """Write lam_a (r,) N and ``rendered`` (F, 3) N, M_a lam_a per finger (zero out of
-        contact), and return the accuracy (internal, external, total, amplification).
+        contact); return the accuracy (internal, external, total N, amplification).
 
         ``in_contact`` (F,) u1, ``device_pos`` (F, 3) m (the grasp frame follows fingers 0
-        and 1), ``points`` (F, 3) m and ``forces`` (F, 3) N per finger, ``center`` (3,) m
-        the grasp's reference point; C-contiguous float64 (the kernel's types). Moves
-        ``alpha`` of the adaptive allocator (a refused tick leaves it as it was). Raises
-        AllocationError on non-finite contact geometry or forces, or a non-finite result.
+        and 1), ``points`` (F, 3) m, ``forces`` (F, 3) N, ``center`` (3,) m the grasp's
+        reference point; C-contiguous float64, the kernel's types. Moves ``alpha`` (a
+        refused tick leaves it). AllocationError for a non-finite input or result.
         """
-        method = self._method
         params = self._params
         params[5:8] = center
         if self._takes:
@@ -146,9 +123,7 @@ class ContactAllocator:
             )  # fmt: skip
             if outcome == kernels.ALLOCATED:
                 return self.accuracy
-            if outcome == kernels.NON_FINITE_INPUT:
-                raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-            raise AllocationError(f"allocator {method!r} produced a non-finite force")
+            raise self.refusal(bad_input=outcome == kernels.NON_FINITE_INPUT)
         with np.errstate(over="ignore"):  # finite forces whose residuals overflow: inf
             self._exact(in_contact, device_pos, points, forces, center, lam_a, rendered)
         return self.accuracy
@@ -161,13 +136,10 @@ class ContactAllocator:
         forces: np.ndarray,
         centers: np.ndarray,
     ) -> np.ndarray:
-        """lam_a (N, r) N over N recorded ticks, tick by tick as the loop's Allocation stage
-        allocates them: the same per-tick code (contact onset, the adaptive allocator's
-        alpha following the task from its value now), so a recording's allocation is the
-        loop's. ``in_contact`` (N, F), ``device_pos``, ``points`` (m) and ``forces`` (N)
-        (N, F, 3) are the frame's fields per tick; ``centers`` (N, 3) m the grasp's
-        reference point the tick allocated about (the object's position before the tick's
-        dynamics moved it)."""
+        """lam_a (N, r) N over N recorded ticks, allocated tick by tick as the loop does
+        (alpha from its value now). ``in_contact`` (N, F); ``device_pos``, ``points`` (m)
+        and ``forces`` (N) (N, F, 3); ``centers`` (N, 3) m, the object's position before
+        each tick's dynamics moved it."""
         touching = np.ascontiguousarray(in_contact, dtype=np.uint8)
         pos, pts, lam, ctr = (
             np.ascontiguousarray(a, dtype=float) for a in (device_pos, points, forces, centers)
@@ -178,15 +150,19 @@ class ContactAllocator:
             self.allocate(touching[k], pos[k], pts[k], lam[k], ctr[k], out[k], rendered)
         return out
 
+    def refusal(self, *, bad_input: bool) -> AllocationError:
+        """The error of a refused tick: a non-finite input (``bad_input``) or result."""
+        if bad_input:
+            return AllocationError("non-finite contact geometry or force; refusing to allocate")
+        return AllocationError(f"allocator {self._method!r} produced a non-finite force")
+
     def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """allocation_step's ``local`` (D, 3), ``counts`` (F,) and ``params`` for the
-        allocator as it is now (the object's position in params[5:8] is the caller's), or
-        None for an exact method (its ``state`` and ``work`` are this allocator's)."""
+        """allocation_step's ``local`` (D, 3), ``counts`` (F,) and ``params`` as the allocator
+        is now (params[5:8], the object's position, the caller's), or None: an exact method."""
         return (self._local, self._counts, self._params) if self._takes else None
 
     def _refresh(self) -> None:
-        """The kernel's inputs for the actuation, method, robustness and adaptive parameters
-        as they are now, and whether it takes them (a robust method)."""
+        """Remake the kernel's inputs, and whether it takes the method (a robust one)."""
         act, rb, ad = self._actuation, self._robust, self._adaptive
         self._takes = self._method in _CODES
         params = self._params
@@ -202,8 +178,7 @@ class ContactAllocator:
         self._counts = np.array(act.counts, dtype=float)
 
     def _exact(self, *tick: np.ndarray) -> None:
-        """``allocate`` (its arguments: ``tick``) by the seed's exact formulas
-        (hapticd.allocation.allocate)."""
+        """``allocate`` by the seed's exact formulas."""
         in_contact, device_pos, points, forces, center, lam_a, rendered = tick
         contacts = np.flatnonzero(in_contact).tolist()
         lam_a.fill(0.0)
@@ -211,12 +186,12 @@ class ContactAllocator:
         self.accuracy.fill(0.0)
         if not contacts:
             return
-        world = self.actuation.world_directions(device_pos.tolist())
+        world = self._actuation.world_directions(device_pos.tolist())
         x, G, M, cols, lam = self._solve(contacts, world, points, forces, center)
-        onset = self.robust.contact_onset_n
+        onset = self._robust.contact_onset_n
         if len(contacts) >= 2 and onset > 0.0:
-            # A contact that is just being made or broken joins the grasp gradually: without
-            # this, the grasp matrix (and IF's squeeze) would jump when it appears or leaves.
+            # A contact being made or broken joins the grasp gradually: else the grasp matrix
+            # (and IF's squeeze) would jump when it appears or leaves.
             norms = np.linalg.norm(forces[contacts], axis=1)
             weakest = int(np.argmin(norms))
             beta = smoothstep(float(norms[weakest]) / onset)
@@ -225,7 +200,7 @@ class ContactAllocator:
                 rest_x = self._solve(rest, world, points, forces, center)[0]
                 x = beta * x + (1.0 - beta) * rest_x
         if not np.all(np.isfinite(x)):
-            raise AllocationError(f"allocator {self.method!r} produced a non-finite force")
+            raise self.refusal(bad_input=False)
         lam_a[...] = x
         rendered[contacts] = (M @ x[cols]).reshape(-1, 3)
         a = accuracy(G, M, lam, x[cols])
@@ -241,15 +216,14 @@ class ContactAllocator:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int], np.ndarray]:
         """lam_a over all r actuators (zero for fingers not in ``contacts``), and the
         contacts' G (6, 3p), M_a (3p, c), the actuators of its c columns and lam (3p,) N."""
-        M, cols = self.actuation.submatrix(world, contacts)
-        geometry = (points[contacts], forces[contacts], center, M)
-        if not all(np.all(np.isfinite(a)) for a in geometry):
-            raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-        G = grasp_matrix(points[contacts], center)
-        lam = forces[contacts].reshape(-1)
-        out = np.zeros(self.actuation.n_actuators)
+        M, cols = self._actuation.submatrix(world, contacts)
+        pts, lam = points[contacts], forces[contacts].reshape(-1)
+        if not all(np.all(np.isfinite(a)) for a in (pts, lam, center, M)):
+            raise self.refusal(bad_input=True)
+        G = grasp_matrix(pts, center)
+        out = np.zeros(self._actuation.n_actuators)
         if cols:
-            out[cols] = allocate(self.method, G, M, lam, robust=self.robust)
+            out[cols] = allocate(self._method, G, M, lam, robust=self._robust)
         return out, G, M, cols, lam
 
 

@@ -1,21 +1,13 @@
-"""The renderer: the ordered stages of one tick, planned from the scene (hapticd.physics.stages).
+"""The renderer: the stages a scene needs, in tick order, run as one call per tick.
 
-``Renderer.run(frame)`` runs the plan on a tick frame (hapticd.physics.frame) whose
-device state is filled: contact, friction, forces, allocation, environment,
-passivity, dynamics, scene. Stages the scene does not need are not in the plan
-and never run (a fixed cube has no dynamics stage, a frictionless one no
-friction stage, a renderer without ``passivity`` parameters no passivity stage).
-The plan runs as one call per tick (``OneCall``: hapticd.physics.kernels.tick_step);
-``use_kernels`` hands it the compiled call (hapticd.physics.jit); without it the same function
-runs uncompiled (its only code). ``insert`` adds a stage after a named one;
-``set_param`` changes a scene or rendering parameter (those of hapticd.params the
-renderer owns) and re-plans.
-The same object renders off-line: ``step(device_pos, device_vel)`` runs one
-tick on the renderer's own frame, with no devices, timing or safety.
+``Renderer`` plans the stages (hapticd.physics.stages) and owns their carried state;
+``check_plan`` checks a plan; ``OneCall`` runs it (kernels.tick_step, compiled or not).
+The picture: docs/architecture.md, "One tick".
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from typing import Any
@@ -24,7 +16,6 @@ import numpy as np
 
 from hapticd.allocation import DEFAULT_ROBUSTNESS, METHODS, AdaptiveState, Robustness
 from hapticd.allocation.contacts import ContactAllocator
-from hapticd.allocation.robust import AllocationError
 from hapticd.params import PARAMS, ParamError
 from hapticd.physics import kernels as kn
 from hapticd.physics.actuation import Actuation
@@ -50,20 +41,15 @@ from hapticd.physics.stages import (
 
 
 class PlanError(ValueError):
-    """A plan of stages that breaks the frame's rule: one writer per field, and every field
-    read written by someone (hapticd.physics.frame)."""
+    """A plan that breaks the frame's rules: one writer a field, every field read written."""
 
 
 def check_plan(stages: list[Stage]) -> dict[str, str]:
-    """The writer of every frame field the plan or the loop writes (field -> who), or
-    PlanError naming the field and both writers when two write one field, or the stage and
-    field when a stage names a field the frame does not have or reads one nobody writes.
+    """The writer of each field the plan or the loop writes (field -> who).
 
-    A stage declares ``reads`` and ``writes`` (hapticd.physics.stages.Stage); one that declares
-    neither (a test's hook) touches no field. A test's fault injector declares the fields
-    it spoils after their writer in ``corrupts``: not a writer, but it must name fields
-    someone writes. A stage that carries state to the next tick names it in ``carries``:
-    each is declared in hapticd.physics.frame.STATE with that stage as its one writer."""
+    PlanError names the field and the stage: two writers of a field, a field the frame
+    lacks, a read (or ``corrupts``) nobody writes, state ``carries`` that frame.STATE
+    gives to another writer."""
     order = " -> ".join(s.name for s in stages)
     writers = dict(LOOP_WRITERS)
     for stage in stages:
@@ -99,9 +85,9 @@ def check_plan(stages: list[Stage]) -> dict[str, str]:
 
 
 class Renderer:
-    """One tick of the scene for F spherical fingertips of ``radii`` (m), rendered through
-    ``actuation`` with ``allocator`` (a name in hapticd.allocation.METHODS); with
-    ``passivity`` a time-domain passivity controller runs on the rendered forces."""
+    """One tick of the scene for F spherical fingertips of ``radii`` (m), through
+    ``actuation`` with ``allocator`` (a name in hapticd.allocation.METHODS); ``passivity``
+    adds the passivity controller. ValueError for a wrong count of radii or allocator."""
 
     def __init__(
         self,
@@ -130,9 +116,8 @@ class Renderer:
             adaptive if adaptive is not None else AdaptiveState(),
             dt,
         )
-        # What a tick carries to the next, in one array (hapticd.physics.kernels.TICK_STATE) that
-        # the one call takes; the stages that carry state live as long as the renderer and
-        # hold views of their blocks.
+        # The carried state in one array (kernels.TICK_STATE), which the call takes whole;
+        # the stages, made once, hold views of their blocks.
         layout = kn.state_layout(self.n_fingers, actuation.n_actuators)
         self.state = np.zeros(sum(math.prod(shape) for _, shape in layout.values()))
         views = self._state_views()
@@ -154,8 +139,7 @@ class Renderer:
     # -- the carried state ------------------------------------------------------------------
 
     def _state_views(self) -> dict[str, np.ndarray]:
-        """Each block of ``state`` (kernels.TICK_STATE) as a view, made again when they are
-        no views of it (a deep copy or a pickle copies each array on its own)."""
+        """Each block of ``state`` as a view, made anew when they are not (a copy's)."""
         views = getattr(self, "_views", None)
         if views is None or views["loop"].base is not self.state:
             layout = kn.state_layout(self.n_fingers, self.actuation.n_actuators)
@@ -179,8 +163,8 @@ class Renderer:
         return held
 
     def _adopt(self) -> None:
-        """Every carrier's array a view of ``state``: one that holds its own (the allocator's
-        from its start, a copy's) has its values copied in and holds the view from then on."""
+        """Make every carrier hold its view of ``state``, copying in the values of an array
+        of its own (the allocator's at first, a copy's)."""
         views = self._state_views()
         for holder, attr, block in self._carriers():
             view = views[block]
@@ -192,22 +176,18 @@ class Renderer:
 
     @property
     def loop(self) -> np.ndarray:
-        """The servo loop's block of ``state`` (kernels.LOOP_*): whether the devices' samples
-        wait for the one call's check, their limits, each finger's largest force (N)."""
+        """The servo loop's block of ``state`` (kernels.LOOP_*)."""
         return self._state_views()["loop"]
 
     # -- the plan -------------------------------------------------------------------------
 
     def plan(self) -> None:
-        """Choose the stages this scene needs, in tick order, and bind the fields each
-        writes so that every field has one writer (PlanError otherwise, the plan as it was).
+        """Choose the stages the scene needs, in tick order, and the fields each writes
+        (PlanError: ``check_plan`` refuses the plan).
 
-        Contact writes the proxies and points friction then moves (``FRICTIONLESS``) when
-        friction is planned, the final ones (``HELD``) when not. The rendered force's
-        contributions (the allocated force, the environment's, the passivity controller's
-        damping) each have a field; the output stage sums them into ``rendered_force``, or
-        allocation writes it when it is the only one; ``set_output`` puts another writer
-        of ``rendered_force`` in the sum's place."""
+        With friction, contact writes FRICTIONLESS and friction HELD. Allocation writes
+        ``rendered_force`` itself when it is the only contribution; else the output stage
+        (or ``set_output``'s) does."""
         sc = self.scene
         obj = sc.object
         stages: list[Stage] = [self._contact]
@@ -243,19 +223,19 @@ class Renderer:
 
     @property
     def kernel_names(self) -> list[str]:
-        """The kernels (names in hapticd.physics.kernels) this renderer runs: the tick's one
-        call, and the allocation's own (its allocator's, outside the call: a replay)."""
+        """The kernels this renderer runs: the tick's call, and the allocator's own (for
+        ``ContactAllocator.replay``, outside the call)."""
         return ["tick_step", "allocation_step"]
 
     def use_kernels(self, kernels: dict[str, Callable[..., None]]) -> None:
-        """Run the kernels in ``kernels`` (name -> compiled function, ``kernel_names``) from
-        the next tick on; an empty dict: none compiled."""
+        """Run the compiled ``kernels`` (name -> function, of ``kernel_names``) from the
+        next tick on; {}: none compiled."""
         self.kernels = dict(kernels)
         self.plan()
 
     @property
     def passivity(self) -> Passivity | None:
-        """The passivity stage (planned when the renderer was given its parameters), or None."""
+        """The passivity stage, or None without its parameters."""
         return self._passivity
 
     @property
@@ -264,8 +244,8 @@ class Renderer:
         return [s.name for s in self.stages]
 
     def insert(self, stage: Stage, *, after: str) -> None:
-        """Run ``stage`` after the stage named ``after`` on every tick from now on
-        (PlanError, the plan unchanged, if it writes a field another writer has)."""
+        """Run ``stage`` after the stage named ``after`` from the next tick on. ValueError
+        for no such stage; PlanError, the plan unchanged, for a plan ``check_plan`` refuses."""
         if after not in self.stage_names:
             raise ValueError(f"no stage {after!r} in the plan {self.stage_names}")
         self._inserted.append((after, stage))
@@ -277,9 +257,8 @@ class Renderer:
             raise
 
     def set_output(self, stage: Stage | None) -> None:
-        """Let ``stage`` (declaring it writes ``rendered_force``) write the rendered force
-        in place of the sum of the contributions, from the next tick on (the bring-up's
-        pulse: no force of the scene mixes into it); None: the sum again."""
+        """Let ``stage`` write ``rendered_force`` in place of the sum from the next tick on;
+        None: the sum again. PlanError, the plan unchanged, if it does not declare it."""
         if stage is not None and "rendered_force" not in getattr(stage, "writes", ()):
             raise PlanError(f"stage {stage.name!r} does not write 'rendered_force'")
         before = self._output
@@ -294,18 +273,17 @@ class Renderer:
     # -- the tick -------------------------------------------------------------------------
 
     def run(self, frame: Frame, safety: SafetyChain | None = None) -> int | None:
-        """One tick on ``frame``, whose device_pos (F, 3) m and device_vel (F, 3) m/s are set:
-        the plan in one call (``OneCall``; in parts around a stage of its own in Python).
+        """One tick on ``frame``, whose device_pos (F, 3) m and device_vel (F, 3) m/s are set.
 
-        ``safety``: a chain ``ready`` for this tick, whose tick the one call makes too
-        (device_force), after checking a free object's state: then its safety_step
-        outcome, for ``SafetyChain.done``; None when the call did not (the caller checks
-        the object and runs the chain)."""
+        With ``safety`` (a ``ready`` chain) the call makes the chain's tick too: its outcome,
+        for ``SafetyChain.done``; None when it did not (the caller checks the object and runs
+        the chain); SAMPLES_REFUSED when the devices' samples failed the call's check.
+        ValueError (contact) or AllocationError for a non-finite input or result."""
         return self.one_call.run(frame, safety)
 
     def step(self, device_pos: np.ndarray, device_vel: np.ndarray) -> Frame:
-        """One tick for device positions (F, 3) m and velocities (F, 3) m/s on the renderer's
-        own frame (no devices, timing or safety); returns that frame."""
+        """One tick off-line for device positions (F, 3) m and velocities (F, 3) m/s, on the
+        renderer's own frame (no devices, timing or safety), which it returns."""
         frame = self.frame
         frame.device_pos[:] = device_pos
         frame.device_vel[:] = device_vel
@@ -332,29 +310,19 @@ class Renderer:
         return _GETTERS[_own(name)](self)
 
     def set_param(self, name: str, value: Any) -> None:
-        """Change a scene or rendering parameter now (call between ticks) and re-plan.
-
-        The value is taken as given: the control protocol checks it against its spec
-        first. ValueError, with nothing changed, for a name the renderer does not own or
-        an actuation whose number of directions per finger differs (it fixes the
-        recording's layout).
-        """
+        """Change a renderer parameter between ticks and re-plan. The value is taken as
+        given (the control protocol checks it against its spec). ParamError for a name the
+        renderer does not own; ValueError, nothing changed, for another count of actuated
+        directions per finger (it fixes the recording's layout)."""
         _SETTERS[_own(name)](self, value)
         self.plan()
 
 
 class OneCall:
-    """The renderer's plan as one call per tick: hapticd.physics.kernels.tick_step, compiled or
-    (with
-    ``rendering.kernels=python``, or until the compiler is done) the same function
-    uncompiled, over the frame's fields and the stages' carried state (their own arrays:
-    the proxies, the anchors, the object's state, passivity's, the allocator's alpha and
-    workspace).
+    """The renderer's plan as one call per tick of kernels.tick_step, compiled or not.
 
-    A stage the call does not run (one inserted into the plan, another writer of the
-    rendered force, allocation by a method or actuation its kernel does not take) runs in
-    Python between the call's parts, each part a run of the kernel's stages. A non-finite
-    input to contact stops the call, and the contact stage names it."""
+    A stage the kernel lacks runs in Python between the call's parts, each a run of the
+    kernel's stages."""
 
     def __init__(self, renderer: Renderer, fn: Callable[..., int] | None) -> None:
         self.renderer = renderer
@@ -383,26 +351,18 @@ class OneCall:
     def _bind(self, frame: Frame) -> None:
         """Make the call's arguments for ``frame`` and the plan as it is now."""
         r = self.renderer
-        sc = r.scene
-        obj = sc.object
-        contact = r._contact
+        obj = r.scene.object
+        mat = obj.material
         act = r.allocator.actuation
         n = r.n_fingers
-        inputs = r._allocation.kernel_inputs()
-        # None: allocation runs in Python, between the call's parts.
-        alloc_params = np.zeros(kn.ALLOCATION_PARAMS) if inputs is None else inputs[2]
         names = {s.name: s for s in r.stages}
         friction = "friction" in names
         free = "dynamics" in names
-        total = "output" in names
         passivity = r._passivity if "passivity" in names else None
-        mat = obj.material
-        if free:
-            body_params, body, surf, _ = names["dynamics"].arrays()
-        else:
-            body_params, body, surf = np.zeros(kn.PARAMS), np.zeros((0, 3)), np.zeros((0, 7))
+        inputs = r._allocation.kernel_inputs()  # None: allocation runs between the parts
+        body_params, body, surf = names["dynamics"].arrays()[:3] if free else _NO_BODY
         blocks = {
-            "planes": contact._kernel_planes(),
+            "planes": r._contact._kernel_planes(),
             "body": body,
             "surf": surf,
             "normals": np.asarray(obj.shape.normals, dtype=float).reshape(-1, 3),
@@ -416,10 +376,10 @@ class OneCall:
         if self._plan.size != size:
             self._plan = np.zeros(size)
         plan = self._plan
-        layout: list[int] = []
+        layout: list[int] = []  # each block's offset in the plan; "rows": the last one's rows
         start = rows = head
         for name in kn.TICK_PLAN:
-            if name == "rows":  # the rows of the block before
+            if name == "rows":
                 layout.append(rows)
                 continue
             block = blocks[name]
@@ -432,22 +392,19 @@ class OneCall:
         )
         p = self._params = plan[kn.TICK_AT : head]
         p[:] = 0.0
-        p[kn.TICK_FRICTION] = float(friction)
-        p[kn.TICK_FREE] = float(free)
-        p[kn.TICK_SURFACES] = float(bool(sc.surfaces))
-        p[kn.TICK_SUM] = float(total)
-        p[kn.TICK_PASSIVITY] = float(passivity is not None)
+        p[kn.TICK_FRICTION] = friction
+        p[kn.TICK_FREE] = free
+        p[kn.TICK_SURFACES] = bool(r.scene.surfaces)
+        p[kn.TICK_SUM] = "output" in names
+        p[kn.TICK_PASSIVITY] = passivity is not None
         if passivity is not None:
             p[kn.TICK_PASSIVITY_AT : kn.TICK_FRICTION_AT] = passivity.kernel_params
         p[kn.TICK_FRICTION_AT : kn.TICK_FORCES_AT] = (mat.mu_static, mat.mu_dynamic)
-        p[kn.TICK_FORCES_AT : kn.TICK_ALLOCATION_AT] = (
-            mat.stiffness,
-            mat.damping,
-            0.0 if obj.fixed else 1.0,
-        )
-        p[kn.TICK_ALLOCATION_AT : kn.TICK_BODY_AT] = alloc_params
+        p[kn.TICK_FORCES_AT : kn.TICK_ALLOCATION_AT] = (mat.stiffness, mat.damping, not obj.fixed)
+        if inputs is not None:
+            p[kn.TICK_ALLOCATION_AT : kn.TICK_BODY_AT] = inputs[2]
         # The actuation's frame, for the environment and passivity as for allocation.
-        p[kn.TICK_ALLOCATION_AT + 4] = 1.0 if act.frame == "grasp" else 0.0
+        p[kn.TICK_ALLOCATION_AT + 4] = act.frame == "grasp"
         p[kn.TICK_BODY_AT :] = body_params
         at = {name: _float_offset(frame, name) for name in kn.TICK_FIELDS}
         if not friction:  # contact writes the final fields itself
@@ -488,7 +445,7 @@ class OneCall:
         self._call = direct(self._fn, self._args)
 
     def run(self, frame: Frame, safety: SafetyChain | None = None) -> int | None:
-        """The tick (``Renderer.run``): the safety chain's outcome when it ran too, else None."""
+        """The tick: ``Renderer.run``."""
         # Set without a new plan (set_param plans anew): the object, or its material (an
         # analysis replaying a recording's stiffness tick by tick).
         obj = self._scene.object
@@ -514,8 +471,8 @@ class OneCall:
     @property
     def started(self) -> bool:
         """Whether the devices' samples may wait in the frame for the call's check: every
-        proxy has started at its device (the first finite tick), and the call's first part
-        is the kernel's (a Python stage before it would read the samples unchecked)."""
+        proxy has started, and the call's first part is the kernel's (a Python stage first
+        would read them unchecked)."""
         return self._started and (self._single or isinstance(self._parts[0], tuple))
 
     def _in_parts(self, frame: Frame) -> int:
@@ -539,10 +496,7 @@ class OneCall:
         r = self.renderer
         if outcome == kn.TICK_FROM_CONTACT:
             raise ValueError(r._contact._non_finite(frame, self._planes))
-        if outcome == kn.TICK_NON_FINITE_INPUT:
-            raise AllocationError("non-finite contact geometry or force; refusing to allocate")
-        method = r.allocator.method
-        raise AllocationError(f"allocator {method!r} produced a non-finite force")
+        raise r.allocator.refusal(bad_input=outcome == kn.TICK_NON_FINITE_INPUT)
 
     def _with(self, safety: SafetyChain | None) -> None:
         """Run ``safety``'s tick in the call from now on (None: no chain's)."""
@@ -554,17 +508,13 @@ class OneCall:
 
 
 def direct(fn: Callable[..., int], args: tuple[np.ndarray, ...]) -> Callable[..., int]:
-    """What to call ``fn`` with ``args`` through, every tick: a numba dispatcher's compiled
-    code itself (its one overload's entry point) when each argument is exactly the array
-    its signature declares, else ``fn`` (plain Python, or a dispatcher whose own check
-    then refuses the arguments by name).
+    """What to call ``fn`` with ``args`` through each tick: a numba dispatcher's one
+    overload's entry point when every argument is exactly the array its signature declares,
+    else ``fn`` (whose own check refuses a wrong argument by name).
 
-    The dispatcher checks the type of all twelve arguments on every call (about 1 us a
-    tick here); the entry point only unpacks them, trusting their dtype, dimensions and
-    layout. So that trust is checked here, once per set of arguments (the call's arrays
-    are bound once per frame, plan and chain, and never reshaped): the same dtype (byte
-    order included), dimensions, C order where declared, writable and aligned, and no
-    subclass, as numba's typing would demand."""
+    The dispatcher checks every argument's type on each call (about 1 us a tick); the entry
+    point trusts them, so they are checked here, once per set (bound once per frame, plan
+    and chain), as numba's typing would."""
     sigs = getattr(fn, "signatures", None)
     overloads = getattr(fn, "overloads", None)
     if not sigs or len(sigs) != 1 or overloads is None or len(sigs[0]) != len(args):
@@ -584,9 +534,9 @@ def direct(fn: Callable[..., int], args: tuple[np.ndarray, ...]) -> Callable[...
 
 
 def _parts(stages: list[Stage]) -> list[tuple[int, int] | Stage]:
-    """The plan as the call's parts: each run of stages the kernel has (their
-    ``kernel_stage``), as (first, last) STAGE_ indices, and each other stage itself. The
-    last part is the kernel's, to the end: the safety chain's tick, when the call makes it."""
+    """The plan as the call's parts: each run of the kernel's stages as (first, last)
+    STAGE_ indices, each other stage itself; the last part runs the kernel to the end (the
+    safety chain's tick)."""
     parts: list[tuple[int, int] | Stage] = []
     run: list[int] = []
     for stage in stages:
@@ -602,12 +552,14 @@ def _parts(stages: list[Stage]) -> list[tuple[int, int] | Stage]:
     return parts
 
 
-# What ``OneCall.run`` returns when the devices' samples it was to check hold one no hand
-# makes (kernels.TICK_SAMPLES): nothing of the tick is written; the device bank checks
-# them itself (its messages and fault), then the tick runs again.
+# ``OneCall.run``'s outcome when the devices' samples fail the call's check
+# (kernels.TICK_SAMPLES): nothing written; the device bank checks them itself, with its
+# messages, and runs the tick again.
 SAMPLES_REFUSED = -1
 # tick_step's safety arrays when the safety chain does not run in the call (never read).
 _NO_SAFETY = (np.zeros(kn.SAFETY_PARAMS), np.zeros((2, 1, 3)))
+# The free-body arrays of a plan with no dynamics (copied into the plan, never written).
+_NO_BODY = (np.zeros(kn.PARAMS), np.zeros((0, 3)), np.zeros((0, kn.SURFACE_COLUMNS)))
 _SAFE = kn.TICK_SAFE
 _FINISHED = kn.TICK_FINISHED
 
@@ -630,16 +582,7 @@ def _own(name: str) -> str:
 
 
 def _material(r: Renderer, **change: float) -> None:
-    m = r.obj.material
-    values = {
-        "stiffness": m.stiffness,
-        "damping": m.damping,
-        "mu_static": m.mu_static,
-        "mu_dynamic": m.mu_dynamic,
-        "torsion": m.torsion,
-    }
-    values.update(change)
-    r.obj.material = Material(**values)
+    r.obj.material = dataclasses.replace(r.obj.material, **change)
 
 
 def _set_actuation(r: Renderer, value: Any) -> None:
@@ -658,17 +601,13 @@ def _set_allocator(r: Renderer, value: Any) -> None:
     r.allocator.method = str(value)
 
 
-def _set_mass(r: Renderer, value: Any) -> None:
-    r.obj.mass = float(value)
-
-
 # How the renderer changes and reads each parameter it owns (hapticd.params, owner
 # "renderer"); a test checks these cover exactly those.
 _SETTERS: dict[str, Callable[[Renderer, Any], None]] = {
     "stiffness_n_per_m": lambda r, v: _material(r, stiffness=float(v)),
     "damping_n_s_per_m": lambda r, v: _material(r, damping=float(v)),
     "friction": lambda r, v: _material(r, mu_static=float(v[0]), mu_dynamic=float(v[1])),
-    "mass_kg": _set_mass,
+    "mass_kg": lambda r, v: setattr(r.obj, "mass", float(v)),
     "allocator": _set_allocator,
     "actuated_directions": _set_actuation,
 }
