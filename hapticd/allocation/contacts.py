@@ -156,10 +156,16 @@ class ContactAllocator:
             return AllocationError("non-finite contact geometry or force; refusing to allocate")
         return AllocationError(f"allocator {self._method!r} produced a non-finite force")
 
-    def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    @property
+    def in_kernel(self) -> bool:
+        """Whether allocation_step allocates for the method (a robust one; not the seed's
+        exact formulas)."""
+        return self._takes
+
+    def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """allocation_step's ``local`` (D, 3), ``counts`` (F,) and ``params`` as the allocator
-        is now (params[5:8], the object's position, the caller's), or None: an exact method."""
-        return (self._local, self._counts, self._params) if self._takes else None
+        is now (params[5:8], the object's position, the caller's)."""
+        return self._local, self._counts, self._params
 
     def _refresh(self) -> None:
         """Remake the kernel's inputs, and whether it takes the method (a robust one)."""

@@ -359,7 +359,8 @@ class OneCall:
         friction = "friction" in names
         free = "dynamics" in names
         passivity = r._passivity if "passivity" in names else None
-        inputs = r._allocation.kernel_inputs()  # None: allocation runs between the parts
+        # The directions and counts are the environment's and passivity's too.
+        directions, counts, alloc_params = r.allocator.kernel_inputs()
         body_params, body, surf = names["dynamics"].arrays()[:3] if free else _NO_BODY
         blocks = {
             "planes": r._contact._kernel_planes(),
@@ -368,8 +369,8 @@ class OneCall:
             "normals": np.asarray(obj.shape.normals, dtype=float).reshape(-1, 3),
             "offsets": np.asarray(obj.shape.offsets, dtype=float).reshape(-1),
             "scratch": np.zeros((n, kn.SCRATCH_COLUMNS)),
-            "directions": np.array([d for ds in act.local for d in ds], dtype=float),
-            "counts": np.array(act.counts, dtype=float),
+            "directions": directions,
+            "counts": counts,
         }
         head = kn.TICK_AT + kn.TICK_PARAMS
         size = head + sum(b.size for b in blocks.values())
@@ -401,10 +402,8 @@ class OneCall:
             p[kn.TICK_PASSIVITY_AT : kn.TICK_FRICTION_AT] = passivity.kernel_params
         p[kn.TICK_FRICTION_AT : kn.TICK_FORCES_AT] = (mat.mu_static, mat.mu_dynamic)
         p[kn.TICK_FORCES_AT : kn.TICK_ALLOCATION_AT] = (mat.stiffness, mat.damping, not obj.fixed)
-        if inputs is not None:
-            p[kn.TICK_ALLOCATION_AT : kn.TICK_BODY_AT] = inputs[2]
-        # The actuation's frame, for the environment and passivity as for allocation.
-        p[kn.TICK_ALLOCATION_AT + 4] = act.frame == "grasp"
+        # Its item 4, the actuation's frame, is the environment's and passivity's too.
+        p[kn.TICK_ALLOCATION_AT : kn.TICK_BODY_AT] = alloc_params
         p[kn.TICK_BODY_AT :] = body_params
         at = {name: _float_offset(frame, name) for name in kn.TICK_FIELDS}
         if not friction:  # contact writes the final fields itself

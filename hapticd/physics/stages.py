@@ -217,11 +217,7 @@ class Allocation:
     @property
     def kernel_stage(self) -> int | None:
         """STAGE_ALLOCATION when the call allocates for this allocator, else None (``run``)."""
-        return None if self.kernel_inputs() is None else kernels.STAGE_ALLOCATION
-
-    def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """``ContactAllocator.kernel_inputs``."""
-        return self.allocator.kernel_inputs()
+        return kernels.STAGE_ALLOCATION if self.allocator.in_kernel else None
 
 
 class Environment:
