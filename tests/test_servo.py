@@ -11,7 +11,7 @@ from hapticd.daemon.session import build_session
 from hapticd.loop.commands import Enable
 from hapticd.loop.pacing import Pacer
 from hapticd.profile import load_profile
-from tests.conftest import GRASP_PROFILE, AtTick, wait_for
+from tests.conftest import GRASP_PROFILE, IN_PROCESS_WATCHDOG_S, AtTick, wait_for
 
 
 def session(**kw):
@@ -242,9 +242,12 @@ def test_paced_and_unpaced_runs_render_identical_forces(grasp_data, write_profil
 
 def test_stop_from_another_thread_while_paced(grasp_data, write_profile):
     # Held for a minute after the trajectory: the run cannot end before the request,
-    # however slowly this thread gets to make it.
+    # however slowly this thread gets to make it. This thread shares the loop's GIL: CI
+    # once stalled the loop 247 ms at tick 3, past the rig's watchdog, and the latched
+    # fault zeroed the forces before the ramp could be seen.
     for finger in grasp_data["fingers"]:
         finger["device"]["hold_s"] = 60.0
+    grasp_data["safety"]["watchdog_s"] = IN_PROCESS_WATCHDOG_S
     s = build_session(load_profile(write_profile(grasp_data)), paced=True)
     s.loop.realtime_settings = None
     out = {}
@@ -259,6 +262,7 @@ def test_stop_from_another_thread_while_paced(grasp_data, write_profile):
             s.loop.request_stop("test over", ramp=False)
             runner.join(timeout=20)
     assert out["end_reason"] == "operator"
+    assert out["fault"] is None, out["fault"]
     ramp = round(s.profile.safety.stop_ramp_s * s.profile.loop.rate_hz)
     assert out["ticks"] >= asked_at + ramp
     for dev in s.devices:
