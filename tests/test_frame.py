@@ -94,3 +94,18 @@ def test_every_field_names_its_unit_and_meaning():
 def test_the_docs_table_is_the_declaration():
     text = (ROOT / "docs" / "recording.md").read_text()
     assert markdown_table() in text, "docs/recording.md: regenerate with markdown_table()"
+
+
+@pytest.mark.parametrize(("n_fingers", "n_actuators"), [(1, 1), (2, 2), (5, 15)])
+def test_the_fields_the_call_reads_as_one_run_are_adjacent_float64(n_fingers, n_actuators):
+    # kernels.tick_step reads each of these runs from its first field's offset on.
+    fields = Frame(n_fingers, n_actuators).dtype.fields
+    for run in (
+        ("residual_internal", "residual_external", "residual_total", "amplification", "alpha"),
+        ("object_pos", "object_vel", "object_omega", "object_rot"),
+    ):
+        at = fields[run[0]][1]
+        for name in run:
+            dtype, offset = fields[name][:2]
+            assert (offset, dtype.base) == (at, np.float64), name
+            at += dtype.itemsize

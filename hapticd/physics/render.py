@@ -36,7 +36,6 @@ from hapticd.physics.stages import (
     Passivity,
     SceneState,
     Stage,
-    adjacent,
 )
 
 
@@ -248,25 +247,23 @@ class Renderer:
         for no such stage; PlanError, the plan unchanged, for a plan ``check_plan`` refuses."""
         if after not in self.stage_names:
             raise ValueError(f"no stage {after!r} in the plan {self.stage_names}")
-        self._inserted.append((after, stage))
-        try:
-            self.plan()
-        except PlanError:
-            self._inserted.pop()
-            self.plan()
-            raise
+        self._replan(_inserted=[*self._inserted, (after, stage)])
 
     def set_output(self, stage: Stage | None) -> None:
         """Let ``stage`` write ``rendered_force`` in place of the sum from the next tick on;
         None: the sum again. PlanError, the plan unchanged, if it does not declare it."""
         if stage is not None and "rendered_force" not in getattr(stage, "writes", ()):
             raise PlanError(f"stage {stage.name!r} does not write 'rendered_force'")
-        before = self._output
-        self._output = stage
+        self._replan(_output=stage)
+
+    def _replan(self, **change: object) -> None:
+        """Set the attributes ``change`` and plan; PlanError: set them back, plan as before."""
+        before = {name: getattr(self, name) for name in change}
+        self.__dict__.update(change)
         try:
             self.plan()
         except PlanError:
-            self._output = before
+            self.__dict__.update(before)
             self.plan()
             raise
 
@@ -409,12 +406,6 @@ class OneCall:
         if not friction:  # contact writes the final fields itself
             at.update({plain: at[held] for plain, held in zip(FRICTIONLESS, HELD, strict=True)})
         at["allocated_force"] = at[r._allocation.output]
-        # The kernel reads these as runs of floats from their first.
-        adjacent(
-            frame,
-            ("residual_internal", "residual_external", "residual_total", "amplification", "alpha"),
-        )
-        adjacent(frame, ("object_pos", "object_vel", "object_omega", "object_rot"))
         r._adopt()
         state = kn.state_layout(n, act.n_actuators)
         plan[: kn.TICK_AT] = [

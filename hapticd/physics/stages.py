@@ -377,16 +377,3 @@ class SceneState:
         "allocator",
     )
     kernel_stage = kernels.STAGE_SCENE
-
-
-def adjacent(frame: Frame, names: tuple[str, ...]) -> np.ndarray:
-    """The frame's float64 fields ``names`` as one flat view (RuntimeError unless they are
-    adjacent in the record, in this order)."""
-    fields = frame.dtype.fields
-    start = at = fields[names[0]][1]
-    for name in names:
-        if fields[name][1] != at or fields[name][0].base != np.float64:
-            raise RuntimeError(f"frame fields: {', '.join(names)} must be adjacent float64")
-        at += fields[name][0].itemsize
-    raw = frame.record.reshape(1).view(np.uint8)[start:at]
-    return raw.view("<f8")
