@@ -155,15 +155,14 @@ if os.environ.get("PYTEST_XDIST_WORKER") is None:  # the run's first process, no
 
 
 def pytest_sessionfinish(session, exitstatus):
-    """No background compiler outlives the session: wait (bounded) for its marker to go,
+    """No background compiler outlives the session: wait (bounded) for its lock to go,
     fail the session if it does not; then the process that made the run's cache removes it."""
     from hapticd.physics import jit
 
-    marker = NUMBA_CACHE / jit.COMPILING
     deadline = time.monotonic() + COMPILER_WAIT_S
-    while marker.exists() and time.monotonic() < deadline:
+    while jit.compiling(NUMBA_CACHE) and time.monotonic() < deadline:
         time.sleep(0.2)
-    if marker.exists():
+    if jit.compiling(NUMBA_CACHE):
         print(f"\na background kernel compiler still runs after {COMPILER_WAIT_S:.0f} s")
         session.exitstatus = 1
         return

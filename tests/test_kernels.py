@@ -11,6 +11,7 @@ tests/test_reference_output.py."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -28,7 +29,7 @@ from hapticd.physics import jit, kernels
 from hapticd.physics.safety import SafetyChain
 from hapticd.physics.scene import ConvexShape, Material, SceneObject
 from hapticd.profile import load_profile
-from tests.conftest import ROOT, capture_writes
+from tests.conftest import ROOT, capture_writes, wait_for
 
 LIFT = ROOT / "configs" / "lift-weight.yaml"
 GRASP = ROOT / "configs" / "grasp-stiffness.yaml"
@@ -175,7 +176,7 @@ def test_auto_compiles_in_the_background_once_and_loads_from_the_cache_after(tmp
     assert "compiled or loaded" not in err
     marker = cache / jit.COMPILED
     deadline = time.monotonic() + 180.0
-    while len(json.loads(marker.read_text())) < len(names) or (cache / jit.COMPILING).exists():
+    while len(json.loads(marker.read_text())) < len(names) or jit.compiling(cache):
         assert time.monotonic() < deadline, "the background compiler did not finish in 180 s"
         time.sleep(0.2)
     err, _ = _run_lift(tmp_path, "", "auto", cache)
@@ -314,13 +315,17 @@ def test_hostile_forces_never_reach_a_device_from_either_path(path, mode, value)
 @pytest.fixture
 def empty_cache(tmp_path, monkeypatch):
     """An empty cache folder of this test's own and no kernel compiled in this process, so
-    that auto asks for a background compiler; starting one is recorded, not done."""
+    that auto asks for a background compiler; starting one is recorded, not done: the record
+    keeps a copy of the descriptor the compiler would inherit (closing it ends the compiler)."""
     cache = tmp_path / "cache"
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
     monkeypatch.setattr(jit, "_COMPILED", {})
-    started: list[list[str]] = []
-    monkeypatch.setattr(jit, "spawn", started.append)
-    return cache, started
+    started: list[tuple[list[str], int]] = []
+    monkeypatch.setattr(jit, "spawn", lambda cmd, lock: started.append((cmd, os.dup(lock))))
+    yield cache, started
+    for _, fd in started:
+        with contextlib.suppress(OSError):
+            os.close(fd)
 
 
 # The smallest entry point: the several-runs test waits for a real compile of it.
@@ -331,35 +336,40 @@ def test_runs_started_while_a_compiler_works_start_none_of_their_own(empty_cache
     cache, started = empty_cache
     first = jit.choose("auto", NAMES)
     assert first.used == "python" and "compiling safety_step" in first.note
-    assert len(started) == 1 and (cache / jit.COMPILING).exists()
+    assert len(started) == 1 and jit.compiling(cache)
     for _ in range(3):
         again = jit.choose("auto", NAMES)
         assert again.used == "python" and "another run's compiler" in again.note
     assert len(started) == 1
-    # The compiler finishes: it removes its marker (only its own), and a run after it whose
-    # kernels are still not in the cache (say it failed silently) may start one again.
-    token = started[0][started[0].index("--marker") + 1]
-    jit.release_compiling("someone else")
-    assert (cache / jit.COMPILING).exists()
-    jit.release_compiling(token)
-    assert not (cache / jit.COMPILING).exists()
+    # The compiler ends (done, or dead: the lock goes with the process), and a run after it
+    # whose kernels are still not in the cache (say it failed silently) may start one again.
+    os.close(started[0][1])
+    assert not jit.compiling(cache)
     jit.choose("auto", NAMES)
-    assert len(started) == 2
+    assert len(started) == 2 and jit.compiling(cache)
 
 
-def test_a_dead_compilers_marker_expires(empty_cache):
-    cache, started = empty_cache
-    cache.mkdir()
-    marker = cache / jit.COMPILING
-    marker.write_text("12345 0")
-    young = time.time() - jit.COMPILING_MAX_AGE_S + 60.0
-    os.utime(marker, (young, young))
-    jit.choose("auto", NAMES)
-    assert started == []
-    old = time.time() - jit.COMPILING_MAX_AGE_S - 1.0
-    os.utime(marker, (old, old))
-    jit.choose("auto", NAMES)
-    assert len(started) == 1 and marker.read_text() != "12345 0"
+def test_the_started_compiler_holds_the_lock_until_it_ends(tmp_path, monkeypatch):
+    """The process ``spawn`` starts inherits the lock: the run that started it lets go of
+    its own descriptor at once, and the lock lasts as long as that process."""
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
+    lock = jit._claim_compiling()
+    assert lock is not None and lock >= 0
+    done = tmp_path / "done"
+    wait = (
+        "import os, time\n"
+        "for _ in range(600):\n"
+        f"    if os.path.exists({str(done)!r}): break\n"
+        "    time.sleep(0.05)"
+    )
+    try:
+        jit.spawn([sys.executable, "-c", wait], lock)
+    finally:
+        os.close(lock)
+    assert jit.compiling(cache) and jit._claim_compiling() is None
+    done.touch()
+    wait_for(lambda: jit.compiling(cache), "the child to end", until=lambda held: not held)
 
 
 CHOOSE = """
@@ -389,7 +399,7 @@ def test_several_runs_at_once_start_one_compiler_that_leaves_no_marker(tmp_path)
     assert sum("compiling safety_step" in n for n in notes) == 1, notes
     assert sum("another run's compiler" in n for n in notes) == 3, notes
     deadline = time.monotonic() + 180.0
-    while (cache / jit.COMPILING).exists() or not (cache / jit.COMPILED).exists():
+    while jit.compiling(cache) or not (cache / jit.COMPILED).exists():
         assert time.monotonic() < deadline, "the background compiler did not finish in 180 s"
         time.sleep(0.2)
     keys = jit._keys(NAMES, __import__("numba").__version__)
@@ -455,7 +465,7 @@ DAMAGED = """
 import json, sys
 import numpy as np
 started = []
-jit.spawn = started.append
+jit.spawn = lambda cmd, lock: started.append(cmd)
 c = jit.choose({mode!r}, {names!r})
 out = None
 if c.used == "compiled":

@@ -56,10 +56,9 @@ _KERNELS_DIR = Path(kernels.__file__).parent
 # is quick), and kernels that failed to compile (and why).
 COMPILED = "hapticd-kernels.json"
 FAILED = "hapticd-kernels-failed.json"
-# A background compiler at work; older than COMPILING_MAX_AGE_S (s), it died and counts for
-# nothing.
+# The lock file of the background compiler: it holds an exclusive flock on it while it
+# works, and the lock goes with the process, however it ends.
 COMPILING = "hapticd-kernels.compiling"
-COMPILING_MAX_AGE_S = 600.0
 
 
 class JitUnavailableError(RuntimeError):
@@ -325,68 +324,63 @@ def _all_complete(names: Sequence[str]) -> bool:
     return True
 
 
-def _claim_compiling(now: float) -> str | None:
-    """Create the COMPILING marker and return the token written in it; None if a compiler
-    younger than COMPILING_MAX_AGE_S holds it; "" if the folder cannot hold a marker (compile
-    anyway)."""
+def _claim_compiling() -> int | None:
+    """An open descriptor of COMPILING with its exclusive lock taken; None if a compiler
+    holds it; -1 if the folder cannot hold a lock (compile anyway)."""
     folder = _cache_folder()
-    path = folder / COMPILING
-    token = f"{os.getpid()} {time.time_ns()}"
     try:
         folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(folder / COMPILING, os.O_CREAT | os.O_RDWR, 0o600)
     except OSError:
-        return ""
-    for _ in range(3):
-        try:
-            # O_EXCL: of several runs at once, one creates it.
-            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
-        except FileExistsError:
-            try:
-                age = now - path.stat().st_mtime
-            except FileNotFoundError:
-                continue  # released meanwhile: try again
-            if age < COMPILING_MAX_AGE_S:
-                return None
-            # Expired. Two runs replacing it at once may both start a compiler: harmless,
-            # numba writes its cache atomically.
-            with contextlib.suppress(FileNotFoundError):
-                path.unlink()
-            continue
-        except OSError:
-            return ""
-        with os.fdopen(fd, "w") as f:
-            f.write(token)
-        return token
-    return None
+        return -1
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return None
+    except OSError:
+        os.close(fd)
+        return -1
+    return fd
 
 
-def release_compiling(token: str) -> None:
-    """Remove the COMPILING marker if it is still ``token``'s."""
-    path = _cache_folder() / COMPILING
-    with contextlib.suppress(OSError):
-        if token and path.read_text() == token:
-            path.unlink()
+def compiling(folder: Path) -> bool:
+    """Whether a background compiler is at work on the cache ``folder`` (holds its lock)."""
+    try:
+        fd = os.open(folder / COMPILING, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+    return False
 
 
-def spawn(cmd: list[str]) -> None:
+def spawn(cmd: list[str], lock: int) -> None:
     """Start ``cmd`` at the lowest priority through a shell that exits at once, so that the
-    process outlives a short run. A seam: the tests record the command instead."""
+    process outlives a short run; it inherits the descriptor ``lock`` (-1: none), and with
+    it COMPILING's lock. A seam: the tests record the command instead."""
     script = 'nice -n 19 "$@" </dev/null >/dev/null 2>&1 &'
-    subprocess.run(["/bin/sh", "-c", script, "sh", *cmd], check=False, timeout=30)
+    fds = () if lock < 0 else (lock,)
+    subprocess.run(["/bin/sh", "-c", script, "sh", *cmd], check=False, timeout=30, pass_fds=fds)
 
 
 def compile_in_background(names: Sequence[str]) -> bool:
     """Start ``python -m hapticd.physics.jit`` on ``names`` unless another run's compiler holds
     COMPILING; True if this call started one."""
-    token = _claim_compiling(time.time())
-    if token is None:
+    lock = _claim_compiling()
+    if lock is None:
         return False
-    marker = ["--marker", token] if token else []
     try:
-        spawn([sys.executable, "-m", "hapticd.physics.jit", *marker, *names])
-    except BaseException:
-        release_compiling(token)
-        raise
+        spawn([sys.executable, "-m", "hapticd.physics.jit", *names], lock)
+    finally:
+        if lock >= 0:
+            os.close(lock)  # the compiler holds the lock now
     return True
 
 
@@ -443,21 +437,15 @@ def _in_background(mode: str, names: Sequence[str], damaged: str | None, t0: flo
 
 
 def main(argv: Sequence[str]) -> int:
-    """``python -m hapticd.physics.jit [--marker TOKEN] NAME...``: compile kernels into the
-    cache at low priority, then release the COMPILING marker ``TOKEN``."""
+    """``python -m hapticd.physics.jit NAME...``: compile kernels into the cache at low
+    priority (holding COMPILING's lock, inherited from the run that started it)."""
     with contextlib.suppress(OSError):
         os.nice(19)
-    names = list(argv)
-    token = ""
-    if names[:1] == ["--marker"] and len(names) >= 2:
-        token, names = names[1], names[2:]
     try:
-        compile_kernels(names)
+        compile_kernels(list(argv))
     except JitUnavailableError as e:
         print(f"hapticd.physics.jit: {e}", file=sys.stderr)
         return 1
-    finally:
-        release_compiling(token)
     return 0
 
 
