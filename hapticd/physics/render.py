@@ -358,7 +358,7 @@ class OneCall:
         passivity = r._passivity if "passivity" in names else None
         # The directions and counts are the environment's and passivity's too.
         directions, counts, alloc_params = r.allocator.kernel_inputs()
-        body_params, body, surf = names["dynamics"].arrays()[:3] if free else _NO_BODY
+        body_params, body, surf = names["dynamics"].arrays() if free else _NO_BODY
         blocks = {
             "planes": r._contact._kernel_planes(),
             "body": body,

@@ -19,7 +19,7 @@ from hapticd.physics.actuation import Actuation
 from hapticd.physics.dynamics import auto_substeps
 from hapticd.physics.frame import Frame
 from hapticd.physics.passivity import PassivityParams
-from hapticd.physics.scene import Scene, SceneObject
+from hapticd.physics.scene import Scene
 
 
 class Stage(Protocol):
@@ -315,10 +315,6 @@ class Dynamics:
         self.substeps = scene.substeps or auto_substeps(  # 0: auto
             obj, scene.surfaces, obj.material.stiffness, n_fingers, dt
         )
-        self._arrays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._shape, self._mass = obj.shape, obj.mass  # what ``_arrays`` are for
-        self._scratch = np.zeros((n_fingers, kernels.SCRATCH_COLUMNS))
-        self._gravity = np.zeros(3) if self.gravity is None else np.array(self.gravity, float)
 
     @property
     def carries(self) -> dict[str, object]:
@@ -331,25 +327,19 @@ class Dynamics:
             ["surfaces"] if self.scene.surfaces else []
         )
 
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """free_body_step's params, body, surfaces and scratch for the object as it is now."""
-        obj = self.scene.object
-        if self._arrays is None or obj.shape is not self._shape or obj.mass != self._mass:
-            self._arrays = self._body_arrays(obj)
-        params, body, surf = self._arrays
-        params[0:2] = (obj.material.stiffness, obj.material.torsion)
-        return params, body, surf, self._scratch
-
-    def _body_arrays(self, obj: SceneObject) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """free_body_step's params, body (inertia, its inverse, the vertices; body frame)
-        and surfaces (normal, offset, stiffness, damping, dynamic friction) for ``obj``'s
-        shape and mass."""
-        self._shape, self._mass = obj.shape, obj.mass
+        and surfaces (normal, offset, stiffness, damping, dynamic friction) for the object
+        as it is now."""
+        obj = self.scene.object
         local = obj.shape.vertices.tolist()
         # The farthest vertex from the centre of mass (m): surfaces farther away are skipped.
         reach = max((math.sqrt(x * x + y * y + z * z) for x, y, z in local), default=0.0)
-        params = np.zeros(kernels.PARAMS)
-        params[2:] = (obj.mass, self.dt, self.substeps, reach, *self._gravity)
+        mat = obj.material
+        gravity = (0.0, 0.0, 0.0) if self.gravity is None else self.gravity
+        params = np.array(
+            [mat.stiffness, mat.torsion, obj.mass, self.dt, self.substeps, reach, *gravity]
+        )
         inertia = obj.inertia_body
         body = np.array(
             [*inertia.tolist(), *np.linalg.inv(inertia).tolist(), *local], dtype=float
