@@ -35,7 +35,6 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.loop.trajectory",
         "hapticd.physics",
         "hapticd.physics.actuation",
-        "hapticd.physics.contact",
         "hapticd.physics.dynamics",
         "hapticd.physics.frame",
         "hapticd.physics.grasp",

@@ -12,7 +12,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hapticd.physics.contact import Polytope
 from hapticd.physics.kernels import world_planes
 
 
@@ -39,6 +38,20 @@ class Material:
     @property
     def has_friction(self) -> bool:
         return self.mu_static > 0.0
+
+
+@dataclass(frozen=True)
+class Polytope:
+    """Convex polytope as half-spaces n . x <= d: unit outward normals (m, 3), offsets (m,)
+    in m, and a centre (3,) m; contact renders against it (``kernels.contact_step``)."""
+
+    normals: np.ndarray
+    offsets: np.ndarray
+    center: np.ndarray
+
+    def signed_distance(self, x: np.ndarray) -> float:
+        """max_i (n_i . x - d_i): > 0 outside, < 0 inside (exact inside, a lower bound outside)."""
+        return float(np.max(self.normals @ np.asarray(x, dtype=float) - self.offsets))
 
 
 @dataclass(frozen=True)
