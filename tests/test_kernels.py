@@ -12,6 +12,7 @@ tests/test_reference_output.py."""
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import math
 import os
@@ -354,7 +355,7 @@ def test_the_started_compiler_holds_the_lock_until_it_ends(tmp_path, monkeypatch
     its own descriptor at once, and the lock lasts as long as that process."""
     cache = tmp_path / "cache"
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
-    lock = jit._claim_compiling()
+    lock = jit._lock(cache, fcntl.LOCK_EX)
     assert lock is not None and lock >= 0
     done = tmp_path / "done"
     wait = (
@@ -367,7 +368,7 @@ def test_the_started_compiler_holds_the_lock_until_it_ends(tmp_path, monkeypatch
         jit.spawn([sys.executable, "-c", wait], lock)
     finally:
         os.close(lock)
-    assert jit.compiling(cache) and jit._claim_compiling() is None
+    assert jit.compiling(cache) and jit._lock(cache, fcntl.LOCK_EX) is None
     done.touch()
     wait_for(lambda: jit.compiling(cache), "the child to end", until=lambda held: not held)
 

@@ -324,41 +324,28 @@ def _all_complete(names: Sequence[str]) -> bool:
     return True
 
 
-def _claim_compiling() -> int | None:
-    """An open descriptor of COMPILING with its exclusive lock taken; None if a compiler
-    holds it; -1 if the folder cannot hold a lock (compile anyway)."""
-    folder = _cache_folder()
+def _lock(folder: Path, how: int) -> int | None:
+    """An open descriptor of COMPILING in ``folder`` locked ``how`` (fcntl.LOCK_EX or
+    LOCK_SH); None if a compiler holds it; -1 if the folder cannot hold a lock."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd = os.open(folder / COMPILING, os.O_CREAT | os.O_RDWR, 0o600)
     except OSError:
         return -1
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
+        fcntl.flock(fd, how | fcntl.LOCK_NB)
+    except OSError as e:
         os.close(fd)
-        return None
-    except OSError:
-        os.close(fd)
-        return -1
+        return None if isinstance(e, BlockingIOError) else -1
     return fd
 
 
 def compiling(folder: Path) -> bool:
     """Whether a background compiler is at work on the cache ``folder`` (holds its lock)."""
-    try:
-        fd = os.open(folder / COMPILING, os.O_RDONLY)
-    except OSError:
-        return False
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return True
-    except OSError:
-        return False
-    finally:
+    fd = _lock(folder, fcntl.LOCK_SH)
+    if fd is not None and fd >= 0:
         os.close(fd)
-    return False
+    return fd is None
 
 
 def spawn(cmd: list[str], lock: int) -> None:
@@ -373,7 +360,7 @@ def spawn(cmd: list[str], lock: int) -> None:
 def compile_in_background(names: Sequence[str]) -> bool:
     """Start ``python -m hapticd.physics.jit`` on ``names`` unless another run's compiler holds
     COMPILING; True if this call started one."""
-    lock = _claim_compiling()
+    lock = _lock(_cache_folder(), fcntl.LOCK_EX)
     if lock is None:
         return False
     try:
