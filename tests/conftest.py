@@ -136,8 +136,9 @@ def _compile_kernels_once() -> None:
     # all of them (every name in KERNEL_HELPERS, not only the entry points among them), so
     # it gets a compiler of its own and the other entry points share the second.
     sizes["tick_step"] += sum(map(size, kernels.KERNEL_HELPERS))
-    if jit.cached(list(sizes), __import__("numba").__version__)[0]:
-        return  # a lasting cache (HAPTICD_TEST_NUMBA_CACHE) that holds them
+    with contextlib.suppress(jit.JitUnavailableError):  # one failed before: try again
+        if jit.cached(list(sizes), __import__("numba").__version__):
+            return  # a lasting cache (HAPTICD_TEST_NUMBA_CACHE) that holds them
     groups: list[list[str]] = [[], []]
     for name in sorted(sizes, key=sizes.get, reverse=True):
         min(groups, key=lambda g: sum(map(sizes.get, g))).append(name)

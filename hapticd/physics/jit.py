@@ -298,22 +298,19 @@ def compile_kernels(
     return {n: _COMPILED[n] for n in names}
 
 
-def cached(names: Sequence[str], version: str) -> tuple[bool, str | None]:
-    """Whether the kernels ``names`` are in COMPILED for numba ``version``, and, if one failed
-    to compile with the same numba, sources and machine, why."""
+def cached(names: Sequence[str], version: str) -> bool:
+    """Whether the kernels ``names`` are in COMPILED for numba ``version`` with their index
+    and code in numba's cache (an index alone would make numba compile it, in the
+    foreground); JitUnavailableError if one failed to compile with the same numba, sources
+    and machine, saying why."""
     keys = _keys(names, version).values()
     done = _read_marker(COMPILED)
     failed = _read_marker(FAILED)
     for k in keys:
         if k in failed and k not in done:
-            return False, failed[k]
-    return all(k in done for k in keys), None
-
-
-def _all_complete(names: Sequence[str]) -> bool:
-    """Whether numba's cache holds the index and the code of every kernel in ``names`` (an
-    index alone would make numba compile it, in the foreground)."""
-    _import_numba()
+            raise JitUnavailableError(f"{failed[k]} (when it was last tried)")
+    if not all(k in done for k in keys):
+        return False
     for n in filter(SIGNATURES.__contains__, names):
         try:
             suffixes = {f.suffix for f in _cache_files(getattr(kernels, n))[1]}
@@ -382,12 +379,8 @@ def choose(mode: str, names: Sequence[str]) -> KernelChoice:
     notes: list[str] = []
     try:
         auto = mode == "auto" and any(n not in _COMPILED for n in names)
-        if auto:
-            ready, failed = cached(names, _import_numba().__version__)
-            if failed is not None:
-                raise JitUnavailableError(f"{failed} (when it was last tried)")
-            if not ready or not _all_complete(names):
-                return _in_background(mode, names, None, t0)
+        if auto and not cached(names, _import_numba().__version__):
+            return _in_background(mode, names, None, t0)
         try:
             compiled = compile_kernels(names, may_compile=not auto, notes=notes)
         except DamagedCacheError as e:
