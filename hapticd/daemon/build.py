@@ -342,15 +342,14 @@ def build_renderer(profile: Profile) -> Renderer:
     )
     # The safety chain's kernel (build_safety) is chosen with the renderer's: one message,
     # and one background compiler for all of them.
-    names = renderer.kernel_names
-    choice = jit.choose(rc.kernels, [*names, *SafetyChain.kernel_names] if names else [])
+    choice = jit.choose(rc.kernels, [*renderer.kernel_names, *SafetyChain.kernel_names])
     if choice.message is not None:
         log.warning("%s", choice.message)
     elif choice.note is not None:
         log.info("%s", choice.note)
     elif choice.used == "compiled":
         log.debug("kernels %s compiled or loaded in %.3f s", list(choice.kernels), choice.seconds)
-    renderer.use_kernels({n: k for n, k in choice.kernels.items() if n in names})
+    renderer.use_kernels({n: k for n, k in choice.kernels.items() if n in renderer.kernel_names})
     return renderer
 
 

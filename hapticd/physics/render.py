@@ -220,11 +220,9 @@ class Renderer:
         self.stages: list[Stage] = stages
         self.one_call = OneCall(self, self.kernels.get("tick_step"))
 
-    @property
-    def kernel_names(self) -> list[str]:
-        """The kernels this renderer runs: the tick's call, and the allocator's own (for
-        ``ContactAllocator.replay``, outside the call)."""
-        return ["tick_step", "allocation_step"]
+    # The kernels a renderer runs: the tick's call, and the allocator's own (for
+    # ``ContactAllocator.replay``, outside the call).
+    kernel_names = ("tick_step", "allocation_step")
 
     def use_kernels(self, kernels: dict[str, Callable[..., None]]) -> None:
         """Run the compiled ``kernels`` (name -> function, of ``kernel_names``) from the
