@@ -10,10 +10,11 @@ from __future__ import annotations
 import numpy as np
 
 from hapticd.allocation.accuracy import accuracy
-from hapticd.allocation.adaptive import AdaptiveState, smoothstep
+from hapticd.allocation.adaptive import AdaptiveState
 from hapticd.allocation.batch import METHODS, ROBUST_METHODS, allocate_many, check, solve
 from hapticd.allocation.closed import (
     one_contact,
+    smoothstep,
     two_contact_ef,
     two_contact_if,
     two_contact_pinv,

@@ -5,12 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 
-def smoothstep(x: float) -> float:
-    """3x^2 - 2x^3 on [0, 1], clamped: a switch with zero slope at both ends."""
-    x = 0.0 if x < 0.0 else (1.0 if x > 1.0 else x)
-    return x * x * (3.0 - 2.0 * x)
-
-
 @dataclass(frozen=True)
 class AdaptiveState:
     """``adaptive``'s external-force weight alpha (its start, 0..1) and how it follows the

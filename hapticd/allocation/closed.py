@@ -54,24 +54,10 @@ def adaptive_mix(x_if: float, x_ef: float, alpha: float) -> float:
     return (1.0 - alpha) * x_if + alpha * x_ef
 
 
-def _mul2(x: Sym2, y: Sym2) -> tuple[float, float, float, float]:
-    """x @ y for symmetric x, y, as a general 2x2 (r00, r01, r10, r11)."""
-    return (
-        x[0] * y[0] + x[1] * y[1],
-        x[0] * y[1] + x[1] * y[2],
-        x[1] * y[0] + x[2] * y[1],
-        x[1] * y[1] + x[2] * y[2],
-    )
-
-
-def _sandwich(p: Sym2, k: Sym2) -> Sym2:
-    """p @ k @ p for symmetric p, k."""
-    r00, r01, r10, r11 = _mul2(p, k)
-    return (
-        r00 * p[0] + r01 * p[1],
-        r00 * p[1] + r01 * p[2],
-        r10 * p[1] + r11 * p[2],
-    )
+def smoothstep(x: float) -> float:
+    """3x^2 - 2x^3 on [0, 1], clamped: a switch with zero slope at both ends."""
+    x = 0.0 if x < 0.0 else (1.0 if x > 1.0 else x)
+    return x * x * (3.0 - 2.0 * x)
 
 
 def _apply(m: Sym2, v0: float, v1: float) -> tuple[float, float]:
@@ -160,14 +146,18 @@ def two_contact_if(
     FB = _finv2(*KB, eps2)
     x0, x1 = _apply(FB, 0.5 * _dot(a1, s), -0.5 * _dot(a2, s))
     # P = I - F(K_B) K_B (symmetric: F and K commute).
-    r00, r01, _, r11 = _mul2(FB, KB)
-    P = (1.0 - r00, -r01, 1.0 - r11)
+    p0 = 1.0 - (FB[0] * KB[0] + FB[1] * KB[1])
+    p1 = -(FB[0] * KB[1] + FB[1] * KB[2])
+    p2 = 1.0 - (FB[1] * KB[1] + FB[2] * KB[2])
     # Residual after the internal task, seen by the actuators: M^T (lam - M x).
     k1, k2 = _dot(d1, d1), _dot(d2, d2)
     m0 = _dot(d1, l1) - x0 * k1
     m1 = _dot(d2, l2) - x1 * k2
     # x2 = P F(P K_M P) P M^T r, K_M = diag(k1, k2).
-    FP = _finv2(*_sandwich(P, (k1, 0.0, k2)), eps2)
+    P = (p0, p1, p2)
+    FP = _finv2(
+        p0 * k1 * p0 + p1 * k2 * p1, p0 * k1 * p1 + p1 * k2 * p2, p1 * k1 * p1 + p2 * k2 * p2, eps2
+    )
     v0, v1 = _apply(P, m0, m1)
     v0, v1 = _apply(FP, v0, v1)
     v0, v1 = _apply(P, v0, v1)
@@ -176,16 +166,10 @@ def two_contact_if(
 
 def two_contact_structure(G: np.ndarray, M_a: np.ndarray) -> tuple[V3, V3, V3, V3] | None:
     """(r1, r2, d1, d2) if G has two contacts and M_a one direction per finger, else None."""
-    if G.shape[1] != 6 or M_a.shape[1] != 2:
+    if G.shape[1] != 6 or M_a.shape[1] != 2 or np.any(M_a[3:6, 0]) or np.any(M_a[0:3, 1]):
         return None
-    if np.any(M_a[3:6, 0]) or np.any(M_a[0:3, 1]):
-        return None
-    off = contact_offsets(G)
-    r1 = (float(off[0, 0]), float(off[0, 1]), float(off[0, 2]))
-    r2 = (float(off[1, 0]), float(off[1, 1]), float(off[1, 2]))
-    d1 = (float(M_a[0, 0]), float(M_a[1, 0]), float(M_a[2, 0]))
-    d2 = (float(M_a[3, 1]), float(M_a[4, 1]), float(M_a[5, 1]))
-    return r1, r2, d1, d2
+    r1, r2 = (tuple(r) for r in contact_offsets(G).tolist())
+    return r1, r2, tuple(M_a[0:3, 0].tolist()), tuple(M_a[3:6, 1].tolist())
 
 
 def two_contact(
@@ -217,8 +201,6 @@ def two_contact(
 KERNEL_HELPERS = (
     _dot,
     _cross,
-    _mul2,
-    _sandwich,
     _apply,
     _soft_line,
     _finv2,
@@ -230,6 +212,7 @@ KERNEL_HELPERS = (
     one_contact_pinv,
     one_contact_ef,
     adaptive_mix,
+    smoothstep,
     one_contact,
     two_contact,
 )

@@ -12,7 +12,7 @@ import numpy as np
 
 from hapticd.allocation import allocate
 from hapticd.allocation.accuracy import accuracy
-from hapticd.allocation.adaptive import AdaptiveState, smoothstep
+from hapticd.allocation.adaptive import AdaptiveState
 from hapticd.allocation.robust import AllocationError, Robustness
 from hapticd.physics import kernels
 from hapticd.physics.actuation import Actuation
@@ -194,17 +194,12 @@ class ContactAllocator:
             return
         world = self._actuation.world_directions(device_pos.tolist())
         x, G, M, cols, lam = self._solve(contacts, world, points, forces, center)
-        onset = self._robust.contact_onset_n
-        if len(contacts) >= 2 and onset > 0.0:
-            # A contact being made or broken joins the grasp gradually: else the grasp matrix
-            # (and IF's squeeze) would jump when it appears or leaves.
-            norms = np.linalg.norm(forces[contacts], axis=1)
-            weakest = int(np.argmin(norms))
-            beta = smoothstep(float(norms[weakest]) / onset)
-            if beta < 1.0:
-                rest = contacts[:weakest] + contacts[weakest + 1 :]
-                rest_x = self._solve(rest, world, points, forces, center)[0]
-                x = beta * x + (1.0 - beta) * rest_x
+        norms = np.linalg.norm(forces[contacts], axis=1)  # allocation_step's contact onset
+        beta = kernels.onset_beta(norms.min(), len(contacts), self._robust.contact_onset_n)
+        if beta < 1.0:
+            weakest = int(norms.argmin())
+            rest = contacts[:weakest] + contacts[weakest + 1 :]
+            x = beta * x + (1.0 - beta) * self._solve(rest, world, points, forces, center)[0]
         if not np.all(np.isfinite(x)):
             raise self.refusal(bad_input=False)
         lam_a[...] = x

@@ -100,24 +100,18 @@ def _jacobi(w: np.ndarray, a: int, v: int, k: int) -> None:
                     w[v + i, p], w[v + i, q] = c * x - s * y, s * x + c * y
 
 
-def _gram_cols(w: np.ndarray, src: int, m: int, k: int, dst: int) -> None:
-    """A^T A (k x k) into rows dst.. of w, A (m x k) in rows src.."""
+def _gram(w: np.ndarray, src: int, m: int, k: int, dst: int, rows: bool) -> None:
+    """A^T A (k x k) into rows dst.. of w, A (m x k) in rows src..; A A^T for A (k x m)
+    there if ``rows``."""
     for i in range(k):
         for j in range(i, k):
             s = 0.0
-            for t in range(m):
-                s += w[src + t, i] * w[src + t, j]
-            w[dst + i, j] = s
-            w[dst + j, i] = s
-
-
-def _gram_rows(w: np.ndarray, src: int, k: int, m: int, dst: int) -> None:
-    """A A^T (k x k) into rows dst.. of w, A (k x m) in rows src.."""
-    for i in range(k):
-        for j in range(i, k):
-            s = 0.0
-            for t in range(m):
-                s += w[src + i, t] * w[src + j, t]
+            if rows:
+                for t in range(m):
+                    s += w[src + i, t] * w[src + j, t]
+            else:
+                for t in range(m):
+                    s += w[src + t, i] * w[src + t, j]
             w[dst + i, j] = s
             w[dst + j, i] = s
 
@@ -152,7 +146,7 @@ def _pinv_apply(
 ) -> None:
     """The filtered pseudoinverse F(A^T A) A^T y (k,) into row ``out``: A (m x k) in rows
     src.., y (m,) in row ``y``; A^T A's eigendecomposition left in rows a.. and v.."""
-    _gram_cols(w, src, m, k, a)
+    _gram(w, src, m, k, a, False)
     _jacobi(w, a, v, k)
     _t_apply(w, src, m, k, y, out)
     _finv_apply(w, a, v, k, out, eps2, tmp)
@@ -179,7 +173,7 @@ def soft_prepare(w: np.ndarray, n: int, eps: float, min_sep: float) -> None:
         w[gm, j], w[gm, j + 1], w[gm, j + 2] = 0.0, -z, y
         w[gm + 1, j], w[gm + 1, j + 1], w[gm + 1, j + 2] = z, 0.0, -x
         w[gm + 2, j], w[gm + 2, j + 1], w[gm + 2, j + 2] = -y, x, 0.0
-    _gram_rows(w, gm, 3, n, a3)
+    _gram(w, gm, n, 3, a3, True)
     _jacobi(w, a3, v3, 3)
 
 
@@ -252,20 +246,16 @@ def _internal_first(w: np.ndarray, n: int, r: int, eps: float, min_sep: float) -
             w[b0 + t, j] = w[t2, t]
     soft_apply(w, n, eps2, lam, t1)  # P_int lam
     _pinv_apply(w, b0, n, r, t1, x1, kb, vb, eps2, tmp)  # x1 = B^+ P_int lam
-    # P = I - B^+ B = I - V diag(min(1, l / eps^2)) V^T, symmetrized.
+    # P = I - B^+ B = I - V diag(min(1, l / eps^2)) V^T, symmetric: one triangle mirrored.
     for i in range(r):
-        for j in range(r):
+        for j in range(i, r):
             s = 0.0
             for k in range(r):
                 lk = w[kb + k, k] / eps2
                 lk = 0.0 if lk < 0.0 else (1.0 if lk > 1.0 else lk)
                 s += w[vb + i, k] * lk * w[vb + j, k]
             w[pp + i, j] = (1.0 if i == j else 0.0) - s
-    for i in range(r):
-        for j in range(i + 1, r):
-            s = 0.5 * (w[pp + i, j] + w[pp + j, i])
-            w[pp + i, j] = s
-            w[pp + j, i] = s
+            w[pp + j, i] = w[pp + i, j]
     for t in range(n):  # M P, and the rest lam - M x1
         s = w[lam, t]
         for j in range(r):
@@ -380,7 +370,7 @@ def residuals(w: np.ndarray, n: int, r: int) -> tuple[float, float, float, float
             s += w[i, t] * w[t1, t]
         w[t1 + 1, i] = s
         external += s * s
-    _gram_rows(w, 0, 6, n, a6)
+    _gram(w, 0, n, 6, a6, True)
     _jacobi(w, a6, v6, 6)
     top = 0.0
     for j in range(6):
@@ -413,8 +403,7 @@ def residuals(w: np.ndarray, n: int, r: int) -> tuple[float, float, float, float
 KERNEL_HELPERS = (
     _rotation,
     _jacobi,
-    _gram_cols,
-    _gram_rows,
+    _gram,
     _t_apply,
     _finv_apply,
     _pinv_apply,

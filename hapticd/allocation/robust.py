@@ -43,9 +43,4 @@ DEFAULT_ROBUSTNESS = Robustness()
 
 def contact_offsets(G: np.ndarray) -> np.ndarray:
     """Contact points relative to G's reference point, (p, 3) m, read off G's moment rows."""
-    p = G.shape[1] // 3
-    out = np.empty((p, 3))
-    for i in range(p):
-        S = G[3:6, 3 * i : 3 * i + 3]
-        out[i] = (S[2, 1], S[0, 2], S[1, 0])
-    return out
+    return np.stack((G[5, 1::3], G[3, 2::3], G[4, 0::3]), axis=1)  # [r]x = G's skew blocks

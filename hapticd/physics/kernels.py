@@ -363,6 +363,7 @@ KERNEL_HELPERS = (
     "_contact",
     "_solve_grasp",
     "_allocate_contacts",
+    "onset_beta",
     "_gram_mu",
     "_norm3",
     "ramp_down_factor",
@@ -431,17 +432,13 @@ def _fill_grasp(
     counts: np.ndarray,
     params: np.ndarray,
     skip: int,
+    k: int,
+    r: int,
     work: np.ndarray,
-) -> int:
-    """The grasp of the fingers in contact but ``skip`` into ``work``: general's G, M_a (their
-    world directions, from ``work``'s rows after general's) and lam; returns M_a's columns."""
+) -> None:
+    """The grasp of the k fingers in contact but ``skip``, with r directions, into ``work``:
+    general's G, M_a (their world directions, from ``work``'s rows after general's) and lam."""
     dirs = _dirs(work, counts)
-    k = 0
-    r = 0
-    for i in range(in_contact.shape[0]):
-        if in_contact[i] != 0 and i != skip:
-            k += 1
-            r += int(counts[i])
     m0, lam = 6, 6 + 3 * k
     for t in range(3 * k):
         for j in range(r):
@@ -469,7 +466,6 @@ def _fill_grasp(
                 col += 1
             j += 3
         start += c
-    return r
 
 
 def _task_alpha(
@@ -488,6 +484,7 @@ def _task_alpha(
     for two, |P_int lam| / sqrt(2) for more."""
     n_fingers = in_contact.shape[0]
     k = 0
+    r = 0
     n0, n1, n2 = 0.0, 0.0, 0.0
     for i in range(n_fingers):
         if in_contact[i] != 0:
@@ -495,6 +492,7 @@ def _task_alpha(
             n1 += forces[i, 1]
             n2 += forces[i, 2]
             k += 1
+            r += int(counts[i])
     squeeze = 0.0
     if k == 2:
         c0, c1 = _nth(in_contact, -1, 0), _nth(in_contact, -1, 1)
@@ -508,7 +506,7 @@ def _task_alpha(
         if ne > 0:
             squeeze = abs(e0 * q0 + e1 * q1 + e2 * q2) / (2.0 * ne)
     elif k > 2:
-        _fill_grasp(in_contact, points, forces, counts, params, -1, work)
+        _fill_grasp(in_contact, points, forces, counts, params, -1, k, r, work)
         n = 3 * k
         eps = params[1]
         soft_prepare(work, n, eps, params[2])
@@ -525,8 +523,7 @@ def _task_alpha(
     if not math.isfinite(rho):
         return alpha
     z = (rho - params[8]) / (params[9] - params[8])
-    z = 0.0 if z < 0.0 else (1.0 if z > 1.0 else z)
-    return alpha + params[10] * (z * z * (3.0 - 2.0 * z) - alpha)
+    return alpha + params[10] * (closed.smoothstep(z) - alpha)
 
 
 def allocation_step(
@@ -569,18 +566,14 @@ def allocation_step(
     dirs = _dirs(work, counts)
     xk = work.shape[0] - 1
     if n > 0:
-        # Every direction in the world into ``work`` (the grasp frame's: grasp_axes), then
-        # the grasp's allocation.
-        grasp = params[4] != 0.0
-        ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, grasp)
+        # Every direction in the world into ``work`` (the actuation frame's axes: the
+        # world's, or the grasp frame's), then the grasp's allocation.
+        ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2 = _axes(device_pos, params[4] != 0.0)
         for j in range(local.shape[0]):
             p0, p1, p2 = local[j, 0], local[j, 1], local[j, 2]
-            if grasp:
-                work[dirs + j, 0] = ax0 * p0 + ay0 * p1 + az0 * p2
-                work[dirs + j, 1] = ax1 * p0 + ay1 * p1 + az1 * p2
-                work[dirs + j, 2] = ax2 * p0 + ay2 * p1 + az2 * p2
-            else:
-                work[dirs + j, 0], work[dirs + j, 1], work[dirs + j, 2] = p0, p1, p2
+            work[dirs + j, 0] = ax0 * p0 + ay0 * p1 + az0 * p2
+            work[dirs + j, 1] = ax1 * p0 + ay1 * p1 + az1 * p2
+            work[dirs + j, 2] = ax2 * p0 + ay2 * p1 + az2 * p2
         outcome = _allocate_contacts(in_contact, points, forces, counts, params, alpha, work)
         if outcome != ALLOCATED:
             return outcome
@@ -617,21 +610,20 @@ def _allocate_contacts(
     work: np.ndarray,
 ) -> int:
     """allocation_step's grasp (this tick's alpha; the world directions in ``work``):
-    ``_solve_grasp`` on the contacts, blended with the grasp without its weakest contact
-    while that one is being made or broken (contact onset). Writes lam_a of the contacts'
-    directions in general's row XO and the accuracy in ``work``'s last row; returns an
-    outcome (nothing written outside ``work``)."""
-    n_fingers = in_contact.shape[0]
-    onset = params[3]
+    ``_solve_grasp`` on the contacts, blended by ``onset_beta`` with the grasp without its
+    weakest contact. Writes lam_a of the contacts' directions in general's row XO and the
+    accuracy in ``work``'s last row; returns an outcome (nothing written outside ``work``)."""
     dirs = _dirs(work, counts)
-    xk = work.shape[0] - 1  # the rest's allocation, by direction; then the accuracy
+    xk = work.shape[0] - 1  # the rest's share, by the grasp's columns; then the accuracy
     s = 0.0
     n = 0
+    r = 0
     ones = True  # every contact has one direction: the closed forms
     weak = -1
     weakest = 0.0
+    w0 = 0  # the weakest's first column
     start = 0
-    for i in range(n_fingers):
+    for i in range(in_contact.shape[0]):
         c = int(counts[i])
         start += c
         if in_contact[i] == 0:
@@ -646,53 +638,45 @@ def _allocate_contacts(
         f0, f1, f2 = forces[i, 0], forces[i, 1], forces[i, 2]
         f = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
         if weak < 0 or f < weakest:
-            weak, weakest = i, f
+            weak, weakest, w0 = i, f, r
+        r += c
     if not math.isfinite(s):
         return NON_FINITE_INPUT
-    beta = 1.0
-    if n > 1 and onset > 0.0:
-        z = weakest / onset
-        z = 0.0 if z < 0.0 else (1.0 if z > 1.0 else z)
-        beta = z * z * (3.0 - 2.0 * z)
-    if beta < 1.0:  # the rest alone, by direction
+    beta = onset_beta(weakest, n, params[3])
+    if beta < 1.0:  # the rest alone; none of the weakest's columns w0 .. w1 - 1
         xo = _solve_grasp(in_contact, points, forces, counts, params, weak, alpha, work)
-        j = 0
-        start = 0
-        for i in range(n_fingers):
-            for d in range(start, start + int(counts[i])):
-                work[xk, d] = 0.0
-                if in_contact[i] != 0 and i != weak:
-                    work[xk, d] = (1.0 - beta) * work[xo, j]
-                    j += 1
-            start += int(counts[i])
+        w1 = w0 + int(counts[weak])
+        for j in range(r):
+            x = 0.0 if w0 <= j < w1 else work[xo, j if j < w0 else j - w1 + w0]
+            work[xk, j] = (1.0 - beta) * x
     xo = _solve_grasp(in_contact, points, forces, counts, params, -1, alpha, work)
-    j = 0
-    start = 0
-    for i in range(n_fingers):
-        for d in range(start, start + int(counts[i])):
-            if in_contact[i] != 0:
-                x = work[xo, j]
-                if beta < 1.0:
-                    x = beta * x + work[xk, d]
-                work[xo, j] = x
-                if not math.isfinite(x):
-                    return NON_FINITE_OUTPUT
-                j += 1
-        start += int(counts[i])
+    for j in range(r):
+        x = work[xo, j]
+        if beta < 1.0:
+            x = beta * x + work[xk, j]
+        work[xo, j] = x
+        if not math.isfinite(x):
+            return NON_FINITE_OUTPUT
     if n > 2 or not ones:  # the grasp _solve_grasp left in work
-        work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = residuals(work, 3 * n, j)
-        return ALLOCATED
-    r1, d1, l1 = _contact(points, forces, counts, params, work, _nth(in_contact, -1, 0))
-    if n == 1:
-        work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = one_contact_residuals(
-            r1, d1, l1, work[xo, 0]
-        )
+        acc = residuals(work, 3 * n, r)
+    elif n == 1:
+        r1, d1, l1 = _contact(points, forces, counts, params, work, _nth(in_contact, -1, 0))
+        acc = one_contact_residuals(r1, d1, l1, work[xo, 0])
     else:
+        r1, d1, l1 = _contact(points, forces, counts, params, work, _nth(in_contact, -1, 0))
         r2, d2, l2 = _contact(points, forces, counts, params, work, _nth(in_contact, -1, 1))
-        work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = two_contact_residuals(
-            r1, r2, d1, d2, l1, l2, work[xo, 0], work[xo, 1]
-        )
+        acc = two_contact_residuals(r1, r2, d1, d2, l1, l2, work[xo, 0], work[xo, 1])
+    work[xk, 0], work[xk, 1], work[xk, 2], work[xk, 3] = acc
     return ALLOCATED
+
+
+def onset_beta(weakest: float, n: int, onset: float) -> float:
+    """Contact onset: the weight (0..1) of the grasp of ``n`` contacts whose weakest force is
+    ``weakest`` N, for ``onset`` N (the grasp without that contact weighs 1 - beta):
+    smoothstep(weakest / onset) for two contacts or more, else 1. A contact being made or
+    broken so joins the grasp gradually: else the grasp matrix (and IF's squeeze) would jump
+    when it appears or leaves."""
+    return closed.smoothstep(weakest / onset) if n > 1 and onset > 0.0 else 1.0
 
 
 def _nth(in_contact: np.ndarray, skip: int, s: int) -> int:
@@ -748,7 +732,7 @@ def _solve_grasp(
             ones = ones and counts[i] == 1.0
     xo = layout(3 * k, r)[XO_ROW]
     if k > 2 or not ones:
-        _fill_grasp(in_contact, points, forces, counts, params, skip, work)
+        _fill_grasp(in_contact, points, forces, counts, params, skip, k, r, work)
         general_path(method, work, 3 * k, r, eps, min_sep, alpha)
         return xo
     r1, d1, l1 = _contact(points, forces, counts, params, work, _nth(in_contact, skip, 0))

@@ -209,10 +209,8 @@ class Allocation:
             getattr(frame, self.output),
         )
         frame.alpha[()] = alloc.alpha
-        frame.residual_internal[()] = acc[0]
-        frame.residual_external[()] = acc[1]
-        frame.residual_total[()] = acc[2]
-        frame.amplification[()] = acc[3]
+        for name, value in zip(_ACCURACY, acc, strict=True):
+            getattr(frame, name)[()] = value
 
     @property
     def kernel_stage(self) -> int | None:
