@@ -387,7 +387,6 @@ KERNEL_HELPERS = (
     "safety_step",
     "_along",
     "_gap",
-    "_deepest",
     "_project",
     "_solve2",
 )
@@ -959,22 +958,6 @@ def _gap(planes: np.ndarray, kk: int, r: float, x0: float, x1: float, x2: float)
     return (planes[kk, 0] * x0 + planes[kk, 1] * x1 + planes[kk, 2] * x2) - (planes[kk, 3] + r)
 
 
-def _deepest(
-    planes: np.ndarray, lo: int, hi: int, r: float, x0: float, x1: float, x2: float, stop: float
-) -> tuple[float, int]:
-    """The largest ``_gap`` of x over rows lo to hi (m) and its row, or the first >= stop."""
-    best = -math.inf
-    arg = lo
-    for kk in range(lo, hi):
-        v = (planes[kk, 0] * x0 + planes[kk, 1] * x1 + planes[kk, 2] * x2) - (planes[kk, 3] + r)
-        if v > best:
-            best = v
-            arg = kk
-            if v >= stop:
-                break
-    return best, arg
-
-
 def _project(
     planes: np.ndarray, state: np.ndarray, i: int, base: int, k: int, r: float, x: tuple
 ) -> tuple:
@@ -1147,17 +1130,28 @@ def contact_step(
             lo = 0
             while lo < n_planes:
                 hi = int(planes[lo, 6])
-                best, kk = _deepest(planes, lo, hi, r, p0, p1, p2, 0.0)
+                best = -math.inf
+                arg = lo
+                for kk in range(lo, hi):
+                    v = (planes[kk, 0] * p0 + planes[kk, 1] * p1 + planes[kk, 2] * p2) - (
+                        planes[kk, 3] + r
+                    )
+                    if v >= 0.0:  # outside (or on) this plane: not inside the obstacle
+                        best = v
+                        break
+                    if v > best:
+                        best = v
+                        arg = kk
                 if best < 0.0:
                     moved = True
                     found = False
                     for q in range(npushed):
-                        if int(state[i, _C_PUSHED + q]) == kk:
+                        if int(state[i, _C_PUSHED + q]) == arg:
                             found = True
                     if not found and npushed < _MAX_CONSTRAINTS:
-                        state[i, _C_PUSHED + npushed] = kk
+                        state[i, _C_PUSHED + npushed] = arg
                         npushed += 1
-                    x = _along(planes, kk, -best, p0, p1, p2)
+                    x = _along(planes, arg, -best, p0, p1, p2)
                     if npushed > 1:
                         y = _project(planes, state, i, _C_PUSHED, npushed, r, s)
                         mn = state[i, _C_MU]
@@ -1218,7 +1212,15 @@ def contact_step(
                 grazes = plane >= 0 and t_exit <= t_enter + _T_EPS
                 if not (never or grazes) and (bk < 0 or t_enter < bt):
                     bt = t_enter
-                    bk = plane if plane >= 0 else _deepest(planes, lo, hi, r, p0, p1, p2, 0.0)[1]
+                    bk = plane
+                    if plane < 0:  # inside every plane: through the nearest
+                        bk = lo
+                        best = -math.inf
+                        for kk in range(lo, hi):
+                            v = _gap(planes, kk, r, p0, p1, p2)
+                            if v > best:
+                                best = v
+                                bk = kk
                 lo = hi
             if bk >= 0:
                 p0, p1, p2 = p0 + bt * e0, p1 + bt * e1, p2 + bt * e2
