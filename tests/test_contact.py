@@ -217,11 +217,8 @@ def test_a_fast_finger_over_a_fine_mesh_ends_on_the_projection():
 
 
 def gram(ns, rhs) -> list[float]:
-    """mu (k,) solving N N^T mu = rhs for k = 1-3 unit normals ``ns`` (kernels._gram_mu; one
-    plane: mu = rhs, as contact_step does inline)."""
+    """mu (k,) solving N N^T mu = rhs for k = 1-3 unit normals ``ns`` (kernels._gram_mu)."""
     k = len(ns)
-    if k == 1:
-        return [float(rhs[0])]
     planes = np.zeros((k, kernels.PLANE_COLUMNS))
     planes[:, 0:3] = ns
     state = np.zeros((1, kernels.CONTACT_STATE))

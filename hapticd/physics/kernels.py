@@ -386,6 +386,10 @@ KERNEL_HELPERS = (
     "_block",
     "_bytes",
     "safety_step",
+    "_along",
+    "_gap",
+    "_project",
+    "_solve2",
 )
 # The sources whose code or constants the kernels compile in: numba's cache knows only
 # this file's, so hapticd.physics.jit keys its record of compiled kernels on all of them.
@@ -809,25 +813,24 @@ def friction_step(
         # unless an anchor held from the last tick moves it.
         q0, q1, q2 = p0, p1, p2
         if fingers[i, ANCHOR_SET] != 0.0:
-            a0, a1, a2 = fingers[i, 0], fingers[i, 1], fingers[i, 2]
-            w0 = r00 * a0 + r01 * a1 + r02 * a2 + x0
-            w1 = r10 * a0 + r11 * a1 + r12 * a2 + x1
-            w2 = r20 * a0 + r21 * a1 + r22 * a2 + x2
             depth = (
                 (p0 - device_pos[i, 0]) * n0
                 + (p1 - device_pos[i, 1]) * n1
                 + (p2 - device_pos[i, 2]) * n2
             )
             if not depth <= 0.0:
-                o0, o1, o2 = w0 - p0, w1 - p1, w2 - p2
+                # The anchor in the world, less p, less its normal part: t, along the face.
+                a0, a1, a2 = fingers[i, 0], fingers[i, 1], fingers[i, 2]
+                o0 = r00 * a0 + r01 * a1 + r02 * a2 + x0 - p0
+                o1 = r10 * a0 + r11 * a1 + r12 * a2 + x1 - p1
+                o2 = r20 * a0 + r21 * a1 + r22 * a2 + x2 - p2
                 s = o0 * n0 + o1 * n1 + o2 * n2
                 t0, t1, t2 = o0 - s * n0, o1 - s * n1, o2 - s * n2
                 tn = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
-                if tn <= mu_s * depth:  # within the static cone: stick at the anchor
-                    q0, q1, q2 = p0 + t0, p1 + t1, p2 + t2
-                else:  # slip to the dynamic cone's edge, toward the anchor
-                    k = mu_d * depth / tn
-                    q0, q1, q2 = p0 + k * t0, p1 + k * t1, p2 + k * t2
+                # Within the static cone: stick at the anchor; else slip to the dynamic
+                # cone's edge, toward the anchor.
+                k = 1.0 if tn <= mu_s * depth else mu_d * depth / tn
+                q0, q1, q2 = p0 + k * t0, p1 + k * t1, p2 + k * t2
         d0, d1, d2 = q0 - x0, q1 - x1, q2 - x2
         fingers[i, 0] = r00 * d0 + r10 * d1 + r20 * d2
         fingers[i, 1] = r01 * d0 + r11 * d1 + r21 * d2
@@ -882,12 +885,11 @@ def forces_step(
         f2 = k * (p2 - device_pos[i, 2])
         if b != 0.0:  # NaN damps too
             v0, v1, v2 = device_vel[i, 0], device_vel[i, 1], device_vel[i, 2]
-            if moving:  # relative to the object's material at the surface point
+            if moving:  # relative to the object's material at the surface point: u + w x e
                 e0, e1, e2 = p0 - x0, p1 - x1, p2 - x2
-                s0 = w1 * e2 - w2 * e1
-                s1 = w2 * e0 - w0 * e2
-                s2 = w0 * e1 - w1 * e0
-                v0, v1, v2 = v0 - u0 - s0, v1 - u1 - s1, v2 - u2 - s2
+                v0 = v0 - u0 - (w1 * e2 - w2 * e1)
+                v1 = v1 - u1 - (w2 * e0 - w0 * e2)
+                v2 = v2 - u2 - (w0 * e1 - w1 * e0)
             f0, f1, f2 = f0 - b * v0, f1 - b * v1, f2 - b * v2
             n0, n1, n2 = normals[i, 0], normals[i, 1], normals[i, 2]
             fn = f0 * n0 + f1 * n1 + f2 * n2
@@ -930,16 +932,39 @@ _FREE_TOL = 1e-12
 _GRAM_MIN = 1e-9
 
 
+def _along(planes: np.ndarray, kk: int, m: float, x0: float, x1: float, x2: float) -> tuple:
+    """x + m n (m) for the unit normal n of row kk of ``planes``."""
+    return x0 + m * planes[kk, 0], x1 + m * planes[kk, 1], x2 + m * planes[kk, 2]
+
+
+def _gap(planes: np.ndarray, kk: int, r: float, x0: float, x1: float, x2: float) -> float:
+    """How far (m) x lies outside row kk of ``planes`` moved out by r (< 0: inside)."""
+    return (planes[kk, 0] * x0 + planes[kk, 1] * x1 + planes[kk, 2] * x2) - (planes[kk, 3] + r)
+
+
+def _project(
+    planes: np.ndarray, state: np.ndarray, i: int, base: int, k: int, r: float, x: tuple
+) -> tuple:
+    """The point (3,) m nearest x on finger i's k planes (rows state[i, base:base + k])
+    moved out by r, x plus sum mu n: solves the multipliers into state[i, _C_MU:]."""
+    x0, x1, x2 = x
+    for q in range(k):
+        state[i, _C_RHS + q] = -_gap(planes, int(state[i, base + q]), r, x0, x1, x2)
+    _gram_mu(planes, state, i, k, base)
+    for q in range(k):
+        x0, x1, x2 = _along(planes, int(state[i, base + q]), state[i, _C_MU + q], x0, x1, x2)
+    return x0, x1, x2
+
+
 def _gram_mu(planes: np.ndarray, state: np.ndarray, i: int, k: int, base: int) -> None:
     """The multipliers state[i, _C_MU:_C_MU + k] solving G mu = rhs for the Gram matrix
-    G = N N^T of the k (2 or 3) unit normals whose rows in ``planes`` are
-    state[i, base:base + k], rhs = state[i, _C_RHS:_C_RHS + k] (m). The one function
-    contact_step calls: hapticd.physics.jit compiles it in (``KERNEL_HELPERS``).
+    G = N N^T of the k (1 to 3) unit normals whose rows in ``planes`` are
+    state[i, base:base + k], rhs = state[i, _C_RHS:_C_RHS + k] (m).
 
     Plain float sums in a fixed order: the 2 x 2 and 3 x 3 systems by their adjugates
-    (Cramer's rule), the unit diagonal taken as exactly 1. A singular system (determinant
-    <= ``_GRAM_MIN``) takes a closed-form minimum-norm rule instead of an inverse that
-    would throw the proxy far away:
+    (Cramer's rule), the unit diagonal taken as exactly 1 (one plane: mu = rhs). A singular
+    system (determinant <= ``_GRAM_MIN``) takes a closed-form minimum-norm rule instead of
+    an inverse that would throw the proxy far away:
 
     - two (nearly) parallel or antiparallel planes (cosine c, s its sign): G's
       pseudo-inverse with its small eigenvalue 1 - |c| dropped, mu = (m, s m) with
@@ -955,76 +980,74 @@ def _gram_mu(planes: np.ndarray, state: np.ndarray, i: int, k: int, base: int) -
 
     Multipliers keep their meaning: mu_i > 0 where plane i pushes outward.
     """
+    r0 = state[i, _C_RHS]
+    if k == 1:
+        state[i, _C_MU] = r0
+        return
     q0 = int(state[i, base])
     q1 = int(state[i, base + 1])
     n0x, n0y, n0z = planes[q0, 0], planes[q0, 1], planes[q0, 2]
     n1x, n1y, n1z = planes[q1, 0], planes[q1, 1], planes[q1, 2]
-    r0 = state[i, _C_RHS]
     r1 = state[i, _C_RHS + 1]
+    a = n0x * n1x + n0y * n1y + n0z * n1z
     if k == 2:
-        c = n0x * n1x + n0y * n1y + n0z * n1z
-        det = 1.0 - c * c
-        if det > _GRAM_MIN:
-            state[i, _C_MU] = (r0 - c * r1) / det
-            state[i, _C_MU + 1] = (r1 - c * r0) / det
+        if 1.0 - a * a > _GRAM_MIN:
+            state[i, _C_MU], state[i, _C_MU + 1] = _solve2(a, r0, r1)
         else:
-            s = 1.0 if c >= 0.0 else -1.0
-            m = (r0 + s * r1) / (2.0 * (1.0 + abs(c)))
-            state[i, _C_MU] = m
-            state[i, _C_MU + 1] = s * m
+            s = 1.0 if a >= 0.0 else -1.0
+            m = (r0 + s * r1) / (2.0 * (1.0 + abs(a)))
+            state[i, _C_MU], state[i, _C_MU + 1] = m, s * m
+        return
+    q2 = int(state[i, base + 2])
+    n2x, n2y, n2z = planes[q2, 0], planes[q2, 1], planes[q2, 2]
+    r2 = state[i, _C_RHS + 2]
+    b = n0x * n2x + n0y * n2y + n0z * n2z
+    c = n1x * n2x + n1y * n2y + n1z * n2z
+    a00 = 1.0 - c * c
+    a11 = 1.0 - b * b
+    a22 = 1.0 - a * a
+    a01 = b * c - a
+    a02 = a * c - b
+    a12 = a * b - c
+    det = a00 + a * a01 + b * a02
+    if det > _GRAM_MIN:
+        state[i, _C_MU] = (a00 * r0 + a01 * r1 + a02 * r2) / det
+        state[i, _C_MU + 1] = (a01 * r0 + a11 * r1 + a12 * r2) / det
+        state[i, _C_MU + 2] = (a02 * r0 + a12 * r1 + a22 * r2) / det
+        return
+    # The pair (u, v) the rule keeps or merges and the third plane w, by the pairs' 2 x 2
+    # determinants (a22: planes 0 and 1, a11: 0 and 2, a00: 1 and 2): with two (nearly)
+    # parallel planes the smallest, else the largest (the smallest of their negatives).
+    two = a22 <= _GRAM_MIN or a11 <= _GRAM_MIN or a00 <= _GRAM_MIN
+    g = 1.0 if two else -1.0
+    if g * a22 <= g * a11 and g * a22 <= g * a00:
+        u, v, w, cuv, cuw = 0, 1, 2, a, b
+    elif g * a11 <= g * a00:
+        u, v, w, cuv, cuw = 0, 2, 1, b, a
     else:
-        q2 = int(state[i, base + 2])
-        n2x, n2y, n2z = planes[q2, 0], planes[q2, 1], planes[q2, 2]
-        r2 = state[i, _C_RHS + 2]
-        a = n0x * n1x + n0y * n1y + n0z * n1z
-        b = n0x * n2x + n0y * n2y + n0z * n2z
-        c = n1x * n2x + n1y * n2y + n1z * n2z
-        a00 = 1.0 - c * c
-        a11 = 1.0 - b * b
-        a22 = 1.0 - a * a
-        a01 = b * c - a
-        a02 = a * c - b
-        a12 = a * b - c
-        det = a00 + a * a01 + b * a02
-        if det > _GRAM_MIN:
-            state[i, _C_MU] = (a00 * r0 + a01 * r1 + a02 * r2) / det
-            state[i, _C_MU + 1] = (a01 * r0 + a11 * r1 + a12 * r2) / det
-            state[i, _C_MU + 2] = (a02 * r0 + a12 * r1 + a22 * r2) / det
+        u, v, w, cuv, cuw = 1, 2, 0, c, a
+    ru, rv, rw = state[i, _C_RHS + u], state[i, _C_RHS + v], state[i, _C_RHS + w]
+    mu_w = 0.0
+    if not two:
+        mu_u, mu_v = _solve2(cuv, ru, rv)
+    else:
+        s = 1.0 if cuv >= 0.0 else -1.0
+        rm = (ru + s * rv) / 2.0
+        if 1.0 - cuw * cuw > _GRAM_MIN:
+            am, mu_w = _solve2(cuw, rm, rw)
+            mu_u, mu_v = am / 2.0, s * am / 2.0
         else:
-            state[i, _C_MU] = 0.0
-            state[i, _C_MU + 1] = 0.0
-            state[i, _C_MU + 2] = 0.0
-            if a22 <= _GRAM_MIN or a11 <= _GRAM_MIN or a00 <= _GRAM_MIN:
-                if a22 <= a11 and a22 <= a00:
-                    iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 1, 2, a, b, r0, r1, r2
-                elif a11 <= a00:
-                    iu, iv, iw, cuv, cuw, ru, rv, rw = 0, 2, 1, b, a, r0, r2, r1
-                else:
-                    iu, iv, iw, cuv, cuw, ru, rv, rw = 1, 2, 0, c, a, r1, r2, r0
-                s = 1.0 if cuv >= 0.0 else -1.0
-                rm = (ru + s * rv) / 2.0
-                dp = 1.0 - cuw * cuw
-                if dp > _GRAM_MIN:
-                    am = (rm - cuw * rw) / dp
-                    state[i, _C_MU + iw] = (rw - cuw * rm) / dp
-                    state[i, _C_MU + iu] = am / 2.0
-                    state[i, _C_MU + iv] = s * am / 2.0
-                else:
-                    t = 1.0 if cuw >= 0.0 else -1.0
-                    m = (ru + s * rv + t * rw) / 9.0
-                    state[i, _C_MU + iu] = m
-                    state[i, _C_MU + iv] = s * m
-                    state[i, _C_MU + iw] = t * m
-            else:
-                if a22 >= a11 and a22 >= a00:
-                    iu, iv, cc, ru, rv = 0, 1, a, r0, r1
-                elif a11 >= a00:
-                    iu, iv, cc, ru, rv = 0, 2, b, r0, r2
-                else:
-                    iu, iv, cc, ru, rv = 1, 2, c, r1, r2
-                dp = 1.0 - cc * cc
-                state[i, _C_MU + iu] = (ru - cc * rv) / dp
-                state[i, _C_MU + iv] = (rv - cc * ru) / dp
+            t = 1.0 if cuw >= 0.0 else -1.0
+            mu_u = (ru + s * rv + t * rw) / 9.0
+            mu_v, mu_w = s * mu_u, t * mu_u
+    state[i, _C_MU + u], state[i, _C_MU + v], state[i, _C_MU + w] = mu_u, mu_v, mu_w
+
+
+def _solve2(c: float, r0: float, r1: float) -> tuple[float, float]:
+    """mu (2,) solving [[1, c], [c, 1]] mu = (r0, r1) (two unit normals' Gram system, c
+    their cosine) by Cramer's rule."""
+    det = 1.0 - c * c
+    return (r0 - c * r1) / det, (r1 - c * r0) / det
 
 
 def contact_step(
@@ -1072,22 +1095,19 @@ def contact_step(
                 return CONTACT_NOT_TAKEN
     for i in range(n_fingers):
         for col in range(3):
-            if not (
-                math.isfinite(device_pos[i, col])
-                and math.isfinite(device_vel[i, col])
-                and math.isfinite(state[i, col])
-            ):
+            if not (math.isfinite(device_pos[i, col]) and math.isfinite(device_vel[i, col])):
                 return CONTACT_NOT_TAKEN
-        if not math.isfinite(state[i, _C_RADIUS]):
-            return CONTACT_NOT_TAKEN
+        for col in range(_C_RADIUS + 1):  # the proxy and the radius
+            if not math.isfinite(state[i, col]):
+                return CONTACT_NOT_TAKEN
     n_obst = int(planes[n_planes - 1, 4]) + 1
-    surfaces = n_obst > 1
     for i in range(n_fingers):
         r = state[i, _C_RADIUS]
         d0, d1, d2 = device_pos[i, 0], device_pos[i, 1], device_pos[i, 2]
         p0, p1, p2 = state[i, 0], state[i, 1], state[i, 2]
-        # -- out of every obstacle the proxy is inside
-        s0, s1, s2 = p0, p1, p2
+        # -- out of every obstacle the proxy is inside: through the nearest plane, or onto
+        # the projection on the planes pushed through where they all push (a crease)
+        s = (p0, p1, p2)
         npushed = 0
         for _ in range(n_obst + 1):
             moved = False
@@ -1095,7 +1115,7 @@ def contact_step(
             while lo < n_planes:
                 hi = int(planes[lo, 6])
                 best = -math.inf
-                arg = 0
+                arg = lo
                 for kk in range(lo, hi):
                     v = (planes[kk, 0] * p0 + planes[kk, 1] * p1 + planes[kk, 2] * p2) - (
                         planes[kk, 3] + r
@@ -1105,44 +1125,26 @@ def contact_step(
                         break
                     if v > best:
                         best = v
-                        arg = kk - lo
+                        arg = kk
                 if best < 0.0:
                     moved = True
-                    kk = lo + arg
                     found = False
                     for q in range(npushed):
-                        if int(state[i, _C_PUSHED + q]) == kk:
+                        if int(state[i, _C_PUSHED + q]) == arg:
                             found = True
                     if not found and npushed < _MAX_CONSTRAINTS:
-                        state[i, _C_PUSHED + npushed] = kk
+                        state[i, _C_PUSHED + npushed] = arg
                         npushed += 1
-                    projected = False
+                    x = _along(planes, arg, -best, p0, p1, p2)
                     if npushed > 1:
-                        k = npushed
-                        for q in range(k):
-                            qq = int(state[i, _C_PUSHED + q])
-                            state[i, _C_RHS + q] = (planes[qq, 3] + r) - (
-                                planes[qq, 0] * s0 + planes[qq, 1] * s1 + planes[qq, 2] * s2
-                            )
-                        _gram_mu(planes, state, i, k, _C_PUSHED)
+                        y = _project(planes, state, i, _C_PUSHED, npushed, r, s)
                         mn = state[i, _C_MU]
-                        for q in range(1, k):
+                        for q in range(1, npushed):
                             if state[i, _C_MU + q] < mn:
                                 mn = state[i, _C_MU + q]
                         if mn >= 0.0:
-                            x0, x1, x2 = s0, s1, s2
-                            for q in range(k):
-                                qq = int(state[i, _C_PUSHED + q])
-                                m = state[i, _C_MU + q]
-                                x0 += m * planes[qq, 0]
-                                x1 += m * planes[qq, 1]
-                                x2 += m * planes[qq, 2]
-                            p0, p1, p2 = x0, x1, x2
-                            projected = True
-                    if not projected:
-                        p0 = p0 - best * planes[kk, 0]
-                        p1 = p1 - best * planes[kk, 1]
-                        p2 = p2 - best * planes[kk, 2]
+                            x = y
+                    p0, p1, p2 = x
                 lo = hi
             if not moved:
                 break
@@ -1150,39 +1152,19 @@ def contact_step(
         nact = 0
         held = False
         for _ in range(_MAX_ITER):
-            if nact == 0:
-                t0, t1, t2 = d0, d1, d2
-            elif nact == 1:
+            t0, t1, t2 = d0, d1, d2
+            if nact == 1:  # _project's point, without its calls (quicker uncompiled)
                 qq = int(state[i, _C_ACTIVE])
-                m = (planes[qq, 3] + r) - (
-                    planes[qq, 0] * d0 + planes[qq, 1] * d1 + planes[qq, 2] * d2
-                )
-                state[i, _C_MU] = m
-                t0 = d0 + m * planes[qq, 0]
-                t1 = d1 + m * planes[qq, 1]
-                t2 = d2 + m * planes[qq, 2]
-            else:
-                k = nact
-                for q in range(k):
-                    qq = int(state[i, _C_ACTIVE + q])
-                    state[i, _C_RHS + q] = (planes[qq, 3] + r) - (
-                        planes[qq, 0] * d0 + planes[qq, 1] * d1 + planes[qq, 2] * d2
-                    )
-                _gram_mu(planes, state, i, k, _C_ACTIVE)
-                t0, t1, t2 = d0, d1, d2
-                for q in range(k):
-                    qq = int(state[i, _C_ACTIVE + q])
-                    m = state[i, _C_MU + q]
-                    t0 += m * planes[qq, 0]
-                    t1 += m * planes[qq, 1]
-                    t2 += m * planes[qq, 2]
+                state[i, _C_MU] = m = -_gap(planes, qq, r, d0, d1, d2)
+                t0, t1, t2 = _along(planes, qq, m, d0, d1, d2)
+            elif nact > 1:
+                t0, t1, t2 = _project(planes, state, i, _C_ACTIVE, nact, r, (d0, d1, d2))
             e0, e1, e2 = t0 - p0, t1 - p1, t2 - p2
             # The first obstacle the path p + t e (t in [0, 1)) enters, and the plane: a
             # path whose two ends are outside or on one plane of an obstacle never enters
             # it; a crossing time is computed only on the segment (no ratio of two
             # rounding errors); inside every plane (a push-out could not clear another
             # obstacle): in at once, through the nearest.
-            hit = False
             bt = 0.0
             bk = -1
             lo = 0
@@ -1204,39 +1186,28 @@ def contact_step(
                             tt = num / denom
                             if tt > t_enter:
                                 t_enter = tt
-                                plane = kk - lo
+                                plane = kk
                         elif plane < 0:
-                            plane = kk - lo
+                            plane = kk
                     elif denom > num:
                         tt = num / denom
                         if tt < t_exit:
                             t_exit = tt
-                if not never:
-                    ok = True
-                    te = t_enter
-                    pl = plane
-                    if plane < 0:
-                        te = 0.0
+                grazes = plane >= 0 and t_exit <= t_enter + _T_EPS
+                if not (never or grazes) and (bk < 0 or t_enter < bt):
+                    bt = t_enter
+                    bk = plane
+                    if plane < 0:  # inside every plane: through the nearest
+                        bk = lo
                         best = -math.inf
-                        pl = 0
                         for kk in range(lo, hi):
-                            v = (planes[kk, 0] * p0 + planes[kk, 1] * p1 + planes[kk, 2] * p2) - (
-                                planes[kk, 3] + r
-                            )
+                            v = _gap(planes, kk, r, p0, p1, p2)
                             if v > best:
                                 best = v
-                                pl = kk - lo
-                    elif t_exit <= t_enter + _T_EPS:
-                        ok = False
-                    if ok and (not hit or te < bt):
-                        hit = True
-                        bt = te
-                        bk = lo + pl
+                                bk = kk
                 lo = hi
-            if hit:
-                p0 = p0 + bt * e0
-                p1 = p1 + bt * e1
-                p2 = p2 + bt * e2
+            if bk >= 0:
+                p0, p1, p2 = p0 + bt * e0, p1 + bt * e1, p2 + bt * e2
                 again = False
                 for q in range(nact):
                     if int(state[i, _C_ACTIVE + q]) == bk:
@@ -1271,96 +1242,66 @@ def contact_step(
                 held = True
                 break
             nact = w
-        if held:
-            # The planes that push (mu > 0).
-            w = 0
-            for q in range(nact):
-                m = state[i, _C_MU + q]
-                if m > 0.0:
-                    state[i, _C_ACTIVE + w] = state[i, _C_ACTIVE + q]
-                    state[i, _C_MU + w] = m
-                    w += 1
-            nact = w
-        else:
-            # Stopped short of a projection: a plane the device is outside of does not push.
-            w = 0
+        # Held: the planes that push (mu > 0). Stopped short of a projection: those the
+        # device is inside of (the others do not push), their multipliers from p - device.
+        w = 0
+        for q in range(nact):
+            qq = int(state[i, _C_ACTIVE + q])
+            if (state[i, _C_MU + q] > 0.0) if held else (_gap(planes, qq, r, d0, d1, d2) < 0.0):
+                state[i, _C_ACTIVE + w] = qq
+                state[i, _C_MU + w] = state[i, _C_MU + q]
+                w += 1
+        nact = w
+        if not held and nact > 0:
+            f0, f1, f2 = p0 - d0, p1 - d1, p2 - d2
             for q in range(nact):
                 qq = int(state[i, _C_ACTIVE + q])
-                if planes[qq, 0] * d0 + planes[qq, 1] * d1 + planes[qq, 2] * d2 < (
-                    planes[qq, 3] + r
-                ):
-                    state[i, _C_ACTIVE + w] = qq
-                    w += 1
-            nact = w
-            f0, f1, f2 = p0 - d0, p1 - d1, p2 - d2
-            if nact == 1:
-                qq = int(state[i, _C_ACTIVE])
-                state[i, _C_MU] = f0 * planes[qq, 0] + f1 * planes[qq, 1] + f2 * planes[qq, 2]
-            elif nact > 1:
-                k = nact
-                for q in range(k):
-                    qq = int(state[i, _C_ACTIVE + q])
-                    state[i, _C_RHS + q] = (
-                        f0 * planes[qq, 0] + f1 * planes[qq, 1] + f2 * planes[qq, 2]
-                    )
-                _gram_mu(planes, state, i, k, _C_ACTIVE)
-        # -- this finger's outputs: the proxy, its active planes (-1 past the last)
+                state[i, _C_RHS + q] = f0 * planes[qq, 0] + f1 * planes[qq, 1] + f2 * planes[qq, 2]
+            _gram_mu(planes, state, i, nact, _C_ACTIVE)
+        # -- this finger's outputs: the proxy, its active planes (-1 past the last), the
+        # surfaces' forces
         state[i, 0], state[i, 1], state[i, 2] = p0, p1, p2
         for q in range(nact, _MAX_CONSTRAINTS):
             state[i, _C_ACTIVE + q] = -1.0
         proxy_pos[i, 0], proxy_pos[i, 1], proxy_pos[i, 2] = p0, p1, p2
+        v0, v1, v2 = device_vel[i, 0], device_vel[i, 1], device_vel[i, 2]
+        g0, g1, g2 = 0.0, 0.0, 0.0
         n_obj = 0
         first = -1
         for q in range(nact):
             qq = int(state[i, _C_ACTIVE + q])
             if planes[qq, 4] == 0.0:
-                if n_obj == 0:
-                    first = qq
+                first = qq if n_obj == 0 else first
                 n_obj += 1
-        if surfaces:
-            g0, g1, g2 = 0.0, 0.0, 0.0
-            if n_obj < nact:
-                v0, v1, v2 = device_vel[i, 0], device_vel[i, 1], device_vel[i, 2]
-                for q in range(nact):
-                    qq = int(state[i, _C_ACTIVE + q])
-                    if planes[qq, 4] == 0.0:
-                        continue
-                    nx, ny, nz = planes[qq, 0], planes[qq, 1], planes[qq, 2]
-                    vn = v0 * nx + v1 * ny + v2 * nz
-                    mag = planes[qq, 7] * state[i, _C_MU + q] - planes[qq, 8] * vn
-                    if mag < 0.0:  # max(mag, 0.0): NaN stays, as with Python's max
-                        mag = 0.0
-                    g0 += mag * nx
-                    g1 += mag * ny
-                    g2 += mag * nz
+                continue
+            vn = planes[qq, 0] * v0 + planes[qq, 1] * v1 + planes[qq, 2] * v2
+            mag = planes[qq, 7] * state[i, _C_MU + q] - planes[qq, 8] * vn
+            if mag < 0.0:  # max(mag, 0.0): NaN stays, as with Python's max
+                mag = 0.0
+            g0, g1, g2 = _along(planes, qq, mag, g0, g1, g2)
+        if n_obst > 1:
             env_force[i, 0], env_force[i, 1], env_force[i, 2] = g0, g1, g2
-        if n_obj == 0:
-            in_contact[i] = 0
-            surface_point[i, 0], surface_point[i, 1], surface_point[i, 2] = p0, p1, p2
-            contact_point[i, 0], contact_point[i, 1], contact_point[i, 2] = p0, p1, p2
-            contact_normal[i, 0], contact_normal[i, 1], contact_normal[i, 2] = 0.0, 0.0, 0.0
-            continue
-        # The proxy's displacement due to the object's planes alone.
-        x0, x1, x2 = d0, d1, d2
-        for q in range(nact):
-            qq = int(state[i, _C_ACTIVE + q])
-            if planes[qq, 4] == 0.0:
-                m = state[i, _C_MU + q]
-                x0 += m * planes[qq, 0]
-                x1 += m * planes[qq, 1]
-                x2 += m * planes[qq, 2]
-        nx, ny, nz = planes[first, 0], planes[first, 1], planes[first, 2]
-        if n_obj > 1:
-            u0, u1, u2 = x0 - d0, x1 - d1, x2 - d2
-            norm = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
-            if norm > 1e-15:
-                nx, ny, nz = u0 / norm, u1 / norm, u2 / norm
-        in_contact[i] = 1
+        # In contact: the device moved out by the object's planes alone; else the proxy.
+        x0, x1, x2 = p0, p1, p2
+        n0, n1, n2 = 0.0, 0.0, 0.0
+        if n_obj > 0:
+            x0, x1, x2 = d0, d1, d2
+            for q in range(nact):
+                qq = int(state[i, _C_ACTIVE + q])
+                if planes[qq, 4] == 0.0:
+                    x0, x1, x2 = _along(planes, qq, state[i, _C_MU + q], x0, x1, x2)
+            n0, n1, n2 = planes[first, 0], planes[first, 1], planes[first, 2]
+            if n_obj > 1:
+                u0, u1, u2 = x0 - d0, x1 - d1, x2 - d2
+                norm = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+                if norm > 1e-15:
+                    n0, n1, n2 = u0 / norm, u1 / norm, u2 / norm
+        in_contact[i] = 1 if n_obj > 0 else 0
         surface_point[i, 0], surface_point[i, 1], surface_point[i, 2] = x0, x1, x2
-        contact_normal[i, 0], contact_normal[i, 1], contact_normal[i, 2] = nx, ny, nz
-        contact_point[i, 0] = x0 - r * nx
-        contact_point[i, 1] = x1 - r * ny
-        contact_point[i, 2] = x2 - r * nz
+        contact_normal[i, 0], contact_normal[i, 1], contact_normal[i, 2] = n0, n1, n2
+        contact_point[i, 0] = x0 - r * n0
+        contact_point[i, 1] = x1 - r * n1
+        contact_point[i, 2] = x2 - r * n2
     return CONTACT_DONE
 
 

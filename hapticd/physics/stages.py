@@ -109,20 +109,17 @@ class Contact:
     def _kernel_planes(self) -> np.ndarray:
         """The kernel's planes (P, kernels.PLANE_COLUMNS): the object's faces (the call
         moves them to its pose each tick), then the surfaces'."""
-        blocks = [(self.scene.object.polytope, 0, 0.0, 0.0)]
+        blocks = [(self.scene.object.polytope, 0.0, 0.0)]
         blocks += [
-            (sf.polytope, j, sf.material.stiffness, sf.material.damping)
-            for j, sf in enumerate(self.scene.surfaces, start=1)
+            (sf.polytope, sf.material.stiffness, sf.material.damping) for sf in self.scene.surfaces
         ]
         rows = []
         lo = 0
-        for p, j, k, b in blocks:
+        for j, (p, k, b) in enumerate(blocks):
             hi = lo + len(p.offsets)
-            block = np.empty((hi - lo, kernels.PLANE_COLUMNS))
-            block[:, 0:3] = p.normals
-            block[:, 3] = p.offsets
-            block[:, 4:] = (j, lo, hi, k, b)
-            rows.append(block)
+            rows.append(
+                np.column_stack([p.normals, p.offsets, np.tile((j, lo, hi, k, b), (hi - lo, 1))])
+            )
             lo = hi
         return np.vstack(rows)
 
