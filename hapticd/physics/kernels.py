@@ -117,17 +117,8 @@ def free_body_step(
     k, mu_t, m, dt = params[0], params[1], params[2], params[3]
     substeps = int(params[4])
     reach = params[5]
-    x = state[0:3]
-    v = state[3:6]
-    w = state[6:9]
-    n_fingers = in_contact.shape[0]
     h = dt / substeps
-    x0, x1, x2 = x[0], x[1], x[2]
-    v0, v1, v2 = v[0], v[1], v[2]
-    w0, w1, w2 = w[0], w[1], w[2]
-    r00, r01, r02 = state[9], state[10], state[11]
-    r10, r11, r12 = state[12], state[13], state[14]
-    r20, r21, r22 = state[15], state[16], state[17]
+    x0, x1, x2, v0, v1, v2, w0, w1, w2, r00, r01, r02, r10, r11, r12, r20, r21, r22 = state
     # The pose as a unit quaternion (Shepperd's method).
     tr = r00 + r11 + r22
     if tr > 0.0:
@@ -146,7 +137,7 @@ def free_body_step(
     # The fingers in contact: springs anchored in the body frame, and torsion caps.
     n_springs = 0
     n_tors = 0
-    for i in range(n_fingers):
+    for i in range(in_contact.shape[0]):
         if in_contact[i] == 0:
             continue
         c0, c1, c2 = points[i, 0], points[i, 1], points[i, 2]
@@ -155,28 +146,15 @@ def free_body_step(
         scratch[n_springs, 3] = r00 * d0 + r10 * d1 + r20 * d2
         scratch[n_springs, 4] = r01 * d0 + r11 * d1 + r21 * d2
         scratch[n_springs, 5] = r02 * d0 + r12 * d1 + r22 * d2
-        scratch[n_springs, 6], scratch[n_springs, 7], scratch[n_springs, 8] = (
-            -forces[i, 0],
-            -forces[i, 1],
-            -forces[i, 2],
-        )
+        f0, f1, f2 = forces[i, 0], forces[i, 1], forces[i, 2]
+        scratch[n_springs, 6], scratch[n_springs, 7], scratch[n_springs, 8] = -f0, -f1, -f2
         n_springs += 1
-        if mu_t > 0.0:
-            fn = abs(
-                forces[i, 0] * normals[i, 0]
-                + forces[i, 1] * normals[i, 1]
-                + forces[i, 2] * normals[i, 2]
-            )
-            if fn > 0.0:
-                scratch[n_tors, 9], scratch[n_tors, 10], scratch[n_tors, 11] = (
-                    normals[i, 0],
-                    normals[i, 1],
-                    normals[i, 2],
-                )
-                scratch[n_tors, 12] = mu_t * fn
-                n_tors += 1
-    n_surf = surf.shape[0]
-    n_local = body.shape[0] - BODY_HEAD
+        n0, n1, n2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        fn = abs(f0 * n0 + f1 * n1 + f2 * n2)
+        if mu_t > 0.0 and fn > 0.0:
+            scratch[n_tors, 9], scratch[n_tors, 10], scratch[n_tors, 11] = n0, n1, n2
+            scratch[n_tors, 12] = mu_t * fn
+            n_tors += 1
     for _ in range(substeps):
         Fx, Fy, Fz = 0.0 + m * gx, 0.0 + m * gy, 0.0 + m * gz
         Tx, Ty, Tz = 0.0, 0.0, 0.0
@@ -192,12 +170,12 @@ def free_body_step(
             Tx = Tx + (e1 * f2 - e2 * f1)
             Ty = Ty + (e2 * f0 - e0 * f2)
             Tz = Tz + (e0 * f1 - e1 * f0)
-        if n_surf > 0:
+        if surf.shape[0] > 0:
             # The surfaces' wrench: a penalty spring-damper at each vertex inside a
             # surface, Coulomb friction capped at what stops the vertex in one substep.
             sFx = sFy = sFz = sTx = sTy = sTz = 0.0
             ax = abs(x0) + abs(x1) + abs(x2)
-            for js in range(n_surf):
+            for js in range(surf.shape[0]):
                 n0, n1, n2 = surf[js, 0], surf[js, 1], surf[js, 2]
                 d = surf[js, 3]
                 nn = abs(n0) + abs(n1) + abs(n2)
@@ -205,21 +183,18 @@ def free_body_step(
                 if clear > 1e-9 * (nn * (ax + reach) + abs(d)):
                     continue
                 hits = 0
-                for jv in range(n_local):
-                    jb = BODY_HEAD + jv
+                for jb in range(BODY_HEAD, body.shape[0]):
                     p0, p1, p2 = body[jb, 0], body[jb, 1], body[jb, 2]
                     e0 = r00 * p0 + r01 * p1 + r02 * p2
                     e1 = r10 * p0 + r11 * p1 + r12 * p2
                     e2 = r20 * p0 + r21 * p1 + r22 * p2
-                    pen = d - (n0 * (e0 + x0) + n1 * (e1 + x1) + n2 * (e2 + x2))
-                    if pen > 0.0:
+                    if d - (n0 * (e0 + x0) + n1 * (e1 + x1) + n2 * (e2 + x2)) > 0.0:
                         hits += 1
                 if hits == 0:
                     continue
                 share = m / hits
                 ks, bs, mus = surf[js, 4], surf[js, 5], surf[js, 6]
-                for jv in range(n_local):
-                    jb = BODY_HEAD + jv
+                for jb in range(BODY_HEAD, body.shape[0]):
                     p0, p1, p2 = body[jb, 0], body[jb, 1], body[jb, 2]
                     e0 = r00 * p0 + r01 * p1 + r02 * p2
                     e1 = r10 * p0 + r11 * p1 + r12 * p2
@@ -242,9 +217,7 @@ def free_body_step(
                             cap = mus * fn
                             stop = share * speed / h
                             kk = (stop if stop < cap else cap) / speed
-                            f0 -= kk * t0
-                            f1 -= kk * t1
-                            f2 -= kk * t2
+                            f0, f1, f2 = f0 - kk * t0, f1 - kk * t1, f2 - kk * t2
                     sFx, sFy, sFz = sFx + f0, sFy + f1, sFz + f2
                     sTx = sTx + (e1 * f2 - e2 * f1)
                     sTy = sTy + (e2 * f0 - e0 * f2)
@@ -315,12 +288,9 @@ def free_body_step(
         r20 = 2.0 * (qx * qz - qw * qy)
         r21 = 2.0 * (qy * qz + qw * qx)
         r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
-    x[0], x[1], x[2] = x0, x1, x2
-    v[0], v[1], v[2] = v0, v1, v2
-    w[0], w[1], w[2] = w0, w1, w2
-    state[9], state[10], state[11] = r00, r01, r02
-    state[12], state[13], state[14] = r10, r11, r12
-    state[15], state[16], state[17] = r20, r21, r22
+    out = (x0, x1, x2, v0, v1, v2, w0, w1, w2, r00, r01, r02, r10, r11, r12, r20, r21, r22)
+    for j in range(STATE):
+        state[j] = out[j]
 
 
 # allocation_step's params: method (ALLOCATION_METHODS' index), eps, min_separation_m,
@@ -1477,11 +1447,8 @@ def safety_step(
         outcome = -1
     else:
         for i in range(n):
-            if not (
-                math.isfinite(forces[i, 0])
-                and math.isfinite(forces[i, 1])
-                and math.isfinite(forces[i, 2])
-            ):
+            f0, f1, f2 = forces[i, 0], forces[i, 1], forces[i, 2]
+            if not (math.isfinite(f0) and math.isfinite(f1) and math.isfinite(f2)):
                 outcome |= 1 << (SAFETY_FINGERS + i)
         if outcome != 0:
             outcome |= SAFETY_NON_FINITE
@@ -1567,9 +1534,7 @@ def world_planes(
         n0 = a * r00 + b * r01 + c * r02
         n1 = a * r10 + b * r11 + c * r12
         n2 = a * r20 + b * r21 + c * r22
-        planes[i, 0] = n0
-        planes[i, 1] = n1
-        planes[i, 2] = n2
+        planes[i, 0], planes[i, 1], planes[i, 2] = n0, n1, n2
         planes[i, 3] = body_offsets[i] + (n0 * x0 + n1 * x1 + n2 * x2)
 
 
@@ -1590,19 +1555,8 @@ TICK_BODY_AT = TICK_ALLOCATION_AT + ALLOCATION_PARAMS
 TICK_PARAMS = TICK_BODY_AT + PARAMS
 # The stages of a tick, in order, as tick_step runs them (hapticd.physics.stages names each
 # stage's), then the safety chain's tick (when the call makes it).
-(
-    STAGE_CONTACT,
-    STAGE_FRICTION,
-    STAGE_FORCES,
-    STAGE_ALLOCATION,
-    STAGE_ENVIRONMENT,
-    STAGE_PASSIVITY,
-    STAGE_SUM,
-    STAGE_DYNAMICS,
-    STAGE_SCENE,
-    STAGE_SAFETY,
-    STAGE_END,
-) = range(11)
+STAGE_CONTACT, STAGE_FRICTION, STAGE_FORCES, STAGE_ALLOCATION, STAGE_ENVIRONMENT = range(5)
+STAGE_PASSIVITY, STAGE_SUM, STAGE_DYNAMICS, STAGE_SCENE, STAGE_SAFETY, STAGE_END = range(5, 11)
 # The passivity stage's carried state per finger: its observed energy (J), its position on
 # the last tick (3, m) and 1.0 once it has one (the first tick sees no motion).
 PASSIVITY_STATE = 5
@@ -1657,31 +1611,10 @@ TICK_FIELDS = (
     "device_sample",
     "t",
 )
-(
-    _AT_POS,
-    _AT_VEL,
-    _AT_PLAIN_PROXY,
-    _AT_PLAIN_SURFACE,
-    _AT_PLAIN_POINT,
-    _AT_NORMAL,
-    _AT_ENV,
-    _AT_PROXY,
-    _AT_SURFACE,
-    _AT_POINT,
-    _AT_FORCE,
-    _AT_LAM,
-    _AT_ALLOCATED,
-    _AT_SCALARS,
-    _AT_ENV_RENDERED,
-    _AT_DAMPING_FORCE,
-    _AT_ENERGY,
-    _AT_DAMPING,
-    _AT_RENDERED,
-    _AT_OBJECT,
-    _AT_DEVICE_FORCE,
-    _AT_SAMPLE,
-    _AT_T,
-) = range(len(TICK_FIELDS))
+_AT_POS, _AT_VEL, _AT_PLAIN_PROXY, _AT_PLAIN_SURFACE, _AT_PLAIN_POINT, _AT_NORMAL = range(6)
+_AT_ENV, _AT_PROXY, _AT_SURFACE, _AT_POINT, _AT_FORCE, _AT_LAM, _AT_ALLOCATED = range(6, 13)
+_AT_SCALARS, _AT_ENV_RENDERED, _AT_DAMPING_FORCE, _AT_ENERGY, _AT_DAMPING = range(13, 18)
+_AT_RENDERED, _AT_OBJECT, _AT_DEVICE_FORCE, _AT_SAMPLE, _AT_T = range(18, len(TICK_FIELDS))
 
 
 def _rows(a: np.ndarray, start: int, n: int) -> np.ndarray:
@@ -1828,7 +1761,7 @@ def tick_step(
         for j in range(3 * n):
             record[at_pos + j] = record[sp + j]
             record[at_vel + j] = record[sv + j]
-    ic = int(plan[_AT_IN_CONTACT])
+    ic, bt = int(plan[_AT_IN_CONTACT]), int(plan[_AT_BUTTONS])
     in_contact = _bytes(record)[ic : ic + n]
     k = _AT_PLAN
     params = plan[TICK_AT : TICK_AT + TICK_PARAMS]
@@ -1934,11 +1867,10 @@ def tick_step(
         for i in range(n):
             c = int(counts[i])
             e0, e1, e2 = env_force[i, 0], env_force[i, 1], env_force[i, 2]
-            if e0 == 0.0 and e1 == 0.0 and e2 == 0.0:
-                env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = 0.0, 0.0, 0.0
-            else:
+            p0 = p1 = p2 = 0.0
+            if e0 != 0.0 or e1 != 0.0 or e2 != 0.0:
                 p0, p1, p2 = _span_project(directions, start, c, ax, e0, e1, e2)
-                env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = p0, p1, p2
+            env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = p0, p1, p2
             start += c
     if params[TICK_PASSIVITY] != 0.0 and first <= STAGE_PASSIVITY < last:
         _passivity(
@@ -1987,15 +1919,11 @@ def tick_step(
         # or buttons changed since the last tick: whether they did, kept for the next.
         raw = _bytes(record)
         was = lp + LOOP_HEAD + 2 * n
-        bt = int(plan[_AT_BUTTONS])
         changed = 0.0
-        for i in range(n):
-            if state[was + i] != raw[ic + i]:
-                state[was + i] = raw[ic + i]
-                changed = 1.0
-        for j in range(4 * n):
-            if state[was + n + j] != raw[bt + j]:
-                state[was + n + j] = raw[bt + j]
+        for j in range(5 * n):  # in_contact's n bytes, then the buttons' 4 n
+            b = raw[ic + j] if j < n else raw[bt + j - n]
+            if state[was + j] != b:
+                state[was + j] = b
                 changed = 1.0
         state[lp + LOOP_CHANGED] = changed
     if params[TICK_SAFETY] == 0.0 or not first <= STAGE_SAFETY < last:
@@ -2007,7 +1935,6 @@ def tick_step(
         and _norm3(obj_state[6], obj_state[7], obj_state[8]) <= MAX_OBJECT_SPIN_RAD_PER_S
     ):
         return TICK_OBJECT
-    bt = int(plan[_AT_BUTTONS])
     t = record[int(plan[_AT_T])]
     outcome = safety_step(
         rendered, device_pos, _bytes(record)[bt : bt + 4 * n], safety_params, out_prev, t
