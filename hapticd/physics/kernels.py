@@ -247,9 +247,7 @@ def free_body_step(
         a0 = body[0, 0] * wb0 + body[0, 1] * wb1 + body[0, 2] * wb2
         a1 = body[1, 0] * wb0 + body[1, 1] * wb1 + body[1, 2] * wb2
         a2 = body[2, 0] * wb0 + body[2, 1] * wb1 + body[2, 2] * wb2
-        g0 = wb1 * a2 - wb2 * a1
-        g1 = wb2 * a0 - wb0 * a2
-        g2 = wb0 * a1 - wb1 * a0
+        g0, g1, g2 = wb1 * a2 - wb2 * a1, wb2 * a0 - wb0 * a2, wb0 * a1 - wb1 * a0
         Tb0 = r00 * Tx + r10 * Ty + r20 * Tz
         Tb1 = r01 * Tx + r11 * Ty + r21 * Tz
         Tb2 = r02 * Tx + r12 * Ty + r22 * Tz
@@ -1791,21 +1789,19 @@ def tick_step(
     rendered = _rows(record, int(plan[_AT_RENDERED]), n)
     if first <= STAGE_CONTACT < last:
         world_planes(_rows(obj_state, 9, 3), obj_state[0:3], body_normals, body_offsets, planes)
-        if (
-            contact_step(
-                device_pos,
-                device_vel,
-                planes,
-                contact_state,
-                plain_proxy,
-                in_contact,
-                plain_surface,
-                plain_point,
-                normal,
-                env_force,
-            )
-            != CONTACT_DONE
-        ):
+        found = contact_step(
+            device_pos,
+            device_vel,
+            planes,
+            contact_state,
+            plain_proxy,
+            in_contact,
+            plain_surface,
+            plain_point,
+            normal,
+            env_force,
+        )
+        if found != CONTACT_DONE:
             return TICK_FROM_CONTACT
     if params[TICK_FRICTION] != 0.0 and first <= STAGE_FRICTION < last:
         friction_step(
@@ -2077,7 +2073,5 @@ def grasp_axes(
     az0, az1, az2 = f0 - c * ax0, f1 - c * ax1, f2 - c * ax2
     nz = math.sqrt(az0 * az0 + az1 * az1 + az2 * az2)
     az0, az1, az2 = az0 / nz, az1 / nz, az2 / nz
-    ay0 = az1 * ax2 - az2 * ax1
-    ay1 = az2 * ax0 - az0 * ax2
-    ay2 = az0 * ax1 - az1 * ax0
+    ay0, ay1, ay2 = az1 * ax2 - az2 * ax1, az2 * ax0 - az0 * ax2, az0 * ax1 - az1 * ax0
     return ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2
