@@ -1582,37 +1582,23 @@ MAX_OBJECT_SPIN_RAD_PER_S = 1e7
 
 
 # tick_step's frame fields: each one's offset in the frame's record, in float64 items
-# (``at``), in this order. With friction contact writes the frictionless ones and friction
-# the final three; without, the frictionless ones are the final ones (the same offsets).
-TICK_FIELDS = (
-    "device_pos",
-    "device_vel",
-    "frictionless_proxy",
-    "frictionless_point",
-    "frictionless_contact_point",
-    "contact_normal",
-    "env_force",
-    "proxy_pos",
-    "surface_point",
-    "contact_point",
-    "contact_force",
-    "lam_a",
-    "allocated_force",
-    "residual_internal",  # then residual_external, residual_total, amplification, alpha
-    "env_rendered",
-    "passivity_force",
-    "passivity_energy",
-    "passivity_damping",
-    "rendered_force",
-    "object_pos",  # then object_vel, object_omega, object_rot: STATE floats
-    "device_force",
-    "device_sample",
-    "t",
-)
-_AT_POS, _AT_VEL, _AT_PLAIN_PROXY, _AT_PLAIN_SURFACE, _AT_PLAIN_POINT, _AT_NORMAL = range(6)
-_AT_ENV, _AT_PROXY, _AT_SURFACE, _AT_POINT, _AT_FORCE, _AT_LAM, _AT_ALLOCATED = range(6, 13)
-_AT_SCALARS, _AT_ENV_RENDERED, _AT_DAMPING_FORCE, _AT_ENERGY, _AT_DAMPING = range(13, 18)
-_AT_RENDERED, _AT_OBJECT, _AT_DEVICE_FORCE, _AT_SAMPLE, _AT_T = range(18, len(TICK_FIELDS))
+# (``at``), in this order (under each line of names, their indices in it). With friction
+# contact writes the frictionless ones and friction the final three; without, the
+# frictionless ones are the final ones (the same offsets). residual_internal is followed by
+# residual_external, residual_total, amplification and alpha; object_pos by object_vel,
+# object_omega and object_rot (STATE floats).
+TICK_FIELDS = ("device_pos", "device_vel", "frictionless_proxy", "frictionless_point")
+_AT_POS, _AT_VEL, _AT_PLAIN_PROXY, _AT_PLAIN_SURFACE = range(4)
+TICK_FIELDS += ("frictionless_contact_point", "contact_normal", "env_force", "proxy_pos")
+_AT_PLAIN_POINT, _AT_NORMAL, _AT_ENV, _AT_PROXY = range(4, 8)
+TICK_FIELDS += ("surface_point", "contact_point", "contact_force", "lam_a", "allocated_force")
+_AT_SURFACE, _AT_POINT, _AT_FORCE, _AT_LAM, _AT_ALLOCATED = range(8, 13)
+TICK_FIELDS += ("residual_internal", "env_rendered", "passivity_force", "passivity_energy")
+_AT_SCALARS, _AT_ENV_RENDERED, _AT_DAMPING_FORCE, _AT_ENERGY = range(13, 17)
+TICK_FIELDS += ("passivity_damping", "rendered_force", "object_pos")
+_AT_DAMPING, _AT_RENDERED, _AT_OBJECT = range(17, 20)
+TICK_FIELDS += ("device_force", "device_sample", "t")
+_AT_DEVICE_FORCE, _AT_SAMPLE, _AT_T = range(20, len(TICK_FIELDS))
 
 
 def _rows(a: np.ndarray, start: int, n: int) -> np.ndarray:
@@ -1852,12 +1838,10 @@ def tick_step(
         if outcome == NON_FINITE_OUTPUT:
             return TICK_NON_FINITE_OUTPUT
         scalars[ACCURACY] = alloc_state[0]
+    surfaces, passivity = params[TICK_SURFACES] != 0.0, params[TICK_PASSIVITY] != 0.0
     # The actuation frame's axes in the world (the grasp's moves with the fingers).
-    ax = _axes(
-        device_pos,
-        params[a + 4] != 0.0 and (params[TICK_SURFACES] != 0.0 or params[TICK_PASSIVITY] != 0.0),
-    )
-    if params[TICK_SURFACES] != 0.0 and first <= STAGE_ENVIRONMENT < last:
+    ax = _axes(device_pos, params[a + 4] != 0.0 and (surfaces or passivity))
+    if surfaces and first <= STAGE_ENVIRONMENT < last:
         # The environment's force projected onto the span of each finger's own directions.
         start = 0
         for i in range(n):
@@ -1868,12 +1852,12 @@ def tick_step(
                 p0, p1, p2 = _span_project(directions, start, c, ax, e0, e1, e2)
             env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = p0, p1, p2
             start += c
-    if params[TICK_PASSIVITY] != 0.0 and first <= STAGE_PASSIVITY < last:
+    if passivity and first <= STAGE_PASSIVITY < last:
         _passivity(
             device_pos,
             allocated,
             env_rendered,
-            params[TICK_SURFACES] != 0.0,
+            surfaces,
             directions,
             counts,
             ax,
@@ -1888,9 +1872,9 @@ def tick_step(
         for i in range(n):
             for j in range(3):
                 f = allocated[i, j]
-                if params[TICK_SURFACES] != 0.0:
+                if surfaces:
                     f = f + env_rendered[i, j]
-                if params[TICK_PASSIVITY] != 0.0:
+                if passivity:
                     f = f + damping_force[i, j]
                 rendered[i, j] = f
     if params[TICK_FREE] != 0.0 and first <= STAGE_DYNAMICS < last:
