@@ -114,9 +114,8 @@ def free_body_step(
     its inverse, the vertices in the body frame), ``surf`` (S, SURFACE_COLUMNS) as declared
     above; ``scratch`` (F, SCRATCH_COLUMNS).
     """
-    k, mu_t, m, dt = params[0], params[1], params[2], params[3]
-    substeps = int(params[4])
-    reach = params[5]
+    k, mu_t, m, dt, steps, reach, gx, gy, gz = params
+    substeps = int(steps)
     h = dt / substeps
     x0, x1, x2, v0, v1, v2, w0, w1, w2, r00, r01, r02, r10, r11, r12, r20, r21, r22 = state
     # The pose as a unit quaternion (Shepperd's method).
@@ -133,10 +132,8 @@ def free_body_step(
     else:
         s = 2.0 * math.sqrt(1.0 + r22 - r00 - r11)
         qw, qx, qy, qz = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
-    gx, gy, gz = params[6], params[7], params[8]
     # The fingers in contact: springs anchored in the body frame, and torsion caps.
-    n_springs = 0
-    n_tors = 0
+    n_springs = n_tors = 0
     for i in range(in_contact.shape[0]):
         if in_contact[i] == 0:
             continue
@@ -176,8 +173,7 @@ def free_body_step(
             sFx = sFy = sFz = sTx = sTy = sTz = 0.0
             ax = abs(x0) + abs(x1) + abs(x2)
             for js in range(surf.shape[0]):
-                n0, n1, n2 = surf[js, 0], surf[js, 1], surf[js, 2]
-                d = surf[js, 3]
+                n0, n1, n2, d = surf[js, 0], surf[js, 1], surf[js, 2], surf[js, 3]
                 nn = abs(n0) + abs(n1) + abs(n2)
                 clear = n0 * x0 + n1 * x1 + n2 * x2 - nn * reach - d
                 if clear > 1e-9 * (nn * (ax + reach) + abs(d)):
@@ -232,12 +228,10 @@ def free_body_step(
                 nb0 = r00 * n0 + r10 * n1 + r20 * n2
                 nb1 = r01 * n0 + r11 * n1 + r21 * n2
                 nb2 = r02 * n0 + r12 * n1 + r22 * n2
-                In = (
-                    0.0
-                    + nb0 * (body[0, 0] * nb0 + body[0, 1] * nb1 + body[0, 2] * nb2)
-                    + nb1 * (body[1, 0] * nb0 + body[1, 1] * nb1 + body[1, 2] * nb2)
-                    + nb2 * (body[2, 0] * nb0 + body[2, 1] * nb1 + body[2, 2] * nb2)
-                )
+                a0 = body[0, 0] * nb0 + body[0, 1] * nb1 + body[0, 2] * nb2
+                a1 = body[1, 0] * nb0 + body[1, 1] * nb1 + body[1, 2] * nb2
+                a2 = body[2, 0] * nb0 + body[2, 1] * nb1 + body[2, 2] * nb2
+                In = 0.0 + nb0 * a0 + nb1 * a1 + nb2 * a2
                 stop = In * abs(spin) / h
                 t = math.copysign(stop if stop < cap else cap, spin)
                 Tx, Ty, Tz = Tx - t * n0, Ty - t * n1, Tz - t * n2
@@ -1381,11 +1375,8 @@ def _norm3(x0: float, x1: float, x2: float) -> float:
     overflows or underflows (a force of 1e200 N keeps its direction when clamped); inf
     for an infinite argument, NaN for a NaN one (every comparison then fails)."""
     a0, a1, a2 = abs(x0), abs(x1), abs(x2)
-    top = a0
-    if a1 > top:
-        top = a1
-    if a2 > top:
-        top = a2
+    top = a1 if a1 > a0 else a0
+    top = a2 if a2 > top else top
     if top == 0.0 or math.isinf(top):
         # A NaN beside zeros or an infinity: the comparisons above skipped it.
         return top if a0 == a0 and a1 == a1 and a2 == a2 else math.nan
@@ -1473,8 +1464,7 @@ def safety_step(
         elif not ramp < 1.0:
             ramp = 1.0
     down = ramp_down_factor(t, params[SAFETY_T_DOWN], params[SAFETY_DOWN_S])
-    if down < ramp:
-        ramp = down
+    ramp = down if down < ramp else ramp
     step = params[SAFETY_RATE]
     rate_limited = step < math.inf
     flags = 0

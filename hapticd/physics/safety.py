@@ -338,8 +338,7 @@ def _positive(values: list[float]) -> bool:
 def _own(name: str) -> str:
     spec = PARAMS.get(name)
     if spec is None or spec.owner != "safety":
-        known = list(_SETTERS)
-        why = f"unknown parameter {name!r} for the safety chain; known: {known}"
+        why = f"unknown parameter {name!r} for the safety chain; known: {list(_SETTERS)}"
         raise ParamError("unknown_param", why)
     return name
 
