@@ -1966,8 +1966,7 @@ def _passivity(
                 damping_force[i, 2] = -(g * u[2])
         elif not e >= 0.0:  # NaN: a non-finite position or force; keep the last energy
             e = passive[i, 0]
-        passive[i, 0] = e
-        energy[i] = e
+        passive[i, 0] = energy[i] = e
         damping[i] = alpha
         start += c
 
