@@ -280,9 +280,12 @@ def free_body_step(
         r20 = 2.0 * (qx * qz - qw * qy)
         r21 = 2.0 * (qy * qz + qw * qx)
         r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
-    out = (x0, x1, x2, v0, v1, v2, w0, w1, w2, r00, r01, r02, r10, r11, r12, r20, r21, r22)
-    for j in range(STATE):
-        state[j] = out[j]
+    state[0], state[1], state[2] = x0, x1, x2
+    state[3], state[4], state[5] = v0, v1, v2
+    state[6], state[7], state[8] = w0, w1, w2
+    state[9], state[10], state[11] = r00, r01, r02
+    state[12], state[13], state[14] = r10, r11, r12
+    state[15], state[16], state[17] = r20, r21, r22
 
 
 # allocation_step's params: method (ALLOCATION_METHODS' index), eps, min_separation_m,
