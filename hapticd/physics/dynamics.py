@@ -19,6 +19,5 @@ def auto_substeps(
     touching = min(4, len(obj.shape.vertices))
     k = n_fingers * finger_stiffness + sum(touching * s.material.stiffness for s in surfaces[:1])
     b = n_fingers * obj.material.damping + sum(touching * s.material.damping for s in surfaces[:1])
-    omega = math.sqrt(k / obj.mass)
-    rate = max(omega, b / obj.mass)
+    rate = max(math.sqrt(k / obj.mass), b / obj.mass)
     return max(1, min(64, math.ceil(rate * dt / 0.5)))

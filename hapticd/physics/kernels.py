@@ -114,20 +114,10 @@ def free_body_step(
     its inverse, the vertices in the body frame), ``surf`` (S, SURFACE_COLUMNS) as declared
     above; ``scratch`` (F, SCRATCH_COLUMNS).
     """
-    k, mu_t, m, dt = params[0], params[1], params[2], params[3]
-    substeps = int(params[4])
-    reach = params[5]
-    x = state[0:3]
-    v = state[3:6]
-    w = state[6:9]
-    n_fingers = in_contact.shape[0]
+    k, mu_t, m, dt, steps, reach, gx, gy, gz = params
+    substeps = int(steps)
     h = dt / substeps
-    x0, x1, x2 = x[0], x[1], x[2]
-    v0, v1, v2 = v[0], v[1], v[2]
-    w0, w1, w2 = w[0], w[1], w[2]
-    r00, r01, r02 = state[9], state[10], state[11]
-    r10, r11, r12 = state[12], state[13], state[14]
-    r20, r21, r22 = state[15], state[16], state[17]
+    x0, x1, x2, v0, v1, v2, w0, w1, w2, r00, r01, r02, r10, r11, r12, r20, r21, r22 = state
     # The pose as a unit quaternion (Shepperd's method).
     tr = r00 + r11 + r22
     if tr > 0.0:
@@ -142,11 +132,9 @@ def free_body_step(
     else:
         s = 2.0 * math.sqrt(1.0 + r22 - r00 - r11)
         qw, qx, qy, qz = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
-    gx, gy, gz = params[6], params[7], params[8]
     # The fingers in contact: springs anchored in the body frame, and torsion caps.
-    n_springs = 0
-    n_tors = 0
-    for i in range(n_fingers):
+    n_springs = n_tors = 0
+    for i in range(in_contact.shape[0]):
         if in_contact[i] == 0:
             continue
         c0, c1, c2 = points[i, 0], points[i, 1], points[i, 2]
@@ -155,28 +143,15 @@ def free_body_step(
         scratch[n_springs, 3] = r00 * d0 + r10 * d1 + r20 * d2
         scratch[n_springs, 4] = r01 * d0 + r11 * d1 + r21 * d2
         scratch[n_springs, 5] = r02 * d0 + r12 * d1 + r22 * d2
-        scratch[n_springs, 6], scratch[n_springs, 7], scratch[n_springs, 8] = (
-            -forces[i, 0],
-            -forces[i, 1],
-            -forces[i, 2],
-        )
+        f0, f1, f2 = forces[i, 0], forces[i, 1], forces[i, 2]
+        scratch[n_springs, 6], scratch[n_springs, 7], scratch[n_springs, 8] = -f0, -f1, -f2
         n_springs += 1
-        if mu_t > 0.0:
-            fn = abs(
-                forces[i, 0] * normals[i, 0]
-                + forces[i, 1] * normals[i, 1]
-                + forces[i, 2] * normals[i, 2]
-            )
-            if fn > 0.0:
-                scratch[n_tors, 9], scratch[n_tors, 10], scratch[n_tors, 11] = (
-                    normals[i, 0],
-                    normals[i, 1],
-                    normals[i, 2],
-                )
-                scratch[n_tors, 12] = mu_t * fn
-                n_tors += 1
-    n_surf = surf.shape[0]
-    n_local = body.shape[0] - BODY_HEAD
+        n0, n1, n2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        fn = abs(f0 * n0 + f1 * n1 + f2 * n2)
+        if mu_t > 0.0 and fn > 0.0:
+            scratch[n_tors, 9], scratch[n_tors, 10], scratch[n_tors, 11] = n0, n1, n2
+            scratch[n_tors, 12] = mu_t * fn
+            n_tors += 1
     for _ in range(substeps):
         Fx, Fy, Fz = 0.0 + m * gx, 0.0 + m * gy, 0.0 + m * gz
         Tx, Ty, Tz = 0.0, 0.0, 0.0
@@ -192,34 +167,30 @@ def free_body_step(
             Tx = Tx + (e1 * f2 - e2 * f1)
             Ty = Ty + (e2 * f0 - e0 * f2)
             Tz = Tz + (e0 * f1 - e1 * f0)
-        if n_surf > 0:
+        if surf.shape[0] > 0:
             # The surfaces' wrench: a penalty spring-damper at each vertex inside a
             # surface, Coulomb friction capped at what stops the vertex in one substep.
             sFx = sFy = sFz = sTx = sTy = sTz = 0.0
             ax = abs(x0) + abs(x1) + abs(x2)
-            for js in range(n_surf):
-                n0, n1, n2 = surf[js, 0], surf[js, 1], surf[js, 2]
-                d = surf[js, 3]
+            for js in range(surf.shape[0]):
+                n0, n1, n2, d = surf[js, 0], surf[js, 1], surf[js, 2], surf[js, 3]
                 nn = abs(n0) + abs(n1) + abs(n2)
                 clear = n0 * x0 + n1 * x1 + n2 * x2 - nn * reach - d
                 if clear > 1e-9 * (nn * (ax + reach) + abs(d)):
                     continue
                 hits = 0
-                for jv in range(n_local):
-                    jb = BODY_HEAD + jv
+                for jb in range(BODY_HEAD, body.shape[0]):
                     p0, p1, p2 = body[jb, 0], body[jb, 1], body[jb, 2]
                     e0 = r00 * p0 + r01 * p1 + r02 * p2
                     e1 = r10 * p0 + r11 * p1 + r12 * p2
                     e2 = r20 * p0 + r21 * p1 + r22 * p2
-                    pen = d - (n0 * (e0 + x0) + n1 * (e1 + x1) + n2 * (e2 + x2))
-                    if pen > 0.0:
+                    if d - (n0 * (e0 + x0) + n1 * (e1 + x1) + n2 * (e2 + x2)) > 0.0:
                         hits += 1
                 if hits == 0:
                     continue
                 share = m / hits
                 ks, bs, mus = surf[js, 4], surf[js, 5], surf[js, 6]
-                for jv in range(n_local):
-                    jb = BODY_HEAD + jv
+                for jb in range(BODY_HEAD, body.shape[0]):
                     p0, p1, p2 = body[jb, 0], body[jb, 1], body[jb, 2]
                     e0 = r00 * p0 + r01 * p1 + r02 * p2
                     e1 = r10 * p0 + r11 * p1 + r12 * p2
@@ -242,9 +213,7 @@ def free_body_step(
                             cap = mus * fn
                             stop = share * speed / h
                             kk = (stop if stop < cap else cap) / speed
-                            f0 -= kk * t0
-                            f1 -= kk * t1
-                            f2 -= kk * t2
+                            f0, f1, f2 = f0 - kk * t0, f1 - kk * t1, f2 - kk * t2
                     sFx, sFy, sFz = sFx + f0, sFy + f1, sFz + f2
                     sTx = sTx + (e1 * f2 - e2 * f1)
                     sTy = sTy + (e2 * f0 - e0 * f2)
@@ -259,12 +228,10 @@ def free_body_step(
                 nb0 = r00 * n0 + r10 * n1 + r20 * n2
                 nb1 = r01 * n0 + r11 * n1 + r21 * n2
                 nb2 = r02 * n0 + r12 * n1 + r22 * n2
-                In = (
-                    0.0
-                    + nb0 * (body[0, 0] * nb0 + body[0, 1] * nb1 + body[0, 2] * nb2)
-                    + nb1 * (body[1, 0] * nb0 + body[1, 1] * nb1 + body[1, 2] * nb2)
-                    + nb2 * (body[2, 0] * nb0 + body[2, 1] * nb1 + body[2, 2] * nb2)
-                )
+                a0 = body[0, 0] * nb0 + body[0, 1] * nb1 + body[0, 2] * nb2
+                a1 = body[1, 0] * nb0 + body[1, 1] * nb1 + body[1, 2] * nb2
+                a2 = body[2, 0] * nb0 + body[2, 1] * nb1 + body[2, 2] * nb2
+                In = 0.0 + nb0 * a0 + nb1 * a1 + nb2 * a2
                 stop = In * abs(spin) / h
                 t = math.copysign(stop if stop < cap else cap, spin)
                 Tx, Ty, Tz = Tx - t * n0, Ty - t * n1, Tz - t * n2
@@ -274,9 +241,7 @@ def free_body_step(
         a0 = body[0, 0] * wb0 + body[0, 1] * wb1 + body[0, 2] * wb2
         a1 = body[1, 0] * wb0 + body[1, 1] * wb1 + body[1, 2] * wb2
         a2 = body[2, 0] * wb0 + body[2, 1] * wb1 + body[2, 2] * wb2
-        g0 = wb1 * a2 - wb2 * a1
-        g1 = wb2 * a0 - wb0 * a2
-        g2 = wb0 * a1 - wb1 * a0
+        g0, g1, g2 = wb1 * a2 - wb2 * a1, wb2 * a0 - wb0 * a2, wb0 * a1 - wb1 * a0
         Tb0 = r00 * Tx + r10 * Ty + r20 * Tz
         Tb1 = r01 * Tx + r11 * Ty + r21 * Tz
         Tb2 = r02 * Tx + r12 * Ty + r22 * Tz
@@ -315,9 +280,9 @@ def free_body_step(
         r20 = 2.0 * (qx * qz - qw * qy)
         r21 = 2.0 * (qy * qz + qw * qx)
         r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
-    x[0], x[1], x[2] = x0, x1, x2
-    v[0], v[1], v[2] = v0, v1, v2
-    w[0], w[1], w[2] = w0, w1, w2
+    state[0], state[1], state[2] = x0, x1, x2
+    state[3], state[4], state[5] = v0, v1, v2
+    state[6], state[7], state[8] = w0, w1, w2
     state[9], state[10], state[11] = r00, r01, r02
     state[12], state[13], state[14] = r10, r11, r12
     state[15], state[16], state[17] = r20, r21, r22
@@ -1338,11 +1303,8 @@ def _norm3(x0: float, x1: float, x2: float) -> float:
     overflows or underflows (a force of 1e200 N keeps its direction when clamped); inf
     for an infinite argument, NaN for a NaN one (every comparison then fails)."""
     a0, a1, a2 = abs(x0), abs(x1), abs(x2)
-    top = a0
-    if a1 > top:
-        top = a1
-    if a2 > top:
-        top = a2
+    top = a1 if a1 > a0 else a0
+    top = a2 if a2 > top else top
     if top == 0.0 or math.isinf(top):
         # A NaN beside zeros or an infinity: the comparisons above skipped it.
         return top if a0 == a0 and a1 == a1 and a2 == a2 else math.nan
@@ -1402,11 +1364,8 @@ def safety_step(
         outcome = -1
     else:
         for i in range(n):
-            if not (
-                math.isfinite(forces[i, 0])
-                and math.isfinite(forces[i, 1])
-                and math.isfinite(forces[i, 2])
-            ):
+            f0, f1, f2 = forces[i, 0], forces[i, 1], forces[i, 2]
+            if not (math.isfinite(f0) and math.isfinite(f1) and math.isfinite(f2)):
                 outcome |= 1 << (SAFETY_FINGERS + i)
         if outcome != 0:
             outcome |= SAFETY_NON_FINITE
@@ -1433,8 +1392,7 @@ def safety_step(
         elif not ramp < 1.0:
             ramp = 1.0
     down = ramp_down_factor(t, params[SAFETY_T_DOWN], params[SAFETY_DOWN_S])
-    if down < ramp:
-        ramp = down
+    ramp = down if down < ramp else ramp
     step = params[SAFETY_RATE]
     rate_limited = step < math.inf
     flags = 0
@@ -1492,9 +1450,7 @@ def world_planes(
         n0 = a * r00 + b * r01 + c * r02
         n1 = a * r10 + b * r11 + c * r12
         n2 = a * r20 + b * r21 + c * r22
-        planes[i, 0] = n0
-        planes[i, 1] = n1
-        planes[i, 2] = n2
+        planes[i, 0], planes[i, 1], planes[i, 2] = n0, n1, n2
         planes[i, 3] = body_offsets[i] + (n0 * x0 + n1 * x1 + n2 * x2)
 
 
@@ -1515,19 +1471,8 @@ TICK_BODY_AT = TICK_ALLOCATION_AT + ALLOCATION_PARAMS
 TICK_PARAMS = TICK_BODY_AT + PARAMS
 # The stages of a tick, in order, as tick_step runs them (hapticd.physics.stages names each
 # stage's), then the safety chain's tick (when the call makes it).
-(
-    STAGE_CONTACT,
-    STAGE_FRICTION,
-    STAGE_FORCES,
-    STAGE_ALLOCATION,
-    STAGE_ENVIRONMENT,
-    STAGE_PASSIVITY,
-    STAGE_SUM,
-    STAGE_DYNAMICS,
-    STAGE_SCENE,
-    STAGE_SAFETY,
-    STAGE_END,
-) = range(11)
+STAGE_CONTACT, STAGE_FRICTION, STAGE_FORCES, STAGE_ALLOCATION, STAGE_ENVIRONMENT = range(5)
+STAGE_PASSIVITY, STAGE_SUM, STAGE_DYNAMICS, STAGE_SCENE, STAGE_SAFETY, STAGE_END = range(5, 11)
 # The passivity stage's carried state per finger: its observed energy (J), its position on
 # the last tick (3, m) and 1.0 once it has one (the first tick sees no motion).
 PASSIVITY_STATE = 5
@@ -1555,58 +1500,23 @@ MAX_OBJECT_SPIN_RAD_PER_S = 1e7
 
 
 # tick_step's frame fields: each one's offset in the frame's record, in float64 items
-# (``at``), in this order. With friction contact writes the frictionless ones and friction
-# the final three; without, the frictionless ones are the final ones (the same offsets).
-TICK_FIELDS = (
-    "device_pos",
-    "device_vel",
-    "frictionless_proxy",
-    "frictionless_point",
-    "frictionless_contact_point",
-    "contact_normal",
-    "env_force",
-    "proxy_pos",
-    "surface_point",
-    "contact_point",
-    "contact_force",
-    "lam_a",
-    "allocated_force",
-    "residual_internal",  # then residual_external, residual_total, amplification, alpha
-    "env_rendered",
-    "passivity_force",
-    "passivity_energy",
-    "passivity_damping",
-    "rendered_force",
-    "object_pos",  # then object_vel, object_omega, object_rot: STATE floats
-    "device_force",
-    "device_sample",
-    "t",
-)
-(
-    _AT_POS,
-    _AT_VEL,
-    _AT_PLAIN_PROXY,
-    _AT_PLAIN_SURFACE,
-    _AT_PLAIN_POINT,
-    _AT_NORMAL,
-    _AT_ENV,
-    _AT_PROXY,
-    _AT_SURFACE,
-    _AT_POINT,
-    _AT_FORCE,
-    _AT_LAM,
-    _AT_ALLOCATED,
-    _AT_SCALARS,
-    _AT_ENV_RENDERED,
-    _AT_DAMPING_FORCE,
-    _AT_ENERGY,
-    _AT_DAMPING,
-    _AT_RENDERED,
-    _AT_OBJECT,
-    _AT_DEVICE_FORCE,
-    _AT_SAMPLE,
-    _AT_T,
-) = range(len(TICK_FIELDS))
+# (``at``), in this order (under each line of names, their indices in it). With friction
+# contact writes the frictionless ones and friction the final three; without, the
+# frictionless ones are the final ones (the same offsets). residual_internal is followed by
+# residual_external, residual_total, amplification and alpha; object_pos by object_vel,
+# object_omega and object_rot (STATE floats).
+TICK_FIELDS = ("device_pos", "device_vel", "frictionless_proxy", "frictionless_point")
+_AT_POS, _AT_VEL, _AT_PLAIN_PROXY, _AT_PLAIN_SURFACE = range(4)
+TICK_FIELDS += ("frictionless_contact_point", "contact_normal", "env_force", "proxy_pos")
+_AT_PLAIN_POINT, _AT_NORMAL, _AT_ENV, _AT_PROXY = range(4, 8)
+TICK_FIELDS += ("surface_point", "contact_point", "contact_force", "lam_a", "allocated_force")
+_AT_SURFACE, _AT_POINT, _AT_FORCE, _AT_LAM, _AT_ALLOCATED = range(8, 13)
+TICK_FIELDS += ("residual_internal", "env_rendered", "passivity_force", "passivity_energy")
+_AT_SCALARS, _AT_ENV_RENDERED, _AT_DAMPING_FORCE, _AT_ENERGY = range(13, 17)
+TICK_FIELDS += ("passivity_damping", "rendered_force", "object_pos")
+_AT_DAMPING, _AT_RENDERED, _AT_OBJECT = range(17, 20)
+TICK_FIELDS += ("device_force", "device_sample", "t")
+_AT_DEVICE_FORCE, _AT_SAMPLE, _AT_T = range(20, len(TICK_FIELDS))
 
 
 def _rows(a: np.ndarray, start: int, n: int) -> np.ndarray:
@@ -1753,7 +1663,7 @@ def tick_step(
         for j in range(3 * n):
             record[at_pos + j] = record[sp + j]
             record[at_vel + j] = record[sv + j]
-    ic = int(plan[_AT_IN_CONTACT])
+    ic, bt = int(plan[_AT_IN_CONTACT]), int(plan[_AT_BUTTONS])
     in_contact = _bytes(record)[ic : ic + n]
     k = _AT_PLAN
     params = plan[TICK_AT : TICK_AT + TICK_PARAMS]
@@ -1783,21 +1693,19 @@ def tick_step(
     rendered = _rows(record, int(plan[_AT_RENDERED]), n)
     if first <= STAGE_CONTACT < last:
         world_planes(_rows(obj_state, 9, 3), obj_state[0:3], body_normals, body_offsets, planes)
-        if (
-            contact_step(
-                device_pos,
-                device_vel,
-                planes,
-                contact_state,
-                plain_proxy,
-                in_contact,
-                plain_surface,
-                plain_point,
-                normal,
-                env_force,
-            )
-            != CONTACT_DONE
-        ):
+        found = contact_step(
+            device_pos,
+            device_vel,
+            planes,
+            contact_state,
+            plain_proxy,
+            in_contact,
+            plain_surface,
+            plain_point,
+            normal,
+            env_force,
+        )
+        if found != CONTACT_DONE:
             return TICK_FROM_CONTACT
     if params[TICK_FRICTION] != 0.0 and first <= STAGE_FRICTION < last:
         friction_step(
@@ -1848,29 +1756,26 @@ def tick_step(
         if outcome == NON_FINITE_OUTPUT:
             return TICK_NON_FINITE_OUTPUT
         scalars[ACCURACY] = alloc_state[0]
+    surfaces, passivity = params[TICK_SURFACES] != 0.0, params[TICK_PASSIVITY] != 0.0
     # The actuation frame's axes in the world (the grasp's moves with the fingers).
-    ax = _axes(
-        device_pos,
-        params[a + 4] != 0.0 and (params[TICK_SURFACES] != 0.0 or params[TICK_PASSIVITY] != 0.0),
-    )
-    if params[TICK_SURFACES] != 0.0 and first <= STAGE_ENVIRONMENT < last:
+    ax = _axes(device_pos, params[a + 4] != 0.0 and (surfaces or passivity))
+    if surfaces and first <= STAGE_ENVIRONMENT < last:
         # The environment's force projected onto the span of each finger's own directions.
         start = 0
         for i in range(n):
             c = int(counts[i])
             e0, e1, e2 = env_force[i, 0], env_force[i, 1], env_force[i, 2]
-            if e0 == 0.0 and e1 == 0.0 and e2 == 0.0:
-                env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = 0.0, 0.0, 0.0
-            else:
+            p0 = p1 = p2 = 0.0
+            if e0 != 0.0 or e1 != 0.0 or e2 != 0.0:
                 p0, p1, p2 = _span_project(directions, start, c, ax, e0, e1, e2)
-                env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = p0, p1, p2
+            env_rendered[i, 0], env_rendered[i, 1], env_rendered[i, 2] = p0, p1, p2
             start += c
-    if params[TICK_PASSIVITY] != 0.0 and first <= STAGE_PASSIVITY < last:
+    if passivity and first <= STAGE_PASSIVITY < last:
         _passivity(
             device_pos,
             allocated,
             env_rendered,
-            params[TICK_SURFACES] != 0.0,
+            surfaces,
             directions,
             counts,
             ax,
@@ -1885,9 +1790,9 @@ def tick_step(
         for i in range(n):
             for j in range(3):
                 f = allocated[i, j]
-                if params[TICK_SURFACES] != 0.0:
+                if surfaces:
                     f = f + env_rendered[i, j]
-                if params[TICK_PASSIVITY] != 0.0:
+                if passivity:
                     f = f + damping_force[i, j]
                 rendered[i, j] = f
     if params[TICK_FREE] != 0.0 and first <= STAGE_DYNAMICS < last:
@@ -1912,15 +1817,11 @@ def tick_step(
         # or buttons changed since the last tick: whether they did, kept for the next.
         raw = _bytes(record)
         was = lp + LOOP_HEAD + 2 * n
-        bt = int(plan[_AT_BUTTONS])
         changed = 0.0
-        for i in range(n):
-            if state[was + i] != raw[ic + i]:
-                state[was + i] = raw[ic + i]
-                changed = 1.0
-        for j in range(4 * n):
-            if state[was + n + j] != raw[bt + j]:
-                state[was + n + j] = raw[bt + j]
+        for j in range(5 * n):  # in_contact's n bytes, then the buttons' 4 n
+            b = raw[ic + j] if j < n else raw[bt + j - n]
+            if state[was + j] != b:
+                state[was + j] = b
                 changed = 1.0
         state[lp + LOOP_CHANGED] = changed
     if params[TICK_SAFETY] == 0.0 or not first <= STAGE_SAFETY < last:
@@ -1932,7 +1833,6 @@ def tick_step(
         and _norm3(obj_state[6], obj_state[7], obj_state[8]) <= MAX_OBJECT_SPIN_RAD_PER_S
     ):
         return TICK_OBJECT
-    bt = int(plan[_AT_BUTTONS])
     t = record[int(plan[_AT_T])]
     outcome = safety_step(
         rendered, device_pos, _bytes(record)[bt : bt + 4 * n], safety_params, out_prev, t
@@ -1994,8 +1894,7 @@ def _passivity(
                 damping_force[i, 2] = -(g * u[2])
         elif not e >= 0.0:  # NaN: a non-finite position or force; keep the last energy
             e = passive[i, 0]
-        passive[i, 0] = e
-        energy[i] = e
+        passive[i, 0] = energy[i] = e
         damping[i] = alpha
         start += c
 
@@ -2075,7 +1974,5 @@ def grasp_axes(
     az0, az1, az2 = f0 - c * ax0, f1 - c * ax1, f2 - c * ax2
     nz = math.sqrt(az0 * az0 + az1 * az1 + az2 * az2)
     az0, az1, az2 = az0 / nz, az1 / nz, az2 / nz
-    ay0 = az1 * ax2 - az2 * ax1
-    ay1 = az2 * ax0 - az0 * ax2
-    ay2 = az0 * ax1 - az1 * ax0
+    ay0, ay1, ay2 = az1 * ax2 - az2 * ax1, az2 * ax0 - az0 * ax2, az0 * ax1 - az1 * ax0
     return ax0, ax1, ax2, ay0, ay1, ay2, az0, az1, az2

@@ -27,15 +27,13 @@ class PassivityParams:
     max_damping: float
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.velocity_threshold) and self.velocity_threshold > 0.0):
-            raise ValueError(
-                "velocity_threshold must be a positive speed in m/s, "
-                f"got {self.velocity_threshold!r}"
-            )
-        if not (math.isfinite(self.max_damping) and self.max_damping > 0.0):
-            raise ValueError(
-                f"max_damping must be a positive damping in N s/m, got {self.max_damping!r}"
-            )
+        for name, what in (
+            ("velocity_threshold", "speed in m/s"),
+            ("max_damping", "damping in N s/m"),
+        ):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} must be a positive {what}, got {value!r}")
 
 
 def authority(speed: float, threshold: float) -> float:

@@ -97,10 +97,8 @@ class SafetyChain:
         if prm.deadman and len(prm.deadman) != F:
             raise ValueError(f"one deadman entry (or None) per finger is needed, got {F} fingers")
         deadman = prm.deadman or (None,) * F
-        for d in deadman:
-            if d is not None and not (
-                0 <= d.button < 32 and d.ramp_s >= 0 and math.isfinite(d.ramp_s)
-            ):
+        for d in filter(None, deadman):
+            if not (0 <= d.button < 32 and d.ramp_s >= 0 and math.isfinite(d.ramp_s)):
                 got = (d.button, d.ramp_s)
                 raise ValueError(f"a deadman needs a button in 0-31 and a ramp >= 0 s, got {got}")
         # safety_step's array (kernels.SAFETY_*): parameters and state, then per-finger columns.
@@ -108,7 +106,6 @@ class SafetyChain:
         columns = a[kernels.SAFETY_PARAMS :].reshape(kernels.SAFETY_COLUMNS, F)
         self._limits_a = columns[kernels.SAFETY_LIMIT]
         self._buttons_a = columns[kernels.SAFETY_BUTTON]
-        self._ramps_a = columns[kernels.SAFETY_BUTTON_RAMP]
         self._pressed_a = columns[kernels.SAFETY_PRESSED]
         self._gate_a = columns[kernels.SAFETY_GATE]
         # Scalars go through a memoryview: a fraction of a numpy item assignment's cost.
@@ -121,7 +118,7 @@ class SafetyChain:
         a[kernels.SAFETY_CENTRE : kernels.SAFETY_CENTRE + 3] = prm.workspace_center_m
         a[kernels.SAFETY_RAMP_S] = prm.ramp_s
         self._buttons_a[:] = [-1.0 if d is None else d.button for d in deadman]
-        self._ramps_a[:] = [0.0 if d is None else d.ramp_s for d in deadman]
+        columns[kernels.SAFETY_BUTTON_RAMP] = [0.0 if d is None else d.ramp_s for d in deadman]
         self._pressed_a[:] = math.inf
         self._gate_a[:] = [1.0 if d is None else 0.0 for d in deadman]
         self._has_deadman = any(d is not None for d in deadman)
@@ -218,9 +215,8 @@ class SafetyChain:
     def ramped_down(self, t: float) -> bool:
         """True once a ramp-down begun before ``t`` has reached zero."""
         v = self._view
-        return (
-            kernels.ramp_down_factor(t, v[kernels.SAFETY_T_DOWN], v[kernels.SAFETY_DOWN_S]) == 0.0
-        )
+        down = kernels.ramp_down_factor(t, v[kernels.SAFETY_T_DOWN], v[kernels.SAFETY_DOWN_S])
+        return down == 0.0
 
     def trip(self, tick: int, t: float, cause: str, kind: str = "other") -> None:
         """Latch a fault (the first is kept) and zero the output; ``kind``: a name of
@@ -313,15 +309,14 @@ class SafetyChain:
         (None: none); ``t_wall`` (monotonic s): the watchdog; ``buttons`` (F,) bit sets: the
         deadman gates (None: all up). Arrays not in the kernel's form are copied.
         """
+        shape = self.output.shape
         forces = np.ascontiguousarray(forces, dtype=float)
         positions = (
             self._centre if positions is None else np.ascontiguousarray(positions, dtype=float)
         )
         for a in (forces, positions):
-            if a.shape != self.output.shape:
-                raise ValueError(
-                    f"forces and positions must be {self.output.shape} arrays, not {a.shape}"
-                )
+            if a.shape != shape:
+                raise ValueError(f"forces and positions must be {shape} arrays, not {a.shape}")
         if self._has_deadman:
             self._buttons[:] = 0 if buttons is None else buttons
         outcome = self._step(
@@ -343,8 +338,7 @@ def _positive(values: list[float]) -> bool:
 def _own(name: str) -> str:
     spec = PARAMS.get(name)
     if spec is None or spec.owner != "safety":
-        known = list(_SETTERS)
-        why = f"unknown parameter {name!r} for the safety chain; known: {known}"
+        why = f"unknown parameter {name!r} for the safety chain; known: {list(_SETTERS)}"
         raise ParamError("unknown_param", why)
     return name
 
