@@ -346,6 +346,7 @@ def test_runs_started_while_a_compiler_works_start_none_of_their_own(empty_cache
     # whose kernels are still not in the cache (say it failed silently) may start one again.
     os.close(started[0][1])
     assert not jit.compiling(cache)
+    assert not jit.compiling(cache / "none") and not (cache / "none").exists()  # asks only
     jit.choose("auto", NAMES)
     assert len(started) == 2 and jit.compiling(cache)
 
@@ -380,9 +381,9 @@ print(jit.choose("auto", {names!r}).note)
 """
 
 
-def test_several_runs_at_once_start_one_compiler_that_leaves_no_marker(tmp_path):
+def test_several_runs_at_once_start_one_compiler_that_holds_its_lock_until_done(tmp_path):
     """Four processes ask for the kernels at the same moment (no cache): one compiler
-    starts; when it is done the kernels are in the cache and its marker is gone. (Without
+    starts; when its lock is free the kernels are in the cache. (Without
     hapticd's record numba's code is stale: the compiler compiles them, at the lowest
     priority.)"""
     cache = tmp_path / "cache"

@@ -322,11 +322,15 @@ def cached(names: Sequence[str], version: str) -> bool:
 
 
 def _lock(folder: Path, how: int) -> int | None:
-    """An open descriptor of COMPILING in ``folder`` locked ``how`` (fcntl.LOCK_EX or
-    LOCK_SH); None if a compiler holds it; -1 if the folder cannot hold a lock."""
+    """An open descriptor of COMPILING in ``folder`` locked ``how``: fcntl.LOCK_EX (made
+    if need be) or LOCK_SH (only asking: nothing made); None if a compiler holds it; -1 if
+    the folder cannot hold a lock (or, asking, has no COMPILING)."""
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd = os.open(folder / COMPILING, os.O_CREAT | os.O_RDWR, 0o600)
+        if how == fcntl.LOCK_SH:
+            fd = os.open(folder / COMPILING, os.O_RDONLY)
+        else:
+            folder.mkdir(parents=True, exist_ok=True)
+            fd = os.open(folder / COMPILING, os.O_CREAT | os.O_RDWR, 0o600)
     except OSError:
         return -1
     try:
