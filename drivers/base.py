@@ -114,6 +114,11 @@ class Device(abc.ABC):
     @abc.abstractmethod
     def enable_forces(self, enabled: bool) -> None: ...
 
+    def counts(self) -> dict[str, int]:
+        """What the device's driver counted so far that is no error but a run's summary
+        reports (e.g. the SDK's saturated motors), by name; none by default."""
+        return {}
+
     @property
     def finished(self) -> bool:
         """True when a device that plays a trajectory has reached its end."""

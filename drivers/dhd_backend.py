@@ -18,7 +18,19 @@ known by its index), checks the controller's memory, sets the device watchdog
 independent of hapticd's safety chain), the end effector's mass and the SDK's
 gravity compensation, and primes the SDK's velocity estimator with position
 reads. Forces are enabled only on an initialised device, with its brakes
-released first.
+released first; the velocity threshold (dhdSetVelocityThreshold) is left at the
+factory setting (docs/devices.md says why). A model with a wrist or a gripper
+is commanded through dhdSetForceAndTorqueAndGripperForce, with zero torques and
+gripper force (hapticd renders translational forces only); the others through
+dhdSetForce. Closing writes a zero force, stops the device (dhdStop: forces off,
+brakes on) and closes it.
+
+While forces are on, the SDK's status (dhdGetStatus) is read at least every
+``status_period_s``: forces the SDK turned off itself (its force button, velocity
+threshold, watchdog, ...) end in a DeviceError naming the cause
+(DHD_STATUS_FORCE_OFF_CAUSE), so the loop latches a fault instead of rendering to a
+device that no longer pushes. The set-force call's positive return codes (a
+saturated motor, a command the TimeGuard skipped) are counted (``counts``).
 
 Errors are read by code (dhdErrorGetLast), with the SDK's message
 (dhdErrorGetLastStr): a communication error or a device no longer found is a
@@ -34,6 +46,7 @@ import ctypes
 import ctypes.util
 import math
 import os
+import time
 from typing import Any
 
 import numpy as np
@@ -55,6 +68,11 @@ MIN_SDK_VERSION = (3, 16, 0)
 # device fails: at 1 kHz, 50 ms without an estimate.
 MAX_VELOCITY_TIMEOUTS = 50
 PRIME_READS = 2  # the estimator needs two position updates within its window
+# The longest time between two reads of the SDK's status while forces are on, s (the
+# device key status_period_s): well within the device watchdog's period.
+STATUS_PERIOD_S = 0.005
+# The clock the status period is timed on, s (a test's own to step it).
+_clock = time.monotonic
 
 # The SDK's error codes (enum dhd_errors, in order from 0).
 DHD_ERRORS = (
@@ -88,6 +106,35 @@ DHD_ERROR_NOT_AVAILABLE = 6
 DHD_ERROR_TIMEOUT = 7
 DHD_ERROR_NOT_IMPLEMENTED = 10
 DHD_ERROR_CONFIGURATION = 14
+# The set-force calls' positive return codes: no error, counted (``DhdDevice.counts``).
+DHD_TIMEGUARD = 1  # the TimeGuard skipped a command that came too soon after the last
+DHD_MOTOR_SATURATED = 2  # a motor could not deliver it: the force was scaled down
+# The status array (dhdGetStatus): DHD_MAX_STATUS entries, 17 in SDK 3.17.5; room for more.
+STATUS_SIZE = 32
+DHD_STATUS_POWER = 0
+DHD_STATUS_CONNECTED = 1
+DHD_STATUS_FORCE = 5
+DHD_STATUS_BRAKE = 6
+DHD_STATUS_ERROR = 9
+DHD_STATUS_FORCE_OFF_CAUSE = 14
+# Why the SDK turned forces off (DHD_FORCE_OFF_*, the value of DHD_STATUS_FORCE_OFF_CAUSE).
+DHD_FORCE_OFF_USBDISCN = 5
+FORCE_OFF_CAUSES = {
+    0: ("DHD_FORCE_OFF_NONE", "the SDK gave no cause"),
+    1: ("DHD_FORCE_OFF_BUTTON", "the device's force button was pressed"),
+    2: (
+        "DHD_FORCE_OFF_VELOCITY",
+        "the handle moved faster than the device's velocity threshold; it brakes",
+    ),
+    3: (
+        "DHD_FORCE_OFF_WATCHDOG",
+        "no force command came within the device watchdog's period (device_watchdog_s): "
+        "the loop stalled; it brakes",
+    ),
+    4: ("DHD_FORCE_OFF_SOFTWARE", "a program turned them off"),
+    5: ("DHD_FORCE_OFF_USBDISCN", "the USB connection was lost"),
+    6: ("DHD_FORCE_OFF_DEADMAN", "the deadman switch was released"),
+}
 # What the SDK documents as a device that is gone: a communication error between the
 # host and the device, or no device found.
 LOST = frozenset({DHD_ERROR_COM, DHD_ERROR_NO_DEVICE_FOUND})
@@ -123,6 +170,9 @@ _API: dict[str, tuple[Any, list[Any]]] = {
     "dhdGetPosition": (ctypes.c_int, [_PD, _PD, _PD, _C]),
     "dhdGetLinearVelocity": (ctypes.c_int, [_PD, _PD, _PD, _C]),
     "dhdSetForce": (ctypes.c_int, [_D, _D, _D, _C]),
+    "dhdSetForceAndTorqueAndGripperForce": (ctypes.c_int, [_D, _D, _D, _D, _D, _D, _D, _C]),
+    "dhdGetStatus": (ctypes.c_int, [_PI, _C]),
+    "dhdStop": (ctypes.c_int, [_C]),
     # libdrd only: opening, the initialisation (calibration) state, automatic initialisation.
     "drdOpenID": (ctypes.c_int, [_C]),
     "drdClose": (ctypes.c_int, [_C]),
@@ -231,6 +281,14 @@ def sdk_error(lib: ctypes.CDLL, who: str, what: str) -> DeviceError:
     if code in LOST:
         return DeviceLostError(f"{who}: lost ({what}): {text}")
     return DeviceError(f"{who}: {what}: {text}")
+
+
+def force_off_cause(code: int) -> str:
+    """The SDK's name for a force-off cause (DHD_STATUS_FORCE_OFF_CAUSE) and what it means."""
+    name, meaning = FORCE_OFF_CAUSES.get(
+        code, (f"force-off cause {code}", "a cause this version of hapticd does not know")
+    )
+    return f"{name}: {meaning}"
 
 
 def _unsupported(lib: ctypes.CDLL) -> bool:
@@ -434,7 +492,9 @@ class DhdDevice(Device):
     limit, at most its model's; ``effector_mass_kg`` (kg) the end effector's mass for the
     SDK's gravity compensation (None: the SDK's default for the model); ``model`` the
     model the profile expects (a row of hapticd_drivers.models: its workspace is known
-    before the device is opened, and a device of another model is refused).
+    before the device is opened, and a device of another model is refused);
+    ``status_period_s`` (s) the longest time between two reads of the SDK's status while
+    forces are on (0: on every read).
     """
 
     reports_lost = True  # DHD_ERROR_COM and DHD_ERROR_NO_DEVICE_FOUND only
@@ -449,6 +509,7 @@ class DhdDevice(Device):
         effector_mass_kg: float | None = None,
         model: str | None = None,
         serial: str | None = None,
+        status_period_s: float = STATUS_PERIOD_S,
         **_: Any,
     ) -> None:
         self.serial_number = serial_number
@@ -462,6 +523,9 @@ class DhdDevice(Device):
         ):
             raise DeviceError(f"dhd: effector_mass_kg must be >= 0 kg, got {effector_mass_kg}")
         self.effector_mass_kg = effector_mass_kg
+        if not (math.isfinite(status_period_s) and status_period_s >= 0):
+            raise DeviceError(f"dhd: status_period_s must be >= 0 s, got {status_period_s}")
+        self.status_period_s = float(status_period_s)
         self.model = None
         if model is not None:
             self.model = models.by_name(model)
@@ -487,6 +551,14 @@ class DhdDevice(Device):
         self._refs = [ctypes.byref(v) for v in self._xyz]
         self._velocity = [0.0, 0.0, 0.0]
         self._velocity_timeouts = 0
+        # Preallocated for the status read (no allocation per tick); when it is next due (s,
+        # on _clock).
+        self._status = (ctypes.c_int * STATUS_SIZE)()
+        self._status_due = 0.0
+        # The model takes its force with wrist torques and gripper force in one call.
+        self._combined = False
+        self._saturated = 0
+        self._timeguard = 0
 
     @staticmethod
     def _info(row: models.DeviceModel | None, name: str, max_force_n: float) -> DeviceInfo:
@@ -523,9 +595,15 @@ class DhdDevice(Device):
             return
         _HELD.discard((lib._handle, dev_id))
         with contextlib.suppress(Exception):
-            lib.dhdSetForce(0.0, 0.0, 0.0, dev_id)
+            self._send(lib, dev_id, 0.0, 0.0, 0.0)
+        # dhdStop: forces off and the brakes on, the state to leave a device in (as
+        # forcedimension_ros2 closes); forces off at least where it fails.
+        stopped = False
         with contextlib.suppress(Exception):
-            lib.dhdEnableForce(_OFF, dev_id)
+            stopped = lib.dhdStop(dev_id) >= 0
+        if not stopped:
+            with contextlib.suppress(Exception):
+                lib.dhdEnableForce(_OFF, dev_id)
         with contextlib.suppress(Exception):
             (lib.drdClose if self._drd else lib.dhdClose)(dev_id)
 
@@ -534,9 +612,10 @@ class DhdDevice(Device):
         # Whatever the last program left: forces off, and a zero force is the first command.
         self._enabled = False
         self._check(lib.dhdEnableForce(_OFF, dev_id), "cannot disable forces")
-        self._check(lib.dhdSetForce(0.0, 0.0, 0.0, dev_id), "cannot write a zero force")
         row, model, serial = _identify(lib, dev_id)
         self._who = _describe(model, self.index, serial)
+        self._combined = row is not None and row.wrist_or_gripper
+        self._check(self._send(lib, dev_id, 0.0, 0.0, 0.0), "cannot write a zero force")
         if row is None:
             raise DeviceError(
                 f"{self._who}: its device type (dhdGetSystemType) is not in hapticd's model "
@@ -644,20 +723,72 @@ class DhdDevice(Device):
             v[0], v[1], v[2] = xyz[0].value, xyz[1].value, xyz[2].value
         state.velocity[:] = v
         state.buttons = int(lib.dhdGetButtonMask(self._id))
+        if self._enabled:
+            period = self.status_period_s
+            if period > 0.0:
+                now = _clock()
+                if now < self._status_due:
+                    return
+                self._status_due = now + period
+            self._read_status(lib)
+
+    def _read_status(self, lib: ctypes.CDLL) -> None:
+        """The SDK's status: DeviceError naming the cause when the SDK turned the forces off
+        itself (DeviceLostError when for a lost USB connection)."""
+        st = self._status
+        if lib.dhdGetStatus(st, self._id) < 0:
+            raise sdk_error(lib, self._who, "cannot read the status")
+        if st[DHD_STATUS_FORCE]:
+            return
+        self._enabled = False  # what it is sent from now on: zero
+        code = int(st[DHD_STATUS_FORCE_OFF_CAUSE])
+        notes = [
+            note
+            for on, note in (
+                (not st[DHD_STATUS_POWER], "no power"),
+                (not st[DHD_STATUS_CONNECTED], "not connected"),
+                (st[DHD_STATUS_BRAKE], "brakes on"),
+                (st[DHD_STATUS_ERROR], "the device reports an error"),
+            )
+            if on
+        ]
+        lost = code == DHD_FORCE_OFF_USBDISCN or not st[DHD_STATUS_CONNECTED]
+        raise (DeviceLostError if lost else DeviceError)(
+            f"{self._who}: {'lost: ' if lost else ''}the SDK turned its forces off "
+            f"({force_off_cause(code)}{'; ' + ', '.join(notes) if notes else ''}); hapticd "
+            "zeroes and disables every device, and the fault stays latched"
+        )
+
+    def _send(self, lib: ctypes.CDLL, dev_id: int, x: float, y: float, z: float) -> int:
+        """One force command (N, the device's frame) through the model's call: the SDK's
+        return code. A model with a wrist or a gripper gets zero torques and gripper force:
+        hapticd renders translations only."""
+        if self._combined:
+            return lib.dhdSetForceAndTorqueAndGripperForce(x, y, z, 0.0, 0.0, 0.0, 0.0, dev_id)
+        return lib.dhdSetForce(x, y, z, dev_id)
+
+    def counts(self) -> dict[str, int]:
+        """The set-force calls that returned DHD_MOTOR_SATURATED (a motor could not deliver
+        the force: the SDK scaled it down) and DHD_TIMEGUARD (the SDK skipped a command
+        that came too soon after the last), since the device was made."""
+        return {"motor_saturated": self._saturated, "timeguard": self._timeguard}
 
     def write_force(self, force: np.ndarray) -> None:
         if self._id < 0:
             raise DeviceError(f"{self._who}: write to a closed device")
-        check_force(force, self.info.max_force_n, self._who)
-        f = (
-            (float(force[0]), float(force[1]), float(force[2]))
-            if self._enabled
-            else (0.0, 0.0, 0.0)
-        )
-        if not all(math.isfinite(v) for v in f):
-            raise DeviceError(f"{self._who}: refused a non-finite force")
-        assert self._lib is not None
-        self._check(self._lib.dhdSetForce(*f, self._id), "cannot set the force")
+        x, y, z = check_force(force, self.info.max_force_n, self._who)  # finite, in the limit
+        if not self._enabled:
+            x = y = z = 0.0
+        lib = self._lib
+        assert lib is not None
+        rc = self._send(lib, self._id, x, y, z)
+        if rc != 0:
+            if rc < 0:
+                raise sdk_error(lib, self._who, "cannot set the force")
+            if rc == DHD_MOTOR_SATURATED:
+                self._saturated += 1
+            elif rc == DHD_TIMEGUARD:
+                self._timeguard += 1
 
     def enable_forces(self, enabled: bool) -> None:
         if not enabled:
@@ -687,4 +818,7 @@ class DhdDevice(Device):
             raise sdk_error(lib, self._who, "cannot release the brakes")
         self._prime()  # the last calls before the loop's first read
         self._check(lib.dhdEnableForce(_ON, self._id), "cannot enable forces")
+        # A zero force at once: the SDK's watchdog counts from the last command.
+        self._check(self._send(lib, self._id, 0.0, 0.0, 0.0), "cannot write a zero force")
         self._enabled = True
+        self._status_due = 0.0  # the first read with forces on reads the status

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import os
+import stat
 import time
 from collections import deque
 from collections.abc import Callable
@@ -41,6 +43,12 @@ from hapticd_drivers.base import (
     DeviceState,
     check_force,
 )
+from hapticd_drivers.device_lock import (
+    DeviceInUseError,
+    UsbDeviceLock,
+    lock_usb_device,
+    pick_device,
+)
 
 MODEL = models.by_usb_id(fm.FALCON_VENDOR_ID, fm.FALCON_PRODUCT_ID)
 assert MODEL is not None
@@ -54,10 +62,24 @@ FIRMWARE_CHUNK = 62
 # 9600 baud, the firmware upload at 3 MHz / 21, and the running firmware at 3 MHz / 2.
 LOADER_BAUD, BOOT_BAUD, NORMAL_BAUD = 9600, 142_857, 1_500_000
 LOADER_HELLO, LOADER_REPLY = b"\n\x43\r", b"\n\x44,\r"
+# As libnifalcon: up to 100 hellos before the bootloader counts as silent
+# (FalconCommLibUSB.cpp, setFirmwareMode), and the whole load tried up to 10 times
+# (FalconCLIBase.cpp and its examples loop 10 times over loadFirmware), since a load
+# can fail once and succeed after the next reset.
+LOADER_HELLO_TRIES, FIRMWARE_ATTEMPTS = 100, 10
+# After the upload: the line is left quiet this long (s), then the firmware is asked up to
+# FIRMWARE_PROBES times whether it runs.
+FIRMWARE_QUIET_S, FIRMWARE_PROBES = 0.05, 10
 # Velocity is the position's change over this window, s: as Force Dimension's SDK
 # estimates it (its default window is 20 ms, dhdConfigLinearVelocity), for the same
 # reason: encoder counts differenced over one tick are mostly quantisation noise.
 VELOCITY_WINDOW_S = 0.02
+# USB transfer timeouts, ms. Running, every transfer is given a few ms: the chip answers
+# an IN request within its 1 ms latency timer, and a transfer that waits longer is a
+# stalled Falcon, lost well within the loop's watchdog (pyftdi's default, 5 s, would hold
+# the loop with the last motor command applied). Opening and loading the firmware (latency
+# timer 16 ms, 9600 baud) are given longer.
+TRANSFER_TIMEOUT_MS, SETUP_TIMEOUT_MS = 5, 500
 # An arm cannot turn this far (about 36 degrees) between two packets 1 ms apart.
 MAX_ENCODER_STEP = 1000
 LED_NOT_HOMED, LED_READY, LED_FORCES = fm.LED_RED, fm.LED_BLUE, fm.LED_GREEN
@@ -102,22 +124,46 @@ def find_falcons(usb_backend: Any = None) -> list[Any]:
 
 
 def read_firmware(path: str | Path) -> bytes:
-    """The firmware image in ``path``; DeviceError if missing or of a size no Falcon
-    firmware has."""
+    """The firmware image in ``path`` (the device key ``firmware``); DeviceError if it is
+    missing, not a regular file, or of a size no Falcon firmware has.
+
+    Opened without blocking and checked before a byte is read: a FIFO would wait for a
+    writer and ``/dev/zero`` never ends."""
     p = Path(path).expanduser()
+    where = f"falcon firmware {p} (device key 'firmware')"
     try:
-        image = p.read_bytes()
+        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError as exc:
         raise DeviceError(
-            f"falcon firmware {p}: cannot read it ({exc.strerror}); docs/devices.md says "
-            "where to find the file"
+            f"{where}: cannot read it ({exc.strerror}); docs/devices.md says where to find the file"
         ) from None
-    if not FIRMWARE_MIN_BYTES <= len(image) <= FIRMWARE_MAX_BYTES:
-        raise DeviceError(
-            f"falcon firmware {p}: {len(image)} bytes, expected {FIRMWARE_MIN_BYTES}-"
-            f"{FIRMWARE_MAX_BYTES} (a Falcon firmware image, e.g. Novint's test_firmware.bin)"
-        )
-    return image
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise DeviceError(
+                f"{where}: not a regular file (mode {stat.filemode(info.st_mode)}); name the "
+                "firmware image file itself, e.g. Novint's test_firmware.bin"
+            )
+        if not FIRMWARE_MIN_BYTES <= info.st_size <= FIRMWARE_MAX_BYTES:
+            raise DeviceError(
+                f"{where}: {info.st_size} bytes, expected {FIRMWARE_MIN_BYTES}-"
+                f"{FIRMWARE_MAX_BYTES} (a Falcon firmware image, e.g. Novint's "
+                "test_firmware.bin)"
+            )
+        # At most one byte past the bound: a file that grows while read is refused too.
+        image = bytearray()
+        while len(image) <= FIRMWARE_MAX_BYTES:
+            part = os.read(fd, FIRMWARE_MAX_BYTES + 1 - len(image))
+            if not part:
+                break
+            image += part
+    except OSError as exc:
+        raise DeviceError(f"{where}: cannot read it ({exc.strerror})") from None
+    finally:
+        os.close(fd)
+    if len(image) != info.st_size:
+        raise DeviceError(f"{where}: changed while read ({info.st_size} bytes, then {len(image)})")
+    return bytes(image)
 
 
 class FalconDevice(Device):
@@ -152,6 +198,7 @@ class FalconDevice(Device):
         self._clock = clock or time.monotonic
         self.read_attempts = read_attempts
         self.info = self._info(serial or serial_number or f"falcon#{index}", max_force_n)
+        self._lock: UsbDeviceLock | None = None
         self._ftdi: Any = None
         self._enabled = False
         self._rx = bytearray()
@@ -161,7 +208,6 @@ class FalconDevice(Device):
         # (time s, position m) of the reads within the velocity window, oldest first.
         self._recent: deque[tuple[float, np.ndarray]] = deque()
         self._motor = np.zeros(3, dtype=int)
-        self._homing = False
         self.homed = 0
         self.grip = 0
 
@@ -183,20 +229,24 @@ class FalconDevice(Device):
         except ImportError as exc:
             raise self._fail("the falcon backend needs pyftdi: pip install pyftdi", exc) from exc
         present = find_falcons(self._backend)
-        found = present
-        if self.serial_number is not None:
-            found = [d for d in present if _serial(d) == self.serial_number]
-        if len(found) <= self.index:
+        # Locked before anything is sent: a Falcon another process holds is asked nothing.
+        picked = pick_device(
+            present, self.index, self.serial_number, _serial, f"falcon {self.info.serial}"
+        )
+        if picked is None:
             want = self.serial_number or f"index {self.index}"
             raise self._fail(
-                f"no Falcon ({want}) found; {len(present)} present. Is it plugged in and "
-                "powered, and may this user open it (hapticd udev-rules)?"
+                f"no Falcon ({want}) found; {len(present)} present (one another process "
+                "holds is not asked its serial number). Is it plugged in and powered, and "
+                "may this user open it (hapticd udev-rules)?"
             )
-        dev = found[self.index]
+        dev, self._lock = picked
         ftdi = ftdi_mod.Ftdi()
+        ftdi.timeouts = (SETUP_TIMEOUT_MS, SETUP_TIMEOUT_MS)
         try:
             ftdi.open_from_device(dev)
         except (ftdi_mod.FtdiError, OSError, ValueError) as exc:
+            self._release()
             raise self._fail("cannot open its FTDI chip", exc) from exc
         self._ftdi = ftdi
         if self.serial_number is None:
@@ -207,13 +257,20 @@ class FalconDevice(Device):
         try:
             return call()
         except Exception as exc:  # pyftdi's FtdiError, pyusb's USBError, OSError
+            # pyftdi raises its FtdiError from pyusb's error, which stays its context.
+            cause = exc.__cause__ or exc.__context__
+            if type(cause).__name__ == "USBTimeoutError":
+                ms = self._ftdi.timeouts[0] if self._ftdi is not None else "?"
+                raise self._fail(f"{what} stalled (no transfer within {ms} ms)", lost=True) from exc
             raise self._fail(f"{what} failed (unplugged?)", exc, lost=True) from exc
 
     def _normal_mode(self) -> None:
         f = self._ftdi
+        f.timeouts = (SETUP_TIMEOUT_MS, SETUP_TIMEOUT_MS)
         self._chip("setting the latency timer", lambda: f.set_latency_timer(1))
         self._chip("setting the baud rate", lambda: f.set_baudrate(NORMAL_BAUD))
         self._chip("purging", f.purge_buffers)
+        f.timeouts = (TRANSFER_TIMEOUT_MS, TRANSFER_TIMEOUT_MS)
         self._rx.clear()
         self._pending = 0
 
@@ -241,28 +298,44 @@ class FalconDevice(Device):
             if self.homed != fm.ALL_HOMED
             else (LED_FORCES if self._enabled else LED_READY)
         )
-        self._write(fm.encode_command(tuple(int(m) for m in self._motor), leds, self._homing))
+        # Homing mode always on, as libnifalcon keeps it: its header says the homed bits
+        # are reported only in homing mode, so turning it off could hide them.
+        self._write(fm.encode_command(tuple(int(m) for m in self._motor), leds, True))
         self._pending += 1
 
     def _packet(self) -> bytes | None:
         """The next 16-byte packet from the firmware, or None after ``read_attempts`` reads
-        brought none."""
+        brought none. DeviceError if more answers wait than commands went unanswered."""
         for _ in range(self.read_attempts):
             if len(self._rx) >= fm.PACKET_SIZE:
                 break
-            self._rx += self._read(64)
+            # Only what a packet lacks: pyftdi reads one USB transfer for it and returns,
+            # where a larger request would wait for a second, empty one.
+            self._rx += self._read(fm.PACKET_SIZE - len(self._rx))
         if len(self._rx) < fm.PACKET_SIZE:
             return None
         raw = bytes(self._rx[: fm.PACKET_SIZE])
         del self._rx[: fm.PACKET_SIZE]
-        self._pending = max(0, self._pending - 1)
+        self._pending -= 1
+        if self._pending <= 0:
+            # Every command answered: anything more waiting would be read a tick late,
+            # then ever later (a Falcon answering twice). A fault, never a lagging state.
+            waiting = len(self._rx) + _read_cache(self._ftdi)
+            if waiting:
+                raise self._fail(
+                    f"answers more often than it is asked ({waiting} bytes wait with every "
+                    "command answered): its state would lag behind"
+                )
+            self._pending = 0
         return raw
 
-    def _firmware_running(self) -> bool:
-        """Whether the Falcon runs its firmware: it answers a command (forces zero)."""
+    def _firmware_running(self, tries: int = 3) -> bool:
+        """Whether the Falcon runs its firmware: it answers one of ``tries`` commands
+        (forces zero). A command left unanswered is forgotten (the chip purged), so a
+        firmware that starts after it answers the next one in step."""
         self._normal_mode()
         self._motor[:] = 0
-        for _ in range(3):
+        for _ in range(tries):
             self._send()
             raw = self._packet()
             if raw is not None:
@@ -270,12 +343,31 @@ class FalconDevice(Device):
                     fm.decode_state(raw)
                     return True
                 except fm.FalconPacketError:
-                    self._normal_mode()
+                    pass
+            self._normal_mode()
         return False
 
     def _load_firmware(self, image: bytes) -> None:
+        """Load ``image``, as libnifalcon does, in up to FIRMWARE_ATTEMPTS attempts: each
+        resets the microcontroller into its bootloader and starts over. A chip gone from
+        the bus (DeviceLostError) is not tried again."""
+        failures = []
+        for _ in range(FIRMWARE_ATTEMPTS):
+            try:
+                self._load_firmware_once(image)
+                return
+            except DeviceLostError:
+                raise
+            except DeviceError as exc:
+                failures.append(str(exc).removeprefix(f"falcon {self.info.serial}: "))
+        raise self._fail(
+            f"firmware load failed {FIRMWARE_ATTEMPTS} times; the last: {failures[-1]}"
+        )
+
+    def _load_firmware_once(self, image: bytes) -> None:
         """The bootloader's handshake and the upload, each chunk's echo checked."""
         f = self._ftdi
+        f.timeouts = (SETUP_TIMEOUT_MS, SETUP_TIMEOUT_MS)
         self._chip("purging", f.purge_buffers)
         self._chip("setting the latency timer", lambda: f.set_latency_timer(16))
         self._chip("setting the baud rate", lambda: f.set_baudrate(LOADER_BAUD))
@@ -285,7 +377,7 @@ class FalconDevice(Device):
         # A DTR pulse resets the Falcon's microcontroller into its bootloader.
         self._chip("setting DTR", lambda: f.set_dtr(False))
         self._chip("setting DTR", lambda: f.set_dtr(True))
-        for _ in range(10):
+        for _ in range(LOADER_HELLO_TRIES):
             self._write(LOADER_HELLO)
             if self._read_exact(len(LOADER_REPLY) + 1, 3).lstrip(b"\x00") == LOADER_REPLY:
                 break
@@ -305,7 +397,12 @@ class FalconDevice(Device):
                     f"firmware load failed: byte {at + _first_difference(echo, chunk)} of "
                     f"{len(image)} came back wrong or not at all"
                 )
-        if not self._firmware_running():
+        # How the bootloader knows the upload is over is not public (the emulator's module
+        # docstring has three readings): the line stays quiet a while, then the firmware is
+        # asked until it answers, the first command perhaps lost to it (libnifalcon asks its
+        # I/O loop up to 10 times after a load).
+        time.sleep(FIRMWARE_QUIET_S)
+        if not self._firmware_running(FIRMWARE_PROBES):
             raise self._fail("firmware load failed: the firmware does not answer after loading")
 
     # -- the device -------------------------------------------------------------------------------
@@ -340,17 +437,23 @@ class FalconDevice(Device):
             self._disconnect()
             raise
 
+    def _release(self) -> None:
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
+
     def _disconnect(self) -> None:
         if self._ftdi is None:
+            self._release()
             return
         with contextlib.suppress(Exception):
             self._motor[:] = 0
-            self._homing = False
             self._enabled = False
             self._write(fm.encode_command((0, 0, 0), 0, False))
         with contextlib.suppress(Exception):
             self._ftdi.close()
         self._ftdi = None
+        self._release()  # the chip closed first: then another process may have it
 
     def close(self) -> None:
         self._disconnect()
@@ -440,23 +543,19 @@ class FalconDevice(Device):
         """Ask the firmware to home the encoders while the user moves the grip all the way
         out and straight back in; the homed bits (all three: 0b111) once done. DeviceError
         after ``timeout_s`` s of the device's clock."""
-        self._homing = True
-        try:
-            start = self._clock()
-            st = DeviceState()
-            while self.homed != fm.ALL_HOMED:
-                if self._clock() - start > timeout_s:
-                    raise self._fail(
-                        f"not homed after {timeout_s:g} s (homed bits {self.homed:03b}): move "
-                        "the grip all the way out, then push it straight in"
-                    )
-                self._counts = None  # homing moves the counts' origin
-                self._read_state(st, check_homed=False)
-                self._motor[:] = 0
-                self._send()
-                sleep(0.001)
-        finally:
-            self._homing = False
+        start = self._clock()
+        st = DeviceState()
+        while self.homed != fm.ALL_HOMED:
+            if self._clock() - start > timeout_s:
+                raise self._fail(
+                    f"not homed after {timeout_s:g} s (homed bits {self.homed:03b}): move "
+                    "the grip all the way out, then push it straight in"
+                )
+            self._counts = None  # homing moves the counts' origin
+            self._read_state(st, check_homed=False)
+            self._motor[:] = 0
+            self._send()
+            sleep(0.001)
         return self.homed
 
 
@@ -467,6 +566,14 @@ def _serial(dev: Any) -> str | None:
         return dev.serial_number
     except Exception:
         return None
+
+
+def _read_cache(ftdi: Any) -> int:
+    """Bytes pyftdi has taken off the chip and not yet handed over: one USB transfer can
+    bring more than the packet asked for, and pyftdi keeps the rest (in its read cache,
+    which it has no public accessor for; 0 if a pyftdi has none)."""
+    buf = getattr(ftdi, "_readbuffer", b"")
+    return max(0, len(buf) - int(getattr(ftdi, "_readoffset", 0)))
 
 
 def _first_difference(a: bytes, b: bytes) -> int:
@@ -485,22 +592,37 @@ def _status(index: int, usb_backend: Any) -> str:
         if dev.homed != fm.ALL_HOMED:
             return "firmware running, NOT homed: hapticd calibrate PROFILE"
         return "firmware running, homed"
+    except DeviceInUseError as exc:
+        return _in_use(exc)
     except DeviceError as exc:
         return f"cannot open it (in use? the udev rules?): {exc}"
     finally:
         dev._disconnect()
 
 
+def _in_use(exc: DeviceInUseError) -> str:
+    return f"in use (by pid {exc.pid})" if exc.pid is not None else "in use by another process"
+
+
 def discover(usb_backend: Any = None) -> list[dict[str, Any]]:
     """The attached Falcons (serial number, index, firmware and homing), or why pyusb and
-    libusb cannot look."""
+    libusb cannot look. A Falcon another process holds is asked nothing, not even its
+    serial number: it is listed as in use, with the holder's pid."""
     try:
         found = find_falcons(usb_backend)
     except DeviceError as exc:
         return [{"backend": "falcon", "problem": str(exc)}]
     listed = []
     for i, dev in enumerate(found):
-        serial = _serial(dev) or "no readable serial"
+        try:
+            lock = lock_usb_device(dev, f"falcon at index {i}")
+        except DeviceInUseError as exc:
+            listed.append(f"index {i}: {_in_use(exc)}, not asked")
+            continue
+        try:
+            serial = _serial(dev) or "no readable serial"
+        finally:
+            lock.release()  # _status takes it again, as every open does
         listed.append(f"{serial} (index {i}, {_status(i, usb_backend)})")
     return [{"backend": "falcon", "model": "Novint Falcon", "found": listed}]
 

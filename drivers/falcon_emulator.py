@@ -10,17 +10,25 @@ packet. So ``usb.core.find``, pyftdi and the ``falcon`` backend run unmodified.
 ``FalconEmulator`` is the device behind the chip: at power-on its bootloader waits
 for the loader handshake (DTR pulsed; ``\\n C \\r`` answered with ``\\n D , \\r`` at
 9600 baud; ``A`` echoed at 140 kbaud), echoes the firmware bytes it is sent, and
-starts the firmware when the host switches to the normal baud rate. The firmware
+starts the firmware when the upload is over. How a real bootloader knows that is not
+public (libnifalcon sends the image, checks each echo and switches the chip to the
+normal baud rate, nothing more), so ``firmware_start`` picks one of three readings a
+microcontroller could act on: ``"framing"`` (the first byte it cannot frame, one sent
+at another baud rate, ends the upload and is lost), ``"length"`` (it knows its image is
+``image_size`` bytes) and ``"quiet"`` (the line stays quiet for ``quiet_s`` s). The
+chip's own baud setting is invisible to the microcontroller. The firmware
 answers each 16-byte command packet with one state packet: encoder counts from a
 simulated mechanism following a path (or a ``hand``, hapticd_drivers.sim.Hand, that
 feels the motors' force), homed bits, grip buttons. Homing: while the host asks for
 it, the simulated user pulls the grip all the way out and pushes it in, and each
 encoder is homed when its arm passes the index mark. Fault injection: drop, corrupt
-or jump an answer, corrupt the firmware echo, stop answering, unplug.
+or jump an answer, corrupt the firmware echo, stop answering, answer each command more
+than once, stall the IN endpoint (a transfer that waits out its timeout), unplug.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from types import SimpleNamespace
 from typing import Any
@@ -46,7 +54,11 @@ _FRAC = (0.0, 0.5, 0.25, 0.125, 0.375, 0.625, 0.75, 0.875)
 MODEM_STATUS = bytes([0x01, 0x60])  # CTS/DSR clear, transmitter empty
 
 LOADER_BAUD, BOOT_BAUD, NORMAL_BAUD = 9600, 142_857, 1_500_000
+FIRMWARE_STARTS = ("framing", "length", "quiet")
 LOADER_HELLO, LOADER_REPLY = b"\n\x43\r", b"\n\x44,\r"
+# A stalled IN transfer waits out the timeout it is given, but at most this long (s), so
+# that a test of a host that gives a long timeout ends.
+STALL_CAP_S = 0.25
 
 
 def ftdi_baud(value: int, index: int) -> float:
@@ -76,9 +88,41 @@ class FalconEmulator:
         homed: bool = False,
         hand: Any = None,
         firmware_sizes: tuple[int, int] = (4096, 16384),
+        homed_bits_outside_homing: bool = False,
+        hello_failures: int = 0,
+        firmware_failures: int = 0,
+        motor_limit: int = fm.MOTOR_LIMIT,
+        firmware_start: str = "framing",
+        image_size: int | None = None,
+        quiet_s: float = 0.02,
     ) -> None:
         self.path, self.clock, self.serial, self.hand = path, clock, serial, hand
         self.firmware_sizes = firmware_sizes
+        if firmware_start not in FIRMWARE_STARTS:
+            raise ValueError(
+                f"firmware_start {firmware_start!r}: expected one of {FIRMWARE_STARTS}"
+            )
+        if firmware_start == "length" and (image_size is None or image_size < 1):
+            raise ValueError("firmware_start 'length' needs image_size, the image's bytes")
+        # How the bootloader knows the upload is over (module docstring); the quiet reading
+        # times the line on the microcontroller's own clock, real time, as the host waits.
+        self.firmware_start, self.image_size, self.quiet_s = firmware_start, image_size, quiet_s
+        self._last_load_byte = 0.0
+        self.framing_errors = 0  # bytes the bootloader received at another baud rate
+        # libnifalcon's FalconFirmware.h: the homed bits are reported only in homing mode
+        # (the default here); True: reported whatever the mode. Only a real Falcon says.
+        self.homed_bits_outside_homing = homed_bits_outside_homing
+        # A bootloader that needs several tries: the first ``hello_failures`` hellos go
+        # unanswered, and the first ``firmware_failures`` uploads echo one byte wrong.
+        self.hello_failures = hello_failures
+        self.firmware_failures = firmware_failures
+        self.loads = 0  # uploads begun (the 'A' synchronised)
+        # The largest motor value the amplifiers take: libnifalcon's header says 4096
+        # (its code's torque cap, 30 x 10000 units, does not fit the packet's 16 bits, so
+        # it is no cap a device could take). Commands beyond it are counted, then clipped.
+        self.motor_limit = motor_limit
+        self.motor_over_limit = 0
+        self.hellos = 0  # hellos received
         self.plugged = True
         # The chip.
         self.baud = float(FTDI_CLOCK_HZ)
@@ -109,6 +153,16 @@ class FalconEmulator:
         self.jump_next = 0
         self.corrupt_echo = 0
         self.silent = False
+        # Answers per command (2: a Falcon that answers twice, so its answers pile up).
+        self.answers_per_command = 1
+        # An IN transfer waits out its timeout and brings nothing (libusb's timeout).
+        self.stall_in = False
+        # Control transfers (standard and vendor) and bulk OUT transfers the host made.
+        self.control_transfers = 0
+        self.out_transfers = 0
+        # IN transfers made, and the longest timeout (ms) the host gave one.
+        self.in_transfers = 0
+        self.in_timeout_max_ms = 0
         # The chip holds the firmware's answer until its latency timer runs out: the first
         # IN poll after a command brings only the status bytes, the next the answer.
         self.latency_polls = 1
@@ -166,7 +220,8 @@ class FalconEmulator:
         if self.jump_next:
             self.jump_next -= 1
             counts = counts + np.array([9000, 0, 0])
-        raw = fm.encode_state(tuple(int(c) for c in counts), self.homed, self.grip)
+        homed = self.homed if self.homing or self.homed_bits_outside_homing else 0
+        raw = fm.encode_state(tuple(int(c) for c in counts), homed, self.grip)
         if self.corrupt_next:
             self.corrupt_next -= 1
             raw = raw[:5] + b"\x00" + raw[6:]
@@ -181,8 +236,11 @@ class FalconEmulator:
             self.rejected += 1
             return
         self.commands += 1
-        # The amplifiers clip at the firmware's limit whatever they are sent.
-        self.motor = np.clip(np.array(motor), -fm.MOTOR_LIMIT, fm.MOTOR_LIMIT)
+        # The amplifiers clip at their limit whatever they are sent; a host that sends
+        # beyond it is counted (a host that relies on the clip would render a wrong force).
+        if max(abs(int(m)) for m in motor) > self.motor_limit:
+            self.motor_over_limit += 1
+        self.motor = np.clip(np.array(motor), -self.motor_limit, self.motor_limit)
         self.leds = leds
         if homing and not self.homing and self.homed != fm.ALL_HOMED:
             self._homing_t0 = self.clock()
@@ -193,7 +251,8 @@ class FalconEmulator:
         if self.drop_next:
             self.drop_next -= 1
             return
-        self._held.append([self.latency_polls, self._answer()])
+        for _ in range(self.answers_per_command):
+            self._held.append([self.latency_polls, self._answer()])
 
     def _firmware_bytes(self) -> None:
         buf = self._from_host
@@ -212,30 +271,56 @@ class FalconEmulator:
             del buf[: fm.PACKET_SIZE]
             self._command(packet)
 
+    def _end_upload(self) -> None:
+        """The bootloader ends the upload: it starts an image of a size it takes, else it
+        waits for the hello again."""
+        lo, hi = self.firmware_sizes
+        self.state = "run" if lo <= len(self.image) <= hi else "boot"
+        self._from_host.clear()
+
+    def _quiet_over(self) -> None:
+        if (
+            self.state == "load"
+            and self.firmware_start == "quiet"
+            and self.image
+            and time.monotonic() - self._last_load_byte >= self.quiet_s
+        ):
+            self._end_upload()
+
     def _bootloader_bytes(self, data: bytes) -> None:
+        if self.state == "load" and not _near(self.baud, BOOT_BAUD):
+            # Bytes at another baud rate reach the microcontroller as framing errors.
+            self.framing_errors += len(data)
+            self._last_load_byte = time.monotonic()
+            if self.firmware_start == "framing" and self.image:
+                self._end_upload()
+            return
         if self.state == "boot" and _near(self.baud, LOADER_BAUD):
             self._from_host += data
             if self._from_host.endswith(LOADER_HELLO):
                 self._from_host.clear()
-                self.to_host += LOADER_REPLY
-                self.state = "sync"
+                self.hellos += 1
+                if self.hellos > self.hello_failures:
+                    self.to_host += LOADER_REPLY
+                    self.state = "sync"
         elif self.state == "sync" and _near(self.baud, BOOT_BAUD) and data == b"A":
             self.to_host += b"A"
             self.state = "load"
-        elif self.state == "load" and _near(self.baud, BOOT_BAUD):
+            self.loads += 1
+            if self.loads <= self.firmware_failures:
+                self.corrupt_echo = max(self.corrupt_echo, 1)
+        elif self.state == "load":
+            if self.firmware_start == "length":
+                data = data[: self.image_size - len(self.image)]  # type: ignore[operator]
             self.image += data
+            self._last_load_byte = time.monotonic()
             echo = bytearray(data)
             if self.corrupt_echo and echo:
                 self.corrupt_echo -= 1
                 echo[0] ^= 0xFF
             self.to_host += echo
-
-    def _set_baud(self, baud: float) -> None:
-        self.baud = baud
-        if self.state == "load" and _near(baud, NORMAL_BAUD):
-            lo, hi = self.firmware_sizes
-            self.state = "run" if lo <= len(self.image) <= hi else "boot"
-            self._from_host.clear()
+            if self.firmware_start == "length" and len(self.image) == self.image_size:
+                self._end_upload()
 
     def _set_dtr(self, high: bool) -> None:
         # A DTR pulse (low, then high) resets the microcontroller into its bootloader.
@@ -253,6 +338,7 @@ class FalconEmulator:
         self._require()
         if self.silent:
             return
+        self._quiet_over()
         if self.state == "run":
             if _near(self.baud, NORMAL_BAUD):
                 self._from_host += data
@@ -262,6 +348,7 @@ class FalconEmulator:
 
     def read(self, size: int) -> bytes:
         self._require()
+        self._quiet_over()
         for held in self._held:
             held[0] -= 1
         while self._held and self._held[0][0] < 0:
@@ -282,7 +369,7 @@ class FalconEmulator:
         elif request == SIO_MODEM_CTRL and value & 0x100:
             self._set_dtr(bool(value & 1))
         elif request == SIO_SET_BAUDRATE:
-            self._set_baud(ftdi_baud(value, index))
+            self.baud = ftdi_baud(value, index)
         elif request == SIO_GET_LATENCY:
             return bytes([1])
         elif request == SIO_POLL_MODEM_STATUS:
@@ -339,17 +426,26 @@ class EmulatedFalconBackend(EmulatedBus):
         )  # fmt: skip
 
     def bulk_write(self, dev_handle: int, ep: int, intf: int, data: Any, timeout: int) -> int:
-        self._emu(dev_handle).write(bytes(data))
+        emu = self._emu(dev_handle)
+        emu.out_transfers += 1
+        emu.write(bytes(data))
         return len(data)
 
     def bulk_read(self, dev_handle: int, ep: int, intf: int, buff: Any, timeout: int) -> int:
-        return fill(buff, self._emu(dev_handle).read(len(buff)))
+        emu = self._emu(dev_handle)
+        emu.in_transfers += 1
+        emu.in_timeout_max_ms = max(emu.in_timeout_max_ms, timeout)
+        if emu.stall_in:
+            time.sleep(min(timeout / 1000.0, STALL_CAP_S))
+            raise usb.core.USBTimeoutError("Operation timed out", -7, 110)
+        return fill(buff, emu.read(len(buff)))
 
     def ctrl_transfer(
         self, dev_handle: int, bmRequestType: int, bRequest: int, wValue: int, wIndex: int,
         data: Any, timeout: int,
     ) -> int:  # fmt: skip
         emu = self._emu(dev_handle)
+        emu.control_transfers += 1
         raw: bytes | None = None
         if bmRequestType == 0x80 and bRequest == GET_DESCRIPTOR:
             texts = {1: "NOVINT (emulated)", 2: "FALCON HAPTIC", 3: emu.serial}

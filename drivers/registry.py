@@ -54,6 +54,8 @@ class Backend:
     wall-clock second, so a late tick is no jump).
     ``calibrate_by_hand``: what the user does while a calibration the device does not
     move for itself runs (empty: the device moves on its own).
+    ``hardware``: it drives a real device (unless ``--emulate`` puts an emulator under
+    it), so a run on it needs the loop's wall-clock watchdog.
     """
 
     name: str
@@ -69,6 +71,7 @@ class Backend:
     calibrate: str | None = None
     takes_clock: bool = False
     calibrate_by_hand: str = ""
+    hardware: bool = False
     status: str = ""
     defaults: dict[str, Any] = field(default_factory=dict, init=False, compare=False)
 
@@ -211,6 +214,7 @@ BACKENDS: dict[str, Backend] = {
             extra="hid",
             emulated=True,
             discover="hapticd_drivers.udev:discover_hid",
+            hardware=True,
             status="done, tested through the emulator",
         ),
         Backend(
@@ -222,6 +226,7 @@ BACKENDS: dict[str, Backend] = {
             extra="usb",
             emulated=True,
             discover="hapticd_drivers.udev:discover_usb",
+            hardware=True,
             status="done, tested through an emulated pyusb backend",
         ),
         Backend(
@@ -286,9 +291,21 @@ BACKENDS: dict[str, Backend] = {
                     ge=0.0,
                     le=1.0,
                 ),
+                Key(
+                    "status_period_s",
+                    float,
+                    0.005,
+                    "the longest time between two reads of the SDK's status while forces "
+                    "are on (dhdGetStatus: forces the SDK turned off itself, by its force "
+                    "button, velocity threshold or watchdog, latch a fault naming the cause), "
+                    "s; 0: on every read",
+                    ge=0.0,
+                    le=0.03,
+                ),
                 _FINGER,
             ),
             discover="hapticd_drivers.dhd_backend:discover",
+            hardware=True,
             preflight="hapticd_drivers.dhd_backend:preflight",
             calibrate="hapticd_drivers.dhd_backend:calibrate",
             status="done, tested through a fake SDK compiled by the tests, as the SDK's "
@@ -323,6 +340,7 @@ BACKENDS: dict[str, Backend] = {
             ),
             emulated=True,
             discover="hapticd_drivers.falcon_backend:discover",
+            hardware=True,
             preflight="hapticd_drivers.falcon_backend:preflight",
             calibrate="hapticd_drivers.falcon_backend:calibrate",
             calibrate_by_hand="move its grip all the way out, then push it straight in "

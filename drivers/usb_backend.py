@@ -16,6 +16,7 @@ import importlib
 from typing import Any
 
 from hapticd_drivers.base import DeviceError
+from hapticd_drivers.device_lock import UsbDeviceLock, pick_device
 from hapticd_drivers.report_device import ReportDelta
 
 # Vendor control requests for feature reports (bmRequestType: vendor, interface).
@@ -35,6 +36,7 @@ class UsbDelta(ReportDelta):
         super().__init__(*args, **kwargs)
         self._backend = usb_backend
         self._dev: Any = None
+        self._lock: UsbDeviceLock | None = None
         usb = self.desc.usb or {}
         self.interface = int(usb.get("interface", 0))
         self.in_ep = int(usb.get("in_endpoint", 0x81))
@@ -67,18 +69,25 @@ class UsbDelta(ReportDelta):
             present = list(
                 core.find(find_all=True, idVendor=vid, idProduct=pid, backend=self._libusb())
             )
-            found = present
-            if self.serial_number is not None:
-                found = [d for d in found if d.serial_number == self.serial_number]
+            # Locked before anything is sent: a device another process holds is asked nothing.
+            picked = pick_device(
+                present,
+                self.index,
+                self.serial_number,
+                lambda d: d.serial_number,
+                f"{self.desc.model} {self.serial_number or f'#{self.index}'}",
+            )
         except (core.USBError, ValueError) as exc:
             raise self._fail("cannot list devices (permissions? see the udev rules)", exc) from exc
-        if len(found) <= self.index:
+        if picked is None:
             raise self._not_found(len(present))
-        dev = found[self.index]
+        dev, self._lock = picked
         try:
             dev.set_configuration()
             util.claim_interface(dev, self.interface)
         except core.USBError as exc:
+            self._lock.release()
+            self._lock = None
             raise self._fail("cannot open", exc) from exc
         self._dev = dev
 
@@ -91,6 +100,9 @@ class UsbDelta(ReportDelta):
             util.release_interface(self._dev, self.interface)
         util.dispose_resources(self._dev)
         self._dev = None
+        if self._lock is not None:
+            self._lock.release()  # the device closed first: then another process may have it
+            self._lock = None
 
     def _read_report(self, size: int, timeout_ms: int) -> bytes | None:
         core, _ = self._pyusb()

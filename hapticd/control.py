@@ -16,7 +16,7 @@ import socket
 import stat
 import struct
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -69,14 +69,18 @@ def client_socket_path() -> Path:
 
 
 def _check_group_dir(d: Path, gid: int, create: bool) -> None:
-    """The directory a daemon shares with group ``gid`` (``--socket-group``): made 0750 and
-    given to the group when absent; else it must be a directory (not a symbolic link) owned
-    by this user, and is set to the group with mode 0750 (group: enter and list; nobody
-    else anything). Checked and changed through one descriptor opened without following
-    a link, so nothing can be swapped in between."""
+    """The directory a daemon shares with group ``gid`` (``--socket-group``): made 0700,
+    then given to the group with mode 0750 (group: enter and list; nobody else
+    anything) when absent. One that existed before is never changed (it may be a home
+    directory, or another program's): it must already be a directory (not a symbolic
+    link) of this user and of group ``gid``, mode 0750 or tighter with the group able to
+    enter. Checked and changed through one descriptor opened without following a link,
+    so nothing can be swapped in between."""
+    made = False
     if create:
         with contextlib.suppress(FileExistsError):
             os.mkdir(d, 0o700)
+            made = True
     try:
         fd = os.open(d, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC)
     except OSError as exc:
@@ -93,12 +97,23 @@ def _check_group_dir(d: Path, gid: int, create: bool) -> None:
                 f"{os.getuid()}, so another user could control the socket; remove it or "
                 "choose another socket with --socket"
             )
+        mode = stat.S_IMODE(st.st_mode)
+        if not made:
+            if st.st_gid != gid or mode & 0o027 or not mode & 0o010:
+                raise UnsafeSocketDirError(
+                    f"socket directory {d} existed before (group {st.st_gid}, mode "
+                    f"{mode:04o}): --socket-group shares only a directory hapticd makes, or "
+                    f"one already of group {gid} with mode 0750, and never changes another; "
+                    "give --socket a path in a directory that does not exist yet (hapticd "
+                    f"makes it 0750 for the group), or, if sharing {d} is what you mean, "
+                    f"chgrp {gid} {d} && chmod 750 {d}"
+                )
+            return
         try:
-            if st.st_gid != gid:
-                os.fchown(fd, -1, gid)
-            if stat.S_IMODE(st.st_mode) != 0o750:
-                os.fchmod(fd, 0o750)
+            os.fchown(fd, -1, gid)
+            os.fchmod(fd, 0o750)
         except PermissionError:
+            os.rmdir(d)  # made here: leave nothing behind
             raise PermissionError(
                 f"cannot give the socket directory {d} to group {gid}: this user is not in "
                 "that group (id -Gn lists yours)"
@@ -135,6 +150,27 @@ def _check_service_dir(d: Path) -> None:
         )
 
 
+def ownership_problem(
+    path: str | Path, uid: int, mode_bits: int, *, regular: bool = False
+) -> str | None:
+    """Why ``path`` could be in another user's hands, as the words after "it" ("is a symbolic
+    link (to X), not a directory", "is not a directory", "belongs to uid N, not to uid M",
+    "has mode 0777"), or None when it is a directory (``regular``: a regular file), not a
+    symbolic link, of uid ``uid``, with none of ``mode_bits`` set. Read with lstat, so
+    nothing is followed or opened (a FIFO cannot block); FileNotFoundError when absent."""
+    st = os.lstat(path)
+    kind = "a regular file" if regular else "a directory"
+    if stat.S_ISLNK(st.st_mode):
+        return f"is a symbolic link (to {os.readlink(path)}), not {kind}"
+    if not (stat.S_ISREG if regular else stat.S_ISDIR)(st.st_mode):
+        return f"is not {kind}"
+    if st.st_uid != uid:
+        return f"belongs to uid {st.st_uid}, not to uid {uid}"
+    if st.st_mode & mode_bits:
+        return f"has mode {stat.S_IMODE(st.st_mode):04o}"
+    return None
+
+
 def check_socket_dir(
     path: str | Path, *, create: bool = False, uid: int | None = None, group: int | None = None
 ) -> None:
@@ -169,28 +205,19 @@ def check_socket_dir(
         with contextlib.suppress(FileExistsError):
             os.mkdir(d, 0o700)  # not its parents: $XDG_RUNTIME_DIR and /tmp must exist
     try:
-        st = os.lstat(d)
+        # Group r-x (0750) is a daemon's --socket-group share: the group can enter, not write.
+        problem = ownership_problem(d, uid, 0o027)
     except FileNotFoundError:
         return  # the client's connect() then says no daemon is there
+    if problem is None:
+        return
     fix = (
         "remove it (after a look at what it is) and start hapticd again, or choose another "
         "socket with --socket or $HAPTICD_SOCKET"
     )
-    if stat.S_ISLNK(st.st_mode):
-        problem = f"is a symbolic link (to {os.readlink(d)}), not a directory"
-    elif not stat.S_ISDIR(st.st_mode):
-        problem = "is not a directory"
-    elif st.st_uid != uid:
-        problem = f"belongs to uid {st.st_uid}, not to uid {uid}"
-    elif st.st_mode & 0o027:
-        # Group r-x (0750) is a daemon's --socket-group share: the group can enter, not write.
-        problem = (
-            f"has mode {stat.S_IMODE(st.st_mode):04o}; it must be 0700 (only you) or 0750 "
-            "(a group may enter, not write)"
-        )
+    if problem.startswith("has mode"):
+        problem += "; it must be 0700 (only you) or 0750 (a group may enter, not write)"
         fix = f"chmod 700 {d}, or remove it"
-    else:
-        return
     raise UnsafeSocketDirError(
         f"unsafe socket directory {d}: it {problem}, so another user could control the "
         f"socket; {fix}"
@@ -318,7 +345,10 @@ class ControlClient:
         """Send ``cmd`` and return its reply. A reply to an earlier request whose wait was
         interrupted (Ctrl-C, a timeout) is skipped: it is not this one's."""
         self._next += 1
-        self.sock.sendall(proto.encode({"id": self._next, "cmd": cmd, **args}))
+        try:
+            self.sock.sendall(proto.encode({"id": self._next, "cmd": cmd, **args}))
+        except (BrokenPipeError, ConnectionResetError):
+            raise self._closed_by_daemon() from None
         while True:
             msg = self._line()
             if "telemetry" in msg:
@@ -331,6 +361,25 @@ class ControlClient:
             if isinstance(rid, int) and not isinstance(rid, bool) and rid < self._next:
                 continue
             return msg
+
+    def _closed_by_daemon(self) -> Exception:
+        """Why the daemon closed this connection, as an exception to raise: its last line
+        (``idle``: closed for sending no request in time) as a ProtocolError, else a
+        ConnectionError saying the daemon closed it."""
+        with contextlib.suppress(OSError, ValueError):
+            while True:
+                msg = self._line(0.05)
+                if not isinstance(msg, dict):
+                    continue
+                err = msg.get("error")
+                if msg.get("ok") is False and isinstance(err, dict) and msg.get("id") is None:
+                    return proto.ProtocolError(
+                        str(err.get("code", "error")), str(err.get("message", "closed"))
+                    )
+        return ConnectionError(
+            f"{self.path}: the daemon closed the connection (it closes one that sends no "
+            "request soon after connecting, or the run ended); connect again"
+        )
 
     def call(self, cmd: str, **args: Any) -> Any:
         reply = self.request(cmd, **args)
@@ -425,17 +474,40 @@ class ControlClient:
         """Clear the daemon's subject prompt (a ``prompt`` event with ``prompt`` null)."""
         return self.call("prompt", prompt=None)
 
+    def screen(self, screen: Mapping[str, Any] | None) -> dict[str, Any]:
+        """Set what the subject's screen shows besides the prompt (docs/control.md, "The
+        subject's screen": ``state``, ``text``, ``practice``, ``progress``, ``seconds``,
+        ``correct``, ``scene``), or clear it (None). Subscribers get a ``screen`` event."""
+        return self.call("screen", screen=None if screen is None else dict(screen))
+
     def respond(self, prompt_id: int, choice: str) -> dict[str, Any]:
         """Answer the current prompt ``prompt_id`` with ``choice``; ProtocolError
         ``no_prompt`` when another or none is current, ``bad_value`` for a choice it does
         not offer."""
         return self.call("respond", prompt=prompt_id, choice=choice)
 
+    def mark(self, text: str) -> dict[str, Any]:
+        """Have the daemon stamp ``text`` (1 to 200 printable characters) with its current
+        tick and publish it: a ``mark`` event, on the LSL marker stream too (``--lsl``);
+        the result's ``tick`` is the tick it was stamped with."""
+        return self.call("mark", text=text)
+
     def move(self, finger: str | int, position_m: Sequence[float]) -> dict[str, Any]:
         """Send finger ``finger``'s (name or index) virtual device towards ``position_m``
         (3 numbers, m, world frame); the result's ``target_m`` is where it goes (inside its
         workspace). ProtocolError ``rejected`` for a device that is not virtual."""
         return self.call("move", finger=finger, position_m=[float(c) for c in position_m])
+
+    def lease(self, subject: str) -> dict[str, Any]:
+        """Hold the daemon for an experiment on ``subject`` (this process's pid named):
+        other connections' set, reload, record_start, record_stop and prompt are refused
+        until ``release`` or this connection closes. ProtocolError ``leased`` (naming the
+        holder's subject and process) when another connection holds it."""
+        return self.call("lease", subject=subject, pid=os.getpid())
+
+    def release(self) -> dict[str, Any]:
+        """Give the daemon's lease back (``{"released": false}`` if this did not hold it)."""
+        return self.call("release")
 
     def stop(self) -> dict[str, Any]:
         return self.call("shutdown")

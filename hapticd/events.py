@@ -25,6 +25,7 @@ OPTIONAL_FIELDS: dict[str, str] = {
     "count": "how many events were lost",
     "prompt": "the subject prompt's id (`prompt` command; null: the prompt was cleared)",
     "choice": "the answer chosen, one of the prompt's `choices`",
+    "text": "a `mark`'s text",
 }
 
 
@@ -96,6 +97,19 @@ EVENTS: tuple[EventKind, ...] = (
         ("prompt", "choice"),
         "a `respond` answered the current prompt: `prompt` its id, `choice` the answer; "
         "the prompt is cleared",
+        source="server",
+    ),
+    EventKind(
+        "screen",
+        (),
+        "the subject's screen changed (`screen` command); `status` shows it",
+        source="server",
+    ),
+    EventKind(
+        "mark",
+        ("text",),
+        "a client's `mark` (the experiment runner's trial and interval starts and ends, "
+        "the condition set), stamped with the tick it was served on",
         source="server",
     ),
 )

@@ -19,6 +19,10 @@ import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
+# How deep a value given as text (the command line, the view's form) may nest: one level
+# less than a control request (hapticd.protocol.MAX_DEPTH), which holds it.
+VALUE_DEPTH = 7
+
 # The allocators (docs/allocation.md): pinv, if, ef and adaptive are singularity-robust,
 # the *_exact ones the seed's formulas. Recordings store an index into this order (their
 # meta "allocators" lists it), so a new one goes at the end.
@@ -31,6 +35,10 @@ ALLOCATORS: dict[str, str] = {
     "if_exact": "the seed's IF formula with numpy's pseudoinverse (for comparison)",
     "ef_exact": "the seed's EF formula with numpy's pseudoinverse (for comparison)",
 }
+
+# The lightest object (kg): at 1 ms ticks and the largest stiffness (1e5 N/m) on two
+# fingers, 1 g needs about 28 of a free step's 64 substeps; far lighter masses overflow it.
+MIN_MASS_KG = 1e-3
 
 Kind = Literal["number", "friction", "choice", "directions"]
 Owner = Literal["renderer", "safety"]
@@ -122,7 +130,14 @@ class Param:
             if self.kind == "friction":
                 return [float(v) for v in text.split(",")]
             if self.kind == "directions":
+                if flow_nesting_beyond(text, VALUE_DEPTH) is not None:
+                    raise RecursionError
                 return json.loads(text)
+        except RecursionError:  # checked before parsing; the parser's own limit a backstop
+            raise ParamError(
+                "bad_value",
+                f"{self.name} must be {self.syntax}: nested at most {VALUE_DEPTH} levels deep",
+            ) from None
         except ValueError as exc:  # json.JSONDecodeError is a ValueError
             detail = f" ({exc})" if self.kind == "directions" else ""
             raise ParamError(
@@ -180,6 +195,49 @@ class Param:
         return out
 
 
+def flow_nesting_beyond(text: str, limit: int) -> int | None:
+    """The 1-based line where flow collections (``[``, ``{``) in ``text`` first nest more
+    than ``limit`` deep, or None; quoted scalars and comments are skipped. A YAML parser may
+    refuse such a document on its own while reading ahead (libyaml does, in its own words),
+    before the loader's depth check sees it: this names the cause the loader would have.
+    JSON is such flow text too (its strings are double-quoted YAML scalars)."""
+    if text.count("[") + text.count("{") <= limit:
+        return None  # cheap: too few brackets to nest that deep
+    depth = 0
+    line = 1
+    quote = ""
+    prev = "\n"
+    i, n = 0, len(text)
+    while i < n:
+        c = text[i]
+        if c == "\n":
+            line += 1
+        if quote:
+            if c == "\\" and quote == '"':
+                i += 1  # the escaped character
+                line += text.startswith("\n", i)
+            elif c == quote:
+                if quote == "'" and text.startswith("''", i):
+                    i += 1
+                else:
+                    quote = ""
+        elif c in "'\"" and prev in " \t\n[{,:":
+            quote = c
+        elif c == "#" and prev in " \t\n":
+            end = text.find("\n", i)
+            i = n if end < 0 else end
+            continue
+        elif c in "[{":
+            depth += 1
+            if depth > limit:
+                return line
+        elif c in "]}":
+            depth = max(depth - 1, 0)
+        prev = c
+        i += 1
+    return None
+
+
 def _number(value: Any, name: str) -> float:
     # JSON true/false decode to bool, a subclass of int: not a number here.
     if isinstance(value, bool) or not isinstance(value, int | float):
@@ -234,12 +292,13 @@ PARAMS: dict[str, Param] = {
             "mass_kg",
             "number",
             "kg",
-            "the object's mass (moves a free object)",
+            "the object's mass (moves a free object); at least 1 g, and no lighter than "
+            "the free object's step integrates with its stiffness and damping (a live "
+            "change says how light)",
             "renderer",
             "scene.object.mass_kg",
             alias="mass",
-            lo=0.0,
-            lo_open=True,
+            lo=MIN_MASS_KG,
             hi=10.0,
         ),
         Param(

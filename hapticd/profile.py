@@ -42,6 +42,8 @@ from pydantic import (
 from hapticd import params
 from hapticd.loop.mount import mount_rotation
 from hapticd.loop.pacing import SPIN_MARGIN_S
+from hapticd.loop.realtime import cpu_problem
+from hapticd.params import flow_nesting_beyond as _flow_nesting_beyond
 
 PROFILE_VERSION = 1
 DOCS = "docs/profiles.md"
@@ -390,13 +392,24 @@ class RealtimeConfig(_Strict):
     enabled: Bool = Field(default=True, description="try SCHED_FIFO, mlockall and timer slack")
     priority: Int = Field(default=80, ge=1, le=99, description="SCHED_FIFO priority")
     cpu: Int | None = Field(
-        default=None, ge=0, le=4095, description="pin the servo thread to this CPU"
+        default=None,
+        ge=0,
+        le=4095,
+        description="pin the servo thread to this CPU, one this process may run on "
+        "(its affinity: os.sched_getaffinity)",
     )
     lock_memory: Bool = Field(default=True, description="mlockall: no page faults in the loop")
     timer_slack_ns: Int = Field(default=1, ge=1, le=50_000_000, description="timer slack, ns")
     required: Bool = Field(
         default=False, description="refuse to run when a setting cannot be applied"
     )
+
+    @field_validator("cpu")
+    @classmethod
+    def _usable_cpu(cls, v: int | None) -> int | None:
+        if v is not None and (why := cpu_problem(v)) is not None:
+            raise ValueError(why)
+        return v
 
 
 class LoopConfig(_Strict):
@@ -502,6 +515,35 @@ class RecordingConfig(_Strict):
         description="where record_start over the control socket may write (relative to the "
         "profile's folder); none: the service's state directory",
     )
+    rate_hz: Float | None = Field(
+        default=None,
+        gt=0,
+        description="record this many ticks per second, Hz: every (loop.rate_hz / rate_hz)-th "
+        "tick, a whole number (docs/recording.md says what is lost); none: every tick",
+    )
+
+    def record_every(self, loop_rate_hz: float) -> int:
+        """Every how many ticks one is recorded (1: each)."""
+        if self.rate_hz is None:
+            return 1
+        return max(1, round(loop_rate_hz / self.rate_hz))
+
+
+class LslConfig(_Strict):
+    """Lab Streaming Layer outlets (docs/lsl.md); read at start (a reload keeps them)."""
+
+    enabled: Bool = Field(
+        default=False,
+        description="publish the loop's ticks and events as LSL streams, as hapticd run --lsl "
+        "does (needs pylsl: pip install 'hapticd[lsl]')",
+    )
+    decimation: Int = Field(
+        default=1,
+        ge=1,
+        le=1000,
+        description="publish every Nth tick: the numeric stream's rate is loop.rate_hz / N, "
+        "Hz (markers keep their own tick's time)",
+    )
 
 
 class SafetyConfig(_Strict):
@@ -524,7 +566,17 @@ class SafetyConfig(_Strict):
         default=None, gt=0, le=2, description="fingers beyond this sphere latch a fault, m"
     )
     watchdog_s: Float | None = Field(
-        default=0.1, gt=0, le=10, description="longest wall time between ticks, s; none: off"
+        default=0.1,
+        gt=0,
+        le=10,
+        description="longest wall time between ticks, s; none: off (refused with a hardware "
+        "backend unless allow_no_watchdog)",
+    )
+    allow_no_watchdog: Bool = Field(
+        default=False,
+        description="run a hardware backend with watchdog_s none all the same: a stalled loop "
+        "then leaves its last force on the device until the device's own watchdog, if any, "
+        "acts; warned about at every start (bench work only, never a subject)",
     )
     max_device_speed_m_per_s: Float = Field(
         default=5.0,
@@ -552,6 +604,7 @@ class Profile(_Strict):
     scene: SceneConfig
     safety: SafetyConfig
     recording: RecordingConfig = RecordingConfig()
+    lsl: LslConfig = LslConfig()
 
     source: Path | None = Field(default=None, exclude=True, description="file it was loaded from")
 
@@ -576,6 +629,14 @@ class Profile(_Strict):
     def _consistent(self) -> Profile:
         if self.rendering.actuation_frame == "grasp" and len(self.fingers) < 2:
             raise ValueError("actuation_frame 'grasp' needs at least two fingers")
+        rec, loop = self.recording.rate_hz, self.loop.rate_hz
+        if rec is not None and (
+            rec > loop or abs(loop / rec - round(loop / rec)) > 1e-9 * loop / rec
+        ):
+            raise ValueError(
+                f"recording.rate_hz {rec:g} Hz must divide loop.rate_hz {loop:g} Hz a whole "
+                f"number of times (e.g. {loop / 2:g}, {loop / 5:g} or {loop / 10:g} Hz)"
+            )
         return self
 
     @property
@@ -687,46 +748,6 @@ class _ProfileLoader(
         except (ValueError, OverflowError, TypeError) as exc:
             # e.g. an integer of more digits than Python converts.
             raise _Refused(node.start_mark.line + 1, f"cannot read this value: {exc}") from None
-
-
-def _flow_nesting_beyond(text: str, limit: int) -> int | None:
-    """The 1-based line where flow collections (``[``, ``{``) in ``text`` first nest more
-    than ``limit`` deep, or None; quoted scalars and comments are skipped. A YAML parser may
-    refuse such a document on its own while reading ahead (libyaml does, in its own words),
-    before the loader's depth check sees it: this names the cause the loader would have."""
-    depth = 0
-    line = 1
-    quote = ""
-    prev = "\n"
-    i, n = 0, len(text)
-    while i < n:
-        c = text[i]
-        if c == "\n":
-            line += 1
-        if quote:
-            if c == "\\" and quote == '"':
-                i += 1  # the escaped character
-                line += text.startswith("\n", i)
-            elif c == quote:
-                if quote == "'" and text.startswith("''", i):
-                    i += 1
-                else:
-                    quote = ""
-        elif c in "'\"" and prev in " \t\n[{,:":
-            quote = c
-        elif c == "#" and prev in " \t\n":
-            end = text.find("\n", i)
-            i = n if end < 0 else end
-            continue
-        elif c in "[{":
-            depth += 1
-            if depth > limit:
-                return line
-        elif c in "]}":
-            depth = max(depth - 1, 0)
-        prev = c
-        i += 1
-    return None
 
 
 def _line_map(node: yaml.Node) -> dict[Path_, int]:
@@ -965,7 +986,10 @@ def _format_errors(
             missing = False
         where, path = _format_loc(loc, data, root)
         got = err.get("input")
-        shown = "" if missing or isinstance(got, dict | list) else f" (got {_shown(got)})"
+        # An unknown key's value is never shown: the key is wrong, whatever it holds (and a
+        # file that is no profile at all must not be echoed back: reload over the socket).
+        quiet = missing or err["type"] == "extra_forbidden" or isinstance(got, dict | list)
+        shown = "" if quiet else f" (got {_shown(got)})"
         text = f"{_explain(err, root, docs)}{shown}{_line_note(path, lines, missing)}"
         msgs = by_key.setdefault(where, [])
         if text not in msgs:

@@ -42,11 +42,21 @@ ERRORS: dict[str, tuple[str, bool]] = {
     "timeout": ("the loop is not running", False),
     "stopped": ("the loop has ended (the message says why: its trajectory ended, ...)", False),
     "busy": (
-        "sent instead of the greeting when every place is in use (`clients`: how many)",
+        "sent instead of the greeting when every place is in use (`clients`: how many), or "
+        "to a subscription beyond the subscribers' places",
         False,
     ),
     "idle": ("sent, unasked, to a connection closed for sending no request in time", False),
+    "denied": (
+        "reload of a profile outside the allowed directories by a client not the daemon's user",
+        False,
+    ),
     "no_prompt": ("`respond` to a prompt that is not the current one", False),
+    "leased": (
+        "another connection holds the daemon's lease (an experiment runs): the message "
+        "names its subject and process",
+        False,
+    ),
     "internal": ("a bug in the daemon", False),
     "version": ("the daemon speaks another protocol version (the client's check)", False),
 }
@@ -68,7 +78,7 @@ class ProtocolError(ValueError):
 
 def _number(value: Any, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ProtocolError("bad_value", f"{name} must be a finite number, got {_short(value)}")
+        raise ProtocolError("bad_value", f"{name} must be a finite number, got {short(value)}")
     return float(value)
 
 
@@ -87,15 +97,56 @@ COMMANDS = (
     "events_unsubscribe",
     "prompt",
     "respond",
+    "screen",
+    "mark",
     "move",
+    "lease",
+    "release",
     "shutdown",
     "stop",
 )
 TELEMETRY_RATE_HZ = (0.1, 1000.0)
+# While a connection holds the lease (an experiment runs: docs/control.md, "The lease"),
+# these change the trial under it and are refused to every other connection. Taking
+# forces away (disable, stop), enable, reading, subscribing, respond and move never are.
+LEASED_COMMANDS = frozenset(
+    {"set", "reload", "record_start", "record_stop", "prompt", "screen", "mark"}
+)
+LEASE_SUBJECT = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 # The subject prompt (docs/control.md, "The subject prompt").
 PROMPT_QUESTION_CHARS = 200
 PROMPT_CHOICES = (2, 4)
 CHOICE_PATTERN = re.compile(r"[a-z0-9_-]{1,16}")
+# The subject's screen (docs/control.md, "The subject's screen"): what the subject's page
+# shows besides the prompt, text only (nothing of the condition: the runner sends words).
+SCREEN_STATES = ("instructions", "wait", "touch", "release", "answer", "feedback", "break", "end")
+SCREEN_TEXT_CHARS = 2000
+SCREEN_MAX_S = 3600.0  # a countdown's seconds
+SCREEN_MAX_TRIALS = 1_000_000  # progress: trials done and in all
+# Each key of a screen and whether it must be there.
+SCREEN_KEYS = {
+    "state": True,
+    "text": False,
+    "practice": False,
+    "progress": False,
+    "seconds": False,
+    "correct": False,
+    "scene": False,
+}
+
+
+def screen_text_ok(text: object) -> bool:
+    """Text a screen may show: a string of at most SCREEN_TEXT_CHARS, printable but for
+    line breaks (instructions have paragraphs)."""
+    return (
+        isinstance(text, str)
+        and len(text) <= SCREEN_TEXT_CHARS
+        and text.replace("\n", "").isprintable()
+    )
+
+
+# A `mark`'s text: a marker for the lab's other recordings (docs/lsl.md).
+MARK_TEXT_CHARS = 200
 
 
 def greeting(version: str) -> bytes:
@@ -206,7 +257,7 @@ def check(req: dict[str, Any]) -> dict[str, Any]:
             raise ProtocolError(
                 "bad_value",
                 "record_start needs a 'path': a file name in the daemon's recording "
-                f"directory (or an absolute path inside it), got {_short(path)}",
+                f"directory (or an absolute path inside it), got {short(path)}",
             )
         if not isinstance(req.get("overwrite", False), bool):
             raise ProtocolError("bad_value", "'overwrite' must be true or false")
@@ -219,7 +270,7 @@ def check(req: dict[str, Any]) -> dict[str, Any]:
             and len(path.encode("utf-8", "replace")) <= MAX_PATH_BYTES
         ):
             raise ProtocolError(
-                "bad_value", f"reload's 'profile' must be an absolute path, got {_short(path)}"
+                "bad_value", f"reload's 'profile' must be an absolute path, got {short(path)}"
             )
     elif cmd == "subscribe":
         rate = _number(req.get("rate_hz", 30.0), "rate_hz")
@@ -238,12 +289,34 @@ def check(req: dict[str, Any]) -> dict[str, Any]:
             raise ProtocolError(
                 "bad_value",
                 f"'kinds' must be a list of event names from {list(events.NAMES)}, "
-                f"got {_short(kinds)}",
+                f"got {short(kinds)}",
+            )
+    elif cmd == "lease":
+        subject = req.get("subject")
+        if not (isinstance(subject, str) and LEASE_SUBJECT.fullmatch(subject)):
+            raise ProtocolError(
+                "bad_request" if subject is None else "bad_value",
+                f"lease needs a 'subject': 1 to 64 of A-Z a-z 0-9 _ . -, got {short(subject)}",
+            )
+        pid = req.get("pid")
+        if pid is not None and (isinstance(pid, bool) or not isinstance(pid, int) or pid < 0):
+            raise ProtocolError(
+                "bad_value", f"lease's 'pid' must be an integer >= 0, got {short(pid)}"
             )
     elif cmd == "prompt":
         _check_prompt(req)
+    elif cmd == "screen":
+        _check_screen(req)
     elif cmd == "move":
         _check_move(req)
+    elif cmd == "mark":
+        text = req.get("text")
+        if not (isinstance(text, str) and 1 <= len(text) <= MARK_TEXT_CHARS and text.isprintable()):
+            raise ProtocolError(
+                "bad_value",
+                f"mark needs a 'text': printable text (no control characters) of 1 to "
+                f"{MARK_TEXT_CHARS} characters, got {short(text)}",
+            )
     elif cmd == "respond":
         _prompt_id(req, "respond")
         choice = req.get("choice")
@@ -251,7 +324,7 @@ def check(req: dict[str, Any]) -> dict[str, Any]:
             raise ProtocolError(
                 "bad_value",
                 f"respond needs a 'choice': one of the prompt's labels ([a-z0-9_-], 1 to 16 "
-                f"characters), got {_short(choice)}",
+                f"characters), got {short(choice)}",
             )
     return req
 
@@ -268,7 +341,7 @@ def _check_move(req: dict[str, Any]) -> None:
         or (isinstance(finger, int) and not isinstance(finger, bool) and 0 <= finger < 256)
     ):
         raise ProtocolError(
-            "bad_value", f"move needs a 'finger': its name or index, got {_short(finger)}"
+            "bad_value", f"move needs a 'finger': its name or index, got {short(finger)}"
         )
     pos = req.get("position_m")
     if not (
@@ -285,7 +358,7 @@ def _check_move(req: dict[str, Any]) -> None:
         raise ProtocolError(
             "bad_value",
             f"move needs 'position_m': 3 finite numbers (m, world frame, within "
-            f"{MOVE_MAX_M:g} m), got {_short(pos)}",
+            f"{MOVE_MAX_M:g} m), got {short(pos)}",
         )
 
 
@@ -300,7 +373,7 @@ def _prompt_id(req: dict[str, Any], cmd: str) -> int:
     if isinstance(pid, bool) or not isinstance(pid, int) or pid < 0:
         raise ProtocolError(
             "bad_value",
-            f"{cmd}'s 'prompt' must be the prompt's id, an integer >= 0, got {_short(pid)}",
+            f"{cmd}'s 'prompt' must be the prompt's id, an integer >= 0, got {short(pid)}",
         )
     return pid
 
@@ -320,7 +393,7 @@ def _check_prompt(req: dict[str, Any]) -> None:
         raise ProtocolError(
             "bad_value",
             f"prompt needs a 'question': printable text of 1 to {PROMPT_QUESTION_CHARS} "
-            f"characters, got {_short(question)}",
+            f"characters, got {short(question)}",
         )
     choices = req.get("choices")
     lo, hi = PROMPT_CHOICES
@@ -333,11 +406,65 @@ def _check_prompt(req: dict[str, Any]) -> None:
         raise ProtocolError(
             "bad_value",
             f"prompt needs 'choices': {lo} to {hi} distinct labels of 1 to 16 characters "
-            f"from a-z, 0-9, _ and -, got {_short(choices)}",
+            f"from a-z, 0-9, _ and -, got {short(choices)}",
         )
 
 
-def _short(value: Any) -> str:
+def _check_screen(req: dict[str, Any]) -> None:
+    """A screen request: ``screen`` null clears; else an object of SCREEN_KEYS: ``state``
+    one of SCREEN_STATES, ``text`` (screen_text_ok), ``practice``, ``correct`` and
+    ``scene`` booleans (``correct`` may be null), ``progress`` [done, total] (0 <= done
+    <= total <= SCREEN_MAX_TRIALS) or null, ``seconds`` (a countdown, 0 to SCREEN_MAX_S)
+    or null."""
+    if "screen" not in req:
+        raise ProtocolError("bad_request", "screen needs a 'screen': an object, or null to clear")
+    sc = req["screen"]
+    if sc is None:
+        return
+    if not isinstance(sc, dict):
+        raise ProtocolError("bad_value", f"'screen' must be an object or null, got {short(sc)}")
+    unknown = [k for k in sc if k not in SCREEN_KEYS]
+    if unknown:
+        raise ProtocolError(
+            "bad_value",
+            f"screen: unknown key {short(unknown[0])}; the keys: {', '.join(SCREEN_KEYS)}",
+        )
+    if sc.get("state") not in SCREEN_STATES:
+        raise ProtocolError(
+            "bad_value",
+            f"screen needs a 'state', one of {', '.join(SCREEN_STATES)}, got "
+            f"{short(sc.get('state'))}",
+        )
+    if "text" in sc and not screen_text_ok(sc["text"]):
+        raise ProtocolError(
+            "bad_value",
+            f"screen's 'text' must be printable text (line breaks allowed) of at most "
+            f"{SCREEN_TEXT_CHARS} characters, got {short(sc['text'])}",
+        )
+    for key in ("practice", "scene", "correct"):
+        v = sc.get(key, False)
+        if not (isinstance(v, bool) or (key == "correct" and v is None)):
+            raise ProtocolError("bad_value", f"screen's '{key}' must be true or false")
+    prog = sc.get("progress")
+    if prog is not None and not (
+        isinstance(prog, list)
+        and len(prog) == 2
+        and all(isinstance(n, int) and not isinstance(n, bool) for n in prog)
+        and 0 <= prog[0] <= prog[1] <= SCREEN_MAX_TRIALS
+    ):
+        raise ProtocolError(
+            "bad_value",
+            f"screen's 'progress' must be [done, total], integers 0 <= done <= total <= "
+            f"{SCREEN_MAX_TRIALS}, or null, got {short(prog)}",
+        )
+    secs = sc.get("seconds")
+    if secs is not None and not (0 <= _number(secs, "screen's 'seconds'") <= SCREEN_MAX_S):
+        raise ProtocolError(
+            "out_of_range", f"screen's 'seconds' must be in [0, {SCREEN_MAX_S:g}], got {secs}"
+        )
+
+
+def short(value: Any) -> str:
     text = repr(value)
     return text if len(text) <= 80 else text[:77] + "..."
 

@@ -13,7 +13,7 @@ Variants per method (pinv, if, ef), per grasp:
 - allocate loop  : a Python loop over allocate() (robust, closed form where it applies)
 - allocate_many  : one call on the loop's grasps, uncompiled (the default: the same
                    per-grasp code on Python floats)
-- compiled       : allocate_many with kernel= (hapticd.physics.kernels.allocate_grasps, compiled
+- compiled       : allocate_many with kernel= (hapticd.allocation.kernels.allocate_grasps, compiled
                    by hapticd.physics.jit): one call on a batch of 1e3, and of 1e4, grasps
 
 Every variant is timed the same way: the process's CPU time of a whole pass

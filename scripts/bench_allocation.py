@@ -47,10 +47,10 @@ from hapticd.allocation import (
     two_contact_pinv,
     two_contact_structure,
 )
+from hapticd.allocation.actuation import Actuation
 from hapticd.allocation.cases import SWEEPS, sweep
+from hapticd.allocation.grasp import grasp_matrix
 from hapticd.daemon.session import build_session
-from hapticd.physics.actuation import Actuation
-from hapticd.physics.grasp import grasp_matrix
 from hapticd.profile import load_profile
 
 ROOT = Path(__file__).resolve().parent.parent

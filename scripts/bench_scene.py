@@ -34,9 +34,9 @@ import numpy as np
 import yaml
 
 from hapticd import recording
+from hapticd.allocation.actuation import Actuation
 from hapticd.daemon.build import build_scene, builtin_trajectory
 from hapticd.physics import jit
-from hapticd.physics.actuation import Actuation
 from hapticd.physics.render import Renderer
 from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, Surface
 from hapticd.profile import parse_profile

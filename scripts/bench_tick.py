@@ -390,7 +390,7 @@ FINGERS_CHILD = r"""
 import json, sys, time
 import numpy as np
 from hapticd.physics import jit
-from hapticd.physics.actuation import Actuation
+from hapticd.allocation.actuation import Actuation
 from hapticd.physics.render import Renderer
 from hapticd.physics.safety import SafetyChain
 from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, Surface

@@ -135,9 +135,10 @@ def run(cmd: list[str], **kw) -> None:
 
 def test_locks() -> int:
     """The README's test command on the new lock, in a fresh venv in a clean copy of the tree
-    (tracked files plus the new locks); the suite's exit code."""
+    (tracked files plus the new locks) in a folder named ``hapticd``, as a user's clone is
+    named; the suite's exit code."""
     with tempfile.TemporaryDirectory(prefix="hapticd-lock-") as tmp:
-        tree = Path(tmp) / "tree"
+        tree = Path(tmp) / "hapticd"
         files = subprocess.run(
             ["git", "ls-files", "-z"], cwd=ROOT, check=True, capture_output=True
         ).stdout.split(b"\0")

@@ -41,6 +41,23 @@ IN_PROCESS = [f"safety.watchdog_s={IN_PROCESS_WATCHDOG_S}"]
 pytest_plugins = ["pytester"]
 
 
+def our_code_filters() -> list:
+    """tracemalloc filters that keep only the blocks hapticd's and its drivers' code made:
+    the two packages' own folders, wherever the clone lives (a clone named ``hapticd``
+    puts the tests under a ``hapticd/`` folder too, which a pattern such as
+    ``*/hapticd/*`` would match)."""
+    import tracemalloc
+
+    import hapticd_drivers
+
+    import hapticd
+
+    return [
+        tracemalloc.Filter(True, os.path.join(os.path.dirname(os.path.abspath(m.__file__)), "*"))
+        for m in (hapticd, hapticd_drivers)
+    ]
+
+
 def capture_writes(session) -> list[np.ndarray]:
     """The forces (3,) N each device of ``session`` is sent, in the order sent: a list the
     run fills (the devices' ``write_force`` wrapped, still writing)."""
@@ -131,7 +148,10 @@ def _compile_kernels_once() -> None:
     def size(fn) -> int:
         return len(inspect.getsource(getattr(kernels, fn) if isinstance(fn, str) else fn))
 
-    sizes = {n: size(n) for n in jit.SIGNATURES}
+    def entry(name: str) -> int:
+        return size(jit._kernel(name))
+
+    sizes = {n: entry(n) for n in jit.SIGNATURES}
     # The one call compiles every stage's kernel and helper into itself: as much work as
     # all of them (every name in KERNEL_HELPERS, not only the entry points among them), so
     # it gets a compiler of its own and the other entry points share the second.
@@ -410,6 +430,8 @@ def _build_fake_sdk(out_dir: Path, drd: bool) -> tuple[str, ctypes.CDLL]:
     dp = ctypes.POINTER(ctypes.c_double)
     lib.fake_set_path.argtypes = [ctypes.c_int, ctypes.c_int, dp, dp]
     lib.fake_force_log.argtypes = [ctypes.c_int, dp, ctypes.c_int]
+    lib.fake_set_saturation.argtypes = [ctypes.c_int, ctypes.c_double]
+    lib.fake_get_torque_and_gripper.argtypes = [ctypes.c_int, dp]
     for name_ in ("fake_max_force", "fake_effector_mass"):
         getattr(lib, name_).restype = ctypes.c_double
     lib.fake_log.restype = ctypes.c_char_p
@@ -481,3 +503,24 @@ def idle_server(tmp_path):
         yield srv
     finally:
         srv.close()
+
+
+def fill_every_place(server):
+    """Clients holding every place of the control ``server``: its subscribers' places with
+    event subscriptions, the rest with clients that just sent a request (none idle)."""
+    from hapticd.control import ControlClient
+
+    clients = []
+    try:
+        for i in range(server.max_clients):
+            c = ControlClient(server.path, timeout_s=5.0)
+            clients.append(c)
+            if i < server.max_subscribers:
+                c.events_subscribe()
+            else:
+                c.status()
+    except BaseException:
+        for c in clients:
+            c.close()
+        raise
+    return clients

@@ -40,6 +40,7 @@ class FakeDaemon:
         self.path = path
         self.period_s = period_s
         self.prompt: dict[str, Any] | None = None
+        self.screen: dict[str, Any] | None = None  # the subject's screen, as status shows it
         self.requests: list[dict[str, Any]] = []
         self.events: list[dict[str, Any]] = []  # the events it sent (response)
         self.tick = 0
@@ -113,6 +114,7 @@ class FakeDaemon:
                 "scene": SCENE,
                 "allocator": "if",
                 "prompt": self.prompt,
+                "screen": self.screen,
             }
 
     def _frame(self) -> dict[str, Any]:

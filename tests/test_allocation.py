@@ -5,7 +5,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from hapticd.allocation import METHODS, AllocationError, allocate
-from hapticd.physics.grasp import grasp_matrix, internal_projector
+from hapticd.allocation.grasp import grasp_matrix, internal_projector
 from tests.strategies import point_pairs, unit_vectors
 
 A, MASS, g = 0.05, 0.09, 9.81
@@ -130,8 +130,8 @@ def test_contact_allocator_refuses_non_finite_geometry(bad, where, method):
     it does not take) refuses a NaN or inf anywhere in a contact's point, force or
     direction, and takes large finite values."""
     from hapticd.allocation import DEFAULT_ROBUSTNESS, AdaptiveState
+    from hapticd.allocation.actuation import Actuation
     from hapticd.allocation.contacts import ContactAllocator
-    from hapticd.physics.actuation import Actuation
 
     def allocator(direction):
         act = Actuation([[direction], [[-1.0, 0.0, 0.0]]], "world")
@@ -160,8 +160,8 @@ def test_adaptive_alpha_survives_a_refused_tick():
     """A tick with a NaN force (refused) or forces whose task ratio overflows leaves the
     adaptive allocator's alpha as it was: the next good tick allocates as if it never came."""
     from hapticd.allocation import DEFAULT_ROBUSTNESS, AdaptiveState
+    from hapticd.allocation.actuation import Actuation
     from hapticd.allocation.contacts import ContactAllocator
-    from hapticd.physics.actuation import Actuation
 
     def allocator():
         act = Actuation([[[0.866, 0.0, 0.5]], [[-0.866, 0.0, 0.5]]], "world")

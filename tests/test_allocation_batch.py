@@ -19,7 +19,7 @@ from hapticd.allocation import (
 )
 from hapticd.allocation.batch import EXACT_METHODS
 from hapticd.allocation.cases import SWEEPS, block_actuation, sweep
-from hapticd.physics.grasp import grasp_matrix, null_space_basis
+from hapticd.allocation.grasp import grasp_matrix, null_space_basis
 from tests.allocation_oracle import robust_allocation
 
 KINDS = (
@@ -133,7 +133,7 @@ def test_equals_allocate_one_by_one(method, b, data):
 
 @pytest.fixture(scope="module")
 def compiled_grasps():
-    """allocate_many's robust methods compiled (hapticd.physics.kernels.allocate_grasps)."""
+    """allocate_many's robust methods compiled (hapticd.allocation.kernels.allocate_grasps)."""
     from hapticd.physics import jit
 
     return jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]

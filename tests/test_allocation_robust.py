@@ -19,10 +19,10 @@ from hapticd.allocation import (
 )
 from hapticd.allocation import general as general_path
 from hapticd.allocation.accuracy import one_contact_residuals, two_contact_residuals
+from hapticd.allocation.actuation import Actuation
 from hapticd.allocation.cases import SWEEPS
 from hapticd.allocation.cases import block_actuation as block_m
-from hapticd.physics.actuation import Actuation
-from hapticd.physics.grasp import grasp_matrix, internal_projector
+from hapticd.allocation.grasp import grasp_matrix, internal_projector
 from hapticd.physics.render import Renderer
 from hapticd.physics.scene import ConvexShape, Material, SceneObject
 from tests.allocation_oracle import filtered_gain, svd_internal_projector, svd_pinv

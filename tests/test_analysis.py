@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from hapticd import recording
+from hapticd.allocation.actuation import Actuation
 from hapticd.analysis import Pipeline, examples
 from hapticd.analysis.pipeline import asymmetry, loop_work_rate, null_directions
 from hapticd.cli import main
 from hapticd.daemon.build import build_renderer, builtin_trajectory
-from hapticd.physics.actuation import Actuation
 from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, rpy_matrix
 from hapticd.profile import load_profile
 

@@ -375,3 +375,29 @@ def test_emulator_moved_by_a_hand_feels_the_rendered_force(backend):
     # The device pushes the fingertip off the hand's path until the hand spring balances it.
     np.testing.assert_allclose(st.position, np.array([0.6, 0.0, -0.3]) / 300.0, atol=3e-5)
     dev.close()
+
+
+def test_a_usb_device_another_process_holds_is_refused_and_the_open_takes_the_lock(
+    tmp_path, monkeypatch
+):
+    import fcntl
+
+    from hapticd_drivers import device_lock
+
+    node = tmp_path / "usb" / "001" / "001"  # the emulated bus's first device
+    node.parent.mkdir(parents=True)
+    node.write_bytes(b"")
+    monkeypatch.setattr(device_lock, "USB_NODES", tmp_path / "usb")
+    clock = Clock()
+    dev = make("usb", clock)
+    dev.open()
+    try:
+        with open(node) as f, pytest.raises(BlockingIOError):
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)  # the open holds it
+        second = make("usb", clock)
+        with pytest.raises(device_lock.DeviceInUseError, match="in use"):
+            second.open()
+    finally:
+        dev.close()
+    with open(node) as f:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)  # released at close

@@ -123,3 +123,13 @@ def test_export_mcap_reads_back_with_the_mcap_reader(capsys, tmp_path):
     tick = json.loads(message.data)
     assert tick["device_pos"]["index"]["z"] == rec["device_pos"][150, 1, 2]
     assert tick["allocator"] == rec["allocator"][150]
+
+
+def test_a_value_nested_too_deep_is_a_clear_error_not_a_traceback(capsys, tmp_path):
+    """`hapticd set actuation` with a value nested 20,000 deep: refused before connecting,
+    exit 2, the message saying how deep a value may nest (before: a RecursionError)."""
+    deep = "[" * 20000 + "]" * 20000
+    rc, _, err = run(capsys, "set", "actuation", deep, "--socket", str(tmp_path / "none.sock"))
+    assert rc == 2, err
+    assert "nested at most" in err and "Traceback" not in err
+    assert len(err) < 1000  # the value is shown cut short, not all 40,000 characters

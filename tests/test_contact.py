@@ -11,6 +11,7 @@ from hypothesis import assume, given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from hapticd.allocation.kernels import items
 from hapticd.physics import kernels
 from hapticd.physics.scene import rpy_matrix
 from tests.proxies import MODES, Proxy, box
@@ -225,7 +226,7 @@ def gram(ns, rhs) -> list[float]:
     state[0, kernels._C_ACTIVE : kernels._C_ACTIVE + k] = range(k)
     state[0, kernels._C_RHS : kernels._C_RHS + k] = rhs
     # As the uncompiled kernel runs it: on memoryviews (Python floats, not numpy scalars).
-    kernels._gram_mu(kernels._items(planes), kernels._items(state), 0, k, kernels._C_ACTIVE)
+    kernels._gram_mu(items(planes), items(state), 0, k, kernels._C_ACTIVE)
     return state[0, kernels._C_MU : kernels._C_MU + k].tolist()
 
 

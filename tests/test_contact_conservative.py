@@ -17,8 +17,8 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from hapticd.allocation.actuation import Actuation
 from hapticd.daemon.build import mesh_shape
-from hapticd.physics.actuation import Actuation
 from hapticd.physics.render import Renderer
 from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, rpy_matrix
 from tests.proxies import Obstacle, Proxy

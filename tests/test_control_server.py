@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import itertools
 import json
+import logging
+import os
 import socket
 import subprocess
 import sys
@@ -20,7 +22,7 @@ from hapticd.daemon.server import ControlServer
 from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
 from hapticd.protocol import ProtocolError
-from tests.conftest import GRASP_PROFILE, IN_PROCESS, ROOT, wait_for
+from tests.conftest import GRASP_PROFILE, IN_PROCESS, ROOT, fill_every_place, wait_for
 
 
 @pytest.fixture
@@ -78,13 +80,12 @@ def test_sixty_four_idle_connections_lock_nobody_out(server):
 
 
 def test_busy_is_said_plainly_when_every_place_is_in_use(server, capsys):
-    """32 clients that each hold a subscription: one more gets ``busy`` with the count, and
-    the command line says the daemon is busy (not a protocol mismatch)."""
+    """Every place held, by subscribers and by clients with a recent request: one more gets
+    ``busy`` with the count, and the command line says the daemon is busy (not a protocol
+    mismatch)."""
     limit = server.max_clients
-    clients = [ControlClient(server.path, timeout_s=2.0) for _ in range(limit)]
+    clients = fill_every_place(server)
     try:
-        for c in clients:
-            c.events_subscribe()
         with _raw(server.path) as extra:
             (reply,) = _lines(extra)
         assert reply["ok"] is False and reply["error"]["code"] == "busy"
@@ -101,6 +102,25 @@ def test_busy_is_said_plainly_when_every_place_is_in_use(server, capsys):
         wait_for(lambda: server.clients < limit, "the server to see the client go", timeout_s=5.0)
         with ControlClient(server.path, timeout_s=2.0) as again:
             assert again.status()["tick"] == 0
+    finally:
+        for c in clients:
+            c.close()
+
+
+def test_a_storm_of_turned_away_clients_writes_no_log_storm(server, caplog):
+    """Clients turned away busy, many in a row: each is told ``busy``, and the log says so
+    once for the storm with how many, not a line per client (before: one warning each,
+    written in the server thread while the loop waited for the GIL)."""
+    clients = fill_every_place(server)
+    try:
+        with caplog.at_level(logging.WARNING, logger="hapticd.control"):
+            for _ in range(40):
+                with _raw(server.path) as extra:
+                    (reply,) = _lines(extra)
+                assert reply["error"]["code"] == "busy"
+        said = [r.getMessage() for r in caplog.records if "busy" in r.getMessage()]
+        assert 1 <= len(said) <= 2, said  # the first at once; a second only past 1 s
+        assert server.refused_busy == 40
     finally:
         for c in clients:
             c.close()
@@ -303,3 +323,245 @@ def test_a_reply_left_by_an_interrupted_request_is_not_taken_for_the_next_ones(s
         assert c.get("stiffness_n_per_m") == 60.0
         assert c.get("allocator") == "if"
         assert c.status()["tick"] == 0
+
+
+# -- a service a lab's group shares -----------------------------------------------------------
+
+
+def _reload_reply(path, profile) -> dict:
+    """The reply to one ``reload`` of ``profile`` (None: the running profile's file)."""
+    with ControlClient(path, timeout_s=5.0) as c:
+        args = {} if profile is None else {"profile": str(profile)}
+        return c.request("reload", **args)
+
+
+@pytest.fixture
+def shared_server(tmp_path):
+    """A control server whose clients are not its user (the uid it compares the peer's
+    SO_PEERCRED uid with is another), allowing reloads from tmp_path/allowed only."""
+    allowed = tmp_path / "allowed"
+    allowed.mkdir()
+    session = build_session(load_profile(GRASP_PROFILE), paced=False)
+    srv = ControlServer(session, tmp_path / "s.sock", reload_dirs=[allowed])
+    srv.owner_uid = os.getuid() + 4242  # this test's client is another user to the daemon
+    srv.start()
+    try:
+        yield srv, allowed
+    finally:
+        srv.close()
+
+
+SECRET = "hunter2-not-for-the-group"
+
+
+def test_a_client_not_the_daemons_user_reloads_only_from_the_allowed_directories(
+    shared_server, tmp_path
+):
+    """A group member's reload of a file outside the allowed directories is refused, named
+    as such, before anything is read: a path outright, one that climbs out with `..`, and a
+    link inside the allowed directory to a file outside (before: any file the daemon could
+    read was parsed, and its lines came back as unknown keys)."""
+    srv, allowed = shared_server
+    outside = tmp_path / "secret.yaml"
+    outside.write_text(f"password: {SECRET}\n")
+    (allowed / "link.yaml").symlink_to(outside)
+    for profile in (outside, allowed / ".." / "secret.yaml", allowed / "link.yaml"):
+        reply = _reload_reply(srv.path, profile)
+        assert reply["ok"] is False, reply
+        assert reply["error"]["code"] == "denied", reply
+        assert str(allowed) in reply["error"]["message"]
+        assert SECRET not in json.dumps(reply) and "password" not in json.dumps(reply)
+    # Inside the allowed directory the file is read (and here refused as no profile).
+    (allowed / "bad.yaml").write_text("name: x\n")
+    assert _reload_reply(srv.path, allowed / "bad.yaml")["error"]["code"] == "bad_profile"
+
+
+def test_an_error_reply_never_echoes_a_files_keys_or_values(shared_server, tmp_path, idle_server):
+    """A profile with a secret in an unknown key: a client that is not the daemon's user
+    is told the file, the count and the lines, not the key nor the value; the daemon's own
+    user is told the key (a file it may read), but never the unknown key's value."""
+    srv, allowed = shared_server
+    bad = allowed / "secret.yaml"
+    bad.write_text(f"name: x\nshadow_line: {SECRET}\nroot:$6$hash:19000: 1\n")
+    reply = _reload_reply(srv.path, bad)
+    text = json.dumps(reply)
+    assert reply["error"]["code"] == "bad_profile", reply
+    assert SECRET not in text and "shadow_line" not in text and "$6$hash" not in text
+    message = reply["error"]["message"]
+    assert str(bad) in message and "line(s) 2, 3" in message, message
+    # The daemon's own user (the test's uid is the idle server's): the key, not its value.
+    (tmp_path / "own.yaml").write_text(bad.read_text())
+    own = _reload_reply(idle_server.path, tmp_path / "own.yaml")
+    assert own["error"]["code"] == "bad_profile", own
+    assert "shadow_line" in own["error"]["message"]
+    assert SECRET not in json.dumps(own)
+
+
+def _subscribed(path, n) -> list[ControlClient]:
+    clients = []
+    try:
+        for _ in range(n):
+            c = ControlClient(path, timeout_s=5.0)
+            clients.append(c)
+            c.events_subscribe()
+    except BaseException:
+        for c in clients:
+            c.close()
+        raise
+    return clients
+
+
+def test_subscribers_cannot_take_the_places_of_commands(server, capsys):
+    """Every subscriber place held: status, ControlClient and `hapticd stop` are still
+    served (before: 32 readers of events made each of them get `busy`); one subscription
+    more is refused `busy`, its connection still serving commands."""
+    subs = _subscribed(server.path, server.max_subscribers)
+    try:
+        with ControlClient(server.path, timeout_s=5.0) as c:
+            assert c.status()["tick"] == 0
+            with pytest.raises(ProtocolError) as caught:
+                c.events_subscribe()
+            assert caught.value.code == "busy"
+            assert f"{server.max_subscribers} subscriptions" in str(caught.value)
+            with pytest.raises(ProtocolError) as caught:
+                c.subscribe(10.0)
+            assert caught.value.code == "busy"
+            assert c.get("stiffness_n_per_m") == 60.0
+        assert main(["status", "--socket", str(server.path)]) == 0
+        assert main(["stop", "--socket", str(server.path)]) == 0
+        assert server.loop.stop_reason is not None
+        assert server.subscribers == server.max_subscribers
+    finally:
+        for c in subs:
+            c.close()
+
+
+def _replies(s: socket.socket, n: int, deadline_s: float) -> list[dict]:
+    """The next ``n`` lines from ``s``; fails the test if they do not all come within
+    ``deadline_s`` s."""
+    data = b""
+    end = time.monotonic() + deadline_s
+    while data.count(b"\n") < n:
+        left = end - time.monotonic()
+        if left <= 0:
+            got = data.count(b"\n")
+            pytest.fail(f"{got} of {n} replies within {deadline_s:g} s: {data!r}")
+        s.settimeout(left)
+        try:
+            chunk = s.recv(65536)
+        except TimeoutError:
+            continue
+        assert chunk, "the server closed the connection"
+        data += chunk
+    return [json.loads(line) for line in data.splitlines()[:n]]
+
+
+@pytest.mark.timing("changes are rate-limited per second of wall-clock time")
+def test_a_client_flooding_changes_cannot_starve_another_clients_disable_or_set(live):
+    """One client pipelines 500 sets (10 s of the change limit); another's set, disable and
+    set are answered within a second, in order, each set after at most a few of the
+    flood's (before: the slot went to whichever connection the server looked at first,
+    and the second client's disable got no reply for over 45 s)."""
+    session, sock, _rec, _out = live
+    with ControlClient(sock, timeout_s=5.0) as c:
+        wait_for(lambda: c.status()["tick"], "the loop to run", until=lambda t: t >= 50)
+    with _raw(sock) as flood, _raw(sock) as other:
+        _replies(flood, 1, 5.0)  # the greetings
+        _replies(other, 1, 5.0)
+        flood.sendall(b'{"id": 0, "cmd": "set", "param": "stiffness_n_per_m", "value": 70}\n' * 500)
+        time.sleep(0.1)  # the flood holds the change slot
+        t0 = time.monotonic()
+        other.sendall(
+            b'{"id": 1, "cmd": "set", "param": "damping_n_s_per_m", "value": 1}\n'
+            b'{"id": 2, "cmd": "disable"}\n'
+            b'{"id": 3, "cmd": "set", "param": "damping_n_s_per_m", "value": 2}\n'
+        )
+        got = _replies(other, 3, 1.0)
+        took = time.monotonic() - t0
+    assert [r["id"] for r in got] == [1, 2, 3], got
+    assert all(r["ok"] for r in got), got
+    ticks = [r["result"]["applied_at_tick"] for r in got]
+    assert ticks == sorted(ticks), ticks
+    assert took < 1.0
+    assert session.loop.param("damping_n_s_per_m") == 2.0
+
+
+def test_disable_is_never_rate_limited(tmp_path):
+    """With a change limit of an hour, a set waits its turn but disable is served at once
+    (before: disable shared the change slot with every set)."""
+    session = build_session(load_profile(GRASP_PROFILE, IN_PROCESS), paced=True, duration_s=30.0)
+    srv = ControlServer(session, tmp_path / "d.sock", rate_limits_s={"change": 3600.0})
+    srv.start()
+    runner = threading.Thread(target=session.run, name="test-loop")
+    runner.start()
+    try:
+        with _raw(srv.path) as s:
+            _replies(s, 1, 5.0)
+            s.sendall(b'{"id": 1, "cmd": "set", "param": "damping_n_s_per_m", "value": 1}\n')
+            assert _replies(s, 1, 5.0)[0]["ok"]
+            s.sendall(b'{"id": 2, "cmd": "disable"}\n')
+            (reply,) = _replies(s, 1, 2.0)
+            assert reply["id"] == 2 and reply["ok"], reply
+    finally:
+        session.loop.request_stop("test over")
+        runner.join(timeout=10)
+        srv.close()
+
+
+def test_every_request_after_stop_gets_a_reply(live):
+    """A reload and a set sent just after stop are answered `stopped` at once, and so is
+    every request still waiting when the server closes (before: a reload about 1 ms after
+    stop got no reply at all)."""
+    session, sock, _rec, _out = live
+    with _raw(sock) as s:
+        _replies(s, 1, 5.0)
+        s.sendall(b'{"id": 1, "cmd": "stop"}\n')
+        time.sleep(0.001)
+        s.sendall(
+            b'{"id": 2, "cmd": "reload"}\n'
+            b'{"id": 3, "cmd": "set", "param": "stiffness_n_per_m", "value": 70}\n'
+            b'{"id": 4, "cmd": "status"}\n'
+        )
+        got = _replies(s, 4, 5.0)
+    assert [r["id"] for r in got] == [1, 2, 3, 4], got
+    assert got[0]["ok"] and got[3]["ok"], got
+    for r in got[1:3]:
+        assert r["error"]["code"] == "stopped", r
+        assert "stopping" in r["error"]["message"]
+    assert session.loop.param("stiffness_n_per_m") == 60.0
+
+
+def test_requests_waiting_when_the_server_closes_are_answered(tmp_path):
+    """Reloads waiting for their rate limit when the server closes each get `stopped`."""
+    session = build_session(load_profile(GRASP_PROFILE), paced=False)
+    srv = ControlServer(session, tmp_path / "w.sock", rate_limits_s={"reload": 3600.0})
+    srv.start()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\n")
+    try:
+        with _raw(srv.path) as s:
+            _replies(s, 1, 5.0)
+            line = json.dumps({"cmd": "reload", "profile": str(bad)})
+            s.sendall(b"".join(f'{{"id": {i}, {line[1:]}\n'.encode() for i in (1, 2, 3)))
+            assert _replies(s, 1, 5.0)[0]["error"]["code"] == "bad_profile"
+            wait_for(lambda: srv.deferred, "the second reload to wait")
+            srv.close()
+            got = _replies(s, 2, 5.0)
+    finally:
+        srv.close()
+    assert [(r["id"], r["error"]["code"]) for r in got] == [(2, "stopped"), (3, "stopped")]
+
+
+def test_a_client_closed_for_idling_is_told_so(quick_server):
+    """A ControlClient that idled past the request timeout gets a ProtocolError `idle`
+    saying the daemon closed the idle connection, and the command line prints it (before:
+    a bare BrokenPipeError)."""
+    c = ControlClient(quick_server.path, timeout_s=5.0)
+    try:
+        wait_for(lambda: quick_server.idle_closed, "the server to close the idle client")
+        with pytest.raises(ProtocolError) as caught:
+            c.status()
+        assert caught.value.code == "idle"
+        assert "closed this idle connection" in str(caught.value)
+    finally:
+        c.close()

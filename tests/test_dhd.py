@@ -219,3 +219,131 @@ def test_discover_lists_model_serial_and_calibration(libdhd_both, monkeypatch):
     entries = discover()
     lib.fake_set_in_use(0, 0)
     assert any("in use" in s and "DHD_ERROR" in s for e in entries for s in e["found"])
+
+
+def _enabled(path, lib, **keys):
+    """One fresh fake device (omega.3, serial 10001), opened with ``keys``, forces on."""
+    lib.fake_reset(1)
+    dev = open_device("dhd", library=path, **keys)
+    dev.open()
+    dev.enable_forces(True)
+    return dev
+
+
+# The SDK's force-off causes (DHD_FORCE_OFF_*, dhdc.h) the fake can trip, by value.
+FORCE_OFF = {
+    1: "DHD_FORCE_OFF_BUTTON",
+    2: "DHD_FORCE_OFF_VELOCITY",
+    3: "DHD_FORCE_OFF_WATCHDOG",
+    4: "DHD_FORCE_OFF_SOFTWARE",
+    5: "DHD_FORCE_OFF_USBDISCN",
+    6: "DHD_FORCE_OFF_DEADMAN",
+}
+
+
+@pytest.mark.parametrize("cause", sorted(FORCE_OFF))
+def test_forces_the_sdk_turned_off_itself_fail_the_device_naming_the_cause(libdhd, cause):
+    """The force button, the velocity threshold, the watchdog...: the SDK's status says its
+    forces are off, and the read that sees it fails naming the cause; the device renders
+    zero from then on."""
+    path, lib = libdhd
+    dev = _enabled(path, lib, status_period_s=0.0)
+    st = DeviceState()
+    dev.read_state(st)
+    dev.write_force(np.array([0.0, 2.0, 0.0]))
+    np.testing.assert_allclose(force_of(lib, 0), [0.0, 2.0, 0.0])
+    lib.fake_force_off(0, cause)
+    with pytest.raises(DeviceError) as info:
+        dev.read_state(st)
+    msg = str(info.value)
+    assert msg.startswith("dhd omega.3 index 0, serial 10001: ")
+    assert f"the SDK turned its forces off ({FORCE_OFF[cause]}: " in msg
+    # Only a lost USB connection is a lost device: the others still answer.
+    assert isinstance(info.value, DeviceLostError) == (cause == 5)
+    dev.write_force(np.array([0.0, 2.0, 0.0]))
+    assert ";force 0 0 0 0;" in lib.fake_log().decode().split("forceoff")[-1]  # zero after
+    dev.close()
+
+
+def test_the_status_is_read_within_its_period_not_on_every_read(libdhd, monkeypatch):
+    """A status read per period (s, on the backend's clock), the first at once after
+    enabling."""
+    from hapticd_drivers import dhd_backend
+
+    path, lib = libdhd
+    lib.fake_reset(1)
+    now = [100.0]
+    monkeypatch.setattr(dhd_backend, "_clock", lambda: now[0])
+    dev = open_device("dhd", library=path, status_period_s=0.01)
+    dev.open()
+    st = DeviceState()
+    dev.enable_forces(True)
+    dev.read_state(st)  # reads the status: due at once
+    lib.fake_force_off(0, 1)
+    now[0] += 0.009
+    dev.read_state(st)  # not due yet
+    now[0] += 0.002
+    with pytest.raises(DeviceError, match="DHD_FORCE_OFF_BUTTON"):
+        dev.read_state(st)
+    dev.close()
+    for bad in (-0.001, float("nan"), float("inf")):
+        with pytest.raises(DeviceError, match=r"dhd: status_period_s must be >= 0 s, got"):
+            open_device("dhd", library=path, status_period_s=bad)
+
+
+def test_a_model_with_a_wrist_or_gripper_is_commanded_through_the_combined_call(libdhd):
+    """sigma.7: the translational force with zero wrist torques and gripper force, in one
+    call (dhdSetForceAndTorqueAndGripperForce); an omega.3 through dhdSetForce."""
+    path, lib = libdhd
+    lib.fake_reset(2)
+    lib.fake_set_type(1, 104)  # DHD_DEVICE_SIGMA331
+    for i, model in enumerate(("omega.3", "sigma.7")):
+        dev = open_device("dhd", library=path, index=i)
+        dev.open()
+        assert dev.info.model == model
+        dev.enable_forces(True)
+        dev.write_force(np.array([1.0, -2.0, 3.0]))
+        np.testing.assert_allclose(force_of(lib, i), [1.0, -2.0, 3.0])
+        dev.close()
+    log = lib.fake_log().decode()
+    assert ";force7 1 1 -2 3;" in log and ";force 1 " not in log, log
+    assert ";force 0 1 -2 3;" in log and ";force7 0 " not in log, log
+    out = (ctypes.c_double * 4)(9.0, 9.0, 9.0, 9.0)
+    lib.fake_get_torque_and_gripper(1, out)
+    assert list(out) == [0.0, 0.0, 0.0, 0.0]  # hapticd renders translations only
+
+
+def test_closing_stops_the_device_brakes_on_then_closes(libdhd):
+    path, lib = libdhd
+    dev = _enabled(path, lib)
+    dev.write_force(np.array([0.0, 0.0, 1.0]))
+    dev.close()
+    assert lib.fake_stops(0) == 1 and lib.fake_brakes(0) == 1
+    assert lib.fake_is_enabled(0) == 0 and lib.fake_is_open(0) == 0
+    log = lib.fake_log().decode()
+    assert log.endswith("force 0 0 0 0;stop 0;close 0;"), log
+
+
+def test_the_sdks_positive_return_codes_are_counted(libdhd):
+    """DHD_MOTOR_SATURATED (a motor could not deliver the force: the SDK scaled it) and
+    DHD_TIMEGUARD (a command skipped): no errors, counted."""
+    path, lib = libdhd
+    dev = _enabled(path, lib)
+    lib.fake_set_saturation(0, 2.0)
+    lib.fake_set_timeguard_every(0, 5)
+    sent = [np.array([0.0, 0.0, f]) for f in (1.0, 3.0, 4.0, 1.5, 5.0, 3.0, 0.5)]
+    for f in sent:
+        dev.write_force(f)
+    assert dev.counts() == {
+        "motor_saturated": lib.fake_saturated(0),
+        "timeguard": lib.fake_timeguards(0),
+    }
+    assert lib.fake_saturated(0) >= 2 and lib.fake_timeguards(0) >= 1
+    dev.close()
+
+
+def test_the_factory_velocity_threshold_is_left_as_it_is(libdhd):
+    """CHAI3D sets it to 0, which turns the SDK's safety off; hapticd does not touch it."""
+    path, lib = libdhd
+    _enabled(path, lib).close()
+    assert lib.fake_velocity_threshold_sets(0) == 0

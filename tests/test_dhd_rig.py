@@ -326,3 +326,108 @@ def test_in_reconnect_mode_only_a_lost_device_is_looked_for_again(tmp_path, libd
     for i in range(2):
         assert _applied(lib, i)[-1].tolist() == [0.0, 0.0, 0.0]
         assert lib.fake_is_enabled(i) == 0 and lib.fake_is_open(i) == 0
+
+
+def _session(tmp_path, lib_path: str, record: Path | None = None, **device):
+    from hapticd.daemon.session import build_session
+    from hapticd.profile import load_profile
+
+    data = yaml.safe_load(_rig(tmp_path, lib_path).read_text())
+    for finger in data["fingers"]:
+        finger["device"].update(device)
+    path = tmp_path / "keys.yaml"
+    path.write_text(yaml.safe_dump(data))
+    s = build_session(load_profile(path), paced=False, duration_s=2.0, record_path=record)
+    s.loop.realtime_settings = None
+    return s
+
+
+@pytest.mark.parametrize(
+    ("cause", "name"),
+    [(1, "DHD_FORCE_OFF_BUTTON"), (2, "DHD_FORCE_OFF_VELOCITY"), (3, "DHD_FORCE_OFF_WATCHDOG")],
+)
+def test_forces_the_sdk_turns_off_latch_a_fault_naming_the_cause_with_zero_force(
+    tmp_path, libdhd, cause, name
+):
+    """The force button, the velocity threshold, the watchdog: the loop sees the SDK's
+    force-off on the next status read, latches a device fault naming it, and every device
+    ends at zero force, disabled, stopped (brakes on) and closed."""
+    lib_path, lib = libdhd
+    _pressing_without_serial_numbers(lib)
+    rec_path = tmp_path / "off.hrec"
+    s = _session(tmp_path, lib_path, rec_path, status_period_s=0.0)
+    s.renderer.insert(AtTick(600, lambda f: lib.fake_force_off(1, cause)), after="contact")
+    out = s.run()
+    fault = out["fault"]
+    assert out["end_reason"] == "fault" and fault["kind"] == "device", fault
+    # Tick 600's force went out before the SDK cut it; tick 601's read sees it.
+    assert fault["tick"] == 601
+    assert fault["cause"].startswith(
+        f"DeviceError: dhd omega.3 index 1 (no serial number): the SDK turned its forces off "
+        f"({name}: "
+    )
+    rec = recording.read(rec_path)
+    assert rec.ticks == fault["tick"] + 1
+    assert np.abs(rec["device_force"][600]).max() > 0.1 and not rec["device_force"][-1].any()
+    log = lib.fake_log().decode()
+    for i in range(2):
+        assert _applied(lib, i)[-1].tolist() == [0.0, 0.0, 0.0]
+        assert lib.fake_is_enabled(i) == 0 and lib.fake_is_open(i) == 0
+        assert lib.fake_stops(i) == 1 and f"stop {i};close {i};" in log
+
+
+def test_saturated_motors_and_skipped_commands_are_counted_in_the_summary(tmp_path, libdhd, capsys):
+    lib_path, lib = libdhd
+    _pressing_without_serial_numbers(lib)
+    lib.fake_set_saturation(0, 0.3)  # the thumb's motors saturate above 0.3 N
+    lib.fake_set_timeguard_every(1, 100)
+    summary = tmp_path / "summary.json"
+    args = ["run", str(_rig(tmp_path, lib_path)), "--duration", "1", "--no-realtime"]
+    args += ["--no-socket", "--unpaced", "--summary-json", str(summary)]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    out = json.loads(summary.read_text())
+    assert out["fault"] is None
+    thumb, index = (out["fingers"][n]["device_counts"] for n in ("thumb", "index"))
+    assert thumb == {"motor_saturated": lib.fake_saturated(0), "timeguard": 0}
+    assert index == {"motor_saturated": 0, "timeguard": lib.fake_timeguards(1)}
+    assert thumb["motor_saturated"] > 100 and index["timeguard"] >= 10
+    assert f"{thumb['motor_saturated']} motor saturated\n" in printed, printed
+    assert f"{index['timeguard']} timeguard\n" in printed, printed
+
+
+def test_enabling_forces_happens_outside_every_tick(tmp_path, libdhd):
+    """At the start and after `enable`: the SDK's blocking calls (brakes, the estimator's
+    reads, dhdEnableForce) run between ticks, never inside one; forces come on the tick
+    after `enable` applies."""
+    from hapticd.loop.commands import Enable
+
+    lib_path, lib = libdhd
+    _pressing_without_serial_numbers(lib)
+    s = _session(tmp_path, lib_path)
+    loop = s.loop
+    in_tick = [False]
+    tick = loop._tick
+
+    def timed_tick(*args):
+        in_tick[0] = True
+        try:
+            tick(*args)
+        finally:
+            in_tick[0] = False
+
+    loop._tick = timed_tick
+    enabled_in_tick: list[bool] = []
+    for dev in loop.devices:
+        enable = dev.enable_forces
+
+        def watched(on, enable=enable):
+            if on:
+                enabled_in_tick.append(in_tick[0])
+            enable(on)
+
+        dev.enable_forces = watched
+    s.renderer.insert(AtTick(300, lambda f: loop.submit(Enable())), after="contact")
+    out = s.run()
+    assert out["fault"] is None, out["fault"]
+    assert enabled_in_tick == [False] * 4  # both at the start, both after `enable`

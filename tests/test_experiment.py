@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import copy
 import itertools
 import json
 import os
@@ -98,6 +99,14 @@ def test_the_bundled_designs_are_the_seeds(path, capsys):
         (lambda d: d["interval"].update(question="softer"), "interval.question", "stiffer"),
         (lambda d: d.update(repetitions=9, blocks={"per_standard": 2}), "(top level)", "divide"),
         (lambda d: d.pop("randomization"), "randomization", "required key is missing"),
+        # Numbers are numbers: a quoted one, a bool or a float count is refused, not converted.
+        (lambda d: d["interval"].update(exploration_s="5"), "interval.exploration_s", "'5'"),
+        (lambda d: d["breaks"].update(duration_s="60"), "breaks.duration_s", "'60'"),
+        (lambda d: d["breaks"].update(every_blocks=1.0), "breaks.every_blocks", "1.0"),
+        (lambda d: d["randomization"].update(seed=True), "randomization.seed", "True"),
+        (lambda d: d["randomization"].update(per_subject=1), "randomization.per_subject", "1"),
+        (lambda d: d["varied"].update(standards=["30"]), "varied.standards[0]", "'30'"),
+        (lambda d: d["varied"].update(ratios=[0.7, "1", 1.3]), "varied.ratios[1]", "'1'"),
     ],
 )
 def test_errors_name_the_file_and_the_key(stiffness_data, edit, where, what):
@@ -136,6 +145,25 @@ def test_the_profile_is_checked_with_the_experiment(tmp_path, stiffness_data, ca
     path.write_text(yaml.safe_dump(stiffness_data))
     with pytest.raises(ExperimentError, match=r"exp2.yaml: profile: no such file"):
         check_experiment(path)
+
+
+def test_a_force_limit_above_the_profiles_is_refused_naming_both(tmp_path, stiffness_data):
+    cap = check_experiment(write_exp(tmp_path, stiffness_data))[1].safety.max_force_n
+    data = copy.deepcopy(stiffness_data)
+    data["conditions"][0]["set"]["force_limit_n"] = cap + 1.0
+    with pytest.raises(ExperimentError) as err:
+        check_experiment(write_exp(tmp_path, data))
+    msg = str(err.value)
+    assert f"conditions[0:{data['conditions'][0]['name']}].set.force_limit_n" in msg
+    assert f"{cap + 1.0:g} N" in msg and f"max_force_n {cap:g} N" in msg
+    data = copy.deepcopy(stiffness_data)
+    data["conditions"][0]["set"]["force_limit_n"] = cap  # at the limit: fine
+    check_experiment(write_exp(tmp_path, data))
+    # The varied force limit: its largest comparison counts.
+    del data["conditions"][0]["set"]["force_limit_n"]
+    data["varied"] = {"param": "force_limit_n", "standards": [cap], "ratios": [0.8, 0.9, 1.1]}
+    with pytest.raises(ExperimentError, match=r"force_limit_n reaches .* safety.max_force_n"):
+        check_experiment(write_exp(tmp_path, data))
 
 
 def test_a_bad_base_profile_is_named(tmp_path, stiffness_data, grasp_data, capsys):
@@ -332,6 +360,8 @@ def test_a_store_of_the_first_schema_is_read_and_brought_up_to_date(tmp_path):
         )
     with sqlite3.connect(db) as con:  # as schema 1 wrote it
         con.execute("ALTER TABLE trials DROP COLUMN source")
+        con.execute("ALTER TABLE trials DROP COLUMN practice")
+        con.execute("ALTER TABLE plan DROP COLUMN practice")
         con.execute("UPDATE meta SET value = '1' WHERE key = 'schema'")
     meta, rows = open_for_analysis(db)
     assert meta["schema"] == "1" and len(rows) == 1 and "source" not in rows[0]
@@ -344,10 +374,10 @@ def test_a_store_of_the_first_schema_is_read_and_brought_up_to_date(tmp_path):
         got = store.trials()
     assert [(r["plan_index"], r["source"]) for r in got] == [(0, None), (1, "key")]
     meta, _ = open_for_analysis(db)
-    assert meta["schema"] == "3"
+    assert meta["schema"] == "4"
     with sqlite3.connect(db) as con:
         con.execute("UPDATE meta SET value = '99' WHERE key = 'schema'")
-    with pytest.raises(StoreError, match="schema '99', this hapticd reads 1, 2, 3"):
+    with pytest.raises(StoreError, match="schema '99', this hapticd reads 1, 2, 3, 4"):
         open_for_analysis(db)
 
 

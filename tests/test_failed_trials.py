@@ -136,6 +136,7 @@ def test_a_store_of_schema_2_is_read_and_brought_up_to_date_keeping_every_row(tm
         store.ensure_plan("s01", make_plan(exp, seed), seed)
     with sqlite3.connect(db) as con:  # as schema 2 made it
         con.executescript("DROP TABLE trials;" + V2_TRIALS)
+        con.execute("ALTER TABLE plan DROP COLUMN practice")
         con.execute("UPDATE meta SET value = '2' WHERE key = 'schema'")
         con.execute(
             "INSERT INTO trials VALUES (7, 's01', 0, ?, ?, 'ef', 0.03, 0.024, 0, 1, 0, 1.5, "
@@ -151,9 +152,9 @@ def test_a_store_of_schema_2_is_read_and_brought_up_to_date_keeping_every_row(tm
             seed=seed, status="failed", failure="interval 1: no contact", source="model",
         )  # fmt: skip
     meta, now = open_for_analysis(db, None)
-    assert meta["schema"] == "3"
-    assert {k: v for k, v in now[0].items() if k != "failure"} == old[0]
-    assert now[0]["failure"] is None and now[1]["id"] == 8
+    assert meta["schema"] == "4"
+    assert {k: v for k, v in now[0].items() if k not in ("failure", "practice")} == old[0]
+    assert now[0]["failure"] is None and now[0]["practice"] == 0 and now[1]["id"] == 8
     assert (now[1]["status"], now[1]["failure"]) == ("failed", "interval 1: no contact")
 
 
@@ -208,3 +209,39 @@ def test_heavy_lifts_are_refused_before_a_study_with_the_cause(tmp_path, standar
     # The pinch it would need, named where no pinch the cube allows is enough.
     assert ("more than the cube's 25.0 mm half width" in str(err.value)) == too_wide
     assert not (tmp_path / "x.db").exists() or not rows(tmp_path / "x.db")  # nothing stored
+
+
+def test_a_schema_2_store_with_a_status_schema_3_refuses_is_not_upgraded(tmp_path, capsys):
+    db = tmp_path / "old.db"
+    exp = load_experiment(WEIGHT)
+    seed = exp.subject_seed("s01")
+    with TrialStore.for_experiment(db, exp) as store:
+        store.ensure_plan("s01", make_plan(exp, seed), seed)
+    con = sqlite3.connect(db)
+    with con:  # as schema 2 made it, then a hand edit past its check
+        con.executescript("DROP TABLE trials;" + V2_TRIALS)
+        con.execute("UPDATE meta SET value = '2' WHERE key = 'schema'")
+        con.execute("PRAGMA ignore_check_constraints = ON")
+        con.execute(
+            "INSERT INTO trials VALUES (7, 's01', 0, ?, ?, 'ef', 0.03, 0.024, 0, 1, 0, 1.5, "
+            "NULL, 'x', ?, 100.0, 'aborted', 'key')",
+            (exp.name, exp.file_hash, seed),
+        )
+    con.close()
+    before = db.read_bytes()
+    with pytest.raises(StoreError, match=r"trials row 7 has status 'aborted', not one of"):
+        TrialStore.for_experiment(db, exp)
+    with pytest.raises(StoreError, match=r"trials row 7 .*status 'aborted', not one of"):
+        open_for_analysis(db, None)
+    run = ["experiment", "run", str(WEIGHT), "--subject", "s01", "--db", str(db), "--resume"]
+    assert main([*run, "--observer", "model", "--no-keys"]) == 2
+    err = capsys.readouterr().err
+    assert str(db) in err and "'aborted'" in err and "nothing was changed" in err
+    assert "Traceback" not in err
+    assert db.read_bytes() == before
+    con = sqlite3.connect(db)
+    try:
+        assert con.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone() == ("2",)
+        assert con.execute("SELECT id, status FROM trials").fetchall() == [(7, "aborted")]
+    finally:
+        con.close()

@@ -2,10 +2,22 @@
 emulated FTDI chip under pyusb (firmware load, homing, LEDs, grip, faults)."""
 
 import io
+import os
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
-from hapticd_drivers import DeviceError, DeviceLostError, models, open_device, registry
+from hapticd_drivers import (
+    DeviceError,
+    DeviceLostError,
+    DeviceState,
+    models,
+    open_device,
+    registry,
+)
+from hapticd_drivers import falcon_emulator as fe
 from hapticd_drivers import falcon_model as fm
 from hapticd_drivers.falcon_emulator import EmulatedFalconBackend, FalconEmulator
 from hapticd_drivers.trajectory import Trajectory
@@ -255,6 +267,65 @@ def test_an_answer_the_chip_holds_is_waited_for_a_few_polls(polls):
     dev.close()
 
 
+def test_each_tick_asks_for_one_state_packet_in_one_usb_transfer():
+    clock = Clock()
+    dev, emu = falcon(clock)
+    emu.latency_polls = 0  # the answer is there by the time it is asked for
+    dev.open()
+    dev.enable_forces(True)
+    before = emu.in_transfers
+    run(dev, clock, 100)
+    # One IN transfer a tick: asking for more than the 16 bytes would add an empty
+    # transfer, which on the chip waits for its latency timer.
+    assert emu.in_transfers - before == 100
+    dev.close()
+
+
+@pytest.mark.timing("a stalled USB transfer is bounded by its wall-clock timeout")
+def test_a_stalled_read_is_a_lost_falcon_within_the_watchdog_and_its_force_goes_to_zero():
+    clock = Clock()
+    dev, emu = falcon(clock)
+    dev.open()
+    dev.enable_forces(True)
+    run(dev, clock, 50)
+    assert emu.motor.any()
+    emu.stall_in = True
+    t0 = time.perf_counter()
+    with pytest.raises(DeviceLostError, match="falcon EMU-1: read stalled"):
+        run(dev, clock, 1, start=50)
+    elapsed = time.perf_counter() - t0
+    # The loop's watchdog is 100 ms: the whole failed read ends well within it (each
+    # transfer given a few ms, not pyftdi's default 5 s).
+    assert elapsed < 0.1, f"the stalled read took {elapsed * 1000:.0f} ms"
+    assert emu.in_timeout_max_ms <= 10
+    dev.close()  # what the loop does with a lost device: the OUT side still works
+    np.testing.assert_array_equal(emu.motor, 0)
+
+
+def test_a_falcon_answering_twice_per_command_is_a_fault_not_a_lagging_state():
+    clock = Clock()
+    dev, emu = falcon(clock)
+    dev.open()
+    dev.enable_forces(True)
+    run(dev, clock, 10)
+    emu.answers_per_command = 2
+    st_ = DeviceState()
+    want = None
+    with pytest.raises(DeviceError, match="answers more often than it is asked") as err:
+        for k in range(10, 200):
+            clock.t = k * 1e-3
+            dev.read_state(st_)
+            # Until the fault, what is read is the answer to the last command, never an
+            # older one (within one tick of the path: ~0.1 mm).
+            want, _ = Trajectory(TIMES, POS, "p").at(clock.t)
+            np.testing.assert_allclose(st_.position, want, atol=2e-4)
+            dev.write_force(np.array([1.0, -2.0, 3.0]))
+    assert not isinstance(err.value, DeviceLostError)
+    assert clock.t < 0.015  # found within a few ticks, not seconds later
+    dev.close()
+    np.testing.assert_array_equal(emu.motor, 0)
+
+
 def test_the_grip_buttons_are_the_device_buttons():
     clock = Clock()
     dev, emu = falcon(clock)
@@ -285,6 +356,33 @@ def test_a_device_fault_is_a_clear_error_naming_the_falcon(fault):
         run(dev, clock, 3, start=20)
     assert isinstance(err.value, DeviceLostError) == lost
     dev.close()
+
+
+@pytest.mark.parametrize("outside_homing", [False, True])
+def test_a_homed_falcon_opens_and_renders_whether_its_homed_bits_need_homing_mode(
+    outside_homing,
+):
+    # libnifalcon's header: the homed bits are reported only in homing mode (False); a
+    # real Falcon may report them either way (True). The backend works under both.
+    clock = Clock()
+    emu = FalconEmulator(
+        Trajectory(TIMES, POS, "emu"),
+        clock,
+        "EMU-1",
+        firmware_loaded=True,
+        homed=True,
+        homed_bits_outside_homing=outside_homing,
+    )
+    dev = open_device(
+        "falcon", serial_number="EMU-1", usb_backend=EmulatedFalconBackend([emu]), clock=clock
+    )
+    dev.open()
+    dev.enable_forces(True)
+    run(dev, clock, 300)
+    assert dev.calibrated() and emu.leds == fm.LED_GREEN
+    np.testing.assert_allclose(emu.end_effector_force(), [1.0, -2.0, 3.0], atol=0.01)
+    dev.close()
+    np.testing.assert_array_equal(emu.motor, 0)
 
 
 def test_a_falcon_not_homed_is_refused_and_never_gets_force():
@@ -377,11 +475,122 @@ def test_a_missing_or_wrong_sized_firmware_file_is_refused_before_the_falcon(
     assert emu.state == "boot" and not emu.image
 
 
+@pytest.mark.timing("a file that never ends or a FIFO without writer would hang the read")
+@pytest.mark.parametrize("kind", ["dev-zero", "fifo", "directory"])
+def test_a_firmware_that_is_not_a_regular_file_is_refused_without_reading_it(tmp_path, kind):
+    if kind == "dev-zero":
+        path = "/dev/zero"
+    elif kind == "fifo":
+        path = str(tmp_path / "firmware.fifo")
+        os.mkfifo(path)
+    else:
+        path = str(tmp_path)
+    # In a child process with a deadline: a read that hangs (a FIFO with no writer) or
+    # never ends (/dev/zero) fails the test there instead of hanging the suite.
+    code = (
+        "import sys\n"
+        "from hapticd_drivers import DeviceError\n"
+        "from hapticd_drivers.falcon_backend import preflight\n"
+        "try:\n"
+        "    preflight(firmware=sys.argv[1])\n"
+        "except DeviceError as exc:\n"
+        "    print(exc)\n"
+    )
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", code, path], capture_output=True, text=True, timeout=10
+        )
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"reading {path} as the firmware did not end within 10 s")
+    assert done.returncode == 0, done.stderr
+    assert f"falcon firmware {path} (device key 'firmware'): not a regular file" in done.stdout
+
+
 def test_a_firmware_echo_that_differs_is_a_failed_load(tmp_path):
     dev, emu = falcon(Clock(), firmware_loaded=False, firmware=str(firmware_file(tmp_path)))
-    emu.corrupt_echo = 1
-    with pytest.raises(DeviceError, match=r"firmware load failed: byte 0 of 7324"):
+    emu.corrupt_echo = 100  # every attempt
+    with pytest.raises(DeviceError, match=r"load failed 10 times.*: byte 0 of 7324 came back"):
         dev.open()
+    assert emu.loads == 10
+
+
+FIRMWARE_READINGS = [
+    pytest.param({"firmware_start": "framing"}, id="framing"),
+    pytest.param({"firmware_start": "length", "image_size": 7324}, id="length"),
+    pytest.param(
+        {"firmware_start": "quiet", "quiet_s": 0.02},
+        id="quiet",
+        marks=pytest.mark.timing("the bootloader's quiet line is timed in real time"),
+    ),
+]
+
+
+def _loads_and_renders(tmp_path, uploads=1, **emulator):
+    """Open an emulated Falcon (``emulator``: its options) that runs no firmware with a
+    firmware file: the image is loaded in ``uploads`` uploads and the force rendered."""
+    clock = Clock()
+    path = firmware_file(tmp_path)
+    emu = FalconEmulator(Trajectory(TIMES, POS, "emu"), clock, "EMU-1", homed=True, **emulator)
+    dev = open_device(
+        "falcon", serial_number="EMU-1", usb_backend=EmulatedFalconBackend([emu]),
+        clock=clock, firmware=str(path),
+    )  # fmt: skip
+    dev.open()
+    try:
+        assert emu.state == "run" and bytes(emu.image) == path.read_bytes()
+        assert emu.loads == uploads
+        dev.enable_forces(True)
+        run(dev, clock, 50)
+        np.testing.assert_allclose(emu.end_effector_force(), [1.0, -2.0, 3.0], atol=0.01)
+    finally:
+        dev.close()
+
+
+@pytest.mark.parametrize("reading", FIRMWARE_READINGS)
+def test_the_firmware_loads_however_the_bootloader_ends_the_upload(tmp_path, reading):
+    """Nothing public says how the Falcon's bootloader knows the upload is over; the
+    backend loads the firmware under each reading the emulator offers."""
+    _loads_and_renders(tmp_path, **reading)
+
+
+def _bootloaded(emu, image):
+    """Drive the emulated microcontroller through the handshake and ``image``, by hand."""
+    emu.control(fe.SIO_MODEM_CTRL, 0x100, 0)
+    emu.control(fe.SIO_MODEM_CTRL, 0x101, 0)  # the DTR pulse: the bootloader
+    emu.baud = fe.LOADER_BAUD
+    emu.write(fe.LOADER_HELLO)
+    emu.baud = fe.BOOT_BAUD
+    emu.write(b"A")
+    emu.write(image)
+
+
+@pytest.mark.parametrize("start", ["framing", "quiet"])
+def test_the_chips_baud_setting_alone_never_starts_the_firmware(start):
+    """The microcontroller cannot see what the host sets in the FTDI chip: switching it to
+    the firmware's baud rate after an upload starts nothing until a byte (framing) or
+    the quiet time (quiet) says the upload is over."""
+    emu = FalconEmulator(Trajectory(TIMES, POS, "emu"), Clock(), "EMU-1",
+                         firmware_start=start, quiet_s=60.0)  # fmt: skip
+    _bootloaded(emu, bytes(7324))
+    emu.control(fe.SIO_SET_BAUDRATE, 2, 0)  # 3 MHz / 2: the firmware's rate
+    assert emu.baud == pytest.approx(fe.NORMAL_BAUD)
+    assert emu.state == "load"
+    emu.write(b"<")
+    assert emu.state == ("run" if start == "framing" else "load")
+
+
+def test_a_bootloader_that_knows_its_length_runs_the_firmware_at_its_last_byte():
+    emu = FalconEmulator(Trajectory(TIMES, POS, "emu"), Clock(), "EMU-1",
+                         firmware_start="length", image_size=5000)  # fmt: skip
+    _bootloaded(emu, bytes(4999))
+    assert emu.state == "load"
+    emu.write(b"\x00\x01")  # its last byte, then one the running firmware ignores
+    assert emu.state == "run" and len(emu.image) == 5000
+
+
+@pytest.mark.parametrize(("hellos", "uploads"), [(60, 0), (0, 4), (30, 2)])
+def test_a_bootloader_that_needs_several_tries_gets_its_firmware(tmp_path, hellos, uploads):
+    _loads_and_renders(tmp_path, uploads + 1, hello_failures=hellos, firmware_failures=uploads)
 
 
 def test_max_force_above_the_falcons_is_refused():
@@ -621,3 +830,122 @@ def test_in_reconnect_mode_a_falcon_answering_wrongly_still_ends_the_run(grasp_d
     assert out["end_reason"] == "fault" and "impossible encoder jump" in out["fault"]["cause"]
     for emu in s.emulators:
         np.testing.assert_array_equal(emu.motor, 0)
+
+
+# -- a Falcon another process holds ------------------------------------------------------------
+
+
+def usb_nodes(tmp_path, monkeypatch, count):
+    """Stand-ins for /dev/bus/usb/001/NNN of the emulated bus's ``count`` devices."""
+    from hapticd_drivers import device_lock
+
+    root = tmp_path / "usb"
+    (root / "001").mkdir(parents=True)
+    for i in range(count):
+        (root / "001" / f"{i + 1:03d}").write_bytes(b"")
+    monkeypatch.setattr(device_lock, "USB_NODES", root)
+    return root
+
+
+@pytest.fixture
+def holder():
+    """Another process holding the lock on a node: holder(path) -> its pid."""
+    procs = []
+
+    def hold(node):
+        code = (
+            "import fcntl, sys\n"
+            f"f = open({str(node)!r})\n"
+            "fcntl.flock(f, fcntl.LOCK_EX)\n"
+            "print('held', flush=True)\n"
+            "sys.stdin.read()\n"
+        )
+        p = subprocess.Popen(
+            [sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )
+        procs.append(p)
+        import select
+
+        ready, _, _ = select.select([p.stdout], [], [], 10.0)
+        assert ready, "the holder did not take the lock within 10 s"
+        assert p.stdout.readline().strip() == "held"
+        return p.pid
+
+    yield hold
+    for p in procs:
+        p.stdin.close()
+        p.wait(timeout=10)
+
+
+def test_discovery_sends_nothing_to_a_falcon_another_process_holds(tmp_path, monkeypatch, holder):
+    from hapticd_drivers.falcon_backend import discover
+
+    path = Trajectory(TIMES, POS, "emu")
+    emus = [FalconEmulator(path, Clock(), f"SN-{c}", True, True) for c in "AB"]
+    nodes = usb_nodes(tmp_path, monkeypatch, 2)
+    pid = holder(nodes / "001" / "001")
+    (entry,) = discover(EmulatedFalconBackend(emus))
+    assert entry["found"][0] == f"index 0: in use (by pid {pid}), not asked"
+    assert entry["found"][1] == "SN-B (index 1, firmware running, homed)"
+    held = emus[0]
+    assert (held.control_transfers, held.out_transfers, held.in_transfers) == (0, 0, 0)
+    assert emus[1].control_transfers > 0  # the free one was probed as before
+
+
+def test_an_open_falcon_holds_its_lock_until_closed(tmp_path, monkeypatch):
+    from hapticd_drivers.device_lock import DeviceInUseError, lock_usb_device
+
+    clock = Clock()
+    nodes = usb_nodes(tmp_path, monkeypatch, 1)
+    dev, emu = falcon(clock)
+    node_dev = type("D", (), {"bus": 1, "address": 1})()  # the emulated bus's first device
+    dev.open()
+    try:
+        with pytest.raises(DeviceInUseError):
+            lock_usb_device(node_dev, "probe", nodes).release()
+        # A second open of the same Falcon (a second run) is refused, sending nothing.
+        other = open_device(
+            "falcon", serial_number="EMU-1", usb_backend=EmulatedFalconBackend([emu]), clock=clock
+        )
+        before = emu.control_transfers + emu.out_transfers + emu.in_transfers
+        with pytest.raises(DeviceInUseError) as exc:
+            other._connect()
+        assert exc.value.pid == os.getpid()
+        assert emu.control_transfers + emu.out_transfers + emu.in_transfers == before
+    finally:
+        dev.close()
+    lock_usb_device(node_dev, "probe", nodes).release()  # free again once closed
+
+
+@pytest.mark.parametrize("axis", range(3))
+def test_the_backend_never_sends_a_motor_value_beyond_what_the_emulated_falcon_takes(axis):
+    clock = Clock()
+    emu = FalconEmulator(Trajectory(TIMES, POS, "emu"), clock, "EMU-1", True, True)
+    assert emu.motor_limit == fm.MOTOR_LIMIT  # libnifalcon's documented cap, the default
+    dev = open_device(
+        "falcon", serial_number="EMU-1", usb_backend=EmulatedFalconBackend([emu]), clock=clock
+    )
+    dev.open()
+    try:
+        dev.enable_forces(True)
+        force = np.zeros(3)
+        force[axis] = -dev.info.max_force_n  # the rated force: the motors saturate
+        peak = 0
+        for k in range(200):
+            run(dev, clock, 1, force=tuple(force), start=k)
+            peak = max(peak, int(np.abs(emu.motor).max()))
+        assert emu.motor_over_limit == 0 and 0 < peak <= emu.motor_limit
+        for bad in (np.nan, np.inf):
+            with pytest.raises(DeviceError):
+                dev.write_force(np.array([bad, 0.0, 0.0]))
+        assert emu.motor_over_limit == 0 and np.isfinite(emu.motor).all()
+    finally:
+        dev.close()
+
+
+def test_an_emulated_falcon_with_a_lower_motor_limit_counts_what_goes_beyond():
+    emu = FalconEmulator(Trajectory(TIMES, POS, "emu"), Clock(), "EMU-1", True, True,
+                         motor_limit=1000)  # fmt: skip
+    emu.baud = 1_500_000.0  # the running firmware's rate
+    emu.write(fm.encode_command((1500, 0, -200), 0, True))
+    assert emu.motor_over_limit == 1 and list(emu.motor) == [1000, 0, -200]

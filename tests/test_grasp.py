@@ -3,7 +3,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from hapticd.physics.grasp import (
+from hapticd.allocation.grasp import (
     decompose,
     grasp_matrix,
     internal_projector,

@@ -1,4 +1,4 @@
-"""The compiled allocation kernel (hapticd.physics.kernels.allocation_step) against the same
+"""The compiled allocation kernel (hapticd.allocation.kernels.allocation_step) against the same
 function uncompiled: the same bits for generated grasps of two to five fingers, near-singular ones
 included (coincident and nearly coincident contacts, directions along the grasp line or
 nearly parallel, forces at contact onset, a vertical grasp line in the grasp frame); and
@@ -14,12 +14,19 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hapticd.allocation import AdaptiveState, AllocationError, Robustness, allocate, smoothstep
+from hapticd.allocation import (
+    AdaptiveState,
+    AllocationError,
+    Robustness,
+    allocate,
+    kernels,
+    smoothstep,
+)
+from hapticd.allocation.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
-from hapticd.physics import jit, kernels
-from hapticd.physics.actuation import Actuation
+from hapticd.allocation.grasp import grasp_matrix
+from hapticd.physics import jit
 from hapticd.physics.frame import Frame
-from hapticd.physics.grasp import grasp_matrix
 from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject
 from hapticd.physics.stages import Allocation
 from tests.strategies import unit_vectors
@@ -220,7 +227,7 @@ def _against_allocate(case: dict, alpha: float) -> tuple[Allocation, Frame, bool
 @given(grasps(), st.sampled_from(kernels.ALLOCATION_METHODS), st.floats(0.0, 1.0))
 def test_the_kernel_equals_allocate_with_contact_onset(case, method, alpha):
     """The kernel's closed forms and general path, grasp frame and contact onset against
-    allocate() (with the world directions of hapticd.physics.actuation) on the contacts, blended
+    allocate() (with the world directions of hapticd.allocation.actuation) on the contacts, blended
     at onset: the same forces to rounding, near singular configurations too; adaptive with
     the kernel's alpha of the tick; within the documented bounds (compiled, the same bits:
     the tests above)."""

@@ -16,9 +16,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from hapticd.allocation.actuation import Actuation
 from hapticd.daemon.session import build_session
 from hapticd.physics import jit, kernels
-from hapticd.physics.actuation import Actuation
 from hapticd.physics.frame import Frame
 from hapticd.physics.render import Renderer
 from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, Surface

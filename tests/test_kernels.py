@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hapticd.allocation import kernels as allocation_kernels
 from hapticd.daemon.session import build_session
 from hapticd.physics import jit, kernels
 from hapticd.physics.safety import SafetyChain
@@ -51,7 +52,8 @@ def test_python_mode_and_no_kernels_compile_nothing():
 
 def test_only_what_is_called_from_outside_the_kernels_is_an_entry_point():
     """The stages' kernels are compiled into the one call (kernels.KERNEL_HELPERS), not as
-    entry points of their own; every entry point is one of hapticd.physics.kernels' functions."""
+    entry points of their own; every entry point is a function of hapticd.physics.kernels
+    or hapticd.allocation.kernels."""
     assert set(jit.SIGNATURES) == {"tick_step", "allocation_step", "allocate_grasps", "safety_step"}
     for name in ("world_planes", "contact_step", "friction_step", "forces_step", "free_body_step"):
         assert name in kernels.KERNEL_HELPERS and name not in jit.SIGNATURES
@@ -75,7 +77,7 @@ def test_the_lift_renders_with_compiled_kernels_unless_python_is_asked():
     assert s.renderer.kernels == {}
     # The same functions, uncompiled.
     assert s.renderer.one_call._fn is kernels.uncompiled("tick_step")
-    assert s.renderer.allocator.kernel is kernels.uncompiled("allocation_step")
+    assert s.renderer.allocator.kernel is allocation_kernels.uncompiled("allocation_step")
     s.run()
 
 

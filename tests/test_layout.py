@@ -10,6 +10,9 @@ hapticd_drivers) is one category as a whole:
 - view: ``hapticd view``, a separate process and a client of the daemon: the client
   modules, the standard library and the WebSocket library; nothing the daemon loads;
 - drivers: the device layer; nothing of hapticd.
+
+Across those, the packages are layered (LAYERS): a module imports only its own layer's and
+lower layers' modules, anywhere in its source (function-local imports too).
 """
 
 from __future__ import annotations
@@ -34,10 +37,8 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.loop.pulse",
         "hapticd.loop.trajectory",
         "hapticd.physics",
-        "hapticd.physics.actuation",
         "hapticd.physics.dynamics",
         "hapticd.physics.frame",
-        "hapticd.physics.grasp",
         "hapticd.physics.kernels",
         "hapticd.physics.passivity",
         "hapticd.physics.render",
@@ -352,6 +353,53 @@ def test_an_experiment_script_loads_no_numpy_pydantic_or_yaml():
     assert out.stdout.split() == ["False", "False", "False"], out.stdout + out.stderr
 
 
+# The packages from the lowest layer up (docs/architecture.md, "Layers"): a module may
+# import modules of its own layer and of the layers below, never of a layer above. A name
+# ending in ".*" is a whole package, any other one module.
+LAYERS: list[set[str]] = [
+    # the device layer, and the client: the parameters' and events' specs, the protocol
+    {"hapticd_drivers.*", "hapticd", "hapticd.params", "hapticd.events", "hapticd.protocol",
+     "hapticd.control"},
+    {"hapticd.allocation.*", "hapticd.psychophysics"},  # the math: G, M_a, allocators
+    {"hapticd.physics.*"},  # the tick's physics, which allocates with hapticd.allocation
+    {"hapticd.recording.*"},  # the frame's records on disk
+    {"hapticd.loop.*"},  # the servo loop: devices, physics, recording
+    {"hapticd.profile", "hapticd.plot"},  # the profile's schema; figures of recordings
+    {"hapticd.daemon.*"},  # the service built from a profile
+    {"hapticd.analysis.*", "hapticd.experiment.*", "hapticd.view.*"},  # what runs on it
+    {"hapticd.cli.*"},  # the command line
+    {"hapticd.__main__"},
+]  # fmt: skip
+
+
+def _layer(module: str) -> int | None:
+    """The index in LAYERS of ``module``'s layer (None: none)."""
+    for i, patterns in enumerate(LAYERS):
+        for p in patterns:
+            package = p[:-2] if p.endswith(".*") else None
+            if module == p or (package and (module == package or module.startswith(package + "."))):
+                return i
+    return None
+
+
+def test_every_module_is_in_a_layer():
+    assert not [m for m in MODULES if _layer(m) is None]
+    stale = [p for ps in LAYERS for p in ps if not p.endswith(".*") and p not in MODULES]
+    assert not stale, stale
+
+
+def test_no_module_imports_a_higher_layer():
+    """Physics imports allocation, never the reverse; the loop imports physics, the daemon
+    the loop, and so on up (LAYERS)."""
+    wrong = []
+    for module in sorted(MODULES):
+        mine = _layer(module) or 0
+        up = sorted(n for n in _imports(module) & MODULES.keys() if (_layer(n) or 0) > mine)
+        if up:
+            wrong.append(f"{module} (layer {mine}: {sorted(LAYERS[mine])}) imports {up}")
+    assert not wrong, "\n".join(wrong)
+
+
 # Import cycles kept on purpose: frozenset of the cycle's modules -> why it is harmless.
 # Empty: a cycle means two modules each need the other, so what they share belongs in
 # one of them (or in a third that both import).
@@ -433,3 +481,30 @@ def test_no_import_cycles():
         [f"import cycle: {' -> '.join(c)}" for c in found]
         + [f"ALLOWED_CYCLES names {c}, which is no longer a cycle" for c in stale]
     )
+
+
+def test_no_test_finds_our_code_by_the_clones_folder_name():
+    """A test that tells hapticd's code from its own by a path pattern naming the package's
+    folder (``*/hapticd/*``) also matches the tests themselves in a clone named ``hapticd``,
+    the name every user gives it; the packages' own folders (conftest.our_code_filters)
+    hold wherever the clone lives."""
+    import fnmatch
+    import re
+
+    from tests.conftest import our_code_filters
+
+    found = [
+        f"{path.name}:{n}"
+        for path in sorted((ROOT / "tests").glob("*.py"))
+        for n, line in enumerate(path.read_text().splitlines(), 1)
+        if re.search(r"""["']\*/(hapticd|drivers)/""", line)
+    ]
+    assert not found, found
+    patterns = [f.filename_pattern for f in our_code_filters()]
+    import hapticd_drivers.base
+
+    import hapticd.physics.kernels
+
+    for mod in (hapticd.physics.kernels, hapticd_drivers.base):
+        assert any(fnmatch.fnmatch(mod.__file__, p) for p in patterns), (mod.__file__, patterns)
+    assert not any(fnmatch.fnmatch(__file__, p) for p in patterns), (__file__, patterns)

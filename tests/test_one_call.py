@@ -15,17 +15,17 @@ import copy
 import numpy as np
 import pytest
 
+from hapticd.allocation.actuation import Actuation
 from hapticd.allocation.robust import AllocationError
 from hapticd.daemon.build import build_renderer, load_trajectories
 from hapticd.physics import jit
 from hapticd.physics import kernels as kn
-from hapticd.physics.actuation import Actuation
 from hapticd.physics.frame import FIELDS, Frame
 from hapticd.physics.passivity import PassivityParams
 from hapticd.physics.render import Renderer
 from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject, Surface
 from hapticd.profile import load_profile
-from tests.conftest import ROOT
+from tests.conftest import ROOT, our_code_filters
 
 COMPARED = [f.name for f in FIELDS if f.name not in ("t", "t_wall", "compute_s", "tick")]
 
@@ -472,7 +472,7 @@ def test_the_call_with_the_safety_chain_allocates_nothing_a_tick(n_fingers, comp
         after = tracemalloc.take_snapshot()
     finally:
         tracemalloc.stop()
-    ours = [tracemalloc.Filter(True, "*/hapticd/*")]
+    ours = our_code_filters()[:1]
     grown = [
         d
         for d in after.filter_traces(ours).compare_to(before.filter_traces(ours), "lineno")

@@ -253,7 +253,17 @@ def test_every_parameter_is_settable_live_within_its_range_only(served, spec):
     session, sock = served
     with ControlClient(sock) as c:
         before = c.get(spec.name)
+        cap = session.profile.safety.max_force_n
         for value in good_values(spec, before):
+            if spec.name == "force_limit_n" and value > cap:
+                # In the spec's range, but above the profile's limit: refused, unchanged.
+                now = c.get(spec.name)
+                with pytest.raises(ProtocolError) as exc:
+                    c.set(spec.name, value)
+                assert exc.value.code == "rejected"
+                assert f"{value:g}" in str(exc.value) and f"max_force_n {cap:g}" in str(exc.value)
+                assert c.get(spec.name) == now
+                continue
             tick = c.set(spec.name, value)["applied_at_tick"]
             assert tick > 0
             assert c.get(spec.name) == expected(session, spec, value), value
@@ -329,3 +339,94 @@ def test_a_huge_json_integer_is_a_bad_value_not_an_overflow(value):
         PARAMS["stiffness_n_per_m"].check(value)
     with pytest.raises(ParamError, match="finite number"):
         PARAMS["actuated_directions"].check([[[value, 0, 0]], [[0, 0, 1]]])
+
+
+@pytest.mark.parametrize("depth", [8, 1000, 20000])
+def test_a_value_nested_deeper_than_a_request_may_is_a_bad_value(depth):
+    """Directions given as text (the command line, the view's form) nested deeper than a
+    request may hold: ParamError `bad_value` naming the limit, whatever the depth (before:
+    deep enough raised RecursionError out of the parser)."""
+    spec = params.lookup("actuation")
+    with pytest.raises(ParamError) as caught:
+        spec.parse("[" * depth + "]" * depth)
+    assert caught.value.code == "bad_value"
+    assert f"nested at most {params.VALUE_DEPTH}" in str(caught.value)
+    ok = spec.parse("[[[0, 0, 1]], [[0, 0, 1]]]")
+    assert spec.check(ok) == [[(0.0, 0.0, 1.0)], [(0.0, 0.0, 1.0)]]
+
+
+# -- a change that fails changes nothing ------------------------------------------------------
+
+LIFT_PROFILE = ROOT / "configs" / "lift-weight.yaml"
+
+
+@pytest.fixture
+def lift_loop():
+    """The loop of a lift session (a free object), not running: changes applied by hand."""
+    from hapticd.profile import load_profile
+
+    return build_session(load_profile(LIFT_PROFILE, IN_PROCESS), paced=False).loop
+
+
+def _renderer_state(loop) -> tuple:
+    r = loop.renderer
+    return (r.obj.mass, r.obj.material, r.method, r.actuation.local, r.stage_names, r.one_call)
+
+
+def test_a_mass_below_the_lightest_is_refused_naming_the_range():
+    with pytest.raises(ParamError) as exc:
+        PARAMS["mass_kg"].check(5e-324)
+    assert exc.value.code == "out_of_range"
+    msg = str(exc.value)
+    assert "mass_kg" in msg and f"[{params.MIN_MASS_KG:g}, 10] kg" in msg, msg
+
+
+def test_a_mass_the_step_cannot_integrate_is_refused_and_changes_nothing(lift_loop):
+    from hapticd.loop.commands import SetParam
+
+    loop = lift_loop
+    before = _renderer_state(loop)
+    # Past the spec (a command built by hand): the renderer refuses it itself.
+    done = loop.submit(SetParam("mass_kg", 5e-324))
+    loop._apply_inbox(1, 0.001)
+    assert done.error is not None and "mass_kg" in done.error and "substeps" in done.error
+    assert "at least" in done.error, done.error
+    assert _renderer_state(loop) == before
+    assert loop.safety.fault is None
+    # Damping at the top of its range is too much for this light object: refused, naming the
+    # lightest mass the step integrates with it; a heavier object then takes it.
+    with pytest.raises(ValueError, match=r"damping_n_s_per_m 1000.* at least [0-9.]+ kg"):
+        loop.set_param("damping_n_s_per_m", 1000.0)
+    assert _renderer_state(loop) == before
+    loop.set_param("mass_kg", 1.0)
+    loop.set_param("damping_n_s_per_m", 1000.0)
+    assert loop.renderer.obj.material.damping == 1000.0
+    # The lightest mass in the range integrates at the profile's stiffness and damping.
+    loop.set_param("damping_n_s_per_m", before[1].damping)
+    loop.set_param("mass_kg", params.MIN_MASS_KG)
+    assert loop.renderer.obj.mass == params.MIN_MASS_KG
+
+
+def test_a_change_that_raises_midway_leaves_everything_as_before(lift_loop, monkeypatch):
+    from hapticd.loop.commands import SetParam
+    from hapticd.physics import stages
+
+    loop = lift_loop
+    before = _renderer_state(loop)
+
+    def singular(self):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    import numpy as np
+
+    monkeypatch.setattr(stages.Dynamics, "arrays", singular)
+    done = loop.submit(SetParam("mass_kg", 0.5))
+    loop._apply_inbox(1, 0.001)
+    assert done.error is not None and "mass_kg" in done.error and "nothing changed" in done.error
+    assert loop.renderer.obj.mass == before[0]
+    assert loop.renderer.stage_names == before[4]
+    monkeypatch.undo()
+    # The loop runs on with the old values: a tick binds and renders without a fault.
+    loop.renderer.run(loop.frame, loop.safety)
+    assert loop.safety.fault is None
+    assert np.isfinite(loop.frame.device_force).all()

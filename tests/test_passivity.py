@@ -9,13 +9,13 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
+from hapticd.allocation.actuation import Actuation
 from hapticd.analysis import Pipeline, examples
 from hapticd.cli import format_status
 from hapticd.daemon.build import build_renderer
 from hapticd.daemon.session import build_session
 from hapticd.daemon.summary import status
 from hapticd.physics import kernels
-from hapticd.physics.actuation import Actuation
 from hapticd.physics.passivity import PassivityParams, authority, control, observe
 from hapticd.physics.render import Renderer
 from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject

@@ -302,3 +302,33 @@ def test_a_contribution_left_in_the_frame_by_another_renderer_is_not_summed(stal
     assert not frame.in_contact.any()
     np.testing.assert_array_equal(frame.rendered_force, 0.0)
     np.testing.assert_array_equal(getattr(frame, stale), 0.0)
+
+
+@pytest.mark.parametrize("path", EXPERIMENTS, ids=lambda p: p.stem)
+def test_experiment_plan_prints_a_plan_for_every_bundled_experiment(path, capsys):
+    import csv
+    import io
+
+    from hapticd.cli import main
+    from hapticd.experiment import load_experiment, make_plan
+
+    exp = load_experiment(path)
+    assert main(["experiment", "plan", str(path), "--subject", "s1"]) == 0
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err
+    rows = list(csv.DictReader(io.StringIO(out)))
+    if exp.adaptive is None:
+        assert len(rows) == len(make_plan(exp, exp.subject_seed("s1")))
+        return
+    # Adaptive: one row per track, in the store's block order, each at most max_trials long.
+    assert [int(r["block"]) for r in rows] == list(range(exp.n_blocks))
+    assert sum(int(r["max_trials"]) for r in rows) == exp.n_blocks * exp.trials_per_block
+    assert {r["condition"] for r in rows} == {c.name for c in exp.conditions}
+    assert {float(r["standard"]) for r in rows} == set(exp.varied.standards)
+    for r in rows:
+        first, standard = float(r["first_comparison"]), float(r["standard"])
+        assert first > 0
+        if r["side"] == "above":
+            assert first > standard
+        elif r["side"] == "below":
+            assert first < standard

@@ -71,3 +71,26 @@ def test_a_required_setting_that_fails_latches_a_fault_at_tick_zero():
     assert "real time is required" in out["fault"]["cause"]
     for dev in s.devices:
         assert not dev.enabled
+
+
+@pytest.mark.parametrize("command", ["check", "run"])
+def test_a_cpu_this_process_may_not_run_on_is_refused_by_check_and_run(command, capsys):
+    from hapticd.cli import EXIT_BAD_INPUT, main
+
+    cpu = os.cpu_count() or 1  # CPUs count from 0: this one is beyond the last
+    assume_ok = cpu <= 4095 and cpu not in os.sched_getaffinity(0)
+    if not assume_ok:
+        pytest.skip(f"CPU {cpu} is usable here")
+    extra = ["--unpaced", "--duration", "0.01", "--no-socket", "-q"] if command == "run" else []
+    argv = [command, str(GRASP_PROFILE), "--set", f"loop.realtime.cpu={cpu}", *extra]
+    assert main(argv) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    line = next(ln for ln in err.splitlines() if "loop.realtime.cpu" in ln)
+    available = str(sorted(os.sched_getaffinity(0)))
+    assert f"CPU {cpu}" in line and available in line, err
+
+
+def test_a_cpu_this_process_may_run_on_is_accepted():
+    cpu = min(os.sched_getaffinity(0))
+    profile = load_profile(GRASP_PROFILE, [f"loop.realtime.cpu={cpu}"])
+    assert profile.loop.realtime.cpu == cpu

@@ -25,7 +25,7 @@ from hapticd.control import ControlClient
 from hapticd.experiment import load_experiment, make_plan
 from hapticd.experiment import runner as rn
 from hapticd.experiment.store import StoreError, TrialStore
-from tests.conftest import GRASP_PROFILE, ROOT, wait_for
+from tests.conftest import GRASP_PROFILE, ROOT, fill_every_place, wait_for
 
 # The periodic grasp: both fingers from 4.5 cm out to 2 cm of the cube's centre (it is
 # 5 cm wide, fingertips 8 mm: contact inside 3.3 cm), held, and back; one cycle a PERIOD_S.
@@ -34,15 +34,16 @@ OUT_M, IN_M = 0.045, 0.020
 TIMES = (0.1, 0.2, 0.1, 0.1)  # in, hold, out, rest (s)
 
 
-def periodic_grasp(path: Path, cycles: int, *, button_at: float | None = None) -> Path:
+def periodic_grasp(path: Path, cycles: int, *, button_at: float | None = None, times=TIMES) -> Path:
     """A two-finger trajectory of ``cycles`` grasps and releases (sampled at 200 Hz);
     with ``button_at`` (s into each cycle, while released) button 0 of the index finger
-    is down for 0.1 s once per cycle."""
+    is down for 0.1 s once per cycle. ``times``: in, hold, out, rest (s)."""
     rate = 200.0
-    n = int(cycles * PERIOD_S * rate) + 1
+    period = sum(times)
+    n = int(cycles * period * rate) + 1
     t = np.arange(n) / rate
-    phase = np.mod(t, PERIOD_S)
-    a, b, c, _ = TIMES
+    phase = np.mod(t, period)
+    a, b, c, _ = times
     s = np.clip(phase / a, 0, 1)
     s = np.where(
         phase < a, s, np.where(phase < a + b, 1.0, 1.0 - np.clip((phase - a - b) / c, 0, 1))
@@ -567,26 +568,39 @@ def test_no_answer_in_time_stops_the_run_with_the_trial_incomplete(tmp_path, dae
     assert_base_profile(sock, err)  # a failed run too
 
 
-def test_ctrl_c_mid_trial_puts_the_daemon_back_at_the_base_profile(tmp_path, daemons):
-    profile, exp_path = setup_files(tmp_path, one_condition=True)  # pinv, not the profile's if
+def test_ctrl_c_sigterm_and_sighup_mid_trial_put_the_daemon_back(tmp_path, daemons):
+    """Ctrl-C while the question is up, then (resumed) SIGTERM while an interval is
+    recorded, then SIGHUP (a closed terminal) at the question: each run ends the same way,
+    the recording closed, the prompt withdrawn, the lease gone, the parameters the base
+    profile's (pinv, not the profile's if), the trial stored incomplete."""
+    profile, exp_path = setup_files(tmp_path, one_condition=True)
     sock = tmp_path / "d.sock"
     daemons(profile, sock)
     db = tmp_path / "t.db"
-    proc = runner(exp_path, db, sock, interruptible=True)
 
-    def asked() -> bool:
+    def status() -> dict:
         with ControlClient(sock) as c:
-            return c.status()["prompt"] is not None
+            return c.status()
 
-    wait_for(asked, "the first question", timeout_s=60)
-    proc.send_signal(signal.SIGINT)
-    # Its cleanup talks to the daemon: the trial's recording, the prompt, the base
-    # profile's values. (It once seemed to take over a minute: the suite ran as a
-    # background job, and the runner ignored SIGINT until the daemon's run ended.)
-    code, _, err = finish(proc, timeout_s=60)
-    assert code == 130, err
-    assert [r["status"] for r in rows(db)] == ["incomplete"]
-    assert_base_profile(sock, err)
+    ends = (
+        (signal.SIGINT, (), "prompt", "Ctrl-C"),
+        (signal.SIGTERM, ("--resume",), "recording", "SIGTERM"),
+        (signal.SIGHUP, ("--resume",), "prompt", "SIGHUP"),
+    )
+    for sig, extra, state, name in ends:
+        proc = runner(exp_path, db, sock, *extra, interruptible=sig == signal.SIGINT)
+        wait_for(lambda state=state: status()[state] is not None, state, timeout_s=60)
+        proc.send_signal(sig)
+        # Its cleanup talks to the daemon: the trial's recording, the prompt, the base
+        # profile's values. (It once seemed to take over a minute: the suite ran as a
+        # background job, and the runner ignored SIGINT until the daemon's run ended.)
+        code, _, err = finish(proc, timeout_s=60)
+        assert code == 128 + sig, err
+        assert f"interrupted ({name})" in err and "Traceback" not in err
+        st = status()
+        assert st["prompt"] is None and st["recording"] is None and st["lease"] is None
+        assert_base_profile(sock, err)
+    assert [r["status"] for r in rows(db)] == ["incomplete"] * 3
 
 
 def assert_base_profile(sock: Path, err: str) -> None:
@@ -685,8 +699,10 @@ def test_a_refused_parameter_and_a_daemon_not_ready_for_the_experiment(live, tmp
         p = rn.PersonPresenter(c, subject="s1", out=out)
         with pytest.raises(rn.RunnerError, match=r"is recording to .*live.hrec.*stop it"):
             p.check_daemon(exp, "grasp-stiffness")
-        with pytest.raises(rn.RunnerError, match=r"runs profile .grasp-stiffness.*start hapticd"):
+        # Which profile to pass: the daemon's own file (its cwd is not the runner's).
+        with pytest.raises(rn.RunnerError, match=r"runs profile .grasp-stiffness") as info:
             p.check_daemon(exp, "lift-weight")
+        assert f"pass --profile {GRASP_PROFILE}" in str(info.value)
         # Two directions per finger where the running profile has one: the daemon refuses.
         two = [[[0.8660254, 0.0, 0.5], [0.0, 1.0, 0.0]], [[-0.8660254, 0.0, 0.5], [0.0, 1.0, 0.0]]]
         with pytest.raises(rn.RunnerError, match="the daemon refused actuated_directions"):
@@ -801,15 +817,11 @@ def test_keys_on_a_terminal_need_no_enter_and_the_terminal_is_restored():
 
 
 def test_a_busy_daemon_is_a_clear_error_before_any_trial(idle_server):
-    """Every place of the daemon held by a subscriber: the runner says it cannot reach the
+    """Every place of the daemon held: the runner says it cannot reach the
     daemon because it is busy (a protocol error from the daemon, not a traceback)."""
     exp = load_experiment(STIFFNESS)
-    clients = [
-        ControlClient(idle_server.path, timeout_s=2.0) for _ in range(idle_server.max_clients)
-    ]
+    clients = fill_every_place(idle_server)
     try:
-        for c in clients:
-            c.events_subscribe()
         with (
             pytest.raises(rn.RunnerError, match=r"cannot reach the daemon: .*busy"),
             rn.person_observer(exp, "s1", rn.RunOptions(socket=idle_server.path)),
@@ -818,3 +830,56 @@ def test_a_busy_daemon_is_a_clear_error_before_any_trial(idle_server):
     finally:
         for c in clients:
             c.close()
+
+
+def test_one_experiment_at_a_time_the_lease_names_its_holder_and_ends_with_it(idle_server):
+    """A runner holds the daemon: another runner (any subject) is refused at start, named
+    the holder and changing nothing; other clients' trial changes are refused, disable
+    and stop never are; the lease (and its prompt) ends when its connection closes."""
+    import os
+
+    exp = load_experiment(STIFFNESS)
+    path = idle_server.path
+    with ControlClient(path) as other:
+        holder = ControlClient(path)
+        try:
+            assert holder.lease("s1") == {"holder": {"subject": "s1", "pid": os.getpid()}}
+            holder.prompt(3, "Was the second stiffer?", ["no", "yes"])
+            assert other.status()["lease"] == {"subject": "s1", "pid": os.getpid()}
+            with (
+                pytest.raises(rn.RunnerError, match=rf"subject 's1' \(process {os.getpid()}\)"),
+                rn.person_observer(exp, "s2", rn.RunOptions(socket=path)),
+            ):
+                pytest.fail("a second runner on a held daemon")
+            for cmd, args in (
+                ("set", {"param": "stiffness_n_per_m", "value": 30.0}),
+                ("prompt", {"prompt": None}),
+                ("record_start", {"path": "x.hrec"}),
+                ("reload", {}),
+            ):
+                assert other.request(cmd, **args)["error"]["code"] == "leased", cmd
+            assert other.status()["prompt"]["id"] == 3  # nothing changed
+            # Forces off and the subject's answer are never held up by the lease.
+            assert other.request("disable").get("error", {}).get("code") != "leased"
+            other.respond(3, "yes")
+            assert holder.release() == {"released": True}
+            assert other.lease("s2")["holder"]["subject"] == "s2"
+            assert other.release() == {"released": True}
+            holder.lease("s1")
+            holder.prompt(4, "Was the second stiffer?", ["no", "yes"])
+        finally:
+            holder.close()  # a runner killed with its prompt up
+        wait_for(lambda: other.status()["lease"] is None, "the lease to end", timeout_s=5)
+        assert other.status()["prompt"] is None
+        assert other.request("lease", subject="s2")["ok"]
+
+
+def test_a_design_runs_on_another_base_profile(tmp_path, capsys):
+    from hapticd.cli import main
+
+    rig = ROOT / "configs" / "rehearse-grasp.yaml"
+    assert main(["experiment", "check", str(STIFFNESS), "--profile", str(rig)]) == 0
+    assert f"({rig})" in capsys.readouterr().out
+    weight = ROOT / "configs" / "experiments" / "weight-jnd.yaml"
+    assert main(["experiment", "check", str(weight), "--profile", str(GRASP_PROFILE)]) == 2
+    assert "mass_kg on a fixed object" in capsys.readouterr().err

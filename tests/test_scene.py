@@ -12,10 +12,10 @@ from hypothesis.extra.numpy import arrays
 
 from hapticd import recording
 from hapticd.allocation import Robustness
+from hapticd.allocation.actuation import Actuation
 from hapticd.cli import main
 from hapticd.daemon.build import build_scene
 from hapticd.physics import jit
-from hapticd.physics.actuation import Actuation
 from hapticd.physics.render import Renderer
 from hapticd.profile import ProfileError, parse_profile
 from tests.conftest import ROOT

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import configparser
 import grp
+import json
 import os
 import shlex
 import shutil
@@ -65,7 +66,12 @@ def test_the_unit_runs_this_install_on_the_profile_as_the_user_for_the_group(tmp
     assert (svc["RuntimeDirectory"], svc["RuntimeDirectoryMode"]) == ("hapticd", "0750")
     assert (svc["StateDirectory"], svc["StateDirectoryMode"]) == ("hapticd", "0750")
     assert svc["LimitRTPRIO"] == "99" and svc["LimitMEMLOCK"] == "infinity"
-    assert svc["Restart"] == "on-abnormal"  # not after a latched fault (exit 3)
+    # A crash (exit 1 after a traceback) restarts; a clean stop, a bad profile (2) and a
+    # latched fault (3) do not; a daemon failing at once is not restarted forever.
+    assert svc["Restart"] == "on-failure" and svc["RestartPreventExitStatus"] == "2 3"
+    unit = _parse(text)["Unit"]
+    assert int(unit["StartLimitBurst"]) >= 1 and int(unit["StartLimitIntervalSec"]) > 0
+    assert "LD_LIBRARY_PATH" not in text  # the rehearsal's devices need no SDK
     assert "RestrictRealtime" not in svc  # it would forbid SCHED_FIFO
     assert _parse(text)["Install"]["WantedBy"] == "multi-user.target"
     # The command it runs is the one that works: its own help, here.
@@ -114,7 +120,8 @@ def test_the_units_command_serves_the_group_where_systemd_would_put_it(tmp_path)
     assert code == 0
     command = shlex.split(_parse(text)["Service"]["ExecStart"])
     run, state = tmp_path / "run" / "hapticd", tmp_path / "state"
-    run.mkdir(parents=True, mode=0o755)  # as RuntimeDirectoryMode= would not leave it
+    run.mkdir(parents=True)
+    run.chmod(0o750)  # as RuntimeDirectory= and its Mode= leave it: of User= and Group=
     state.mkdir()
     env = {**os.environ, "RUNTIME_DIRECTORY": str(run), "STATE_DIRECTORY": str(state)}
     env.pop("HAPTICD_SOCKET", None)
@@ -164,6 +171,186 @@ def test_a_unit_for_a_profile_that_does_not_validate_is_refused(
     assert says in err and "no unit printed" in err and "Traceback" not in err
 
 
+# -- what the unit says, as systemd reads it back --------------------------------------------
+
+C_ESCAPES = {"a": "\a", "b": "\b", "f": "\f", "n": "\n", "r": "\r", "t": "\t", "v": "\v"}
+C_ESCAPES |= {"\\": "\\", '"': '"', "'": "'", "s": " "}
+
+
+def _doubled(value: str, char: str, what: str) -> str:
+    """systemd's pass over ``char`` (``%``: specifiers, the whole line; ``$``: variables, one
+    Exec argument): doubled is literal; any other use would be expanded, so the test fails
+    on it (the unit meant a literal)."""
+    out, i = [], 0
+    while i < len(value):
+        if value[i] == char:
+            assert value[i + 1 : i + 2] == char, f"a {what} systemd would expand: {value!r}"
+            i += 1
+        out.append(value[i])
+        i += 1
+    return "".join(out)
+
+
+def _specifiers(value: str) -> str:
+    return _doubled(value, "%", "specifier")
+
+
+def _exec_words(line: str) -> list[str]:
+    """An Exec line's arguments as systemd.service's "Command lines" reads them: specifiers,
+    then words split on blanks, each bare or quoted ("..." or '...') with C escapes, then
+    each word's variables."""
+    line = _specifiers(line)
+    words, i = [], 0
+    while i < len(line):
+        if line[i] in " \t":
+            i += 1
+            continue
+        word: list[str] = []
+        quote = None
+        while i < len(line) and (quote is not None or line[i] not in " \t"):
+            c = line[i]
+            if c == "\\":
+                esc = line[i + 1]
+                assert esc in C_ESCAPES, f"an escape this parser does not know: {line!r}"
+                word.append(C_ESCAPES[esc])
+                i += 2
+                continue
+            if quote is None and c in "\"'" and not word:
+                quote = c
+            elif c == quote:
+                quote = None
+                assert i + 1 == len(line) or line[i + 1] in " \t", f"text after a quote: {line!r}"
+            else:
+                word.append(c)
+            i += 1
+        assert quote is None, f"an unclosed quote: {line!r}"
+        words.append(_doubled("".join(word), "$", "variable"))
+    return words
+
+
+def _odd_profile(tmp_path: Path, folder: str, name: str) -> Path:
+    d = tmp_path / folder
+    d.mkdir()
+    path = d / "rig.yaml"
+    path.write_text(
+        REHEARSE.read_text().replace("name: grasp-stiffness", f"name: {json.dumps(name)}", 1)
+    )
+    return path
+
+
+def test_the_test_parser_reads_systemds_quoting():
+    assert _exec_words(r'/bin/x "a b" c\sd "q\"x" "$$HOME" %%h') == [
+        "/bin/x",
+        "a b",
+        "c d",
+        'q"x',
+        "$HOME",
+        "%h",
+    ]
+    with pytest.raises(AssertionError, match="specifier"):
+        _exec_words("/bin/x %h")
+    with pytest.raises(AssertionError, match="variable"):
+        _exec_words("/bin/x $HOME")
+
+
+@pytest.mark.parametrize(
+    ("folder", "name"),
+    [
+        ('100% $HOME ${USER} "it\'s" \\back', "rig 100% $USER"),
+        ("plain", "%n %% $$ ; \\ \" '"),
+    ],
+)
+def test_percent_dollar_quotes_and_spaces_reach_systemd_literally(tmp_path, folder, name):
+    profile = _odd_profile(tmp_path, folder, name)
+    code, text = _unit(tmp_path, "--profile", str(profile))
+    assert code == 0
+    svc = _parse(text)["Service"]
+    assert _exec_words(svc["ExecStart"]) == [
+        *hapticd_command(),
+        "run",
+        str(profile),
+        "--socket-group",
+        "hapticd",
+    ]
+    unit = _parse(text)["Unit"]
+    assert _specifiers(unit["Description"]) == f"hapticd haptic rendering daemon ({name})"
+    # The reload still signals the main process: $MAINPID is the one variable meant.
+    assert svc["ExecReload"].endswith(" -HUP $MAINPID")
+    if "Documentation" in unit:
+        assert " " not in _specifiers(unit["Documentation"])  # one URL, not a list
+
+
+@pytest.mark.parametrize("char", ["\n", "\r", "\t", "\x00", "\x1b", "\x7f", "\x85", "\x9b"])
+def test_a_profile_name_with_a_control_character_is_refused(tmp_path, capsys, char):
+    name = f"rig{char}[Service]{char}ExecStartPre=+/usr/bin/touch /tmp/owned"
+    profile = _odd_profile(tmp_path, "p", name)
+    code, text = _unit(tmp_path, "--profile", str(profile))
+    assert code == 2 and text == ""
+    err = capsys.readouterr().err
+    assert "the profile's name" in err and "'name'" in err and str(profile) in err
+    assert "control character" in err and "Traceback" not in err
+
+
+def test_a_profile_path_with_a_newline_is_refused(tmp_path, capsys):
+    profile = _odd_profile(tmp_path, "x\n[Service]\nExecStartPre=+touch owned\n", "rig")
+    code, text = _unit(tmp_path, "--profile", str(profile))
+    assert code == 2 and text == ""
+    err = capsys.readouterr().err
+    assert "the profile's path (--profile)" in err and "control character" in err
+
+
+def test_the_unit_text_refuses_control_characters_in_every_value():
+    from hapticd.cli.service import unit_text
+
+    good = dict(name="rig", user="u", group="g", docs=None, kill="/bin/kill")
+    unit_text(["/opt/h"], Path("/etc/p.yaml"), **good)  # type: ignore[arg-type]
+    cases = [
+        (["/opt/h\n"], Path("/p"), {}, "hapticd command"),
+        (["/opt/h"], Path("/p"), {"kill": "/bin/kill\nX=1"}, "kill"),
+        (["/opt/h"], Path("/p"), {"user": "u\x85"}, "--user"),
+        (["/opt/h"], Path("/p"), {"group": "g\t"}, "--group"),
+        (["/opt/h"], Path("/p"), {"docs": Path("/d\n.md")}, "docs"),
+    ]
+    for command, profile, change, source in cases:
+        with pytest.raises(ValueError, match="control character") as got:
+            unit_text(command, profile, **{**good, **change})  # type: ignore[arg-type]
+        assert source in str(got.value)
+
+
+def test_out_never_follows_a_symbolic_link_planted_there(tmp_path, capsys):
+    precious = tmp_path / "shadow"
+    precious.write_text("root:secret\n")
+    planted = tmp_path / "hapticd.service"
+    planted.symlink_to(precious)
+    code = main(["service", "unit", "--profile", str(REHEARSE), "--out", str(planted)])
+    assert code == 2
+    assert precious.read_text() == "root:secret\n"
+    assert planted.is_symlink()
+    err = capsys.readouterr().err
+    assert str(planted) in err and "symbolic link" in err and "Traceback" not in err
+    # A dangling link is not followed either: nothing is created where it points.
+    dangling = tmp_path / "other.service"
+    dangling.symlink_to(tmp_path / "made-through-the-link")
+    assert main(["service", "unit", "--profile", str(REHEARSE), "--out", str(dangling)]) == 2
+    assert not (tmp_path / "made-through-the-link").exists()
+
+
+def test_out_replaces_a_unit_of_this_user_whole(tmp_path):
+    out = tmp_path / "hapticd.service"
+    out.write_text("stale line\n" * 10_000)
+    assert main(["service", "unit", "--profile", str(REHEARSE), "--out", str(out)]) == 0
+    text = out.read_text()
+    assert text.startswith("# hapticd as a systemd service") and "stale line" not in text
+    assert stat.S_IMODE(os.lstat(out).st_mode) == 0o644 & ~_umask()
+    assert [p.name for p in tmp_path.iterdir()] == ["hapticd.service"]  # no temp file left
+
+
+def _umask() -> int:
+    old = os.umask(0o22)
+    os.umask(old)
+    return old
+
+
 # -- the socket shared with a group -------------------------------------------------------
 
 
@@ -208,15 +395,32 @@ def test_the_users_own_directory_shared_with_a_group_still_serves_the_user(tmp_p
         check_socket_dir(path)
 
 
-def test_a_shared_directory_open_to_others_is_closed_to_them(tmp_path):
-    """systemd or a person may have made it 0777: the daemon owns it, so it sets it to
-    0750 for its group before the socket goes in."""
+@pytest.mark.parametrize("mode", [0o700, 0o755, 0o777])
+def test_a_directory_that_existed_before_is_never_repermissioned(tmp_path, mode):
+    """A directory hapticd did not make (a home directory, root's 0700 one) is not
+    opened to the group for good: refused, its mode and group as they were."""
+    d = tmp_path / "existing"
+    d.mkdir()
+    d.chmod(mode)
+    before = os.lstat(d)
+    with pytest.raises(UnsafeSocketDirError, match="existed before") as got:
+        check_socket_dir(d / "control.sock", create=True, group=os.getgid())
+    assert "chmod 750" in str(got.value) and "--socket" in str(got.value)
+    after = os.lstat(d)
+    assert (after.st_mode, after.st_gid) == (before.st_mode, before.st_gid)
+    assert not (d / "control.sock").exists()
+
+
+def test_an_existing_directory_already_shared_with_the_group_serves_unchanged(tmp_path):
+    """systemd's RuntimeDirectory= (0750, of User= and Group=), or a daemon's before."""
     d = tmp_path / "shared"
     d.mkdir()
-    d.chmod(0o777)
+    d.chmod(0o750)
     server = _server(d / "control.sock", os.getgid())
     try:
         assert stat.S_IMODE(os.lstat(d).st_mode) == 0o750
+        with ControlClient(d / "control.sock") as c:
+            assert c.status()["profile"] == "grasp-stiffness"
     finally:
         server.close()
 
@@ -369,3 +573,31 @@ def test_a_client_refuses_a_service_directory_others_can_write(no_own_socket):
         s.bind(str(no_own_socket))
         with pytest.raises(UnsafeSocketDirError, match="another user could plant a socket"):
             ControlClient()
+
+
+def test_the_unit_carries_the_sdks_library_path_when_the_profile_needs_one(tmp_path, monkeypatch):
+    """A Force Dimension rig: the folder of the library the device key names (a space and
+    a percent in it, read back literally), else of $HAPTICD_LIBDHD, which is passed on."""
+    import yaml
+
+    sdk = tmp_path / "force dimension 100%" / "lib"
+    data = yaml.safe_load((ROOT / "configs" / "rigs" / "two-omega3.yaml").read_text())
+    data["fingers"][0]["device"]["library"] = str(sdk / "libdrd.so.3")
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(yaml.safe_dump(data))
+    monkeypatch.setenv("HAPTICD_LIBDHD", "/opt/fd/lib/libdrd.so")
+    code, text = _unit(tmp_path, "--profile", str(rig))
+    assert code == 0, text
+    env = [line.removeprefix("Environment=") for line in text.splitlines()
+           if line.startswith("Environment=")]  # fmt: skip
+    assert f'"LD_LIBRARY_PATH={str(sdk).replace("%", "%%")}:/opt/fd/lib"' in env
+    assert "HAPTICD_LIBDHD=/opt/fd/lib/libdrd.so" in env
+    analyze = shutil.which("systemd-analyze")
+    if analyze is not None:  # systemd reads it back without a word
+        got = subprocess.run(
+            [analyze, "verify", str(tmp_path / "hapticd.service")],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert got.returncode == 0 and got.stderr.strip() == "", got.stderr

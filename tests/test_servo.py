@@ -11,7 +11,13 @@ from hapticd.daemon.session import build_session
 from hapticd.loop.commands import Enable
 from hapticd.loop.pacing import Pacer
 from hapticd.profile import load_profile
-from tests.conftest import GRASP_PROFILE, IN_PROCESS_WATCHDOG_S, AtTick, wait_for
+from tests.conftest import (
+    GRASP_PROFILE,
+    IN_PROCESS_WATCHDOG_S,
+    AtTick,
+    our_code_filters,
+    wait_for,
+)
 
 
 def session(**kw):
@@ -383,7 +389,7 @@ def test_the_loops_tick_allocates_nothing_it_keeps(tmp_path):
     finally:
         tracemalloc.stop()
     assert summary["fault"] is None and loop.renderer.one_call is not None
-    ours = [tracemalloc.Filter(True, "*/hapticd/*"), tracemalloc.Filter(True, "*/drivers/*")]
+    ours = our_code_filters()
     before, after = snaps["before"].filter_traces(ours), snaps["after"].filter_traces(ours)
     # A block kept per tick would be 700 more at its line. A few come and go: Python keeps
     # freed floats on a free list, still counted at the line that made them, and a counter
@@ -395,3 +401,36 @@ def test_the_loops_tick_allocates_nothing_it_keeps(tmp_path):
         loop.frame.in_contact.all()
         and min(f["contact_ticks"] for f in summary["fingers"].values()) > 700
     )
+
+
+class _VerbsOnly:
+    """A loop that offers any verb (recording each call) and refuses every field write or
+    read of a field's attribute: a command may only call the loop's verbs."""
+
+    def __init__(self) -> None:
+        object.__setattr__(self, "calls", [])
+
+    def __getattr__(self, name: str):
+        return lambda *args: self.calls.append((name, args)) or f"{name} result"
+
+    def __setattr__(self, name: str, value: object) -> None:
+        raise AssertionError(f"a command wrote the loop's field {name}")
+
+
+def test_the_commands_call_the_loops_verbs_and_write_none_of_its_fields():
+    from hapticd.loop.commands import Disable, RecordStart, RecordStop, Reload, SetParam
+
+    recorder, renderer, safety, frame = object(), object(), object(), object()
+    cases = [
+        (Enable(), [("enable", (2.0,))], None),
+        (Disable(), [("disable", ())], None),
+        (RecordStart(recorder), [("start_recording", (recorder,))], None),
+        (RecordStop(), [("stop_recording", ())], "stop_recording result"),
+        (Reload(renderer, safety, "x", frame), [("reload", (renderer, safety, 2.0, frame))], None),
+        (SetParam("object.stiffness_n_per_m", 800.0), [("set_param", (
+            "object.stiffness_n_per_m", 800.0))], None),
+    ]  # fmt: skip
+    for command, calls, result in cases:
+        loop = _VerbsOnly()
+        assert command.apply(loop, 2.0) == result, command
+        assert loop.calls == calls, command

@@ -283,3 +283,24 @@ def test_quest_plus_resumes_exactly_and_estimates_the_observer(tmp_path, capsys)
         assert t["trials"] == 30
         assert 8.1 / 2 < t["jnd"] < 8.1 * 2, t
         assert abs(t["pse"] - 60) < 8, t
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("step", '"0.1"'), ("start", '"0.3"'), ("max_trials", '"10"'), ("stop_reversals", "3.0")],
+)
+def test_a_number_written_as_a_string_or_a_float_count_is_refused_with_its_line(
+    tmp_path, key, value
+):
+    # Quoted YAML is a string: "0.1" must not become a step of 0.1 behind the user's back.
+    text = write_staircase(tmp_path).read_text()
+    lines = text.splitlines()
+    at = next(i for i, ln in enumerate(lines) if ln.strip().startswith(f"{key}:"))
+    lines[at] = lines[at].split(":")[0] + f": {value}"
+    path = tmp_path / "typed.yaml"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ExperimentError) as err:
+        load_experiment(path)
+    msg = str(err.value)
+    line = next(ln for ln in msg.splitlines() if ln.strip().startswith(f"staircase.{key}:"))
+    assert f"(line {at + 1})" in line and value.strip('"') in line, msg

@@ -52,7 +52,7 @@ def test_export_csv_has_one_row_per_complete_trial_with_the_documented_columns(t
     assert main(["experiment", "export", str(db), "--csv", str(out)]) == 0
     assert "8 complete trials" in capsys.readouterr().out
     header, rows = read_csv(out)
-    assert header == list(ex.NAMES)
+    assert header == ex.names()
     assert [int(r["trial"]) for r in rows] == list(range(8))
     for r in rows:
         t = plan[int(r["trial"])]
@@ -87,7 +87,7 @@ def test_the_dataframe_holds_what_the_csv_holds(tmp_path):
     db = tmp_path / "t.db"
     small_store(db)
     frame = ex.trials_frame(db)
-    assert list(frame.columns) == list(ex.NAMES) and len(frame) == 8
+    assert list(frame.columns) == ex.names() and len(frame) == 8
     out = tmp_path / "t.csv"
     ex.write_csv(db, out)
     back = pd.read_csv(out)
@@ -153,3 +153,180 @@ def test_a_damaged_store_is_a_clear_error_naming_it_never_a_traceback(
         text = capsys.readouterr().err
         assert str(db) in text and "Traceback" not in text
     assert db.read_bytes() == before  # reading changed nothing
+
+
+# Damage a writer meets (a resume) and damage a reader reads through ----------------------
+
+RUN = ["--observer", "model", "--standards", "60", "--repetitions", "1", "--no-keys"]
+
+
+def half_run_store(db: Path) -> int:
+    """The store ``experiment run ... RUN --subject s01`` makes, half its trials answered;
+    the number of pages."""
+    from hapticd.experiment import runner as rn
+
+    exp = rn.reduced(load_experiment(STIFFNESS), standards=[60.0], repetitions=1, break_s=None)
+    seed = exp.subject_seed("s01")
+    plan = make_plan(exp, seed)
+    with TrialStore.for_experiment(db, exp) as store:
+        store.ensure_plan("s01", plan, seed)
+        for t in plan[: len(plan) // 2]:
+            store.record(
+                "s01", t, answer_second_more=True, response_time_s=1.0, profile_hash="p",
+                seed=seed, source="key",
+            )  # fmt: skip
+    return _pages(db)
+
+
+def _pages(db: Path) -> int:
+    con = sqlite3.connect(db)
+    try:
+        size = con.execute("PRAGMA page_size").fetchone()[0]
+    finally:
+        con.close()  # the last connection: everything is in the file itself
+    assert not db.with_name(db.name + "-wal").exists()
+    return db.stat().st_size // size
+
+
+def _garble(db: Path, page: int) -> None:
+    """Overwrite page ``page``'s (1-based) cell pointers with junk."""
+    size = db.stat().st_size // _pages(db)
+    data = bytearray(db.read_bytes())
+    start = (page - 1) * size
+    data[start + 8 : start + 64] = b"\xa5" * 56
+    db.write_bytes(bytes(data))
+
+
+def test_a_resume_into_a_store_with_a_garbled_page_is_refused_and_writes_nothing(tmp_path, capsys):
+    db = tmp_path / "t.db"
+    pages = half_run_store(db)
+    _garble(db, pages)  # the trials' last page
+    before = db.read_bytes()
+    run = ["experiment", "run", str(STIFFNESS), "--subject", "s01", "--db", str(db), *RUN]
+    assert main([*run, "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert f"{db}: damaged" in err and "nothing was written" in err and ".recover" in err
+    assert "Traceback" not in err
+    assert db.read_bytes() == before
+    wal = db.with_name(db.name + "-wal")
+    assert not wal.exists() or wal.stat().st_size == 0  # not a trial stored
+    exp = load_experiment(STIFFNESS)
+    with pytest.raises(StoreError, match=r"damaged.*page"):
+        TrialStore.for_experiment(db, exp)
+
+
+@pytest.fixture(scope="module")
+def half_run(tmp_path_factory) -> tuple[bytes, int]:
+    db = tmp_path_factory.mktemp("store") / "t.db"
+    pages = half_run_store(db)
+    return db.read_bytes(), db.stat().st_size // pages
+
+
+def test_random_bytes_in_any_page_give_the_store_error_or_a_resume(half_run, tmp_path_factory):
+    """Bytes anywhere in any page: opening the store and resuming the subject give a
+    StoreError naming the store, or the plan, never another exception."""
+    import tempfile
+
+    from hypothesis import assume, given, settings
+    from hypothesis import strategies as st
+
+    from hapticd.experiment import runner as rn
+
+    good, size = half_run
+    exp = rn.reduced(load_experiment(STIFFNESS), standards=[60.0], repetitions=1, break_s=None)
+    seed = exp.subject_seed("s01")
+    root = tmp_path_factory.mktemp("damaged")
+
+    @settings(max_examples=60, deadline=None)
+    @given(
+        page=st.integers(0, len(good) // size - 1),
+        offset=st.integers(0, size - 1),
+        junk=st.binary(min_size=1, max_size=64),
+    )
+    def check(page: int, offset: int, junk: bytes) -> None:
+        data = bytearray(good)
+        start = page * size + offset
+        end = min(start + len(junk), (page + 1) * size)
+        assume(bytes(data[start:end]) != junk[: end - start])
+        data[start:end] = junk[: end - start]
+        with tempfile.TemporaryDirectory(dir=root) as d:
+            db = Path(d) / "t.db"
+            db.write_bytes(bytes(data))
+            try:
+                with TrialStore.for_experiment(db, exp) as store:
+                    rn.check_start(store, "s01", resume=True)
+                    todo = rn.start_subject(store, exp, "s01", seed, resume=True)
+                    assert all(t.index >= 0 for t in todo)
+                    store.trials(None)
+            except StoreError as exc:
+                assert str(db) in str(exc)
+
+    check()
+
+
+def test_a_garbled_last_page_is_exported_with_a_warning_naming_it(tmp_path, capsys):
+    from hapticd.experiment.store import StoreWarning
+
+    db, out = tmp_path / "t.db", tmp_path / "t.csv"
+    small_store(db, n=120)
+    pages = _pages(db)
+    _garble(db, pages)
+    with pytest.warns(StoreWarning, match=rf"{db}: damaged: .*page {pages}\b") as got:
+        rows = ex.trial_rows(db)
+    assert 0 < len(rows) < 120 and f"read the {len(rows)} readable trials" in str(got[0].message)
+    assert main(["experiment", "export", str(db), "--csv", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert f"hapticd: warning: {db}: damaged" in err and f"page {pages}" in err
+    assert "Traceback" not in err
+    _, written = read_csv(out)
+    assert [r["trial"] for r in written] == [str(r["trial"]) for r in rows]  # the good ones
+    assert main(["experiment", "analyze", str(db)]) == 0
+    assert f"page {pages}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("column", ["comparison", "standard", "response_time_s", "time_unix_s"])
+@pytest.mark.parametrize("value", ["9e999", "-9e999"])
+def test_a_trial_with_an_infinite_number_is_a_clear_error_naming_it(
+    tmp_path, capsys, column, value
+):
+    db = tmp_path / "t.db"
+    small_store(db, n=40)
+    _edit(db, f"UPDATE trials SET {column} = {value} WHERE plan_index = 4")
+    want = rf"trials row \d+ \(subject 's01', trial 4\): {column} holds -?inf, not a finite number"
+    with pytest.raises(StoreError, match=want):
+        open_for_analysis(db)
+    for cmd in (["analyze", str(db)], ["export", str(db), "--csv", str(tmp_path / "o.csv")]):
+        assert main(["experiment", *cmd]) == 2
+        err = capsys.readouterr().err
+        assert f"{db}: damaged: trials row" in err and column in err and "Traceback" not in err
+
+
+def test_a_trial_with_a_standard_of_zero_is_a_clear_error(tmp_path, capsys):
+    db = tmp_path / "t.db"
+    small_store(db, n=40)
+    _edit(db, "UPDATE trials SET standard = 0 WHERE plan_index = 5")
+    with pytest.raises(StoreError, match=r"trial 5\): standard is 0"):
+        open_for_analysis(db)
+    assert main(["experiment", "analyze", str(db)]) == 2
+    assert "standard is 0" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("schema", ["1", "2", "3.0", " 3", "x"])
+def test_a_store_whose_meta_schema_disagrees_with_its_tables_is_refused_unchanged(
+    tmp_path, capsys, schema
+):
+    db = tmp_path / "t.db"
+    small_store(db, n=5)
+    _edit(db, f"UPDATE meta SET value = '{schema}' WHERE key = 'schema'")
+    before = db.read_bytes()
+    want = "meta.schema says" if schema in ("1", "2") else f"schema '{schema}', this hapticd reads"
+    with pytest.raises(StoreError, match=want):
+        TrialStore.for_experiment(db, load_experiment(STIFFNESS))
+    with pytest.raises(StoreError, match=want):
+        open_for_analysis(db)
+    run = ["experiment", "run", str(STIFFNESS), "--subject", "s01", "--db", str(db), *RUN]
+    for cmd in ([*run, "--resume"], ["experiment", "analyze", str(db)]):
+        assert main(cmd) == 2
+        err = capsys.readouterr().err
+        assert str(db) in err and repr(schema) in err and "Traceback" not in err
+    assert db.read_bytes() == before

@@ -321,8 +321,9 @@ def test_the_subjects_socket_reveals_no_condition(daemon, view):
             assert set(data) <= set(SUBJECT_TELEMETRY)
             assert {"object_pos", "object_rot", "proxy_pos", "tick"} <= set(data)
         elif name == "status":
-            assert set(data) == {"fingers", "scene", "prompt"}
+            assert set(data) == {"fingers", "scene", "prompt", "screen"}
             assert set(data["scene"]) == {"bounds_m", "surfaces", "finger_radii_m"}
+            assert data["screen"] is None  # no runner: nothing on the subject's screen
         elif name == "link":
             assert set(data) == {"connected"}
         elif name == "hello":
@@ -365,7 +366,7 @@ def test_the_subjects_capability_opens_only_the_subjects_page(daemon, view):
         assert exc.value.code == 403
     with OPENER.open(f"{v.base}/api/status?key={cap}", timeout=10) as r:
         body = json.loads(r.read())
-    assert set(body["status"] or {}) <= {"fingers", "scene", "prompt"}
+    assert set(body["status"] or {}) <= {"fingers", "scene", "prompt", "screen"}
     assert body["link"] == {"connected": True}
     with ControlClient(daemon) as c:
         assert c.get("stiffness_n_per_m") == 60.0
@@ -454,6 +455,8 @@ def test_control_applies_a_change_through_the_checked_set_command(daemon, view):
             ("stiffness", "stiff", "bad_value"),
             ("stifness", "60", "unknown_param"),
             ("allocator", "magic", "bad_value"),
+            # Nested 20,000 deep: a clear error, not the page handler's RecursionError.
+            ("actuation", "[" * 20000 + "]" * 20000, "bad_value"),
         ):
             reply = reply_to(ws, {"type": "set", "param": param, "value": value})
             assert reply["error"]["code"] == code, (param, value, reply)

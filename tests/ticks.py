@@ -11,8 +11,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from hapticd.allocation.actuation import Actuation
 from hapticd.physics import jit
-from hapticd.physics.actuation import Actuation
 from hapticd.physics.render import Renderer
 from hapticd.physics.scene import Scene
 

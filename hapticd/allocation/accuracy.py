@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hapticd.allocation.closed import V3, _cross, _dot
-from hapticd.physics.grasp import null_space_basis
+from hapticd.allocation.grasp import null_space_basis
 
 
 @dataclass(frozen=True)

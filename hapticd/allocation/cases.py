@@ -10,7 +10,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hapticd.physics.grasp import grasp_matrix
+from hapticd.allocation.grasp import grasp_matrix
 
 Problem = tuple[np.ndarray, np.ndarray, np.ndarray]
 

@@ -10,13 +10,12 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
-from hapticd.allocation import allocate
+from hapticd.allocation import allocate, kernels
 from hapticd.allocation.accuracy import accuracy
+from hapticd.allocation.actuation import Actuation
 from hapticd.allocation.adaptive import AdaptiveState
+from hapticd.allocation.grasp import grasp_matrix
 from hapticd.allocation.robust import AllocationError, Robustness
-from hapticd.physics import kernels
-from hapticd.physics.actuation import Actuation
-from hapticd.physics.grasp import grasp_matrix
 
 V3 = tuple[float, float, float]
 T = TypeVar("T")

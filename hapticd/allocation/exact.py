@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hapticd.physics.grasp import null_space_basis
+from hapticd.allocation.grasp import null_space_basis
 
 
 def pinv_exact(G: np.ndarray, M_a: np.ndarray, lam: np.ndarray) -> np.ndarray:

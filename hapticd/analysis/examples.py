@@ -32,8 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hapticd.allocation.actuation import Actuation
 from hapticd.analysis.pipeline import Pipeline
-from hapticd.physics.actuation import Actuation
 from hapticd.physics.scene import ConvexShape, Material, Scene, SceneObject
 
 # -- single point on a tilted wall (seed section 4.1) -----------------------------------------

@@ -60,7 +60,7 @@ from hapticd.allocation import (
     AdaptiveState,
     Robustness,
 )
-from hapticd.physics.actuation import Actuation
+from hapticd.allocation.actuation import Actuation
 from hapticd.physics.frame import Frame
 from hapticd.physics.render import Renderer
 from hapticd.physics.scene import Material, Scene, SceneObject

@@ -28,6 +28,7 @@ from hapticd.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_ERROR,
     EXIT_FAULT,
+    EXIT_INTERRUPTED,
     EXIT_OK,
     EXIT_PIPE,
     OutputClosed,
@@ -88,6 +89,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="record every tick to PATH (.hrec), anywhere you may write",
     )
     run.add_argument(
+        "--lsl",
+        action="store_true",
+        help="publish the ticks and events as Lab Streaming Layer streams, as the profile's "
+        "lsl.enabled does (docs/lsl.md; pip install 'hapticd[lsl]')",
+    )
+    run.add_argument(
         "--record-dir",
         type=Path,
         metavar="DIR",
@@ -108,6 +115,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="GROUP",
         help="let this group's members connect too: the socket 0660 and its directory 0750 "
         "for that group only (the installed service's experimenters; docs/daemon.md)",
+    )
+    run.add_argument(
+        "--reload-dir",
+        type=Path,
+        action="append",
+        metavar="DIR",
+        help="a folder a client that is not the daemon's user (a --socket-group member) may "
+        "reload profiles from; repeat for more (default: the profile's own folder)",
     )
     run.add_argument(
         "--device",
@@ -257,6 +272,11 @@ def main(argv: list[str] | None = None) -> int:
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())  # the interpreter's last flush goes nowhere
         return EXIT_PIPE
+    except KeyboardInterrupt:
+        # Ctrl-C before a command's own handlers were in place (a run's start-up): nothing
+        # was opened yet, so there is nothing to stop; a line, not a traceback.
+        print("hapticd: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -107,7 +107,7 @@ def cmd_client(args: argparse.Namespace) -> int:
                 spec.check(value)
         except params.ParamError as exc:
             # The same "code: message" as a reply from the daemon would print.
-            what = "" if spec is None else f"bad value {args.value!r} for {args.param}: "
+            what = "" if spec is None else f"bad value {proto.short(args.value)} for {args.param}: "
             print(f"hapticd: {exc.code}: {what}{exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
         param = spec.name

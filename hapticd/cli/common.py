@@ -14,6 +14,9 @@ EXIT_ERROR = 1
 EXIT_BAD_INPUT = 2
 EXIT_FAULT = 3
 EXIT_PIPE = 128 + 13  # what a shell reports for a program ended by SIGPIPE
+# Ctrl-C before a run began (nothing was opened): what a shell reports for SIGINT. A Ctrl-C
+# during a run is an orderly stop instead, whose exit code is the run's.
+EXIT_INTERRUPTED = 128 + 2
 
 
 class OutputClosed(Exception):  # noqa: N818  (not an error: the reader has gone)

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import sys
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -22,17 +25,19 @@ def cmd_experiment_check(args: argparse.Namespace) -> int:
     from hapticd.experiment import ExperimentError, check_experiment, make_plan
 
     try:
-        exp, profile = check_experiment(args.experiment)
+        exp, profile = check_experiment(args.experiment, args.profile)
         load_trajectories(profile)
         build_scene(profile.scene, profile)
         build_devices(profile, clock=lambda: 0.0)
-    except (ExperimentError, ProfileError) as exc:
+        if args.meta is not None:
+            exp.check_metadata(parse_meta(args.meta))
+    except (ExperimentError, ProfileError, ValueError) as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     v, spec = exp.varied, params.PARAMS[exp.varied.param]
     total = exp.n_blocks * exp.trials_per_block
     if exp.adaptive is None:
-        total = len(make_plan(exp, exp.subject_seed("example")))
+        total = len(make_plan(exp, exp.subject_seed("example"), 0))
     dur = exp.duration_s()
     conds = ", ".join(
         f"{c.name} ({', '.join(f'{k}={val}' for k, val in c.values().items())})"
@@ -52,8 +57,155 @@ def cmd_experiment_check(args: argparse.Namespace) -> int:
         f"at most {exp.interval.exploration_s:g} s, ends on {exp.interval.ends_on}\n"
         f"  breaks       {exp.n_breaks()} of {exp.breaks.duration_s:g} s\n"
         f"  duration     about {dur / 60:.0f} min per subject ({exp.trial_s():g} s per trial "
-        "with every interval at its limit, and the breaks)"
+        "with every interval at its limit, and the breaks)\n"
+        f"  metadata     {_metadata_line(exp)}"
     )
+    if exp.randomization.counterbalance != "none":
+        print(f"  orders       {_orders_line(exp)}")
+        if exp.subjects:
+            warning = _imbalance(exp, _orders(exp, len(exp.subjects)))
+            if warning:
+                print(f"hapticd: warning: {args.experiment}: subjects: {warning}", file=sys.stderr)
+    return EXIT_OK
+
+
+def parse_meta(items: list[str] | None) -> dict[str, str]:
+    """``--meta KEY=VALUE`` items as {KEY: VALUE}; ValueError for an item without
+    ``=`` or a key given twice."""
+    out: dict[str, str] = {}
+    for item in items or ():
+        key, eq, value = item.partition("=")
+        key = key.strip()
+        if not eq or not key:
+            raise ValueError(f"--meta {item!r}: expected KEY=VALUE, e.g. experimenter=AB")
+        if key in out:
+            raise ValueError(f"--meta {key}: given twice")
+        out[key] = value
+    return out
+
+
+def _metadata_line(exp: Any) -> str:
+    """The session metadata keys a run takes (``--meta KEY=VALUE``), required ones
+    marked."""
+    keys = exp.metadata.keys
+    return (
+        ", ".join(
+            k + (" (required)" if k in keys and keys[k].required else "")
+            for k in exp.metadata.names()
+        )
+        + " (--meta KEY=VALUE)"
+    )
+
+
+def _cycle(exp: Any) -> int:
+    """Subjects per balanced cycle of the design's counterbalancing (0: none)."""
+    from hapticd.experiment.plan import williams_rows
+
+    scheme = exp.randomization.counterbalance
+    if scheme == "latin_square":
+        return len(williams_rows(len(exp.conditions)))
+    return 2 if scheme == "abba" else 0
+
+
+def _orders_line(exp: Any) -> str:
+    """What the counterbalancing does, for ``experiment check``."""
+    n, scheme, cycle = len(exp.conditions), exp.randomization.counterbalance, _cycle(exp)
+    what = (
+        f"latin_square: subject k gets row k of a balanced (Williams) Latin square of {n} "
+        f"conditions, {cycle} rows"
+        + (f" ({n} is odd: a balanced design needs 2 x {n})" if n % 2 else "")
+        if scheme == "latin_square"
+        else "abba: each condition in two halves, A B B A, and B A A B every other subject"
+    )
+    listed = f"{len(exp.subjects)} subjects listed" if exp.subjects else "no subjects listed"
+    return f"{what}; balanced for every {cycle} subjects; {listed} (hapticd experiment orders)"
+
+
+def _subject_ids(exp: Any, n: int) -> list[str]:
+    """The first ``n`` subjects: the file's, then s01.. style ids for the rest."""
+    return list(exp.subjects[:n]) + [f"s{k + 1:02d}" for k in range(len(exp.subjects), n)]
+
+
+def _orders(exp: Any, n: int) -> list[list[str]]:
+    """The condition orders of the first ``n`` subjects (``_subject_ids``)."""
+    import numpy as np
+
+    from hapticd.experiment.plan import condition_order
+
+    return [
+        condition_order(exp, np.random.default_rng(exp.subject_seed(sid)), k)
+        for k, sid in enumerate(_subject_ids(exp, n))
+    ]
+
+
+def _imbalance(exp: Any, orders: list[list[str]]) -> str | None:
+    """How far ``orders`` are from balanced (None when balanced): the spreads and the
+    number of subjects that would balance them."""
+    from hapticd.experiment.plan import balance
+
+    bal = balance(orders, [c.name for c in exp.conditions])
+    if bal.balanced:
+        return None
+    cycle = _cycle(exp)
+    fix = f"; a multiple of {cycle} subjects balances it" if cycle else ""
+    return (
+        f"{len(orders)} subjects are not balanced: the counts of the conditions at a "
+        f"position differ by up to {bal.position_spread} (max - min), the counts of ordered "
+        f"pairs as neighbours by up to {bal.pair_spread}{fix}"
+    )
+
+
+def cmd_experiment_orders(args: argparse.Namespace) -> int:
+    """The condition orders of N subjects and how balanced they are."""
+    from hapticd.experiment import ExperimentError, load_experiment
+    from hapticd.experiment.plan import balance
+
+    try:
+        exp = load_experiment(args.experiment)
+        n = args.subjects or len(exp.subjects)
+        if exp.adaptive is not None:
+            raise ExperimentError(
+                f"{args.experiment}: procedure {exp.procedure} interleaves its tracks: "
+                "there is no block order to print"
+            )
+        if n < 1:
+            raise ExperimentError(
+                f"{args.experiment}: "
+                + (
+                    "--subjects: expected 1 or more"
+                    if args.subjects
+                    else "the file lists no subjects: give --subjects N"
+                )
+            )
+        orders = _orders(exp, n)
+    except ExperimentError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    names = [c.name for c in exp.conditions]
+    ids = _subject_ids(exp, n)
+    width = max(len(x) for x in [*ids, *names, "subject"])
+    print(
+        f"experiment {exp.name}: counterbalance {exp.randomization.counterbalance}, "
+        f"{len(names)} conditions, {n} subjects"
+    )
+    print(f"{'subject':<{width}}  index  order")
+    for k, (sid, order) in enumerate(zip(ids, orders, strict=True)):
+        print(f"{sid:<{width}}  {k:>5}  {' '.join(order)}")
+    bal = balance(orders, names)
+    length = len(orders[0])
+    print("each condition's count at each position:")
+    print(f"{'':<{width}}  " + " ".join(f"{p + 1:>3}" for p in range(length)))
+    for c, row in zip(names, bal.positions, strict=True):
+        print(f"{c:<{width}}  " + " ".join(f"{x:>3}" for x in row))
+    print("carryover: how often the column's condition directly follows the row's:")
+    print(f"{'':<{width}}  " + " ".join(f"{c:>{width}}" for c in names))
+    for c, row in zip(names, bal.carryover, strict=True):
+        print(f"{c:<{width}}  " + " ".join(f"{x:>{width}}" for x in row))
+    warning = _imbalance(exp, orders)
+    if warning is None:
+        print("balanced: the same count at every position, and for every ordered pair")
+    else:
+        print(f"hapticd: warning: {warning}", file=sys.stderr)
     return EXIT_OK
 
 
@@ -94,11 +246,24 @@ def cmd_experiment_plan(args: argparse.Namespace) -> int:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     seed = exp.subject_seed(args.subject) if args.seed is None else args.seed
-    plan = make_plan(exp, seed)
+    if exp.adaptive is None:
+        try:
+            index = exp.subject_index(args.subject, args.subject_index)
+        except ExperimentError as exc:
+            print(f"hapticd: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        rows = [t.as_dict() for t in make_plan(exp, seed, index)]
+        what = f"{len(rows)} trials"
+    else:  # the comparisons follow the answers: the tracks, each at most max_trials long
+        rows = _adaptive_tracks(exp)
+        what = (
+            f"{len(rows)} {exp.procedure} tracks, at most "
+            f"{sum(r['max_trials'] for r in rows)} trials"
+        )
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=list(plan[0].as_dict()), lineterminator="\n")
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
     writer.writeheader()
-    writer.writerows(t.as_dict() for t in plan)
+    writer.writerows(rows)
     if args.csv is None:
         sys.stdout.write(buf.getvalue())
         return EXIT_OK
@@ -107,8 +272,48 @@ def cmd_experiment_plan(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"hapticd: cannot write: {exc}", file=sys.stderr)
         return EXIT_ERROR
-    print(f"{args.csv}: {len(plan)} trials of subject {args.subject!r} (seed {seed})")
+    print(f"{args.csv}: {what} of subject {args.subject!r} (seed {seed})")
     return EXIT_OK
+
+
+def _adaptive_tracks(exp: Any) -> list[dict[str, Any]]:
+    """The tracks of an adaptive design, in the store's block order: condition, standard,
+    side, the first comparison (the varied parameter's SI unit) and the most trials."""
+    from hapticd.experiment.adaptive import tracks_for
+
+    section = exp.adaptive
+    return [
+        {
+            "block": t.index,
+            "condition": t.condition,
+            "standard": t.standard,
+            "side": t.side,
+            "first_comparison": t.comparison(),
+            "max_trials": section.max_trials,
+        }
+        for t in tracks_for(exp)
+    ]
+
+
+@contextlib.contextmanager
+def _store_warnings() -> Iterator[None]:
+    """Each StoreWarning (a damaged store read anyway) and ExportWarning (recordings not
+    read) raised in the block printed to stderr as one line, at once."""
+    from hapticd.experiment.export import ExportWarning
+    from hapticd.experiment.store import StoreWarning
+
+    def show(message: Any, category: type[Warning], *args: Any, **kwargs: Any) -> None:
+        if issubclass(category, StoreWarning | ExportWarning):
+            print(f"hapticd: warning: {message}", file=sys.stderr)
+        else:
+            shown(message, category, *args, **kwargs)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", StoreWarning)
+        warnings.simplefilter("always", ExportWarning)
+        shown = warnings.showwarning
+        warnings.showwarning = show
+        yield
 
 
 def cmd_experiment_analyze(args: argparse.Namespace) -> int:
@@ -121,7 +326,9 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
     first: dict[str, Any] | None = None
     try:
         for db in args.db:
-            meta, rows = open_for_analysis(db, None)
+            with _store_warnings():
+                meta, rows = open_for_analysis(db, None)
+            rows = ana.session_rows(rows)  # practice trials are never analysed
             failed += [r for r in rows if r["status"] == "failed"]
             rows = [r for r in rows if r["status"] == "complete"]
             if first is not None and meta.get("experiment_hash") != first.get("experiment_hash"):
@@ -205,29 +412,72 @@ def cmd_experiment_analyze(args: argparse.Namespace) -> int:
 
 
 def cmd_experiment_export(args: argparse.Namespace) -> int:
-    """A trial store as a tidy CSV, one row per trial (hapticd.experiment.export)."""
-    import csv
-
-    from hapticd.experiment import export
+    """A trial store as a tidy table, one row per trial, as CSV, Parquet or MAT
+    (hapticd.experiment.export); with --samples, each interval's samples too."""
     from hapticd.experiment.store import StoreError
+    from hapticd.experiment.tables import TableFormatError
+    from hapticd.recording.format import RecordingError
 
     status = None if args.all else "complete"
     try:
-        if args.csv is None:
-            rows = export.trial_rows(args.db, status=status)
-            writer = csv.DictWriter(sys.stdout, fieldnames=export.NAMES, lineterminator="\n")
-            writer.writeheader()
-            writer.writerows(rows)
-            return EXIT_OK
-        n = export.write_csv(args.db, args.csv, status=status)
-    except StoreError as exc:
+        with _store_warnings():
+            return _export(args, status)
+    except (StoreError, TableFormatError, RecordingError) as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except ImportError as exc:
+        print(f"hapticd: {exc}", file=sys.stderr)
+        return EXIT_ERROR
     except OSError as exc:
         print(f"hapticd: cannot write: {exc}", file=sys.stderr)
         return EXIT_ERROR
+
+
+def _default_format(db: Path) -> str:
+    """The store's experiment's ``export.format`` (csv for a store made before it)."""
+    from hapticd.experiment.store import open_for_analysis
+
+    meta, _ = open_for_analysis(db, "complete")
+    return str(meta["design"].get("export_format") or "csv")
+
+
+def _export(args: argparse.Namespace, status: str | None) -> int:
+    """``cmd_experiment_export``'s work: the table to stdout (CSV) or to ``--out``, and
+    the samples to ``--samples``."""
+    from hapticd.experiment import export, tables
+
+    to_file = args.out is not None or args.samples is not None
+    # --csv and stdout are CSV; a file's format is the experiment file's by default.
+    if args.format is None and to_file and args.csv is None:
+        fmt = tables.check_format(_default_format(args.db))
+    else:
+        fmt = tables.check_format(args.format or "csv")
+    out = args.out or args.csv
+    if args.csv is not None and args.out is not None:
+        raise tables.TableFormatError("give --out or --csv, not both")
+    if args.csv is not None and fmt != "csv":
+        raise tables.TableFormatError(f"--csv writes CSV; for {fmt} give --out FILE")
+    read_recs = not args.no_recordings
     what = "trials" if args.all else "complete trials"
-    print(f"{args.csv}: {n} {what} of {args.db}, one row each")
+    if out is None and args.samples is None:
+        if fmt != "csv":
+            raise tables.TableFormatError(f"--format {fmt} writes a file: give --out FILE")
+        table = export.trials_table(
+            args.db, status=status, recordings=read_recs, recordings_dir=args.recordings
+        )
+        tables.write_csv(table, sys.stdout)
+        return EXIT_OK
+    if out is not None:
+        n = export.write_trials(
+            args.db, out, fmt, status=status, recordings=read_recs,
+            recordings_dir=args.recordings,
+        )  # fmt: skip
+        print(f"{out}: {n} {what} of {args.db}, one row each ({fmt})")
+    if args.samples is not None:
+        paths = export.write_samples(
+            args.db, args.samples, fmt, status=status, recordings_dir=args.recordings
+        )
+        print(f"{args.samples}: {len(paths)} intervals' samples of {args.db}, one {fmt} each")
     return EXIT_OK
 
 
@@ -237,7 +487,7 @@ def cmd_experiment_run(args: argparse.Namespace) -> int:
     from hapticd.experiment import runner as rn
 
     try:
-        exp, _ = check_experiment(args.experiment)
+        exp, _ = check_experiment(args.experiment, args.profile)
         standards = None if args.standards is None else rn.float_list(args.standards)
         exp = rn.reduced(
             exp, standards=standards, repetitions=args.repetitions, break_s=args.break_s
@@ -255,27 +505,40 @@ def cmd_experiment_run(args: argparse.Namespace) -> int:
         db = args.db or Path(f"{exp.name}-trials.db")
         done, left = rn.run_experiment(
             exp, args.subject, db, seed=args.seed, resume=args.resume,
-            observer=args.observer, options=opts,
+            observer=args.observer, options=opts, subject_index=args.subject_index,
+            metadata=parse_meta(args.meta),
         )  # fmt: skip
     except (ExperimentError, ProfileError, rn.StoreError, ValueError) as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except rn.TrialAbortedError as exc:
-        why = "interrupted (Ctrl-C)" if exc.interrupted else str(exc)
         print(
-            f"hapticd: {why}: the trial in progress is stored incomplete, the answered ones "
+            f"hapticd: {exc}: the trial in progress is stored incomplete, the answered ones "
             f"are kept; continue with --resume",
             file=sys.stderr,
         )
-        return 130 if exc.interrupted else EXIT_ERROR
+        return 128 + exc.signum if exc.interrupted else EXIT_ERROR
     except rn.RunnerError as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_ERROR
-    except KeyboardInterrupt:
-        print("hapticd: interrupted between trials; continue with --resume", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM or SIGHUP between trials
+        print(
+            f"hapticd: interrupted ({rn.signal_name(exc)}) between trials; continue with --resume",
+            file=sys.stderr,
+        )
+        return 128 + getattr(exc, "signum", 2)
     print(f"hapticd: {done} trial(s) answered; {left} left" + ("" if left else ": done"))
     return EXIT_OK
+
+
+def _add_profile_option(parser: Any) -> None:
+    parser.add_argument(
+        "--profile",
+        type=Path,
+        metavar="PROFILE",
+        help="run the design on this base profile (a rig's) instead of the one the "
+        "experiment file names; checked the same way",
+    )
 
 
 def _add_experiment_run(esub: Any) -> None:
@@ -293,6 +556,8 @@ def _add_experiment_run(esub: Any) -> None:
         "--break-s", type=float, metavar="S", help="a reduced design: each break lasts S s"
     )
     run.add_argument("--resume", action="store_true", help="continue the subject's stored plan")
+    _add_session_args(run)
+    _add_profile_option(run)
     run.add_argument("--socket", type=Path, help="the daemon's control socket")
     run.add_argument(
         "--observer",
@@ -321,18 +586,56 @@ def _add_experiment_run(esub: Any) -> None:
     run.set_defaults(func=cmd_experiment_run)
 
 
+def _add_session_args(parser: Any, *, index: bool = True) -> None:
+    """--meta (and --subject-index): a session's metadata and counterbalancing place."""
+    parser.add_argument(
+        "--meta",
+        action="append",
+        metavar="KEY=VALUE",
+        help="session metadata, stored with the session and exported: session, "
+        "experimenter, notes or a key the file declares (metadata.keys); repeat it",
+    )
+    if index:
+        parser.add_argument(
+            "--subject-index",
+            type=int,
+            metavar="K",
+            help="the subject's place in a counterbalanced design, 0-based (default: its "
+            "place in the file's subjects)",
+        )
+
+
 def _add_experiment(sub: Any) -> None:
     """The experiment subcommand: check a design, analyze trial stores."""
     exp = sub.add_parser("experiment", help="JND experiments: check a design, analyze trials")
     esub = exp.add_subparsers(dest="experiment_command", required=True)
     chk = esub.add_parser("check", help="validate an experiment file and its profile")
     chk.add_argument("experiment", type=Path)
+    _add_session_args(chk, index=False)
+    _add_profile_option(chk)
     chk.set_defaults(func=cmd_experiment_check)
+    orders = esub.add_parser(
+        "orders", help="the condition orders of N subjects and how balanced they are"
+    )
+    orders.add_argument("experiment", type=Path)
+    orders.add_argument(
+        "--subjects",
+        type=int,
+        metavar="N",
+        help="this many subjects (default: the file's subjects list)",
+    )
+    orders.set_defaults(func=cmd_experiment_orders)
     _add_experiment_run(esub)
     pl = esub.add_parser("plan", help="one subject's trial plan as CSV")
     pl.add_argument("experiment", type=Path)
     pl.add_argument("--subject", required=True, help="the subject's id (its seed derives from it)")
     pl.add_argument("--seed", type=int, help="use this seed instead of the subject's")
+    pl.add_argument(
+        "--subject-index",
+        type=int,
+        metavar="K",
+        help="the subject's place in a counterbalanced design (default: in the file's subjects)",
+    )
     pl.add_argument("--csv", type=Path, metavar="OUT", help="write here (default: stdout)")
     pl.set_defaults(func=cmd_experiment_plan)
     ana = esub.add_parser(
@@ -362,9 +665,35 @@ def _add_experiment(sub: Any) -> None:
         help="the JND is x(P) - x(0.5) (default: the experiment's analysis.jnd_point, 0.75)",
     )
     ana.set_defaults(func=cmd_experiment_analyze)
-    ex = esub.add_parser("export", help="a trial store as a tidy CSV, one row per trial")
+    ex = esub.add_parser(
+        "export", help="a trial store as a tidy table (CSV, Parquet, MAT), one row per trial"
+    )
     ex.add_argument("db", type=Path, help="the trial store")
-    ex.add_argument("--csv", type=Path, metavar="OUT", help="write here (default: stdout)")
+    ex.add_argument(
+        "--format",
+        metavar="FORMAT",
+        help="csv, parquet (pip: hapticd[export]) or mat (MATLAB); default: the experiment "
+        "file's export.format, csv",
+    )
+    ex.add_argument("--out", type=Path, metavar="FILE", help="write here (default: CSV to stdout)")
+    ex.add_argument("--csv", type=Path, metavar="OUT", help="write CSV here (--format csv --out)")
+    ex.add_argument(
+        "--samples",
+        type=Path,
+        metavar="DIR",
+        help="also write each interval's samples from its recording, one file per interval",
+    )
+    ex.add_argument(
+        "--recordings",
+        type=Path,
+        metavar="DIR",
+        help="look here (by file name) for recordings not at their stored path",
+    )
+    ex.add_argument(
+        "--no-recordings",
+        action="store_true",
+        help="read no recording: the interval and force columns stay empty (fast)",
+    )
     ex.add_argument(
         "--all", action="store_true", help="incomplete and failed trials too (status column)"
     )

@@ -30,7 +30,7 @@ from hapticd.cli.common import (
 )
 from hapticd.cli.offline import _plot
 from hapticd.control import default_socket_path
-from hapticd.daemon import bringup
+from hapticd.daemon import bringup, lsl
 from hapticd.daemon.build import build_devices, build_scene, load_trajectories
 from hapticd.daemon.sdnotify import ServiceNotifier
 from hapticd.daemon.server import ControlServer
@@ -64,8 +64,13 @@ def format_summary(s: dict[str, Any]) -> str:
         f"(clamped on {s['clamped_ticks']} ticks)",
     ]
     for name, f in s["fingers"].items():
+        # What the device's driver counted (an SDK's saturated motors), where it is not zero.
+        counted = "".join(
+            f", {n} {what.replace('_', ' ')}" for what, n in f.get("device_counts", {}).items() if n
+        )
         lines.append(
             f"    {name:<12} max {f['max_force_n']:.4f} N, in contact {f['contact_ticks']} ticks"
+            f"{counted}"
         )
     rt = s.get("realtime")
     if rt is not None:
@@ -79,6 +84,14 @@ def format_summary(s: dict[str, Any]) -> str:
             f"  recording       {where}: {rec['written']} ticks written, "
             f"{rec['dropped']} dropped"
             + (f", {rec['lost']} LOST: {rec['error']}" if rec.get("lost") or rec["error"] else "")
+        )
+    st = s.get("lsl")
+    if st is not None:
+        lines.append(
+            f"  lsl             {st['name']}: {st['written']} ticks published (every "
+            f"{st['decimation']}), {st['dropped']} dropped, {st['markers']} markers"
+            + (f", {st['markers_lost']} markers lost" if st["markers_lost"] else "")
+            + (f"; {st['error']}" if st["error"] else "")
         )
     if s["fault"]:
         lines.append(f"  FAULT (latched) at tick {s['fault']['tick']}: {s['fault']['cause']}")
@@ -197,6 +210,10 @@ def _run(args: argparse.Namespace, record_path: Path | None, *, temporary: bool 
     try:
         group = _socket_group(args)
         profile = load_profile(args.profile, _overrides(args))
+        use_lsl = args.lsl or profile.lsl.enabled
+        if use_lsl:
+            # Before any device is made: a run asked to stream never starts without it.
+            lsl.require_pylsl("--lsl" if args.lsl else f"{args.profile}: lsl.enabled")
         session = build_session(
             profile,
             paced=not args.unpaced,
@@ -206,7 +223,7 @@ def _run(args: argparse.Namespace, record_path: Path | None, *, temporary: bool 
             emulate=args.emulate,
             record_dir=args.record_dir,
         )
-    except (ProfileError, BackendUnavailableError, RecordingError) as exc:
+    except (ProfileError, BackendUnavailableError, RecordingError, lsl.LslUnavailableError) as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except OSError as exc:
@@ -218,7 +235,13 @@ def _run(args: argparse.Namespace, record_path: Path | None, *, temporary: bool 
     loop = session.loop
     notifier = ServiceNotifier(lambda: loop.stats.ticks, lambda: _service_status(loop))
     socket_path = _run_socket(args)
-    server = ControlServer(session, socket_path, periodic=[notifier.poll], socket_group=group)
+    server = ControlServer(
+        session,
+        socket_path,
+        periodic=[notifier.poll],
+        socket_group=group,
+        reload_dirs=args.reload_dir,
+    )
 
     def on_stop(signum: int, _frame: object) -> None:
         # First signal: forces ramp to zero, then the run ends; a second one ends it now.
@@ -227,6 +250,15 @@ def _run(args: argparse.Namespace, record_path: Path | None, *, temporary: bool 
     def on_hup(_signum: int, _frame: object) -> None:
         server.request_reload()  # the control thread does the work, not the servo thread
 
+    outlet = None
+    if use_lsl:
+        try:
+            outlet = lsl.attach(session, server)
+        except (RecordingError, OSError) as exc:
+            if session.loop.recorder is not None:
+                session.loop.recorder.close()
+            print(f"hapticd: cannot publish LSL streams: {exc}", file=sys.stderr)
+            return EXIT_ERROR
     # Before the socket exists: a client (or systemd) that sees it may signal the daemon at
     # once, and a SIGTERM before the handlers were in place killed it without its orderly
     # stop (seen: a test that stopped the daemon as soon as its socket appeared).
@@ -239,6 +271,8 @@ def _run(args: argparse.Namespace, record_path: Path | None, *, temporary: bool 
             signal.signal(s, h)
         if session.loop.recorder is not None:
             session.loop.recorder.close()
+        if outlet is not None:
+            lsl.detach(session, outlet)
         print(f"hapticd: cannot serve the control socket {socket_path}: {exc}", file=sys.stderr)
         return EXIT_ERROR
     if socket_path is not None and not args.quiet:
@@ -256,9 +290,13 @@ def _run(args: argparse.Namespace, record_path: Path | None, *, temporary: bool 
         stop_progress()
         notifier.stopping()
         server.close()
+        # After the server: the run's last events are on the marker stream.
+        lsl_status = None if outlet is None else lsl.detach(session, outlet)
         for s, h in old.items():
             signal.signal(s, h)
     summary["profile"] = str(args.profile)
+    if lsl_status is not None:
+        summary["lsl"] = lsl_status
     summary["reloads"] = server.reloads
     if temporary and summary.get("recording"):
         # Made only for the plot and removed after it: no path to a file that is gone.

@@ -7,12 +7,16 @@ import argparse
 import os
 import shutil
 import sys
+import urllib.parse
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from hapticd.cli.common import EXIT_BAD_INPUT, EXIT_OK
 from hapticd.daemon.build import build_scene, load_trajectories
 from hapticd.profile import ProfileError, load_profile
+from hapticd.recording import files
+from hapticd.recording.format import RecordingError
 
 DEFAULT_PROFILE = Path("/etc/hapticd/profile.yaml")
 DEFAULT_USER = "hapticd"
@@ -20,6 +24,9 @@ DEFAULT_GROUP = "hapticd"
 # The docs of a source checkout (this package's parent folder), named in Documentation=.
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "daemon.md"
 NAME_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-.")
+# An Exec argument made of these alone is written bare; any other is double-quoted.
+BARE_CHARS = NAME_CHARS | frozenset("/+=:,@")
+UNIT_MODE = 0o644  # systemd's units are readable by everyone (systemctl cat)
 
 
 def hapticd_command() -> list[str]:
@@ -43,20 +50,44 @@ def unit_text(
     group: str,
     docs: Path | None,
     kill: str,
+    environment: dict[str, str] | None = None,
 ) -> str:
     """The unit: ``command`` (absolute) runs ``profile`` (absolute) as ``user``, sharing
-    the control socket with ``group``; ``docs`` (if any) becomes Documentation=."""
-    exec_start = " ".join(_quote(a) for a in [*command, "run", str(profile)])
-    doc = f"Documentation=file://{docs}\n" if docs is not None else ""
+    the control socket with ``group``; ``docs`` (if any) becomes Documentation=. Every
+    value is checked (``unit_value``: ValueError naming its source) and escaped for the
+    place it goes: Exec arguments quoted (``exec_arg``), ``%`` doubled elsewhere."""
+    for i, arg in enumerate(command):
+        unit_value(arg, f"this installation's hapticd command (argument {i}: {arg!r})")
+    unit_value(str(profile), "the profile's path (--profile)")
+    unit_value(name, f"the profile's name (key 'name' in {profile})")
+    unit_value(user, "--user")
+    unit_value(group, "--group")
+    unit_value(kill, "the kill command (found on PATH)")
+    env = "".join(f"Environment={env_assignment(k, v)}\n" for k, v in (environment or {}).items())
+    exec_start = " ".join(exec_arg(a) for a in [*command, "run", str(profile)])
+    if docs is not None:
+        unit_value(str(docs), "the docs' path (this installation's docs/daemon.md)")
+        url = "file://" + urllib.parse.quote(str(docs))
+        doc = f"Documentation={_percent(url)}\n"
+    else:
+        doc = ""
+    # Comments are not expanded, but a control character would end one: checked above.
+    shown, shown_name = str(profile), repr(name)
+    description = _percent(name)
+    group_arg = exec_arg(group)
+    kill_arg = exec_arg(kill)
     return f"""\
-# hapticd as a systemd service: made by `hapticd service unit` for profile {name!r}.
+# hapticd as a systemd service: made by `hapticd service unit` for profile {shown_name}.
 # Install (docs/daemon.md, "Installing the service"):
-#   hapticd service unit --profile {profile} | sudo tee /etc/systemd/system/hapticd.service
+#   hapticd service unit --profile {shown} | sudo tee /etc/systemd/system/hapticd.service
 #   sudo systemctl daemon-reload && sudo systemctl enable --now hapticd
 
 [Unit]
-Description=hapticd haptic rendering daemon ({name})
+Description=hapticd haptic rendering daemon ({description})
 {doc}After=systemd-udevd.service
+# At most 5 starts in 2 minutes: a daemon that fails at once is not restarted forever.
+StartLimitIntervalSec=120
+StartLimitBurst=5
 
 [Service]
 # READY=1 once the servo loop ticks; STATUS= about once a second; WATCHDOG=1 only while
@@ -65,18 +96,20 @@ Type=notify
 NotifyAccess=main
 # The socket /run/hapticd/control.sock, 0660 in a 0750 directory, for group {group} only:
 # its members (the experimenters) reach the daemon; clients find it without --socket.
-ExecStart={exec_start} --socket-group {group}
+ExecStart={exec_start} --socket-group {group_arg}
 # SIGHUP reloads the profile; an invalid one is rejected and the old one keeps running.
-ExecReload={kill} -HUP $MAINPID
+ExecReload={kill_arg} -HUP $MAINPID
 # SIGTERM ramps forces to zero, closes the devices, flushes the recording and exits 0.
 KillSignal=SIGTERM
 # Only the daemon gets SIGTERM; it waits for its recording writer to finish.
 KillMode=mixed
 TimeoutStopSec=15s
 WatchdogSec=2s
-# Restart after a crash, a signal or a watchdog timeout, but not after a latched safety
-# fault (exit code 3): a person may be holding the devices; re-enable by hand.
-Restart=on-abnormal
+# Restart after a crash (exit 1: an error, a traceback), a signal or a watchdog timeout;
+# not after a clean stop (0), a profile that does not validate (2: it would fail again)
+# or a latched safety fault (3: a person may be holding the devices; re-enable by hand).
+Restart=on-failure
+RestartPreventExitStatus=2 3
 RestartSec=2s
 User={user}
 Group={group}
@@ -96,17 +129,85 @@ CacheDirectoryMode=0700
 LimitRTPRIO=99
 LimitMEMLOCK=infinity
 Environment=PYTHONUNBUFFERED=1
-
+{env}
 [Install]
 WantedBy=multi-user.target
 """
 
 
-def _quote(arg: str) -> str:
-    """One ExecStart= argument: double-quoted when it holds a space or a quote."""
-    if any(c in arg for c in " \t\"'\\"):
-        return '"' + arg.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    return arg
+def unit_value(value: str, source: str) -> str:
+    """``value`` if it may go into a unit, else ValueError naming ``source`` (the key or
+    argument it came from) and the rule: no control character (C0, DEL, C1), since a
+    newline would start a line of its own (a ``[Service]`` or ``ExecStartPre=+...`` that
+    systemd would run as root)."""
+    for i, c in enumerate(value):
+        if ord(c) < 0x20 or 0x7F <= ord(c) <= 0x9F:
+            raise ValueError(
+                f"{source}: {value!r} holds the control character {c!r} at position {i}; "
+                "a systemd unit takes no control characters (newline, tab, CR, DEL, ...): "
+                "rename it"
+            )
+    return value
+
+
+def env_assignment(name: str, value: str) -> str:
+    """``NAME=value`` as Environment= reads it back literally (systemd.exec): ``%``
+    doubled (specifiers; ``$`` means nothing there), double-quoted with backslash escapes
+    unless made of plain characters only."""
+    text = unit_value(f"{name}={value}", f"the environment variable {name}")
+    text = _percent(text)
+    if set(text) <= BARE_CHARS:
+        return text
+    return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def sdk_environment(profile: Any, env: Mapping[str, str] | None = None) -> dict[str, str]:
+    """What the service's environment needs for ``profile``'s Force Dimension devices
+    (backend dhd) to find their SDK: LD_LIBRARY_PATH, the folders of the libraries the
+    devices' key ``library`` names (libdrd loads libdhd from beside it), else of
+    $HAPTICD_LIBDHD here (then passed on too: the service does not inherit this shell's
+    environment); nothing when no device names one (the system's library is found)."""
+    env = os.environ if env is None else env
+    libs = [
+        getattr(f.device, "library", None) or env.get("HAPTICD_LIBDHD")
+        for f in profile.fingers
+        if f.device.backend == "dhd"
+    ]
+    libs = [os.path.abspath(p) for p in libs if p]
+    out: dict[str, str] = {}
+    if not libs:
+        return out
+    folders = list(dict.fromkeys(os.path.dirname(p) for p in libs))
+    for d in folders:
+        if ":" in d:
+            raise ValueError(
+                f"the SDK's folder {d!r} holds a ':', which LD_LIBRARY_PATH cannot carry: "
+                "move the SDK"
+            )
+    out["LD_LIBRARY_PATH"] = ":".join(folders)
+    if any(
+        getattr(f.device, "library", None) is None
+        for f in profile.fingers
+        if f.device.backend == "dhd"
+    ):
+        out["HAPTICD_LIBDHD"] = os.path.abspath(env["HAPTICD_LIBDHD"])
+    return out
+
+
+def _percent(value: str) -> str:
+    """``value`` with ``%`` doubled: systemd expands ``%x`` as a specifier."""
+    return value.replace("%", "%%")
+
+
+def exec_arg(arg: str) -> str:
+    """One Exec argument as systemd reads it back literally (systemd.service, "Command
+    lines"): ``%`` doubled (specifiers), ``$`` doubled (variables), and double-quoted with
+    backslash escapes unless it is made of plain characters only."""
+    unit_value(arg, "an Exec argument")
+    arg = arg.replace("%", "%%").replace("$", "$$")
+    if arg and set(arg) <= BARE_CHARS and arg[0] not in "-+@:!":
+        return arg
+    return '"' + arg.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
 def _name(value: str, what: str) -> str:
@@ -124,21 +225,30 @@ def cmd_service_unit(args: argparse.Namespace) -> int:
         prof = load_profile(profile)
         load_trajectories(prof)
         build_scene(prof.scene, prof)
+        text = unit_text(
+            hapticd_command(),
+            profile,
+            name=prof.name,
+            user=user,
+            group=group,
+            docs=DOCS if DOCS.is_file() else None,
+            kill=shutil.which("kill") or "/bin/kill",
+            environment=sdk_environment(prof),
+        )
     except (ProfileError, ValueError) as exc:
         print(f"hapticd: {exc}", file=sys.stderr)
         print("hapticd: no unit printed: fix the profile (hapticd check) first", file=sys.stderr)
         return EXIT_BAD_INPUT
-    text = unit_text(
-        hapticd_command(),
-        profile,
-        name=prof.name,
-        user=user,
-        group=group,
-        docs=DOCS if DOCS.is_file() else None,
-        kill=shutil.which("kill") or "/bin/kill",
-    )
     if args.out is not None:
-        args.out.write_text(text)
+        # Created new, or written aside and renamed over a regular file of this user: a
+        # symbolic link (or FIFO, or another user's file) planted there is refused, never
+        # followed.
+        try:
+            fd, _ = files.create(args.out, text.encode(), overwrite=True, mode=UNIT_MODE)
+        except RecordingError as exc:
+            print(f"hapticd: --out {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        os.close(fd)
     else:
         sys.stdout.write(text)
     return EXIT_OK

@@ -21,10 +21,10 @@ from hapticd_drivers.trajectory import Trajectory, check_samples
 
 from hapticd import recording
 from hapticd.allocation import AdaptiveState, Robustness
+from hapticd.allocation.actuation import Actuation
 from hapticd.loop.mount import Mount
 from hapticd.loop.realtime import RealtimeSettings
 from hapticd.physics import jit
-from hapticd.physics.actuation import Actuation
 from hapticd.physics.passivity import PassivityParams
 from hapticd.physics.render import Renderer
 from hapticd.physics.safety import Deadman, SafetyChain, SafetyParams
@@ -134,6 +134,38 @@ def _emulated_seam(backend: str, emulators: list[Any]) -> dict[str, Any]:
     return {"usb_backend": EmulatedUsbBackend(emulators)}
 
 
+def check_watchdog(profile: Profile, *, device: str | None = None, emulate: bool = False) -> None:
+    """A real device (a hardware backend, not under ``--emulate``) runs only with the loop's
+    wall-clock watchdog (``safety.watchdog_s``): ProfileError naming the finger and its
+    backend if it is off, unless ``safety.allow_no_watchdog``, then a warning (every
+    start). ``device`` is the ``--device`` override of every finger's backend."""
+    safety = profile.safety
+    if safety.watchdog_s is not None or emulate:
+        return
+    where = f"{profile.source or '<profile>'}"
+    real = []
+    for i, finger in enumerate(profile.fingers):
+        name = device or finger.device.backend
+        entry = registry.BACKENDS.get(name)  # an unknown name is told below, by its finger
+        if entry is not None and entry.hardware:
+            real.append(f"fingers[{i}:{finger.name}] on {name!r}")
+    if not real:
+        return
+    if not safety.allow_no_watchdog:
+        raise ProfileError(
+            f"{where}: safety.watchdog_s is none (no watchdog), but {', '.join(real)} drives "
+            "a real device: a stalled loop would leave its last force on; set "
+            "safety.watchdog_s (the rigs' is 0.1 s), or safety.allow_no_watchdog: true for "
+            "bench work without a subject"
+        )
+    log.warning(
+        "%s: no watchdog (safety.allow_no_watchdog) with %s: a stalled loop leaves its "
+        "last force on the device",
+        where,
+        ", ".join(real),
+    )
+
+
 def build_devices(
     profile: Profile,
     *,
@@ -147,10 +179,11 @@ def build_devices(
     under the hid, usb or falcon backend, moved along each finger's trajectory; ``clock`` is
     the loop's nominal time (s) for devices that play a trajectory.
     """
+    where = f"{profile.source or '<profile>'}"
+    check_watchdog(profile, device=device, emulate=emulate)
     trajectories = load_trajectories(profile)
     devices: list[Device] = []
     emulators: list[Any] = []  # DeltaEmulator, or FalconEmulator under the falcon backend
-    where = f"{profile.source or '<profile>'}"
     for i, (finger, traj) in enumerate(zip(profile.fingers, trajectories, strict=True)):
         cfg = finger.device
         name = device or cfg.backend
@@ -374,6 +407,7 @@ def build_safety(profile: Profile, devices: list[Device]) -> SafetyChain:
         ),
         dt=1.0 / profile.loop.rate_hz,
         rated_n=[d.info.max_force_n for d in devices],
+        max_n=profile.safety.max_force_n,
     )
     # Not a renderer stage, but compiled as the renderer's kernels are (rendering.kernels):
     # the normal path compiled, every trip through the Python chain. build_renderer asked

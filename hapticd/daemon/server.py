@@ -18,14 +18,18 @@ from __future__ import annotations
 import contextlib
 import errno
 import logging
+import math
 import os
+import re
 import select
 import selectors
 import socket
+import struct
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -48,6 +52,11 @@ log = logging.getLogger("hapticd.control")
 MAX_OUTPUT_BYTES = 1 << 20  # a client this far behind is dropped
 MAX_PENDING_BYTES = 256 * 1024  # unread requests held per client; beyond, reading pauses
 LINES_PER_TURN = 4  # requests served per client before the next client's turn
+# Connections accepted (or turned away busy) per round of the server thread: a storm of
+# connects waits in the kernel's backlog, not in the loop's GIL.
+ACCEPTS_PER_ROUND = 8
+# Clients turned away busy are logged at most this often, with their count.
+BUSY_LOG_PERIOD_S = 1.0
 BACKLOG = socket.SOMAXCONN  # connections waiting to be accepted
 TELEMETRY_BACKLOG_BYTES = 64 * 1024  # above this a telemetry frame is skipped, not queued
 # An event subscriber this far behind is dropped: events are never skipped silently.
@@ -62,24 +71,31 @@ PERIODIC_S = 0.1
 WINDOW_S = 200e-6
 # ...but no longer than this (at high rates the loop's sleep may never be that long).
 WINDOW_MAX_WAIT_S = 0.005
-MAX_CLIENTS = 32  # connections served at once: a runaway script cannot take every fd
+# Connections served at once (a runaway script cannot take every fd), and of those, how many
+# may hold a subscription: readers of telemetry or events never take the places of commands.
+MAX_CLIENTS = 64
+MAX_SUBSCRIBERS = 32
 # A connection must send a complete request line this soon after connecting, and finish
 # any line it begins this soon after its first byte; else it is told so and closed. A
 # connection with a subscription (telemetry or events) is never closed for being quiet.
 REQUEST_TIMEOUT_S = 5.0
 # The loop first: requests that rebuild or change the loop are served at most this often,
 # whoever sends them (the server's own minimum interval per kind, s). One due sooner waits
-# at the head of its connection (that client's later requests wait behind it, in order;
-# the other clients are served meanwhile): a storm of them slows the replies, not the loop.
-RATE_LIMITS_S = {"reload": 1.0, "change": 0.02}
+# at the head of its connection (that client's later requests wait behind it, in order)
+# and in a queue of its kind, first come, first served across clients: a storm of them
+# slows the replies, not the loop, and one client's storm cannot starve another's change.
+# `disable` and `stop` are never limited: taking forces away must not wait for anyone.
+RATE_LIMITS_S = {"reload": 1.0, "change": 0.02, "mark": 0.005}
 LIMITED = {
+    "mark": "mark",
     "reload": "reload",
     "set": "change",
     "enable": "change",
-    "disable": "change",
     "record_start": "change",
     "record_stop": "change",
 }
+# Refused with `stopped` once a stop was requested: they would change a loop on its way out.
+REFUSED_WHEN_STOPPING = frozenset({"set", "enable", "reload", "record_start", "move"})
 # While a reload parses and builds (Python work in this thread), the GIL is handed to the
 # loop within this long when the loop wakes (the loop's own setting is 0.5 ms, more than
 # its wake-up margin of 0.2 ms).
@@ -119,8 +135,57 @@ def busy_error(clients: int, limit: int) -> bytes:
         None,
         "busy",
         f"the daemon is busy: {clients} clients connected (at most {limit}, each with a "
-        "request or a subscription); close one and try again",
+        "recent request or a subscription); close one and try again",
         clients=clients,
+    )
+
+
+def peer_cred(sock: socket.socket) -> tuple[int | None, int | None]:
+    """The pid and uid of the process at the other end of the Unix socket ``sock``
+    (SO_PEERCRED), each None if the kernel does not say."""
+    size = struct.calcsize("3i")
+    try:
+        pid, uid, _gid = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, PEERCRED, size))
+    except (OSError, struct.error):
+        return None, None
+    return pid, uid
+
+
+def _abspath(path: str | Path | None) -> str | None:
+    """``path`` made absolute (the daemon's working directory is not its clients'), or None."""
+    return None if path is None else os.path.abspath(path)
+
+
+def peer_uid(sock: socket.socket) -> int | None:
+    """The uid of the process at the other end of the Unix socket ``sock``, or None."""
+    return peer_cred(sock)[1]
+
+
+PEERCRED = getattr(socket, "SO_PEERCRED", 17)  # 17 on Linux, the only platform served
+
+
+def within(path: str, dirs: Sequence[str]) -> bool:
+    """Is ``path`` (resolved) inside one of ``dirs`` (resolved directories)?"""
+    return any(os.path.commonpath([path, d]) == d for d in dirs)
+
+
+_LINE_NOTE = re.compile(r"\(line (\d+)\)$|^\S.*?: line (\d+):", re.MULTILINE)
+_ERROR_COUNT = re.compile(r": (\d+) error\(s\) in profile$")
+
+
+def redacted_profile_error(path: str, message: str) -> str:
+    """What a client that is not the daemon's user is told of a profile ``message`` about
+    ``path``: the file, how many errors and their lines, never a key or a value from the
+    file (it may be one only the daemon can read)."""
+    first = message.splitlines()[0] if message else ""
+    count = _ERROR_COUNT.search(first)
+    lines = sorted({int(a or b) for a, b in _LINE_NOTE.findall(message)})
+    what = f"{count.group(1)} error(s)" if count else "not usable"
+    at = f", at line(s) {', '.join(map(str, lines))}" if lines else ""
+    return (
+        f"{path}: not a valid profile ({what}{at}); the daemon shows its file's keys and "
+        f"values only to its own user: `hapticd check {path}` shows them to anyone who may "
+        "read the file"
     )
 
 
@@ -138,7 +203,9 @@ class _Conn:
     active_at: float = field(default_factory=time.monotonic)  # connected, or last request
     served: int = 0  # complete requests served
     line_since: float | None = None  # when the unfinished line in inbuf began
-    wait_until: float = 0.0  # its next request is rate-limited until then
+    wait_until: float = 0.0  # its next request is rate-limited until then (inf: queued)
+    uid: int | None = None  # the client's uid (SO_PEERCRED); None: unknown
+    pid: int | None = None  # the client's process (SO_PEERCRED); None: unknown
 
     @property
     def subscribed(self) -> bool:
@@ -159,14 +226,30 @@ class ControlServer:
         *,
         periodic: list[Callable[[], None]] | None = None,
         max_clients: int = MAX_CLIENTS,
+        max_subscribers: int = MAX_SUBSCRIBERS,
         request_timeout_s: float = REQUEST_TIMEOUT_S,
         rate_limits_s: dict[str, float] | None = None,
         socket_group: int | None = None,
+        reload_dirs: Sequence[str | Path] | None = None,
     ) -> None:
         self.session = session
         # The group (gid) whose members may connect too (--socket-group), else only this user.
         self.socket_group = socket_group
+        # Clients of another uid than this (a --socket-group member) reload only profiles in
+        # these directories (default: the running profile's own), resolved: no `..` or link
+        # leads out of them.
+        self.owner_uid = os.getuid()
+        source = session.profile.source
+        given = (
+            reload_dirs
+            if reload_dirs is not None
+            else []
+            if source is None
+            else [Path(source).parent]
+        )
+        self.reload_dirs = [os.path.realpath(d) for d in given]
         self.max_clients = max_clients
+        self.max_subscribers = max_subscribers
         self.request_timeout_s = request_timeout_s
         self.idle_closed = 0  # connections closed for sending no complete request in time
         self.loop = session.loop
@@ -183,21 +266,39 @@ class ControlServer:
         self.reloads: list[str] = []  # outcome of each SIGHUP reload, for status and tests
         self.events_backlog_bytes = EVENTS_BACKLOG_BYTES
         self.slow_event_clients = 0  # event subscribers dropped for falling behind
+        # Called in this thread with each batch of event lines, in order, as subscribers get
+        # them (the LSL marker outlet, hapticd.daemon.lsl); each must return at once.
+        self.event_sinks: list[Callable[[list[bytes]], None]] = []
         self._responses: dict[tuple[int, int], str] = {}
         self._responses_of: object = None  # the profile _responses was made from
         # The subject prompt (id, question, choices), or None; answered by `respond`.
         self.prompt: dict[str, Any] | None = None
+        # The lease (one experiment at a time): the connection holding it and what it said
+        # of itself ({"subject", "pid"}); ended by release or by that connection closing.
+        self.lease: tuple[_Conn, dict[str, Any]] | None = None
+        # What the subject's screen shows besides the prompt (`screen`), or None.
+        self.screen: dict[str, Any] | None = None
         self.rate_limits_s = {**RATE_LIMITS_S, **(rate_limits_s or {})}
         self._next_allowed = dict.fromkeys(self.rate_limits_s, 0.0)  # per kind, monotonic s
+        # Per kind, the connections whose next request waits for that kind's slot, in the
+        # order they asked: the head takes the next slot, the others wait their turn.
+        self._queues: dict[str, deque[_Conn]] = {k: deque() for k in self.rate_limits_s}
         self.deferred = 0  # requests that waited for their rate limit
         self._sighup_pending = False  # a SIGHUP reload waits for the reload limit
         self._accept_paused_until: float | None = None  # out of file descriptors
         self.accept_failures = 0  # accept() calls that failed so, since the last success
+        self.refused_busy = 0  # clients turned away busy, in all
+        self._busy_logged = (0, -math.inf)  # refused_busy and monotonic time at the last log
 
     @property
     def clients(self) -> int:
         """The connections served now (at most max_clients)."""
         return len(self._conns)
+
+    @property
+    def subscribers(self) -> int:
+        """The connections holding a subscription (telemetry or events) now."""
+        return sum(c.subscribed for c in list(self._conns.values()))
 
     @property
     def event_subscribers(self) -> int:
@@ -273,9 +374,11 @@ class ControlServer:
         self._wake(b"Q")
         if self._thread is not None:
             self._thread.join(timeout=5.0)
-        for conn in list(self._conns):
+        for conn in list(self._conns.values()):
             with contextlib.suppress(Exception):
-                self._drop(conn)
+                self._refuse_waiting(conn)
+            with contextlib.suppress(Exception):
+                self._drop(conn.sock)
         if self._sock is not None:
             with contextlib.suppress(Exception):
                 self._sel.unregister(self._sock)
@@ -296,6 +399,21 @@ class ControlServer:
                     os.close(fd)
         self._wake_r = self._wake_w = self._gate_r = -1
 
+    def _refuse_waiting(self, conn: _Conn) -> None:
+        """Answer every complete request still waiting on ``conn`` with ``stopped`` (the
+        server is closing: each request gets a reply), best effort, without blocking."""
+        why = self.loop.end_reason or self.loop.stop_reason or "the control server closed"
+        while (cut := conn.inbuf.find(b"\n")) >= 0:
+            line = bytes(conn.inbuf[:cut])
+            del conn.inbuf[: cut + 1]
+            try:
+                req_id = proto.request_id(proto.decode(line))
+            except proto.ProtocolError:
+                req_id = None
+            conn.outbuf += proto.error(req_id, "stopped", f"the daemon stopped: {why}")
+        with contextlib.suppress(OSError):
+            conn.sock.send(conn.outbuf)
+
     def _wake(self, what: bytes) -> None:
         if self._wake_w < 0:
             return
@@ -304,6 +422,12 @@ class ControlServer:
 
     def _await_window(self) -> None:
         await_window(self.loop, self._gate_r)
+
+    def _await_io_window(self) -> None:
+        """Before accepting, reading and writing sockets: they are Python work too, done in
+        the loop's sleep as every request's is, so a storm of clients delays the replies,
+        not the ticks (scripts/bench_hostile.py measures it)."""
+        self._await_window()
 
     def request_reload(self) -> None:
         """Reload the profile from its file in the server thread (safe in a signal handler)."""
@@ -337,10 +461,15 @@ class ControlServer:
         if any(c.event_kinds is not None for c in self._conns.values()):
             due.append(now + EVENT_PERIOD_S)
         timeout = 0.0 if self._pending() else max(0.0, min(due) - now)
-        for key, ready in self._sel.select(timeout=timeout):
+        ready_now = self._sel.select(timeout=timeout)
+        if ready_now:
+            self._await_io_window()
+        for key, ready in ready_now:
             obj = key.fileobj
             if obj is self._sock:
-                self._accept()
+                for _ in range(ACCEPTS_PER_ROUND):
+                    if not self._accept():
+                        break
             elif obj == self._wake_r:
                 self._woken()
             elif isinstance(obj, socket.socket) and obj in self._conns:
@@ -403,29 +532,50 @@ class ControlServer:
             log.info("%s", msg)
         self.reloads.append(msg)
 
-    def _accept(self) -> None:
+    def _accept(self) -> bool:
+        """Take one waiting connection: served, or turned away busy. False when none was
+        waiting (or accepting failed), so the round accepts no more."""
         assert self._sock is not None
         try:
             sock, _ = self._sock.accept()
         except BlockingIOError:
-            return
+            return False
         except OSError as exc:
             if exc.errno in _OUT_OF_FDS:
                 self._pause_accept(exc)
-            return  # otherwise that client went away before we got to it
+            return False  # otherwise that client went away before we got to it
         self.accept_failures = 0
         if len(self._conns) >= self.max_clients and not self._evict_idle():
             n = len(self._conns)
-            log.warning("refused a control client: the daemon is busy, %d connected", n)
+            self.refused_busy += 1
+            self._log_busy(n)
             with contextlib.suppress(OSError):
                 sock.send(busy_error(n, self.max_clients))
             sock.close()
-            return
+            return True
         sock.setblocking(False)
-        conn = _Conn(sock)
+        pid, uid = peer_cred(sock)
+        conn = _Conn(sock, uid=uid, pid=pid)
         self._conns[sock] = conn
         self._sel.register(sock, selectors.EVENT_READ, None)
         self._send(conn, proto.greeting(__version__))
+        return True
+
+    def _log_busy(self, connected: int) -> None:
+        """Say that clients were turned away busy: at once for the first of a while, then at
+        most once every BUSY_LOG_PERIOD_S with how many (a storm writes no log storm)."""
+        count, at = self._busy_logged
+        now = time.monotonic()
+        if now - at < BUSY_LOG_PERIOD_S:
+            return
+        n = self.refused_busy - count
+        log.warning(
+            "refused %d control client(s)%s: the daemon is busy, %d connected",
+            n,
+            "" if at == -math.inf else f" in the last {now - at:.1f} s",
+            connected,
+        )
+        self._busy_logged = (self.refused_busy, now)
 
     def _idle(self, conn: _Conn, now: float) -> bool:
         """A connection that may give up its place: no subscription, no request waiting,
@@ -444,7 +594,7 @@ class ControlServer:
         if not idle:
             return False
         victim = min(idle, key=lambda c: (c.served > 0, c.active_at))
-        self._close_idle(victim, "closed to make room for another client")
+        self._close_idle(victim, "to make room for another client")
         return True
 
     def _close_idle(self, conn: _Conn, why: str) -> None:
@@ -456,8 +606,9 @@ class ControlServer:
                 + proto.error(
                     None,
                     "idle",
-                    f"{why}: no complete request within {self.request_timeout_s:g} s "
-                    "(a subscription keeps a connection open)",
+                    f"the daemon closed this idle connection ({why}): no complete request "
+                    f"within {self.request_timeout_s:g} s; connect again (a subscription "
+                    "keeps a connection open)",
                 )
             )
         self._drop(conn.sock)
@@ -470,7 +621,8 @@ class ControlServer:
             unfinished = conn.line_since is not None and now - conn.line_since >= limit
             silent = conn.served == 0 and not conn.subscribed and now - conn.active_at >= limit
             if (unfinished or silent) and b"\n" not in conn.inbuf:
-                self._close_idle(conn, "closed")
+                why = "a request line left unfinished" if unfinished else "no request sent"
+                self._close_idle(conn, why)
 
     def _pause_accept(self, exc: OSError) -> None:
         """Stop watching the listener for ACCEPT_BACKOFF_S (out of file descriptors)."""
@@ -496,8 +648,36 @@ class ControlServer:
     def _drop(self, sock: socket.socket) -> None:
         with contextlib.suppress(KeyError, ValueError):
             self._sel.unregister(sock)
-        self._conns.pop(sock, None)
+        conn = self._conns.pop(sock, None)
+        if conn is not None:
+            self._leave_queues(conn)
+            if self.lease is not None and self.lease[0] is conn:
+                self._end_lease("its connection closed")
         sock.close()
+
+    def _end_lease(self, why: str) -> None:
+        """End the lease; a holder that went away leaves no prompt up for the subject."""
+        assert self.lease is not None
+        holder = self.lease[1]
+        self.lease = None
+        log.info("lease of subject %s (pid %s) ended: %s", holder["subject"], holder["pid"], why)
+        if why != "released" and self.prompt is not None:
+            self.prompt = None
+            with contextlib.suppress(Exception):
+                self._server_event("prompt", prompt=None)
+        if why != "released" and self.screen is not None and self.screen.get("state") != "end":
+            self.screen = None
+            with contextlib.suppress(Exception):
+                self._server_event("screen")
+
+    def _leave_queues(self, conn: _Conn) -> None:
+        """Take ``conn`` out of the rate-limit queues; a new head may go at its kind's slot."""
+        for kind, queue in self._queues.items():
+            if conn in queue:
+                head = queue[0] is conn
+                queue.remove(conn)
+                if head and queue:
+                    queue[0].wait_until = self._next_allowed[kind]
 
     def _send(self, conn: _Conn, data: bytes) -> None:
         conn.outbuf += data
@@ -561,8 +741,10 @@ class ControlServer:
         return any(b"\n" in c.inbuf and c.wait_until <= now for c in self._conns.values())
 
     def _limited(self, conn: _Conn, line: bytes) -> bool:
-        """Is ``line`` a request of a rate-limited kind that is not due yet? Then ``conn``
-        waits until it is. Otherwise a limited request books its kind's next slot."""
+        """Is ``line`` a request of a rate-limited kind that may not be served yet? Then
+        ``conn`` keeps (or takes) its place in that kind's queue and waits: the head of the
+        queue until the kind's next slot, the others until they are the head. Otherwise a
+        limited request books its kind's next slot."""
         if not any(cmd.encode() in line for cmd in LIMITED):
             return False  # cheap: most lines name no limited command at all
         # Parsing is Python work: in the loop's sleep, as every request's (this runs at
@@ -574,14 +756,27 @@ class ControlServer:
             return False  # answered as the error it is
         cmd = req.get("cmd")
         kind = LIMITED.get(cmd) if isinstance(cmd, str) else None
-        if kind is None:
-            return False
+        if kind is None or self.loop.stop_reason is not None:
+            return False  # a request refused while stopping is answered at once
+        queue = self._queues[kind]
         now = time.monotonic()
-        if now < self._next_allowed[kind]:
-            conn.wait_until = self._next_allowed[kind]
-            self.deferred += 1
+        if queue and queue[0] is not conn:
+            if conn not in queue:
+                queue.append(conn)  # its place, kept until it is served or goes
+                self.deferred += 1
+            conn.wait_until = math.inf  # until it is the head (_leave_queues, below)
             return True
+        if now < self._next_allowed[kind]:
+            if not queue:
+                queue.append(conn)
+                self.deferred += 1
+            conn.wait_until = self._next_allowed[kind]
+            return True
+        if queue:
+            queue.popleft()
         self._next_allowed[kind] = now + self.rate_limits_s[kind]
+        if queue:
+            queue[0].wait_until = self._next_allowed[kind]
         return False
 
     def _serve_turns(self) -> None:
@@ -668,7 +863,7 @@ class ControlServer:
         self._await_window()
         records, lost = ring.drain()
         subs = [c for c in self._conns.values() if c.event_kinds is not None]
-        if not subs:
+        if not subs and not self.event_sinks:
             return
         names = self.session.profile.finger_names
         responses = self._response_map()
@@ -700,6 +895,8 @@ class ControlServer:
                 "count": lost,
             }
             out.append((EVENTS_LOST, ring.lost_tick, proto.encode(lost_ev)))
+        for sink in self.event_sinks:
+            sink([line for _, _, line in out])
         for conn in subs:
             kinds, first = conn.event_kinds, conn.events_from
             assert kinds is not None
@@ -727,6 +924,7 @@ class ControlServer:
         """The reply to one request line; an error reply echoes the request's id whenever
         the line could be read as a JSON object with a valid id."""
         req_id = None
+        req: dict[str, Any] = {}
         self._await_window()
         try:
             req = proto.decode(line)
@@ -735,7 +933,11 @@ class ControlServer:
         except proto.ProtocolError as exc:
             return proto.error(req_id, exc.code, str(exc))
         except ProfileError as exc:
-            return proto.error(req_id, "bad_profile", str(exc))
+            message = str(exc)
+            if not self._is_owner(conn):
+                source = self.session.profile.source
+                message = redacted_profile_error(str(req.get("profile") or source), message)
+            return proto.error(req_id, "bad_profile", message)
         except RecordingError as exc:
             return proto.error(req_id, "recording", str(exc))
         except TimeoutError as exc:
@@ -746,7 +948,19 @@ class ControlServer:
             log.exception("control request failed")
             return proto.error(req_id, "internal", f"{type(exc).__name__}: {exc}")
 
+    def _is_owner(self, conn: _Conn) -> bool:
+        """Is the client the daemon's own user (who may read whatever the daemon reads)?"""
+        return conn.uid is not None and conn.uid == self.owner_uid
+
     def _execute(self, conn: _Conn, req: dict[str, Any]) -> Any:
+        stopping = self.loop.stop_reason
+        if stopping is not None and req["cmd"] in REFUSED_WHEN_STOPPING:
+            raise proto.ProtocolError(
+                "stopped", f"the daemon is stopping ({stopping}): {req['cmd']} changes nothing"
+            )
+        leased = proto.LEASED_COMMANDS | {"lease"}
+        if self.lease is not None and self.lease[0] is not conn and req["cmd"] in leased:
+            raise proto.ProtocolError("leased", self._leased_message(req["cmd"]))
         result = _HANDLERS[req["cmd"]](self, conn, req)
         if "applied_at_tick" in result:
             what = " ".join(str(req[k]) for k in ("cmd", "param", "value", "path") if k in req)
@@ -762,7 +976,31 @@ class ControlServer:
             "fingers": list(self.session.profile.finger_names),
             "reloads": self.reloads,
             "prompt": self.prompt,
+            "lease": None if self.lease is None else self.lease[1],
+            "profile_path": _abspath(self.session.profile.source),
+            "screen": self.screen,
         }
+
+    def _leased_message(self, cmd: str) -> str:
+        assert self.lease is not None
+        h = self.lease[1]
+        return (
+            f"{cmd} refused: the daemon is held by an experiment on subject {h['subject']!r} "
+            f"(process {h['pid']}); wait for it to end, or end it (its terminal, kill "
+            f"{h['pid']}); disable and stop always work"
+        )
+
+    def _lease(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        holder = {"subject": req["subject"], "pid": req.get("pid", conn.pid)}
+        self.lease = (conn, holder)
+        log.info("lease taken by subject %s (pid %s)", holder["subject"], holder["pid"])
+        return {"holder": holder}
+
+    def _release(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        if self.lease is None or self.lease[0] is not conn:
+            return {"released": False}
+        self._end_lease("released")
+        return {"released": True}
 
     def _get(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
         return {req["param"]: self.loop.param(req["param"])}
@@ -771,7 +1009,19 @@ class ControlServer:
         self.loop.request_stop(f"control: {req['cmd']}")
         return {"stopping": True, "ramp_s": self.loop.stop_ramp_s}
 
+    def _check_subscriber_place(self, conn: _Conn) -> None:
+        """ProtocolError ``busy`` if ``conn`` would be one subscriber too many: the places
+        beyond max_subscribers are kept for commands (status, disable, stop)."""
+        n = self.subscribers
+        if not conn.subscribed and n >= self.max_subscribers:
+            raise proto.ProtocolError(
+                "busy",
+                f"the daemon is busy: {n} subscriptions (at most {self.max_subscribers}; the "
+                "other places are kept for commands); end one and try again",
+            )
+
     def _subscribe(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        self._check_subscriber_place(conn)
         conn.rate_hz = req["rate_hz"]
         conn.next_due = time.monotonic()
         return {"subscribed": True, "rate_hz": conn.rate_hz}
@@ -781,6 +1031,7 @@ class ControlServer:
         return {"subscribed": False, "skipped_frames": conn.skipped}
 
     def _events_subscribe(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        self._check_subscriber_place(conn)
         names = req.get("kinds") or list(events.NAMES)
         conn.event_kinds = frozenset(events.CODES[n] for n in names)
         # Events of this tick on: those of earlier ticks still in the ring are not sent.
@@ -815,18 +1066,29 @@ class ControlServer:
         self._server_event("response", prompt=pid, choice=req["choice"])
         return {}
 
-    def _server_event(self, name: str, **fields: Any) -> None:
-        """Send the server-made event ``name`` to its subscribers, after the loop's events
-        still in the ring (so every subscriber sees them in order), stamped with the
-        current tick and its time."""
+    def _screen(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        self.screen = None if req["screen"] is None else dict(req["screen"])
+        self._server_event("screen")
+        return {}
+
+    def _server_event(self, name: str, **fields: Any) -> int:
+        """Send the server-made event ``name`` to its subscribers (and the event sinks),
+        after the loop's events still in the ring (so every subscriber sees them in order),
+        stamped with the current tick and its time; returns that tick."""
         self._deliver_events()
         code = events.CODES[name]
         tick = self.loop.stats.ticks
         line = proto.encode({"event": name, "tick": tick, "t": self.loop.now(), **fields})
+        for sink in self.event_sinks:
+            sink([line])
         for conn in list(self._conns.values()):
             kinds = conn.event_kinds
             if kinds is not None and code in kinds and tick >= conn.events_from:
                 self._send_events(conn, line)
+        return tick
+
+    def _mark(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
+        return {"tick": self._server_event("mark", text=req["text"])}
 
     def _record_start(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
         return self.session.record_start(req["path"], overwrite=req.get("overwrite", False))
@@ -835,7 +1097,19 @@ class ControlServer:
         return self.session.record_stop()
 
     def _reload(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
-        return self._reload_gently(req.get("profile"))
+        path = req.get("profile")
+        if path is not None and not self._is_owner(conn):
+            # The resolved path is checked and read: `..` or a link cannot lead elsewhere.
+            path = os.path.realpath(path)
+            if not within(path, self.reload_dirs):
+                allowed = ", ".join(self.reload_dirs) or "none"
+                raise proto.ProtocolError(
+                    "denied",
+                    f"reload {req['profile']}: a client of uid {conn.uid} (not the daemon's "
+                    f"user) may reload only profiles in the directories the daemon allows "
+                    f"(hapticd run --reload-dir): {allowed}",
+                )
+        return self._reload_gently(path)
 
     def _reload_gently(self, path: str | None = None) -> dict[str, Any]:
         """``session.reload`` with a short GIL switch interval: its parsing and building, in
@@ -876,7 +1150,11 @@ _HANDLERS: dict[str, Callable[[ControlServer, _Conn, dict[str, Any]], dict[str, 
     "events_unsubscribe": ControlServer._events_unsubscribe,
     "prompt": ControlServer._prompt,
     "respond": ControlServer._respond,
+    "screen": ControlServer._screen,
+    "mark": ControlServer._mark,
     "move": lambda server, conn, req: server.session.move(req["finger"], req["position_m"]),
+    "lease": ControlServer._lease,
+    "release": ControlServer._release,
     "shutdown": ControlServer._stop,
     "stop": ControlServer._stop,
 }

@@ -96,9 +96,8 @@ class Session:
         try:
             self.loop.run()
         finally:
-            rec = self.loop.recorder
-            if rec is not None:
-                self.loop.recorder = None
+            if self.loop.recorder is not None:
+                rec = self.loop.stop_recording()
                 try:
                     rec_status = rec.close()
                 except RecordingError as exc:
@@ -333,6 +332,7 @@ def make_recorder(
     process started (RecordingError); its header holds the rig (``rig_meta``) when
     ``devices`` are given."""
     rate = profile.loop.rate_hz
+    every = profile.recording.record_every(rate)
     rec = Recorder(
         path,
         recording.loop_fields(len(profile.fingers), renderer.actuation.n_actuators),
@@ -345,12 +345,14 @@ def make_recorder(
             "allocators": list(METHODS),
             "paced": paced,
             "force_limits_n": list(safety.limits),
+            "record_every": every,
             **({"devices": rig_meta(profile, devices)} if devices is not None else {}),
         },
         capacity=max(4096, int(2.0 * rate)),  # 2 s of ticks: the writer may pause that long
         block_when_full=not paced,
         overwrite=overwrite,
         root=root,
+        record_every=every,
     )
     rec.wait_running()
     if not ring.ORDERED_STORES:

@@ -41,6 +41,15 @@ def _fault(loop: ServoLoop) -> dict[str, Any] | None:
     return None if f is None else {"tick": f.tick, "t": f.t, "cause": f.cause, "kind": f.kind}
 
 
+def _device_counts(loop: ServoLoop, i: int) -> dict[str, int]:
+    """What finger ``i``'s device driver counted (Device.counts: e.g. the SDK's saturated
+    motors); empty for a device that counts nothing or cannot say."""
+    try:
+        return {str(k): int(v) for k, v in loop.devices[i].counts().items()}
+    except Exception:  # a stand-in device without the method: the summary still comes
+        return {}
+
+
 def pressed(bits: int) -> list[int]:
     """The buttons down in a device's ``buttons`` bit set, as indices (bit i: button i)."""
     return [i for i in range(32) if (bits >> i) & 1]
@@ -76,7 +85,11 @@ def summarize(loop: ServoLoop, finger_names: Sequence[str]) -> dict[str, Any]:
         "allocator": loop.renderer.method,
         "max_rendered_force_n": round(max(st.max_force, default=0.0), 6),
         "fingers": {
-            name: {"max_force_n": round(st.max_force[i], 6), "contact_ticks": st.contact_ticks[i]}
+            name: {
+                "max_force_n": round(st.max_force[i], 6),
+                "contact_ticks": st.contact_ticks[i],
+                "device_counts": _device_counts(loop, i),
+            }
             for i, name in enumerate(finger_names)
         },
         "clamped_ticks": loop.safety.clamped_ticks,

@@ -14,6 +14,12 @@ from hapticd.experiment.fitters import FITTERS
 from hapticd.psychophysics import jnd_z, paired_t
 
 
+def session_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The store rows of the session's own trials: practice trials (``practice`` true)
+    are never analysed."""
+    return [r for r in rows if not r.get("practice")]
+
+
 def _key(row: dict[str, Any]) -> tuple[str, str, float]:
     return (row["subject"], row["condition"], float(row["standard"]))
 
@@ -37,7 +43,7 @@ def analyze(
     and the tests (the experiment file's order; others after it, sorted); the test of
     conditions [a, b] is of Weber(a) - Weber(b)."""
     cells: dict[tuple[str, str, float], list[dict[str, Any]]] = defaultdict(list)
-    for row in trials:
+    for row in session_rows(trials):
         cells[_key(row)].append(row)
     present = sorted({k[1] for k in cells})
     order = [c for c in conditions or [] if c in present]
@@ -111,6 +117,7 @@ def failed_trials(rows: list[dict[str, Any]]) -> dict[str, Any]:
     condition and standard."""
     causes: dict[str, int] = defaultdict(int)
     cells: dict[str, int] = defaultdict(int)
+    rows = session_rows(rows)
     for r in rows:
         for part in str(r.get("failure") or "unknown").split("; "):
             causes[
@@ -174,7 +181,7 @@ def analyze_staircases(
     from hapticd.experiment.spec import Staircase
 
     st = Staircase.model_validate(staircase)
-    tracks = tracks_from_rows(trials, st)
+    tracks = tracks_from_rows(session_rows(trials), st)
     rows = []
     for (subject, _), t in tracks.items():
         d = t.threshold(st)
@@ -243,7 +250,7 @@ def analyze_quest(
 
     q = QuestPlusDesign.model_validate(quest)
     by: dict[tuple[str, int], list[dict[str, Any]]] = defaultdict(list)
-    for r in trials:
+    for r in session_rows(trials):
         if r.get("block") is not None:
             by[(r["subject"], int(r["block"]))].append(r)
     rows, weber = [], {}

@@ -47,13 +47,13 @@ from hapticd_drivers import registry
 
 from hapticd import params
 from hapticd.allocation import DEFAULT_ROBUSTNESS, AdaptiveState, Robustness
+from hapticd.allocation.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.daemon.build import build_mounts, build_renderer, build_safety
 from hapticd.experiment.plan import PlannedTrial
 from hapticd.experiment.spec import Experiment, ExperimentError
 from hapticd.loop.servo import ServoLoop, TickClock
 from hapticd.loop.trajectory import Hold, MinJerk, Segment, two_finger
-from hapticd.physics.actuation import Actuation
 from hapticd.physics.frame import Frame
 from hapticd.profile import (
     Profile,
@@ -336,11 +336,16 @@ class FrameLog:
         self._bytes = self.rows.view(np.uint8).reshape(capacity, frame.recorded_dtype.itemsize)
         self.ticks = 0
         self.path = "<memory>"
+        self.clock: dict[str, float] | None = None  # tick 0 on the LSL clock and in UTC
 
     def append(self, record: np.ndarray) -> None:
         if self.ticks < len(self.rows):
             self._bytes[self.ticks] = record
             self.ticks += 1
+
+    def anchor(self, lsl_s: float, utc_unix_s: float) -> None:
+        """Tick 0 on the LSL clock and in UTC, s (as a recording's header holds them)."""
+        self.clock = {"lsl_s": lsl_s, "utc_unix_s": utc_unix_s}
 
     def close(self) -> dict[str, Any]:
         return {"ticks": self.ticks}

@@ -43,6 +43,7 @@ import os
 import queue
 import re
 import select
+import signal
 import sys
 import threading
 import time
@@ -53,8 +54,8 @@ from typing import Any, Literal, Protocol, TextIO
 
 from hapticd import protocol as proto
 from hapticd.control import ControlClient
-from hapticd.experiment.plan import PlannedTrial, make_plan
-from hapticd.experiment.spec import Experiment, ExperimentError, file_hash
+from hapticd.experiment.plan import PlannedTrial, make_plan, make_practice
+from hapticd.experiment.spec import Display, Experiment, ExperimentError, file_hash
 from hapticd.experiment.store import DONE, StoreError, TrialStore, claim_subject
 
 SUBJECT_PATTERN = re.compile(r"[A-Za-z0-9_.-]{1,64}")
@@ -75,14 +76,21 @@ class DaemonGoneError(RunnerError):
 
 class TrialAbortedError(RunnerError):
     """A trial that cannot be finished: ``recordings`` made so far; ``interrupted``: by
-    Ctrl-C (else the message says what happened)."""
+    Ctrl-C, SIGTERM or SIGHUP, ``signum`` says which (else the message says what
+    happened)."""
 
     def __init__(
-        self, message: str, recordings: Sequence[str] = (), *, interrupted: bool = False
+        self,
+        message: str,
+        recordings: Sequence[str] = (),
+        *,
+        interrupted: bool = False,
+        signum: int = signal.SIGINT,
     ) -> None:
         super().__init__(message)
         self.recordings = tuple(recordings)
         self.interrupted = interrupted
+        self.signum = int(signum)
 
 
 @dataclass(frozen=True)
@@ -194,21 +202,28 @@ def check_subject(subject: str) -> None:
 
 
 def start_subject(
-    store: TrialStore, exp: Experiment, subject: str, seed: int, *, resume: bool
+    store: TrialStore,
+    exp: Experiment,
+    subject: str,
+    seed: int,
+    *,
+    resume: bool,
+    subject_index: int | None = None,
 ) -> list[PlannedTrial]:
-    """Store ``subject``'s plan (``make_plan(exp, seed)``), or with ``resume`` check it is
-    the stored one; the trials left to do. StoreError for a subject that already has a
-    plan without ``resume``, none to resume, or another plan; ValueError for a subject id
-    that cannot name files."""
+    """Store ``subject``'s plan (``make_plan(exp, seed, subject_index)``), or with
+    ``resume`` check it is the stored one; the trials left to do. StoreError for a
+    subject that already has a plan without ``resume``, none to resume, or another plan;
+    ValueError for a subject id that cannot name files."""
     check_start(store, subject, resume=resume)
-    store.ensure_plan(subject, make_plan(exp, seed), seed)
+    store.ensure_plan(subject, make_plan(exp, seed, subject_index), seed)
     return store.remaining(subject)
 
 
 def check_start(store: TrialStore, subject: str, *, resume: bool) -> None:
     """``start_subject``'s refusals, changing nothing."""
     check_subject(subject)
-    stored = store.plan(subject)
+    # A run stopped in its practice has a plan too (an adaptive one: practice only).
+    stored = store.plan(subject) or store.plan(subject, practice=True)
     if stored and not resume:
         done = len(stored) - len(store.remaining(subject))
         raise StoreError(
@@ -353,6 +368,40 @@ def run_adaptive_subject(
     return recorded
 
 
+def run_practice(
+    store: TrialStore,
+    exp: Experiment,
+    subject: str,
+    seed: int,
+    presenter: Presenter,
+    *,
+    profile_hash: str,
+    say: Callable[[str], None] | None = None,
+) -> int:
+    """Present what is left of ``subject``'s practice trials (``make_practice``: stored
+    in the plan and the trials marked ``practice``, never analysed) before the session,
+    each recorded as soon as it is answered; a resumed run presents those not answered
+    yet. The number of complete practice trials recorded now."""
+    plan = make_practice(exp, seed)
+    if not plan:
+        return 0
+    store.ensure_plan(subject, plan, seed)
+    conditions = {c.name: c.values() for c in exp.conditions}
+    note = getattr(presenter, "note_progress", None)
+    recorded = 0
+    for trial in store.remaining(subject, practice=True):
+        if say is not None:
+            say(
+                f"practice trial {trial.position + 1} of {len(plan)} ({trial.condition}, "
+                f"standard {trial.standard:g}, comparison {trial.comparison:g})"
+            )
+        if note is not None:
+            note(Progress(trial.position, len(plan), trial, 0.0))
+        got = _present(store, exp, subject, seed, presenter, trial, conditions, profile_hash)
+        recorded += got.status == "complete"
+    return recorded
+
+
 def _recordings(paths: Sequence[str]) -> str | None:
     """The trial's recordings as the store keeps them: a JSON list of paths."""
     return json.dumps(list(paths)) if paths else None
@@ -423,6 +472,22 @@ class PersonOptions:
 
 
 POLL_S = 0.02  # how often keys are looked at while events are awaited
+# The words of the subject's screen in each state (the instructions' come from the
+# experiment file); nothing in them depends on the trial's condition or values.
+SCREEN_TEXT = {
+    "wait": "Please wait",
+    "touch": "Touch the object",
+    "release": "Release the object",
+    "answer": "Answer the question",
+    "break": "Break",
+    "end": "The session is over. Thank you!",
+}
+FEEDBACK_TEXT = {True: "Correct", False: "Incorrect"}
+READY = "Ready to begin?"  # asked under the instructions: yes begins the session
+# Prompt ids beyond any trial's index: the instructions' question, and the practice
+# trials' (their plan indices are negative; a prompt's id is not).
+INSTRUCTIONS_PROMPT = 1_000_000
+PRACTICE_PROMPTS = 2_000_000
 APPLY_WAIT_S = 5.0  # for a set's param_changed event to arrive (event delivery: 5 ms)
 MAX_CHANGE_TRIES = 20  # changes touched while applied, retried, before giving up
 
@@ -454,6 +519,14 @@ class PersonPresenter:
         self._unmapped: set[str] = set()
         self._prompt_t: float | None = None
         self.ended: str | None = None  # why the daemon's run ended, once it said so
+        # The subject's screen: the experiment's display, whether the trial shown is a
+        # practice one, the progress (trial, total) shown, a daemon without screens.
+        self.display = Display()
+        self._practice = False
+        self._progress: tuple[int, int] | None = None
+        self._no_screen = False
+        self.finished = False  # the session's end is on the subject's screen
+        self._marks = True  # the daemon takes `mark` (an older one does not)
         self._connect()
 
     # -- the connection ------------------------------------------------------------------
@@ -496,9 +569,13 @@ class PersonPresenter:
         experiment is stopped."""
         st = self.status
         if st.get("profile") != profile_name:
+            there = st.get("profile_path")
+            rig = f"--profile {there}" if there else "--profile PATH (the daemon's profile file)"
             raise RunnerError(
                 f"the daemon runs profile {st.get('profile')!r}; experiment {exp.name!r} is "
-                f"on {profile_name!r} ({exp.profile_path()}): start hapticd run with it"
+                f"on {profile_name!r} ({exp.profile_path()}): to run the design on the "
+                f"daemon's profile pass {rig}, or start hapticd run with "
+                f"{exp.profile_path()}"
             )
         rec = st.get("recording")
         if rec:
@@ -511,6 +588,18 @@ class PersonPresenter:
                 raise RunnerError(
                     f"the daemon is recording to {path}: stop it (hapticd record stop) first"
                 )
+
+    def take_lease(self) -> None:
+        """Hold the daemon for this run (one experiment at a time; the daemon ends the
+        lease when this connection closes, however the run ends); RunnerError naming the
+        holder when another runner has it, before anything changed."""
+        try:
+            with self._talking():
+                self.client.lease(self.subject)
+        except proto.ProtocolError as exc:
+            if exc.code != "leased":
+                raise RunnerError(f"the daemon refused the lease: {exc.code}: {exc}") from None
+            raise RunnerError(f"another experiment runs on this daemon: {exc}") from None
 
     def restore(self, values: Mapping[str, Any]) -> None:
         """Set ``values`` (the base profile's, ``base_values``) on the daemon after a run,
@@ -531,8 +620,71 @@ class PersonPresenter:
             self.say("the daemon is back at the base profile's " + ", ".join(done))
 
     def say(self, text: str) -> None:
-        self.out.write(f"\r\x1b[K{text}\n" if self.out.isatty() else f"{text}\n")
-        self.out.flush()
+        # A terminal closed (SIGHUP) fails writes: the cleanup that follows must go on.
+        with contextlib.suppress(OSError, ValueError):
+            self.out.write(f"\r\x1b[K{text}\n" if self.out.isatty() else f"{text}\n")
+            self.out.flush()
+
+    # -- the subject's screen ------------------------------------------------------------
+
+    def show(self, state: str, text: str | None = None, **extra: Any) -> None:
+        """Set the subject's screen (the daemon's ``screen``, which the view's subject page
+        shows): ``state`` with its words (SCREEN_TEXT's unless ``text``), marked practice
+        during a practice trial, with the progress when the experiment's display asks
+        for it, the scene hidden when it says so. A daemon without screens is told
+        nothing again (the terminal still says everything)."""
+        if self._no_screen:
+            return
+        screen: dict[str, Any] = {
+            "state": state,
+            "text": SCREEN_TEXT.get(state, "") if text is None else text,
+            "practice": self._practice,
+            "scene": self.display.scene,
+            **extra,
+        }
+        if self.display.progress and self._progress is not None:
+            screen["progress"] = list(self._progress)
+        try:
+            with self._talking():
+                self.client.screen(screen)
+        except proto.ProtocolError as exc:
+            if exc.code != "unknown_command":
+                raise RunnerError(f"the daemon refused the screen {state}: {exc}") from None
+            self._no_screen = True
+
+    def clear_screen(self) -> None:
+        """Withdraw the subject's screen (a run that did not finish), if the daemon is
+        still there."""
+        with contextlib.suppress(Exception):
+            self.client.screen(None)
+
+    def note_progress(self, progress: Progress) -> None:
+        """Where the run is, for the subject's screen (``display.progress``)."""
+        t = progress.trial
+        self._progress = None if t is None else (progress.done + 1, progress.total)
+
+    def begin(self, exp: Experiment) -> None:
+        """Before the session (and its practice): the experiment's instructions on the
+        subject's screen until the subject answers READY yes (a key, a device button or
+        the page)."""
+        self.display = exp.display
+        ins = exp.instructions
+        if ins is None or not ins.enabled:
+            return
+        self.say("the instructions are on the subject's screen: waiting for them to begin")
+        while True:
+            self.show("instructions", ins.text)
+            ready, _, _ = self._answer(INSTRUCTIONS_PROMPT, READY)
+            if ready:
+                break
+        self.show("wait")
+
+    def finish(self) -> None:
+        """The session's end on the subject's screen (it stays until the next run)."""
+        self._practice = False
+        self._progress = None
+        self.show("end")
+        self.finished = True
 
     # -- events --------------------------------------------------------------------------
 
@@ -585,6 +737,7 @@ class PersonPresenter:
         if not self.contacts:
             return
         self.say("please release the object")
+        self.show("release")
         if self._await(lambda ev: not self.contacts, self.opt.release_wait_s) is None:
             raise RunnerError(
                 f"the object was not released within {self.opt.release_wait_s:g} s "
@@ -597,14 +750,20 @@ class PersonPresenter:
         self.say(f"break: {seconds:g} s")
         end = time.monotonic() + seconds
         while (left := end - time.monotonic()) > 0:
+            self.show("break", seconds=round(left, 1))  # the countdown, once a second
             self._drain(min(left, 1.0))
+        self.show("wait")
         self.say("the break is over")
 
     def present(
         self, exp: Experiment, trial: PlannedTrial, params_: Mapping[str, Any]
     ) -> Presented:
         recordings: list[str] = []
+        self.display = exp.display
+        self._practice = trial.practice
+        at = f"trial={trial.index}"
         try:
+            self.mark(f"trial_start {at} condition={trial.condition}")
             for k, value in enumerate(interval_values(exp, trial)):
                 if k == 1:
                     self._drain(exp.interval.gap_s)
@@ -612,27 +771,66 @@ class PersonPresenter:
                 # must hold the whole touch that follows the change.
                 recordings.append(self._record_start(exp, trial, k + 1))
                 self.change({**params_, exp.varied.param: value})
+                self.mark(f"condition_set {at} interval={k + 1} {exp.varied.param}={value!r}")
+                self.mark(f"interval_start {at} interval={k + 1}")
                 self.explore(exp)
+                self.mark(f"interval_end {at} interval={k + 1}")
                 with self._talking():
                     self.client.record_stop()
             answer, rt, source = self._ask(exp, trial)
-        except KeyboardInterrupt:
-            self._tidy(recordings)
-            raise TrialAbortedError("interrupted", recordings, interrupted=True) from None
+            self.mark(f"trial_end {at} answer={'second' if answer else 'first'}")
+            self._give_feedback(exp, trial, answer)
+        except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM/SIGHUP (ending_signals)
+            self.withdraw()
+            why = f"interrupted ({signal_name(exc)})"
+            signum = getattr(exc, "signum", signal.SIGINT)
+            raise TrialAbortedError(why, recordings, interrupted=True, signum=signum) from None
         except (RunnerError, proto.ProtocolError) as exc:
-            self._tidy(recordings)
+            self.withdraw()
             raise TrialAbortedError(str(exc), recordings) from None
+        except Exception:  # a bug: the daemon is still left as no trial runs on it
+            self.withdraw()
+            raise
         return Presented(answer, rt, tuple(recordings), "complete", source)
 
-    def _tidy(self, recordings: list[str]) -> None:
-        """After an aborted trial: stop its recording and clear the prompt, if the daemon
-        is still there."""
-        for what in ("record_stop", "prompt"):
-            with contextlib.suppress(Exception):
-                if what == "prompt":
-                    self.client.clear_prompt()
-                elif self.client.status().get("recording"):
-                    self.client.record_stop()
+    def withdraw(self) -> None:
+        """After a trial cut short, and at the end of every run: withdraw the prompt and
+        stop the recording, if the daemon is still there and has them (never raises)."""
+        with contextlib.suppress(Exception):
+            st = self.client.status()
+            if st.get("prompt") is not None:
+                self.client.clear_prompt()
+            if st.get("recording"):
+                self.client.record_stop()
+
+    def _give_feedback(self, exp: Experiment, trial: PlannedTrial, answer: bool) -> None:
+        """Correct or incorrect on the subject's screen for ``exp.feedback.duration_s``,
+        after the trials ``exp.feedback.after`` names that have a correct answer (the
+        comparison differs from the standard)."""
+        fb = exp.feedback
+        if fb.after == "none" or (fb.after == "practice" and not trial.practice):
+            return
+        first, second = interval_values(exp, trial)
+        if first == second:
+            return
+        correct = answer == (second > first)
+        self.say(f"feedback to the subject: {FEEDBACK_TEXT[correct].lower()}")
+        self.show("feedback", FEEDBACK_TEXT[correct], correct=correct)
+        self._drain(fb.duration_s)
+        self.show("wait")
+
+    def mark(self, text: str) -> None:
+        """Have the daemon stamp ``text`` with its tick (a ``mark`` event, on its LSL marker
+        stream too: docs/lsl.md); a daemon without ``mark`` is not asked again."""
+        if not self._marks:
+            return
+        try:
+            with self._talking():
+                self.client.mark(text[: proto.MARK_TEXT_CHARS])
+        except proto.ProtocolError as exc:
+            if exc.code != "unknown_command":
+                raise
+            self._marks = False
 
     def change(self, values: Mapping[str, Any]) -> None:
         """An interval's first step: set ``values`` while nobody touches the object (wait
@@ -671,7 +869,8 @@ class PersonPresenter:
     def _record_start(self, exp: Experiment, trial: PlannedTrial, interval: int) -> str:
         """Start recording interval ``interval`` (1 or 2) in the daemon's recording
         directory; its path. A name taken (a trial done again) gets a suffix."""
-        base = f"{exp.name}-{self.subject}-{trial.index:04d}-{interval}"
+        number = f"p{trial.position + 1:02d}" if trial.practice else f"{trial.index:04d}"
+        base = f"{exp.name}-{self.subject}-{number}-{interval}"
         for attempt in range(1, 100):
             name = base + (f"-{attempt}" if attempt > 1 else "") + ".hrec"
             try:
@@ -688,6 +887,7 @@ class PersonPresenter:
         ended) or the exploration limit, as ``interval.ends_on`` says."""
         iv = exp.interval
         self.say("touch the object")
+        self.show("touch")
         if not self.contacts:
             ev = self._await(lambda e: e.get("event") == "contact_begin", self.opt.touch_wait_s)
             if ev is None:
@@ -699,17 +899,26 @@ class PersonPresenter:
             released = None
         if released is None and self.contacts:
             self.say("time: please release the object")
+            self.show("release")
+        else:
+            self.show("wait")
 
     def _ask(self, exp: Experiment, trial: PlannedTrial) -> tuple[bool, float, str]:
         """Ask the question; the first answer (True: the second was more), its response
         time (s) and source. Answers given before the question are ignored."""
+        pid = PRACTICE_PROMPTS + trial.position if trial.practice else trial.index
+        self.show("answer")
+        return self._answer(pid, question_text(exp), "2/y: yes, the second · 1/n: no, the first")
+
+    def _answer(self, pid: int, text: str, keys: str = "y: yes · n: no") -> tuple[bool, float, str]:
+        """Ask ``text`` as prompt ``pid`` (choices no and yes; ``keys`` says which keys
+        answer it); the first answer (True: yes), its response time (s) and source."""
         if self.keys is not None:
             self.keys.drain()
-        text = question_text(exp)
-        self.say(f"{text}  [2/y: yes, the second · 1/n: no, the first]")
+        self.say(f"{text}  [{keys}]")
         asked = time.monotonic()
         with self._talking():
-            self.client.prompt(trial.index, text, CHOICES)
+            self.client.prompt(pid, text, CHOICES)
         prompt_t: float | None = None
         deadline = asked + self.opt.answer_wait_s
         answer: tuple[bool, float, str] | None = None
@@ -726,11 +935,11 @@ class PersonPresenter:
             self._check_fault()
             if ev is not None:
                 name = ev.get("event")
-                if name == "prompt" and ev.get("prompt") == trial.index:
+                if name == "prompt" and ev.get("prompt") == pid:
                     prompt_t = ev.get("t")
                 elif name == "prompt" and prompt_t is not None:
                     raise RunnerError(f"another client replaced the prompt ({ev.get('prompt')})")
-                elif name == "response" and ev.get("prompt") == trial.index:
+                elif name == "response" and ev.get("prompt") == pid:
                     answer = (ev.get("choice") == "yes", time.monotonic() - asked, "respond")
                 elif name == "button_down" and ev.get("response") and prompt_t is not None:
                     # After the prompt's event: pressed after the question was asked.
@@ -789,6 +998,7 @@ def person_observer(exp: Experiment, subject: str, options: RunOptions) -> Itera
         presenter = PersonPresenter(
             client, subject=subject, out=options.out, options=options.person
         )
+        presenter.take_lease()
         presenter.check_daemon(exp, profile.name)
         checked = presenter  # the daemon runs the base profile: restored at the end
         if options.keys_fd is not None:
@@ -796,11 +1006,54 @@ def person_observer(exp: Experiment, subject: str, options: RunOptions) -> Itera
         presenter.keys = keys
         yield presenter
     finally:
-        if keys is not None:
-            keys.close()
-        if checked is not None:
-            checked.restore(base_values(exp, profile))
-        client.close()
+        with ending_signals(ignore=True):  # a second signal must not cut the cleanup short
+            if keys is not None:
+                keys.close()
+            if checked is not None:
+                if not checked.finished:
+                    checked.clear_screen()  # no "touch the object" left up after a stopped run
+                checked.withdraw()
+                checked.restore(base_values(exp, profile))
+            client.close()
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGTERM or SIGHUP (a closed terminal) ending a run: handled as Ctrl-C is (the
+    trial stored incomplete, the daemon put back); ``signum`` says which."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+ENDING_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+
+
+def signal_name(exc: BaseException) -> str:
+    """The signal that ended a run, as a message says it: SIGTERM, SIGHUP or Ctrl-C."""
+    return signal.Signals(exc.signum).name if isinstance(exc, Interrupted) else "Ctrl-C"
+
+
+@contextlib.contextmanager
+def ending_signals(*, ignore: bool = False) -> Iterator[None]:
+    """SIGTERM and SIGHUP raise ``Interrupted`` in the block (``ignore``: are ignored,
+    as is Ctrl-C: a cleanup under way finishes); the handlers before are put back after.
+    Outside the main thread (no handlers there) it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise Interrupted(signum)
+
+    handler: Any = signal.SIG_IGN if ignore else interrupt
+    which = (*ENDING_SIGNALS, signal.SIGINT) if ignore else ENDING_SIGNALS
+    saved = {s: signal.signal(s, handler) for s in which}
+    try:
+        yield
+    finally:
+        for s, old in saved.items():
+            signal.signal(s, old)
 
 
 def base_values(exp: Experiment, profile: Any) -> dict[str, Any]:
@@ -889,23 +1142,44 @@ def run_experiment(
     resume: bool = False,
     observer: str = "person",
     options: RunOptions | None = None,
+    subject_index: int | None = None,
+    metadata: Mapping[str, str] | None = None,
 ) -> tuple[int, int]:
     """Run (or resume) ``subject`` on ``exp`` into the store ``db`` with the observer
-    named ``observer``; (complete trials recorded now, trials left). RunnerError,
+    named ``observer``; (complete trials recorded now, trials left). ``subject_index``:
+    the subject's place in a counterbalanced design (default: in the file's subjects;
+    resumed: the last session's); ``metadata``: the session's (``--meta KEY=VALUE``;
+    resumed: over the last session's), stored with the session. RunnerError,
     StoreError, ExperimentError, TrialAbortedError as the module says."""
     factory = observer_factory(observer)
     seed = exp.subject_seed(subject) if seed is None else seed
     options = dataclasses.replace(options or RunOptions(), seed=seed)
     out = options.out
     check_subject(subject)
+    given = dict(metadata or {})
+    if not resume:  # refused before the store is made
+        exp.check_metadata(given)
+        exp.subject_index(subject, subject_index)
     # One runner per subject: a second one is refused here, before anything is stored.
-    with claim_subject(db, subject), TrialStore.for_experiment(db, exp) as store:
+    # SIGTERM and SIGHUP end the run as Ctrl-C does: the trial incomplete, the daemon back.
+    with (
+        ending_signals(),
+        claim_subject(db, subject),
+        TrialStore.for_experiment(db, exp) as store,
+    ):
         check_start(store, subject, resume=resume)
+        last = (store.sessions(subject) or [{}])[-1] if resume else {}
+        if subject_index is None:
+            subject_index = last.get("subject_index")
+        index = exp.subject_index(subject, subject_index)
+        session = exp.check_metadata(given, last.get("metadata"))
         # The observer before the plan: a plan is stored only when it can be presented.
         with factory(exp, subject, options) as presenter:
             if exp.adaptive is not None:
+                store.add_session(subject, session, index)
                 return _run_adaptive(store, exp, subject, seed, presenter, db, out)
-            todo = start_subject(store, exp, subject, seed, resume=resume)
+            todo = start_subject(store, exp, subject, seed, resume=resume, subject_index=index)
+            store.add_session(subject, session, index)
             return _run(store, exp, subject, seed, presenter, todo, db, out)
 
 
@@ -918,17 +1192,57 @@ def _run_adaptive(
     db: Path,
     out: TextIO,
 ) -> tuple[int, int]:
-    """``run_adaptive_subject`` with the opening line and the progress lines."""
+    """``run_adaptive_subject`` with the opening line, the instructions and practice, the
+    progress lines and the end."""
     say = getattr(presenter, "say", None) or (lambda s: out.write(s + "\n"))
     say(
         f"experiment {exp.name}: subject {subject}, seed {seed}, {exp.procedure}, "
         f"{exp.n_blocks} tracks interleaved; store {db}"
     )
+    _opening(store, exp, subject, seed, presenter, say)
     done = run_adaptive_subject(
         store, exp, subject, seed, presenter, profile_hash=profile_hash(exp),
-        progress=lambda p: say(p.line()),
+        progress=_progress_lines(presenter, say),
     )  # fmt: skip
-    return done, len(store.remaining(subject))
+    left = len(store.remaining(subject))
+    _closing(presenter, left)
+    return done, left
+
+
+def _opening(
+    store: TrialStore,
+    exp: Experiment,
+    subject: str,
+    seed: int,
+    presenter: Presenter,
+    say: Callable[[str], None],
+) -> None:
+    """Before the session: the instructions (a presenter with ``begin``: a person's) and
+    what is left of the practice trials (a presenter that shows a screen)."""
+    begin = getattr(presenter, "begin", None)
+    if begin is None:
+        return  # a simulated observer needs neither
+    begin(exp)
+    run_practice(store, exp, subject, seed, presenter, profile_hash=profile_hash(exp), say=say)
+
+
+def _closing(presenter: Presenter, left: int) -> None:
+    """The session's end on the subject's screen, once no trial is left."""
+    finish = getattr(presenter, "finish", None)
+    if finish is not None and left == 0:
+        finish()
+
+
+def _progress_lines(presenter: Presenter, say: Callable[[str], None]) -> Callable[[Progress], None]:
+    """The progress as the terminal's lines, and for the subject's screen."""
+    note = getattr(presenter, "note_progress", None)
+
+    def show(p: Progress) -> None:
+        say(p.line())
+        if note is not None:
+            note(p)
+
+    return show
 
 
 def _run(
@@ -951,6 +1265,7 @@ def _run(
         f"experiment {exp.name}: subject {subject}, seed {seed}, {len(todo)} of {total} "
         f"trials to do; store {db}"
     )
+    _opening(store, exp, subject, seed, presenter, say)
     done = run_subject(
         store,
         exp,
@@ -958,9 +1273,11 @@ def _run(
         seed,
         presenter,
         profile_hash=profile_hash(exp),
-        progress=lambda p: say(p.line()),
+        progress=_progress_lines(presenter, say),
     )
-    return done, len(store.remaining(subject))
+    left = len(store.remaining(subject))
+    _closing(presenter, left)
+    return done, left
 
 
 def float_list(text: str) -> list[float]:

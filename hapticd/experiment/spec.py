@@ -23,7 +23,18 @@ from pydantic import (
 )
 
 from hapticd import params
-from hapticd.profile import Profile, ProfileError, load_profile, read_document, validate_document
+from hapticd.experiment.tables import FormatName
+from hapticd.profile import (
+    Bool,
+    Float,
+    Int,
+    Profile,
+    ProfileError,
+    load_profile,
+    read_document,
+    validate_document,
+)
+from hapticd.protocol import SCREEN_TEXT_CHARS, screen_text_ok
 
 EXPERIMENT_VERSION = 1
 DOCS = "docs/experiments.md"
@@ -75,8 +86,8 @@ class Varied(_Strict):
     """The parameter that differs between standard and comparison."""
 
     param: str = Field(description="a numeric settable parameter of hapticd.params")
-    standards: tuple[float, ...] = Field(min_length=1, description="standard values, SI units")
-    ratios: tuple[float, ...] = Field(
+    standards: tuple[Float, ...] = Field(min_length=1, description="standard values, SI units")
+    ratios: tuple[Float, ...] = Field(
         default=(),
         description="comparison = ratio x standard; at least 3 ratios (constant stimuli only)",
     )
@@ -135,15 +146,15 @@ class Interval(_Strict):
         description="asked after the second interval: was the second stiffer / heavier / "
         "more (of the varied parameter)? 'yes' always means the second had more"
     )
-    exploration_s: float = Field(gt=0, le=60, description="longest exploration per interval, s")
+    exploration_s: Float = Field(gt=0, le=60, description="longest exploration per interval, s")
     ends_on: Literal["release", "time_limit"] = Field(
         description="release: the interval ends when the contacts end (or at exploration_s); "
         "time_limit: it lasts exploration_s"
     )
-    gap_s: float = Field(
+    gap_s: Float = Field(
         default=1.0, ge=0, le=60, description="between the two intervals (the change), s"
     )
-    answer_s: float = Field(
+    answer_s: Float = Field(
         default=2.0, gt=0, le=60, description="expected time to answer, s (duration estimate)"
     )
 
@@ -151,7 +162,7 @@ class Interval(_Strict):
 class Blocks(_Strict):
     """How trials are grouped: a block holds one condition and one standard."""
 
-    per_standard: int = Field(
+    per_standard: Int = Field(
         default=1, ge=1, description="blocks per standard and condition; splits the repetitions"
     )
     standard_order: Literal["ascending", "listed", "random"] = "ascending"
@@ -168,17 +179,23 @@ class Blocks(_Strict):
 
 
 class Breaks(_Strict):
-    every_blocks: int = Field(default=1, ge=0, description="a break after every N blocks; 0: none")
-    every_trials: int | None = Field(
+    every_blocks: Int = Field(default=1, ge=0, description="a break after every N blocks; 0: none")
+    every_trials: Int | None = Field(
         default=None, ge=1, description="also a break every N trials within a block"
     )
-    duration_s: float = Field(default=60.0, ge=0, le=3600, description="break length, s")
+    duration_s: Float = Field(default=60.0, ge=0, le=3600, description="break length, s")
 
 
 class Randomization(_Strict):
-    seed: int = Field(ge=0, lt=2**63, description="seed of the trial order")
-    per_subject: bool = Field(
+    seed: Int = Field(ge=0, lt=2**63, description="seed of the trial order")
+    per_subject: Bool = Field(
         default=True, description="derive each subject's seed from seed and the subject's id"
+    )
+    counterbalance: Literal["none", "latin_square", "abba"] = Field(
+        default="none",
+        description="the conditions' order across subjects: none (blocks.condition_order); "
+        "latin_square (subject k: row k of a balanced Latin square); abba (each condition "
+        "in two halves, A B B A, and B A A B for every other subject)",
     )
 
 
@@ -198,7 +215,7 @@ class Staircase(_Strict):
         description="1up2down (converges on 70.7 % correct), 1up3down (79.4 %), weighted "
         "(on target)"
     )
-    target: float | None = Field(
+    target: Float | None = Field(
         default=None, gt=0.5, lt=1.0, description="the weighted rule's share correct"
     )
     sides: Literal["both", "above"] = Field(
@@ -206,18 +223,18 @@ class Staircase(_Strict):
         description="both: a track above the standard (correct: the comparison judged more) "
         "and one below (correct: judged less), interleaved; above: only the first",
     )
-    start: float = Field(gt=0, description="first distance from the standard, fraction of it")
-    step: float = Field(gt=0, description="first step, fraction of the standard")
+    start: Float = Field(gt=0, description="first distance from the standard, fraction of it")
+    step: Float = Field(gt=0, description="first step, fraction of the standard")
     step_rule: Literal["fixed", "halve"] = Field(
         default="halve", description="halve: the step halves at each reversal, to min_step"
     )
-    min_step: float | None = Field(default=None, gt=0, description="smallest step (halve)")
-    max_distance: float = Field(
+    min_step: Float | None = Field(default=None, gt=0, description="smallest step (halve)")
+    max_distance: Float = Field(
         gt=0, description="the farthest a comparison may be from the standard, fraction of it"
     )
-    stop_reversals: int = Field(default=8, ge=2, le=100, description="a track ends after these")
-    max_trials: int = Field(default=60, ge=2, le=1000, description="or after these trials")
-    threshold_reversals: int = Field(
+    stop_reversals: Int = Field(default=8, ge=2, le=100, description="a track ends after these")
+    max_trials: Int = Field(default=60, ge=2, le=1000, description="or after these trials")
+    threshold_reversals: Int = Field(
         default=6, ge=1, description="the threshold: mean of the last N reversals' distances"
     )
 
@@ -262,11 +279,11 @@ class QuestPlusDesign(_Strict):
     of the posterior over the psychometric function's PSE and sigma, for a fixed number
     of trials."""
 
-    min_ratio: float = Field(gt=0, lt=1, description="the smallest comparison / standard")
-    max_ratio: float = Field(gt=1, description="the largest comparison / standard")
-    n_stimuli: int = Field(default=41, ge=5, le=201, description="comparisons on the grid")
-    trials: int = Field(default=40, ge=5, le=1000, description="trials per track")
-    lapse: float = Field(default=0.02, ge=0, lt=0.5, description="assumed lapse rate")
+    min_ratio: Float = Field(gt=0, lt=1, description="the smallest comparison / standard")
+    max_ratio: Float = Field(gt=1, description="the largest comparison / standard")
+    n_stimuli: Int = Field(default=41, ge=5, le=201, description="comparisons on the grid")
+    trials: Int = Field(default=40, ge=5, le=1000, description="trials per track")
+    lapse: Float = Field(default=0.02, ge=0, lt=0.5, description="assumed lapse rate")
 
     @property
     def max_trials(self) -> int:
@@ -277,6 +294,14 @@ class QuestPlusDesign(_Strict):
         return (1,)
 
 
+class ExportSection(_Strict):
+    """How ``hapticd experiment export`` writes this experiment's trials by default."""
+
+    format: FormatName = Field(
+        default="csv", description="csv, parquet or mat: the export's --format by default"
+    )
+
+
 class Analysis(_Strict):
     """How the answers are analysed."""
 
@@ -285,6 +310,150 @@ class Analysis(_Strict):
         description="the JND is x(p) - x(0.5) of the fitted curve: 0.75 (0.6745 sigma) or "
         "0.84 (0.9945 sigma, about one sigma); every table and plot names it",
     )
+
+
+# A subject's id: it names files (the recordings), so file-name characters only.
+SUBJECT_ID = r"^[A-Za-z0-9_.-]{1,64}$"
+# Session metadata every experiment takes (``--meta KEY=VALUE``); the subject is --subject.
+STANDARD_METADATA = ("session", "experimenter", "notes")
+
+
+class MetadataKey(_Strict):
+    """A session metadata key the lab declares: whether a run must give it, and what a
+    value may be."""
+
+    required: Bool = Field(default=False, description="a run without it is refused")
+    type: Literal["text", "integer", "number"] = Field(
+        default="text", description="text, integer or number (SI units named in the key)"
+    )
+    choices: tuple[str, ...] = Field(default=(), description="the only values allowed (text)")
+    description: str = ""
+
+    @model_validator(mode="after")
+    def _choices_are_text(self) -> MetadataKey:
+        if self.choices and self.type != "text":
+            raise ValueError(f"choices are for type text, not {self.type}")
+        return self
+
+    def parse(self, value: str) -> str | int | float:
+        """``value`` (as given on the command line) as this key's type; ValueError saying
+        what was expected."""
+        if self.type == "text":
+            if self.choices and value not in self.choices:
+                raise ValueError(f"expected one of {', '.join(self.choices)}, got {value!r}")
+            return value
+        try:
+            number: int | float = int(value) if self.type == "integer" else float(value)
+        except ValueError:
+            raise ValueError(
+                f"expected {'an integer' if self.type == 'integer' else 'a number'}, got {value!r}"
+            ) from None
+        if not math.isfinite(number):
+            raise ValueError(f"expected a finite number, got {value!r}")
+        return number
+
+
+MetadataName = Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]{0,31}$")]
+
+
+class Metadata(_Strict):
+    """The session metadata a lab declares beyond the standard keys (session,
+    experimenter, notes), given at run time with ``--meta KEY=VALUE``."""
+
+    keys: dict[MetadataName, MetadataKey] = Field(default_factory=dict)
+
+    @field_validator("keys")
+    @classmethod
+    def _not_subject(cls, v: dict[str, MetadataKey]) -> dict[str, MetadataKey]:
+        if "subject" in v:
+            raise ValueError("subject is not declared here: every run gives it (--subject)")
+        return v
+
+    def spec(self, key: str) -> MetadataKey | None:
+        """The declared (or standard: optional text) key ``key``; None for an unknown one."""
+        if key in self.keys:
+            return self.keys[key]
+        return MetadataKey() if key in STANDARD_METADATA else None
+
+    def names(self) -> tuple[str, ...]:
+        """Every key a run may give: the standard ones, then the declared ones."""
+        return STANDARD_METADATA + tuple(k for k in self.keys if k not in STANDARD_METADATA)
+
+
+def _screen_text(v: str) -> str:
+    if not screen_text_ok(v):
+        raise ValueError(
+            f"expected printable text (line breaks allowed) of at most {SCREEN_TEXT_CHARS} "
+            "characters"
+        )
+    return v
+
+
+ScreenText = Annotated[str, AfterValidator(_screen_text)]
+
+
+class Instructions(_Strict):
+    """What the subject's screen shows before the session (and its practice); the session
+    begins when the subject answers "Ready to begin?" yes."""
+
+    enabled: Bool = Field(default=True, description="show the instructions before the session")
+    text: ScreenText = Field(default="", description="the instructions, shown as written")
+
+    @model_validator(mode="after")
+    def _text(self) -> Instructions:
+        if self.enabled and not self.text.strip():
+            raise ValueError(
+                "text: the instructions' text is missing (needed while enabled is true: "
+                "the words the subject reads before the session)"
+            )
+        return self
+
+
+class Practice(_Strict):
+    """Practice trials before the session: marked as practice on the subject's screen and
+    in the store (``practice``), never analysed."""
+
+    trials: Int = Field(ge=1, le=100, description="how many practice trials")
+    conditions: tuple[str, ...] | None = Field(
+        default=None, min_length=1, description="names of the conditions practised (all)"
+    )
+    standards: tuple[Float, ...] | None = Field(
+        default=None, min_length=1, description="standards practised, SI (the design's)"
+    )
+    ratios: tuple[Float, ...] | None = Field(
+        default=None,
+        min_length=1,
+        description="comparison / standard levels practised (the design's easiest: its "
+        "farthest comparisons)",
+    )
+
+    @field_validator("ratios")
+    @classmethod
+    def _positive(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if v is not None and any(not (math.isfinite(r) and r > 0) for r in v):
+            raise ValueError(f"ratios must be positive, got {list(v)}")
+        return v
+
+
+class Feedback(_Strict):
+    """Correct or incorrect on the subject's screen after a trial, where the trial has a
+    correct answer (its comparison differs from its standard)."""
+
+    after: Literal["none", "practice", "all"] = Field(
+        default="none", description="none, practice trials only, or every trial"
+    )
+    duration_s: Float = Field(default=1.0, gt=0, le=10, description="how long it shows, s")
+
+
+class Display(_Strict):
+    """What the subject's page shows besides the states."""
+
+    scene: Bool = Field(
+        default=True,
+        description="draw the scene; false: text only (the object's motion is a cue of its "
+        "own in a weight task)",
+    )
+    progress: Bool = Field(default=False, description='"trial N of M" on the subject\'s screen')
 
 
 class Experiment(_Strict):
@@ -303,7 +472,7 @@ class Experiment(_Strict):
     profile: str = Field(min_length=1, description="base profile, relative to this file")
     varied: Varied
     conditions: tuple[Condition, ...] = Field(min_length=1)
-    repetitions: int | None = Field(
+    repetitions: Int | None = Field(
         default=None, ge=1, le=1000, description="presentations of each comparison"
     )
     staircase: Staircase | None = None
@@ -313,6 +482,20 @@ class Experiment(_Strict):
     breaks: Breaks = Breaks()
     randomization: Randomization
     analysis: Analysis = Analysis()
+    subjects: tuple[Annotated[str, Field(pattern=SUBJECT_ID)], ...] = Field(
+        default=(),
+        description="the subject list, in order: subject k (0-based) gets the k-th "
+        "counterbalanced order",
+    )
+    metadata: Metadata = Metadata()
+
+    # The subject's screen (docs/experiments.md, "The subject's screen").
+    instructions: Instructions | None = None
+    practice: Practice | None = None
+    feedback: Feedback = Feedback()
+    display: Display = Display()
+
+    export: ExportSection = ExportSection()
 
     source: Path | None = Field(default=None, exclude=True)
     file_hash: str = Field(default="", exclude=True, description="sha256 of the file's bytes")
@@ -325,6 +508,39 @@ class Experiment(_Strict):
             raise ValueError(
                 f"expected 1 (the experiment file format this hapticd reads), got {v!r}"
             )
+        return v
+
+    @field_validator("randomization")
+    @classmethod
+    def _counterbalance(cls, v: Randomization, info: ValidationInfo) -> Randomization:
+        # The fields before it (procedure, blocks) are validated already: in info.data.
+        scheme, procedure = v.counterbalance, info.data.get("procedure")
+        blocks = info.data.get("blocks") or Blocks()
+        if scheme == "none" or procedure is None:  # None: its own error is reported
+            return v
+        if procedure != "constant_stimuli":
+            raise ValueError(
+                f"counterbalance {scheme} orders blocks; procedure {procedure} interleaves "
+                "its tracks: use counterbalance none"
+            )
+        if blocks.condition_order != "listed":
+            raise ValueError(
+                f"counterbalance {scheme} orders the conditions: blocks.condition_order must "
+                "be listed, not random"
+            )
+        if scheme == "abba" and blocks.per_standard % 2:
+            raise ValueError(
+                "counterbalance abba presents each condition in two halves (A B B A): "
+                f"blocks.per_standard must be even, got {blocks.per_standard}"
+            )
+        return v
+
+    @field_validator("subjects")
+    @classmethod
+    def _unique_subjects(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        dup = sorted({s for s in v if v.count(s) > 1})
+        if dup:
+            raise ValueError(f"subjects must be unique, repeated: {dup}")
         return v
 
     @model_validator(mode="after")
@@ -359,6 +575,100 @@ class Experiment(_Strict):
         if self.interval.order == "randomized" and self.repetitions % 2:
             raise ValueError("interval.order randomized needs an even number of repetitions")
         return self
+
+    def subject_index(self, subject: str, index: int | None = None) -> int | None:
+        """``subject``'s place in the counterbalancing (0-based): ``index`` when given,
+        else its place in ``subjects``; None when the design counterbalances nothing and
+        no index is given. ExperimentError when it needs one and has none, or when
+        ``index`` contradicts the subject list."""
+        listed = self.subjects.index(subject) if subject in self.subjects else None
+        if index is not None:
+            if index < 0:
+                raise ExperimentError(f"{self.source}: subject index {index}: expected 0 or more")
+            if listed is not None and listed != index:
+                raise ExperimentError(
+                    f"{self.source}: subject {subject!r} is number {listed} (0-based) of the "
+                    f"file's subjects{_key_line(self, ('subjects', listed))}, not {index}"
+                )
+            return index
+        if listed is not None or self.randomization.counterbalance == "none":
+            return listed
+        raise ExperimentError(
+            f"{self.source}: randomization.counterbalance "
+            f"{self.randomization.counterbalance}: subject {subject!r} is not in the file's "
+            f"subjects{_key_line(self, ('subjects',))}; add it there, or give its index "
+            "(--subject-index K, 0-based: it gets the K-th order)"
+        )
+
+    def check_metadata(
+        self, given: dict[str, str], previous: dict[str, Any] | None = None
+    ) -> dict[str, Any]:
+        """A session's metadata: ``given`` (KEY -> text, from ``--meta``) checked
+        against the file's ``metadata`` section and typed, over ``previous`` (a resumed
+        subject's last session's); ExperimentError naming every unknown key, bad value
+        and missing required key, with the file's line."""
+        meta, problems = self.metadata, []
+        out = dict(previous or {})
+        for key, text in given.items():
+            spec = meta.spec(key)
+            if spec is None:
+                problems.append(
+                    f"{key}: unknown metadata key (known: {', '.join(meta.names())}; declare "
+                    f"it under metadata.keys{_key_line(self, ('metadata', 'keys'))})"
+                )
+                continue
+            try:
+                out[key] = spec.parse(text)
+            except ValueError as exc:
+                problems.append(f"{key}: {exc}{_key_line(self, ('metadata', 'keys', key))}")
+        for key, spec in meta.keys.items():
+            if spec.required and key not in out and key not in given:
+                problems.append(
+                    f"{key}: required (give --meta {key}=VALUE)"
+                    f"{_key_line(self, ('metadata', 'keys', key))}"
+                )
+        if problems:
+            head = f"{self.source}: {len(problems)} error(s) in the session's metadata"
+            raise ExperimentError("\n".join([head] + [f"  {p}" for p in problems]))
+        return out
+
+    @field_validator("practice")
+    @classmethod
+    def _practice_consistent(cls, pr: Practice | None, info: ValidationInfo) -> Practice | None:
+        # A field's check (the fields it needs come before it): the error names its line.
+        d = info.data
+        if pr is None or "varied" not in d or "conditions" not in d:
+            return pr
+        names = [c.name for c in d["conditions"]]
+        for name in pr.conditions or ():
+            if name not in names:
+                raise ValueError(
+                    f"conditions: no condition {name!r}; the conditions: {', '.join(names)}"
+                )
+        varied: Varied = d["varied"]
+        spec = params.PARAMS[varied.param]
+        ratios = practice_levels(pr, varied, d.get("staircase"), d.get("quest_plus"))
+        for s in pr.standards or varied.standards:
+            if not (math.isfinite(s) and spec.in_range(s)):
+                raise ValueError(
+                    f"standards: {s:g} is outside {spec.name}'s range {spec.range_text()}"
+                )
+            for r in ratios:
+                if not (math.isfinite(s * r) and spec.in_range(s * r)):
+                    raise ValueError(
+                        f"ratios: the comparison {s:g} x {r:g} = {s * r:g} is outside "
+                        f"{spec.name}'s range {spec.range_text()}"
+                    )
+        return pr
+
+    def practice_standards(self) -> tuple[float, ...]:
+        """The standards the practice trials use (SI)."""
+        pr = self.practice
+        return (pr.standards if pr and pr.standards else None) or self.varied.standards
+
+    def practice_ratios(self) -> tuple[float, ...]:
+        """The comparison / standard levels the practice trials use."""
+        return practice_levels(self.practice, self.varied, self.staircase, self.quest_plus)
 
     def _quest_consistent(self) -> Experiment:
         q = self.quest_plus
@@ -447,8 +757,10 @@ class Experiment(_Strict):
         return 2 * i.exploration_s + i.gap_s + i.answer_s
 
     def duration_s(self) -> float:
-        """Estimated session length per subject, s (every interval at its limit)."""
+        """Estimated session length per subject, s (every interval at its limit; the
+        practice trials too)."""
         total = self.n_blocks * self.trials_per_block
+        total += self.practice.trials if self.practice is not None else 0
         return total * self.trial_s() + self.n_breaks() * self.breaks.duration_s
 
     def n_breaks(self) -> int:
@@ -459,6 +771,38 @@ class Experiment(_Strict):
         between = (self.n_blocks - 1) // b.every_blocks if b.every_blocks else 0
         within = (self.trials_per_block - 1) // b.every_trials if b.every_trials else 0
         return between + within * self.n_blocks
+
+
+def _key_line(exp: Experiment, path: tuple[str | int, ...]) -> str:
+    """`` (line N)`` of the key at ``path`` in ``exp``'s file (read again: only an error
+    message needs it); empty when the file or the key is not there."""
+    if exp.source is None or not exp.source.is_file():
+        return ""
+    try:
+        _, lines = read_document(exp.source, what="experiment", error=ExperimentError)
+    except ExperimentError:
+        return ""
+    line = lines.get(path)
+    return "" if line is None else f" (line {line})"
+
+
+def practice_levels(
+    pr: Practice | None,
+    varied: Varied,
+    staircase: Staircase | None,
+    quest_plus: QuestPlusDesign | None,
+) -> tuple[float, ...]:
+    """The comparison / standard levels of the practice trials: the file's, else the
+    design's farthest comparisons (the easiest to tell)."""
+    if pr is not None and pr.ratios:
+        return pr.ratios
+    if staircase is not None:
+        return tuple(1 + sign * staircase.start for sign in staircase.sign_list())
+    if quest_plus is not None:
+        return (quest_plus.min_ratio, quest_plus.max_ratio)
+    if not varied.ratios:
+        return (1.0,)
+    return tuple(sorted({min(varied.ratios), max(varied.ratios)}))
 
 
 def file_hash(path: str | Path) -> str:
@@ -508,22 +852,54 @@ def check_against_profile(exp: Experiment, profile: Profile) -> list[str]:
                 )
         if c.values().get("mass_kg") is not None and obj.fixed:
             problems.append(f"conditions[{i}:{c.name}].set.mass_kg: the profile's object is fixed")
+        limit = c.values().get("force_limit_n")
+        cap = profile.safety.max_force_n
+        if limit is not None and limit > cap:
+            problems.append(
+                f"conditions[{i}:{c.name}].set.force_limit_n: {limit:g} N is above the "
+                f"profile's safety.max_force_n {cap:g} N (a condition may lower it, not raise it)"
+            )
+    if exp.varied.param == "force_limit_n":
+        top = max(_varied_values(exp))
+        if top > profile.safety.max_force_n:
+            problems.append(
+                f"varied: force_limit_n reaches {top:g} N, above the profile's "
+                f"safety.max_force_n {profile.safety.max_force_n:g} N"
+            )
     return problems
 
 
-def check_experiment(path: str | Path) -> tuple[Experiment, Profile]:
-    """Load ``path`` and the base profile it names and check them together;
-    ExperimentError (or ProfileError for the profile) naming file and key."""
+def _varied_values(exp: Experiment) -> list[float]:
+    """The standards and the farthest comparisons the design may present (SI)."""
+    v = exp.varied
+    out = list(v.standards)
+    if exp.staircase is not None:
+        out += [s * (1 + exp.staircase.max_distance) for s in v.standards]
+    elif exp.quest_plus is not None:
+        out += [s * exp.quest_plus.max_ratio for s in v.standards]
+    else:
+        out += [s * r for s in v.standards for r in v.ratios]
+    return out
+
+
+def check_experiment(
+    path: str | Path, profile: str | Path | None = None
+) -> tuple[Experiment, Profile]:
+    """Load ``path`` and the base profile it names (or ``profile``: the design run on
+    another base profile, a rig's) and check them together; ExperimentError (or
+    ProfileError for the profile) naming file and key."""
     exp = load_experiment(path)
+    if profile is not None:
+        exp = exp.model_copy(update={"profile": str(Path(profile).absolute())})
     prof_path = exp.profile_path()
     if not prof_path.is_file():
         raise ExperimentError(f"{exp.source}: profile: no such file {prof_path}")
-    profile = load_profile(prof_path)
-    problems = check_against_profile(exp, profile)
+    base = load_profile(prof_path)
+    problems = check_against_profile(exp, base)
     if problems:
         lines = [f"{exp.source}: {len(problems)} error(s) against profile {prof_path}"]
         raise ExperimentError("\n".join(lines + [f"  {p}" for p in problems]))
-    return exp, profile
+    return exp, base
 
 
 __all__ = [

@@ -226,7 +226,7 @@ def run_model_subject(
             store, exp, subject, s, presenter, profile_hash=file_hash(exp.profile_path()),
             progress=None if progress is None else lambda p: progress(p.done, p.total),
         )  # fmt: skip
-    store.ensure_plan(subject, make_plan(exp, s), s)
+    store.ensure_plan(subject, make_plan(exp, s, exp.subject_index(subject)), s)
     left = len(store.remaining(subject))
     runner.run_subject(
         store,
@@ -323,7 +323,7 @@ def run_study(
     total = done = 0
     subjects = subject_ids(n_observers)
     with TrialStore.for_experiment(db, exp) as store:
-        for subject in subjects:
+        for k, subject in enumerate(subjects):
             s = study_seed(exp, subject, seed)
             if exp.adaptive is not None:
                 # Each subject's session is one task: its next trials depend on its answers.
@@ -333,7 +333,10 @@ def run_study(
                 total += exp.n_blocks * exp.adaptive.max_trials
                 tasks.append(Task(exp, profile, config, subject, s, (), history))
                 continue
-            plan = make_plan(exp, s)
+            # Subject k of the study is subject k of a counterbalanced design.
+            plan = make_plan(
+                exp, s, exp.subject_index(subject, None if subject in exp.subjects else k)
+            )
             store.ensure_plan(subject, plan, s)
             rest = store.remaining(subject)
             total += len(plan)

@@ -1,4 +1,6 @@
-"""Control commands: each checks and applies itself to the servo loop at a tick boundary.
+"""Control commands: each checks and applies itself to the servo loop at a tick boundary,
+through the loop's verbs (enable, disable, start_recording, stop_recording, reload,
+set_param), never by writing its fields.
 
 The control thread builds a command and hands it to the loop
 (``ServoLoop.submit``); the loop applies it at the start of its next tick,
@@ -66,9 +68,7 @@ class Enable(Command):
     while_stopping = False  # it would restart the force ramp and undo the stop's
 
     def apply(self, loop: ServoLoop, t: float) -> Any:
-        loop.safety.reset(t)
-        loop.bank.enable(True)
-        loop.forces_off = False
+        loop.enable(t)
 
     def describe(self) -> str:
         return "enable"
@@ -78,7 +78,7 @@ class Disable(Command):
     """Turn every device's forces off."""
 
     def apply(self, loop: ServoLoop, t: float) -> Any:
-        loop.bank.enable(False)
+        loop.disable()
 
     def describe(self) -> str:
         return "disable"
@@ -93,9 +93,9 @@ class RecordStart(Command):
     event = "recording_started"
 
     def apply(self, loop: ServoLoop, t: float) -> Any:
-        if loop.recorder is not None:
-            raise ValueError(f"already recording to {loop.recorder.path}; stop it first")
-        loop.recorder = self.recorder
+        if loop.recorder is None and loop.anchor is not None:
+            self.recorder.anchor(*loop.anchor)  # its header's clock, filled by its writer
+        loop.start_recording(self.recorder)
 
     def describe(self) -> str:
         return f"record_start {self.recorder.path}"
@@ -107,10 +107,7 @@ class RecordStop(Command):
     event = "recording_stopped"
 
     def apply(self, loop: ServoLoop, t: float) -> Any:
-        if loop.recorder is None:
-            raise ValueError("not recording")
-        old, loop.recorder = loop.recorder, None
-        return old
+        return loop.stop_recording()
 
     def describe(self) -> str:
         return "record_stop"

@@ -68,6 +68,7 @@ class DeviceBank:
         # place): the frame's device_sample once a frame is bound (``_sample_into``).
         self._sample_into(np.zeros((2, F, 3)))
         self.lost: list[float | None] = [None] * len(self.devices)
+        self.arm_pending = False  # `enable` asked for forces: ``arm`` after the tick
         self._n_lost = 0
         self._zero = np.zeros(3)
         self._frame: Frame | None = None  # the frame ``_bind`` looked up
@@ -97,15 +98,18 @@ class DeviceBank:
                 return False
         return bool(self.devices)
 
-    def open(self) -> None:
-        """Open every device and enable its forces; on failure, close what was opened."""
+    def open(self, enable: bool = True) -> None:
+        """Open every device and (``enable``) enable its forces; on failure, close what was
+        opened. The loop opens without enabling and calls ``arm`` just before its first
+        tick: a device's watchdog counts from its enabling."""
         opened: list[Device] = []
         try:
             for dev in self.devices:
                 dev.open()
                 opened.append(dev)
-            for dev in self.devices:
-                dev.enable_forces(True)
+            if enable:
+                for dev in self.devices:
+                    dev.enable_forces(True)
         except Exception:
             self.zero()
             for dev in opened:
@@ -114,8 +118,28 @@ class DeviceBank:
             raise
 
     def enable(self, on: bool) -> None:
+        """Off: every device's forces off, at once. On: asked for; ``arm`` enables them,
+        outside any tick (enabling blocks: an SDK releases brakes and primes its
+        estimator over the bus), and until then the devices render zero."""
+        if on:
+            self.arm_pending = True
+            return
+        self.arm_pending = False
         for dev in self.devices:
-            dev.enable_forces(on)
+            dev.enable_forces(False)
+
+    def arm(self) -> None:
+        """Enable the forces of every device not lost: the blocking calls, at the start or
+        between two ticks, never inside one. On failure every device is zeroed and
+        disabled, and the error raised."""
+        self.arm_pending = False
+        try:
+            for i, dev in enumerate(self.devices):
+                if self.lost[i] is None:
+                    dev.enable_forces(True)
+        except Exception:
+            self.zero()
+            raise
 
     @property
     def max_speed_m_per_s(self) -> float:

@@ -73,6 +73,9 @@ class Pacer:
         self.margin = min(max(float(spin_s), 0.0), 0.5 * self.period)
         self.stats = LoopStats()
         self.t0 = 0.0
+        # Tick 0's due time (monotonic s): where ``t_wall`` counts from; unlike ``t0`` it is
+        # never moved by ``catch_up``, so ``origin + t_wall`` is a tick's monotonic start.
+        self.origin = 0.0
         self.sleep_until = 0.0  # when the loop's current sleep ends, less the spin
         self._prev = 0.0
         self._period_error = 0.0  # tick k's (k > 0), from ``begin`` to ``end`` (s)
@@ -98,7 +101,7 @@ class Pacer:
 
     def start(self) -> None:
         """Anchor the grid: tick 0 is due now (paced: a moment from now)."""
-        self.t0 = time.monotonic() + (START_DELAY_S if self.paced else 0.0)
+        self.t0 = self.origin = time.monotonic() + (START_DELAY_S if self.paced else 0.0)
         self._late = 0
 
     def begin(self, k: int) -> tuple[float, str | None]:

@@ -24,6 +24,20 @@ class RealtimeError(RuntimeError):
     """A required real-time setting could not be applied."""
 
 
+def usable_cpus() -> list[int]:
+    """The CPUs the calling thread may run on (its affinity mask), ascending."""
+    return sorted(os.sched_getaffinity(0))
+
+
+def cpu_problem(cpu: int) -> str | None:
+    """Why the servo thread cannot be pinned to ``cpu`` (naming the CPUs it may use), or
+    None when it can: checked when a profile is read, so a typo fails ``check``, not a run."""
+    have = usable_cpus()
+    if cpu in have:
+        return None
+    return f"CPU {cpu} is not one this process may run on; available: {have}"
+
+
 @dataclass(frozen=True)
 class RealtimeSettings:
     """What to ask for. priority: SCHED_FIFO priority 1-99, or 0 for the normal policy;
@@ -84,9 +98,8 @@ def apply(settings: RealtimeSettings) -> RealtimeReport:
             os.sched_setaffinity(0, {int(settings.cpu)})
             rep.cpu = int(settings.cpu)
         except (OSError, OverflowError) as exc:  # OverflowError: beyond a C long
-            have = sorted(os.sched_getaffinity(0))
             why = getattr(exc, "strerror", None) or str(exc)
-            rep.problems.append(f"cpu affinity {settings.cpu}: {why}; available: {have}")
+            rep.problems.append(f"cpu affinity {settings.cpu}: {why}; available: {usable_cpus()}")
     if settings.lock_memory:
         if libc is None:
             rep.problems.append("mlockall: no C library found")

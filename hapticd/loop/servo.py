@@ -31,7 +31,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-from hapticd_drivers import Device
+from hapticd_drivers import Device, DeviceError
 
 from hapticd.events import CAUSE_CODES, CODES
 from hapticd.loop import realtime
@@ -45,6 +45,7 @@ from hapticd.physics.frame import Frame, item_view
 from hapticd.physics.render import SAMPLES_REFUSED, Renderer
 from hapticd.physics.safety import SafetyChain
 from hapticd.recording import Recorder
+from hapticd.recording.ring import clock_anchor
 
 log = logging.getLogger("hapticd.loop.servo")
 
@@ -124,6 +125,11 @@ class ServoLoop:
         # Whether the run ends when every device's trajectory has (a bring-up goes on).
         self.end_with_trajectory = True
         self.recorder = recorder
+        # A second ring of every tick's record, for a consumer other than the recording (the
+        # LSL outlet, hapticd.daemon.lsl); attached before the run, it stays to the end.
+        self.tap: Recorder | None = None
+        # Tick 0's due time on the LSL clock and in UTC, s (ring.clock_anchor), from the start.
+        self.anchor: tuple[float, float] | None = None
         F = len(devices)
         self.frame = Frame(F, renderer.actuation.n_actuators)
         self._bind_scalars(self.frame)
@@ -236,19 +242,50 @@ class ServoLoop:
         """Set a parameter now (at a tick boundary); ValueError changes nothing."""
         self._owner(name).set_param(name, value)
 
+    def enable(self, t: float) -> None:
+        """Clear a latched fault and enable every device's forces again; they ramp up from
+        zero from nominal time ``t`` (s)."""
+        self.safety.reset(t)
+        self.bank.enable(True)
+        self.forces_off = False
+
+    def disable(self) -> None:
+        """Turn every device's forces off."""
+        self.bank.enable(False)
+
+    def start_recording(self, recorder: Recorder) -> None:
+        """Record every tick with ``recorder`` (its writer already running); ValueError
+        while another one records."""
+        if self.recorder is not None:
+            raise ValueError(f"already recording to {self.recorder.path}; stop it first")
+        self.recorder = recorder
+
+    def stop_recording(self) -> Recorder:
+        """Stop recording; the recorder, for the caller to close. ValueError when none
+        records."""
+        if self.recorder is None:
+            raise ValueError("not recording")
+        old, self.recorder = self.recorder, None
+        return old
+
     def reload(
         self, renderer: Renderer, safety: SafetyChain, t: float, frame: Frame | None = None
     ) -> None:
         """Switch to another renderer and safety chain; forces ramp up again, proxies start
         anew. A latched fault stays latched (``enable`` clears it). ``frame``: a fresh frame
         for the new layout, built off the loop (else built here)."""
-        if self.recorder is not None and (
-            renderer.actuation.n_actuators != self.renderer.actuation.n_actuators
-        ):
-            raise ValueError(
-                "the new profile changes the number of actuated directions, which would "
-                f"change the layout of the recording {self.recorder.path}; stop recording first"
-            )
+        if renderer.actuation.n_actuators != self.renderer.actuation.n_actuators:
+            if self.recorder is not None:
+                raise ValueError(
+                    "the new profile changes the number of actuated directions, which would "
+                    f"change the layout of the recording {self.recorder.path}; stop recording "
+                    "first"
+                )
+            if self.tap is not None:
+                raise ValueError(
+                    "the new profile changes the number of actuated directions, which would "
+                    f"change the channels of {self.tap.path}; restart hapticd to change them"
+                )
         # A fresh frame: nothing the old renderer's stages wrote may linger; the devices'
         # last state carries over (a lost device keeps its last position).
         old_frame = self.frame
@@ -297,7 +334,7 @@ class ServoLoop:
             self._bind_scalars(frame)
         self._tick_view[()] = k
         self._t_view[()] = t
-        self._t_wall_view[()] = start - self.pacer.t0
+        self._t_wall_view[()] = start - self.pacer.origin
         renderer = self.renderer
         if renderer is not self._loop_of or self.bank.max_speed_m_per_s != self._speed_of:
             self._bind_renderer(renderer)
@@ -422,6 +459,17 @@ class ServoLoop:
         )
         self.request_stop("the object's state diverged", ramp=False)
 
+    def _arm(self, k: int, t: float) -> None:
+        """Enable the forces `enable` asked for, after the tick that applied it: its blocking
+        calls outside any tick. A failure latches a fault (every device zeroed and off)."""
+        try:
+            self.bank.arm()
+        except Exception as exc:
+            self.safety.trip(k, t, f"enabling forces failed: {type(exc).__name__}: {exc}", "device")
+            self.forces_off = True
+            self._note_fault(k, t)
+            self._log_fault()
+
     def _note_fault(self, k: int, t: float) -> None:
         """Push a ``fault_latched`` event for a fault not reported yet (a fault cleared by
         ``enable`` and latched again is a new one)."""
@@ -482,7 +530,7 @@ class ServoLoop:
         k = self._last_recorded + 1
         frame.tick[()] = k
         frame.t[()] = k * self.period
-        frame.t_wall[()] = time.monotonic() - self.pacer.t0
+        frame.t_wall[()] = time.monotonic() - self.pacer.origin
         frame.compute_s[()] = 0.0
         frame.device_force[:] = 0.0
         frame.fault[()] = self.safety.fault is not None
@@ -493,7 +541,7 @@ class ServoLoop:
     def run(self) -> LoopStats:
         """Open and enable the devices, run until a stop condition, then zero and close."""
         try:
-            self.bank.open()  # closes what it opened if it fails
+            self.bank.open(enable=False)  # closes what it opened if it fails
         except Exception as exc:
             self.safety.trip(0, 0.0, f"device setup failed: {exc}", "setup")
             self._note_fault(0, 0.0)
@@ -529,6 +577,15 @@ class ServoLoop:
             gc.disable()
             if self.switch_interval_s is not None and self.paced:
                 sys.setswitchinterval(self.switch_interval_s)
+            try:
+                # Enabling blocks (an SDK's brakes, its estimator): the last thing before the
+                # first tick, since a device's watchdog counts from it.
+                self.bank.arm()
+            except Exception as exc:
+                self.safety.trip(0, 0.0, f"device setup failed: {exc}", "setup")
+                self._note_fault(0, 0.0)
+                self.end_reason = "fault"
+                return self.stats
             self.running = True
             self._loop()
         finally:
@@ -564,6 +621,10 @@ class ServoLoop:
         pacer = self.pacer
         T = self.period
         pacer.start()
+        self.anchor = clock_anchor(pacer.origin)
+        for sink in (self.recorder, self.tap):
+            if sink is not None:
+                sink.anchor(*self.anchor)
         k = 0
         if self.recorder is not None:
             self.event_ring.push(RECORDING_STARTED, 0, 0.0)
@@ -579,7 +640,11 @@ class ServoLoop:
             try:
                 self._tick(k, t, start)
             except Exception as exc:
-                self.safety.trip(k, t, f"{type(exc).__name__}: {exc}", "exception")
+                # A device that failed (its driver said why) is a device fault, not a stage's.
+                if isinstance(exc, DeviceError):
+                    self.safety.trip(k, t, f"{type(exc).__name__}: {exc}", "device")
+                else:
+                    self.safety.trip(k, t, f"{type(exc).__name__}: {exc}", "exception")
                 self._note_fault(k, t)
                 self.end_reason = "fault"
                 pacer.end(k, start)
@@ -609,10 +674,16 @@ class ServoLoop:
                 frame.control_seq[()] = self._control_seq_written = self.control_seq
             compute = pacer.end(k, start)
             rec = self.recorder
+            tap = self.tap
             if rec is not None:
                 self._compute_view[()] = compute
                 rec.append(frame.recorded)
                 self._last_recorded = k
+            if tap is not None:
+                self._compute_view[()] = compute
+                tap.append(frame.recorded)
+            if self.bank.arm_pending:
+                self._arm(k, t)
             reason = self._finished(k)
             if reason is not None:
                 self.end_reason = reason

@@ -14,6 +14,7 @@ import fcntl
 import json
 import os
 import platform
+import stat
 import subprocess
 import sys
 import time
@@ -21,6 +22,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hapticd.allocation import kernels as allocation
+from hapticd.control import ownership_problem
 from hapticd.physics import kernels
 
 MODES = ("python", "compiled", "auto")
@@ -44,13 +47,29 @@ SIGNATURES = {
     "tick_step": "i8(f8[::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[:, :, ::1])",
 }
 
+# The module each kernel is defined in.
+_MODULES = {
+    "allocation_step": allocation,
+    "allocate_grasps": allocation,
+    "safety_step": kernels,
+    "tick_step": kernels,
+}
+
 # Compiled kernels of this process, by name: a reload compiles nothing again.
 _COMPILED: dict[str, Callable[..., None]] = {}
 
 # Helpers registered with numba in this process.
 _HELPERS: set[Callable[..., None]] = set()
 
-_KERNELS_DIR = Path(kernels.__file__).parent
+# The folders of the kernels' modules (numba caches each in its __pycache__ by default).
+_KERNEL_DIRS = tuple(dict.fromkeys(Path(m.__file__).parent for m in _MODULES.values()))
+
+
+def _kernel(name: str) -> Callable[..., object]:
+    """Kernel ``name``'s Python function (in the module that defines it; a function of
+    hapticd.physics.kernels when none is named, as its helpers are)."""
+    return getattr(_MODULES.get(name, kernels), name)
+
 
 # Marker files in the cache folder, each keyed by ``_keys``: kernels compiled (so loading them
 # is quick), and kernels that failed to compile (and why).
@@ -59,10 +78,25 @@ FAILED = "hapticd-kernels-failed.json"
 # The lock file of the background compiler: it holds an exclusive flock on it while it
 # works, and the lock goes with the process, however it ends.
 COMPILING = "hapticd-kernels.compiling"
+# What numba, hapticd and a compiler may write in the cache root besides numba's folders.
+_MARKERS = (COMPILED, FAILED, COMPILING, f".{COMPILED}.lock", f".{FAILED}.lock")
+# Mode bits no folder or file of the cache may have: numba unpickles its index and code
+# files (a pickle runs code), so nobody but their owner may write them. Reading is harmless
+# (machine code of public source; an installed package's __pycache__ is 0755), which is
+# why this is looser than the socket directory's 0o027.
+_UNSAFE_BITS = 0o022
+# Opening a marker or the lock never follows a link or waits for a FIFO's writer.
+_OPEN_FLAGS = os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC
 
 
 class JitUnavailableError(RuntimeError):
     """The kernels cannot be compiled here (the message says why)."""
+
+
+class UnsafeCacheError(JitUnavailableError):
+    """A folder or file of the kernel cache could be another user's (numba would unpickle
+    it, which runs code): nothing of the cache is read (the message names it and what to
+    do)."""
 
 
 class DamagedCacheError(JitUnavailableError):
@@ -95,7 +129,7 @@ def cache_dir(
     if env.get("NUMBA_CACHE_DIR"):
         return None
     pycache = package_dir / "__pycache__"
-    if writable(pycache if pycache.exists() else package_dir):
+    if writable(pycache if pycache.exists() else package_dir) and _safe_or_absent(pycache):
         return None
     candidates = []
     if env.get("CACHE_DIRECTORY"):  # systemd's CacheDirectory=: the first of its list
@@ -109,7 +143,7 @@ def cache_dir(
             path.mkdir(parents=True, exist_ok=True, mode=0o700)
         except OSError:
             continue
-        if writable(path):
+        if writable(path) and _safe_or_absent(path):
             return path
     return None
 
@@ -118,9 +152,99 @@ def _writable(path: Path) -> bool:
     return path.is_dir() and os.access(path, os.W_OK | os.X_OK)
 
 
+def _safe_or_absent(folder: Path) -> bool:
+    """Whether ``folder`` is absent or a cache folder nobody else can write to."""
+    try:
+        return ownership_problem(folder, os.geteuid(), _UNSAFE_BITS) is None
+    except FileNotFoundError:
+        return True
+
+
+def _unsafe(path: Path, root: Path, regular: bool = False) -> UnsafeCacheError | None:
+    """The refusal of ``path``, a folder (or with ``regular`` a file) of the cache whose
+    root is ``root``, when it could be another user's; None when it is absent or safe."""
+    try:
+        problem = ownership_problem(path, os.geteuid(), _UNSAFE_BITS, regular=regular)
+    except FileNotFoundError:
+        return None
+    if problem is None:
+        return None
+    return UnsafeCacheError(
+        f"the kernel cache is unsafe: {path} {problem}, and only uid {os.geteuid()} may "
+        f"write a folder or file of it (numba loads its files as pickles, which run code), "
+        f"so nothing of it is loaded; remove it (rm -r {root}) or set NUMBA_CACHE_DIR to a "
+        "folder of your own (hapticd makes it with mode 0700)"
+    )
+
+
+def check_cache(names: Sequence[str]) -> Path:
+    """Make sure nobody else can have written numba's cache of the kernels ``names`` before
+    numba reads any of it: the cache root (``_cache_folder()``; made 0700 when absent), each
+    kernel's folder and the folders between (made 0700 too, before numba makes them with
+    the process's umask) must be directories, not symbolic links, of this process's user,
+    writable by nobody else; the marker files and numba's index and code files regular
+    files of that user, writable by nobody else. Only lstat: nothing is opened, so a FIFO
+    cannot block. The folder of the kernels; UnsafeCacheError naming what is wrong."""
+    root = _cache_folder()
+    with contextlib.suppress(OSError):  # absent parents, a file in the way: checked below
+        root.mkdir(mode=0o700, parents=True, exist_ok=True)
+    if (bad := _unsafe(root, root)) is not None:
+        raise bad
+    for marker in _MARKERS:
+        if (bad := _unsafe(root / marker, root, regular=True)) is not None:
+            raise bad
+    try:
+        from numba.core.caching import FunctionCache, _CacheLocator
+    except ImportError:  # a numba without this layout: it has no such folders to read
+        return root
+    folders = set()
+    for name in filter(SIGNATURES.__contains__, names):
+        kernel = _kernel(name)
+        if os.environ.get("NUMBA_CACHE_DIR"):  # numba's folder for the kernel's source file
+            sub = _CacheLocator.get_suitable_cache_subpath(kernel.__code__.co_filename)
+            _check_folders(root, root / sub)
+        try:  # where numba caches it (it falls back to others when one is not writable)
+            folders.add(Path(FunctionCache(kernel).cache_path))
+        except Exception:  # no locator: numba can neither read nor write a cache of it
+            continue
+    for folder in folders:
+        _check_folders(root if folder.is_relative_to(root) else folder, folder)
+        for f in sorted(folder.iterdir()):
+            if f.suffix in (".nbi", ".nbc") and (bad := _unsafe(f, root, regular=True)):
+                raise bad
+    return root
+
+
+def _check_folders(root: Path, folder: Path) -> None:
+    """Each folder from ``root`` down to ``folder`` (made 0700 when absent) safe, else
+    UnsafeCacheError."""
+    path = root
+    for part in (None, *folder.relative_to(root).parts):
+        if part is not None:
+            path = path / part
+            with contextlib.suppress(OSError):
+                os.mkdir(path, 0o700)
+        if (bad := _unsafe(path, root)) is not None:
+            raise bad
+
+
+def _tighten(folder: Path) -> None:
+    """No group or other write on numba's files of this user in ``folder`` (numba writes
+    them with the process's umask): the next run's check must pass them."""
+    for f in folder.iterdir():
+        if f.suffix not in (".nbi", ".nbc"):
+            continue
+        with contextlib.suppress(OSError):
+            st = os.lstat(f)
+            if stat.S_ISREG(st.st_mode) and st.st_uid == os.geteuid() and st.st_mode & 0o022:
+                os.chmod(f, stat.S_IMODE(st.st_mode) & ~0o022)
+
+
 def _import_numba():
     """numba, imported after its cache folder is chosen; JitUnavailableError if it cannot be."""
-    where = cache_dir(_KERNELS_DIR, os.environ)
+    where = None
+    for folder in _KERNEL_DIRS:  # one folder for all when one module's is not writable
+        where = where or cache_dir(folder, os.environ)
     if where is not None:
         # numba reads the variable when it is imported; its config, if it already was.
         os.environ["NUMBA_CACHE_DIR"] = str(where)
@@ -135,7 +259,7 @@ def _import_numba():
 
 def _cache_folder() -> Path:
     """The folder numba caches the kernels in (once ``_import_numba`` chose it)."""
-    return Path(os.environ.get("NUMBA_CACHE_DIR") or _KERNELS_DIR / "__pycache__")
+    return Path(os.environ.get("NUMBA_CACHE_DIR") or _KERNEL_DIRS[-1] / "__pycache__")
 
 
 def _keys(names: Sequence[str], version: str) -> dict[str, str]:
@@ -148,8 +272,13 @@ def _keys(names: Sequence[str], version: str) -> dict[str, str]:
 
 
 def _read_marker(name: str) -> dict[str, str]:
+    """The marker file ``name`` ({} when absent, not a regular file, or not JSON)."""
     try:
-        data = json.loads((_cache_folder() / name).read_text())
+        fd = os.open(_cache_folder() / name, os.O_RDONLY | _OPEN_FLAGS)
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                return {}
+            data = json.loads(f.read(16 << 20))  # a marker is a few kB
     except (OSError, ValueError):
         return {}
     return data if isinstance(data, dict) else {}
@@ -161,13 +290,21 @@ def _write_marker(name: str, entries: dict[str, str]) -> None:
     folder = _cache_folder()
     tmp = folder / f".{name}.{os.getpid()}"
     try:
-        folder.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
         # Locked: two compilers finishing at once would each write back what they read, and
         # one's entries would be lost.
-        with open(folder / f".{name}.lock", "a") as lock:
+        lock = os.open(folder / f".{name}.lock", os.O_WRONLY | os.O_CREAT | _OPEN_FLAGS, 0o600)
+        try:
             fcntl.flock(lock, fcntl.LOCK_EX)
-            tmp.write_text(json.dumps({**_read_marker(name), **entries}, indent=1))
+            text = json.dumps({**_read_marker(name), **entries}, indent=1)
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()  # a dead writer's, of the same pid
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _OPEN_FLAGS, 0o600)
+            with os.fdopen(fd, "w") as f:
+                f.write(text)
             os.replace(tmp, folder / name)
+        finally:
+            os.close(lock)
     except OSError:
         with contextlib.suppress(OSError):
             tmp.unlink()
@@ -207,7 +344,8 @@ def _cache_files(fn: Callable[..., None]) -> tuple[Path, list[Path]]:
 
     folder = Path(FunctionCache(fn).cache_path)
     tag = f"py{sys.version_info.major}{sys.version_info.minor}"
-    return folder, sorted(folder.glob(f"kernels.{fn.__name__}-*.{tag}.*nb[ic]"))
+    stem = Path(fn.__code__.co_filename).stem
+    return folder, sorted(folder.glob(f"{stem}.{fn.__name__}-*.{tag}.*nb[ic]"))
 
 
 def _remove(files: list[Path]) -> None:
@@ -236,7 +374,7 @@ def _load(
     holds another kernel is removed, then compiled again (``may_compile``; ``notes`` says so)
     or DamagedCacheError. ``stale``: not in COMPILED for the present sources, so numba's
     cache of it is removed first."""
-    kernel = getattr(kernels, name)
+    kernel = _kernel(name)
 
     def njit():
         return numba.njit(SIGNATURES[name], cache=True, nogil=True)(kernel)
@@ -279,6 +417,7 @@ def compile_kernels(
     missing = [n for n in names if n not in _COMPILED]
     if missing:
         numba = _import_numba()
+        check_cache(missing)
         _register_helpers()
         keys = _keys(missing, numba.__version__)
         done = _read_marker(COMPILED)
@@ -294,6 +433,9 @@ def compile_kernels(
                 _write_marker(FAILED, {keys[name]: why})
                 raise JitUnavailableError(why) from e
             _COMPILED[name] = fn
+        with contextlib.suppress(Exception):  # a numba without this layout: nothing to do
+            for f in {_cache_files(_kernel(n))[0] for n in missing}:
+                _tighten(f)
         _write_marker(COMPILED, {keys[n]: "compiled" for n in missing})
     return {n: _COMPILED[n] for n in names}
 
@@ -303,6 +445,7 @@ def cached(names: Sequence[str], version: str) -> bool:
     and code in numba's cache (an index alone would make numba compile it, in the
     foreground); JitUnavailableError if one failed to compile with the same numba, sources
     and machine, saying why."""
+    check_cache(names)
     keys = _keys(names, version).values()
     done = _read_marker(COMPILED)
     failed = _read_marker(FAILED)
@@ -313,7 +456,7 @@ def cached(names: Sequence[str], version: str) -> bool:
         return False
     for n in filter(SIGNATURES.__contains__, names):
         try:
-            suffixes = {f.suffix for f in _cache_files(getattr(kernels, n))[1]}
+            suffixes = {f.suffix for f in _cache_files(_kernel(n))[1]}
         except Exception:  # a numba without this layout: leave it to numba
             continue
         if not {".nbi", ".nbc"} <= suffixes:
@@ -327,13 +470,15 @@ def _lock(folder: Path, how: int) -> int | None:
     the folder cannot hold a lock (or, asking, has no COMPILING)."""
     try:
         if how == fcntl.LOCK_SH:
-            fd = os.open(folder / COMPILING, os.O_RDONLY)
+            fd = os.open(folder / COMPILING, os.O_RDONLY | _OPEN_FLAGS)
         else:
-            folder.mkdir(parents=True, exist_ok=True)
-            fd = os.open(folder / COMPILING, os.O_CREAT | os.O_RDWR, 0o600)
+            folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+            fd = os.open(folder / COMPILING, os.O_CREAT | os.O_RDWR | _OPEN_FLAGS, 0o600)
     except OSError:
         return -1
     try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):  # a FIFO or device in its place
+            raise OSError("not a regular file")
         fcntl.flock(fd, how | fcntl.LOCK_NB)
     except OSError as e:
         os.close(fd)
@@ -390,13 +535,17 @@ def choose(mode: str, names: Sequence[str]) -> KernelChoice:
         except DamagedCacheError as e:
             return _in_background(mode, names, str(e), t0)
     except JitUnavailableError as e:
+        # The unsafe cache's message says what to do; numba itself is there.
+        fix = (
+            "Set" if isinstance(e, UnsafeCacheError) else "Install numba (pip install numba) or set"
+        )
         return KernelChoice(
             mode,
             "python",
             message=(
                 f"rendering.kernels is {mode}, but {e}: the Python kernels render instead "
-                "(the same forces; a slower tick). Install numba (pip install numba) or set "
-                "rendering.kernels: python to silence this"
+                f"(the same forces; a slower tick). {fix} rendering.kernels: python to "
+                "silence this"
             ),
         )
     note = "; ".join(notes) if notes else None

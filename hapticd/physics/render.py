@@ -15,10 +15,11 @@ from typing import Any
 import numpy as np
 
 from hapticd.allocation import DEFAULT_ROBUSTNESS, METHODS, AdaptiveState, Robustness
+from hapticd.allocation.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.params import PARAMS, ParamError
 from hapticd.physics import kernels as kn
-from hapticd.physics.actuation import Actuation
+from hapticd.physics.dynamics import MAX_SUBSTEPS, lightest_mass, needed_substeps
 from hapticd.physics.frame import LOOP_WRITERS, NAMES, STATE_WRITERS, Frame
 from hapticd.physics.passivity import PassivityParams
 from hapticd.physics.safety import SafetyChain
@@ -306,11 +307,58 @@ class Renderer:
 
     def set_param(self, name: str, value: Any) -> None:
         """Change a renderer parameter between ticks and re-plan. The value is taken as
-        given (the control protocol checks it against its spec). ParamError for a name the
+        given (the control protocol checks it against its range). ParamError for a name the
         renderer does not own; ValueError, nothing changed, for another count of actuated
-        directions per finger (it fixes the recording's layout)."""
-        _SETTERS[_own(name)](self, value)
-        self.plan()
+        directions per finger (it fixes the recording's layout), for a free object the
+        change leaves needing more substeps than its step takes, or for any other failure
+        of the change (the old values and plan stay)."""
+        _own(name)
+        obj, alloc = self.obj, self.allocator
+        before = (obj.mass, obj.material, alloc.actuation, alloc.method)
+        planned = (self.stages, self.writers, self.one_call)  # the running call and its state
+        needed = self._needed_substeps()
+        try:
+            _SETTERS[name](self, value)
+            self._check_integrable(name, value, needed)
+            self.plan()
+            if not obj.fixed:  # what the next tick's call binds: fails here, not in a tick
+                self.stages[[s.name for s in self.stages].index("dynamics")].arrays()
+        except Exception as exc:
+            obj.mass, obj.material, alloc.actuation, alloc.method = before
+            self.plan()  # the stages' settings as they were; then the very call that ran
+            self.stages, self.writers, self.one_call = planned
+            if type(exc) in (ValueError, ParamError):  # already says what and why
+                raise
+            raise ValueError(
+                f"{name} {value!r} cannot be used ({type(exc).__name__}: {exc}); nothing changed"
+            ) from exc
+
+    def _needed_substeps(self) -> float:
+        """The substeps a free object's step needs now (0 for a fixed object)."""
+        obj = self.obj
+        if obj.fixed:
+            return 0.0
+        return needed_substeps(
+            obj, self.scene.surfaces, obj.material.stiffness, self.n_fingers, self.dt
+        )
+
+    def _check_integrable(self, name: str, value: Any, before: float) -> None:
+        """ValueError if the change leaves a free object needing more substeps than its step
+        takes (and more than before: a profile's own choice stays), naming the limit."""
+        takes = self.scene.substeps or MAX_SUBSTEPS
+        needed = self._needed_substeps()
+        if needed <= takes or needed <= before:
+            return
+        obj = self.obj
+        lightest = lightest_mass(
+            obj, self.scene.surfaces, obj.material.stiffness, self.n_fingers, self.dt, takes
+        )
+        raise ValueError(
+            f"{name} {value!r} refused: the free object would need {needed:.3g} substeps a "
+            f"{self.dt * 1e3:g} ms tick, its step takes {takes}; with stiffness "
+            f"{obj.material.stiffness:g} N/m and damping {obj.material.damping:g} N s/m the "
+            f"mass must be at least {lightest:.3g} kg; nothing changed"
+        )
 
 
 class OneCall:

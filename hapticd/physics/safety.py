@@ -70,7 +70,8 @@ class _Count:
 
 class SafetyChain:
     """The safety chain of F fingers: ``limits_n`` (F,) N, ``rated_n`` (F,) N the devices'
-    own limits, which ``force_limit_n`` never exceeds (default: ``limits_n``), ``dt`` (s).
+    own limits, which ``force_limit_n`` never exceeds (default: ``limits_n``), ``max_n``
+    (N) the profile's limit, above which ``force_limit_n`` is refused, ``dt`` (s).
     ValueError for limits that are not positive and finite, or a deadman or rated force
     list of another length.
 
@@ -89,6 +90,7 @@ class SafetyChain:
         dt: float = 1e-3,
         *,
         rated_n: list[float] | None = None,
+        max_n: float = math.inf,
     ) -> None:
         if not limits_n or not _positive(limits_n):
             raise ValueError(f"force limits must be positive and finite, got {limits_n}")
@@ -124,6 +126,7 @@ class SafetyChain:
         self._has_deadman = any(d is not None for d in deadman)
         self.limits = limits_n
         self.rated = [float(v) for v in (rated_n if rated_n is not None else limits_n)]
+        self.max_n = float(max_n)
         if len(self.rated) != F:
             raise ValueError(f"one rated force per finger is needed, got {rated_n}")
         # safety_step's other inputs, preallocated: the buttons as the frame holds them, and
@@ -343,8 +346,18 @@ def _own(name: str) -> str:
     return name
 
 
+def _set_force_limit(s: SafetyChain, value: Any) -> None:
+    v = float(value)
+    if v > s.max_n:  # a live change may lower the profile's limit, never raise it past it
+        raise ValueError(
+            f"force_limit_n {v:g} N is above the profile's safety.max_force_n {s.max_n:g} N: "
+            "refused (raise safety.max_force_n in the profile and reload)"
+        )
+    s.set_limits([min(r, v) for r in s.rated])
+
+
 _SETTERS: dict[str, Callable[[SafetyChain, Any], None]] = {
-    "force_limit_n": lambda s, v: s.set_limits([min(r, float(v)) for r in s.rated]),
+    "force_limit_n": _set_force_limit,
 }
 
 _GETTERS: dict[str, Callable[[SafetyChain], Any]] = {

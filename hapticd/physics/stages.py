@@ -13,9 +13,9 @@ from typing import Protocol
 
 import numpy as np
 
+from hapticd.allocation.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.physics import kernels
-from hapticd.physics.actuation import Actuation
 from hapticd.physics.dynamics import auto_substeps
 from hapticd.physics.frame import Frame
 from hapticd.physics.passivity import PassivityParams

@@ -8,14 +8,14 @@ from __future__ import annotations
 import io
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from hapticd.physics.frame import FIELDS
-from hapticd.recording.format import Recording
+from hapticd.recording.format import Field, Recording
 
 # Per-finger fields (a first axis of one entry per finger, labelled by finger name): as
 # the tick frame declares them (hapticd.physics.frame).
@@ -51,6 +51,21 @@ def csv_columns(rec: Recording) -> list[str]:
     return cols
 
 
+def flat_values(
+    arrays: Mapping[str, np.ndarray] | np.ndarray, fields: Sequence[Field], ticks: int
+) -> np.ndarray:
+    """The ``fields`` of ``ticks`` ticks (``arrays``: a Recording, or records of its dtype)
+    as one float64 array (ticks, scalars), its columns in ``csv_columns``' order."""
+    # Explicit widths: with 0 ticks (a run killed right after it began) -1 is ambiguous.
+    return np.concatenate(
+        [
+            np.asarray(arrays[f.name], dtype=float).reshape(ticks, math.prod(f.shape))
+            for f in fields
+        ],
+        axis=1,
+    )
+
+
 # Ticks written between two calls of an export's ``progress``.
 PROGRESS_CHUNK = 10_000
 
@@ -61,14 +76,7 @@ def export_csv(rec: Recording, out: str | Path, progress: Progress | None = None
     """Write ``rec`` as CSV (a header row, then one row per tick); returns the rows written.
     ``progress(done, total)`` is called after each chunk of ticks."""
     cols = csv_columns(rec)
-    # Explicit widths: with 0 ticks (a run killed right after it began) -1 is ambiguous.
-    flat = np.concatenate(
-        [
-            np.asarray(rec[f.name], dtype=float).reshape(rec.ticks, math.prod(f.shape))
-            for f in rec.fields
-        ],
-        axis=1,
-    )
+    flat = flat_values(rec, rec.fields, rec.ticks)
     assert flat.shape[1] == len(cols)
     # The allocator column holds names (meta.allocators), not the recorded indices.
     names = rec.meta.get("allocators")

@@ -110,8 +110,10 @@ def create(
     *,
     overwrite: bool,
     root: Path | None = None,
+    mode: int = FILE_MODE,
 ) -> tuple[int, Path]:
     """Create the recording ``path`` holding ``header``; return (its open fd, its path).
+    ``mode``: the new file's mode before the umask.
 
     With ``root``, ``path`` is confined to it (``confine``) and every directory below
     ``root`` is opened without following links (missing ones are created 0700).
@@ -145,12 +147,12 @@ def create(
         except OSError as exc:
             raise RecordingError(f"{shown}: cannot create: {exc.strerror or exc}") from None
     try:
-        return _create_in(dfd, name, shown, header, overwrite), shown
+        return _create_in(dfd, name, shown, header, overwrite, mode), shown
     finally:
         os.close(dfd)
 
 
-def _create_in(dfd: int, name: str, shown: Path, header: bytes, overwrite: bool) -> int:
+def _create_in(dfd: int, name: str, shown: Path, header: bytes, overwrite: bool, mode: int) -> int:
     if overwrite:
         try:
             st = os.stat(name, dir_fd=dfd, follow_symlinks=False)
@@ -169,7 +171,7 @@ def _create_in(dfd: int, name: str, shown: Path, header: bytes, overwrite: bool)
     else:
         target = name
     try:
-        fd = os.open(target, _CREATE, FILE_MODE, dir_fd=dfd)
+        fd = os.open(target, _CREATE, mode, dir_fd=dfd)
     except FileExistsError:
         raise RecordingError(
             f"{shown}: exists; not overwriting it (overwrite replaces a regular file)"

@@ -1,8 +1,8 @@
 """Recordings: every servo tick as one fixed-size binary record (format in docs/recording.md).
 
 A file is ``MAGIC`` (8 bytes), a little-endian uint32 header length, a UTF-8 JSON
-header (fields with dtype and shape, finger names, metadata), then records
-packed back to back. Records are appended and never rewritten, so a file cut
+header (fields with dtype and shape, finger names, metadata, the clock anchor),
+then records packed back to back. Records are appended and never rewritten, so a file cut
 short (crash, ``kill -9``) still reads: a torn last record is dropped.
 
 ``read(path)`` returns a ``Recording``: a mapping of field name to numpy array
@@ -38,6 +38,10 @@ MAX_DIMS = 4
 MAX_RECORD_BYTES = 1 << 20  # one tick's record
 MAX_NAME_CHARS = 256
 MAX_HEADER_DEPTH = 32  # JSON nesting of the header (it needs 4)
+# A recording made by the loop keeps this many bytes at the start of its header for the
+# clock anchor (``clock``), filled in when the loop reaches tick 0 (hapticd.recording.ring).
+CLOCK_WIDTH = 160
+CLOCK_PENDING = "not anchored: the loop did not reach its first tick"
 
 
 class RecordingError(ValueError):
@@ -92,8 +96,13 @@ class Recording(Mapping[str, np.ndarray]):
         fingers: list[str],
         meta: dict[str, Any],
         torn_bytes: int,
+        clock: dict[str, Any] | None = None,
     ) -> None:
         self.path = path
+        # Tick 0's due time on the LSL clock (``lsl_s``) and in UTC (``utc``, ``utc_unix_s``);
+        # a tick's LSL time is ``lsl_s + t_wall``. None: a file from before the anchor, or
+        # from a run that ended before its first tick.
+        self.clock = clock
         self._data = data
         self.fields = fields
         self.fingers = fingers
@@ -204,7 +213,28 @@ def read(path: str | Path) -> Recording:
     meta = header.get("meta", {})
     if not isinstance(meta, dict):
         raise RecordingError(f"{p}: header 'meta' must be a JSON object")
-    return Recording(p, data, fields, fingers, meta, torn)
+    return Recording(p, data, fields, fingers, meta, torn, _parse_clock(header, p))
+
+
+def _parse_clock(header: dict[str, Any], p: Path) -> dict[str, Any] | None:
+    """The header's clock anchor (``Recording.clock``); None when it has none (an older file)
+    or holds the place of one never filled in."""
+    clock = header.get("clock")
+    if clock is None or isinstance(clock, str):
+        return None
+    if not (
+        isinstance(clock, dict)
+        and all(
+            type(clock.get(k)) in (int, float) and np.isfinite(clock[k])
+            for k in ("lsl_s", "utc_unix_s")
+        )
+        and isinstance(clock.get("utc"), str)
+    ):
+        raise RecordingError(
+            f"{p}: header 'clock' must be an object with lsl_s and utc_unix_s (numbers, s) "
+            "and utc (ISO 8601 text)"
+        )
+    return dict(clock)
 
 
 def _read_regular(p: Path) -> bytes:
@@ -222,14 +252,21 @@ def _read_regular(p: Path) -> bytes:
 
 
 def header_bytes(
-    fields: Sequence[Field], fingers: Sequence[str], meta: dict[str, Any] | None = None
+    fields: Sequence[Field],
+    fingers: Sequence[str],
+    meta: dict[str, Any] | None = None,
+    *,
+    clock_place: bool = False,
 ) -> bytes:
-    """The start of a recording file: magic, header length, JSON header."""
+    """The start of a recording file: magic, header length, JSON header. ``clock_place``:
+    the header starts with a place of ``CLOCK_WIDTH`` bytes for the clock anchor, at
+    ``clock_offset()`` (filled in by the writer once the loop has started)."""
     bad = [f.dtype for f in fields if f.dtype not in DTYPES]
     if bad:
         raise RecordingError(f"dtypes {bad} are not ones a recording holds: {sorted(DTYPES)}")
     header = json.dumps(
         {
+            **({"clock": CLOCK_PENDING.ljust(CLOCK_WIDTH - 2)} if clock_place else {}),
             "version": FORMAT_VERSION,
             "fields": [f.to_json() for f in fields],
             "fingers": list(fingers),
@@ -237,7 +274,16 @@ def header_bytes(
         },
         sort_keys=True,
     ).encode("utf-8")
+    if clock_place:
+        assert header[clock_offset() - len(MAGIC) - _LEN.size :].startswith(b'"not anchored')
     return MAGIC + _LEN.pack(len(header)) + header
+
+
+def clock_offset() -> int:
+    """Where a header's place for the clock (``header_bytes(clock_place=True)``) begins in
+    the file: ``clock`` sorts first among the header's keys, so its value follows
+    ``{"clock": ``."""
+    return len(MAGIC) + _LEN.size + len('{"clock": ')
 
 
 class RecordingWriter:

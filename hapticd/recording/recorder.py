@@ -18,7 +18,14 @@ from typing import Any
 import numpy as np
 
 from hapticd.recording import files, ring
-from hapticd.recording.format import Field, RecordingError, header_bytes, make_dtype
+from hapticd.recording.format import (
+    CLOCK_WIDTH,
+    Field,
+    RecordingError,
+    clock_offset,
+    header_bytes,
+    make_dtype,
+)
 
 
 class Recorder:
@@ -28,7 +35,9 @@ class Recorder:
     ``root`` when given, never through a link); a writer process appends the records
     that the loop puts into a shared-memory ring. In a paced run a full ring drops the
     tick (counted in ``dropped``) rather than make the loop wait; unpaced
-    (``block_when_full``) the loop waits for the writer instead.
+    (``block_when_full``) the loop waits for the writer instead. ``record_every`` > 1: the
+    writer keeps every such tick of the ring (the first, then each ``record_every``-th)
+    and drops the others; the loop's side is the same.
     """
 
     def __init__(
@@ -42,12 +51,46 @@ class Recorder:
         block_when_full: bool = False,
         overwrite: bool = True,
         root: Path | None = None,
+        record_every: int = 1,
     ) -> None:
+        if int(record_every) < 1:
+            raise ValueError(f"record_every must be 1 or more, got {record_every!r}")
         self.dtype = make_dtype(fields)
         out_fd, self.path = files.create(
-            path, header_bytes(fields, fingers, meta), overwrite=overwrite, root=root
+            path,
+            header_bytes(fields, fingers, meta, clock_place=True),
+            overwrite=overwrite,
+            root=root,
         )
         self._file_id = files.identity(out_fd)
+        try:
+            self._start_ring(
+                capacity,
+                block_when_full,
+                "hapticd.recording",
+                [str(out_fd), str(self.path), str(os.getpid()), str(int(record_every))],
+                (out_fd,),
+                clock_at=clock_offset(),
+            )
+        except BaseException:
+            files.remove_if_ours(self.path, self._file_id)
+            raise
+        finally:
+            os.close(out_fd)  # the writer has its own copy
+
+    def _start_ring(
+        self,
+        capacity: int,
+        block_when_full: bool,
+        module: str,
+        args: list[str],
+        fds: tuple[int, ...],
+        *,
+        clock_at: int = 0,
+    ) -> None:
+        """Make the ring and start its consumer, ``python -m module RING_FD *args`` (given
+        ``fds`` too); ``clock_at``: where the consumer writes the clock anchor in its file
+        (0: nowhere)."""
         self.capacity = int(capacity)
         self.block_when_full = block_when_full
         self.dropped = 0
@@ -84,29 +127,27 @@ class Recorder:
             base = memoryview(self._mm)
             self._word_view = base[: ring.HEADER_BYTES].cast("Q")
             self._slot_view = base[ring.HEADER_BYTES :]
-            self._ring_views = (self._word_view, self._slot_view, base)  # released on close
+            self._anchor_words = ring.Words(self._mm)
+            self._anchor_words[ring.W_CLOCK_AT] = clock_at
+            self._anchor_words[ring.W_CLOCK_WIDTH] = CLOCK_WIDTH
+            # Released on close.
+            self._ring_views = (self._word_view, self._slot_view, base, self._anchor_words)
             self._record: np.ndarray | None = None  # the last record appended, and its view
             self._record_view = memoryview(b"")
             self._proc = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "hapticd.recording",
-                    str(ring_fd),
-                    str(out_fd),
-                    str(self.path),
-                    str(os.getpid()),
-                ],
+                [sys.executable, "-m", module, str(ring_fd), *args],
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL,
-                pass_fds=(ring_fd, out_fd),
+                pass_fds=(ring_fd, *fds),
             )
         except BaseException:
-            files.remove_if_ours(self.path, self._file_id)
             os.close(ring_fd)
             raise
-        finally:
-            os.close(out_fd)  # the writer has its own copy
+
+    def anchor(self, lsl_s: float, utc_unix_s: float) -> None:
+        """Hand the consumer the loop's clock anchor (``ring.clock_anchor``: tick 0's due time
+        on the LSL clock and in UTC, s); the writer fills the header's place with it."""
+        self._anchor_words.set_anchor(lsl_s, utc_unix_s)
 
     def wait_running(self, timeout_s: float = 5.0) -> None:
         """Wait until the writer process has opened the file; RecordingError if it failed."""
@@ -150,7 +191,8 @@ class Recorder:
 
     @property
     def drained(self) -> int:
-        """Records the writer has written to the file."""
+        """Records the writer has taken from the ring (into the file, or skipped by
+        ``record_every``)."""
         return int(self._words[ring.W_DRAINED // 8])
 
     def append(self, record: np.ndarray) -> None:
@@ -244,6 +286,6 @@ class Recorder:
         self._proc.wait()
         del self._slots, self._words
         for view in self._ring_views:
-            view.release()
+            view.release()  # a memoryview, or the anchor's Words
         self._mm.close()
         os.close(self._ring_fd)

@@ -34,11 +34,14 @@ This module imports nothing heavy: the writer starts in about 50 ms.
 from __future__ import annotations
 
 import contextlib
+import datetime
+import json
 import mmap
 import os
 import platform
 import signal
 import stat
+import struct
 import sys
 import time
 
@@ -54,6 +57,14 @@ W_DROPPED = 48  # records the loop dropped because the ring was full
 W_STATE = 56  # writer state, below
 ERROR_AT = 64
 ERROR_BYTES = 512
+# The loop's clock anchor (``Words.anchor``), after the error text: tick 0's due time on
+# the LSL clock and in UTC (float64 bits), then 1 once both are stored; and where the
+# recording's header keeps a place for it (byte offset and width; 0: no place).
+W_ANCHOR_LSL = 576
+W_ANCHOR_UTC = 584
+W_ANCHORED = 592
+W_CLOCK_AT = 600
+W_CLOCK_WIDTH = 608
 STATE_STARTING, STATE_RUNNING, STATE_DONE, STATE_FAILED = 0, 1, 2, 3
 POLL_S = 0.01
 CHECK_S = 0.1  # how often the writer checks that its file still exists
@@ -78,6 +89,56 @@ class Words:
 
     def release(self) -> None:
         self._view.release()
+
+    def set_anchor(self, lsl_s: float, utc_unix_s: float) -> None:
+        """Store the loop's clock anchor (``clock_anchor``), then mark it stored."""
+        self[W_ANCHOR_LSL] = _bits(lsl_s)
+        self[W_ANCHOR_UTC] = _bits(utc_unix_s)
+        self[W_ANCHORED] = 1
+
+    def anchor(self) -> tuple[float, float] | None:
+        """The anchor ``set_anchor`` stored: (LSL clock s, UTC Unix time s), or None."""
+        if not self[W_ANCHORED]:
+            return None
+        return _float(self[W_ANCHOR_LSL]), _float(self[W_ANCHOR_UTC])
+
+
+def _bits(x: float) -> int:
+    return int.from_bytes(struct.pack("<d", x), "little")
+
+
+def _float(word: int) -> float:
+    return float(struct.unpack("<d", word.to_bytes(8, "little"))[0])
+
+
+def clock_anchor(origin_monotonic_s: float) -> tuple[float, float]:
+    """The loop's clock anchor for its origin (tick 0's due time, monotonic s): that instant
+    on the LSL clock (liblsl's local_clock is std::chrono::steady_clock: CLOCK_MONOTONIC on
+    Linux, the clock of ``time.monotonic``, so it is the origin itself) and in UTC (Unix
+    time s, from the realtime clock read beside the monotonic one)."""
+    mono, real = time.monotonic(), time.time()
+    return origin_monotonic_s, real - (mono - origin_monotonic_s)
+
+
+def clock_json(lsl_s: float, utc_unix_s: float) -> dict[str, object]:
+    """A recording header's ``clock``: tick 0's due time on the LSL clock (s) and in UTC
+    (ISO 8601 and Unix time s); a tick's LSL time is ``lsl_s + t_wall``."""
+    utc = datetime.datetime.fromtimestamp(utc_unix_s, datetime.UTC)
+    return {
+        "lsl_s": lsl_s,
+        "utc": utc.isoformat(timespec="microseconds").replace("+00:00", "Z"),
+        "utc_unix_s": utc_unix_s,
+    }
+
+
+def clock_patch(words: Words, width: int) -> bytes | None:
+    """The bytes that fill a header's place for its clock (``width`` bytes: the JSON of
+    ``clock_json``, padded with spaces), once the loop's anchor is stored; else None."""
+    anchor = words.anchor()
+    if anchor is None:
+        return None
+    raw = json.dumps(clock_json(*anchor), sort_keys=True).encode()
+    return raw.ljust(width) if len(raw) <= width else None
 
 
 def fail(mm: mmap.mmap, words: Words, message: str) -> None:
@@ -117,16 +178,17 @@ def _deleted(fd: int) -> bool:
     return stat.S_ISREG(st.st_mode) and st.st_nlink == 0
 
 
-def drain(ring_fd: int, out_fd: int, out_path: str, parent_pid: int) -> int:
+def drain(ring_fd: int, out_fd: int, out_path: str, parent_pid: int, every: int = 1) -> int:
     """Copy records from the ring ``ring_fd`` to the file ``out_fd`` (named ``out_path`` in
-    messages) until the loop closes the ring or its parent dies; return the count."""
+    messages) until the loop closes the ring or its parent dies; return the count taken
+    from the ring. ``every`` > 1: only records 0, every, 2 every, ... go to the file."""
     mm = mmap.mmap(ring_fd, 0)
     if mm[:8] != MAGIC:
         raise SystemExit(f"hapticd ring writer: fd {ring_fd} is not a tick ring")
     words = Words(mm)
     view = memoryview(mm)
     try:
-        done = _drain(words, view, out_fd, out_path, parent_pid)
+        done = _drain(words, view, out_fd, out_path, parent_pid, every)
     except _WriterFailedError as exc:
         fail(mm, words, str(exc))
         done = exc.done
@@ -146,18 +208,34 @@ class _WriterFailedError(Exception):
         self.done = done
 
 
-def _drain(words: Words, view: memoryview, out_fd: int, out_path: str, parent_pid: int) -> int:
+def _drain(
+    words: Words, view: memoryview, out_fd: int, out_path: str, parent_pid: int, every: int = 1
+) -> int:
     size = words[W_ITEMSIZE]
     cap = words[W_CAPACITY]
     done = words[W_DRAINED]
     words[W_STATE] = STATE_RUNNING
     orphaned = False
+    clock_at, clock_width = words[W_CLOCK_AT], words[W_CLOCK_WIDTH]
     next_check = time.monotonic() + CHECK_S
     lost = f"{out_path} was deleted while recording (its directory removed?): every tick is lost"
     try:
         while True:
             closed = words[W_CLOSED]
             n = words[W_WRITTEN]
+            if clock_at and (patch := clock_patch(words, clock_width)) is not None:
+                # The header's place for the clock (the loop had not started when it was
+                # written): filled in place, before or after any record (pwrite leaves the
+                # file's offset, where records go, alone).
+                os.pwrite(out_fd, patch, clock_at)
+                clock_at = 0
+            while done < n and every > 1:
+                # Decimated: one record at a time, those whose index is a multiple.
+                if done % every == 0:
+                    start = HEADER_BYTES + (done % cap) * size
+                    _write_all(out_fd, view[start : start + size])
+                done += 1
+                words[W_DRAINED] = done
             while done < n:
                 i = done % cap
                 k = min(n - done, cap - i)
@@ -183,7 +261,7 @@ def _drain(words: Words, view: memoryview, out_fd: int, out_path: str, parent_pi
             # Part of the last chunk reached the file (a disk fills mid-write): count its
             # whole records, and cut a torn one off, so the file holds exactly ``done``.
             whole, torn = divmod(exc.written, size)
-            done += whole
+            done += whole if every == 1 else 0  # decimated: one record per write
             words[W_DRAINED] = done
             if torn:
                 with contextlib.suppress(OSError):
@@ -197,9 +275,9 @@ def _drain(words: Words, view: memoryview, out_fd: int, out_path: str, parent_pi
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) != 4:
+    if len(argv) not in (4, 5):
         print(
-            "usage: python -m hapticd.recording RING_FD OUT_FD OUT_PATH PARENT_PID",
+            "usage: python -m hapticd.recording RING_FD OUT_FD OUT_PATH PARENT_PID [EVERY]",
             file=sys.stderr,
         )
         return 2
@@ -207,5 +285,5 @@ def main(argv: list[str]) -> int:
     # group must not cut the file short while the daemon is still flushing.
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
-    drain(int(argv[0]), int(argv[1]), argv[2], int(argv[3]))
+    drain(int(argv[0]), int(argv[1]), argv[2], int(argv[3]), int(argv[4]) if argv[4:] else 1)
     return 0

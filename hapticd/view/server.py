@@ -79,11 +79,15 @@ SEND_TIMEOUT_S = 5.0  # a page that takes no byte of a message for this long is 
 # depth inside the object shows the stiffness), the forces, the allocator or any parameter.
 SUBJECT_TELEMETRY = ("tick", "t", "object_pos", "object_rot", "proxy_pos", "in_contact")
 SUBJECT_SCENE = ("bounds_m", "surfaces", "finger_radii_m")
-# Of the status, the subject's page gets the fingers, this much of the scene, and the
-# prompt (the question the subject answers): nothing else.
-SUBJECT_STATUS = ("fingers", "prompt")
-# The daemon's events that change the prompt: the status is polled at once after them.
-PROMPT_EVENTS = frozenset({"prompt", "response"})
+# Of the status, the subject's page gets the fingers, this much of the scene, the prompt
+# (the question the subject answers) and the screen (text states: instructions, touch,
+# release, breaks, ...): nothing else.
+SUBJECT_STATUS = ("fingers", "prompt", "screen")
+# Of the screen, the keys the subject's page gets (the runner sends words, never the
+# condition; the view passes nothing else on whatever a client set).
+SUBJECT_SCREEN = ("state", "text", "practice", "progress", "seconds", "correct")
+# The daemon's events that change the prompt or the screen: the status is polled at once.
+PROMPT_EVENTS = frozenset({"prompt", "response", "screen"})
 # A prompt's choice as the protocol allows it (a label the page shows on a button).
 CHOICE_RE = re.compile(r"[a-z0-9_-]{1,16}")
 
@@ -291,10 +295,25 @@ class Hub:
             page.close()
 
 
+def scene_hidden(st: dict[str, Any] | None) -> bool:
+    """Whether the screen of status ``st`` hides the scene from the subject (``scene``
+    false: the experiment shows text only, the object's motion being a cue)."""
+    screen = (st or {}).get("screen")
+    return isinstance(screen, dict) and screen.get("scene") is False
+
+
 def _subject_status(st: dict[str, Any]) -> dict[str, Any]:
     scene = st.get("scene") or {}
     out = {k: st.get(k) for k in SUBJECT_STATUS}
-    out["scene"] = {k: scene[k] for k in SUBJECT_SCENE if k in scene}
+    screen = out["screen"]
+    out["screen"] = (
+        {k: screen[k] for k in SUBJECT_SCREEN if k in screen} if isinstance(screen, dict) else None
+    )
+    # A hidden scene: no geometry either (the page draws nothing, and learns nothing).
+    hidden = scene_hidden(st)
+    out["scene"] = {} if hidden else {k: scene[k] for k in SUBJECT_SCENE if k in scene}
+    if hidden:
+        out["screen"]["scene"] = False
     return out
 
 
@@ -374,7 +393,11 @@ class DaemonLink:
                 self.poll_status_now()
                 while not self._stop.is_set():
                     sample = client.next_telemetry()
-                    subject = {k: sample[k] for k in SUBJECT_TELEMETRY if k in sample}
+                    subject = (
+                        None  # the scene is hidden: the subject's page gets no motion at all
+                        if scene_hidden(self.hub.latest("status"))
+                        else {k: sample[k] for k in SUBJECT_TELEMETRY if k in sample}
+                    )
                     self.hub.publish("telemetry", sample, subject)
                     while client.pending_events:
                         self._on_event(client.pending_events.popleft())
@@ -424,6 +447,7 @@ class DaemonLink:
         if not isinstance(st, dict):  # a lost link to the caller, not a dead thread
             raise TypeError(f"the daemon's status is not an object: {type(st).__name__}")
         st.setdefault("prompt", None)  # a daemon without prompts has none
+        st.setdefault("screen", None)  # nor a screen
         view = {
             "achieved_hz": achieved,
             "control": self.control,

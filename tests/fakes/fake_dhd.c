@@ -14,7 +14,16 @@
  *  - dhdGetLinearVelocity fails with DHD_ERROR_TIMEOUT unless two position updates
  *    (dhdGetPosition or dhdGetLinearVelocity calls) fall within its window, 20 ms;
  *  - dhdCheckControllerMemory returns DHD_ERROR_CONFIGURATION when the check fails;
- *  - drdStop(false) leaves the device in brake mode: no force until dhdSetBrakes(off).
+ *  - drdStop(false) leaves the device in brake mode: no force until dhdSetBrakes(off);
+ *    dhdStop turns forces off and puts the brakes on;
+ *  - dhdGetStatus fills DHD_MAX_STATUS (17) entries: a force-off the SDK made itself
+ *    (fake_force_off: the force button, the velocity threshold, the watchdog, ...) reads
+ *    DHD_STATUS_FORCE 0 and its cause in DHD_STATUS_FORCE_OFF_CAUSE;
+ *  - the set-force calls return DHD_MOTOR_SATURATED when a motor cannot deliver the
+ *    force (above fake_set_saturation's magnitude, or the SDK's force limit): the force
+ *    is scaled down;
+ *  - on a model with a wrist or a gripper (omega.6/.7, sigma.7, lambda.7) dhdSetForce
+ *    commands the translation only; dhdSetForceAndTorqueAndGripperForce all of them.
  * fake_set_legacy(flags) switches back to the older behaviours (FAKE_LEGACY_*).
  *
  * From a shell (scripts/fake_sdk.py builds it): with HAPTICD_FAKE_DHD_DEVICES=N set
@@ -38,8 +47,22 @@
 #define DHD_ERROR_INVALID_INDEX 15
 #define DHD_ERROR_DEVICE_IN_USE 20
 #define DHD_ERROR_INVALID 21
+#define DHD_TIMEGUARD 1
 #define DHD_MOTOR_SATURATED 2
 #define TYPE_OMEGA3 33
+#define DHD_MAX_STATUS 17
+#define DHD_STATUS_POWER 0
+#define DHD_STATUS_CONNECTED 1
+#define DHD_STATUS_STARTED 2
+#define DHD_STATUS_IDLE 4
+#define DHD_STATUS_FORCE 5
+#define DHD_STATUS_BRAKE 6
+#define DHD_STATUS_WRIST_DETECTED 8
+#define DHD_STATUS_GRAVITY 10
+#define DHD_STATUS_FORCE_OFF_CAUSE 14
+#define DHD_STATUS_AXIS_CHECKED 16
+#define DHD_FORCE_OFF_NONE 0
+#define DHD_FORCE_OFF_SOFTWARE 4
 
 #define FAKE_LEGACY_DRD_ANY_HANDLE 1   /* drdIsInitialized answers on a DHD handle */
 #define FAKE_LEGACY_NO_VELOCITY_WINDOW 2 /* the velocity never times out */
@@ -54,6 +77,13 @@ static struct {
     double pos[3], vel[3], force[3], force_sum[3], max_force, effector_mass;
     unsigned char watchdog;
     int autoinits;
+    int forceoff_cause;     /* DHD_FORCE_OFF_*: why the forces went off last */
+    double saturation;      /* above this force magnitude a motor saturates, N (0: the limit) */
+    int saturated, timeguard; /* how many set-force calls returned each */
+    int timeguard_every;    /* every n-th set-force call returns DHD_TIMEGUARD (0: none) */
+    int set_calls;          /* set-force calls since the reset */
+    double torque[3], gripper; /* the last wrist torques (N m) and gripper force (N) */
+    int stops, velocity_threshold_sets;
     double updates[2]; /* the times of the last two position updates, s */
     /* A path to play, one sample per dhdGetPosition while forces are on: (n, 3). */
     double *path_pos, *path_vel;
@@ -130,6 +160,26 @@ void fake_reset(int n) {
     memset(force_log_n, 0, sizeof force_log_n);
 }
 void fake_set_legacy(int flags) { legacy = flags; }
+/* The SDK turns device i's forces off by itself, for a DHD_FORCE_OFF_* cause (1 button,
+ * 2 velocity threshold, 3 watchdog, 4 software, 5 USB disconnection, 6 deadman): forces
+ * off, and brakes on for those that brake (the velocity threshold, the watchdog). */
+void fake_force_off(int i, int cause) {
+    dev[i].enabled = 0; dev[i].forceoff_cause = cause;
+    if (cause == 2 || cause == 3) dev[i].brakes = 1;
+    for (int k = 0; k < 3; k++) dev[i].force[k] = 0.0;
+    logf_("forceoff %d %g;", i, cause, 0, 0);
+}
+void fake_set_saturation(int i, double n) { dev[i].saturation = n; }
+void fake_set_timeguard_every(int i, int n) { dev[i].timeguard_every = n; }
+int fake_saturated(int i) { return dev[i].saturated; }
+int fake_timeguards(int i) { return dev[i].timeguard; }
+int fake_stops(int i) { return dev[i].stops; }
+int fake_velocity_threshold_sets(int i) { return dev[i].velocity_threshold_sets; }
+/* The last wrist torques and gripper force device i was given: (4,). */
+void fake_get_torque_and_gripper(int i, double *out) {
+    for (int k = 0; k < 3; k++) out[k] = dev[i].torque[k];
+    out[3] = dev[i].gripper;
+}
 void fake_set_state(int i, double x, double y, double z, double vx, double vy, double vz) {
     dev[i].pos[0] = x; dev[i].pos[1] = y; dev[i].pos[2] = z;
     dev[i].vel[0] = vx; dev[i].vel[1] = vy; dev[i].vel[2] = vz;
@@ -278,7 +328,10 @@ const char *dhdGetSystemName(char id) {
     case 33: return "omega.3";
     case 63: return "delta.3";
     case 60: return "Falcon";
-    case 104: return "sigma.7";
+    case 34: case 36: return "omega.6";
+    case 35: case 37: return "omega.7";
+    case 104: case 105: return "sigma.7";
+    case 108: case 109: return "lambda.7";
     case 91: return "custom";
     default: return "unknown";
     }
@@ -293,7 +346,8 @@ int dhdCheckControllerMemory(char id) {
 }
 int dhdEnableForce(unsigned char on, char id) {
     int i; if (pick_live(id, &i) < 0) return -1;
-    dev[i].enabled = on ? 1 : 0; logf_("enable %d %g;", i, on ? 1.0 : 0.0, 0, 0); return DHD_NO_ERROR;
+    dev[i].enabled = on ? 1 : 0; dev[i].forceoff_cause = on ? DHD_FORCE_OFF_NONE : DHD_FORCE_OFF_SOFTWARE;
+    logf_("enable %d %g;", i, on ? 1.0 : 0.0, 0, 0); return DHD_NO_ERROR;
 }
 int dhdSetBrakes(int on, char id) {
     int i; if (pick_live(id, &i) < 0) return -1;
@@ -337,16 +391,61 @@ int dhdGetLinearVelocity(double *x, double *y, double *z, char id) {
         return fail(DHD_ERROR_TIMEOUT, "timeout: too few position updates for the velocity estimate");
     *x = dev[i].vel[0]; *y = dev[i].vel[1]; *z = dev[i].vel[2]; return DHD_NO_ERROR;
 }
-int dhdSetForce(double fx, double fy, double fz, char id) {
-    int i; if (pick_live(id, &i) < 0) return -1;
+static int wrist_or_gripper(int i) {
+    switch (dev[i].type) {
+    case 34: case 35: case 36: case 37: case 104: case 105: case 108: case 109: return 1;
+    default: return 0;
+    }
+}
+/* One set-force call: the force after the enable state, brakes, saturation and limit. */
+static int apply_force(int i, double fx, double fy, double fz) {
     double f[3] = {fx, fy, fz}, n = sqrt(fx * fx + fy * fy + fz * fz), s = 1.0; int r = DHD_NO_ERROR;
-    if (n > dev[i].max_force) { s = dev[i].max_force / n; r = DHD_MOTOR_SATURATED; }
+    double cap = dev[i].saturation > 0 && dev[i].saturation < dev[i].max_force ? dev[i].saturation : dev[i].max_force;
+    dev[i].set_calls++;
+    if (dev[i].timeguard_every > 0 && dev[i].set_calls % dev[i].timeguard_every == 0) {
+        dev[i].timeguard++; return DHD_TIMEGUARD; /* not sent: too soon after the last */
+    }
+    if (n > cap) { s = cap / n; r = DHD_MOTOR_SATURATED; dev[i].saturated++; }
     int on = dev[i].enabled && !dev[i].brakes;
     for (int k = 0; k < 3; k++) { dev[i].force[k] = on ? f[k] * s : 0.0; dev[i].force_sum[k] += dev[i].force[k]; }
     if (force_log_n[i] < FORCE_LOG_N) { memcpy(force_log[i][force_log_n[i]], dev[i].force, sizeof dev[i].force); force_log_n[i]++; }
+    return r;
+}
+int dhdSetForce(double fx, double fy, double fz, char id) {
+    int i; if (pick_live(id, &i) < 0) return -1;
     /* Only the first commands after opening are logged: enough to check the start sequence. */
     if (strlen(call_log) < 2048) logf_("force %d %g %g %g;", i, fx, fy, fz);
-    return r;
+    return apply_force(i, fx, fy, fz);
+}
+int dhdSetForceAndTorqueAndGripperForce(double fx, double fy, double fz, double tx, double ty, double tz, double fg, char id) {
+    int i; if (pick_live(id, &i) < 0) return -1;
+    dev[i].torque[0] = tx; dev[i].torque[1] = ty; dev[i].torque[2] = tz; dev[i].gripper = fg;
+    if (strlen(call_log) < 2048) logf_("force7 %d %g %g %g;", i, fx, fy, fz);
+    return apply_force(i, fx, fy, fz);
+}
+int dhdGetStatus(int status[DHD_MAX_STATUS], char id) {
+    int i; if (pick_live(id, &i) < 0) return -1;
+    memset(status, 0, sizeof(int) * DHD_MAX_STATUS);
+    status[DHD_STATUS_POWER] = 1; status[DHD_STATUS_CONNECTED] = 1; status[DHD_STATUS_STARTED] = 1;
+    status[DHD_STATUS_IDLE] = !dev[i].enabled; status[DHD_STATUS_FORCE] = dev[i].enabled;
+    status[DHD_STATUS_BRAKE] = dev[i].brakes; status[DHD_STATUS_WRIST_DETECTED] = wrist_or_gripper(i);
+    status[DHD_STATUS_GRAVITY] = dev[i].gravity; status[DHD_STATUS_FORCE_OFF_CAUSE] = dev[i].forceoff_cause;
+    status[DHD_STATUS_AXIS_CHECKED] = 1;
+    return DHD_NO_ERROR;
+}
+/* Forces off and the brakes on (the SDK's safe state before closing). */
+int dhdStop(char id) {
+    int i; if (pick_live(id, &i) < 0) return -1;
+    dev[i].enabled = 0; dev[i].brakes = 1; dev[i].stops++; dev[i].forceoff_cause = DHD_FORCE_OFF_SOFTWARE;
+    for (int k = 0; k < 3; k++) dev[i].force[k] = 0.0;
+    logf_("stop %d;", i, 0, 0, 0);
+    return DHD_NO_ERROR;
+}
+int dhdSetVelocityThreshold(unsigned int val, char id) {
+    int i; if (pick_live(id, &i) < 0) return -1;
+    if (!expert) return fail(DHD_ERROR_EXPERT_MODE_DISABLED, "expert mode disabled");
+    dev[i].velocity_threshold_sets++; logf_("velocitythreshold %d %g;", i, (double)val, 0, 0);
+    return DHD_NO_ERROR;
 }
 
 #ifdef FAKE_DRD

@@ -179,6 +179,7 @@
   function onStatus(st) {
     state.status = st;
     onPrompt(st.prompt || null);
+    onScreen(st.screen || null);
     if (subject) return;
     const v = st.view || {};
     const achieved = v.achieved_hz === null || v.achieved_hz === undefined
@@ -455,6 +456,45 @@
     }
   });
 
+  // -- the subject's screen: text states the runner sets (never anything of the condition) --
+
+  function onScreen(sc) {
+    if (!subject) {
+      $("screen-state").textContent = sc
+        ? `${sc.state}${sc.practice ? " (practice)" : ""}${sc.text ? `: ${sc.text.slice(0, 60)}` : ""}`
+        : "none";
+      return;
+    }
+    const box = $("screen");
+    box.hidden = sc === null;
+    if (sc === null) return;
+    const shown = sc.state + (sc.practice ? ":practice" : "");
+    if (box.dataset.shown !== shown) {
+      // The states shown, the last 60 (for scripts and tests: a state may last 0.1 s).
+      box.dataset.seen = [...(box.dataset.seen || "").split(" ").filter(Boolean), shown]
+        .slice(-60).join(" ");
+    }
+    box.dataset.shown = shown;
+    box.dataset.state = sc.state;
+    box.classList.toggle("correct", sc.correct === true);
+    box.classList.toggle("incorrect", sc.correct === false);
+    $("screen-practice").hidden = !sc.practice;
+    $("screen-text").textContent = sc.text || "";
+    const secs = $("screen-seconds");
+    secs.hidden = sc.seconds === null || sc.seconds === undefined;
+    if (!secs.hidden) secs.textContent = `${Math.ceil(sc.seconds)} s`;
+    const prog = $("screen-progress");
+    prog.hidden = !Array.isArray(sc.progress);
+    if (!prog.hidden) prog.textContent = `trial ${sc.progress[0]} of ${sc.progress[1]}`;
+  }
+
+  // Whether the experiment hides the scene from the subject (the view then sends no
+  // geometry or motion either).
+  function sceneHidden() {
+    const sc = state.status && state.status.screen;
+    return subject && !!sc && sc.scene === false;
+  }
+
   // The daemon's events: the experimenter's page shows the last answer.
   function onEvent(ev) {
     if (subject) return;
@@ -693,6 +733,8 @@
     const H = canvas.height;
     ctx.fillStyle = subject ? "#20242c" : "#f4f5f7";
     ctx.fillRect(0, 0, W, H);
+    canvas.dataset.scene = sceneHidden() ? "hidden" : "shown";
+    if (sceneHidden()) return;
     const s = state.sample;
     const st = state.status;
     if (!s || !st || !st.scene || !st.scene.bounds_m) {

@@ -12,14 +12,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from hapticd.physics import kernels
+from hapticd.allocation import kernels
 
 V3 = tuple[float, float, float]
 
 
 def grasp_axes(p0: V3, p1: V3) -> tuple[V3, V3, V3]:
     """Grasp frame axes (x, y, z) in world, for fingers at p0 and p1 (m): the tick's own
-    (hapticd.physics.kernels.grasp_axes). x = unit(p1 - p0); z = world up made orthogonal
+    (hapticd.allocation.kernels.grasp_axes). x = unit(p1 - p0); z = world up made orthogonal
     to x; y = z cross x. Degenerate cases fall back to world axes: coincident points use
     world x; a vertical grasp line uses world x in place of up."""
     a = kernels.grasp_axes(p0[0], p0[1], p0[2], p1[0], p1[1], p1[2])
