@@ -874,6 +874,42 @@ def test_one_experiment_at_a_time_the_lease_names_its_holder_and_ends_with_it(id
         assert other.request("lease", subject="s2")["ok"]
 
 
+def test_a_holder_whose_connection_closes_mid_run_leaves_the_daemon_as_it_found_it(
+    tmp_path, grasp_data, write_profile
+):
+    """A runner whose connection to a running daemon closes mid-trial (the runner alive, its
+    socket gone) cannot put anything back itself: the daemon does, at the lease's end. The
+    trial's stiffness and allocator go back to what the holder found, the recording it
+    started is closed with its ticks, and a change made before the lease stays."""
+    from hapticd import recording
+    from tests.test_view import running_daemon
+
+    for finger in grasp_data["fingers"]:
+        finger["device"]["hold_s"] = 60.0
+    profile = write_profile(grasp_data, "held.yaml")
+    with running_daemon(tmp_path / "d.sock", profile) as sock, ControlClient(sock) as other:
+        other.set("damping_n_s_per_m", 2.5)  # before any lease: the daemon's own state
+        found = {n: other.get(n) for n in ("stiffness_n_per_m", "allocator", "friction")}
+        holder = ControlClient(sock)
+        try:
+            holder.lease("s1")
+            holder.set("stiffness_n_per_m", found["stiffness_n_per_m"] * 0.5)
+            holder.set("allocator", "pinv" if found["allocator"] != "pinv" else "IF")
+            path = holder.record_start("trial.hrec")["path"]
+            wait_for(
+                lambda: other.status()["recording"]["written"] > 50, "ticks in the recording"
+            )
+        finally:
+            holder.close()  # the runner's socket gone, the runner itself not told
+        wait_for(lambda: other.status()["lease"] is None, "the lease to end", timeout_s=5)
+        wait_for(lambda: other.status()["recording"] is None, "the recording closed", timeout_s=5)
+        for name, value in found.items():
+            assert other.get(name) == value, name
+        assert other.get("damping_n_s_per_m") == 2.5
+    rec = recording.read(path)
+    assert len(rec["tick"]) > 50
+
+
 def test_a_design_runs_on_another_base_profile(tmp_path, capsys):
     from hapticd.cli import main
 

@@ -50,8 +50,11 @@ OPENER = urllib.request.build_opener(urllib.request.ProxyHandler({}))
 
 @contextlib.contextmanager
 def running_daemon(sock: Path, profile: Path):
-    """A paced run of ``profile`` serving ``sock`` in a thread until the block ends."""
-    session = build_session(load_profile(profile, IN_PROCESS), paced=True, duration_s=60.0)
+    """A paced run of ``profile`` serving ``sock`` in a thread until the block ends; it
+    records beside the socket (never in the user's state directory)."""
+    session = build_session(
+        load_profile(profile, IN_PROCESS), paced=True, duration_s=60.0, record_dir=sock.parent
+    )
     server = ControlServer(session, sock)
     server.start()
     runner = threading.Thread(target=session.run, name="test-loop")

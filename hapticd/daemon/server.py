@@ -276,6 +276,9 @@ class ControlServer:
         # The lease (one experiment at a time): the connection holding it and what it said
         # of itself ({"subject", "pid"}); ended by release or by that connection closing.
         self.lease: tuple[_Conn, dict[str, Any]] | None = None
+        # What the lease's holder found (every parameter's value, the recorder), so that a
+        # holder whose connection closes before it put things back leaves the daemon so.
+        self._lease_found: tuple[dict[str, Any], object] = ({}, None)
         # What the subject's screen shows besides the prompt (`screen`), or None.
         self.screen: dict[str, Any] | None = None
         self.rate_limits_s = {**RATE_LIMITS_S, **(rate_limits_s or {})}
@@ -669,6 +672,31 @@ class ControlServer:
             self.screen = None
             with contextlib.suppress(Exception):
                 self._server_event("screen")
+        if why != "released":
+            self._put_back(holder)
+
+    def _put_back(self, holder: dict[str, Any]) -> None:
+        """After a holder went away mid-run: every parameter it changed set back to what it
+        found, and the recording it started closed (whole, every tick in it); each failure
+        logged, never raised (the daemon serves on)."""
+        values, recorder = self._lease_found
+        who = f"subject {holder['subject']} (pid {holder['pid']})"
+        put = []
+        for name, value in values.items():
+            try:
+                if self.loop.param(name) != value:
+                    self.session.apply(SetParam(name, value))
+                    put.append(name)
+            except Exception as exc:  # the next parameter is still put back
+                log.warning("could not put %s back after %s went away: %s", name, who, exc)
+        if put:
+            log.warning("%s went away mid-run: put back %s", who, ", ".join(put))
+        if self.loop.recorder is not None and self.loop.recorder is not recorder:
+            try:
+                status = self.session.record_stop()
+                log.warning("%s went away mid-run: closed its recording %s", who, status["path"])
+            except Exception as exc:
+                log.warning("could not close the recording %s left open: %s", who, exc)
 
     def _leave_queues(self, conn: _Conn) -> None:
         """Take ``conn`` out of the rate-limit queues; a new head may go at its kind's slot."""
@@ -993,6 +1021,7 @@ class ControlServer:
     def _lease(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
         holder = {"subject": req["subject"], "pid": req.get("pid", conn.pid)}
         self.lease = (conn, holder)
+        self._lease_found = ({n: self.loop.param(n) for n in PARAMS}, self.loop.recorder)
         log.info("lease taken by subject %s (pid %s)", holder["subject"], holder["pid"])
         return {"holder": holder}
 
