@@ -896,9 +896,7 @@ def test_a_holder_whose_connection_closes_mid_run_leaves_the_daemon_as_it_found_
             holder.set("stiffness_n_per_m", found["stiffness_n_per_m"] * 0.5)
             holder.set("allocator", "pinv" if found["allocator"] != "pinv" else "IF")
             path = holder.record_start("trial.hrec")["path"]
-            wait_for(
-                lambda: other.status()["recording"]["written"] > 50, "ticks in the recording"
-            )
+            wait_for(lambda: other.status()["recording"]["written"] > 50, "ticks in the recording")
         finally:
             holder.close()  # the runner's socket gone, the runner itself not told
         wait_for(lambda: other.status()["lease"] is None, "the lease to end", timeout_s=5)
