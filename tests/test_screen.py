@@ -344,29 +344,71 @@ def chromium() -> str:
     return exe
 
 
+class MarkerLog:
+    """The daemon's LSL marker stream, pulled in a thread until closed: (stamp, event)."""
+
+    def __init__(self, name: str) -> None:
+        import pylsl
+
+        found = pylsl.resolve_byprop("name", name, timeout=20.0)
+        assert len(found) == 1, f"marker stream {name} not found"
+        self.inlet: pylsl.StreamInlet | None = pylsl.StreamInlet(found[0], recover=False)
+        self.inlet.open_stream(timeout=20.0)
+        self.got: list[tuple[float, dict]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._pull, name="test-markers")
+        self._thread.start()
+
+    def _pull(self) -> None:
+        while not self._stop.is_set():
+            data, stamps = self.inlet.pull_chunk(timeout=0.05)
+            self.got += [(t, json.loads(m[0])) for m, t in zip(data, stamps, strict=True)]
+
+    def wait_for(self, event: str, count: int) -> None:
+        wait_for(
+            lambda: sum(e["event"] == event for _, e in self.got),
+            f"{count} {event} marker(s)",
+            until=lambda n: n >= count,
+            timeout_s=20,
+        )
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+        # liblsl's sockets close when the inlet is destroyed: no reference may be left.
+        self.inlet.close_stream()
+        self.inlet = None
+
+
 @pytest.mark.timing("the subject grasps on a clock: every state is shown as the run goes")
 def test_the_reduced_experiment_is_answered_on_the_subjects_page(tmp_path, chromium):
     """The reduced stiffness experiment (one condition, 3 comparisons, once each) with
-    instructions, one practice trial with feedback, a break, the progress and the scene
-    hidden, against a daemon whose hand grasps every 0.5 s: every answer, the
-    instructions' "ready" too, is a click on the subject's page, which shows the
-    instructions, touch, release, answer, feedback, the break's countdown and the end;
-    the store holds the practice trial flagged and the session's trials answered as
-    clicked."""
+    instructions, one practice trial, feedback, a break, the progress and the scene hidden,
+    against a daemon publishing its LSL streams (as ``hapticd run --lsl``) whose hand
+    grasps every 0.5 s: every answer, the instructions' "ready" too, is a click on the
+    subject's page, which shows the instructions, touch, release, answer, feedback, the
+    break's countdown and the end; the store holds the practice trial flagged and the
+    session's trials answered as clicked; an LSL inlet receives every trial's and
+    interval's marker, the prompts, the answers and the contacts, each stamped with its
+    tick's time in the interval's recording, and the export's LSL onsets bracket them."""
+    import uuid
+
     profile, exp_path = setup_files(tmp_path, one_condition=True)
     # A longer rest between grasps than the runner tests' (0.3 s of 0.65 s): every change
     # of the object lands while it is released, the first time.
     traj = periodic_grasp(tmp_path / "rest.hrec", 100, times=(0.1, 0.15, 0.1, 0.3))
     prof = yaml.safe_load(profile.read_text())
+    prof["name"] = f"screen-{uuid.uuid4().hex[:8]}"  # its own LSL streams (xdist workers)
     for f in prof["fingers"]:
         f["device"]["trajectory"] = str(traj)
     profile.write_text(yaml.safe_dump(prof, sort_keys=False))
     data = yaml.safe_load(exp_path.read_text())
     data.update(
         instructions={"text": TEXT},
+        practice={"trials": 1},
         feedback={"after": "all", "duration_s": 0.2},
         display={"scene": False, "progress": True},
-        breaks={"every_blocks": 1, "every_trials": 2, "duration_s": 1.0},
+        breaks={"every_blocks": 1, "every_trials": 2, "duration_s": 2.0},
     )
     exp_path.write_text(yaml.safe_dump(data, sort_keys=False))
     exp = rn.reduced(load_experiment(exp_path), standards=[60.0], repetitions=1)
@@ -382,74 +424,147 @@ def test_the_reduced_experiment_is_answered_on_the_subjects_page(tmp_path, chrom
         except Exception as exc:  # the test reports it
             result["error"] = exc
 
+    from hapticd.daemon import lsl
+
     clicks: dict[str, list[str]] = {}
+    countdown: list[str] = []
     with (
-        running_daemon(sock, profile),
+        running_daemon(sock, profile, lsl=True),
         ViewServer(sock, log=lambda m: None) as view,
         cdp.Browser(chromium, tmp_path / "chromium") as browser,
     ):
-        browser.open(view.subject_url)
-        wait_for(lambda: browser.evaluate("document.body.className"), "the page", until=bool)
-        runner = threading.Thread(target=run, name="test-runner")
-        runner.start()
+        markers = MarkerLog(lsl.stream_name(prof["name"]) + "-markers")
         try:
-            # 1 "ready" + 3 trials: each question answered by a click.
-            for n in range(4):
-                question = wait_for(
-                    lambda: browser.evaluate(PROMPT),
-                    f"question {n + 1} on the subject's page",
-                    until=lambda q: q is not None and q not in clicks.get("_last", []),
-                    timeout_s=30,
+            browser.open(view.subject_url)
+            wait_for(lambda: browser.evaluate("document.body.className"), "the page", until=bool)
+            runner = threading.Thread(target=run, name="test-runner")
+            runner.start()
+            try:
+                # 1 "ready" + 1 practice trial + 3 trials: each question answered by a click.
+                for n in range(5):
+                    question = wait_for(
+                        lambda: browser.evaluate(PROMPT),
+                        f"question {n + 1} on the subject's page",
+                        until=lambda q: q is not None and q not in clicks.get("_last", []),
+                        timeout_s=30,
+                    )
+                    if n == 0:
+                        assert question == rn.READY
+                        state = browser.evaluate(SCREEN_STATE)
+                        assert state[0] == "instructions" and TEXT.replace("\n", "") in state[
+                            1
+                        ].replace("\n", "")
+                    choice = "yes" if n % 2 == 0 else "no"
+                    browser.click(f"[data-testid=answer-{choice}]")
+                    clicks.setdefault("choices", []).append(choice)
+                    clicks["_last"] = [question]
+                    wait_for(
+                        lambda: browser.evaluate(PROMPT),
+                        "the question to go",
+                        until=lambda q: q is None,
+                        timeout_s=10,
+                    )
+                    clicks["_last"] = []
+                    if n == 3:  # the break after the session's second trial
+                        wait_for(
+                            lambda: browser.evaluate(SCREEN_STATE),
+                            "the break",
+                            until=lambda s: s is not None and s[0] == "break",
+                            timeout_s=20,
+                        )
+                        for _ in range(2):
+                            countdown.append(browser.evaluate(SCREEN_STATE)[1])
+                            wait_for(
+                                lambda: browser.evaluate(SCREEN_STATE),
+                                "the countdown to move",
+                                until=lambda s, was=countdown[-1]: s is None or s[1] != was,
+                                timeout_s=5,
+                            )
+                runner.join(timeout=30)
+                assert not runner.is_alive(), "the run did not end"
+                assert "error" not in result, f"{result.get('error')}\n{out.getvalue()[-2000:]}"
+                end = wait_for(
+                    lambda: browser.evaluate(SCREEN_STATE),
+                    "the end on the subject's page",
+                    until=lambda s: s is not None and s[0] == "end",
                 )
-                if n == 0:
-                    assert question == rn.READY
-                    state = browser.evaluate(SCREEN_STATE)
-                    assert state[0] == "instructions" and TEXT.replace("\n", "") in state[
-                        1
-                    ].replace("\n", "")
-                choice = "yes" if n % 2 == 0 else "no"
-                browser.click(f"[data-testid=answer-{choice}]")
-                clicks.setdefault("choices", []).append(choice)
-                clicks["_last"] = [question]
-                wait_for(
-                    lambda: browser.evaluate(PROMPT),
-                    "the question to go",
-                    until=lambda q: q is None,
-                    timeout_s=10,
+                seen = browser.evaluate(SCREEN_SEEN).split()
+                canvas = browser.evaluate(
+                    "document.querySelector('[data-testid=scene]').dataset.scene"
                 )
-                clicks["_last"] = []
-            runner.join(timeout=30)
-            assert not runner.is_alive(), "the run did not end"
-            assert "error" not in result, f"{result.get('error')}\n{out.getvalue()[-2000:]}"
-            end = wait_for(
-                lambda: browser.evaluate(SCREEN_STATE),
-                "the end on the subject's page",
-                until=lambda s: s is not None and s[0] == "end",
-            )
-            seen = browser.evaluate(SCREEN_SEEN).split()
-            canvas = browser.evaluate("document.querySelector('[data-testid=scene]').dataset.scene")
-            text = browser.evaluate("document.documentElement.textContent")
+                text = browser.evaluate("document.documentElement.textContent")
+                markers.wait_for("mark", 4 * 8)  # per trial: start, 2 x (set, start, end), end
+                markers.wait_for("response", 5)
+            finally:
+                runner.join(timeout=30)
         finally:
-            runner.join(timeout=30)
+            markers.close()
     assert "error" not in result, f"{result.get('error')}\n{out.getvalue()[-2000:]}"
     assert result["done"] == (3, 0)
     assert end[1] == rn.SCREEN_TEXT["end"]
     with TrialStore.for_experiment(db, exp) as store:
         rows = store.trials(None, practice=True)
     assert seen[0] == "instructions"
-    for state in ("touch", "answer", "break", "end"):
+    assert "touch:practice" in seen and "answer:practice" in seen, seen  # marked as practice
+    states = [s.split(":")[0] for s in seen]
+    for state in ("touch", "release", "answer", "break", "end"):
         assert state in seen, (state, seen)
+    # The break's countdown goes down on the subject's page.
+    secs = [int(re.search(r"\d+", c).group()) for c in countdown]
+    assert secs[0] > secs[1], countdown
     # Feedback where a trial has a correct answer (its comparison is not the standard).
-    assert seen.count("feedback") == sum(r["comparison"] != r["standard"] for r in rows)
-    assert "release" in seen or "wait" in seen, seen
+    assert states.count("feedback") == sum(r["comparison"] != r["standard"] for r in rows)
     assert canvas == "hidden"
     # Nothing in the subject's document names the condition or a value.
     for name in params.ALLOCATORS:
         assert not re.search(rf"\b{re.escape(name)}\b", text), name
     assert not re.search(r"\d\s*N\b|N/m|\b(48|60|72)\b", text), text
-    assert [r["practice"] for r in rows] == [0, 0, 0]
-    yes = [c == "yes" for c in clicks["choices"][1:]]
-    assert [bool(r["answer_second_more"]) for r in rows] == yes
+    assert sorted(r["practice"] for r in rows) == [0, 0, 0, 1]
+    session = [r for r in rows if not r["practice"]]  # in the order stored: answered
+    yes = [c == "yes" for c in clicks["choices"][2:]]
+    assert [bool(r["answer_second_more"]) for r in session] == yes
     assert all(r["source"] == "respond" and r["status"] == "complete" for r in rows)
+    _markers_line_up(markers.got, rows, tmp_path)
     with contextlib.suppress(OSError):
         sock.unlink()
+
+
+def _markers_line_up(got: list[tuple[float, dict]], rows: list[dict], tmp_path: Path) -> None:
+    """Every trial's and interval's marker, the prompts, the answers and both fingers'
+    contacts reached the inlet; a marker at a tick an interval recorded is stamped with
+    that tick's time (the recording's LSL anchor plus its t_wall); the export's LSL onset
+    of each interval comes before its interval_start marker, and its end after."""
+    from hapticd import recording
+    from hapticd.experiment.export import interval_stats
+
+    events = [e["event"] for _, e in got]
+    texts = [e["text"].split()[0] for _, e in got if e["event"] == "mark"]
+    for kind, count in (("trial_start", 4), ("condition_set", 8), ("interval_start", 8)):
+        assert texts.count(kind) == count, (kind, texts)
+    assert texts.count("interval_end") == 8 and texts.count("trial_end") == 4, texts
+    assert events.count("prompt") >= 5 and events.count("response") == 5, events
+    for kind in ("contact_begin", "contact_end"):
+        fingers = {e.get("finger_name") for _, e in got if e["event"] == kind}
+        assert fingers == {"thumb", "index"}, (kind, fingers)
+    checked = 0
+    for r in rows:
+        for path in json.loads(r["recording"]):
+            rec = recording.read(path)
+            lsl0, ticks = rec.clock["lsl_s"], rec["tick"].astype(int).tolist()
+            row_of = {k: i for i, k in enumerate(ticks)}
+            for stamp, e in got:
+                if e.get("tick") in row_of:
+                    want = lsl0 + rec["t_wall"][row_of[e["tick"]]]
+                    assert stamp == pytest.approx(want, abs=1e-6), e
+                    checked += 1
+            stats = interval_stats(rec)
+            onset, span = stats["onset_lsl_s_K"], stats["duration_s_K"]
+            starts = [
+                t
+                for t, e in got
+                if e["event"] == "mark"
+                and e["text"].startswith("interval_start")
+                and onset <= t <= onset + span
+            ]
+            assert len(starts) == 1, (path, onset, span)
+    assert checked >= 8, checked

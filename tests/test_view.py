@@ -49,13 +49,17 @@ OPENER = urllib.request.build_opener(urllib.request.ProxyHandler({}))
 
 
 @contextlib.contextmanager
-def running_daemon(sock: Path, profile: Path):
+def running_daemon(sock: Path, profile: Path, *, lsl: bool = False):
     """A paced run of ``profile`` serving ``sock`` in a thread until the block ends; it
-    records beside the socket (never in the user's state directory)."""
+    records beside the socket (never in the user's state directory). ``lsl``: with its
+    Lab Streaming Layer outlets, as ``hapticd run --lsl`` starts them."""
+    from hapticd.daemon import lsl as lsl_outlets
+
     session = build_session(
         load_profile(profile, IN_PROCESS), paced=True, duration_s=60.0, record_dir=sock.parent
     )
     server = ControlServer(session, sock)
+    outlet = lsl_outlets.attach(session, server) if lsl else None
     server.start()
     runner = threading.Thread(target=session.run, name="test-loop")
     runner.start()
@@ -65,6 +69,9 @@ def running_daemon(sock: Path, profile: Path):
         session.loop.request_stop("test over")
         runner.join(timeout=10)
         server.close()
+        if outlet is not None:
+            status = lsl_outlets.detach(session, outlet)
+            assert status["error"] is None, status
 
 
 @pytest.fixture
