@@ -214,6 +214,67 @@ def test_a_publisher_that_vanishes_costs_the_run_nothing_and_loses_nothing_recor
     assert "ended (killed by signal 9)" in status["error"]
 
 
+@pytest.mark.timing("waits for LSL's delivery over loopback, within a deadline")
+def test_hapticd_run_with_lsl_publishes_both_streams_until_it_stops(tmp_path):
+    """The command a lab types, ``hapticd run PROFILE --lsl``: both streams appear under the
+    profile's name, ticks arrive at the loop's rate with a tick counter that advances, a
+    client's mark reaches the marker stream, and SIGTERM ends the run cleanly (exit 0)
+    with both streams gone."""
+    import subprocess
+
+    name = f"lsl-cli-{uuid.uuid4().hex[:8]}"
+    sock = tmp_path / "d.sock"
+    cmd = [sys.executable, "-m", "hapticd", "run", str(GRASP_PROFILE), "--lsl", "-q"]
+    cmd += ["--set", f"name={name}", "--set", "fingers[0].device.hold_s=60"]
+    cmd += ["--set", "fingers[1].device.hold_s=60", "--socket", str(sock)]
+    cmd += ["--record-dir", str(tmp_path), "--duration", "30"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, stderr=subprocess.PIPE, text=True)
+    inlets = []
+    try:
+        stream = lsl.stream_name(name)
+        numeric, markers = open_inlet(stream), open_inlet(stream + "-markers")
+        inlets = [numeric, markers]
+        assert numeric.info(timeout=WAIT_S).nominal_srate() == pytest.approx(1000.0)
+        deadline = time.monotonic() + WAIT_S
+        samples, _ = pull_until(numeric, 200, deadline)
+        deadline = time.monotonic() + WAIT_S
+        while not sock.exists():
+            assert time.monotonic() < deadline, "no control socket"
+            time.sleep(0.05)
+        with ControlClient(sock) as c:
+            marked = c.mark("block 1")["tick"]
+        got: list[str] = []
+        while not any('"block 1"' in m for m in got):
+            assert time.monotonic() < deadline, f"markers so far: {got}"
+            data, _ = markers.pull_chunk(timeout=0.05)
+            got += [m[0] for m in data]
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=WAIT_S)
+    finally:
+        while inlets:
+            inlets.pop().close_stream()
+        numeric = markers = None
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    cols = csv_columns_for(name)
+    tick = np.asarray(samples)[:, cols.index("tick")]
+    np.testing.assert_array_equal(np.diff(tick), 1)  # every tick, in order
+    mark = next(json.loads(m) for m in got if '"block 1"' in m)
+    assert mark["tick"] == marked
+    assert not pylsl.resolve_byprop("name", lsl.stream_name(name), timeout=0.5)
+
+
+def csv_columns_for(name: str) -> list[str]:
+    """The numeric stream's channel labels (the CSV export's columns) for the grasp profile."""
+    from hapticd.recording import loop_fields
+
+    profile = load_profile(GRASP_PROFILE, [f"name={name}"])
+    fields = loop_fields(len(profile.fingers), 2)
+    return [c["label"] for c in lsl.channels(fields, profile.finger_names)]
+
+
 @pytest.mark.parametrize("how", ["--lsl", "profile"])
 def test_without_pylsl_a_run_says_how_to_install_it_before_any_device(
     how, tmp_path, monkeypatch, capsys, write_profile, grasp_data
