@@ -486,9 +486,10 @@ def test_a_client_flooding_changes_cannot_starve_another_clients_disable_or_set(
     assert session.loop.param("damping_n_s_per_m") == 2.0
 
 
-def test_disable_is_never_rate_limited(tmp_path):
+def test_disable_and_stop_are_never_rate_limited(tmp_path):
     """With a change limit of an hour, a set waits its turn but disable is served at once
-    (before: disable shared the change slot with every set)."""
+    (before: disable shared the change slot with every set), and so is stop while another
+    client's set waits: the loop stops."""
     session = build_session(load_profile(GRASP_PROFILE, IN_PROCESS), paced=True, duration_s=30.0)
     srv = ControlServer(session, tmp_path / "d.sock", rate_limits_s={"change": 3600.0})
     srv.start()
@@ -502,6 +503,16 @@ def test_disable_is_never_rate_limited(tmp_path):
             s.sendall(b'{"id": 2, "cmd": "disable"}\n')
             (reply,) = _replies(s, 1, 2.0)
             assert reply["id"] == 2 and reply["ok"], reply
+            with _raw(srv.path) as waiting, _raw(srv.path) as stopper:
+                _replies(waiting, 1, 5.0)
+                _replies(stopper, 1, 5.0)
+                waiting.sendall(b'{"id": 3, "cmd": "set", "param": "damping_n_s_per_m", '
+                                b'"value": 2}\n')  # fmt: skip
+                stopper.sendall(b'{"id": 4, "cmd": "stop"}\n')
+                (reply,) = _replies(stopper, 1, 2.0)
+                assert reply["id"] == 4 and reply["ok"], reply
+                runner.join(timeout=10)
+                assert not runner.is_alive(), "stop did not end the loop"
     finally:
         session.loop.request_stop("test over")
         runner.join(timeout=10)
