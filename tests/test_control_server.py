@@ -576,3 +576,52 @@ def test_a_client_closed_for_idling_is_told_so(quick_server):
         assert "closed this idle connection" in str(caught.value)
     finally:
         c.close()
+
+
+def test_a_burst_of_connections_is_accepted_a_few_a_round_in_the_loops_sleep(tmp_path):
+    """Twenty clients connecting at once: the server waits for the loop's sleep (its I/O
+    window) before it accepts, and takes at most ACCEPTS_PER_ROUND of them before it
+    serves the others' requests and waits again, so a storm of clients delays replies,
+    not ticks."""
+    from hapticd.daemon import server as server_mod
+
+    session = build_session(load_profile(GRASP_PROFILE, IN_PROCESS), paced=False)
+    srv = ControlServer(session, tmp_path / "d.sock")
+    seen: list[str] = []
+    gate = threading.Event()
+    window, accept = srv._await_io_window, srv._accept
+
+    def waiting_window() -> None:
+        gate.wait(10)  # the first round waits until the burst is queued
+        seen.append("window")
+        window()
+
+    def counted_accept() -> bool:
+        took = accept()
+        if took:
+            seen.append("accept")
+        return took
+
+    srv._await_io_window, srv._accept = waiting_window, counted_accept
+    srv.start()
+    clients: list[socket.socket] = []
+    try:
+        n = 20
+        assert n <= server_mod.BACKLOG
+        clients = [_raw(srv.path) for _ in range(n)]
+        gate.set()
+        wait_for(lambda: seen.count("accept"), "every client accepted", until=lambda k: k == n)
+    finally:
+        for c in clients:
+            c.close()
+        srv.close()
+    assert seen[0] == "window"  # nothing accepted before the loop's sleep
+    runs, run = [], 0
+    for what in seen:
+        if what == "accept":
+            run += 1
+        elif run:
+            runs.append(run)
+            run = 0
+    runs.append(run)
+    assert max(runs) == server_mod.ACCEPTS_PER_ROUND, runs
