@@ -287,6 +287,16 @@ def test_session_metadata_is_stored_with_each_session_and_exported(tmp_path, mon
     }
     with TrialStore.for_experiment(db, exp) as store:
         assert [s["metadata"]["session"] for s in store.sessions("s01")] == ["1", "2"]
+    # Parquet and MAT carry the same metadata, row for row.
+    from tests.test_export_formats import _read_back
+
+    for fmt in ("parquet", "mat"):
+        ex.write_trials(db, tmp_path / f"t.{fmt}", fmt, status=None)
+        back = _read_back(tmp_path / f"t.{fmt}", fmt)
+        assert list(back) == names, fmt
+        for name in ("subject", "session", "experimenter", "meta_handedness", "meta_age_years"):
+            got = ["" if v is None else str(v) for v in back[name]]
+            assert got == [r[name] for r in rows], (fmt, name)
 
 
 def test_a_store_without_sessions_exports_empty_metadata(tmp_path):
