@@ -908,6 +908,34 @@ def test_a_holder_whose_connection_closes_mid_run_leaves_the_daemon_as_it_found_
     assert len(rec["tick"]) > 50
 
 
+def test_experiment_run_with_profile_presents_the_design_on_the_rigs_profile(
+    tmp_path, monkeypatch, capsys
+):
+    """``hapticd experiment run EXP --profile RIG.yaml``: every trial stored is of the
+    rig's base profile (its file's hash), not the one the experiment file names; a design
+    the rig cannot run is refused before anything is stored."""
+    from hapticd.cli import main
+    from hapticd.experiment.spec import file_hash
+
+    monkeypatch.setitem(rn.OBSERVERS, "quick", "tests.test_counterbalance:quick_observer")
+    rig = ROOT / "configs" / "rehearse-grasp.yaml"
+    base = ["--subject", "s1", "--observer", "quick", "--standards", "60"]
+    base += ["--repetitions", "1", "--no-keys"]
+    for db, extra in ((tmp_path / "rig.db", ["--profile", str(rig)]), (tmp_path / "own.db", [])):
+        argv = ["experiment", "run", str(STIFFNESS), "--db", str(db), *base, *extra]
+        assert main(argv) == 0, capsys.readouterr().err
+    own = load_experiment(STIFFNESS).profile_path()
+    assert file_hash(rig) != file_hash(own)
+    assert {r["profile_hash"] for r in rows(tmp_path / "rig.db")} == {file_hash(rig)}
+    assert {r["profile_hash"] for r in rows(tmp_path / "own.db")} == {file_hash(own)}
+    weight = ROOT / "configs" / "experiments" / "weight-jnd.yaml"
+    db = tmp_path / "w.db"
+    argv = ["experiment", "run", str(weight), "--db", str(db), *base, "--profile"]
+    assert main([*argv, str(GRASP_PROFILE)]) == 2
+    assert "mass_kg on a fixed object" in capsys.readouterr().err
+    assert not db.exists()
+
+
 def test_a_design_runs_on_another_base_profile(tmp_path, capsys):
     from hapticd.cli import main
 
