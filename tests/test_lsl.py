@@ -275,6 +275,41 @@ def csv_columns_for(name: str) -> list[str]:
     return [c["label"] for c in lsl.channels(fields, profile.finger_names)]
 
 
+@pytest.mark.timing("a paced run, its inlet closed while it runs")
+def test_an_inlet_that_goes_away_mid_run_costs_the_run_nothing_and_loses_nothing(tmp_path):
+    """A consumer that vanishes (LabRecorder closed mid-session): the run goes on to its
+    end, every tick is recorded in order, and the publisher reports no error and drops
+    nothing."""
+    name = f"lsl-{uuid.uuid4().hex[:8]}"
+    session = build_session(
+        load_profile(GRASP_PROFILE, [f"name={name}"]),
+        paced=True,
+        duration_s=1.5,
+        record_path=tmp_path / "run.hrec",
+        record_dir=tmp_path,
+    )
+    outlet = lsl.attach(session, None)
+    inlet = open_inlet(lsl.stream_name(name))
+    summary: dict = {}
+    run = threading.Thread(target=lambda: summary.update(session.run()), name="test-loop")
+    run.start()
+    try:
+        pull_until(inlet, 100, time.monotonic() + WAIT_S)
+        inlet.close_stream()
+        inlet = None  # liblsl's sockets close with the inlet
+        assert run.is_alive(), "the run ended before the inlet went"
+        run.join(timeout=WAIT_S)
+        assert not run.is_alive()
+    finally:
+        status = lsl.detach(session, outlet)
+    assert status["error"] is None and status["dropped"] == 0, status
+    rec = recording.read(tmp_path / "run.hrec")
+    ticks = session.loop.stats.ticks
+    assert summary["fault"] is None and summary["end_reason"] == "duration reached"
+    assert ticks == summary["ticks"] == 1500
+    np.testing.assert_array_equal(rec["tick"][:ticks], np.arange(ticks))
+
+
 @pytest.mark.parametrize("how", ["--lsl", "profile"])
 def test_without_pylsl_a_run_says_how_to_install_it_before_any_device(
     how, tmp_path, monkeypatch, capsys, write_profile, grasp_data
