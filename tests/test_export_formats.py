@@ -339,3 +339,26 @@ def test_an_experiment_files_export_format_is_checked_and_is_the_default(tmp_pat
     out = tmp_path / "t.out"
     assert main(["experiment", "export", str(db), "--out", str(out), "--no-recordings"]) == 0
     assert _read_back(out, "mat")["trial"] == [0]
+
+
+def test_quest_plus_and_constant_stimuli_rows_carry_side_and_correctness_without_reversals():
+    """Outside a staircase (QUEST+, constant stimuli) a trial's side is its comparison's,
+    its answer correct when the larger stimulus was judged more; no reversal is claimed,
+    and a comparison equal to the standard (or an unanswered trial) has no correct answer."""
+    trials = [  # id, comparison (standard 60), judged the comparison more
+        (1, 72.0, True), (2, 72.0, False), (3, 48.0, False), (4, 48.0, True),
+        (5, 60.0, True), (6, 66.0, None),
+    ]  # fmt: skip
+    rows = [
+        {"id": i, "subject": "s01", "plan_index": i, "block": 0, "standard": 60.0,
+         "comparison": c, "status": "complete" if more is not None else "incomplete",
+         "comparison_more": more, "condition": "pinv"}
+        for i, c, more in trials
+    ]  # fmt: skip
+    for procedure in ("quest_plus", "constant"):
+        flags = ex.answer_flags(rows, {"procedure": procedure})
+        got = [(flags[i]["side"], flags[i]["correct"], flags[i]["reversal"]) for i, *_ in trials]
+        assert got == [
+            ("above", 1, None), ("above", 0, None), ("below", 1, None), ("below", 0, None),
+            (None, None, None), ("above", None, None),
+        ], procedure  # fmt: skip
