@@ -524,3 +524,18 @@ def fill_every_place(server):
             c.close()
         raise
     return clients
+
+
+@pytest.fixture
+def chromium() -> str:
+    """The system's Chromium (the browser tests' headless page), or skip saying how to
+    get it."""
+    from tests import cdp
+
+    exe = cdp.find_chromium()
+    if exe is None:
+        pytest.skip(
+            "no chromium (/usr/bin/chromium): apt-get install chromium (.ci/run installs it "
+            "when run as root)"
+        )
+    return exe

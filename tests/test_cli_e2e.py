@@ -337,6 +337,18 @@ def test_ctrl_c_while_a_run_starts_says_interrupted_not_a_traceback(after_s, tmp
             assert "hapticd: interrupted" in err, err
 
 
+def _says_interrupted(boot: str, cwd) -> None:
+    """``boot`` (Python that ends in hapticd's main, ``--help``) says it was interrupted:
+    the shell's SIGINT code, one line, no traceback."""
+    proc = subprocess.run(
+        [sys.executable, "-c", boot, "--help"], cwd=cwd, capture_output=True, timeout=60
+    )
+    err = proc.stderr.decode()
+    assert "Traceback" not in err, err
+    assert proc.returncode == 130, (proc.returncode, err)
+    assert "hapticd: interrupted" in err, err
+
+
 def test_ctrl_c_while_the_handler_is_installed_says_interrupted(tmp_path):
     """A Ctrl-C on main's first instruction that looks at the SIGINT handler (a slow
     enum lookup, hit in CI) is the interruption too, not a traceback."""
@@ -348,13 +360,7 @@ def test_ctrl_c_while_the_handler_is_installed_says_interrupted(tmp_path):
         "from hapticd.__main__ import main\n"
         "sys.exit(main())\n"
     )
-    proc = subprocess.run(
-        [sys.executable, "-c", boot, "--help"], cwd=tmp_path, capture_output=True, timeout=60
-    )
-    err = proc.stderr.decode()
-    assert "Traceback" not in err, err
-    assert proc.returncode == 130, (proc.returncode, err)
-    assert "hapticd: interrupted" in err, err
+    _says_interrupted(boot, tmp_path)
 
 
 def test_ctrl_c_inside_an_extensions_import_says_interrupted(tmp_path):
@@ -379,10 +385,4 @@ def test_ctrl_c_inside_an_extensions_import_says_interrupted(tmp_path):
         "from hapticd.__main__ import main\n"
         "sys.exit(main())\n"
     )
-    proc = subprocess.run(
-        [sys.executable, "-c", boot, "--help"], cwd=tmp_path, capture_output=True, timeout=60
-    )
-    err = proc.stderr.decode()
-    assert "Traceback" not in err, err
-    assert proc.returncode == 130, (proc.returncode, err)
-    assert "hapticd: interrupted" in err, err
+    _says_interrupted(boot, tmp_path)

@@ -333,17 +333,6 @@ class Stamped(io.StringIO):
         return super().write(f"{time.monotonic():.2f} {text}")
 
 
-@pytest.fixture
-def chromium() -> str:
-    exe = cdp.find_chromium()
-    if exe is None:
-        pytest.skip(
-            "no chromium (/usr/bin/chromium): apt-get install chromium (.ci/run installs it "
-            "when run as root)"
-        )
-    return exe
-
-
 class MarkerLog:
     """The daemon's LSL marker stream, pulled in a thread until closed: (stamp, event)."""
 

@@ -680,18 +680,6 @@ def hex_rgb(h: str) -> tuple[int, int, int]:
     return int(h[1:3], 16), int(h[3:5], 16), int(h[5:7], 16)
 
 
-@pytest.fixture
-def chromium() -> str:
-    """The system's Chromium, or skip saying how to get it."""
-    exe = cdp.find_chromium()
-    if exe is None:
-        pytest.skip(
-            "no chromium (/usr/bin/chromium): apt-get install chromium (.ci/run installs it "
-            "when run as root)"
-        )
-    return exe
-
-
 TICK = "document.querySelector('[data-testid=tick]').textContent"
 BANNER = (
     "(() => { const b = document.querySelector('[data-testid=banner]'); "

@@ -24,7 +24,7 @@ from hapticd.daemon.session import build_session
 from hapticd.profile import load_profile
 from tests import cdp
 from tests.conftest import ROOT, wait_for
-from tests.test_view import chromium, view  # noqa: F401  (fixtures)
+from tests.test_view import view  # noqa: F401  (a fixture)
 
 VIRTUAL = ROOT / "configs" / "rehearse-virtual.yaml"
 CONTACT_X = 0.025 + 0.008  # the cube's half size + the fingertip's radius, m
