@@ -34,8 +34,8 @@ def installed(tmp_path_factory) -> Path:
     not touched."""
     target = tmp_path_factory.mktemp("site")
     subprocess.run(
-        [sys.executable, "-m", "pip", "install", "-q", "--disable-pip-version-check", "--no-deps", "--no-build-isolation",
-         "--no-index", "--target", str(target), str(PEST), str(SPRINGTIP)],
+        [sys.executable, "-m", "pip", "install", "-q", "--disable-pip-version-check",
+         "--no-deps", "--no-build-isolation", "--no-index", "--target", str(target), str(PEST), str(SPRINGTIP)],
         check=True, timeout=300, capture_output=True,
     )  # fmt: skip
     return target

@@ -91,8 +91,8 @@ BACKEND = Backend(
     "SpringTip",
     "a simulated fingertip lagging behind a trajectory (the example backend package)",
     (
-        Key("trajectory", str, REQUIRED, "path for the fingertip: recording path or 'builtin:NAME'"),
-        Key("finger", str, None, "finger of the recording to play; defaults to this finger's", True),
+        Key("trajectory", str, REQUIRED, "the fingertip's path: a recording or 'builtin:NAME'"),
+        Key("finger", str, None, "the recording's finger to play (this one's)", True),
         Key("max_force_n", float, 10.0, "the device's rated force, N", gt=0.0, le=100.0),
         Key("lag_s", float, 0.005, "the fingertip's lag behind the path, s", gt=0.0, le=1.0),
     ),
