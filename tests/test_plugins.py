@@ -35,7 +35,8 @@ def installed(tmp_path_factory) -> Path:
     target = tmp_path_factory.mktemp("site")
     subprocess.run(
         [sys.executable, "-m", "pip", "install", "-q", "--disable-pip-version-check",
-         "--no-deps", "--no-build-isolation", "--no-index", "--target", str(target), str(PEST), str(SPRINGTIP)],
+         "--no-deps", "--no-build-isolation", "--no-index", "--target", str(target),
+         str(PEST), str(SPRINGTIP)],
         check=True, timeout=300, capture_output=True,
     )  # fmt: skip
     return target
