@@ -698,8 +698,10 @@ def _add_study(sub: Any) -> None:
     """hapticd study: model-observer subjects in parallel (hapticd.experiment.study)."""
 
     def run(args: argparse.Namespace) -> int:
+        from hapticd.cli.plugins import warn_procedure_problems
         from hapticd.experiment.study import cmd_study
 
+        warn_procedure_problems()
         return cmd_study(args)
 
     st = sub.add_parser("study", help="run simulated subjects (the model observer) in parallel")
