@@ -51,7 +51,7 @@ def on_path(installed, monkeypatch):
     yield installed
     procedure.reload_plugins()
     for name in [m for m in sys.modules if m.startswith("hapticd_procedure_pest")]:
-        monkeypatch.delitem(sys.modules, name)
+        sys.modules.pop(name)
 
 
 def _pest_file(tmp_path: Path, **settings) -> Path:
@@ -237,7 +237,7 @@ HALF = Backend("half", "lab_dev", "Partial", "a device that cannot write", ())
 
 
 def test_refused_backends_are_named_and_a_profile_naming_one_is_refused(
-    fakes, monkeypatch, grasp_data, write_profile
+    fakes, monkeypatch, grasp_data, write_profile, capsys
 ):
     from hapticd_drivers import registry
 
@@ -262,5 +262,7 @@ def test_refused_backends_are_named_and_a_profile_naming_one_is_refused(
     grasp_data["fingers"][0]["device"] = {"backend": "broken"}
     with pytest.raises(ProfileError, match=r"backend 'broken' is refused: .*package 'lab-dev'"):
         load_profile(write_profile(grasp_data))
+    capsys.readouterr()
     with pytest.raises(SystemExit):
         main(["run", str(write_profile(grasp_data)), "--device", "broken"])
+    assert "--device: hapticd.backends entry point 'broken'" in capsys.readouterr().err

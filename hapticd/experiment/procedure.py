@@ -37,7 +37,8 @@ import numpy as np
 from hapticd_drivers.plugins import Plugin, Problem, discover
 from pydantic import BaseModel
 
-from hapticd.experiment.plan import PlannedTrial
+from hapticd.experiment.comparisons import _test_lines, paired_tests, session_rows
+from hapticd.experiment.trial import PlannedTrial
 
 if TYPE_CHECKING:
     from hapticd.experiment.spec import Experiment
@@ -268,8 +269,6 @@ class Procedure(abc.ABC):
         """Per track its estimate; per subject, condition and standard the JND (the mean
         of its sides' ``jnd``) and Weber fraction; paired t-tests of the Weber fractions
         between conditions."""
-        from hapticd.experiment.analyze import paired_tests, session_rows
-
         tracks = self.track_rows(session_rows(trials))
         rows = []
         for (subject, _), t in tracks.items():
@@ -318,8 +317,6 @@ class Procedure(abc.ABC):
 
     def report(self, result: dict[str, Any], unit: str) -> str:
         """The analysis's section of the report."""
-        from hapticd.experiment.analyze import _test_lines
-
         lines = [f"{self.name} tracks (standards and JNDs in {unit}):"]
         for r in result["tracks"]:
             extra = " ".join(
