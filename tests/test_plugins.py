@@ -94,6 +94,12 @@ def test_pest_runs_with_the_model_observer_resumes_and_is_analysed(on_path, tmp_
     assert main(["experiment", "analyze", str(db), "--boot", "0"]) == 0
     out = capsys.readouterr().out
     assert "pest tracks" in out and "s01" in out.split("pest tracks")[1]
+    # Where the package is not installed, the store's fit is still analysed, said so.
+    sys.path.remove(str(on_path))
+    procedure.reload_plugins()
+    assert main(["experiment", "analyze", str(db), "--boot", "0"]) == 0
+    got = capsys.readouterr()
+    assert "unknown procedure 'pest'" in got.err and "pest tracks" not in got.out
 
 
 def test_pest_moves_by_its_step_rules(on_path):
