@@ -8,16 +8,26 @@ under it (``--emulate``), how to find attached devices and what to check
 before a run. The profile's device schema, ``--device`` choices, the session's
 device construction, ``hapticd devices`` and the docs' backend table all
 derive from ``BACKENDS``.
+
+A lab's own package adds backends through the ``hapticd.backends`` entry-point group:
+each entry point names a ``Backend`` (its module's registry entry), checked and merged
+into ``BACKENDS`` when this module is imported (``load_plugins``; hapticd_drivers.plugins
+says what is refused). docs/devices.md, "Writing a backend".
 """
 
 from __future__ import annotations
 
 import importlib
+import inspect
 from dataclasses import dataclass, field
 from typing import Any
 
 from hapticd_drivers import models
 from hapticd_drivers.base import BackendUnavailableError, Device, DeviceError
+from hapticd_drivers.plugins import Plugin, Problem
+from hapticd_drivers.plugins import discover as discover_plugins
+
+GROUP = "hapticd.backends"
 
 REQUIRED: Any = object()  # a key without a default: the profile must give it
 
@@ -352,15 +362,76 @@ BACKENDS: dict[str, Backend] = {
 }
 
 
+# The built-ins' names: a plugin cannot take one.
+BUILTIN: frozenset[str] = frozenset(BACKENDS)
+# Installed backends, by name, with the package each comes from; and the entry points
+# refused (a broken import, the wrong shape, a name registered twice or a built-in's).
+PLUGINS: dict[str, Plugin] = {}
+PROBLEMS: list[Problem] = []
+
+
+def check_plugin(name: str, obj: Any) -> str | None:
+    """Why the entry point ``name``'s object is no backend (None: it is one): a ``Backend``
+    of that name whose class is a concrete ``Device``."""
+    if not isinstance(obj, Backend):
+        return f"expected a hapticd_drivers.registry.Backend, got {type(obj).__name__}"
+    if obj.name != name:
+        return f"its Backend is named {obj.name!r}, the entry point {name!r}: they must agree"
+    try:
+        cls = getattr(importlib.import_module(obj.module), obj.cls)
+    except (ImportError, AttributeError) as exc:
+        return f"its device class {obj.module}:{obj.cls} cannot be imported ({exc})"
+    if not (isinstance(cls, type) and issubclass(cls, Device)):
+        return f"{obj.module}:{obj.cls} is not a subclass of hapticd_drivers.base.Device"
+    if inspect.isabstract(cls):
+        missing = ", ".join(sorted(cls.__abstractmethods__))
+        return f"{obj.module}:{obj.cls} does not implement {missing}"
+    for k in obj.keys:
+        if not isinstance(k, Key):
+            return f"its keys must be hapticd_drivers.registry.Key, got {type(k).__name__}"
+        if k.name in ("backend", "mount"):
+            return f"key {k.name!r} is every device's own; a backend cannot declare it"
+    return None
+
+
+def load_plugins() -> None:
+    """Find the installed backends (entry points of ``hapticd.backends``) and merge those
+    that pass ``check_plugin`` into ``BACKENDS``; the others into ``PROBLEMS``."""
+    for name in list(PLUGINS):
+        BACKENDS.pop(name, None)
+    found, problems = discover_plugins(GROUP, BUILTIN, check_plugin)
+    PLUGINS.clear()
+    PLUGINS.update(found)
+    PROBLEMS[:] = problems
+    for name, plugin in found.items():
+        BACKENDS[name] = plugin.obj
+
+
+def package_of(name: str) -> str:
+    """The package a backend comes from: hapticd for a built-in."""
+    return PLUGINS[name].package if name in PLUGINS else "hapticd"
+
+
+def problem(name: str) -> Problem | None:
+    """The refused entry point named ``name``, if there is one."""
+    return next((p for p in PROBLEMS if p.name == name), None)
+
+
 def backend_names() -> list[str]:
     return sorted(BACKENDS)
 
 
 def backend(name: str) -> Backend:
-    """The registry entry of ``name``; BackendUnavailableError naming the known ones."""
+    """The registry entry of ``name``; BackendUnavailableError naming the known ones (or,
+    for a refused plugin of that name, its package, entry point and why)."""
     try:
         return BACKENDS[name]
     except KeyError:
+        refused = problem(name)
+        if refused is not None:
+            raise BackendUnavailableError(
+                f"device backend {name!r} is refused: {refused.message()}"
+            ) from None
         raise BackendUnavailableError(
             f"unknown device backend {name!r}; known backends: {', '.join(backend_names())}"
         ) from None
@@ -412,10 +483,30 @@ def discover() -> list[dict[str, Any]]:
     return report
 
 
+def _builtins() -> list[Backend]:
+    """The built-in backends, in the registry's order (the docs list these, whatever a
+    machine has installed)."""
+    return [b for b in BACKENDS.values() if b.name in BUILTIN]
+
+
+def listing() -> list[dict[str, Any]]:
+    """Every backend, built-in and installed, with the package it comes from; then the
+    refused entry points with why (``problem``)."""
+    rows: list[dict[str, Any]] = [
+        {"name": b.name, "package": package_of(b.name), "doc": b.doc, "problem": None}
+        for b in BACKENDS.values()
+    ]
+    rows += [
+        {"name": p.name, "package": ", ".join(p.packages), "doc": "", "problem": p.message()}
+        for p in PROBLEMS
+    ]
+    return rows
+
+
 def markdown_table() -> str:
     """The backends as a Markdown table (docs/devices.md keeps a copy; a test compares)."""
     rows = ["| backend | what | pip extra | status |", "|---|---|---|---|"]
-    for b in BACKENDS.values():
+    for b in _builtins():
         extra = f"`hapticd[{b.extra}]`" if b.extra else "-"
         rows.append(f"| `{b.name}` | {b.doc} | {extra} | {b.status} |")
     return "\n".join(rows) + "\n"
@@ -437,6 +528,9 @@ def keys_table(name: str) -> str:
 def docs() -> str:
     """The generated part of docs/devices.md: the backend table and each backend's keys."""
     parts = [markdown_table(), "### Profile keys\n"]
-    for name in BACKENDS:
+    for name in (b.name for b in _builtins()):
         parts.append(f"`backend: {name}`\n\n{keys_table(name)}")
     return "\n".join(parts)
+
+
+load_plugins()

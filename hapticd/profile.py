@@ -25,6 +25,7 @@ import yaml.reader
 import yaml.resolver
 import yaml.scanner
 from annotated_types import Ge, Le
+from hapticd_drivers import registry
 from hapticd_drivers.registry import BACKENDS, REQUIRED, Backend
 from pydantic import (
     AllowInfNan,
@@ -889,6 +890,9 @@ def _explain(err: dict, root: type[BaseModel] | None = None, docs: str = DOCS) -
             got = err["input"].get("role") if isinstance(err["input"], dict) else None
             return f"unknown role {_shown(got)}; the roles: {', '.join(BUTTON_ROLES)}"
         got = err["input"].get("backend") if isinstance(err["input"], dict) else None
+        refused = registry.problem(got) if isinstance(got, str) else None
+        if refused is not None:  # an installed backend that was refused: say why
+            return f"backend {_shown(got)} is refused: {refused.message()}"
         return f"unknown backend {_shown(got)}; the backends: {', '.join(BACKENDS)}"
     msg = str(err["msg"]).removeprefix("Value error, ")
     return msg if len(msg) <= 300 else msg[:297] + "..."

@@ -43,6 +43,8 @@ from hapticd.cli.common import (
 )
 from hapticd.cli.experiment import _add_experiment, _add_study
 from hapticd.cli.offline import _add_analyze, _add_plot, cmd_export
+from hapticd.cli.plugins import add_commands as _add_plugin_commands
+from hapticd.cli.plugins import device_name
 from hapticd.cli.run import (
     _add_bringup,
     _add_schema,
@@ -126,6 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--device",
+        type=device_name,
         choices=backend_names(),
         help="use this backend for every finger instead of the profile's",
     )
@@ -250,6 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
     dev = sub.add_parser("devices", help="list the haptic devices found, or why none can be")
     dev.add_argument("--json", action="store_true", help="machine-readable output")
     dev.set_defaults(func=cmd_devices)
+    _add_plugin_commands(sub)
     udev = sub.add_parser("udev-rules", help="print udev rules that let users open the devices")
     udev.set_defaults(func=cmd_udev_rules)
     return ap

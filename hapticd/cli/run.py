@@ -207,6 +207,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace, record_path: Path | None, *, temporary: bool = False) -> int:
     """Run the daemon; ``temporary``: ``record_path`` is removed afterwards (--plot without
     --record), so the summary does not name it."""
+    from hapticd.cli.plugins import warn_backend_problems
+
+    warn_backend_problems()
     try:
         group = _socket_group(args)
         profile = load_profile(args.profile, _overrides(args))
@@ -328,6 +331,9 @@ def _service_status(loop: ServoLoop) -> str:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    from hapticd.cli.plugins import warn_backend_problems
+
+    warn_backend_problems()
     try:
         profile = load_profile(args.profile, _overrides(args))
         load_trajectories(profile)

@@ -10,6 +10,9 @@ Which track presents trial k, and whether its comparison comes first, is drawn f
 generator seeded by the subject's seed and k alone: the same seed gives the same
 session, whoever answers, in any process, after any resume.
 
+The built-in procedures (hapticd.experiment.procedures) wrap these tracks in the
+Procedure interface; the functions below go through it.
+
 Pure: no I/O (the walker that stores each trial is ``run_adaptive_subject``).
 """
 
@@ -165,25 +168,19 @@ class QuestTrack:
 AnyTrack = Track | QuestTrack
 
 
-def tracks_for(exp: Experiment) -> list[AnyTrack]:
+def tracks_for(exp: Experiment) -> list[Any]:
     """Every track of ``exp`` at its start, in order: conditions as listed, standards
     ascending, above before below (a track's index is its ``block`` in the store)."""
-    section = _section(exp)
-    out: list[AnyTrack] = []
-    for c in exp.conditions:
-        for s in sorted(exp.varied.standards):
-            if isinstance(section, QuestPlusDesign):
-                out.append(QuestTrack(len(out), c.name, float(s), section))
-                continue
-            for sign in section.sign_list():
-                out.append(Track(len(out), c.name, float(s), sign, section.start, section.step))
-    return out
+    return _procedure(exp).tracks(exp)
 
 
-def _section(exp: Experiment) -> Staircase | QuestPlusDesign:
-    if exp.adaptive is None:
+def _procedure(exp: Experiment) -> Any:
+    from hapticd.experiment import procedure
+
+    proc = procedure.of(exp)
+    if proc.plans_ahead:
         raise ValueError(f"experiment {exp.name!r} has no adaptive procedure")
-    return exp.adaptive
+    return proc
 
 
 def is_correct(track: AnyTrack, comparison_more: bool) -> bool:
@@ -192,20 +189,11 @@ def is_correct(track: AnyTrack, comparison_more: bool) -> bool:
     return bool(comparison_more) == (track.sign > 0)
 
 
-def replay(exp: Experiment, trials: Iterable[Mapping[str, Any]]) -> list[AnyTrack]:
+def replay(exp: Experiment, trials: Iterable[Mapping[str, Any]]) -> list[Any]:
     """The tracks after the complete and failed ``trials`` (store rows with
     ``plan_index``, ``block`` (the track), ``status`` and ``comparison_more``), in plan
-    order (``skip``: a failed trial)."""
-    st = _section(exp)
-    tracks = tracks_for(exp)
-    for t in sorted(trials, key=lambda r: r["plan_index"]):
-        status = t.get("status", "complete")
-        if status == "failed":
-            skip(tracks[int(t["block"])])
-        elif status == "complete":
-            more = bool(t["comparison_more"])
-            apply_answer(tracks[int(t["block"])], more, st, t["comparison"])
-    return tracks
+    order (``skip``: a failed trial). Procedure.replay."""
+    return _procedure(exp).replay(exp, trials)
 
 
 def skip(track: AnyTrack) -> None:
@@ -222,33 +210,11 @@ def apply_answer(track: AnyTrack, more: bool, section: Any, comparison: float) -
         track.answer(is_correct(track, more), section)
 
 
-def next_trial(
-    exp: Experiment, seed: int, index: int, tracks: list[AnyTrack]
-) -> PlannedTrial | None:
+def next_trial(exp: Experiment, seed: int, index: int, tracks: list[Any]) -> PlannedTrial | None:
     """Trial ``index`` of the session: a track drawn among those not done (uniformly, by
     a generator seeded by ``seed`` and ``index``), its current comparison; None when
-    every track is done."""
-    st = _section(exp)
-    live = [t for t in tracks if not t.done(st)]  # type: ignore[arg-type]
-    if not live:
-        return None
-    rng = np.random.default_rng([int(seed), int(index)])
-    track = live[int(rng.integers(len(live)))]
-    first = exp.interval.order == "randomized" and bool(rng.integers(2))
-    every = exp.breaks.every_trials
-    pause = exp.breaks.duration_s if every and index > 0 and index % every == 0 else 0.0
-    comparison = track.comparison()
-    return PlannedTrial(
-        index=index,
-        block=track.index,
-        position=track.n,
-        condition=track.condition,
-        standard=track.standard,
-        ratio=comparison / track.standard,
-        comparison=comparison,
-        comparison_first=first,
-        break_before_s=float(pause),
-    )
+    every track is done. Procedure.next_trial."""
+    return _procedure(exp).next_trial(exp, seed, index, tracks)
 
 
 def session(
@@ -259,21 +225,9 @@ def session(
 ) -> list[tuple[PlannedTrial, bool | None]]:
     """The rest of a session after the complete and failed trials ``done``: each next
     trial and ``answer(trial)`` (True: the comparison judged more; None: its exploration
-    failed, ``skip``), until every track is done. For simulated observers (no store)."""
-    st = _section(exp)
-    rows = list(done)
-    tracks = replay(exp, rows)
-    index = 1 + max((int(r["plan_index"]) for r in rows), default=-1)
-    out = []
-    while (trial := next_trial(exp, seed, index, tracks)) is not None:
-        more = answer(trial)
-        out.append((trial, more))
-        if more is None:
-            skip(tracks[trial.block])
-        else:
-            apply_answer(tracks[trial.block], more, st, trial.comparison)
-        index += 1
-    return out
+    failed, ``skip``), until every track is done. For simulated observers (no store).
+    Procedure.session."""
+    return _procedure(exp).session(exp, seed, answer, done)
 
 
 def tracks_from_rows(rows: Iterable[Mapping[str, Any]], st: Staircase) -> dict[tuple, Track]:

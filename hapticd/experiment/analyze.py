@@ -3,21 +3,15 @@ group means, paired t-tests between conditions, JSON and plots."""
 
 from __future__ import annotations
 
-import itertools
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from hapticd.experiment.comparisons import _test_lines, paired_tests, session_rows
 from hapticd.experiment.fitters import FITTERS
-from hapticd.psychophysics import jnd_z, paired_t
-
-
-def session_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The store rows of the session's own trials: practice trials (``practice`` true)
-    are never analysed."""
-    return [r for r in rows if not r.get("practice")]
+from hapticd.psychophysics import jnd_z
 
 
 def _key(row: dict[str, Any]) -> tuple[str, str, float]:
@@ -139,33 +133,6 @@ def format_failed(failed: dict[str, Any]) -> str:
         f"{failed['n']} trial(s) whose exploration failed are left out (never judged): "
         f"{causes}; by condition and standard: {cells}\n"
     )
-
-
-def paired_tests(
-    weber: dict[tuple[str, str, float], float | None],
-    order: list[str],
-    standards: list[float],
-    subjects: list[str],
-) -> list[dict[str, Any]]:
-    """Per standard and pair of conditions [a, b] (in ``order``), the paired t-test of
-    Weber(a) - Weber(b) over the subjects with both ({(subject, condition, standard):
-    Weber or None}); ``reason`` where it is undefined."""
-    tests = []
-    for s in standards:
-        for a, b in itertools.combinations(order, 2):
-            both = [
-                subj
-                for subj in subjects
-                if weber.get((subj, a, s)) is not None and weber.get((subj, b, s)) is not None
-            ]
-            entry: dict[str, Any] = {"standard": s, "conditions": [a, b], "n_subjects": len(both)}
-            try:
-                r = paired_t([weber[(x, a, s)] for x in both], [weber[(x, b, s)] for x in both])
-                entry.update(t=r.t, df=r.df, p=r.p, mean_diff=r.mean_diff, reason=None)
-            except ValueError as exc:
-                entry.update(t=None, df=None, p=None, mean_diff=None, reason=str(exc))
-            tests.append(entry)
-    return tests
 
 
 def analyze_staircases(
@@ -303,16 +270,6 @@ def format_quest(result: dict[str, Any], unit: str) -> str:
         )
     lines += _test_lines(result["tests"], "the QUEST+ Weber fractions")
     return "\n".join(lines) + "\n"
-
-
-def _test_lines(tests: list[dict[str, Any]], what: str) -> list[str]:
-    """The paired t-tests of ``what``, a line per standard and pair of conditions."""
-    lines = [f"paired t-tests of {what} across subjects:"]
-    for t in tests:
-        a, b = t["conditions"]
-        res = t["reason"] if t["t"] is None else f"t({t['df']}) = {t['t']:.3f}, p = {t['p']:.4f}"
-        lines.append(f"  standard {t['standard']:<8.4g} {a} vs {b}: {res}")
-    return lines
 
 
 def format_staircases(result: dict[str, Any], unit: str) -> str:

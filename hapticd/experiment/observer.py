@@ -732,12 +732,8 @@ def pilot_check(exp: Experiment, profile: Profile, config: ObserverConfig) -> No
 def _design_range(exp: Experiment) -> tuple[float, float]:
     """The smallest and the largest value of the varied parameter the design presents."""
     lo_s, hi_s = min(exp.varied.standards), max(exp.varied.standards)
-    if exp.staircase is not None:
-        d = exp.staircase.max_distance
-        return lo_s * (1 - d if exp.staircase.sides == "both" else 1), hi_s * (1 + d)
-    if exp.quest_plus is not None:
-        return lo_s * exp.quest_plus.min_ratio, hi_s * exp.quest_plus.max_ratio
-    return lo_s * min(exp.varied.ratios), hi_s * max(exp.varied.ratios)
+    lo_r, hi_r = exp.proc.ratio_range()  # the procedure's farthest comparisons
+    return lo_s * lo_r, hi_s * hi_r
 
 
 @dataclass(frozen=True)

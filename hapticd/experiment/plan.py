@@ -4,34 +4,12 @@ file and a seed (deterministic for the same seed)."""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
 from hapticd.experiment.spec import Experiment, ExperimentError
-
-
-@dataclass(frozen=True)
-class PlannedTrial:
-    """One trial: its place (``index`` in the session, ``block``, ``position`` in the
-    block), the condition, the standard and comparison values (the varied parameter's
-    SI unit), the ratio, whether the comparison is the first interval, the break (s)
-    to take before it (0: none), and whether it is a practice trial (``make_practice``:
-    a negative index, block -1; never analysed)."""
-
-    index: int
-    block: int
-    position: int
-    condition: str
-    standard: float
-    ratio: float
-    comparison: float
-    comparison_first: bool
-    break_before_s: float
-    practice: bool = False
-
-    def as_dict(self) -> dict:
-        return asdict(self)
+from hapticd.experiment.trial import PlannedTrial
 
 
 def williams_rows(n: int) -> list[list[int]]:

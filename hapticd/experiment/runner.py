@@ -329,26 +329,23 @@ def run_adaptive_subject(
     profile_hash: str,
     progress: Callable[[Progress], None] | None = None,
 ) -> int:
-    """``run_subject`` for a staircase (hapticd.experiment.adaptive): each next trial is
+    """``run_subject`` for an adaptive procedure (``exp.proc``): each next trial is
     decided from the answers so far, stored in the plan, presented and recorded; the
     tracks are rebuilt from the stored trials first, and a trial decided but not
     answered (a run that stopped in it) is presented again as it was. The number of
     complete trials recorded now."""
-    from hapticd.experiment import adaptive
-
-    st = exp.adaptive
-    assert st is not None
+    proc = exp.proc
     conditions = {c.name: c.values() for c in exp.conditions}
     rows = [r for r in store.trials(None) if r["subject"] == subject and r["status"] in DONE]
-    tracks = adaptive.replay(exp, rows)
-    most = exp.n_blocks * st.max_trials
+    tracks = proc.replay(exp, rows)
+    most = exp.n_blocks * proc.max_trials
     recorded = 0
     while True:
         pending = store.remaining(subject)
         if pending:
             trial: PlannedTrial | None = pending[0]
         else:
-            trial = adaptive.next_trial(exp, seed, len(store.plan(subject)), tracks)
+            trial = proc.next_trial(exp, seed, len(store.plan(subject)), tracks)
             if trial is None:
                 break
             store.append_plan(subject, trial, seed)
@@ -359,9 +356,9 @@ def run_adaptive_subject(
         if got.status == "complete":
             recorded += 1
             more = bool(got.answer_second_more) != trial.comparison_first
-            adaptive.apply_answer(tracks[trial.block], more, st, trial.comparison)
+            proc.update(tracks[trial.block], more, trial.comparison)
         elif got.status == "failed":
-            adaptive.skip(tracks[trial.block])
+            proc.skip(tracks[trial.block])
     if progress is not None:
         done = len(store.plan(subject))
         progress(Progress(done, done, None, 0.0))
@@ -1175,7 +1172,7 @@ def run_experiment(
         session = exp.check_metadata(given, last.get("metadata"))
         # The observer before the plan: a plan is stored only when it can be presented.
         with factory(exp, subject, options) as presenter:
-            if exp.adaptive is not None:
+            if not exp.proc.plans_ahead:
                 store.add_session(subject, session, index)
                 return _run_adaptive(store, exp, subject, seed, presenter, db, out)
             todo = start_subject(store, exp, subject, seed, resume=resume, subject_index=index)

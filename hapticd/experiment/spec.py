@@ -463,11 +463,12 @@ class Experiment(_Strict):
     # It names the recordings (EXPERIMENT-SUBJECT-TRIAL-INTERVAL.hrec): a file name.
     name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     description: str = ""
-    procedure: Literal["constant_stimuli", "staircase", "quest_plus"] = Field(
+    procedure: str = Field(
         default="constant_stimuli",
         description="how comparisons are chosen: constant_stimuli (every ratio, repetitions "
         "times, in a planned order), staircase (each next comparison from the answers so "
-        "far, the tracks interleaved) or quest_plus (QUEST+, interleaved)",
+        "far, the tracks interleaved), quest_plus (QUEST+, interleaved), or the name of an "
+        "installed procedure (hapticd procedures)",
     )
     profile: str = Field(min_length=1, description="base profile, relative to this file")
     varied: Varied
@@ -477,6 +478,10 @@ class Experiment(_Strict):
     )
     staircase: Staircase | None = None
     quest_plus: QuestPlusDesign | None = None
+    settings: dict[str, Any] | None = Field(
+        default=None,
+        description="an installed procedure's settings (its Settings model; docs/experiments.md)",
+    )
     interval: Interval
     blocks: Blocks = Blocks()
     breaks: Breaks = Breaks()
@@ -508,6 +513,14 @@ class Experiment(_Strict):
             raise ValueError(
                 f"expected 1 (the experiment file format this hapticd reads), got {v!r}"
             )
+        return v
+
+    @field_validator("procedure")
+    @classmethod
+    def _known_procedure(cls, v: str) -> str:
+        from hapticd.experiment import procedure
+
+        procedure.get(v)  # UnknownProcedureError (a ValueError) names the known ones
         return v
 
     @field_validator("randomization")
@@ -554,10 +567,27 @@ class Experiment(_Strict):
                 raise ValueError(
                     f"condition {c.name!r} sets {self.varied.param}, the varied parameter"
                 )
+        if (
+            self.procedure != "constant_stimuli"
+            and self.settings is not None
+            and self.procedure
+            in (
+                "staircase",
+                "quest_plus",
+            )
+        ):
+            raise ValueError(
+                f"settings are an installed procedure's; {self.procedure}'s are its own "
+                f"section ({self.procedure})"
+            )
         if self.procedure == "staircase":
             return self._staircase_consistent()
         if self.procedure == "quest_plus":
             return self._quest_consistent()
+        if self.procedure != "constant_stimuli":
+            return self._plugin_consistent()
+        if self.settings is not None:
+            raise ValueError("settings are an installed procedure's, not constant_stimuli's")
         if not self.varied.ratios:
             raise ValueError("varied.ratios is needed by procedure constant_stimuli")
         if self.repetitions is None:
@@ -647,7 +677,9 @@ class Experiment(_Strict):
                 )
         varied: Varied = d["varied"]
         spec = params.PARAMS[varied.param]
-        ratios = practice_levels(pr, varied, d.get("staircase"), d.get("quest_plus"))
+        ratios = practice_levels(
+            pr, varied, d.get("staircase"), d.get("quest_plus"), _plugin_range(d)
+        )
         for s in pr.standards or varied.standards:
             if not (math.isfinite(s) and spec.in_range(s)):
                 raise ValueError(
@@ -668,7 +700,10 @@ class Experiment(_Strict):
 
     def practice_ratios(self) -> tuple[float, ...]:
         """The comparison / standard levels the practice trials use."""
-        return practice_levels(self.practice, self.varied, self.staircase, self.quest_plus)
+        plugin = None
+        if self.procedure not in ("constant_stimuli", "staircase", "quest_plus"):
+            plugin = self.proc.ratio_range()
+        return practice_levels(self.practice, self.varied, self.staircase, self.quest_plus, plugin)
 
     def _quest_consistent(self) -> Experiment:
         q = self.quest_plus
@@ -689,10 +724,58 @@ class Experiment(_Strict):
                     )
         return self
 
+    def _plugin_consistent(self) -> Experiment:
+        """An installed procedure's design: its settings (its Settings model), no
+        constant stimuli's or built-ins' keys, every comparison in the parameter's range."""
+        from pydantic import ValidationError
+
+        from hapticd.experiment import procedure
+
+        if self.varied.ratios or self.repetitions is not None:
+            raise ValueError(
+                f"varied.ratios and repetitions are for constant_stimuli; {self.procedure} "
+                "chooses its comparisons"
+            )
+        if self.staircase is not None or self.quest_plus is not None:
+            raise ValueError(
+                "staircase and quest_plus are for their procedures; an installed procedure "
+                "takes settings"
+            )
+        cls = procedure.get(self.procedure)
+        try:
+            proc = cls(cls.section(self))
+        except ValidationError as exc:
+            errs = "; ".join(
+                f"settings.{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors()
+            )
+            raise ValueError(f"procedure {self.procedure}: {errs}") from None
+        proc.check(self)
+        lo, hi = proc.ratio_range()
+        spec = params.PARAMS[self.varied.param]
+        for s in self.varied.standards:
+            for r in (lo, hi):
+                if not (math.isfinite(s * r) and spec.in_range(s * r)):
+                    raise ValueError(
+                        f"procedure {self.procedure}: the comparison standard {s:g} x {r:g} = "
+                        f"{s * r:g} is outside {self.varied.param}'s range {spec.range_text()}"
+                    )
+        return self
+
     @property
-    def adaptive(self) -> Staircase | QuestPlusDesign | None:
-        """The adaptive procedure's section (staircase or quest_plus), None for constant
-        stimuli."""
+    def proc(self) -> Any:
+        """The procedure (hapticd.experiment.procedure.Procedure) with its settings."""
+        from hapticd.experiment import procedure
+
+        return procedure.of(self)
+
+    @property
+    def adaptive(self) -> Any:
+        """The adaptive procedure's section (staircase, quest_plus, or an installed
+        procedure's settings), None for constant stimuli."""
+        if self.procedure == "constant_stimuli":
+            return None
+        if self.procedure not in ("staircase", "quest_plus"):
+            return self.proc.settings
         return self.staircase if self.staircase is not None else self.quest_plus
 
     def _staircase_consistent(self) -> Experiment:
@@ -723,18 +806,16 @@ class Experiment(_Strict):
     @property
     def trials_per_block(self) -> int:
         """Trials per block; a staircase's block is a track, at most max_trials long."""
-        if self.adaptive is not None:
-            return self.adaptive.max_trials
+        if self.procedure != "constant_stimuli":
+            return int(self.proc.max_trials)
         assert self.repetitions is not None
         return self.comparisons * self.repetitions // self.blocks.per_standard
 
     @property
     def n_blocks(self) -> int:
         """Blocks per subject; a staircase's: its tracks (conditions x standards x sides)."""
-        if self.adaptive is not None:
-            return (
-                len(self.conditions) * len(self.varied.standards) * len(self.adaptive.sign_list())
-            )
+        if self.procedure != "constant_stimuli":
+            return len(self.conditions) * len(self.varied.standards) * len(self.proc.sides)
         return len(self.conditions) * len(self.varied.standards) * self.blocks.per_standard
 
     def profile_path(self) -> Path:
@@ -765,7 +846,7 @@ class Experiment(_Strict):
 
     def n_breaks(self) -> int:
         b = self.breaks
-        if self.adaptive is not None:  # tracks interleave: breaks by trials only
+        if self.procedure != "constant_stimuli":  # tracks interleave: breaks by trials only
             total = self.n_blocks * self.trials_per_block
             return (total - 1) // b.every_trials if b.every_trials else 0
         between = (self.n_blocks - 1) // b.every_blocks if b.every_blocks else 0
@@ -791,11 +872,15 @@ def practice_levels(
     varied: Varied,
     staircase: Staircase | None,
     quest_plus: QuestPlusDesign | None,
+    plugin: tuple[float, float] | None = None,
 ) -> tuple[float, ...]:
     """The comparison / standard levels of the practice trials: the file's, else the
-    design's farthest comparisons (the easiest to tell)."""
+    design's farthest comparisons (the easiest to tell; ``plugin``: an installed
+    procedure's ratio range)."""
     if pr is not None and pr.ratios:
         return pr.ratios
+    if plugin is not None:
+        return tuple(sorted({r for r in plugin if r != 1.0})) or (1.0,)
     if staircase is not None:
         return tuple(1 + sign * staircase.start for sign in staircase.sign_list())
     if quest_plus is not None:
@@ -803,6 +888,23 @@ def practice_levels(
     if not varied.ratios:
         return (1.0,)
     return tuple(sorted({min(varied.ratios), max(varied.ratios)}))
+
+
+def _plugin_range(data: dict[str, Any]) -> tuple[float, float] | None:
+    """An installed procedure's ratio range from the fields validated so far (None: a
+    built-in, or settings its own check will refuse)."""
+    name = data.get("procedure")
+    if name in (None, "constant_stimuli", "staircase", "quest_plus"):
+        return None
+    from hapticd.experiment import procedure
+
+    try:
+        cls = procedure.get(name)
+        return cls(
+            cls.Settings.model_validate(data.get("settings") or {}) if cls.Settings else None
+        ).ratio_range()
+    except Exception:  # the settings' own errors are told by _plugin_consistent
+        return None
 
 
 def file_hash(path: str | Path) -> str:
@@ -877,6 +979,8 @@ def _varied_values(exp: Experiment) -> list[float]:
         out += [s * (1 + exp.staircase.max_distance) for s in v.standards]
     elif exp.quest_plus is not None:
         out += [s * exp.quest_plus.max_ratio for s in v.standards]
+    elif exp.procedure != "constant_stimuli":
+        out += [s * exp.proc.ratio_range()[1] for s in v.standards]
     else:
         out += [s * r for s in v.standards for r in v.ratios]
     return out

@@ -490,8 +490,10 @@ def claim_subject(db: str | Path, subject: str) -> Iterator[Path]:
 
 
 def design(exp: Experiment) -> dict[str, Any]:
-    """What the analysis needs to know of an experiment, JSON-ready."""
-    return {
+    """What the analysis needs to know of an experiment, JSON-ready; an installed
+    procedure's settings and package too (the analysis rebuilds the procedure from them:
+    hapticd.experiment.procedure.from_design)."""
+    out = {
         "param": exp.varied.param,
         "unit": params.PARAMS[exp.varied.param].unit,
         "standards": list(exp.varied.standards),
@@ -506,6 +508,12 @@ def design(exp: Experiment) -> dict[str, Any]:
         "metadata_keys": list(exp.metadata.names()),
         "export_format": exp.export.format,
     }
+    if exp.procedure not in ("constant_stimuli", "staircase", "quest_plus"):
+        from hapticd.experiment import procedure
+
+        out |= exp.proc.design()
+        out["procedure_package"] = procedure.package_of(exp.procedure)
+    return out
 
 
 def _connect(path: Path) -> sqlite3.Connection:

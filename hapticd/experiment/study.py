@@ -19,7 +19,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from hapticd.experiment import adaptive, observer, runner
+from hapticd.experiment import observer, runner
 from hapticd.experiment.plan import PlannedTrial, make_plan
 from hapticd.experiment.spec import Experiment, ExperimentError, check_experiment, file_hash
 from hapticd.experiment.store import DONE, TrialStore
@@ -50,7 +50,7 @@ def reduce_design(
             )
         keep = tuple(x for x in exp.varied.standards if any(np.isclose(s, x) for s in standards))
         update["varied"] = exp.varied.model_copy(update={"standards": keep})
-    if repetitions is not None and exp.adaptive is not None:
+    if repetitions is not None and not exp.proc.plans_ahead:
         raise ExperimentError(
             f"{exp.source}: --repetitions: an adaptive procedure has none (its tracks stop "
             "by themselves)"
@@ -127,7 +127,8 @@ def answer_task(task: Task) -> list[Answer]:
         r = observer.answer_trial(task.exp, profile, task.config, trial, task.subject, task.seed)
         return Answer(task.subject, trial, r.answer_second_more, task.seed, r.failure)
 
-    if task.exp.adaptive is None:
+    proc = task.exp.proc
+    if proc.plans_ahead:
         return [answer(trial) for trial in task.trials]
     answers: dict[int, Answer] = {}
 
@@ -137,7 +138,7 @@ def answer_task(task: Task) -> list[Answer]:
             None if a.answer_second_more is None else a.answer_second_more != trial.comparison_first
         )
 
-    rest = adaptive.session(task.exp, task.seed, judged_more, task.history)
+    rest = proc.session(task.exp, task.seed, judged_more, task.history)
     return [answers[t.index] for t, _ in rest]
 
 
@@ -221,7 +222,7 @@ def run_model_subject(
     exp = _load(exp_path_or_exp, standards, repetitions)
     s = study_seed(exp, subject, seed)
     presenter = ModelPresenter(exp, subject, s, config or observer.default_config(exp))
-    if exp.adaptive is not None:
+    if not exp.proc.plans_ahead:
         return runner.run_adaptive_subject(
             store, exp, subject, s, presenter, profile_hash=file_hash(exp.profile_path()),
             progress=None if progress is None else lambda p: progress(p.done, p.total),
@@ -322,15 +323,16 @@ def run_study(
     tasks: list[Task] = []
     total = done = 0
     subjects = subject_ids(n_observers)
+    adaptive = not exp.proc.plans_ahead
     with TrialStore.for_experiment(db, exp) as store:
         for k, subject in enumerate(subjects):
             s = study_seed(exp, subject, seed)
-            if exp.adaptive is not None:
+            if adaptive:
                 # Each subject's session is one task: its next trials depend on its answers.
                 history = tuple(
                     r for r in store.trials(None) if r["subject"] == subject and r["status"] in DONE
                 )
-                total += exp.n_blocks * exp.adaptive.max_trials
+                total += exp.n_blocks * exp.trials_per_block
                 tasks.append(Task(exp, profile, config, subject, s, (), history))
                 continue
             # Subject k of the study is subject k of a counterbalanced design.
@@ -350,7 +352,7 @@ def run_study(
         for answers in _execute(tasks, workers, scheduler):
             for a in answers:
                 failed += a.failure is not None
-                if exp.adaptive is not None and a.trial.index >= len(store.plan(a.subject)):
+                if adaptive and a.trial.index >= len(store.plan(a.subject)):
                     store.append_plan(a.subject, a.trial, a.seed)
                 _record(store, a, profile_hash)
             answered += len(answers)
