@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import assume, given
+from hypothesis import given
 from hypothesis import strategies as st
 
 from hapticd.daemon.session import build_session
@@ -102,9 +102,9 @@ def contacts(draw, n_fingers: int, mu_s: float, R: np.ndarray, x: np.ndarray) ->
 
 
 @st.composite
-def cases(draw) -> dict:
-    """A fixed or free box in any pose, its material (damping on or off), 1-3 fingers and a
-    few ticks of contacts, the object moving between them when it is free."""
+def cases(draw, min_ticks: int = 1) -> dict:
+    """A fixed or free box in any pose, its material (damping on or off), 1-3 fingers and
+    ``min_ticks``-3 ticks of contacts, the object moving between them when it is free."""
     n_fingers = draw(st.integers(1, 3))
     mu_d = draw(floats(0.05, 1.2))
     material = Material(
@@ -123,7 +123,7 @@ def cases(draw) -> dict:
     }
     ticks = []
     R, x = obj["rotation"], obj["position"]
-    for _ in range(draw(st.integers(1, 3))):
+    for _ in range(draw(st.integers(min_ticks, 3))):
         ticks.append(draw(contacts(n_fingers, material.mu_static, R, x)))
         if not fixed:  # the object moved (as Dynamics would move it) before the next tick
             x = x + draw(vec(-1e-3, 1e-3))
@@ -196,14 +196,18 @@ def test_friction_and_forces_compiled_and_uncompiled_agree_bit_for_bit(case):
     _assert_same(_run(case, ["uncompiled"] * ticks_), _run(case, ["compiled"] * ticks_))
 
 
-@given(cases(), st.data())
+@given(cases(min_ticks=2), st.data())
 def test_switching_paths_between_ticks_keeps_the_anchors(case, data):
     """The anchors are the stage's one array, which both paths read and write: any mix of
     compiled and uncompiled ticks over a run gives the uncompiled run's numbers."""
+    # Every case made to switch (2-3 ticks, both paths), not filtered with assume(): 60 %
+    # of the cases drawn were thrown away so, and drawing them was most of the test's time.
     ticks_ = len(case["ticks"])
-    assume(ticks_ >= 2)
-    modes = [data.draw(st.sampled_from(ticks.MODES)) for _ in range(ticks_)]
-    assume(len(set(modes)) == 2)
+    modes = [data.draw(st.sampled_from(ticks.MODES), label="mode") for _ in range(ticks_)]
+    if len(set(modes)) == 1:  # one path throughout: a drawn tick takes the other
+        k = data.draw(st.integers(0, ticks_ - 1), label="switched tick")
+        modes[k] = next(m for m in ticks.MODES if m != modes[k])
+    assert ticks_ >= 2 and set(modes) == set(ticks.MODES)
     _assert_same(_run(case, ["uncompiled"] * ticks_), _run(case, modes))
 
 

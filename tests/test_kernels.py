@@ -379,19 +379,49 @@ def test_the_started_compiler_holds_the_lock_until_it_ends(tmp_path, monkeypatch
 CHOOSE = """
 import sys
 from hapticd.physics import jit
+jit.SIGNATURES.update({small!r})
+real_spawn = jit.spawn
+
+
+def spawn(cmd, lock):
+    # python -m hapticd.physics.jit knows only the product's kernels: the same command
+    # through the same spawn (the lock inherited), as a script that knows the small ones.
+    assert cmd[1:3] == ["-m", "hapticd.physics.jit"], cmd
+    real_spawn([cmd[0], {compiler!r}, *cmd[3:]], lock)
+
+
+jit.spawn = spawn
 print(jit.choose("auto", {names!r}).note)
+"""
+# The background compiler of the several-runs test: it starts compiling once the four runs
+# have asked (``go`` exists), so none of them can find the kernels compiled already,
+# however fast the machine, and the lock must last while it waits and compiles.
+GATED_COMPILER = """
+import os, sys, time
+from hapticd.physics import jit
+jit.SIGNATURES.update({small!r})
+for _ in range(2400):  # bounded: 2 min
+    if os.path.exists({go!r}):
+        break
+    time.sleep(0.05)
+sys.exit(jit.main(sys.argv[1:]))
 """
 
 
-def test_several_runs_at_once_start_one_compiler_that_holds_its_lock_until_done(tmp_path):
+def test_several_runs_at_once_start_one_compiler_that_holds_its_lock_until_done(
+    tmp_path, monkeypatch
+):
     """Four processes ask for the kernels at the same moment (no cache): one compiler
-    starts; when its lock is free the kernels are in the cache. (Without
-    hapticd's record numba's code is stale: the compiler compiles them, at the lowest
-    priority.)"""
+    starts (through jit.spawn, at the lowest priority); when its lock is free the kernels
+    are in the cache. (Two small kernels given entry points, SMALL: safety_step's compile
+    at the lowest priority kept this test waiting a minute on a loaded machine.)"""
+    monkeypatch.setattr(jit, "SIGNATURES", {**jit.SIGNATURES, **SMALL_SIGNATURES})
     cache = tmp_path / "cache"
-    _numba_cache_of(NAMES, cache)
+    go = tmp_path / "go"
+    compiler = tmp_path / "compiler.py"
+    compiler.write_text(GATED_COMPILER.format(small=SMALL_SIGNATURES, go=str(go)))
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
-    code = CHOOSE.format(names=NAMES)
+    code = CHOOSE.format(small=SMALL_SIGNATURES, compiler=str(compiler), names=SMALL)
     procs = [
         subprocess.Popen(
             [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=ROOT, env=env
@@ -400,13 +430,15 @@ def test_several_runs_at_once_start_one_compiler_that_holds_its_lock_until_done(
     ]
     notes = [p.communicate(timeout=120)[0] for p in procs]
     assert all(p.returncode == 0 for p in procs), notes
-    assert sum("compiling safety_step" in n for n in notes) == 1, notes
+    assert sum("compiling world_planes, forces_step" in n for n in notes) == 1, notes
     assert sum("another run's compiler" in n for n in notes) == 3, notes
+    assert jit.compiling(cache)  # the compiler, waiting for go, holds the lock
+    go.touch()
     deadline = time.monotonic() + 180.0
     while jit.compiling(cache) or not (cache / jit.COMPILED).exists():
         assert time.monotonic() < deadline, "the background compiler did not finish in 180 s"
         time.sleep(0.2)
-    keys = jit._keys(NAMES, __import__("numba").__version__)
+    keys = jit._keys(SMALL, __import__("numba").__version__)
     assert set(keys.values()) <= set(json.loads((cache / jit.COMPILED).read_text()))
 
 
