@@ -349,9 +349,9 @@ class Renderer:
                 if new.has_friction == mat.has_friction:
                     return self._prepare_number(name, value, new)
             return self._prepare_plan(name, value, frame, safety)
-        except (ValueError, ParamError):  # already says what and why
-            raise
         except Exception as exc:
+            if type(exc) in (ValueError, ParamError, PlanError):  # already says what and why
+                raise
             raise ValueError(
                 f"{name} {value!r} cannot be used ({type(exc).__name__}: {exc}); nothing changed"
             ) from exc
