@@ -246,8 +246,8 @@ def test_a_change_prepared_before_another_landed_is_prepared_again_at_its_bounda
 
 @pytest.fixture(scope="module")
 def compiled():
-    """The tick's and the chain's kernels, compiled (loaded from the run's cache)."""
-    return jit.compile_kernels([*Renderer.kernel_names, "safety_step"])
+    """The renderer's kernels, compiled (loaded from the run's cache)."""
+    return jit.compile_kernels(list(Renderer.kernel_names))
 
 
 def _lift_with_sets(kernels: dict | None) -> np.ndarray:
