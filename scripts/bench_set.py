@@ -5,8 +5,9 @@ Each run builds the real loop (``hapticd.daemon.session.build_session``: the
 profile's replay devices, renderer and safety chain) in a subprocess of its own
 and runs it unpaced (as fast as it can, on the nominal clock), without
 real-time settings or a recording. Every ``--every``-th tick a control command
-is submitted just before the tick (as the control thread would), in turn for
-each case:
+is submitted just before the tick, in turn for each case, from the loop's own
+thread (``--submit-in thread``: from a client thread, as the control server's,
+the loop waiting for it without the GIL; the GIL's hand-over is then timed too):
 
 - numbers: stiffness, damping, mass, friction (lift: its profile has friction),
   force limit, each between its profile's value and a second one;
@@ -86,6 +87,8 @@ def _cases(loop: object, profile: str) -> dict[str, tuple[str, list[object]]]:
 
 def child(args: argparse.Namespace) -> dict:
     """One run; returns each case's tick times (p50, p99, us), submit times and failures."""
+    import queue
+    import threading
     import time
 
     import yaml
@@ -115,6 +118,27 @@ def child(args: argparse.Namespace) -> dict:
     turn = [0] * len(names)
     tick = loop._tick
     half = args.every // 2
+    requests: queue.SimpleQueue = queue.SimpleQueue()
+    submitted = threading.Event()
+    box: list = [None, 0]
+
+    def client() -> None:
+        while (cmd := requests.get()) is not None:
+            t0 = ns()
+            try:
+                box[0] = loop.submit(cmd)
+            finally:
+                box[1] = ns() - t0
+                submitted.set()
+
+    def hand_over(cmd: SetParam) -> tuple[object, int]:
+        if args.submit_in == "loop":
+            t0 = ns()
+            return loop.submit(cmd), ns() - t0
+        submitted.clear()
+        requests.put(cmd)
+        submitted.wait()
+        return box[0], box[1]
 
     def timed_tick(k: int, t: float, start: float) -> None:
         j = k - args.warmup
@@ -126,9 +150,8 @@ def child(args: argparse.Namespace) -> dict:
             param, values = cases[which]
             turn[i] += 1
             value = PARAMS[param].check(values[turn[i] % len(values)])
-            t0 = ns()
-            done = loop.submit(SetParam(param, value))
-            submit[which].append(ns() - t0)
+            done, took = hand_over(SetParam(param, value))
+            submit[which].append(took)
         t0 = ns()
         tick(k, t, start)
         dt = ns() - t0
@@ -140,7 +163,13 @@ def child(args: argparse.Namespace) -> dict:
             times["tick"].append(dt)
 
     loop._tick = timed_tick  # type: ignore[method-assign]
-    st = loop.run()
+    worker = threading.Thread(target=client, name="client", daemon=True)
+    worker.start()
+    try:
+        st = loop.run()
+    finally:
+        requests.put(None)
+        worker.join(timeout=10)
     fault = None if loop.safety.fault is None else loop.safety.fault.cause
 
     def us(v: list[int]) -> tuple[float, float]:
@@ -203,6 +232,7 @@ def compare(args: argparse.Namespace) -> list[dict]:
                     samples=args.samples,
                     every=args.every,
                     warmup=args.warmup,
+                    submit_in=args.submit_in,
                 )
                 results.setdefault((profile, name), []).append(out)
                 tick = out["tick"]
@@ -217,7 +247,7 @@ def compare(args: argparse.Namespace) -> list[dict]:
     print(
         f"\n### servo-thread tick with a set, us (median over {args.rounds} rounds of each "
         f"run's p50 / p99; {args.samples} sets per case a run; kernels: "
-        f"{args.kernels}; "
+        f"{args.kernels}; submitted from {args.submit_in}; "
         + "; ".join(f"{n}: {t or 'this tree'}" for n, t in variants.items())
         + ")\n"
     )
@@ -286,6 +316,14 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=400, help="sets per case a run")
     ap.add_argument("--every", type=int, default=6, help="ticks from one set to the next")
     ap.add_argument("--warmup", type=int, default=500, help="ticks before the first set")
+    ap.add_argument(
+        "--submit-in",
+        choices=("thread", "loop"),
+        default="loop",
+        help="where a command is submitted: the loop's own thread, just before its tick "
+        "(default), or a client thread (the control server's place; the GIL's hand-over "
+        "then is in the tick too)",
+    )
     ap.add_argument("--plot", type=Path, default=DEFAULT_PLOT)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--profile", default="lift-weight", help=argparse.SUPPRESS)

@@ -26,6 +26,10 @@ if TYPE_CHECKING:
     from hapticd.recording import Recorder
 
 
+# Each parameter's index, the value of its param_changed event.
+_INDEX = {name: i for i, name in enumerate(PARAMS)}
+
+
 class Command:
     """A change to the running loop. ``while_stopping``: may it apply during a stop ramp?
     ``event``: the kind of event (hapticd.events) the loop reports when it applies, if any."""
@@ -63,7 +67,7 @@ class SetParam(Command):
     event = "param_changed"
 
     def event_value(self) -> int:
-        return list(PARAMS).index(self.name)
+        return _INDEX.get(self.name, -1)
 
     def prepare(self, loop: ServoLoop) -> None:
         self.change = loop.prepare_set(self.name, self.value)

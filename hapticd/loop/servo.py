@@ -70,6 +70,9 @@ class Applied(threading.Event):
         self.tick = -1
         self.error: str | None = None
         self.result: Any = None
+        # The command, kept: what it prepared (and what it replaced) is freed with this, in
+        # the submitter's thread, not on the servo thread.
+        self.command: Command | None = None
 
 
 class TickClock:
@@ -172,7 +175,8 @@ class ServoLoop:
         self._frame_events = FrameEvents(self.event_ring, F)
         self._fault_seen: object = None  # the latched fault already reported as an event
         # Commands from the control thread, applied at tick boundaries (deque: thread-safe).
-        self._inbox: collections.deque[tuple[Command, Applied]] = collections.deque()
+        # Each with its event's code (-1: none) and value, and its event log line.
+        self._inbox: collections.deque[tuple[Command, Applied, int, int, str]] = collections.deque()
 
     # -- what other threads may use ------------------------------------------------------
 
@@ -204,7 +208,12 @@ class ServoLoop:
         nothing changed, for one it refuses."""
         command.prepare(self)
         done = Applied()
-        self._inbox.append((command, done))
+        done.command = command
+        # What the loop reports once it applied it, made here too: the event's code and
+        # value, and the event log's line.
+        code = -1 if command.event is None else CODES[command.event]
+        line = f"control: {command.describe()}"
+        self._inbox.append((command, done, code, command.event_value(), line))
         return done
 
     def now(self) -> float:
@@ -262,7 +271,9 @@ class ServoLoop:
             frame = self.frame
             safety = self.safety
             change = owner.prepare_set(name, value, frame, safety if safety.ready() else None)
-            change.guards += [(self, "renderer", owner), (self, "frame", frame)]
+            change.guards.append((self, "renderer", owner))
+            if change.structural:  # its call is bound to the loop's frame
+                change.guards.append((self, "frame", frame))
         else:
             change = owner.prepare_set(name, value)
             change.guards.append((self, "safety", owner))
@@ -344,16 +355,16 @@ class ServoLoop:
 
     def _apply_inbox(self, k: int, t: float) -> None:
         while self._inbox:
-            command, done = self._inbox.popleft()
+            command, done, code, value, line = self._inbox.popleft()
             try:
                 if self._stop_reason is not None and not command.while_stopping:
                     raise ValueError(f"the daemon is stopping ({self._stop_reason})")
                 done.result = command.apply(self, t)
                 self.control_seq += 1
-                if command.event is not None:
-                    self.event_ring.push(CODES[command.event], k, t, value=command.event_value())
+                if code >= 0:
+                    self.event_ring.push(code, k, t, value=value)
                 # Recorded only: forces are live here, so the control thread does the logging.
-                self._event(t, f"control: {command.describe()}", log_now=False)
+                self.events.append((t, line))
             except ValueError as exc:
                 done.error = str(exc)
             except Exception as exc:

@@ -33,6 +33,9 @@ class Change:
     copies: list[tuple[object, str, object, str]] = field(default_factory=list)
     attrs: list[tuple[object, str, object]] = field(default_factory=list)
     stores: list[tuple[Any, Any, float | int]] = field(default_factory=list)
+    # What ``attrs`` replaced, kept here: the old plan is freed with the change, in the thread
+    # that drops it (the submitter's), not on the servo thread.
+    replaced: list[object] = field(default_factory=list)
 
     def current(self) -> bool:
         """Whether what the change was prepared against is still in place."""
@@ -45,7 +48,11 @@ class Change:
                 return False
         for holder, attr, source, source_attr in self.copies:
             setattr(holder, attr, getattr(source, source_attr))
-        for holder, attr, value in self.attrs:
+        replaced = self.replaced
+        if len(replaced) < len(self.attrs):  # made by the preparer: the boundary only stores
+            replaced.extend([None] * (len(self.attrs) - len(replaced)))
+        for j, (holder, attr, value) in enumerate(self.attrs):
+            replaced[j] = getattr(holder, attr)
             setattr(holder, attr, value)
         for view, index, x in self.stores:
             view[index] = x

@@ -365,14 +365,15 @@ class Renderer:
         trial.material, trial.mass = material, mass
         self._check_integrable(name, value, self._needed_substeps(obj), trial)
         change = Change(name, value)
+        # What it was prepared against (a new plan comes with a new call).
         change.guards += [
-            (self.scene, "object", obj),
             (obj, "material", obj.material),
             (obj, "mass", obj.mass),
             (self, "one_call", call),
-            (self, "stages", self.stages),
         ]
-        change.attrs += [(obj, "material", material), (obj, "mass", mass)]
+        change.attrs.append((obj, "material", material))
+        if mass != obj.mass:
+            change.attrs.append((obj, "mass", mass))
         dynamics = next((s for s in self.stages if isinstance(s, Dynamics)), None)
         body_params = body = None
         if dynamics is not None:
@@ -380,13 +381,14 @@ class Renderer:
             scene.object = trial
             step = Dynamics(scene, self.n_fingers, self.dt)
             body_params, body, _ = step.arrays()
-            change.attrs.append((dynamics, "substeps", step.substeps))
+            if step.substeps != dynamics.substeps:
+                change.attrs.append((dynamics, "substeps", step.substeps))
         frame = call._frame
         if frame is None:  # not bound yet: its first tick binds the object's new values
             return change
         change.attrs.append((call, "_material", material))  # no bind for the new material
         plan = call._plan
-        change.guards += [(call, "_frame", frame), (call, "_plan", plan)]
+        change.guards += [(call, "_plan", plan), (call, "_frame", frame)]
         view = memoryview(plan)
         p = kn.TICK_AT
         slots = [
@@ -401,11 +403,14 @@ class Renderer:
             at = call._layout[kn.TICK_PLAN.index("body")]
             head = body[: kn.BODY_HEAD].reshape(-1).tolist()
             slots += [(at + j, x) for j, x in enumerate(head)]
-        change.stores += [(view, i, float(x)) for i, x in slots]
-        change.stores += [
+        stores = [(view, i, float(x)) for i, x in slots]
+        stores += [
             (item_view(frame.stiffness_n_per_m), (), material.stiffness),
             (item_view(frame.mass_kg), (), mass),
         ]
+        # Only the slots the change changes: a stiffness set is a few stores, not the step's.
+        change.stores += [(v, i, x) for v, i, x in stores if v[i] != x]
+        change.replaced = [None] * len(change.attrs)
         return change
 
     def _prepare_plan(
@@ -455,6 +460,7 @@ class Renderer:
         ]
         if frame is not None:
             change.stores += call._published(frame)
+        change.replaced = [None] * len(change.attrs)
         return change
 
     def _needed_substeps(self, obj: SceneObject) -> float:
