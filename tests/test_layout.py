@@ -40,6 +40,7 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.physics.dynamics",
         "hapticd.physics.frame",
         "hapticd.physics.kernels",
+        "hapticd.physics.live",
         "hapticd.physics.passivity",
         "hapticd.physics.render",
         "hapticd.physics.safety",

@@ -434,3 +434,12 @@ def test_the_commands_call_the_loops_verbs_and_write_none_of_its_fields():
         loop = _VerbsOnly()
         assert command.apply(loop, 2.0) == result, command
         assert loop.calls == calls, command
+    # A submitted set prepares itself (the submitting thread), then applies what it prepared.
+    command = SetParam("stiffness_n_per_m", 800.0)
+    loop = _VerbsOnly()
+    command.prepare(loop)
+    command.apply(loop, 2.0)
+    assert loop.calls == [
+        ("prepare_set", ("stiffness_n_per_m", 800.0)),
+        ("apply_change", ("prepare_set result",)),
+    ]

@@ -5,6 +5,7 @@ definition, contact onset. A robust method runs the kernel allocation_step, an e
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
@@ -160,6 +161,22 @@ class ContactAllocator:
         """Whether allocation_step allocates for the method (a robust one; not the seed's
         exact formulas)."""
         return self._takes
+
+    def changed(
+        self, *, method: str | None = None, actuation: Actuation | None = None
+    ) -> ContactAllocator:
+        """A copy with another ``method`` or ``actuation`` (as many directions), for a plan
+        prepared beside the running one: it carries this one's state (alpha) and workspace,
+        the same arrays; its kernel inputs are its own."""
+        new = copy.copy(self)
+        new._params = self._params.copy()
+        new.accuracy = self.accuracy.copy()
+        if method is not None:
+            new._method = method
+        if actuation is not None:
+            new._actuation = actuation
+        new._refresh()
+        return new
 
     def kernel_inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """allocation_step's ``local`` (D, 3), ``counts`` (F,) and ``params`` as the allocator

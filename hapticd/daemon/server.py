@@ -1151,7 +1151,14 @@ class ControlServer:
             sys.setswitchinterval(old)
 
     def _set(self, conn: _Conn, req: dict[str, Any]) -> dict[str, Any]:
-        done = self.session.apply(SetParam(req["param"], req["value"]))
+        # Prepared here (a new plan for the allocator or the directions): with reload's short
+        # GIL switch interval, so that the loop waking meanwhile soon gets the GIL.
+        old = sys.getswitchinterval()
+        sys.setswitchinterval(min(old, RELOAD_SWITCH_INTERVAL_S))
+        try:
+            done = self.session.apply(SetParam(req["param"], req["value"]))
+        finally:
+            sys.setswitchinterval(old)
         return {"applied_at_tick": done.tick, "param": req["param"]}
 
 

@@ -1,16 +1,18 @@
 """Control commands: each checks and applies itself to the servo loop at a tick boundary,
 through the loop's verbs (enable, disable, start_recording, stop_recording, reload,
-set_param), never by writing its fields.
+prepare_set and apply_change), never by writing or reading its fields.
 
 The control thread builds a command and hands it to the loop
-(``ServoLoop.submit``); the loop applies it at the start of its next tick,
-before the devices are read, so a change is seen by the whole tick. A command
-raises ``ValueError`` (changing nothing) when it cannot be made.
+(``ServoLoop.submit``), which lets it prepare itself first, in the control thread
+(``Command.prepare``: a set checks its value and works out what it stores); the
+loop applies it at the start of its next tick, before the devices are read, so a
+change is seen by the whole tick. A command raises ``ValueError`` (changing
+nothing) when it cannot be made.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from hapticd.params import PARAMS
@@ -18,9 +20,14 @@ from hapticd.params import PARAMS
 if TYPE_CHECKING:
     from hapticd.loop.servo import ServoLoop
     from hapticd.physics.frame import Frame
+    from hapticd.physics.live import Change
     from hapticd.physics.render import Renderer
     from hapticd.physics.safety import SafetyChain
     from hapticd.recording import Recorder
+
+
+# Each parameter's index, the value of its param_changed event.
+_INDEX = {name: i for i, name in enumerate(PARAMS)}
 
 
 class Command:
@@ -34,6 +41,10 @@ class Command:
         """The event's value (a parameter's index; -1: none)."""
         return -1
 
+    def prepare(self, loop: ServoLoop) -> None:
+        """Do what can be done before the tick, in the submitting thread (ValueError:
+        refused, nothing queued); nothing by default."""
+
     def apply(self, loop: ServoLoop, t: float) -> Any:
         """Make the change at nominal time ``t`` (s); return a result for the caller."""
         raise NotImplementedError
@@ -45,18 +56,27 @@ class Command:
 
 @dataclass
 class SetParam(Command):
-    """Set a scene, rendering or safety parameter (already checked against its spec)."""
+    """Set a scene, rendering or safety parameter (already checked against its spec):
+    prepared when submitted (checked by the part that holds it, its stores worked out),
+    applied at the tick boundary by those stores."""
 
     name: str
     value: Any
+    change: Change | None = field(default=None, repr=False)
 
     event = "param_changed"
 
     def event_value(self) -> int:
-        return list(PARAMS).index(self.name)
+        return _INDEX.get(self.name, -1)
+
+    def prepare(self, loop: ServoLoop) -> None:
+        self.change = loop.prepare_set(self.name, self.value)
 
     def apply(self, loop: ServoLoop, t: float) -> Any:
-        loop.set_param(self.name, self.value)
+        if self.change is None:  # applied without being submitted
+            loop.set_param(self.name, self.value)
+        else:
+            loop.apply_change(self.change)
 
     def describe(self) -> str:
         return f"set {self.name} {self.value}"
@@ -93,8 +113,6 @@ class RecordStart(Command):
     event = "recording_started"
 
     def apply(self, loop: ServoLoop, t: float) -> Any:
-        if loop.recorder is None and loop.anchor is not None:
-            self.recorder.anchor(*loop.anchor)  # its header's clock, filled by its writer
         loop.start_recording(self.recorder)
 
     def describe(self) -> str:

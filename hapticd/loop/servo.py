@@ -42,6 +42,7 @@ from hapticd.loop.pacing import SPIN_MARGIN_S, LoopStats, Pacer
 from hapticd.params import PARAMS, ParamError
 from hapticd.physics import kernels
 from hapticd.physics.frame import Frame, item_view
+from hapticd.physics.live import Change
 from hapticd.physics.render import SAMPLES_REFUSED, Renderer
 from hapticd.physics.safety import SafetyChain
 from hapticd.recording import Recorder
@@ -69,6 +70,9 @@ class Applied(threading.Event):
         self.tick = -1
         self.error: str | None = None
         self.result: Any = None
+        # The command, kept: what it prepared (and what it replaced) is freed with this, in
+        # the submitter's thread, not on the servo thread.
+        self.command: Command | None = None
 
 
 class TickClock:
@@ -159,6 +163,8 @@ class ServoLoop:
         self.rt_report: realtime.RealtimeReport | None = None
         # Counts applied control changes; recorded every tick, so a change is findable.
         self.control_seq = 0
+        # Prepared changes found stale at their tick (prepared again there, on the loop).
+        self.stale_changes = 0
         self._last_recorded = -1  # tick of the last record handed to the recorder
         self.running = False
         self.end_reason = ""
@@ -169,7 +175,8 @@ class ServoLoop:
         self._frame_events = FrameEvents(self.event_ring, F)
         self._fault_seen: object = None  # the latched fault already reported as an event
         # Commands from the control thread, applied at tick boundaries (deque: thread-safe).
-        self._inbox: collections.deque[tuple[Command, Applied]] = collections.deque()
+        # Each with its event's code (-1: none) and value, and its event log line.
+        self._inbox: collections.deque[tuple[Command, Applied, int, int, str]] = collections.deque()
 
     # -- what other threads may use ------------------------------------------------------
 
@@ -194,9 +201,19 @@ class ServoLoop:
         self.pacer.close_sleep_gate()
 
     def submit(self, command: Command) -> Applied:
-        """Queue a command (from another thread); the loop applies it at its next tick start."""
+        """Queue a command (from another thread); the loop applies it at its next tick start.
+
+        The command prepares itself first, here in the caller's thread (``Command.prepare``:
+        a set checks its value and works out its change): ValueError, nothing queued and
+        nothing changed, for one it refuses."""
+        command.prepare(self)
         done = Applied()
-        self._inbox.append((command, done))
+        done.command = command
+        # What the loop reports once it applied it, made here too: the event's code and
+        # value, and the event log's line.
+        code = -1 if command.event is None else CODES[command.event]
+        line = f"control: {command.describe()}"
+        self._inbox.append((command, done, code, command.event_value(), line))
         return done
 
     def now(self) -> float:
@@ -239,8 +256,36 @@ class ServoLoop:
         return self._owner(name).param(name)
 
     def set_param(self, name: str, value: Any) -> None:
-        """Set a parameter now (at a tick boundary); ValueError changes nothing."""
-        self._owner(name).set_param(name, value)
+        """Set a parameter now (at a tick boundary, or in the thread that runs the loop's
+        ticks); ValueError changes nothing."""
+        self.apply_change(self.prepare_set(name, value))
+
+    def prepare_set(self, name: str, value: Any) -> Change:
+        """Check a parameter's new value and prepare its change, changing nothing (from any
+        thread: the control thread's share of a set). A number becomes stores into its
+        slots in the running call's arrays; a change of the plan's structure a new plan,
+        bound to the loop's frame, to swap in. ParamError or ValueError for a value the
+        part that holds it refuses."""
+        owner = self._owner(name)
+        if isinstance(owner, Renderer):
+            frame = self.frame
+            safety = self.safety
+            change = owner.prepare_set(name, value, frame, safety if safety.ready() else None)
+            change.guards.append((self, "renderer", owner))
+            if change.structural:  # its call is bound to the loop's frame
+                change.guards.append((self, "frame", frame))
+        else:
+            change = owner.prepare_set(name, value)
+            change.guards.append((self, "safety", owner))
+        return change
+
+    def apply_change(self, change: Change) -> None:
+        """Make a prepared change (at a tick boundary): its stores, no plan or allocation. One
+        prepared against what has changed since (another change, a reload) is prepared
+        again here and applied; ValueError, nothing changed, if it no longer can be."""
+        if not change.apply():
+            self.stale_changes += 1
+            self.prepare_set(change.name, change.value).apply()
 
     def enable(self, t: float) -> None:
         """Clear a latched fault and enable every device's forces again; they ramp up from
@@ -254,10 +299,12 @@ class ServoLoop:
         self.bank.enable(False)
 
     def start_recording(self, recorder: Recorder) -> None:
-        """Record every tick with ``recorder`` (its writer already running); ValueError
-        while another one records."""
+        """Record every tick with ``recorder`` (its writer already running; once the loop
+        has started, anchored to its clock here); ValueError while another one records."""
         if self.recorder is not None:
             raise ValueError(f"already recording to {self.recorder.path}; stop it first")
+        if self.anchor is not None:
+            recorder.anchor(*self.anchor)  # its header's clock, filled by its writer
         self.recorder = recorder
 
     def stop_recording(self) -> Recorder:
@@ -308,16 +355,16 @@ class ServoLoop:
 
     def _apply_inbox(self, k: int, t: float) -> None:
         while self._inbox:
-            command, done = self._inbox.popleft()
+            command, done, code, value, line = self._inbox.popleft()
             try:
                 if self._stop_reason is not None and not command.while_stopping:
                     raise ValueError(f"the daemon is stopping ({self._stop_reason})")
                 done.result = command.apply(self, t)
                 self.control_seq += 1
-                if command.event is not None:
-                    self.event_ring.push(CODES[command.event], k, t, value=command.event_value())
+                if code >= 0:
+                    self.event_ring.push(code, k, t, value=value)
                 # Recorded only: forces are live here, so the control thread does the logging.
-                self._event(t, f"control: {command.describe()}", log_now=False)
+                self.events.append((t, line))
             except ValueError as exc:
                 done.error = str(exc)
             except Exception as exc:

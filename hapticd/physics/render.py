@@ -7,6 +7,7 @@ The picture: docs/architecture.md, "One tick".
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from collections.abc import Callable
@@ -20,7 +21,8 @@ from hapticd.allocation.contacts import ContactAllocator
 from hapticd.params import PARAMS, ParamError
 from hapticd.physics import kernels as kn
 from hapticd.physics.dynamics import MAX_SUBSTEPS, lightest_mass, needed_substeps
-from hapticd.physics.frame import LOOP_WRITERS, NAMES, STATE_WRITERS, Frame
+from hapticd.physics.frame import LOOP_WRITERS, NAMES, STATE_WRITERS, Frame, item_view
+from hapticd.physics.live import Change
 from hapticd.physics.passivity import PassivityParams
 from hapticd.physics.safety import SafetyChain
 from hapticd.physics.scene import Material, Scene, SceneObject
@@ -188,27 +190,38 @@ class Renderer:
         With friction, contact writes FRICTIONLESS and friction HELD. Allocation writes
         ``rendered_force`` itself when it is the only contribution; else the output stage
         (or ``set_output``'s) does."""
+        planned = self._planned(self._contact, self._allocation, self.obj.material)
+        self.writers = check_plan(planned.stages)
+        self.stages: list[Stage] = planned.stages
+        # The running plan's call reads the object's material as it is at each bind.
+        self.one_call = OneCall(self, self.kernels.get("tick_step"), planned.live())
+
+    def _planned(self, contact: Contact, allocation: Allocation, material: Material) -> Planned:
+        """The stages for ``material``, with ``contact`` and ``allocation`` (the renderer's,
+        or copies for a plan prepared beside the running one: only they are set)."""
         sc = self.scene
         obj = sc.object
-        stages: list[Stage] = [self._contact]
-        friction = obj.material.has_friction
-        self._contact.outputs = FRICTIONLESS if friction else HELD
+        stages: list[Stage] = [contact]
+        friction = material.has_friction
+        contact.outputs = FRICTIONLESS if friction else HELD
         if friction:
             stages.append(self._friction)
-        self._allocation.kernel = self.kernels.get("allocation_step")
-        stages += [Forces(), self._allocation]
+        allocation.kernel = self.kernels.get("allocation_step")
+        stages += [Forces(), allocation]
         parts: list[str] = []
         if sc.surfaces:
             stages.append(Environment())
             parts.append("env_rendered")
         if self._passivity is not None:  # it sees every other contribution
-            self._passivity.inputs = ("allocated_force", *parts)
+            inputs = ("allocated_force", *parts)
+            if self._passivity.inputs != inputs:  # the scene's surfaces fix them
+                self._passivity.inputs = inputs
             stages.append(self._passivity)
             parts.append("passivity_force")
         output = self._output
         if output is None and parts:
             output = Output(parts)
-        self._allocation.output = "rendered_force" if output is None else "allocated_force"
+        allocation.output = "rendered_force" if output is None else "allocated_force"
         if output is not None:
             stages.append(output)
         if not obj.fixed:
@@ -217,9 +230,7 @@ class Renderer:
         for after, stage in self._inserted:
             names = [s.name for s in stages]
             stages.insert(names.index(after) + 1, stage)
-        self.writers = check_plan(stages)
-        self.stages: list[Stage] = stages
-        self.one_call = OneCall(self, self.kernels.get("tick_step"))
+        return Planned(stages, contact, allocation, material)
 
     # The kernels a renderer runs: the tick's call, and the allocator's own (for
     # ``ContactAllocator.replay``, outside the call).
@@ -306,50 +317,168 @@ class Renderer:
         return _GETTERS[_own(name)](self)
 
     def set_param(self, name: str, value: Any) -> None:
-        """Change a renderer parameter between ticks and re-plan. The value is taken as
-        given (the control protocol checks it against its range). ParamError for a name the
-        renderer does not own; ValueError, nothing changed, for another count of actuated
-        directions per finger (it fixes the recording's layout), for a free object the
-        change leaves needing more substeps than its step takes, or for any other failure
-        of the change (the old values and plan stay)."""
+        """Change a renderer parameter now (between ticks, in this thread): ``prepare_set``
+        and apply it. ParamError or ValueError, nothing changed, as ``prepare_set``."""
+        call = self.one_call
+        self.prepare_set(name, value, call._frame, call._safety).apply()
+
+    def prepare_set(
+        self,
+        name: str,
+        value: Any,
+        frame: Frame | None = None,
+        safety: SafetyChain | None = None,
+    ) -> Change:
+        """Check a new value of a renderer parameter and prepare its change, changing
+        nothing yet (in the caller's thread: the servo thread only applies it).
+
+        A number (stiffness, damping, mass, friction that stays on or off) becomes stores
+        into its slots in the running call's arrays; the allocator, the actuated directions
+        or friction turned on or off, a new plan and call bound to ``frame`` (the loop's,
+        with ``safety``'s tick in it; None: bound on its first tick), swapped in by
+        attribute stores. The value is taken as given (the control protocol checks it
+        against its range). ParamError for a name the renderer does not own; ValueError for
+        another count of actuated directions per finger (it fixes the recording's layout),
+        a free object the change leaves needing more substeps than its step takes, or any
+        other failure of the change."""
         _own(name)
-        obj, alloc = self.obj, self.allocator
-        before = (obj.mass, obj.material, alloc.actuation, alloc.method)
-        planned = (self.stages, self.writers, self.one_call)  # the running call and its state
-        needed = self._needed_substeps()
         try:
-            _SETTERS[name](self, value)
-            self._check_integrable(name, value, needed)
-            self.plan()
-            if not obj.fixed:  # what the next tick's call binds: fails here, not in a tick
-                self.stages[[s.name for s in self.stages].index("dynamics")].arrays()
+            if name in _NUMBERS:
+                mat = self.obj.material
+                new = _NUMBERS[name](mat, value)
+                if new.has_friction == mat.has_friction:
+                    return self._prepare_number(name, value, new)
+            return self._prepare_plan(name, value, frame, safety)
         except Exception as exc:
-            obj.mass, obj.material, alloc.actuation, alloc.method = before
-            self.plan()  # the stages' settings as they were; then the very call that ran
-            self.stages, self.writers, self.one_call = planned
-            if type(exc) in (ValueError, ParamError):  # already says what and why
+            if type(exc) in (ValueError, ParamError, PlanError):  # already says what and why
                 raise
             raise ValueError(
                 f"{name} {value!r} cannot be used ({type(exc).__name__}: {exc}); nothing changed"
             ) from exc
 
-    def _needed_substeps(self) -> float:
-        """The substeps a free object's step needs now (0 for a fixed object)."""
-        obj = self.obj
+    def _prepare_number(self, name: str, value: Any, material: Material) -> Change:
+        """A number's change: its new value into the slots the running call reads (and the
+        object's, which a later bind reads), a free object's step and substeps remade."""
+        obj, call = self.obj, self.one_call
+        mass = float(value) if name == "mass_kg" else obj.mass
+        trial = copy.copy(obj)  # the object as the change leaves it (its state shared, unread)
+        trial.material, trial.mass = material, mass
+        self._check_integrable(name, value, self._needed_substeps(obj), trial)
+        change = Change(name, value)
+        # What it was prepared against (a new plan comes with a new call).
+        change.guards += [
+            (obj, "material", obj.material),
+            (obj, "mass", obj.mass),
+            (self, "one_call", call),
+        ]
+        change.attrs.append((obj, "material", material))
+        if mass != obj.mass:
+            change.attrs.append((obj, "mass", mass))
+        dynamics = next((s for s in self.stages if isinstance(s, Dynamics)), None)
+        body_params = body = None
+        if dynamics is not None:
+            scene = copy.copy(self.scene)
+            scene.object = trial
+            step = Dynamics(scene, self.n_fingers, self.dt)
+            body_params, body, _ = step.arrays()
+            if step.substeps != dynamics.substeps:
+                change.attrs.append((dynamics, "substeps", step.substeps))
+        frame = call._frame
+        if frame is None:  # not bound yet: its first tick binds the object's new values
+            return change
+        change.attrs.append((call, "_material", material))  # no bind for the new material
+        plan = call._plan
+        change.guards += [(call, "_plan", plan), (call, "_frame", frame)]
+        view = memoryview(plan)
+        p = kn.TICK_AT
+        slots = [
+            (p + kn.TICK_FRICTION_AT, material.mu_static),
+            (p + kn.TICK_FRICTION_AT + 1, material.mu_dynamic),
+            (p + kn.TICK_FORCES_AT, material.stiffness),
+            (p + kn.TICK_FORCES_AT + 1, material.damping),
+        ]
+        if body_params is not None and body is not None:
+            slots += [(p + kn.TICK_BODY_AT + j, x) for j, x in enumerate(body_params.tolist())]
+            # The body block's head rows: the inertia and its inverse (they scale with mass).
+            at = call._layout[kn.TICK_PLAN.index("body")]
+            head = body[: kn.BODY_HEAD].reshape(-1).tolist()
+            slots += [(at + j, x) for j, x in enumerate(head)]
+        stores = [(view, i, float(x)) for i, x in slots]
+        stores += [
+            (item_view(frame.stiffness_n_per_m), (), material.stiffness),
+            (item_view(frame.mass_kg), (), mass),
+        ]
+        # Only the slots the change changes: a stiffness set is a few stores, not the step's.
+        change.stores += [(v, i, x) for v, i, x in stores if v[i] != x]
+        change.replaced = [None] * len(change.attrs)
+        return change
+
+    def _prepare_plan(
+        self, name: str, value: Any, frame: Frame | None, safety: SafetyChain | None
+    ) -> Change:
+        """A change of the plan's structure: a new plan and call, made and bound here with
+        copies of what the running one's stages hold, swapped in by ``Change.apply``."""
+        obj, old = self.obj, self.one_call
+        material = obj.material
+        allocator = self.allocator
+        if name == "allocator":
+            _check_allocator(value)
+            allocator = allocator.changed(method=str(value))
+        elif name == "actuated_directions":
+            allocator = allocator.changed(actuation=_actuation(self, value))
+        else:
+            material = _NUMBERS[name](material, value)
+            allocator = allocator.changed()
+        contact = copy.copy(self._contact)
+        allocation = Allocation(self.scene, allocator)
+        planned = self._planned(contact, allocation, material)
+        writers = check_plan(planned.stages)
+        call = OneCall(self, self.kernels.get("tick_step"), planned)
+        if frame is not None:
+            call._bind(frame, publish=False)
+            if safety is not None:
+                call._with(safety)
+        change = Change(name, value, structural=True)
+        change.guards += [
+            (self.scene, "object", obj),
+            (obj, "material", obj.material),
+            (self, "one_call", old),
+            (self, "allocator", self.allocator),
+            (self, "_contact", self._contact),
+        ]
+        # Whether the proxies have started, as the running tick leaves it.
+        change.copies += [(call, "_started", old, "_started")]
+        change.copies += [(contact, "_started", self._contact, "_started")]
+        change.attrs += [
+            (obj, "material", material),
+            (self, "_contact", contact),
+            (self, "_allocation", allocation),
+            (self, "allocator", allocator),
+            (self, "stages", planned.stages),
+            (self, "writers", writers),
+            (self, "one_call", call),
+        ]
+        if frame is not None:
+            change.stores += call._published(frame)
+        change.replaced = [None] * len(change.attrs)
+        return change
+
+    def _needed_substeps(self, obj: SceneObject) -> float:
+        """The substeps free ``obj``'s step needs (0 for a fixed object)."""
         if obj.fixed:
             return 0.0
         return needed_substeps(
             obj, self.scene.surfaces, obj.material.stiffness, self.n_fingers, self.dt
         )
 
-    def _check_integrable(self, name: str, value: Any, before: float) -> None:
-        """ValueError if the change leaves a free object needing more substeps than its step
-        takes (and more than before: a profile's own choice stays), naming the limit."""
+    def _check_integrable(self, name: str, value: Any, before: float, obj: SceneObject) -> None:
+        """ValueError if the change leaves free ``obj`` (the object as it would be) needing
+        more substeps than its step takes (and more than ``before``: a profile's own choice
+        stays), naming the limit."""
         takes = self.scene.substeps or MAX_SUBSTEPS
-        needed = self._needed_substeps()
+        needed = self._needed_substeps(obj)
         if needed <= takes or needed <= before:
             return
-        obj = self.obj
         lightest = lightest_mass(
             obj, self.scene.surfaces, obj.material.stiffness, self.n_fingers, self.dt, takes
         )
@@ -361,14 +490,32 @@ class Renderer:
         )
 
 
+@dataclasses.dataclass
+class Planned:
+    """A plan: its ``stages`` in tick order, the ``contact`` and ``allocation`` stages among
+    them, and the object's ``material`` it was made for (None: the object's own at each
+    bind, the running plan's)."""
+
+    stages: list[Stage]
+    contact: Contact
+    allocation: Allocation
+    material: Material | None
+
+    def live(self) -> Planned:
+        """This plan reading the object's material as it is when its call binds."""
+        return dataclasses.replace(self, material=None)
+
+
 class OneCall:
-    """The renderer's plan as one call per tick of kernels.tick_step, compiled or not.
+    """The renderer's plan (``planned``) as one call per tick of kernels.tick_step,
+    compiled or not.
 
     A stage the kernel lacks runs in Python between the call's parts, each a run of the
     kernel's stages."""
 
-    def __init__(self, renderer: Renderer, fn: Callable[..., int] | None) -> None:
+    def __init__(self, renderer: Renderer, fn: Callable[..., int] | None, planned: Planned) -> None:
         self.renderer = renderer
+        self.planned = planned
         self._fn = kn.uncompiled("tick_step") if fn is None else fn
         self._call: Callable[..., int] = self._fn  # ``direct(fn, args)``, made with the args
         self._frame: Frame | None = None
@@ -381,8 +528,9 @@ class OneCall:
         self._plan = np.zeros(0)  # tick_step's plan (kernels.TICK_PLAN), made by _bind
         self._params = self._plan  # the plan's params (kernels.TICK_PARAMS, a view)
         self._planes = np.zeros((0, kn.PLANE_COLUMNS))  # the plan's planes block (a view)
+        self._layout: list[int] = []  # each TICK_PLAN block's offset in the plan
         # The tick in parts: runs of the kernel's stages (first, last) and Python stages.
-        self._parts = _parts(renderer.stages)
+        self._parts = _parts(planned.stages)
         self._single = len(self._parts) == 1  # one part: the whole tick
 
     def __getstate__(self) -> dict[str, object]:
@@ -391,22 +539,26 @@ class OneCall:
         unbound = {"_frame": None, "_args": (), "_obj": None, "_material": None, "_call": self._fn}
         return {**self.__dict__, **unbound, "_safety": None}
 
-    def _bind(self, frame: Frame) -> None:
-        """Make the call's arguments for ``frame`` and the plan as it is now."""
+    def _bind(self, frame: Frame, *, publish: bool = True) -> None:
+        """Make the call's arguments for ``frame`` and the plan as it is now; ``publish``:
+        write the scene's scalars into the frame too (not for a plan prepared beside the
+        running one, whose swap stores them: ``_published``)."""
         r = self.renderer
+        src = self.planned
         obj = r.scene.object
-        mat = obj.material
-        act = r.allocator.actuation
+        mat = obj.material if src.material is None else src.material
+        allocator = src.allocation.allocator
+        act = allocator.actuation
         n = r.n_fingers
-        names = {s.name: s for s in r.stages}
+        names = {s.name: s for s in src.stages}
         friction = "friction" in names
         free = "dynamics" in names
         passivity = r._passivity if "passivity" in names else None
         # The directions and counts are the environment's and passivity's too.
-        directions, counts, alloc_params = r.allocator.kernel_inputs()
+        directions, counts, alloc_params = allocator.kernel_inputs()
         body_params, body, surf = names["dynamics"].arrays() if free else _NO_BODY
         blocks = {
-            "planes": r._contact._kernel_planes(),
+            "planes": src.contact._kernel_planes(),
             "body": body,
             "surf": surf,
             "normals": np.asarray(obj.shape.normals, dtype=float).reshape(-1, 3),
@@ -451,7 +603,7 @@ class OneCall:
         at = {name: _float_offset(frame, name) for name in kn.TICK_FIELDS}
         if not friction:  # contact writes the final fields itself
             at.update({plain: at[held] for plain, held in zip(FRICTIONLESS, HELD, strict=True)})
-        at["allocated_force"] = at[r._allocation.output]
+        at["allocated_force"] = at[src.allocation.output]
         r._adopt()
         state = kn.state_layout(n, act.n_actuators)
         plan[: kn.TICK_AT] = [
@@ -472,13 +624,27 @@ class OneCall:
         )
         if self._single:
             p[kn.TICK_FIRST], p[kn.TICK_LAST] = self._parts[0]  # type: ignore[misc]
-        frame.stiffness_n_per_m[()] = mat.stiffness
-        frame.mass_kg[()] = obj.mass
-        frame.allocator[()] = METHODS.index(r.allocator.method)
+        self._layout = layout
+        if publish:
+            for view, index, x in self._published(frame):
+                view[index] = x
         self._frame = frame
         self._obj, self._material = obj, mat
         self._safety = None  # the arguments hold no chain's arrays
         self._call = direct(self._fn, self._args)
+
+    def _published(self, frame: Frame) -> list[tuple[Any, Any, float | int]]:
+        """The scene's scalars this plan publishes in ``frame`` (SceneState's stiffness, mass
+        and allocator), as item stores (``hapticd.physics.live.Change.stores``)."""
+        obj = self.renderer.scene.object
+        src = self.planned
+        mat = obj.material if src.material is None else src.material
+        method = src.allocation.allocator.method
+        return [
+            (item_view(frame.stiffness_n_per_m), (), mat.stiffness),
+            (item_view(frame.mass_kg), (), obj.mass),
+            (item_view(frame.allocator), (), METHODS.index(method)),  # u1: an int
+        ]
 
     def run(self, frame: Frame, safety: SafetyChain | None = None) -> int | None:
         """The tick: ``Renderer.run``."""
@@ -488,7 +654,7 @@ class OneCall:
         if frame is not self._frame or obj is not self._obj or obj.material is not self._material:
             self._bind(frame)
         if not self._started:  # every proxy starts at its device, on the first finite tick
-            self._started = self.renderer._contact.start(frame)
+            self._started = self.planned.contact.start(frame)
         if safety is not self._safety:  # the chain in the call changed (None: no chain)
             self._with(safety)
         if self._single:
@@ -529,10 +695,10 @@ class OneCall:
 
     def _stopped(self, frame: Frame, outcome: int) -> None:
         """A tick the kernel refused: ValueError or AllocationError, by name."""
-        r = self.renderer
+        src = self.planned
         if outcome == kn.TICK_FROM_CONTACT:
-            raise ValueError(r._contact._non_finite(frame, self._planes))
-        raise r.allocator.refusal(bad_input=outcome == kn.TICK_NON_FINITE_INPUT)
+            raise ValueError(src.contact._non_finite(frame, self._planes))
+        raise src.allocation.allocator.refusal(bad_input=outcome == kn.TICK_NON_FINITE_INPUT)
 
     def _with(self, safety: SafetyChain | None) -> None:
         """Run ``safety``'s tick in the call from now on (None: no chain's)."""
@@ -617,35 +783,37 @@ def _own(name: str) -> str:
     return name
 
 
-def _material(r: Renderer, **change: float) -> None:
-    r.obj.material = dataclasses.replace(r.obj.material, **change)
-
-
-def _set_actuation(r: Renderer, value: Any) -> None:
+def _actuation(r: Renderer, value: Any) -> Actuation:
+    """The actuation ``value`` names, as many directions per finger as now (ValueError)."""
     new = value if isinstance(value, Actuation) else Actuation(value, r.actuation.frame)
     if new.counts != r.actuation.counts:
         raise ValueError(
             f"actuated directions per finger must stay {r.actuation.counts}, got {new.counts} "
             "(change the count in the profile and reload)"
         )
-    r.allocator.actuation = new
+    return new
 
 
-def _set_allocator(r: Renderer, value: Any) -> None:
+def _check_allocator(value: Any) -> None:
     if value not in METHODS:
         raise ValueError(f"unknown allocator {value!r}; expected one of {list(METHODS)}")
-    r.allocator.method = str(value)
 
 
-# How the renderer changes and reads each parameter it owns (hapticd.params, owner
-# "renderer"); a test checks these cover exactly those.
-_SETTERS: dict[str, Callable[[Renderer, Any], None]] = {
-    "stiffness_n_per_m": lambda r, v: _material(r, stiffness=float(v)),
-    "damping_n_s_per_m": lambda r, v: _material(r, damping=float(v)),
-    "friction": lambda r, v: _material(r, mu_static=float(v[0]), mu_dynamic=float(v[1])),
-    "mass_kg": lambda r, v: setattr(r.obj, "mass", float(v)),
-    "allocator": _set_allocator,
-    "actuated_directions": _set_actuation,
+# The numbers: each one's new material (the mass is the object's own, not its material's).
+_NUMBERS: dict[str, Callable[[Material, Any], Material]] = {
+    "stiffness_n_per_m": lambda m, v: dataclasses.replace(m, stiffness=float(v)),
+    "damping_n_s_per_m": lambda m, v: dataclasses.replace(m, damping=float(v)),
+    "friction": lambda m, v: dataclasses.replace(m, mu_static=float(v[0]), mu_dynamic=float(v[1])),
+    "mass_kg": lambda m, v: m,
+}
+
+# How the renderer changes each parameter it owns (hapticd.params, owner "renderer"): a
+# number writes its slots, the others (and friction turned on or off) a new plan; a test
+# checks these and the getters cover exactly those.
+_SETTERS: dict[str, str] = {
+    **dict.fromkeys(_NUMBERS, "slots"),
+    "allocator": "plan",
+    "actuated_directions": "plan",
 }
 
 _GETTERS: dict[str, Callable[[Renderer], Any]] = {

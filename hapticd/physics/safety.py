@@ -16,6 +16,7 @@ import numpy as np
 from hapticd.params import PARAMS, ParamError
 from hapticd.physics import kernels
 from hapticd.physics.frame import Frame
+from hapticd.physics.live import Change
 
 
 @dataclass(frozen=True)
@@ -206,8 +207,15 @@ class SafetyChain:
         return _GETTERS[_own(name)](self)
 
     def set_param(self, name: str, value: Any) -> None:
-        """Change a safety parameter (checked against its spec already) from the next tick."""
-        _SETTERS[_own(name)](self, value)
+        """Change a safety parameter (checked against its spec already) from the next tick:
+        ``prepare_set`` and apply it."""
+        self.prepare_set(name, value).apply()
+
+    def prepare_set(self, name: str, value: Any) -> Change:
+        """Check a new value of a safety parameter and prepare its change (in the caller's
+        thread): item stores into the chain's array, which the servo thread makes.
+        ValueError, nothing changed, for a value the chain refuses."""
+        return _SETTERS[_own(name)](self, value)
 
     def ramp_down(self, t: float, duration_s: float) -> None:
         """Scale forces by a factor falling from 1 at ``t`` (s) to exactly 0 after
@@ -346,17 +354,24 @@ def _own(name: str) -> str:
     return name
 
 
-def _set_force_limit(s: SafetyChain, value: Any) -> None:
+def _set_force_limit(s: SafetyChain, value: Any) -> Change:
     v = float(value)
+    if not (v > 0.0 and math.isfinite(v)):
+        raise ValueError(f"force_limit_n must be positive and finite, got {v:g}")
     if v > s.max_n:  # a live change may lower the profile's limit, never raise it past it
         raise ValueError(
             f"force_limit_n {v:g} N is above the profile's safety.max_force_n {s.max_n:g} N: "
             "refused (raise safety.max_force_n in the profile and reload)"
         )
-    s.set_limits([min(r, v) for r in s.rated])
+    # Each finger's limit: its slot in the chain's array (the limits' row, finger by finger).
+    at = kernels.SAFETY_PARAMS + kernels.SAFETY_LIMIT * len(s.rated)
+    change = Change("force_limit_n", value, guards=[(s, "_view", s._view)])
+    change.stores += [(s._view, at + i, min(r, v)) for i, r in enumerate(s.rated)]
+    return change
 
 
-_SETTERS: dict[str, Callable[[SafetyChain, Any], None]] = {
+# How the chain changes and reads each parameter it owns (hapticd.params, owner "safety").
+_SETTERS: dict[str, Callable[[SafetyChain, Any], Change]] = {
     "force_limit_n": _set_force_limit,
 }
 
