@@ -61,14 +61,19 @@ _COMPILED: dict[str, Callable[..., None]] = {}
 # Helpers registered with numba in this process.
 _HELPERS: set[Callable[..., None]] = set()
 
-# The folders of the kernels' modules (numba caches each in its __pycache__ by default).
-_KERNEL_DIRS = tuple(dict.fromkeys(Path(m.__file__).parent for m in _MODULES.values()))
-
 
 def _kernel(name: str) -> Callable[..., object]:
-    """Kernel ``name``'s Python function (in the module that defines it; a function of
+    """Kernel ``name``'s Python function (in the module that exports it; a function of
     hapticd.physics.kernels when none is named, as its helpers are)."""
     return getattr(_MODULES.get(name, kernels), name)
+
+
+# The folders of the files that define the entry points (numba caches each in its
+# __pycache__ by default; hapticd.physics.kernels re-exports the tick's, which live in the
+# stage modules of hapticd.physics.tick).
+_KERNEL_DIRS = tuple(
+    dict.fromkeys(Path(_kernel(n).__code__.co_filename).parent for n in SIGNATURES)
+)
 
 
 # Marker files in the cache folder, each keyed by ``_keys``: kernels compiled (so loading them
@@ -264,8 +269,8 @@ def _cache_folder() -> Path:
 
 def _keys(names: Sequence[str], version: str) -> dict[str, str]:
     """Each kernel's key in the marker files: numba ``version``, Python, the machine, the
-    stamps of ``kernels.SOURCES`` and its signature. numba's own cache knows only kernels.py's
-    stamp, not those of the files whose code the kernels compile in."""
+    stamps of ``kernels.SOURCES`` and its signature. numba's own cache knows only the stamp
+    of the file defining the kernel, not those of the files whose code it compiles in."""
     stamps = " ".join(f"{st.st_mtime_ns} {st.st_size}" for st in map(os.stat, kernels.SOURCES))
     base = f"numba {version}; {sys.version}; {platform.machine()}; {stamps}"
     return {n: f"{base}; {SIGNATURES.get(n)}" for n in names}
