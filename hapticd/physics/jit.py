@@ -574,6 +574,16 @@ def _in_background(mode: str, names: Sequence[str], damaged: str | None, t0: flo
     return KernelChoice(mode, "python", note=text, seconds=seconds)
 
 
+def compiled(name: str) -> Callable[..., None] | None:
+    """Kernel ``name`` compiled (or loaded from the cache), or None when it cannot be here:
+    the ``hapticd.compilers`` entry point, through which allocation's ``allocate_many``
+    takes its compiled batch kernel without importing physics."""
+    try:
+        return compile_kernels([name])[name]
+    except JitUnavailableError:
+        return None
+
+
 def main(argv: Sequence[str]) -> int:
     """``python -m hapticd.physics.jit NAME...``: compile kernels into the cache at low
     priority (holding COMPILING's lock, inherited from the run that started it)."""
