@@ -63,7 +63,7 @@ def test_a_new_stage_gets_its_slots_fields_and_state_from_its_declaration():
         params=("k", "tau"),
         flag="sticky",
     )
-    decls = (*step.STAGES[:3], mine, *step.STAGES[3:])
+    decls = (*step.STAGES[:3], mine, *step.STAGES[3:], *step.EXTRAS)
     assert layout.fields(decls) == step.FIELDS  # both fields were addressed already
     assert "glue" in layout.state_blocks(decls)
     assert layout.plan_blocks(decls).count("table") == 1
