@@ -47,7 +47,7 @@ SIGNATURES = {
     "tick_step": "i8(f8[::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[:, :, ::1])",
 }
 
-# The module each kernel is defined in.
+# The module each kernel is exported from (the tick's are defined in hapticd.physics.tick).
 _MODULES = {
     "allocation_step": allocation,
     "allocate_grasps": allocation,
