@@ -329,8 +329,9 @@ def _register_helpers() -> None:
             if fn in forms:  # compiled code runs another function in its place
                 floats = register_jitable(forms[fn])
                 overload(fn, strict=False)(lambda *args, _f=floats, **kw: _f)
-            else:
-                register_jitable(fn)
+            else:  # the split parts of the stages' kernels inline, the rest as calls
+                inline = "always" if helper in kernels.INLINED else "never"
+                register_jitable(inline=inline)(fn)
             _HELPERS.add(fn)
     except Exception:
         # A broken numba: a kernel that calls a helper then fails to compile, and the

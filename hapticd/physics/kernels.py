@@ -204,7 +204,18 @@ KERNEL_HELPERS = (
     "_block",
     "_bytes",
 )
-_missing = [h for h in KERNEL_HELPERS if isinstance(h, str) and h not in globals()]
+# Helpers compiled inline into their callers (numba's IR inlining): the parts the stages'
+# kernels were split into, so that the split costs the compiled tick no calls.
+INLINED = frozenset(
+    (
+        *("_finite", "_deepest", "_push_out", "_entry", "_first_entry", "_still_held"),
+        *("_slide", "_pushing", "_surfaces_force", "_on_object"),
+        *("_gates", "_trips", "_ramp", "_limited", "object_bounded"),
+        *("allocation_stage", "environment_step", "sum_step", "scene_step"),
+        *("take_samples", "watch_changes", "send", "_field"),
+    )
+)
+_missing = [h for h in (*KERNEL_HELPERS, *INLINED) if isinstance(h, str) and h not in globals()]
 if _missing:
     raise RuntimeError(f"kernels: helpers the stages declare but this module lacks: {_missing}")
 # The sources whose code or constants the kernels compile in: numba's cache knows only the
