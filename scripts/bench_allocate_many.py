@@ -11,8 +11,10 @@ Variants per method (pinv, if, ef), per grasp:
 - seed loop      : a Python loop over the seed's formulas in plain numpy
                    (hapticd.allocation.exact: np.linalg.pinv, SVD null spaces), the baseline
 - allocate loop  : a Python loop over allocate() (robust, closed form where it applies)
-- allocate_many  : one call on the loop's grasps, uncompiled (the default: the same
-                   per-grasp code on Python floats)
+- allocate_many  : one call on the loop's grasps, as a caller makes it (the default: the
+                   installed compiler's allocate_grasps, compiled once and cached)
+- python         : the same call with kernel="python" (the same per-grasp code on Python
+                   floats, uncompiled)
 - compiled       : allocate_many with kernel= (hapticd.allocation.kernels.allocate_grasps, compiled
                    by hapticd.physics.jit): one call on a batch of 1e3, and of 1e4, grasps
 
@@ -110,7 +112,12 @@ def measure(
     """Per-grasp CPU time (median us, p99 us) of every variant, interleaved over ``rounds``."""
     seed_fn = SEED[method]
     kernel = jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]
-    times: dict[str, list[float]] = {"seed loop": [], "allocate loop": [], "allocate_many": []}
+    times: dict[str, list[float]] = {
+        "seed loop": [],
+        "allocate loop": [],
+        "allocate_many": [],
+        "python": [],
+    }
     for nb in BATCHES:
         times[f"compiled {nb:.0e}"] = []
     clock = time.process_time  # this process's CPU time: other jobs' time slices do not count
@@ -126,6 +133,9 @@ def measure(
         t0 = clock()
         allocate_many(method, G[:loop_n], M[:loop_n], lam[:loop_n])
         times["allocate_many"].append((clock() - t0) / loop_n)
+        t0 = clock()
+        allocate_many(method, G[:loop_n], M[:loop_n], lam[:loop_n], kernel="python")
+        times["python"].append((clock() - t0) / loop_n)
         for nb in BATCHES:
             ts = times[f"compiled {nb:.0e}"]
             for k in range(0, G.shape[0] - nb + 1, nb):  # every grasp once per round
@@ -136,13 +146,13 @@ def measure(
 
 
 def max_difference(method: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray, n: int) -> float:
-    """Largest |allocate_many - allocate one by one| (N) over the first ``n`` grasps, compiled
-    and not."""
+    """Largest |allocate_many - allocate one by one| (N) over the first ``n`` grasps: by
+    default, compiled and uncompiled."""
     kernel = jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]
     ref = np.array([allocate(method, G[i], M[i], lam[i]) for i in range(n)])
     return max(
         float(np.abs(allocate_many(method, G[:n], M[:n], lam[:n], kernel=k) - ref).max())
-        for k in (None, kernel)
+        for k in (None, "python", kernel)
     )
 
 

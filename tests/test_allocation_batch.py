@@ -139,6 +139,43 @@ def compiled_grasps():
     return jit.compile_kernels(["allocate_grasps"])["allocate_grasps"]
 
 
+def _small_batch() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Three two-finger grasps of a 50 mm cube, one direction each, squeezed (N)."""
+    pts = np.array([[-0.025, 0.0, 0.0], [0.025, 0.0, 0.01]])
+    G = np.stack([grasp_matrix(pts * s, np.zeros(3)) for s in (1.0, 0.8, 1.2)])
+    M = block_actuation([[unit([1.0, 0.0, 0.5])], [unit([-1.0, 0.0, 0.5])]])
+    lam = np.array([[2.0, 0.0, 1.0, -2.0, 0.0, 1.0]] * 3)
+    return G, M, lam
+
+
+def test_allocate_many_runs_the_compiled_kernel_by_default(compiled_grasps, monkeypatch):
+    """Without kernel=, a robust method runs the installed compiler's allocate_grasps (the
+    entry point hapticd registers: hapticd.physics.jit's, the kernel it compiles), and
+    kernel="python" runs the uncompiled code instead."""
+    from importlib.metadata import entry_points
+
+    values = [ep.value for ep in entry_points(group=batch.COMPILERS)]
+    assert "hapticd.physics.jit:compiled" in values
+    assert batch.default_kernel() is compiled_grasps
+    calls = []
+
+    def spy(*args):
+        calls.append(args[0])
+        return compiled_grasps(*args)
+
+    monkeypatch.setattr(batch, "_DEFAULT", [spy])
+    G, M, lam = _small_batch()
+    got = allocate_many("if", G, M, lam)
+    assert calls == [ROBUST_METHODS.index("if")]
+    np.testing.assert_array_equal(got, allocate_many("if", G, M, lam, kernel=compiled_grasps))
+    python = allocate_many("if", G, M, lam, kernel=batch.PYTHON)
+    assert calls == [ROBUST_METHODS.index("if")]  # not the compiled kernel
+    assert_rows_equal(python, got, lam)
+    assert np.abs(got).max() > 0.1  # a squeeze the directions can render
+    with pytest.raises(AllocationError, match="kernel must be"):
+        allocate_many("if", G, M, lam, kernel="numba")
+
+
 @pytest.mark.parametrize("method", ROBUST_METHODS)
 @settings(max_examples=25)  # the oracle's SVDs cost the most here
 @given(batches(), st.floats(0, 1))
@@ -403,5 +440,5 @@ def test_the_closed_forms_equal_the_oracle_on_degenerate_grasps(compiled_grasps,
     lam = np.array([g[4] + g[5] for g in grasps])
     for method in ("pinv", "if", "ef"):
         ref = one_by_one(method, G, M, lam)
-        for kernel in (None, compiled_grasps):
+        for kernel in (batch.PYTHON, None, compiled_grasps):
             assert_rows_equal(allocate_many(method, G, M, lam, kernel=kernel), ref, lam)

@@ -53,7 +53,8 @@ def cache_copy(tmp_path, monkeypatch) -> tuple[Path, Path, list]:
     skip = shutil.ignore_patterns(jit.COMPILING, "*.lock")
     shutil.copytree(os.environ["NUMBA_CACHE_DIR"], root, ignore=skip)
     tag = f"py{sys.version_info.major}{sys.version_info.minor}"
-    index = next(root.rglob(f"kernels.safety_step-*.{tag}.nbi"))
+    stem = Path(jit._kernel("safety_step").__code__.co_filename).stem  # its module's file
+    index = next(root.rglob(f"{stem}.safety_step-*.{tag}.nbi"))
     _use(monkeypatch, root)
     monkeypatch.setattr(jit, "_COMPILED", {})
     started: list = []

@@ -530,8 +530,14 @@ def _copy(small_cache: Path, tmp_path: Path) -> tuple[Path, dict[str, Path]]:
     """A copy of ``small_cache`` and its code file (.nbc) of each kernel of SMALL."""
     cache = tmp_path / "cache"
     shutil.copytree(small_cache, cache)
-    code = {n: next(cache.rglob(f"kernels.{n}-*.nbc")) for n in SMALL}
+    code = {n: next(cache.rglob(f"{_stem(n)}.{n}-*.nbc")) for n in SMALL}
     return cache, code
+
+
+def _stem(name: str) -> str:
+    """The name of the file kernel ``name`` is defined in, without its suffix (numba names
+    its cache files after it)."""
+    return Path(jit._kernel(name).__code__.co_filename).stem
 
 
 def _swap(code: dict[str, Path]) -> None:

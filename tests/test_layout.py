@@ -46,6 +46,8 @@ CATEGORIES: dict[str, set[str]] = {
         "hapticd.physics.safety",
         "hapticd.physics.scene",
         "hapticd.physics.stages",
+        # The tick's stage modules and the layout generated from their declarations.
+        "hapticd.physics.tick.*",
         "hapticd.psychophysics",
     },
     "runtime": {

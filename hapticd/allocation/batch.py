@@ -8,6 +8,7 @@ The robust methods run ``general.solve_grasps``, the exact ones ``exact``, grasp
 from __future__ import annotations
 
 from collections.abc import Callable
+from importlib.metadata import entry_points
 
 import numpy as np
 
@@ -20,6 +21,31 @@ from hapticd.allocation.robust import DEFAULT_ROBUSTNESS, AllocationError, Robus
 METHODS: tuple[str, ...] = tuple(params.ALLOCATORS)
 ROBUST_METHODS: tuple[str, ...] = CODES
 EXACT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m.endswith("_exact"))
+# allocate_many's ``kernel`` for the same code on Python floats, uncompiled.
+PYTHON = "python"
+# The entry-point group of the kernel compiler the install provides (hapticd's own:
+# hapticd.physics.jit.compiled, which caches the machine code on disk and refuses a cache
+# another user could have written). Allocation knows only the group's name: the compiler,
+# which knows every kernel, sits above it.
+COMPILERS = "hapticd.compilers"
+_DEFAULT: list[Callable[..., None] | None] = []  # the default kernel, once looked up
+
+
+def default_kernel() -> Callable[..., None] | None:
+    """allocate_many's default kernel: ``allocate_grasps`` compiled by the first compiler of
+    the COMPILERS group (compiled once, then loaded from its cache), or None when none is
+    installed or it cannot compile (then the same code runs on Python floats)."""
+    if not _DEFAULT:
+        fn = None
+        for ep in sorted(entry_points(group=COMPILERS), key=lambda e: e.name):
+            try:
+                fn = ep.load()("allocate_grasps")
+            except Exception:  # a broken compiler: the uncompiled code gives the same forces
+                fn = None
+            if fn is not None:
+                break
+        _DEFAULT.append(fn)
+    return _DEFAULT[0]
 
 
 def check(
@@ -73,17 +99,25 @@ def allocate_many(
     *,
     robust: Robustness = DEFAULT_ROBUSTNESS,
     alpha: float | np.ndarray = 0.0,
-    kernel: Callable[..., None] | None = None,
+    kernel: Callable[..., None] | str | None = None,
 ) -> np.ndarray:
     """Actuator forces lam_a (N, r) N for N grasps, equal to ``allocate()`` one by one.
 
     G (N, 6, 3p) (moments in N m per N), M_a (N, 3p, r) or shared (3p, r) unit directions,
     lam (N, 3p) N; ``alpha`` (scalar or (N,), in [0, 1]) ``adaptive``'s external-force
-    weight. ``kernel``: the compiled ``allocate_grasps`` for the robust methods; None runs
-    the same code on Python floats. Raises AllocationError (a ValueError) on an unknown
-    method, mismatched shapes, NaN or inf, or alpha outside [0, 1].
+    weight. ``kernel``: a compiled ``allocate_grasps`` for the robust methods; None (the
+    default) the installed compiler's (``default_kernel``), PYTHON the same code on
+    Python floats. Raises AllocationError (a ValueError) on an unknown method, mismatched
+    shapes, NaN or inf, or alpha outside [0, 1].
     """
-    return solve(method, *check(method, G, M_a, lam, alpha), robust, kernel=kernel)
+    args = check(method, G, M_a, lam, alpha)
+    if isinstance(kernel, str):
+        if kernel != PYTHON:
+            raise AllocationError(f"kernel must be a compiled kernel, None or {PYTHON!r}")
+        return solve(method, *args, robust)
+    if kernel is None and method not in EXACT_METHODS and args[0].size:
+        kernel = default_kernel()
+    return solve(method, *args, robust, kernel=kernel)
 
 
 def solve(

@@ -47,7 +47,7 @@ SIGNATURES = {
     "tick_step": "i8(f8[::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[:, :, ::1])",
 }
 
-# The module each kernel is defined in.
+# The module each kernel is exported from (the tick's are defined in hapticd.physics.tick).
 _MODULES = {
     "allocation_step": allocation,
     "allocate_grasps": allocation,
@@ -61,14 +61,19 @@ _COMPILED: dict[str, Callable[..., None]] = {}
 # Helpers registered with numba in this process.
 _HELPERS: set[Callable[..., None]] = set()
 
-# The folders of the kernels' modules (numba caches each in its __pycache__ by default).
-_KERNEL_DIRS = tuple(dict.fromkeys(Path(m.__file__).parent for m in _MODULES.values()))
-
 
 def _kernel(name: str) -> Callable[..., object]:
-    """Kernel ``name``'s Python function (in the module that defines it; a function of
+    """Kernel ``name``'s Python function (in the module that exports it; a function of
     hapticd.physics.kernels when none is named, as its helpers are)."""
     return getattr(_MODULES.get(name, kernels), name)
+
+
+# The folders of the files that define the entry points (numba caches each in its
+# __pycache__ by default; hapticd.physics.kernels re-exports the tick's, which live in the
+# stage modules of hapticd.physics.tick).
+_KERNEL_DIRS = tuple(
+    dict.fromkeys(Path(_kernel(n).__code__.co_filename).parent for n in SIGNATURES)
+)
 
 
 # Marker files in the cache folder, each keyed by ``_keys``: kernels compiled (so loading them
@@ -264,8 +269,8 @@ def _cache_folder() -> Path:
 
 def _keys(names: Sequence[str], version: str) -> dict[str, str]:
     """Each kernel's key in the marker files: numba ``version``, Python, the machine, the
-    stamps of ``kernels.SOURCES`` and its signature. numba's own cache knows only kernels.py's
-    stamp, not those of the files whose code the kernels compile in."""
+    stamps of ``kernels.SOURCES`` and its signature. numba's own cache knows only the stamp
+    of the file defining the kernel, not those of the files whose code it compiles in."""
     stamps = " ".join(f"{st.st_mtime_ns} {st.st_size}" for st in map(os.stat, kernels.SOURCES))
     base = f"numba {version}; {sys.version}; {platform.machine()}; {stamps}"
     return {n: f"{base}; {SIGNATURES.get(n)}" for n in names}
@@ -324,8 +329,9 @@ def _register_helpers() -> None:
             if fn in forms:  # compiled code runs another function in its place
                 floats = register_jitable(forms[fn])
                 overload(fn, strict=False)(lambda *args, _f=floats, **kw: _f)
-            else:
-                register_jitable(fn)
+            else:  # the split parts of the stages' kernels inline, the rest as calls
+                inline = "always" if helper in kernels.INLINED else "never"
+                register_jitable(inline=inline)(fn)
             _HELPERS.add(fn)
     except Exception:
         # A broken numba: a kernel that calls a helper then fails to compile, and the
@@ -567,6 +573,16 @@ def _in_background(mode: str, names: Sequence[str], damaged: str | None, t0: flo
     if damaged is not None:
         return KernelChoice(mode, "python", message=f"{damaged}; {text}", seconds=seconds)
     return KernelChoice(mode, "python", note=text, seconds=seconds)
+
+
+def compiled(name: str) -> Callable[..., None] | None:
+    """Kernel ``name`` compiled (or loaded from the cache), or None when it cannot be here:
+    the ``hapticd.compilers`` entry point, through which allocation's ``allocate_many``
+    takes its compiled batch kernel without importing physics."""
+    try:
+        return compile_kernels([name])[name]
+    except JitUnavailableError:
+        return None
 
 
 def main(argv: Sequence[str]) -> int:

@@ -40,6 +40,8 @@ from hapticd.physics.stages import (
     SceneState,
     Stage,
 )
+from hapticd.physics.tick.forces import pack as pack_forces
+from hapticd.physics.tick.friction import pack as pack_friction
 
 
 class PlanError(ValueError):
@@ -595,8 +597,10 @@ class OneCall:
         p[kn.TICK_PASSIVITY] = passivity is not None
         if passivity is not None:
             p[kn.TICK_PASSIVITY_AT : kn.TICK_FRICTION_AT] = passivity.kernel_params
-        p[kn.TICK_FRICTION_AT : kn.TICK_FORCES_AT] = (mat.mu_static, mat.mu_dynamic)
-        p[kn.TICK_FORCES_AT : kn.TICK_ALLOCATION_AT] = (mat.stiffness, mat.damping, not obj.fixed)
+        p[kn.TICK_FRICTION_AT : kn.TICK_FORCES_AT] = pack_friction(mat.mu_static, mat.mu_dynamic)
+        p[kn.TICK_FORCES_AT : kn.TICK_ALLOCATION_AT] = pack_forces(
+            mat.stiffness, mat.damping, not obj.fixed
+        )
         # Its item 4, the actuation's frame, is the environment's and passivity's too.
         p[kn.TICK_ALLOCATION_AT : kn.TICK_BODY_AT] = alloc_params
         p[kn.TICK_BODY_AT :] = body_params

@@ -20,6 +20,9 @@ from hapticd.physics.dynamics import auto_substeps
 from hapticd.physics.frame import Frame
 from hapticd.physics.passivity import PassivityParams
 from hapticd.physics.scene import Scene
+from hapticd.physics.tick import allocation as allocation_stage
+from hapticd.physics.tick import contact, dynamics, environment, forces, friction, passivity
+from hapticd.physics.tick.output import OUTPUT
 
 
 class Stage(Protocol):
@@ -34,9 +37,9 @@ class Stage(Protocol):
 # The accuracy's fields, in ContactAllocator.allocate's order.
 _ACCURACY = ("residual_internal", "residual_external", "residual_total", "amplification")
 
-HELD = ("proxy_pos", "surface_point", "contact_point")
+HELD = friction.HELD
 """The proxy shown, the fingertip's centre held on the object, the contact point."""
-FRICTIONLESS = ("frictionless_proxy", "frictionless_point", "frictionless_contact_point")
+FRICTIONLESS = friction.FRICTIONLESS
 """Contact's results when friction then moves them into ``HELD``."""
 
 
@@ -50,7 +53,7 @@ class Contact:
     """
 
     name = "contact"
-    reads = ("device_pos", "device_vel")
+    reads = contact.DECLARATION.reads
     kernel_stage = kernels.STAGE_CONTACT
 
     def __init__(self, scene: Scene, radii: list[float], state: np.ndarray | None = None) -> None:
@@ -132,8 +135,8 @@ class Friction:
     """
 
     name = "friction"
-    reads = ("in_contact", "device_pos", "contact_normal", *FRICTIONLESS)
-    writes = HELD
+    reads = friction.DECLARATION.reads
+    writes = friction.DECLARATION.writes
     kernel_stage = kernels.STAGE_FRICTION
 
     def __init__(self, radii: list[float], anchors: np.ndarray | None = None) -> None:
@@ -153,8 +156,8 @@ class Forces:
     contact; damping may slow the finger, never pull it into the object."""
 
     name = "forces"
-    reads = ("in_contact", "device_pos", "device_vel", "surface_point", "contact_normal")
-    writes = ("contact_force",)
+    reads = forces.DECLARATION.reads
+    writes = forces.DECLARATION.writes
     kernel_stage = kernels.STAGE_FORCES
 
 
@@ -163,7 +166,7 @@ class Allocation:
     ``lam_a``, the accuracy, ``alpha`` and M_a lam_a (F, 3) N into ``output``."""
 
     name = "allocation"
-    reads = ("in_contact", "device_pos", "contact_point", "contact_force")
+    reads = allocation_stage.DECLARATION.reads
 
     def __init__(
         self, scene: Scene, allocator: ContactAllocator, kernel: Callable[..., int] | None = None
@@ -220,8 +223,8 @@ class Environment:
     directions: ``env_rendered`` (F, 3) N."""
 
     name = "environment"
-    reads = ("env_force", "device_pos")
-    writes = ("env_rendered",)
+    reads = environment.DECLARATION.reads
+    writes = environment.DECLARATION.writes
     kernel_stage = kernels.STAGE_ENVIRONMENT
 
 
@@ -230,7 +233,7 @@ class Output:
     fields), in that order. ValueError without parts."""
 
     name = "output"
-    writes = ("rendered_force",)
+    writes = OUTPUT.writes
     kernel_stage = kernels.STAGE_SUM
 
     def __init__(self, parts: list[str]) -> None:
@@ -249,7 +252,7 @@ class Passivity:
     """
 
     name = "passivity"
-    writes = ("passivity_force", "passivity_energy", "passivity_damping")
+    writes = passivity.DECLARATION.writes
     kernel_stage = kernels.STAGE_PASSIVITY
 
     def __init__(
@@ -298,8 +301,8 @@ class Dynamics:
     (docs/scene.md): writes the object's state, which the next tick's contact sees."""
 
     name = "dynamics"
-    reads = ("in_contact", "contact_point", "contact_force", "contact_normal")
-    writes = ()  # the object's pose and motion (the scene's object)
+    reads = dynamics.DECLARATION.reads
+    writes = dynamics.DECLARATION.writes  # the object's pose and motion (the scene's object)
     kernel_stage = kernels.STAGE_DYNAMICS
 
     def __init__(self, scene: Scene, n_fingers: int, dt: float) -> None:
