@@ -76,8 +76,12 @@ def _without_tick_work(call: OneCall) -> np.ndarray:
     keep = np.ones(call._plan.size, dtype=bool)
     centre = kn.TICK_AT + kn.TICK_ALLOCATION_AT + 5
     keep[centre : centre + 3] = False
-    keep[at[names.index("planes")] : at[names.index("body")]] = False
-    keep[at[names.index("scratch")] : at[names.index("directions")]] = False
+    # Each block by name (the generated layout orders them as it will): the planes and
+    # their row counts, and the free body's scratch.
+    ends = [*at[1 : len(names)], call._plan.size]
+    for i, name in enumerate(names):
+        if name in ("planes", "scratch") or (name == "rows" and names[i - 1] == "planes"):
+            keep[at[i] : ends[i]] = False
     return call._plan[keep].copy()
 
 
