@@ -1,6 +1,7 @@
-"""``hapticd backends`` and ``hapticd procedures``: what is installed, built-in and from
-labs' packages (entry points), with the package each comes from and the entry points
-refused; and the warnings ``check`` and ``run`` print for refused ones."""
+"""``hapticd backends``, ``hapticd procedures`` and ``hapticd allocators``: what is
+installed, built-in and from labs' packages (entry points), with the package each comes
+from and the entry points refused; the warnings ``check`` and ``run`` print for refused
+ones; ``hapticd allocators check NAME``, the allocators' conformance suite."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import json
 import sys
 from typing import Any
 
-from hapticd.cli.common import EXIT_BAD_INPUT, EXIT_OK
+from hapticd.cli.common import EXIT_BAD_INPUT, EXIT_ERROR, EXIT_OK
 
 
 def _print(rows: list[dict[str, Any]], what: str, as_json: bool) -> int:
@@ -38,6 +39,42 @@ def cmd_procedures(args: argparse.Namespace) -> int:
     from hapticd.experiment import procedure
 
     return _print(procedure.listing(), "procedures", args.json)
+
+
+def cmd_allocators(args: argparse.Namespace) -> int:
+    """List the allocators, or (``check NAME``) run the conformance suite on one: each
+    case on a line, exit 1 naming the cases that failed."""
+    from hapticd import params
+    from hapticd.allocation import conformance
+
+    if args.action is None:
+        rows = [
+            {"name": n, "package": "hapticd", "doc": d, "problem": None}
+            for n, d in params.ALLOCATORS.items()
+        ]
+        return _print(rows, "allocators", args.json)
+    try:
+        f, claims = conformance.builtin(args.name)
+    except KeyError:
+        names = ", ".join(params.ALLOCATORS)
+        print(f"hapticd: allocators check: no allocator {args.name!r} (one of {names})",
+              file=sys.stderr)  # fmt: skip
+        return EXIT_BAD_INPUT
+    outcomes = conformance.check(f, claims)
+    if args.json:
+        print(json.dumps([vars(o) for o in outcomes], indent=2))
+    else:
+        for o in outcomes:
+            print(
+                f"{'ok  ' if o.passed else 'FAIL'}  {o.case}"
+                + (f": {o.detail}" if o.detail else "")
+            )
+    failed = [o.case for o in outcomes if not o.passed]
+    if failed:
+        print(f"hapticd: {args.name} fails {len(failed)} case(s): {', '.join(failed)}",
+              file=sys.stderr)  # fmt: skip
+        return EXIT_ERROR
+    return EXIT_OK
 
 
 def warn_backend_problems() -> None:
@@ -85,3 +122,17 @@ def add_commands(sub: Any) -> None:
         )
         p.add_argument("--json", action="store_true", help="as JSON")
         p.set_defaults(func=func)
+    text = "list the force allocators, or check one against the conformance suite"
+    p = sub.add_parser(
+        "allocators",
+        help=text,
+        description=f'{text.capitalize()} (docs/allocation.md, "Checking an allocator"): '
+        "finite, bounded and continuous through rank changes, coincident and collinear "
+        "contacts, forces from 1e-9 to 1e3 N, linear where claimed, NaN input refused.",
+    )
+    p.add_argument("--json", action="store_true", help="as JSON")
+    p.set_defaults(func=cmd_allocators, action=None)
+    checks = p.add_subparsers(dest="action")
+    c = checks.add_parser("check", help="run the conformance suite on one allocator")
+    c.add_argument("name", help="the allocator's name, as `hapticd allocators` lists it")
+    c.add_argument("--json", action="store_true", help="each case as JSON")
