@@ -155,6 +155,77 @@ def test_an_inlet_receives_both_streams_stamped_on_the_recordings_clock(tmp_path
         assert stamp == pytest.approx(lsl0 + rec["t_wall"][k], abs=1e-9)
 
 
+@pytest.mark.timing("waits for LSL's delivery over loopback, within a deadline")
+def test_buttons_and_a_fault_reach_the_marker_stream_at_their_ticks(tmp_path, grasp_data):
+    """The index finger's button pressed and released once a grasp cycle, and NaN forces at
+    tick 900: each button_down and button_up (after the fault too), with its finger and
+    button, and the fault_latched with its cause, arrive on the marker stream stamped with
+    their tick's time on the recording's clock."""
+    from tests.conftest import AtTick
+    from tests.test_runner import periodic_grasp
+
+    traj = periodic_grasp(tmp_path / "buttons.hrec", 3, button_at=0.05)
+    name = f"lsl-{uuid.uuid4().hex[:8]}"
+    for f in grasp_data["fingers"]:
+        f["device"]["trajectory"] = str(traj)
+    path = tmp_path / "profile.yaml"
+    path.write_text(yaml.safe_dump(grasp_data, sort_keys=False))
+    session = build_session(
+        load_profile(path, [f"name={name}"]),
+        paced=False,
+        duration_s=1.2,
+        record_path=tmp_path / "run.hrec",
+        record_dir=tmp_path,
+    )
+
+    def nan(frame):
+        frame.rendered_force[0, 0] = np.nan
+
+    session.renderer.insert(AtTick(900, nan), after="allocation")
+    server = ControlServer(session, tmp_path / "d.sock")
+    outlet = lsl.attach(session, server)
+    server.start()
+    inlets = []
+    try:
+        markers = open_inlet(lsl.stream_name(name) + "-markers")
+        inlets = [markers]
+        run = threading.Thread(target=session.run, name="test-loop")
+        run.start()
+        run.join(timeout=WAIT_S)
+        assert not run.is_alive()
+        presses = recording.read(tmp_path / "run.hrec")["buttons"][:, 1]
+        changes = int(np.count_nonzero(np.diff(presses.astype(int))))
+        deadline = time.monotonic() + WAIT_S
+        got, stamps = [], []
+        while (
+            sum('"button_' in m for m in got) < changes
+            or not any('"fault_latched"' in m for m in got)
+        ):  # fmt: skip
+            assert time.monotonic() < deadline, f"markers so far: {got}"
+            data, ts = markers.pull_chunk(timeout=0.05)
+            got += [m[0] for m in data]
+            stamps += ts
+    finally:
+        while inlets:
+            inlets.pop().close_stream()
+        markers = None
+        server.close()
+        lsl.detach(session, outlet)
+    rec = recording.read(tmp_path / "run.hrec")
+    lsl0 = rec.clock["lsl_s"]
+    evs = list(zip((json.loads(m) for m in got), stamps, strict=True))
+    for kind, before, after in (("button_down", 0, 1), ("button_up", 1, 0)):
+        seen = [(e, t) for e, t in evs if e["event"] == kind]
+        want = np.flatnonzero((presses[:-1] == before) & (presses[1:] == after)) + 1
+        assert [e["tick"] for e, _ in seen] == want.tolist(), kind  # the fault stops none
+        assert seen and all(e["finger_name"] == "index" and e["button"] == 0 for e, _ in seen)
+        for e, t in seen:
+            assert t == pytest.approx(lsl0 + rec["t_wall"][e["tick"]], abs=1e-9)
+    ((fault, t),) = [(e, t) for e, t in evs if e["event"] == "fault_latched"]
+    assert fault["tick"] == 900 and fault["cause"] == "nonfinite_force"
+    assert t == pytest.approx(lsl0 + rec["t_wall"][900], abs=1e-9)
+
+
 def test_the_lsl_clock_is_the_monotonic_clock():
     """liblsl's local_clock is std::chrono::steady_clock: CLOCK_MONOTONIC, time.monotonic."""
     before = time.monotonic()
