@@ -80,6 +80,9 @@ class Procedure(abc.ABC):
     plans_ahead: ClassVar[bool] = False
     # The analysis's key in ``hapticd experiment analyze``'s JSON (default: the name).
     result_key: ClassVar[str] = ""
+    # Where the settings are: the experiment file's section, and the store design's key
+    # (a plugin's: ``settings``; the built-in adaptive ones have sections of their own).
+    section_key: ClassVar[str] = "settings"
 
     def __init__(self, settings: Any = None) -> None:
         self.settings = settings
@@ -88,20 +91,22 @@ class Procedure(abc.ABC):
 
     @classmethod
     def section(cls, exp: Experiment) -> Any:
-        """This procedure's settings in ``exp`` (a plugin's: the file's ``settings``)."""
+        """This procedure's settings in ``exp``: its ``section_key`` section, validated."""
         if cls.Settings is None:
             return None
-        return cls.Settings.model_validate(exp.settings or {})
+        raw = getattr(exp, cls.section_key)
+        return raw if isinstance(raw, cls.Settings) else cls.Settings.model_validate(raw or {})
 
     @classmethod
     def from_design(cls, design: Mapping[str, Any]) -> Procedure:
         """The procedure of a store's ``design`` (meta.design: what ``design`` wrote)."""
-        raw = design.get("settings")
+        raw = design.get(cls.section_key)
         return cls(None if cls.Settings is None else cls.Settings.model_validate(raw or {}))
 
     def design(self) -> dict[str, Any]:
         """What the store keeps of the settings (``from_design`` reads it back)."""
-        return {"settings": None if self.settings is None else self.settings.model_dump()}
+        dump = None if self.settings is None else self.settings.model_dump()
+        return {self.section_key: dump}
 
     def check(self, exp: Experiment) -> None:
         """More checks of ``exp`` against this procedure: ValueError saying what is wrong

@@ -55,16 +55,7 @@ class StaircaseProcedure(Procedure):
     Settings = Staircase
     result_key = "staircases"
 
-    @classmethod
-    def section(cls, exp: Experiment) -> Any:
-        return exp.staircase
-
-    @classmethod
-    def from_design(cls, design: Mapping[str, Any]) -> Procedure:
-        return cls(Staircase.model_validate(design["staircase"]))
-
-    def design(self) -> dict[str, Any]:
-        return {"staircase": self.settings.model_dump()}
+    section_key = "staircase"
 
     @property
     def sides(self) -> tuple[int, ...]:
@@ -128,16 +119,7 @@ class QuestPlusProcedure(Procedure):
     Settings = QuestPlusDesign
     result_key = "quest_plus"
 
-    @classmethod
-    def section(cls, exp: Experiment) -> Any:
-        return exp.quest_plus
-
-    @classmethod
-    def from_design(cls, design: Mapping[str, Any]) -> Procedure:
-        return cls(QuestPlusDesign.model_validate(design["quest_plus"]))
-
-    def design(self) -> dict[str, Any]:
-        return {"quest_plus": self.settings.model_dump()}
+    section_key = "quest_plus"
 
     @property
     def max_trials(self) -> int:
