@@ -585,15 +585,19 @@ class ServoLoop:
         with contextlib.suppress(Exception):  # never stands between shutdown and its report
             rec.append(frame.recorded)
 
+    def _setup_failed(self, exc: Exception) -> LoopStats:
+        """Opening or enabling the devices failed: a latched fault at tick 0, no tick run."""
+        self.safety.trip(0, 0.0, f"device setup failed: {exc}", "setup")
+        self._note_fault(0, 0.0)
+        self.end_reason = "fault"
+        return self.stats
+
     def run(self) -> LoopStats:
         """Open and enable the devices, run until a stop condition, then zero and close."""
         try:
             self.bank.open(enable=False)  # closes what it opened if it fails
         except Exception as exc:
-            self.safety.trip(0, 0.0, f"device setup failed: {exc}", "setup")
-            self._note_fault(0, 0.0)
-            self.end_reason = "fault"
-            return self.stats
+            return self._setup_failed(exc)
         gc_was_enabled = gc.isenabled()
         old_switch = sys.getswitchinterval()
         try:
@@ -629,10 +633,7 @@ class ServoLoop:
                 # first tick, since a device's watchdog counts from it.
                 self.bank.arm()
             except Exception as exc:
-                self.safety.trip(0, 0.0, f"device setup failed: {exc}", "setup")
-                self._note_fault(0, 0.0)
-                self.end_reason = "fault"
-                return self.stats
+                return self._setup_failed(exc)
             self.running = True
             self._loop()
         finally:
@@ -688,10 +689,8 @@ class ServoLoop:
                 self._tick(k, t, start)
             except Exception as exc:
                 # A device that failed (its driver said why) is a device fault, not a stage's.
-                if isinstance(exc, DeviceError):
-                    self.safety.trip(k, t, f"{type(exc).__name__}: {exc}", "device")
-                else:
-                    self.safety.trip(k, t, f"{type(exc).__name__}: {exc}", "exception")
+                cause = "device" if isinstance(exc, DeviceError) else "exception"
+                self.safety.trip(k, t, f"{type(exc).__name__}: {exc}", cause)
                 self._note_fault(k, t)
                 self.end_reason = "fault"
                 pacer.end(k, start)
@@ -722,12 +721,12 @@ class ServoLoop:
             compute = pacer.end(k, start)
             rec = self.recorder
             tap = self.tap
-            if rec is not None:
+            if rec is not None or tap is not None:
                 self._compute_view[()] = compute
+            if rec is not None:
                 rec.append(frame.recorded)
                 self._last_recorded = k
             if tap is not None:
-                self._compute_view[()] = compute
                 tap.append(frame.recorded)
             if self.bank.arm_pending:
                 self._arm(k, t)

@@ -37,10 +37,6 @@ class Change:
     # that drops it (the submitter's), not on the servo thread.
     replaced: list[object] = field(default_factory=list)
 
-    def current(self) -> bool:
-        """Whether what the change was prepared against is still in place."""
-        return all(getattr(h, a) is o for h, a, o in self.guards)
-
     def apply(self) -> bool:
         """Make the change (at a tick boundary); False, nothing changed, when it is stale."""
         for holder, attr, expected in self.guards:

@@ -392,13 +392,12 @@ class Renderer:
         plan = call._plan
         change.guards += [(call, "_plan", plan), (call, "_frame", frame)]
         view = memoryview(plan)
+        # The same packing as the bind's (the stages' own ``pack``), into the same slots.
         p = kn.TICK_AT
-        slots = [
-            (p + kn.TICK_FRICTION_AT, material.mu_static),
-            (p + kn.TICK_FRICTION_AT + 1, material.mu_dynamic),
-            (p + kn.TICK_FORCES_AT, material.stiffness),
-            (p + kn.TICK_FORCES_AT + 1, material.damping),
-        ]
+        friction = pack_friction(material.mu_static, material.mu_dynamic)
+        forces = pack_forces(material.stiffness, material.damping, not obj.fixed)
+        slots = [(p + kn.TICK_FRICTION_AT + j, x) for j, x in enumerate(friction)]
+        slots += [(p + kn.TICK_FORCES_AT + j, x) for j, x in enumerate(forces)]
         if body_params is not None and body is not None:
             slots += [(p + kn.TICK_BODY_AT + j, x) for j, x in enumerate(body_params.tolist())]
             # The body block's head rows: the inertia and its inverse (they scale with mass).
