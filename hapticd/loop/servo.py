@@ -689,8 +689,11 @@ class ServoLoop:
                 self._tick(k, t, start)
             except Exception as exc:
                 # A device that failed (its driver said why) is a device fault, not a stage's.
-                cause = "device" if isinstance(exc, DeviceError) else "exception"
-                self.safety.trip(k, t, f"{type(exc).__name__}: {exc}", cause)
+                # (Each kind a literal: a test collects every kind the code can latch.)
+                if isinstance(exc, DeviceError):
+                    self.safety.trip(k, t, f"{type(exc).__name__}: {exc}", "device")
+                else:
+                    self.safety.trip(k, t, f"{type(exc).__name__}: {exc}", "exception")
                 self._note_fault(k, t)
                 self.end_reason = "fault"
                 pacer.end(k, start)
