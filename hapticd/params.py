@@ -24,8 +24,9 @@ from typing import Any, Literal
 VALUE_DEPTH = 7
 
 # The allocators (docs/allocation.md): pinv, if, ef and adaptive are singularity-robust,
-# the *_exact ones the seed's formulas. Recordings store an index into this order (their
-# meta "allocators" lists it), so a new one goes at the end.
+# the *_exact ones the seed's formulas. Recordings store an index into this order, then the
+# installed plugins' (their meta "allocators" lists it), so a new one goes at the end. A
+# lab's own: an entry point of hapticd.allocators (hapticd.allocation.plugins).
 ALLOCATORS: dict[str, str] = {
     "pinv": "least squares over all contact forces",
     "if": "the internal forces (the squeeze) exactly where possible, then the rest",
@@ -43,6 +44,14 @@ MIN_MASS_KG = 1e-3
 Kind = Literal["number", "friction", "choice", "directions"]
 Owner = Literal["renderer", "safety"]
 OWNERS: tuple[Owner, ...] = ("renderer", "safety")
+
+
+def _plugin_name(value: object) -> bool:
+    """Whether ``value`` could name an entry point: 1 to 100 printable characters, no
+    spaces."""
+    return isinstance(value, str) and 0 < len(value) <= 100 and value.isprintable() and (
+        not any(c.isspace() for c in value)
+    )
 
 
 class ParamError(ValueError):
@@ -74,6 +83,9 @@ class Param:
     hi: float | None = None
     lo_open: bool = False
     choices: tuple[str, ...] = ()
+    # A choice whose owner takes installed plugins' names too (it checks them: the
+    # renderer, for the allocator, against hapticd.allocation.plugins).
+    plugins: bool = False
     max_per_finger: int | None = None
 
     def in_range(self, x: float) -> bool:
@@ -92,7 +104,8 @@ class Param:
         if self.kind == "friction":
             return f"[static, dynamic], {self.lo:g} <= dynamic <= static <= {self.hi:g}"
         if self.kind == "choice":
-            return "one of " + ", ".join(f"`{c}`" for c in self.choices)
+            more = ", or an installed allocator plugin's name" if self.plugins else ""
+            return "one of " + ", ".join(f"`{c}`" for c in self.choices) + more
         return (
             f"per finger, a list of 0 to {self.max_per_finger} directions [x, y, z] "
             "(any length but zero; normalised)"
@@ -114,6 +127,8 @@ class Param:
         if self.kind == "friction":
             return self._friction(value)
         if self.kind == "choice":
+            if self.plugins and _plugin_name(value) and value not in self.choices:
+                return value  # its owner knows the plugins installed (and refuses others)
             if not (isinstance(value, str) and value in self.choices):
                 raise ParamError(
                     "bad_value", f"{self.name} must be one of {list(self.choices)}, got {value!r}"
@@ -309,6 +324,7 @@ PARAMS: dict[str, Param] = {
             "renderer",
             "rendering.allocator",
             choices=tuple(ALLOCATORS),
+            plugins=True,
         ),
         Param(
             "force_limit_n",

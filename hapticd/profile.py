@@ -28,6 +28,7 @@ from annotated_types import Ge, Le
 from hapticd_drivers import registry
 from hapticd_drivers.registry import BACKENDS, REQUIRED, Backend
 from pydantic import (
+    AfterValidator,
     AllowInfNan,
     BaseModel,
     ConfigDict,
@@ -94,7 +95,18 @@ def param_field(name: str, **kwargs: Any) -> Any:
 
 
 # Built from the spec's names at import, so a type checker sees only str here.
-AllocatorName = Literal[tuple(params.ALLOCATORS)]  # type: ignore[valid-type]
+def _allocator_name(value: object) -> object:
+    """A built-in allocator's name, or an installed plugin's (looked for only then)."""
+    if isinstance(value, str) and value not in params.ALLOCATORS:
+        from hapticd.allocation import plugins
+
+        if not plugins.is_known(value):
+            raise ValueError(plugins.unknown(value[:200]))
+    return value
+
+
+# A built-in's name, or an installed allocator plugin's (hapticd.allocation.plugins).
+AllocatorName = Annotated[str, AfterValidator(_allocator_name)]
 
 
 class _Strict(BaseModel):

@@ -20,7 +20,7 @@ def failed(f, claims: cf.Claims | None = None) -> dict[str, str]:
 
 @pytest.mark.parametrize("name", METHODS)
 def test_every_built_in_passes_what_it_claims(name):
-    f, claims = cf.builtin(name)
+    f, claims = cf.allocator(name)
     outcomes = cf.check(f, claims)
     assert [o.case for o in outcomes] == [*cf.SINGULAR, *cf.CASES_ALWAYS], outcomes
     assert all(o.passed for o in outcomes), [o for o in outcomes if not o.passed]

@@ -13,7 +13,7 @@ from importlib.metadata import entry_points
 import numpy as np
 
 from hapticd import params
-from hapticd.allocation import exact, general
+from hapticd.allocation import exact, general, plugins
 from hapticd.allocation.closed import CODES
 from hapticd.allocation.robust import DEFAULT_ROBUSTNESS, AllocationError, Robustness
 
@@ -54,8 +54,8 @@ def check(
     """allocate_many's arguments as float arrays, and alpha per grasp (N,); else
     AllocationError naming what is wrong. ``one``: allocate()'s batch of one, whose
     messages show the one grasp's shapes."""
-    if method not in METHODS:
-        raise AllocationError(f"unknown allocator {method!r}; expected one of {list(METHODS)}")
+    if not (isinstance(method, str) and plugins.is_known(method)):
+        raise AllocationError(plugins.unknown(method))
     G = np.asarray(G, dtype=float)
     M = np.asarray(M_a, dtype=float)
     lam_arr = np.asarray(lam, dtype=float)
@@ -115,7 +115,7 @@ def allocate_many(
         if kernel != PYTHON:
             raise AllocationError(f"kernel must be a compiled kernel, None or {PYTHON!r}")
         return solve(method, *args, robust)
-    if kernel is None and method not in EXACT_METHODS and args[0].size:
+    if kernel is None and method in ROBUST_METHODS and args[0].size:
         kernel = default_kernel()
     return solve(method, *args, robust, kernel=kernel)
 
@@ -136,6 +136,8 @@ def solve(
     r = M.shape[-1]
     if N == 0 or r == 0 or n == 0:
         return np.zeros((N, r))
+    if method not in METHODS:  # an installed plugin, grasp by grasp
+        return _plugin_many(method, G, np.broadcast_to(M, (N, n, r)), lam)
     if method in EXACT_METHODS:
         fn = getattr(exact, method)
         Ms = np.broadcast_to(M, (N, n, r))
@@ -152,4 +154,33 @@ def solve(
         kernel(code, *args, eps, sep, fast, out, work)
     else:
         general.solve_grasps(code, *map(_items, args), eps, sep, fast, _items(out), _items(work))
+    return out
+
+
+def _plugin_many(name: str, G: np.ndarray, M: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """The installed allocator ``name`` on each grasp (its Python function); AllocationError
+    naming it, its package and the grasp when it raises or returns other than r finite
+    forces."""
+    plugin = plugins.get(name)
+    assert plugin is not None  # check() found it
+    fn = plugins.python_function(plugin.obj)
+    N, r = len(G), M.shape[-1]
+    out = np.zeros((N, r))
+    for k in range(N):
+        what = None
+        try:
+            with np.errstate(all="ignore"):
+                x = np.asarray(fn(G[k].copy(), M[k].copy(), lam[k].copy()), dtype=float)
+        except Exception as exc:  # a plugin may fail in any way: named, not a crash
+            what = f"raised {type(exc).__name__}: {exc}"
+        else:
+            if x.shape != (r,):
+                what = f"returned shape {x.shape}, expected ({r},)"
+            elif not np.all(np.isfinite(x)):
+                what = "returned a NaN or infinite force"
+        if what is not None:
+            raise AllocationError(
+                f"allocator plugin {name!r} (package {plugin.package!r}) {what} (grasp {k})"
+            )
+        out[k] = x
     return out

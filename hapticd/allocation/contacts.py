@@ -11,7 +11,7 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
-from hapticd.allocation import allocate, kernels
+from hapticd.allocation import allocate, kernels, plugins
 from hapticd.allocation.accuracy import accuracy
 from hapticd.allocation.actuation import Actuation
 from hapticd.allocation.adaptive import AdaptiveState
@@ -63,6 +63,8 @@ class ContactAllocator:
         self._local = np.zeros((0, 3))  # the kernel's directions (D, 3), in their frame
         self._counts = np.zeros(actuation.n_fingers)  # and how many each finger has
         self._actuation, self._method, self._robust = actuation, method, robust
+        self._compiled = False  # whether ``kernel`` is compiled (an allocator plugin's form)
+        self.native_problem: str | None = None  # why a plugin runs as Python, compiled kernels
         self.adaptive = adaptive  # sets alpha, and the kernel's inputs for all four
         self.kernel = kernel
 
@@ -94,6 +96,9 @@ class ContactAllocator:
     @kernel.setter
     def kernel(self, fn: Callable[..., int] | None) -> None:
         self._kernel = kernels.uncompiled("allocation_step") if fn is None else fn
+        if self._compiled != (fn is not None):
+            self._compiled = fn is not None
+            self._refresh()  # an allocator plugin's compiled form, or its Python one
 
     def allocate(
         self,
@@ -115,8 +120,10 @@ class ContactAllocator:
         """
         params = self._params
         params[5:8] = center
-        if self._takes:
-            outcome = self._kernel(
+        if self._takes or self._plugin is not None:
+            # A plugin without its compiled form runs in the kernel's Python form.
+            kernel = self._kernel if self._takes else kernels.uncompiled("allocation_step")
+            outcome = kernel(
                 in_contact, device_pos, points, forces, self._local, self._counts, params,
                 self.state,
                 lam_a, rendered, self.accuracy, self.work,
@@ -150,10 +157,20 @@ class ContactAllocator:
             self.allocate(touching[k], pos[k], pts[k], lam[k], ctr[k], out[k], rendered)
         return out
 
-    def refusal(self, *, bad_input: bool) -> AllocationError:
-        """The error of a refused tick: a non-finite input (``bad_input``) or result."""
+    def refusal(self, *, bad_input: bool, params: np.ndarray | None = None) -> AllocationError:
+        """The error of a refused tick: a non-finite input (``bad_input``) or result (a
+        plugin's: what it did, by its name, package and entry point). ``params``: the
+        kernel's params of the refused tick (the one call's copy; default the allocator's)."""
         if bad_input:
             return AllocationError("non-finite contact geometry or force; refusing to allocate")
+        plugin = self._plugin
+        status = int((self._params if params is None else params)[kernels.PLUGIN_STATUS])
+        if plugin is not None and status != kernels.PLUGIN_OK:
+            what = _PLUGIN_FAILURES.get(status, f"failed (status {status})")
+            return AllocationError(
+                f"allocator plugin {plugin.name!r} (package {plugin.package!r}, entry point "
+                f"{plugin.value}) {what}; refusing to allocate"
+            )
         return AllocationError(f"allocator {self._method!r} produced a non-finite force")
 
     @property
@@ -189,6 +206,16 @@ class ContactAllocator:
         self._takes = self._method in _CODES
         params = self._params
         params[0] = _CODES.index(self._method) if self._method in _CODES else -1
+        self._plugin = None if self._takes else plugins.get(self._method)
+        params[kernels.PLUGIN_HANDLE : kernels.PLUGIN_STATUS + 1] = 0.0
+        self.native_problem = None
+        if self._plugin is not None:
+            handle = plugins.handle(self._method)
+            params[0], params[kernels.PLUGIN_HANDLE] = kernels.PLUGIN, handle
+            if self._compiled:  # the tick calls its compiled form, else its Python one
+                address, self.native_problem = plugins.native_address(handle)
+                params[kernels.PLUGIN_ADDRESS] = address
+            self._takes = not self._compiled or self.native_problem is None
         grasp = 1.0 if act.frame == "grasp" else 0.0
         params[1:5] = (rb.eps, rb.min_separation_m, rb.contact_onset_n, grasp)
         gain = 1.0 if ad.time_constant_s <= 0 else min(1.0, self.dt / ad.time_constant_s)
@@ -245,3 +272,15 @@ class ContactAllocator:
 
 
 _CODES = kernels.ALLOCATION_METHODS
+# What a plugin's status says it did (allocation_step's PLUGIN_*).
+_PLUGIN_FAILURES = {
+    kernels.PLUGIN_RAISED: "raised an exception",
+    kernels.PLUGIN_SHAPE: "returned a result of the wrong shape (one force per actuated "
+    "direction expected)",
+    kernels.PLUGIN_NON_FINITE: "returned a NaN or infinite force",
+    kernels.PLUGIN_ABSURD: (
+        f"returned an absurd force (beyond {kernels.PLUGIN_GAIN:g} x |lam| + "
+        f"{kernels.PLUGIN_SLACK_N:g} N)"
+    ),
+    kernels.PLUGIN_UNAVAILABLE: "has no compiled form in the compiled tick",
+}

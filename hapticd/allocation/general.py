@@ -22,8 +22,9 @@ _SWEEPS = 64  # Jacobi sweeps at most (a 15 x 15 converges in under 10)
 _RANK_SHARE = 1e-13
 
 
-# Indices into ``layout``'s offsets: lam (n,), a scratch vector, lam_a (r,).
-LAM_ROW, T1_ROW, XO_ROW = 2, 15, 19
+# Indices into ``layout``'s offsets: B0 (the first of the rows after the grasp and its
+# products: an allocator plugin's scratch), lam (n,), a scratch vector, lam_a (r,).
+B0_ROW, LAM_ROW, T1_ROW, XO_ROW = 6, 2, 15, 19
 
 
 def work_shape(n: int, r: int) -> tuple[int, int]:

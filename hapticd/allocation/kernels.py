@@ -21,6 +21,7 @@ from hapticd.allocation import closed, general
 from hapticd.allocation.accuracy import one_contact_residuals, two_contact_residuals
 from hapticd.allocation.closed import one_contact, two_contact
 from hapticd.allocation.general import (
+    B0_ROW,
     LAM_ROW,
     T1_ROW,
     XO_ROW,
@@ -86,8 +87,11 @@ def items(a: object) -> object:
 # allocation_step's params: method (ALLOCATION_METHODS' index), eps, min_separation_m,
 # contact_onset_n, grasp frame (1.0) or world frame (0.0), the grasp's reference point (3),
 # the adaptive allocator's ratio_low, ratio_high and its gain per tick (min(1, dt /
-# time_constant_s), 1 without a lag)
-ALLOCATION_PARAMS = 11
+# time_constant_s), 1 without a lag), an allocator plugin's handle (hapticd.allocation.plugins),
+# the address of its compiled form (0: none; hapticd.allocation.native) and its last status
+# (PLUGIN_*, written by the kernel)
+ALLOCATION_PARAMS = 14
+PLUGIN_HANDLE, PLUGIN_ADDRESS, PLUGIN_STATUS = 11, 12, 13
 # allocation_step's carried state: the adaptive allocator's external weight alpha (0..1)
 ALLOCATION_STATE = 1
 # The robust allocators allocation_step computes (the closed forms for one or two contacts
@@ -97,6 +101,13 @@ ALLOCATION_METHODS = closed.CODES
 # non-finite actuator force (nothing written, alpha unchanged, either way).
 ALLOCATED, NON_FINITE_INPUT, NON_FINITE_OUTPUT = 0, 2, 3
 ACCURACY = 4  # allocation_step's accuracy: internal, external, total, amplification
+# params[0] for an allocator plugin (after the robust methods' codes).
+PLUGIN = len(ALLOCATION_METHODS)
+# A plugin's statuses: allocated; it raised; its result is not (r,); not finite; absurd
+# (beyond PLUGIN_GAIN |lam| + PLUGIN_SLACK_N); compiled kernels without its compiled form.
+PLUGIN_OK, PLUGIN_RAISED, PLUGIN_SHAPE, PLUGIN_NON_FINITE, PLUGIN_ABSURD = 0, 1, 2, 3, 4
+PLUGIN_UNAVAILABLE = 5
+PLUGIN_GAIN, PLUGIN_SLACK_N = 1e4, 1.0
 
 
 def allocation_work_shape(n_fingers: int, n_directions: int) -> tuple[int, int]:
@@ -354,11 +365,15 @@ def _allocate_contacts(
     beta = onset_beta(weakest, n, params[3])
     if beta < 1.0:  # the rest alone; none of the weakest's columns w0 .. w1 - 1
         xo = _solve_grasp(in_contact, points, forces, counts, params, weak, alpha, work)
+        if xo < 0:  # a plugin failed (its status in params)
+            return NON_FINITE_OUTPUT
         w1 = w0 + int(counts[weak])
         for j in range(r):
             x = 0.0 if w0 <= j < w1 else work[xo, j if j < w0 else j - w1 + w0]
             work[xk, j] = (1.0 - beta) * x
     xo = _solve_grasp(in_contact, points, forces, counts, params, -1, alpha, work)
+    if xo < 0:
+        return NON_FINITE_OUTPUT
     for j in range(r):
         x = work[xo, j]
         if beta < 1.0:
@@ -428,7 +443,8 @@ def _solve_grasp(
 ) -> int:
     """lam_a of the contacts but ``skip`` into general's row XO, which it returns: the closed
     forms of hapticd.allocation.closed for one or two contacts with one direction each, the
-    general path for any other grasp (which ``_fill_grasp`` puts into ``work``)."""
+    general path for any other grasp (which ``_fill_grasp`` puts into ``work``); an
+    allocator plugin on that grasp (-1 when it fails: ``_plugin``)."""
     method = int(params[0])
     eps, min_sep = params[1], params[2]
     k = 0
@@ -440,6 +456,9 @@ def _solve_grasp(
             r += int(counts[i])
             ones = ones and counts[i] == 1.0
     xo = layout(3 * k, r)[XO_ROW]
+    if method == PLUGIN:
+        _fill_grasp(in_contact, points, forces, counts, params, skip, k, r, work)
+        return xo if r == 0 or _plugin(work, 3 * k, r, params) == PLUGIN_OK else -1
     if k > 2 or not ones:
         _fill_grasp(in_contact, points, forces, counts, params, skip, k, r, work)
         general_path(method, work, 3 * k, r, eps, min_sep, alpha)
@@ -451,6 +470,76 @@ def _solve_grasp(
         r2, d2, l2 = _contact(points, forces, counts, params, work, _nth(in_contact, skip, 1))
         work[xo, 0], work[xo, 1] = two_contact(method, r1, r2, d1, d2, l1, l2, eps, min_sep, alpha)
     return xo
+
+
+def _plugin(work: np.ndarray, n: int, r: int, params: np.ndarray) -> int:
+    """An allocator plugin (params' handle and address) on the grasp ``_fill_grasp`` left in
+    ``work`` (n force components, r directions): lam_a into general's row XO, checked
+    finite and bounded (``_plugin_bounded``); its status, also into params[PLUGIN_STATUS]."""
+    lay = layout(n, r)
+    xo = lay[XO_ROW]
+    status = plugin_call(work, n, r, params[PLUGIN_HANDLE], params[PLUGIN_ADDRESS], lay[B0_ROW], xo)
+    if status == PLUGIN_OK:
+        status = _plugin_bounded(work, n, r, xo)
+    params[PLUGIN_STATUS] = float(status)
+    return status
+
+
+def _plugin_bounded(work: np.ndarray, n: int, r: int, xo: int) -> int:
+    """PLUGIN_OK when the plugin's lam_a (row XO) is finite and at most PLUGIN_GAIN |lam| +
+    PLUGIN_SLACK_N (N), lam the grasp's forces (general's row LAM); else why not."""
+    out = 0.0
+    for j in range(r):
+        x = work[xo, j]
+        if not math.isfinite(x):
+            return PLUGIN_NON_FINITE
+        out += x * x
+    lam = 0.0
+    for t in range(n):
+        lam += work[6 + n, t] * work[6 + n, t]
+    if math.sqrt(out) > PLUGIN_GAIN * math.sqrt(lam) + PLUGIN_SLACK_N:
+        return PLUGIN_ABSURD
+    return PLUGIN_OK
+
+
+def plugin_call(
+    work: np.ndarray, n: int, r: int, handle: float, address: float, scratch: int, xo: int
+) -> int:
+    """The allocator plugin of ``handle`` on the grasp in general's rows of ``work`` (G rows
+    0-5, M_a rows 6 to 6 + n - 1, lam row 6 + n; n force components, r directions), its
+    lam_a into row ``xo``; a PLUGIN_ status. Python's form (the plugin's Python function,
+    ``register_plugin``'s); compiled code runs hapticd.physics.native's, which calls the
+    plugin compiled at ``address`` on a copy in the rows from ``scratch``."""
+    w = np.asarray(work)
+    G, M, lam = w[0:6, :n].copy(), w[6 : 6 + n, :r].copy(), w[6 + n, :n].copy()
+    try:
+        with np.errstate(all="ignore"):
+            lam_a = np.asarray(_PLUGINS[int(handle)](G, M, lam), dtype=float)
+    except Exception:  # a plugin may fail in any way: a fault naming it, not a crash
+        return PLUGIN_RAISED
+    if lam_a.shape != (r,):
+        return PLUGIN_SHAPE
+    w[xo, :r] = lam_a
+    return PLUGIN_OK
+
+
+# The allocator plugins' Python functions by handle (``register_plugin``): append only, so
+# a handle in a kernel's params stays valid.
+_PLUGINS: list[Callable[..., object]] = []
+
+
+def register_plugin(fn: Callable[..., object]) -> int:
+    """The handle of an allocator plugin's Python function ``fn`` (registered once)."""
+    for i, f in enumerate(_PLUGINS):
+        if f is fn:
+            return i
+    _PLUGINS.append(fn)
+    return len(_PLUGINS) - 1
+
+
+def plugin_function(handle: int) -> Callable[..., object]:
+    """The Python function of the allocator plugin ``handle``."""
+    return _PLUGINS[handle]
 
 
 def _axes(device_pos: np.ndarray, grasp: bool) -> tuple[float, ...]:
@@ -502,6 +591,9 @@ KERNEL_HELPERS: tuple[Callable[..., object], ...] = (
     _solve_grasp,
     _allocate_contacts,
     onset_beta,
+    _plugin,
+    _plugin_bounded,
+    plugin_call,
     allocation_step,
     _axes,
     grasp_axes,

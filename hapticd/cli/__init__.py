@@ -197,7 +197,12 @@ def build_parser() -> argparse.ArgumentParser:
         if name == "set":
             p.add_argument("value", help=value_help)
         if name == "allocator":
-            p.add_argument("name", choices=list(params.ALLOCATORS))
+            # The daemon checks the name: it knows the allocator plugins installed there.
+            p.add_argument(
+                "name",
+                help=f"{', '.join(params.ALLOCATORS)}, or an allocator plugin's name "
+                "(hapticd allocators lists them)",
+            )
         if name == "record":
             p.add_argument("action", choices=["start", "stop"])
             p.add_argument("path", nargs="?", type=Path, help="the .hrec file (start)")

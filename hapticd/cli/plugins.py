@@ -44,23 +44,19 @@ def cmd_procedures(args: argparse.Namespace) -> int:
 def cmd_allocators(args: argparse.Namespace) -> int:
     """List the allocators, or (``check NAME``) run the conformance suite on one: each
     case on a line, exit 1 naming the cases that failed."""
-    from hapticd import params
-    from hapticd.allocation import conformance
+    from hapticd.allocation import conformance, plugins
 
     if args.action is None:
-        rows = [
-            {"name": n, "package": "hapticd", "doc": d, "problem": None}
-            for n, d in params.ALLOCATORS.items()
-        ]
-        return _print(rows, "allocators", args.json)
+        return _print(plugins.listing(), "allocators", args.json)
     try:
-        f, claims = conformance.builtin(args.name)
+        f, claims = conformance.allocator(args.name)
     except KeyError:
-        names = ", ".join(params.ALLOCATORS)
-        print(f"hapticd: allocators check: no allocator {args.name!r} (one of {names})",
-              file=sys.stderr)  # fmt: skip
+        print(f"hapticd: allocators check: {plugins.unknown(args.name)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     outcomes = conformance.check(f, claims)
+    compiled = None
+    if plugins.get(args.name) is not None:  # what the tick will run: compiled, or why not
+        compiled = plugins.native_address(plugins.handle(args.name))[1]
     if args.json:
         print(json.dumps([vars(o) for o in outcomes], indent=2))
     else:
@@ -68,6 +64,12 @@ def cmd_allocators(args: argparse.Namespace) -> int:
             print(
                 f"{'ok  ' if o.passed else 'FAIL'}  {o.case}"
                 + (f": {o.detail}" if o.detail else "")
+            )
+        if plugins.get(args.name) is not None:
+            print(
+                "compiled with numba: the tick runs it compiled"
+                if compiled is None
+                else f"note: numba cannot compile it ({compiled}): the tick runs it as Python"
             )
     failed = [o.case for o in outcomes if not o.passed]
     if failed:

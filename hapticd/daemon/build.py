@@ -383,6 +383,14 @@ def build_renderer(profile: Profile) -> Renderer:
     elif choice.used == "compiled":
         log.debug("kernels %s compiled or loaded in %.3f s", list(choice.kernels), choice.seconds)
     renderer.use_kernels({n: k for n, k in choice.kernels.items() if n in renderer.kernel_names})
+    why = renderer.allocator.native_problem
+    if why is not None:  # an allocator plugin numba cannot compile: it runs as Python
+        log.warning(
+            "allocator %r cannot be compiled by numba (%s): the tick runs it as Python "
+            "between its compiled parts (the same forces; a slower tick)",
+            rc.allocator,
+            why,
+        )
     return renderer
 
 

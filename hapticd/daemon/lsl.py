@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from hapticd import __version__
-from hapticd.allocation import METHODS
+from hapticd.allocation import plugins as allocation_plugins
 from hapticd.recording import ring
 from hapticd.recording.export import PER_FINGER, csv_columns, flat_values
 from hapticd.recording.format import Field, Recording, RecordingError, make_dtype
@@ -197,7 +197,7 @@ def attach(session: Session, server: ControlServer | None) -> LslOutlet:
         profile.finger_names,
         loop.rate_hz,
         decimation=profile.lsl.decimation,
-        meta={"profile": profile.name, "allocators": list(METHODS)},
+        meta={"profile": profile.name, "allocators": list(allocation_plugins.names())},
         capacity=max(4096, int(2.0 * loop.rate_hz)),  # 2 s of ticks
     )
     outlet.wait_running(timeout_s=10.0)

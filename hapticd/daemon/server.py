@@ -39,7 +39,7 @@ from hapticd import protocol as proto
 from hapticd.control import check_socket_dir, share_socket
 from hapticd.daemon import summary as views
 from hapticd.loop.commands import Command, Disable, Enable, SetParam
-from hapticd.params import PARAMS
+from hapticd.params import PARAMS, ParamError
 from hapticd.profile import ProfileError
 from hapticd.recording import RecordingError
 
@@ -970,6 +970,8 @@ class ControlServer:
             return proto.error(req_id, "recording", str(exc))
         except TimeoutError as exc:
             return proto.error(req_id, "timeout", str(exc))
+        except ParamError as exc:  # a value only the loop could check (a plugin's name)
+            return proto.error(req_id, exc.code, str(exc))
         except ValueError as exc:
             return proto.error(req_id, "rejected", str(exc))
         except Exception as exc:  # a request must never take the daemon down

@@ -16,7 +16,7 @@ from hapticd_drivers import Device, registry
 from hapticd_drivers.emulator import DeltaEmulator
 
 from hapticd import recording
-from hapticd.allocation import METHODS
+from hapticd.allocation import plugins as allocation_plugins
 from hapticd.daemon.build import (
     build_devices,
     build_mounts,
@@ -342,7 +342,7 @@ def make_recorder(
             "profile_path": str(profile.source),
             "rate_hz": rate,
             "allocator": renderer.method,
-            "allocators": list(METHODS),
+            "allocators": list(allocation_plugins.names()),
             "paced": paced,
             "force_limits_n": list(safety.limits),
             "record_every": every,

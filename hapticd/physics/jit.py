@@ -321,7 +321,9 @@ def _register_helpers() -> None:
     try:
         from numba.extending import overload, register_jitable
 
-        forms = kernels.COMPILED_FORMS
+        from hapticd.physics import native  # numba's: imported once numba is
+
+        forms = {**kernels.COMPILED_FORMS, allocation.plugin_call: native.plugin_call_compiled}
         for helper in kernels.KERNEL_HELPERS:
             fn = getattr(kernels, helper) if isinstance(helper, str) else helper
             if fn in _HELPERS:

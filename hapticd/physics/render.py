@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from hapticd.allocation import DEFAULT_ROBUSTNESS, METHODS, AdaptiveState, Robustness
+from hapticd.allocation import DEFAULT_ROBUSTNESS, AdaptiveState, Robustness
+from hapticd.allocation import plugins as allocation_plugins
 from hapticd.allocation.actuation import Actuation
 from hapticd.allocation.contacts import ContactAllocator
 from hapticd.params import PARAMS, ParamError
@@ -90,7 +91,7 @@ def check_plan(stages: list[Stage]) -> dict[str, str]:
 
 class Renderer:
     """One tick of the scene for F spherical fingertips of ``radii`` (m), through
-    ``actuation`` with ``allocator`` (a name in hapticd.allocation.METHODS); ``passivity``
+    ``actuation`` with ``allocator`` (a name of hapticd.allocation.plugins.names()); ``passivity``
     adds the passivity controller. ValueError for a wrong count of radii or allocator."""
 
     def __init__(
@@ -107,8 +108,8 @@ class Renderer:
     ) -> None:
         if len(radii) != actuation.n_fingers:
             raise ValueError("one radius per finger is needed")
-        if allocator not in METHODS:
-            raise ValueError(f"unknown allocator {allocator!r}; expected one of {list(METHODS)}")
+        if not allocation_plugins.is_known(allocator):
+            raise ValueError(allocation_plugins.unknown(allocator))
         self.scene = scene if isinstance(scene, Scene) else Scene(scene, [], None)
         self.radii = [float(r) for r in radii]
         self.n_fingers = len(self.radii)
@@ -646,7 +647,7 @@ class OneCall:
         return [
             (item_view(frame.stiffness_n_per_m), (), mat.stiffness),
             (item_view(frame.mass_kg), (), obj.mass),
-            (item_view(frame.allocator), (), METHODS.index(method)),  # u1: an int
+            (item_view(frame.allocator), (), allocation_plugins.names().index(method)),  # u1
         ]
 
     def run(self, frame: Frame, safety: SafetyChain | None = None) -> int | None:
@@ -701,7 +702,10 @@ class OneCall:
         src = self.planned
         if outcome == kn.TICK_FROM_CONTACT:
             raise ValueError(src.contact._non_finite(frame, self._planes))
-        raise src.allocation.allocator.refusal(bad_input=outcome == kn.TICK_NON_FINITE_INPUT)
+        at = kn.TICK_ALLOCATION_AT
+        params = self._params[at : at + kn.ALLOCATION_PARAMS]  # the call's, with its status
+        bad_input = outcome == kn.TICK_NON_FINITE_INPUT
+        raise src.allocation.allocator.refusal(bad_input=bad_input, params=params)
 
     def _with(self, safety: SafetyChain | None) -> None:
         """Run ``safety``'s tick in the call from now on (None: no chain's)."""
@@ -798,8 +802,8 @@ def _actuation(r: Renderer, value: Any) -> Actuation:
 
 
 def _check_allocator(value: Any) -> None:
-    if value not in METHODS:
-        raise ValueError(f"unknown allocator {value!r}; expected one of {list(METHODS)}")
+    if not isinstance(value, str) or not allocation_plugins.is_known(value):
+        raise ParamError("bad_value", f"allocator: {allocation_plugins.unknown(value)}")
 
 
 # The numbers: each one's new material (the mass is the object's own, not its material's).
