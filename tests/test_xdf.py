@@ -168,7 +168,7 @@ def test_labrecorder_records_both_streams_and_pyxdf_reads_them_back_aligned(tmp_
         finally:
             recorder.close()
     rec = recording.read(tmp_path / "interval.hrec")
-    rate = 1000.0
+    rate = float(yaml.safe_load(profile.read_text())["loop"]["rate_hz"])
     tick_s = 1.0 / rate
 
     # Clock offsets applied, timestamps as hapticd stamped them (each tick's start).
