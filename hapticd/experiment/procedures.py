@@ -79,8 +79,7 @@ class StaircaseProcedure(Procedure):
         )
 
     def new_track(self, index: int, condition: str, standard: float, sign: int) -> Track:
-        st = self.settings
-        return Track(index, condition, standard, sign, st.start, st.step)
+        return Track.new(index, condition, standard, sign, self.settings)
 
     def comparison(self, track: Track) -> float:
         return track.comparison()
