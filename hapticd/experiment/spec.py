@@ -912,6 +912,14 @@ class Experiment(_Strict):
                         f"(1 {'+' if sign > 0 else '-'} {st.max_distance:g}) = {c:g} is outside "
                         f"{self.varied.param}'s range {spec.range_text()}"
                     )
+            # A track above the standard that may cross it reaches s x (1 + min_distance).
+            c = s * (1 + st.min_distance)
+            if st.min_distance < 0 and not spec.in_range(c):
+                raise ValueError(
+                    f"staircase.min_distance: the comparison standard {s:g} x (1 - "
+                    f"{-st.min_distance:g}) = {c:g} is outside {self.varied.param}'s range "
+                    f"{spec.range_text()}"
+                )
         return self
 
     @property
