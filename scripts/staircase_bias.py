@@ -17,7 +17,7 @@ it, without ``initial_rule``. Then the PSE shift: each design at its middle sigm
 the observer's PSE moved by ``--pse`` (fractions of the standard), crossing the
 standard and not.
 
-Usage: python scripts/staircase_bias.py [--subjects 2000] [--seed 0] [--workers N]
+Usage: python scripts/staircase_bias.py [--subjects 4000] [--seed 0] [--workers N]
 [--pse 0,0.05,0.1,0.15] [--plot PATH] [EXPERIMENT.yaml ...] (the plot goes to the temp
 directory unless --plot says where).
 """
@@ -75,7 +75,7 @@ HEADER = (
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("experiments", nargs="*", type=Path, default=BUNDLED)
-    ap.add_argument("--subjects", type=int, default=2000, help="simulated subjects a row")
+    ap.add_argument("--subjects", type=int, default=4000, help="simulated subjects a row")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--pse", default="0,0.05,0.1,0.15", help="PSE shifts, comma-separated")

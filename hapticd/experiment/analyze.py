@@ -268,7 +268,9 @@ def format_quest(result: dict[str, Any], unit: str) -> str:
             f"{r['trials']:>3} trials PSE {r['pse']:.4g} JND {r['jnd']:.4g} "
             f"Weber {r['weber']:.3f}"
         )
-    lines += _test_lines(result["tests"], "the QUEST+ Weber fractions")
+    lines += _test_lines(
+        result["tests"], f"the QUEST+ Weber fractions ({jnd_label(result['jnd_point'])})"
+    )
     return "\n".join(lines) + "\n"
 
 
@@ -292,7 +294,9 @@ def format_staircases(result: dict[str, Any], unit: str) -> str:
     for t in result["thresholds"]:
         what = t["reason"] if t["jnd"] is None else f"JND {t['jnd']:.4g}, Weber {t['weber']:.3f}"
         lines.append(f"  {t['subject']:<10} {t['condition']:<10} {t['standard']:<8.4g} {what}")
-    lines += _test_lines(result["tests"], "the reversal Weber fractions")
+    lines += _test_lines(
+        result["tests"], f"the reversal Weber fractions (JND at {result['target']:.1%} correct)"
+    )
     return "\n".join(lines) + "\n"
 
 
@@ -395,7 +399,7 @@ def format_report(result: dict[str, Any], unit: str) -> str:
             f"  {g['condition']:<10} standard {g['standard']:<8.4g} Weber {mean} "
             f"(SD {sd}, {g['n_subjects']} subjects)"
         )
-    lines += _test_lines(result["tests"], "the Weber fractions")
+    lines += _test_lines(result["tests"], f"the Weber fractions ({jnd_label(point)})")
     return "\n".join(lines) + "\n"
 
 
