@@ -46,7 +46,6 @@ class Track:
     n: int = 0  # trials answered
     reversals: list[float] = field(default_factory=list)  # distances where it turned
     reversal_trials: list[int] = field(default_factory=list)  # at which trial (1-based)
-    reversal_steps: list[float] = field(default_factory=list)  # the step it turned with
     levels: list[float] = field(default_factory=list)  # each trial's distance
     correct: list[bool] = field(default_factory=list)
 
@@ -95,7 +94,6 @@ class Track:
         if self.last_move and move != self.last_move:
             self.reversals.append(self.distance)
             self.reversal_trials.append(self.n)
-            self.reversal_steps.append(self.step)
             if st.step_rule == "halve":
                 self.step = max(self.step / 2, st.min_step or 0.0)
         self.last_move = move

@@ -195,6 +195,8 @@ def analyze_staircases(
     return {
         "target": st.target_share,
         "rule": st.rule,
+        "n_up": st.moves[0],
+        "n_down": st.moves[1],
         "tracks": rows,
         "thresholds": thresholds,
         "tests": paired_tests(
@@ -276,8 +278,11 @@ def format_quest(result: dict[str, Any], unit: str) -> str:
 
 def format_staircases(result: dict[str, Any], unit: str) -> str:
     """The staircase section of the report."""
+    rule = result["rule"]
+    if rule == "updown":
+        rule = f"updown, {result.get('n_up', 1)} up {result.get('n_down')} down"
     lines = [
-        f"staircase tracks ({result['rule']}, converging on {result['target']:.1%} correct; "
+        f"staircase tracks ({rule}, converging on {result['target']:.1%} correct; "
         "threshold: mean of the last reversals):"
     ]
     for r in result["tracks"]:

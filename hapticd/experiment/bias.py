@@ -142,13 +142,14 @@ def check(
     """``st`` simulated at each sigma it is for, and a warning (None: none) when its JND
     is more than ``TOLERANCE`` off its point, or a tenth of its subjects get none."""
     rows = [simulate(st, s, subjects=subjects, seed=seed) for s in sigmas_for(st)]
-    bad = [b for b in rows if not abs(b.bias) <= TOLERANCE]
-    short = [b for b in rows if b.missing > subjects / 10]
     if not rows:
         return rows, (
             f"no sigma of {', '.join(f'{s:g}' for s in SIGMAS)} has its point within "
-            f"max_distance {st.max_distance:g}"
+            f"{REACH:.0%} of max_distance {st.max_distance:g}: the design's range is too "
+            "narrow to be simulated"
         )
+    bad = [b for b in rows if not abs(b.bias) <= TOLERANCE]
+    short = [b for b in rows if b.missing > subjects / 10]
     if not bad and not short:
         return rows, None
     parts = []
