@@ -207,14 +207,14 @@ def test_a_resumed_session_with_psychopys_options_continues_exactly(tmp_path):
         rows = store.trials()
     whole = session_rows(tmp_path / "whole.db")
     assert len(whole) > 20
-    with TrialStore.for_experiment(tmp_path / "cut.db", exp) as store:
-        with pytest.raises(rn.TrialAbortedError):
-            rn.run_adaptive_subject(
-                store, exp, "s1", seed, Simulated(seed, abort_at=13), profile_hash="p"
-            )
-    with TrialStore.for_experiment(tmp_path / "cut.db", exp) as store:
+    cut = tmp_path / "cut.db"
+    with TrialStore.for_experiment(cut, exp) as store, pytest.raises(rn.TrialAbortedError):
+        rn.run_adaptive_subject(
+            store, exp, "s1", seed, Simulated(seed, abort_at=13), profile_hash="p"
+        )
+    with TrialStore.for_experiment(cut, exp) as store:
         rn.run_adaptive_subject(store, exp, "s1", seed, Simulated(seed), profile_hash="p")
-    assert session_rows(tmp_path / "cut.db") == whole
+    assert session_rows(cut) == whole
     # Every track ran to its own end: replayed from the rows, each is done by its rule.
     tracks = ad.tracks_from_rows(rows, exp.staircase)
     assert len(tracks) == 4 and all(t.done(exp.staircase) for t in tracks.values())

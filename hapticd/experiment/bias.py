@@ -148,7 +148,7 @@ def check(
             f"{REACH:.0%} of max_distance {st.max_distance:g}: the design's range is too "
             "narrow to be simulated"
         )
-    bad = [b for b in rows if not abs(b.bias) <= TOLERANCE]
+    bad = [b for b in rows if b.missing < b.subjects and not abs(b.bias) <= TOLERANCE]
     short = [b for b in rows if b.missing > subjects / 10]
     if not bad and not short:
         return rows, None
@@ -189,4 +189,7 @@ def summary(rows: list[Bias]) -> str:
     """One line: the simulated bias at each sigma."""
     if not rows:
         return "no sigma within the design's range"
-    return ", ".join(f"{b.bias:+.1%} at sigma {b.sigma:g}" for b in rows)
+    return ", ".join(
+        f"{'no JND' if b.missing == b.subjects else f'{b.bias:+.1%}'} at sigma {b.sigma:g}"
+        for b in rows
+    )
