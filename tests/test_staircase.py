@@ -190,6 +190,60 @@ def test_a_resumed_session_continues_exactly_where_it_stopped(tmp_path):
     assert session_rows(tmp_path / "cut.db") == whole
 
 
+# PsychoPy's options: 2 up 3 down after a one-up-one-down start, the end on both
+# reversals and trials; and the tracks may cross the standard.
+PSYCHOPY_OPTIONS = dict(rule="updown", n_up=2, n_down=3, initial_rule=True, stop="both",
+                        min_trials=12, max_trials=30, start=0.1, step=0.05, min_step=0.01,
+                        min_distance=-0.6)  # fmt: skip
+
+
+def test_a_resumed_session_with_psychopys_options_continues_exactly(tmp_path):
+    exp = rn.reduced(
+        load_experiment(write_staircase(tmp_path, **PSYCHOPY_OPTIONS)), standards=[60.0]
+    )
+    seed = 11
+    with TrialStore.for_experiment(tmp_path / "whole.db", exp) as store:
+        rn.run_adaptive_subject(store, exp, "s1", seed, Simulated(seed), profile_hash="p")
+        rows = store.trials()
+    whole = session_rows(tmp_path / "whole.db")
+    assert len(whole) > 20
+    cut = tmp_path / "cut.db"
+    with TrialStore.for_experiment(cut, exp) as store, pytest.raises(rn.TrialAbortedError):
+        rn.run_adaptive_subject(
+            store, exp, "s1", seed, Simulated(seed, abort_at=13), profile_hash="p"
+        )
+    with TrialStore.for_experiment(cut, exp) as store:
+        rn.run_adaptive_subject(store, exp, "s1", seed, Simulated(seed), profile_hash="p")
+    assert session_rows(cut) == whole
+    # Every track ran to its own end: replayed from the rows, each is done by its rule.
+    tracks = ad.tracks_from_rows(rows, exp.staircase)
+    assert len(tracks) == 4 and all(t.done(exp.staircase) for t in tracks.values())
+    assert all(t.n >= 12 for t in tracks.values())  # stop both: min_trials too
+    # Some comparisons on the other side of their track's standard.
+    assert any(
+        (r["block"] % 2 == 0) == (r["comparison"] < r["standard"])
+        for r in rows
+        if r["comparison"] != r["standard"]
+    )
+
+
+def test_a_store_written_before_psychopys_options_keeps_its_rules():
+    """A store's staircase design as written before these keys: they take the values
+    that move its tracks as they moved then."""
+    earlier = dict(rule="1up2down", sides="both", start=0.4, step=0.1, step_rule="halve",
+                   min_step=0.02, max_distance=0.6, stop_reversals=10, max_trials=50,
+                   threshold_reversals=6)  # fmt: skip
+    s = Staircase.model_validate(earlier)
+    assert (s.step_type, s.min_distance, s.initial_rule, s.stop, s.min_trials) == (
+        "lin",
+        0.0,
+        False,
+        "either",
+        0,
+    )
+    assert s.moves == (1, 2) and s.up_factor == 1.0
+
+
 def test_the_model_observer_and_study_run_a_staircase_with_the_same_answers(tmp_path, capsys):
     path = write_staircase(tmp_path)
     db = tmp_path / "run.db"
@@ -249,9 +303,13 @@ if __name__ == "__main__":
 def test_the_bundled_staircases_check(capsys):
     for path in (STAIRCASE, WEIGHT_STAIRCASE):
         assert main(["experiment", "check", str(path)]) == 0
-    out = capsys.readouterr().out
-    assert "staircase 1up2down (converges on 70.7% correct), 12 tracks" in out
-    assert "staircase weighted (converges on 75.0% correct), 12 tracks" in out
+    out, err = capsys.readouterr()
+    assert (
+        "staircase 1up2down (converges on 70.7% correct; one up, one down until the first "
+        "reversal; crossing the standard by up to 0.6), 12 tracks" in out
+    )
+    assert "staircase weighted (converges on 75.0% correct; crossing the standard by up to " in out
+    assert "warning" not in err  # both land on their point (tests/test_staircase_bias.py)
 
 
 def test_quest_plus_resumes_exactly_and_estimates_the_observer(tmp_path, capsys):

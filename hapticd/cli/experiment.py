@@ -63,6 +63,8 @@ def cmd_experiment_check(args: argparse.Namespace) -> int:
         "with every interval at its limit, and the breaks)\n"
         f"  metadata     {_metadata_line(exp)}"
     )
+    if exp.procedure == "staircase" and exp.staircase is not None:
+        _staircase_bias(args.experiment, exp.staircase)
     if exp.randomization.counterbalance != "none":
         print(f"  orders       {_orders_line(exp)}")
         if exp.subjects:
@@ -210,6 +212,20 @@ def cmd_experiment_orders(args: argparse.Namespace) -> int:
     else:
         print(f"hapticd: warning: {warning}", file=sys.stderr)
     return EXIT_OK
+
+
+def _staircase_bias(path: Any, st: Any) -> None:
+    """The staircase's simulated JND against its point, and a warning when it is off
+    (hapticd.experiment.bias)."""
+    from hapticd.experiment import bias
+
+    rows, warning = bias.check(st)
+    print(
+        f"  bias         simulated JND vs its {st.target_share:.1%} point: {bias.summary(rows)} "
+        f"({bias.CHECK_SUBJECTS} subjects each; scripts/staircase_bias.py)"
+    )
+    if warning:
+        print(f"hapticd: warning: {path}: staircase: {warning}", file=sys.stderr)
 
 
 def _package(name: str) -> str:

@@ -30,7 +30,8 @@ from hapticd.experiment.spec import Experiment, ExperimentError, QuestPlusDesign
 
 @dataclass
 class Track:
-    """One staircase's state; ``distance`` and ``step`` are fractions of the standard."""
+    """One staircase's state; ``distance`` and ``step`` are fractions of the standard
+    (``step_type`` lin; db and log steps are in decibels and log10 units)."""
 
     index: int
     condition: str
@@ -38,13 +39,20 @@ class Track:
     sign: int  # +1: comparisons above the standard; -1: below
     distance: float
     step: float
-    run: int = 0  # correct answers in a row since the last move
+    # Same answers in a row since the last move: +k correct, -k wrong (StairHandler's
+    # correctCounter).
+    run: int = 0
     last_move: int = 0  # +1 up (easier), -1 down (harder), 0 none yet
     n: int = 0  # trials answered
     reversals: list[float] = field(default_factory=list)  # distances where it turned
     reversal_trials: list[int] = field(default_factory=list)  # at which trial (1-based)
     levels: list[float] = field(default_factory=list)  # each trial's distance
     correct: list[bool] = field(default_factory=list)
+
+    @classmethod
+    def new(cls, index: int, condition: str, standard: float, sign: int, st: Staircase) -> Track:
+        """A track of ``st`` at its start."""
+        return cls(index, condition, standard, sign, st.start, st.step)
 
     @property
     def side(self) -> str:
@@ -60,34 +68,43 @@ class Track:
         return float(f"{self.standard * (1 + self.sign * self.distance):.12g}")
 
     def done(self, st: Staircase) -> bool:
-        return len(self.reversals) >= st.stop_reversals or self.n >= st.max_trials
+        turned = len(self.reversals) >= st.stop_reversals
+        if st.stop == "both":
+            return (turned and self.n >= st.min_trials) or self.n >= st.max_trials
+        return turned or self.n >= st.max_trials
 
     def answer(self, correct: bool, st: Staircase) -> None:
-        """Move after one answer: down (harder) after the rule's correct answers in a row
-        (weighted: one), up (easier) after a wrong one; a change of direction is a
+        """Move after one answer, as PsychoPy's StairHandler does: down (harder) after
+        ``n_down`` correct answers in a row, up (easier) after ``n_up`` wrong ones (one
+        and one before the first reversal with ``initial_rule``; the weighted rule: one
+        and one, up ``target / (1 - target)`` steps); a change of direction is a
         reversal, where the step halves (``step_rule: halve``, down to min_step)."""
         self.levels.append(self.distance)
         self.correct.append(correct)
         self.n += 1
-        needed = {"1up2down": 2, "1up3down": 3, "weighted": 1}[st.rule]
-        move = 0
         if correct:
-            self.run += 1
-            if self.run >= needed:
-                move, self.run = -1, 0
+            self.run = self.run + 1 if self.run > 0 else 1
         else:
-            move, self.run = 1, 0
+            self.run = self.run - 1 if self.run < 0 else -1
+        n_up, n_down = (1, 1) if st.initial_rule and not self.reversals else st.moves
+        move = -1 if self.run >= n_down else 1 if self.run <= -n_up else 0
         if move == 0:
             return
+        self.run = 0
         if self.last_move and move != self.last_move:
             self.reversals.append(self.distance)
             self.reversal_trials.append(self.n)
             if st.step_rule == "halve":
                 self.step = max(self.step / 2, st.min_step or 0.0)
         self.last_move = move
-        up = st.target_share / (1 - st.target_share) if st.rule == "weighted" else 1.0
-        size = self.step * (up if move > 0 else 1.0)
-        self.distance = float(np.clip(self.distance + move * size, 0.0, st.max_distance))
+        size = self.step * (st.up_factor if move > 0 else 1.0)
+        # The operations StairHandler does, so the same answers give the same levels.
+        if st.step_type == "lin":
+            d = self.distance + size if move > 0 else self.distance - size
+        else:
+            factor = 10.0 ** (size / 20.0 if st.step_type == "db" else size)
+            d = self.distance * factor if move > 0 else self.distance / factor
+        self.distance = float(min(max(d, st.min_distance), st.max_distance))
 
     def threshold(self, st: Staircase) -> float | None:
         """The mean distance of the last ``threshold_reversals`` reversals (fraction of
@@ -244,7 +261,7 @@ def tracks_from_rows(rows: Iterable[Mapping[str, Any]], st: Staircase) -> dict[t
         rs = sorted(rs, key=lambda r: r["plan_index"])
         first = rs[0]
         sign = 1 if first["comparison"] > first["standard"] else -1
-        track = Track(block, first["condition"], float(first["standard"]), sign, st.start, st.step)
+        track = Track.new(block, first["condition"], float(first["standard"]), sign, st)
         for r in rs:
             track.answer(is_correct(track, bool(r["comparison_more"])), st)
         out[(subject, block)] = track

@@ -195,6 +195,8 @@ def analyze_staircases(
     return {
         "target": st.target_share,
         "rule": st.rule,
+        "n_up": st.moves[0],
+        "n_down": st.moves[1],
         "tracks": rows,
         "thresholds": thresholds,
         "tests": paired_tests(
@@ -268,14 +270,19 @@ def format_quest(result: dict[str, Any], unit: str) -> str:
             f"{r['trials']:>3} trials PSE {r['pse']:.4g} JND {r['jnd']:.4g} "
             f"Weber {r['weber']:.3f}"
         )
-    lines += _test_lines(result["tests"], "the QUEST+ Weber fractions")
+    lines += _test_lines(
+        result["tests"], f"the QUEST+ Weber fractions ({jnd_label(result['jnd_point'])})"
+    )
     return "\n".join(lines) + "\n"
 
 
 def format_staircases(result: dict[str, Any], unit: str) -> str:
     """The staircase section of the report."""
+    rule = result["rule"]
+    if rule == "updown":
+        rule = f"updown, {result.get('n_up', 1)} up {result.get('n_down')} down"
     lines = [
-        f"staircase tracks ({result['rule']}, converging on {result['target']:.1%} correct; "
+        f"staircase tracks ({rule}, converging on {result['target']:.1%} correct; "
         "threshold: mean of the last reversals):"
     ]
     for r in result["tracks"]:
@@ -292,7 +299,9 @@ def format_staircases(result: dict[str, Any], unit: str) -> str:
     for t in result["thresholds"]:
         what = t["reason"] if t["jnd"] is None else f"JND {t['jnd']:.4g}, Weber {t['weber']:.3f}"
         lines.append(f"  {t['subject']:<10} {t['condition']:<10} {t['standard']:<8.4g} {what}")
-    lines += _test_lines(result["tests"], "the reversal Weber fractions")
+    lines += _test_lines(
+        result["tests"], f"the reversal Weber fractions (JND at {result['target']:.1%} correct)"
+    )
     return "\n".join(lines) + "\n"
 
 
@@ -395,7 +404,7 @@ def format_report(result: dict[str, Any], unit: str) -> str:
             f"  {g['condition']:<10} standard {g['standard']:<8.4g} Weber {mean} "
             f"(SD {sd}, {g['n_subjects']} subjects)"
         )
-    lines += _test_lines(result["tests"], "the Weber fractions")
+    lines += _test_lines(result["tests"], f"the Weber fractions ({jnd_label(point)})")
     return "\n".join(lines) + "\n"
 
 

@@ -232,7 +232,7 @@ def answer_flags(
         # A track starts `start` from the standard, never on it: its first trial's side.
         first = rows[0]
         sign = 1 if first["comparison"] > first["standard"] else -1
-        track = Track(-1, first["condition"], float(first["standard"]), sign, st.start, st.step)
+        track = Track.new(-1, first["condition"], float(first["standard"]), sign, st)
         for r in rows:
             flags = out[r["id"]]
             flags["side"] = track.side

@@ -66,21 +66,34 @@ class StaircaseProcedure(Procedure):
         return self.settings.max_trials
 
     def ratio_range(self) -> tuple[float, float]:
-        d = self.settings.max_distance
-        return (1 - d if self.settings.sides == "both" else 1.0, 1 + d)
+        st = self.settings
+        low = 1 - st.max_distance if st.sides == "both" else min(1.0, 1 + st.min_distance)
+        return (low, 1 + st.max_distance)
 
     def describe(self, exp: Experiment) -> str:
         st = self.settings
+        n_up, n_down = st.moves
+        rule = f"updown ({n_up} up, {n_down} down)" if st.rule == "updown" else st.rule
+        extra = [f"{st.step_type} steps"] if st.step_type != "lin" else []
+        if st.initial_rule:
+            extra.append("one up, one down until the first reversal")
+        if st.min_distance < 0:
+            extra.append(f"crossing the standard by up to {-st.min_distance:g}")
+        end = (
+            f"{st.stop_reversals} reversals and {st.min_trials} trials, {st.max_trials} at most"
+            if st.stop == "both"
+            else f"{st.stop_reversals} reversals or {st.max_trials} trials"
+        )
         return (
-            f"staircase {st.rule} (converges on {st.target_share:.1%} correct), {exp.n_blocks} "
-            f"tracks interleaved ({len(st.sign_list())} per condition and standard), each "
-            f"ending after {st.stop_reversals} reversals or {st.max_trials} trials: at most "
+            f"staircase {rule} (converges on {st.target_share:.1%} correct"
+            + "".join(f"; {e}" for e in extra)
+            + f"), {exp.n_blocks} tracks interleaved ({len(st.sign_list())} per condition and "
+            f"standard), each ending after {end}: at most "
             f"{exp.n_blocks * st.max_trials} per subject"
         )
 
     def new_track(self, index: int, condition: str, standard: float, sign: int) -> Track:
-        st = self.settings
-        return Track(index, condition, standard, sign, st.start, st.step)
+        return Track.new(index, condition, standard, sign, self.settings)
 
     def comparison(self, track: Track) -> float:
         return track.comparison()

@@ -200,23 +200,54 @@ class Randomization(_Strict):
 
 
 # The answer rule of each staircase and the share of "correct" answers it converges on
-# (Levitt 1971): two (three) correct in a row make it harder, one wrong easier; the
-# weighted rule (Kaernbach 1991) moves up by step x target / (1 - target) after a wrong
-# answer, down by step after a correct one, and converges on its target.
+# (Levitt 1971): two (three) correct in a row make it harder, one wrong easier; updown:
+# n_down correct in a row harder, n_up wrong in a row easier; the weighted rule
+# (Kaernbach 1991) moves up by step x target / (1 - target) after a wrong answer, down by
+# step after a correct one, and converges on its target.
+RULE_MOVES = {"1up2down": (1, 2), "1up3down": (1, 3), "weighted": (1, 1)}
+
+
+def updown_target(n_up: int, n_down: int) -> float:
+    """The share correct a transformed up-down staircase converges on (Levitt 1971): the
+    p at which n_down correct in a row come before n_up wrong in a row half the time
+    (1 up 2 down: 0.5 ** 0.5)."""
+    from scipy import optimize
+
+    def down_first(p: float) -> float:
+        q = 1 - p
+        a, b = p ** (n_down - 1), q ** (n_up - 1)
+        return a * (1 - q**n_up) / (a + b - a * b) - 0.5
+
+    return float(optimize.brentq(down_first, 1e-9, 1 - 1e-9, xtol=1e-14))
+
+
 RULE_TARGETS = {"1up2down": 2**-0.5, "1up3down": 2 ** (-1 / 3)}
 
 
 class Staircase(_Strict):
     """An adaptive staircase per condition, standard and side (docs/experiments.md):
     the comparison's distance from the standard, as a fraction of the standard, goes
-    down after correct answers and up after wrong ones."""
+    down after correct answers and up after wrong ones. The moves, steps and stopping
+    rule are PsychoPy's StairHandler's (``step_type``, ``n_up``/``n_down``,
+    ``initial_rule``, ``stop``), given the same answers; the defaults are the rules this
+    section had before those keys."""
 
-    rule: Literal["1up2down", "1up3down", "weighted"] = Field(
+    rule: Literal["1up2down", "1up3down", "weighted", "updown"] = Field(
         description="1up2down (converges on 70.7 % correct), 1up3down (79.4 %), weighted "
-        "(on target)"
+        "(on target), updown (n_up wrong in a row easier, n_down correct in a row harder)"
     )
     target: Float | None = Field(
         default=None, gt=0.5, lt=1.0, description="the weighted rule's share correct"
+    )
+    n_up: Int | None = Field(
+        default=None, ge=1, le=10, description="updown: wrong answers in a row that move it up"
+    )
+    n_down: Int | None = Field(
+        default=None, ge=1, le=10, description="updown: correct answers in a row that move it down"
+    )
+    initial_rule: Bool = Field(
+        default=False,
+        description="one up, one down until the first reversal (PsychoPy's applyInitialRule)",
     )
     sides: Literal["both", "above"] = Field(
         default="both",
@@ -224,15 +255,36 @@ class Staircase(_Strict):
         "and one below (correct: judged less), interleaved; above: only the first",
     )
     start: Float = Field(gt=0, description="first distance from the standard, fraction of it")
-    step: Float = Field(gt=0, description="first step, fraction of the standard")
+    step_type: Literal["lin", "db", "log"] = Field(
+        default="lin",
+        description="lin: the step is added to (taken from) the distance, a fraction of the "
+        "standard; db: the distance is multiplied (divided) by 10 ** (step / 20); log: by "
+        "10 ** step",
+    )
+    step: Float = Field(gt=0, description="first step (lin: fraction of the standard; db; log10)")
     step_rule: Literal["fixed", "halve"] = Field(
         default="halve", description="halve: the step halves at each reversal, to min_step"
     )
     min_step: Float | None = Field(default=None, gt=0, description="smallest step (halve)")
+    min_distance: Float = Field(
+        default=0.0,
+        ge=-1.0,
+        description="the nearest a comparison may come to the standard, fraction of it; "
+        "negative (lin steps): the track may cross the standard by that much",
+    )
     max_distance: Float = Field(
         gt=0, description="the farthest a comparison may be from the standard, fraction of it"
     )
+    stop: Literal["either", "both"] = Field(
+        default="either",
+        description="either: a track ends after stop_reversals reversals or max_trials "
+        "trials; both: after stop_reversals reversals and min_trials trials (PsychoPy's "
+        "nReversals and nTrials), max_trials at most",
+    )
     stop_reversals: Int = Field(default=8, ge=2, le=100, description="a track ends after these")
+    min_trials: Int = Field(
+        default=0, ge=0, le=1000, description="stop both: a track runs at least these trials"
+    )
     max_trials: Int = Field(default=60, ge=2, le=1000, description="or after these trials")
     threshold_reversals: Int = Field(
         default=6, ge=1, description="the threshold: mean of the last N reversals' distances"
@@ -240,7 +292,8 @@ class Staircase(_Strict):
 
     @model_validator(mode="after")
     def _converges(self) -> Staircase:
-        if self.step > self.max_distance:
+        lin = self.step_type == "lin"
+        if lin and self.step > self.max_distance:
             raise ValueError(
                 f"step {self.step:g} is larger than the range max_distance "
                 f"{self.max_distance:g}: the staircase cannot converge"
@@ -251,22 +304,84 @@ class Staircase(_Strict):
             raise ValueError(f"min_step {self.min_step:g} is larger than step {self.step:g}")
         if (self.rule == "weighted") != (self.target is not None):
             raise ValueError("target is needed by the weighted rule, and only by it")
+        if (self.rule == "updown") != (self.n_down is not None) or (
+            self.n_up is not None and self.rule != "updown"
+        ):
+            raise ValueError(
+                "n_down (and n_up, 1 by default) are the updown rule's, and only its; "
+                f"{self.rule} moves as its name says"
+            )
+        if self.rule == "updown" and self.target_share <= 0.5 + 1e-9:
+            raise ValueError(
+                f"n_up {self.moves[0]}, n_down {self.moves[1]} converge on "
+                f"{self.target_share:.1%} correct: a threshold needs more than 50 % (n_down "
+                "larger than n_up)"
+            )
+        if self.initial_rule and self.rule == "weighted":
+            raise ValueError(
+                "initial_rule: the weighted rule already moves after every answer (one up, "
+                "one down); it changes nothing there"
+            )
         if self.threshold_reversals > self.stop_reversals:
             raise ValueError(
                 f"threshold_reversals ({self.threshold_reversals}) exceeds stop_reversals "
                 f"({self.stop_reversals}): a stopped track would not have them"
+            )
+        if self.stop == "either" and self.min_trials:
+            raise ValueError("min_trials is for stop: both (either: the first of the two ends it)")
+        if self.min_trials > self.max_trials:
+            raise ValueError(
+                f"min_trials ({self.min_trials}) exceeds max_trials ({self.max_trials})"
             )
         if self.sides == "both" and self.max_distance >= 1:
             raise ValueError(
                 f"max_distance {self.max_distance:g}: a track below the standard needs it "
                 "below 1 (a comparison above 0)"
             )
+        if self.min_distance >= self.start:
+            raise ValueError(
+                f"min_distance {self.min_distance:g}: a track starts at start "
+                f"{self.start:g}, which must be farther than it"
+            )
+        if self.min_distance < 0 and not lin:
+            raise ValueError(
+                f"min_distance {self.min_distance:g}: {self.step_type} steps multiply the "
+                "distance, which so never reaches the standard; crossing it needs "
+                "step_type lin"
+            )
+        if -self.min_distance > self.max_distance or (
+            self.sides == "above" and self.min_distance <= -1
+        ):
+            raise ValueError(
+                f"min_distance {self.min_distance:g}: a track may cross the standard by at "
+                f"most max_distance ({self.max_distance:g})"
+                + (", and above 0" if self.sides == "above" else "")
+            )
         return self
+
+    @property
+    def moves(self) -> tuple[int, int]:
+        """(n_up, n_down): wrong answers in a row that move a track up, correct ones down."""
+        if self.rule == "updown":
+            return (self.n_up or 1, int(self.n_down or 1))
+        return RULE_MOVES[self.rule]
 
     @property
     def target_share(self) -> float:
         """The share of correct answers the track converges on."""
-        return self.target if self.target is not None else RULE_TARGETS[self.rule]
+        if self.target is not None:
+            return self.target
+        if self.rule in RULE_TARGETS:
+            return RULE_TARGETS[self.rule]
+        return updown_target(*self.moves)
+
+    @property
+    def up_factor(self) -> float:
+        """How many steps a move up takes: the weighted rule's target / (1 - target), 1
+        otherwise."""
+        if self.rule != "weighted":
+            return 1.0
+        return self.target_share / (1 - self.target_share)
 
     def sign_list(self) -> tuple[int, ...]:
         """The sides' signs: +1 above the standard, -1 below."""
@@ -797,6 +912,14 @@ class Experiment(_Strict):
                         f"(1 {'+' if sign > 0 else '-'} {st.max_distance:g}) = {c:g} is outside "
                         f"{self.varied.param}'s range {spec.range_text()}"
                     )
+            # A track above the standard that may cross it reaches s x (1 + min_distance).
+            c = s * (1 + st.min_distance)
+            if st.min_distance < 0 and not spec.in_range(c):
+                raise ValueError(
+                    f"staircase.min_distance: the comparison standard {s:g} x (1 - "
+                    f"{-st.min_distance:g}) = {c:g} is outside {self.varied.param}'s range "
+                    f"{spec.range_text()}"
+                )
         return self
 
     @property
