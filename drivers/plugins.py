@@ -111,3 +111,33 @@ def discover(
             continue
         found[name] = Plugin(name, package, value, obj)
     return found, problems
+
+
+class Registry:
+    """One kind's plugins, found on first use (``discover``) and again after ``reload``."""
+
+    def __init__(
+        self, group: str, builtins: Collection[str], check: Callable[[str, Any], str | None]
+    ) -> None:
+        self.group, self.builtins, self.check = group, builtins, check
+        self._found: dict[str, Plugin] | None = None
+        self._problems: list[Problem] = []
+
+    def plugins(self) -> dict[str, Plugin]:
+        """The registered plugins by name (found now if not yet)."""
+        if self._found is None:
+            self._found, self._problems = discover(self.group, self.builtins, self.check)
+        return self._found
+
+    def problems(self) -> list[Problem]:
+        """The entry points refused, with why."""
+        self.plugins()
+        return list(self._problems)
+
+    def refused(self, name: str) -> Problem | None:
+        """The refusal of the entry point ``name`` (None: not refused)."""
+        return next((p for p in self.problems() if p.name == name), None)
+
+    def reload(self) -> None:
+        """Find the installed plugins again (the next lookup does)."""
+        self._found = None

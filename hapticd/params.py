@@ -49,8 +49,11 @@ OWNERS: tuple[Owner, ...] = ("renderer", "safety")
 def _plugin_name(value: object) -> bool:
     """Whether ``value`` could name an entry point: 1 to 100 printable characters, no
     spaces."""
-    return isinstance(value, str) and 0 < len(value) <= 100 and value.isprintable() and (
-        not any(c.isspace() for c in value)
+    return (
+        isinstance(value, str)
+        and 0 < len(value) <= 100
+        and value.isprintable()
+        and (not any(c.isspace() for c in value))
     )
 
 

@@ -18,12 +18,11 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from typing import Any
 
 import numpy as np
-from hapticd_drivers.plugins import Plugin, Problem, discover
+from hapticd_drivers.plugins import Plugin, Problem, Registry
 
 from hapticd import params
 from hapticd.allocation import kernels
@@ -35,15 +34,8 @@ PLUGIN_COMPILERS = "hapticd.plugin_compilers"
 BUILTIN: tuple[str, ...] = tuple(params.ALLOCATORS)
 
 
-@dataclass
-class _Registry:
-    plugins: dict[str, Plugin] | None = None
-    problems: list[Problem] = field(default_factory=list)
-    # Each plugin's compiled form, or why it cannot be compiled, by handle.
-    natives: dict[int, Any] = field(default_factory=dict)
-
-
-_REGISTRY = _Registry()
+# Each plugin's compiled form, or why it cannot be compiled, by handle.
+_NATIVES: dict[int, Any] = {}
 
 
 def _probe() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -91,33 +83,28 @@ def check_plugin(name: str, obj: Any) -> str | None:
     return None
 
 
-def _plugins() -> dict[str, Plugin]:
-    if _REGISTRY.plugins is None:
-        found, problems = discover(GROUP, BUILTIN, check_plugin)
-        _REGISTRY.plugins, _REGISTRY.problems = found, problems
-    return _REGISTRY.plugins
+_REGISTRY = Registry(GROUP, BUILTIN, check_plugin)
 
 
 def reload_plugins() -> None:
     """Find the installed allocators again (the next lookup does)."""
-    _REGISTRY.plugins = None
+    _REGISTRY.reload()
 
 
 def problems() -> list[Problem]:
     """The ``hapticd.allocators`` entry points refused, with why."""
-    _plugins()
-    return list(_REGISTRY.problems)
+    return _REGISTRY.problems()
 
 
 def names() -> tuple[str, ...]:
     """Every allocator's name: the built-ins (hapticd.params.ALLOCATORS), then the installed
     ones. Recordings store an index into this order (their meta "allocators" lists it)."""
-    return (*BUILTIN, *sorted(_plugins()))
+    return (*BUILTIN, *sorted(_REGISTRY.plugins()))
 
 
 def get(name: str) -> Plugin | None:
     """The installed allocator ``name`` (None: a built-in's name, or none installed)."""
-    return None if name in BUILTIN else _plugins().get(name)
+    return None if name in BUILTIN else _REGISTRY.plugins().get(name)
 
 
 def is_known(name: str) -> bool:
@@ -129,7 +116,7 @@ def is_known(name: str) -> bool:
 def unknown(name: object) -> str:
     """Why ``name`` is no allocator: the refused plugin's package, entry point and reason,
     or the names there are."""
-    refused = next((p for p in problems() if p.name == name), None)
+    refused = _REGISTRY.refused(str(name))
     if refused is not None:
         return f"allocator {name!r} is refused: {refused.message()}"
     return (
@@ -161,23 +148,23 @@ def linear(name: str) -> bool:
 
 def handle(name: str) -> int:
     """The kernel's handle of the installed allocator ``name`` (KeyError: none)."""
-    return kernels.register_plugin(python_function(_plugins()[name].obj))
+    return kernels.register_plugin(python_function(_REGISTRY.plugins()[name].obj))
 
 
 def native_address(h: int) -> tuple[int, str | None]:
     """Handle ``h``'s plugin compiled, once per process, by the compiler the install
     provides (entry point group PLUGIN_COMPILERS: hapticd.physics.native's): the address
     the compiled tick calls, or 0 and why it cannot be compiled."""
-    if h not in _REGISTRY.natives:
+    if h not in _NATIVES:
         compilers = sorted(entry_points(group=PLUGIN_COMPILERS), key=lambda e: e.name)
         if not compilers:
-            _REGISTRY.natives[h] = f"no compiler is installed (entry points {PLUGIN_COMPILERS})"
+            _NATIVES[h] = f"no compiler is installed (entry points {PLUGIN_COMPILERS})"
         else:
             try:
-                _REGISTRY.natives[h] = compilers[0].load()(kernels.plugin_function(h))
+                _NATIVES[h] = compilers[0].load()(kernels.plugin_function(h))
             except Exception as exc:  # numba's typing errors, or no numba: said, as Python
-                _REGISTRY.natives[h] = _reason(exc)
-    got = _REGISTRY.natives[h]
+                _NATIVES[h] = _reason(exc)
+    got = _NATIVES[h]
     return (0, got) if isinstance(got, str) else (got.address, None)
 
 

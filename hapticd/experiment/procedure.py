@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
-from hapticd_drivers.plugins import Plugin, Problem, discover
+from hapticd_drivers.plugins import Plugin, Problem, Registry
 from pydantic import BaseModel
 
 from hapticd.experiment.comparisons import _test_lines, paired_tests, session_rows
@@ -354,15 +354,6 @@ _BUILTINS = {
 BUILTIN: frozenset[str] = frozenset(_BUILTINS)
 
 
-@dataclass
-class _Registry:
-    plugins: dict[str, Plugin] | None = None
-    problems: list[Problem] = field(default_factory=list)
-
-
-_REGISTRY = _Registry()
-
-
 def check_plugin(name: str, obj: Any) -> str | None:
     """Why an entry point's object is no procedure (None: it is one): a concrete
     ``Procedure`` subclass whose ``name`` is the entry point's and whose ``Settings`` is
@@ -383,22 +374,21 @@ def check_plugin(name: str, obj: Any) -> str | None:
     return None
 
 
+_REGISTRY = Registry(GROUP, BUILTIN, check_plugin)
+
+
 def _plugins() -> dict[str, Plugin]:
-    if _REGISTRY.plugins is None:
-        found, problems = discover(GROUP, BUILTIN, check_plugin)
-        _REGISTRY.plugins, _REGISTRY.problems = found, problems
-    return _REGISTRY.plugins
+    return _REGISTRY.plugins()
 
 
 def reload_plugins() -> None:
     """Find the installed procedures again (the next lookup does)."""
-    _REGISTRY.plugins = None
+    _REGISTRY.reload()
 
 
 def problems() -> list[Problem]:
     """The ``hapticd.procedures`` entry points refused, with why."""
-    _plugins()
-    return list(_REGISTRY.problems)
+    return _REGISTRY.problems()
 
 
 def names() -> list[str]:
@@ -427,7 +417,7 @@ def get(name: str) -> type[Procedure]:
     plugins = _plugins()
     if name in plugins:
         return plugins[name].obj
-    refused = next((p for p in _REGISTRY.problems if p.name == name), None)
+    refused = _REGISTRY.refused(name)
     if refused is not None:
         raise UnknownProcedureError(f"procedure {name!r} is refused: {refused.message()}")
     known = ", ".join(repr(n) for n in names())

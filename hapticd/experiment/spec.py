@@ -51,10 +51,20 @@ class ExperimentError(ValueError):
 
 def _param_check(name: str) -> Any:
     def check(value: Any) -> Any:
+        spec = params.PARAMS[name]
         try:
-            return params.PARAMS[name].check(value)
+            value = spec.check(value)
         except params.ParamError as exc:
             raise ValueError(str(exc)) from None
+        if spec.plugins and value not in spec.choices:  # an allocator plugin's name?
+            from hapticd.allocation import plugins
+
+            if not plugins.is_known(value):
+                raise ValueError(
+                    f"{name} must be one of {list(spec.choices)} or an installed "
+                    f"plugin's: {plugins.unknown(value)}"
+                )
+        return value
 
     return check
 
