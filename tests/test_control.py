@@ -37,7 +37,7 @@ from tests.conftest import GRASP_PROFILE, IN_PROCESS, ServerHold, wait_for, wait
         (b'{"cmd": "set", "param": "stiffness_n_per_m", "value": "stiff"}', "bad_value"),
         (b'{"cmd": "set", "param": "stiffness_n_per_m", "value": NaN}', "bad_value"),
         (b'{"cmd": "set", "param": "friction", "value": [0.2, 0.5]}', "bad_value"),
-        (b'{"cmd": "set", "param": "allocator", "value": "magic"}', "bad_value"),
+        (b'{"cmd": "set", "param": "allocator", "value": "no such"}', "bad_value"),
         (b"x" * (MAX_LINE_BYTES + 1), "too_large"),
         (b"\xff\xfe", "malformed"),
         (b'{"cmd": "set", "param": "force_limit_n", "value": 100}', "out_of_range"),

@@ -235,11 +235,10 @@ def test_labrecorder_records_both_streams_and_pyxdf_reads_them_back_aligned(tmp_
     )
 
     # pyxdf's defaults (clock synchronisation and dejittering): the markers are as above
-    # (an irregular stream is not dejittered) and so are the samples' values; the samples'
-    # times, fitted to the nominal rate, barely move: hapticd stamps each tick's start,
-    # which is on that grid but for the loop's own jitter.
+    # (an irregular stream is not dejittered) and so are the samples' values. The samples'
+    # times are refitted to the nominal rate, which moves each by the loop's own jitter (on
+    # a loaded machine, a good part of a tick): docs/lsl.md loads hapticd's streams without
+    # dejittering for that reason.
     default = by_name(pyxdf.load_xdf(xdf)[0])
     np.testing.assert_array_equal(default[names[1]]["time_stamps"], mstamps)
     np.testing.assert_array_equal(default[numeric_name]["time_series"], values)
-    moved = np.abs(default[numeric_name]["time_stamps"] - stamps)
-    assert np.median(moved) < 0.1 * tick_s
