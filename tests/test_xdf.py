@@ -133,8 +133,7 @@ def test_labrecorder_records_both_streams_and_pyxdf_reads_them_back_aligned(tmp_
     each contact marker's tick is the sample where that finger's in_contact changes, and
     its time that sample's (within a tick), with pyxdf's clock synchronisation and without;
     the interval's recording's rows are the XDF's samples of their ticks, at their LSL
-    times; and pyxdf's dejittering leaves the markers and the values as they were and moves
-    the samples' times by little more than the loop's jitter."""
+    times; and pyxdf's dejittering leaves the markers and the values as they were."""
     profile, name = rehearsal(tmp_path)
     numeric_name = lsl.stream_name(name)
     names = [numeric_name, numeric_name + "-markers"]
