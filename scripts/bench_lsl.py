@@ -28,6 +28,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import uuid
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -59,7 +60,10 @@ print(got)
 def run_case(variant: str, paced: bool, seconds: float, tmp: Path) -> dict:
     """One ``hapticd run``; its summary (plus ``inlet_samples`` with an inlet)."""
     out = tmp / "summary.json"
+    # A name of its own: another run of the same profile on this machine is another stream.
+    name = f"bench-lsl-{uuid.uuid4().hex[:8]}"
     cmd = [*HAPTICD, "run", str(PROFILE), "--duration", str(seconds), "--no-socket", "-q"]
+    cmd += ["--set", f"name={name}"]
     cmd += ["--no-realtime", "--summary-json", str(out)]
     # A paced run's wall-clock faults are not what this measures: it runs to its end.
     cmd += ["--set", "safety.watchdog_s=null", "--set", "loop.max_consecutive_overruns=0"]
@@ -70,7 +74,7 @@ def run_case(variant: str, paced: bool, seconds: float, tmp: Path) -> dict:
     inlet = None
     if variant == "lsl + inlet":
         inlet = subprocess.Popen(
-            [sys.executable, "-c", INLET_SCRIPT, "hapticd-grasp-stiffness"],
+            [sys.executable, "-c", INLET_SCRIPT, f"hapticd-{name}"],
             stdout=subprocess.PIPE,
             text=True,
         )
@@ -80,7 +84,11 @@ def run_case(variant: str, paced: bool, seconds: float, tmp: Path) -> dict:
         if inlet is not None:
             time.sleep(0.5)  # the last samples' way to the inlet
             inlet.send_signal(signal.SIGTERM)
-            got, _ = inlet.communicate(timeout=30)
+            try:
+                got, _ = inlet.communicate(timeout=30)
+            except subprocess.TimeoutExpired:  # liblsl has hung an inlet past SIGTERM
+                inlet.kill()
+                got = inlet.communicate()[0] or ""
     summary = json.loads(out.read_text())
     if inlet is not None:
         summary["inlet_samples"] = int(got.strip() or 0)
