@@ -13,6 +13,8 @@ declared in ``hapticd.events``.
 
 from __future__ import annotations
 
+import struct
+
 import numpy as np
 
 from hapticd.events import CODES
@@ -30,6 +32,10 @@ RECORD = np.dtype(
         ("t", "<f8"),
     ]
 )
+# A record packed as RECORD lays it out (little-endian, no padding).
+_PACK = struct.Struct("<BbbiQd").pack_into
+_SIZE = RECORD.itemsize
+assert struct.calcsize("<BbbiQd") == _SIZE and not RECORD.isalignedstruct
 DEFAULT_CAPACITY = 8192  # events; the server drains every few ms, a tick makes a handful
 
 CONTACT_BEGIN = CODES["contact_begin"]
@@ -54,13 +60,7 @@ class EventRing:
             raise ValueError(f"an event ring needs room for at least one event, got {capacity}")
         self.capacity = int(capacity)
         self.records = np.zeros(self.capacity, dtype=RECORD)
-        # Field views, made once: a push writes through them.
-        self._kind = self.records["kind"]
-        self._finger = self.records["finger"]
-        self._button = self.records["button"]
-        self._value = self.records["value"]
-        self._tick = self.records["tick"]
-        self._t = self.records["t"]
+        self._bytes = memoryview(self.records).cast("B")  # what a push packs a record into
         self.head = 0  # events written (producer)
         self.tail = 0  # events read (consumer)
         self.lost = 0  # events dropped because the ring was full (producer)
@@ -78,13 +78,8 @@ class EventRing:
             self.lost_tick = tick
             self.lost_t = t
             return
-        i = head % self.capacity
-        self._kind[i] = kind
-        self._finger[i] = finger
-        self._button[i] = button
-        self._value[i] = value
-        self._tick[i] = tick
-        self._t[i] = t
+        # One C call for the whole record (six numpy item stores took about 0.9 us).
+        _PACK(self._bytes, (head % self.capacity) * _SIZE, kind, finger, button, value, tick, t)
         self.head = head + 1  # published: the record is complete
 
     @property

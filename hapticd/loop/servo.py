@@ -62,17 +62,40 @@ MAX_OBJECT_SPEED_M_PER_S = kernels.MAX_OBJECT_SPEED_M_PER_S
 MAX_OBJECT_SPIN_RAD_PER_S = kernels.MAX_OBJECT_SPIN_RAD_PER_S
 
 
-class Applied(threading.Event):
-    """Set when the loop has applied a submitted command: at ``tick``, or failed with ``error``."""
+class Applied:
+    """Set when the loop has applied a submitted command: at ``tick``, or failed with ``error``.
+
+    An event's ``set``, ``is_set`` and ``wait``, on a lock held until it is set: the loop's
+    ``set`` is one lock release (a C call), not a condition's notify under its lock (about
+    1 us of the tick that applies a command)."""
 
     def __init__(self) -> None:
-        super().__init__()
+        self._lock = threading.Lock()
+        self._lock.acquire()
+        self._set = False
         self.tick = -1
         self.error: str | None = None
         self.result: Any = None
         # The command, kept: what it prepared (and what it replaced) is freed with this, in
         # the submitter's thread, not on the servo thread.
         self.command: Command | None = None
+
+    def set(self) -> None:
+        """Mark it applied (the loop's side), waking every waiter."""
+        if not self._set:
+            self._set = True
+            self._lock.release()
+
+    def is_set(self) -> bool:
+        return self._set
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Whether it is set, waiting up to ``timeout`` s (None: for as long as it takes)."""
+        if self._set:
+            return True
+        if self._lock.acquire(timeout=-1 if timeout is None else max(timeout, 0.0)):
+            self._lock.release()  # the next waiter's turn
+        return self._set
 
 
 class TickClock:
